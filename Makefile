@@ -1,0 +1,36 @@
+# freeform — every command installs what it needs first.
+#   make test    install (if needed) and run the test suite
+#   make train   install (if needed) and run the default training (a CPU-sized demo)
+# Choose your torch: `make install TORCH="torch==2.13.0 --index-url https://download.pytorch.org/whl/cu128"`.
+PYTHON ?= python3
+VENV   ?= .venv
+TORCH  ?= torch==2.13.0
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: install test train bench lint clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q $(TORCH)
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+test: install
+	$(BIN)/python -m pytest -q tests
+
+train: install
+	$(BIN)/freeform-train
+
+bench: install
+	$(BIN)/python -m benchmarks
+
+lint: install
+	$(BIN)/python -m ruff check freeform tests benchmarks experiments
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache outputs multirun runs
+	find . -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -1,0 +1,1 @@
+"""Agents: a hand-written batched PPO and its actor-critic networks."""

@@ -1,0 +1,5 @@
+"""Batched environments: the VecEnv protocol, the design environment and its tasks."""
+
+from freeform.envs.base import Task, VecEnv
+
+__all__ = ["VecEnv", "Task"]

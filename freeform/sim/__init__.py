@@ -1,0 +1,1 @@
+"""Voxelyze's soft-voxel physics in Taichi (see docs/architecture.md)."""
