@@ -1,0 +1,266 @@
+"""What every figure command shares: the paper's statistics, finding and reading runs, provenance, output.
+
+Statistics (spec ppo.md, last section): per trial and epoch, the mean over that epoch's episodes; across trials,
+the mean and a 99 % normal confidence band ``mean ± 2.576·sd/√n`` (sd with Bessel's correction, n = number of
+trials); curves smoothed with a ±2-epoch centred moving average (windows shrink at the ends).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+Z_99 = 2.576
+"""Two-sided 99 % quantile of the standard normal: the paper's "99 % Normal confidence interval"."""
+
+SMOOTH_HALF_WINDOW = 2
+"""The paper's ±2-epoch moving average."""
+
+RUN_INFO = "run_info.json"
+
+
+# ---------------------------------------------------------------------------------------------------- statistics
+def mean_band(values: np.ndarray, axis: int = 0, z: float = Z_99, ddof: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and confidence half-width ``z·sd/√n`` along ``axis``.
+
+    ``values``: any shape; NaNs are ignored (a trial that has fewer epochs than the others). With one sample the
+    half-width is 0 (no spread can be estimated), never NaN.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    n = np.sum(np.isfinite(values), axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        # An epoch with fewer than ddof+1 finite samples has no spread; its half-width is set to 0 below.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(values, axis=axis) if values.size else np.zeros(np.delete(values.shape, axis))
+        sd = np.nanstd(values, axis=axis, ddof=ddof) if values.size else np.zeros_like(mean)
+        half = np.where(n > ddof, z * sd / np.sqrt(np.maximum(n, 1)), 0.0)
+    return mean, np.nan_to_num(half)
+
+
+def moving_average(x: np.ndarray, half_window: int = SMOOTH_HALF_WINDOW) -> np.ndarray:
+    """Centred moving average over the last axis: ``y[i] = mean(x[i-w : i+w+1])``, the window cut at the ends.
+
+    ``x``: ``[..., E]``. ``half_window`` = 0 returns a copy. NaNs are skipped inside a window.
+    """
+    if half_window < 0:
+        raise ValueError(f"half_window must be >= 0, got {half_window}")
+    x = np.asarray(x, dtype=np.float64)
+    if half_window == 0 or x.shape[-1] == 0:
+        return x.copy()
+    finite = np.isfinite(x)
+    filled = np.where(finite, x, 0.0)
+    # Cumulative sums give every window's sum and count in O(E), with no Python loop over epochs.
+    pad = [(0, 0)] * (x.ndim - 1) + [(1, 0)]
+    csum = np.pad(np.cumsum(filled, axis=-1), pad)
+    ccnt = np.pad(np.cumsum(finite, axis=-1), pad)
+    e = x.shape[-1]
+    lo = np.clip(np.arange(e) - half_window, 0, e)
+    hi = np.clip(np.arange(e) + half_window + 1, 0, e)
+    s = csum[..., hi] - csum[..., lo]
+    c = ccnt[..., hi] - ccnt[..., lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(c > 0, s / np.maximum(c, 1), np.nan)
+
+
+@dataclass
+class Curve:
+    """An across-trial curve: per-epoch mean and 99 % band, smoothed as the paper does."""
+
+    epochs: np.ndarray  # [E] int
+    mean: np.ndarray  # [E] smoothed mean across trials
+    lower: np.ndarray  # [E] mean - half-width (both smoothed)
+    upper: np.ndarray  # [E]
+    raw_mean: np.ndarray  # [E] unsmoothed mean across trials
+    n_trials: np.ndarray  # [E] int, trials that reached this epoch
+
+
+def across_trials(per_trial: np.ndarray, epochs: np.ndarray | None = None,
+                  half_window: int = SMOOTH_HALF_WINDOW) -> Curve:
+    """``per_trial``: ``[n_trials, E]`` (NaN where a trial has no such epoch) -> the smoothed curve and band.
+
+    The band's half-width is smoothed with the same window as the mean, so the band stays centred on the curve.
+    """
+    per_trial = np.atleast_2d(np.asarray(per_trial, dtype=np.float64))
+    mean, half = mean_band(per_trial, axis=0)
+    m = moving_average(mean, half_window)
+    h = moving_average(half, half_window)
+    e = per_trial.shape[1]
+    return Curve(
+        epochs=np.arange(e) if epochs is None else np.asarray(epochs),
+        mean=m, lower=m - h, upper=m + h, raw_mean=mean,
+        n_trials=np.sum(np.isfinite(per_trial), axis=0),
+    )
+
+
+def stack_ragged(rows: Sequence[np.ndarray]) -> np.ndarray:
+    """Stack 1-D arrays of different lengths into ``[len(rows), max_len]``, padding with NaN."""
+    width = max((len(r) for r in rows), default=0)
+    out = np.full((len(rows), width), np.nan)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- runs
+def find_runs(paths: Iterable[str | Path]) -> list[Path]:
+    """Run directories under ``paths``: each path that holds ``run_info.json`` is a run; any other directory (a
+    Hydra multirun sweep) is searched recursively. Sorted, without duplicates.
+    """
+    found: list[Path] = []
+    for p in map(Path, paths):
+        if not p.exists():
+            raise ValueError(f"paths: {p} does not exist")
+        if (p / RUN_INFO).is_file():
+            found.append(p.resolve())
+        else:
+            found.extend(sorted(q.parent.resolve() for q in p.rglob(RUN_INFO)))
+    runs = sorted(dict.fromkeys(found))
+    if not runs:
+        raise ValueError(f"paths: no run directory (one holding {RUN_INFO}) under {[str(p) for p in paths]}")
+    return runs
+
+
+def read_run_info(run: Path) -> dict[str, Any]:
+    """The run's ``run_info.json`` (versions, device, git commit, seed, ...)."""
+    with open(Path(run) / RUN_INFO) as f:
+        return json.load(f)
+
+
+PROVENANCE_KEYS = ("freeform", "torch", "taichi", "device", "git_commit")
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def provenance(runs: Sequence[Path]) -> dict[str, str]:
+    """What made the runs: each of :data:`PROVENANCE_KEYS` as found in the runs' ``run_info.json`` (a key is matched
+    by its last dotted component, so ``versions.torch`` counts as ``torch``); differing values are joined by " | "
+    and a missing key reads "unknown".
+    """
+    values: dict[str, list[str]] = {k: [] for k in PROVENANCE_KEYS}
+    for run in runs:
+        flat = _flatten(read_run_info(run))
+        for key in PROVENANCE_KEYS:
+            hits = [str(v) for k, v in flat.items() if k.split(".")[-1] in _ALIASES[key]]
+            if hits and hits[0] not in values[key]:
+                values[key].append(hits[0])
+    out = {k: (" | ".join(v) if v else "unknown") for k, v in values.items()}
+    out["runs"] = str(len(runs))
+    return out
+
+
+_ALIASES = {
+    "freeform": ("freeform", "freeform_version", "version"),
+    "torch": ("torch", "torch_version"),
+    "taichi": ("taichi", "taichi_version"),
+    "device": ("device", "device_name", "gpu"),
+    "git_commit": ("git_commit", "commit", "git", "git_sha"),
+}
+
+
+def provenance_caption(prov: dict[str, str]) -> str:
+    """One line naming what made a figure."""
+    return (f"{prov['runs']} run(s); freeform {prov['freeform']}, torch {prov['torch']}, taichi {prov['taichi']}, "
+            f"device {prov['device']}, commit {prov['git_commit'][:12]}")
+
+
+# ---------------------------------------------------------------------------------------------------- output
+def write_csv(path: Path, columns: dict[str, Sequence[Any]], prov: dict[str, str] | None = None) -> Path:
+    """Write equal-length ``columns`` as CSV, preceded by ``# key: value`` provenance comment lines."""
+    lengths = {len(v) for v in columns.values()}
+    if len(lengths) > 1:
+        raise ValueError(f"columns: lengths differ: { {k: len(v) for k, v in columns.items()} }")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        for k, v in (prov or {}).items():
+            f.write(f"# {k}: {v}\n")
+        w = csv.writer(f)
+        w.writerow(columns.keys())
+        for row in zip(*columns.values(), strict=True):
+            w.writerow([_fmt(x) for x in row])
+    return path
+
+
+def read_csv(path: Path) -> tuple[dict[str, str], dict[str, np.ndarray]]:
+    """Inverse of :func:`write_csv`: ``(provenance, columns)``; numeric columns come back as float arrays."""
+    prov: dict[str, str] = {}
+    lines = []
+    with open(path) as f:
+        for line in f:
+            if line.startswith("# "):
+                k, _, v = line[2:].rstrip("\n").partition(": ")
+                prov[k] = v
+            else:
+                lines.append(line)
+    rows = list(csv.reader(lines))
+    header, body = rows[0], rows[1:]
+    cols: dict[str, np.ndarray] = {}
+    for i, name in enumerate(header):
+        col = [r[i] for r in body]
+        try:
+            cols[name] = np.array([float(x) for x in col])
+        except ValueError:
+            cols[name] = np.array(col)
+    return prov, cols
+
+
+def _fmt(x: Any) -> Any:
+    if isinstance(x, float | np.floating):
+        return f"{float(x):.6g}"
+    return x
+
+
+def save_figure(fig: Any, out: Path, name: str) -> list[Path]:
+    """Save ``fig`` as ``out/name.png`` and ``out/name.pdf``; close it."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"{name}.png", out / f"{name}.pdf"]
+    for p in paths:
+        fig.savefig(p, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return paths
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot on the non-interactive Agg backend, or a clear error naming the extra to install."""
+    try:
+        import matplotlib
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise SystemExit("the figure commands need matplotlib: pip install 'freeform[experiments]'") from e
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_curve(ax: Any, curve: Curve, label: str | None = None, color: str = "0.25",
+               band_color: str | None = None) -> None:
+    """The paper's style: dark mean curve over a light 99 % band."""
+    ax.fill_between(curve.epochs, curve.lower, curve.upper, color=band_color or color, alpha=0.25, linewidth=0)
+    ax.plot(curve.epochs, curve.mean, color=color, linewidth=1.5, label=label)
+
+
+def base_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments every figure command takes: run directories (or sweep directories) and ``--out``."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("paths", nargs="+", help="sweep directories (searched for runs) or run directories")
+    p.add_argument("--out", required=True, type=Path, help="directory for the figure (PNG, PDF) and its CSV")
+    return p
