@@ -1,1 +1,10 @@
-"""Agents: a hand-written batched PPO and its actor-critic networks."""
+"""Agents: a hand-written batched PPO and its actor-critic networks.
+
+``PPO(env, policy, PPOConfig(...))`` trains any ``freeform.envs.VecEnv``; ``VoxelActorCritic`` is the paper's network
+over uint8 voxel grids, ``MLPActorCritic`` serves flat observations.
+"""
+
+from freeform.agents.networks import MLPActorCritic, VoxelActorCritic
+from freeform.agents.ppo import PPO, PPOConfig
+
+__all__ = ["PPO", "PPOConfig", "VoxelActorCritic", "MLPActorCritic"]

@@ -1,0 +1,141 @@
+"""Actor-critic networks: the paper's voxel network and a small MLP for flat observations.
+
+A policy is an ``nn.Module`` whose ``forward(obs)`` returns ``(mean [N, A], log_std [N, A], value [N])``: the
+Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). Every policy keeps its
+constructor arguments in ``init_kwargs`` so that a checkpoint can rebuild it from the file alone, and names groups of
+action dimensions in ``action_groups`` (PPO logs the mean σ of each group).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
+
+TRUNK_IMPLEMENTATIONS = ("fast", "conv")
+
+
+def _xavier_zero(layer: nn.Linear) -> nn.Linear:
+    """Xavier-uniform weights, zero bias: the spec's head init, which makes the untrained policy ≈ N(0, I)."""
+    nn.init.xavier_uniform_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class VoxelActorCritic(nn.Module):
+    """The paper's actor-critic over a voxel grid of material indices (spec ``ppo.md``, "Network").
+
+    Shared trunk: one-hot [N, k, ρ, ρ, ρ] → Conv3d(k→1, 3³, pad 1) → ReLU → Conv3d(1→1, 5³, stride 2, pad 2) → ReLU
+    → flatten (⌈ρ/2⌉³) → Linear(→ h), no activation. Actor: Linear(h→h) → ReLU → Linear(h → 2(3+k)) = (μ, log σ),
+    state-dependent and unclamped. Critic: Linear(h→h) → ReLU → Linear(h→1).
+
+    ``trunk="fast"`` computes the two convolutions without materialising the one-hot tensor: the first layer as a
+    table lookup over the 27 neighbours (its weight gradient a bincount), the second through a phase split of the
+    stride (``freeform.agents.fast_trunk``). ``trunk="conv"`` runs the plain ``nn.Conv3d`` layers. Both read the
+    same parameters (``conv1``, ``conv2``), so state dicts are interchangeable and a test pins them equal.
+    """
+
+    def __init__(self, resolution: int = 20, materials: int = 2, hidden: int = 128, trunk: str = "fast") -> None:
+        """``resolution`` ρ: grid edge; ``materials`` k: material count incl. empty (index 0); ``hidden`` h."""
+        super().__init__()
+        if not isinstance(resolution, int) or resolution < 2:
+            raise ValueError(f"resolution must be an int >= 2, got {resolution!r}")
+        if not isinstance(materials, int) or not 2 <= materials <= 255:
+            raise ValueError(f"materials must be an int in [2, 255] (uint8 grids), got {materials!r}")
+        if not isinstance(hidden, int) or hidden < 1:
+            raise ValueError(f"hidden must be a positive int, got {hidden!r}")
+        if trunk not in TRUNK_IMPLEMENTATIONS:
+            raise ValueError(f"trunk must be one of {TRUNK_IMPLEMENTATIONS}, got {trunk!r}")
+        self.init_kwargs = dict(resolution=resolution, materials=materials, hidden=hidden, trunk=trunk)
+        self.resolution = resolution
+        self.materials = materials
+        self.hidden = hidden
+        self.trunk = trunk
+        self.action_dim = 3 + materials
+        # The action layout is [x, y, z, w_0 … w_{k-1}] (spec design.md, "Action → bundle").
+        self.action_groups = {"position": slice(0, 3), "material": slice(3, 3 + materials)}
+
+        self.conv1 = nn.Conv3d(materials, 1, kernel_size=3, stride=1, padding=1)
+        self.conv2 = nn.Conv3d(1, 1, kernel_size=5, stride=2, padding=2)
+        half = math.ceil(resolution / 2)  # Conv3d output edge: floor((ρ + 2·2 − 5) / 2) + 1
+        self.trunk_fc = nn.Linear(half**3, hidden)
+        self.actor_fc = _xavier_zero(nn.Linear(hidden, hidden))
+        self.actor_out = _xavier_zero(nn.Linear(hidden, 2 * self.action_dim))
+        self.critic_fc = _xavier_zero(nn.Linear(hidden, hidden))
+        self.critic_out = _xavier_zero(nn.Linear(hidden, 1))
+
+    def one_hot(self, grids: torch.Tensor) -> torch.Tensor:
+        """uint8 ``[N, ρ, ρ, ρ]`` → float ``[N, k, ρ, ρ, ρ]`` (channel c = 1 where the voxel holds material c)."""
+        channels = torch.arange(self.materials, device=grids.device, dtype=grids.dtype).view(1, -1, 1, 1, 1)
+        return (grids.unsqueeze(1) == channels).to(self.conv1.weight.dtype)
+
+    def features(self, grids: torch.Tensor) -> torch.Tensor:
+        """uint8 ``[N, ρ, ρ, ρ]`` → trunk features float ``[N, h]``."""
+        rho = self.resolution
+        if grids.dim() != 4 or tuple(grids.shape[1:]) != (rho, rho, rho):
+            raise ValueError(f"grids must have shape [N, {rho}, {rho}, {rho}], got {tuple(grids.shape)}")
+        if self.trunk == "fast":
+            x = F.relu(onehot_conv3d(grids, self.conv1.weight, self.conv1.bias))
+            x = F.relu(strided_conv3d(x, self.conv2.weight, self.conv2.bias))
+        else:
+            x = F.relu(self.conv1(self.one_hot(grids)))
+            x = F.relu(self.conv2(x))
+        return self.trunk_fc(x.flatten(1))
+
+    def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """uint8 ``[N, ρ, ρ, ρ]`` → (mean ``[N, 3+k]``, log_std ``[N, 3+k]``, value ``[N]``)."""
+        z = self.features(grids)
+        mean, log_std = self.actor_out(F.relu(self.actor_fc(z))).chunk(2, dim=-1)
+        value = self.critic_out(F.relu(self.critic_fc(z))).squeeze(-1)
+        return mean, log_std, value
+
+
+class MLPActorCritic(nn.Module):
+    """Separate tanh MLPs for actor and critic over flat float observations, a state-independent log σ.
+
+    CleanRL's continuous-control network: orthogonal init (√2 hidden, 0.01 policy output, 1 value output), so the
+    untrained policy is ≈ N(0, I).
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...] | list[int] = (64, 64)) -> None:
+        super().__init__()
+        if not isinstance(obs_dim, int) or obs_dim < 1:
+            raise ValueError(f"obs_dim must be a positive int, got {obs_dim!r}")
+        if not isinstance(action_dim, int) or action_dim < 1:
+            raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
+        hidden = tuple(hidden)
+        if not hidden or not all(isinstance(h, int) and h > 0 for h in hidden):
+            raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden!r}")
+        self.init_kwargs = dict(obs_dim=obs_dim, action_dim=action_dim, hidden=hidden)
+        self.obs_dim = obs_dim
+        self.action_dim = action_dim
+        self.action_groups: dict[str, slice] = {}
+
+        def mlp(out_dim: int, out_gain: float) -> nn.Sequential:
+            layers: list[nn.Module] = []
+            width = obs_dim
+            for h in hidden:
+                layers += [self._orthogonal(nn.Linear(width, h), math.sqrt(2.0)), nn.Tanh()]
+                width = h
+            layers.append(self._orthogonal(nn.Linear(width, out_dim), out_gain))
+            return nn.Sequential(*layers)
+
+        self.actor = mlp(action_dim, 0.01)
+        self.critic = mlp(1, 1.0)
+        self.log_std = nn.Parameter(torch.zeros(action_dim))
+
+    @staticmethod
+    def _orthogonal(layer: nn.Linear, gain: float) -> nn.Linear:
+        nn.init.orthogonal_(layer.weight, gain)
+        nn.init.zeros_(layer.bias)
+        return layer
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``, value ``[N]``)."""
+        x = obs.reshape(obs.shape[0], -1).to(self.log_std.dtype)
+        mean = self.actor(x)
+        return mean, self.log_std.expand_as(mean), self.critic(x).squeeze(-1)

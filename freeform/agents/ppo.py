@@ -1,0 +1,595 @@
+"""Batched PPO, written out top to bottom: rollout → returns/advantages → loss → update → KL schedule.
+
+The default configuration reproduces the semantics of RLlib 2.0.1's PPO as the paper used it (spec ``ppo.md``):
+GAE with λ = 1 (advantage = discounted return − V), advantages standardised once over the whole train batch, the
+clipped surrogate, the squared value error clamped at ``vf_clip_param``, a KL(π_old ‖ π) penalty whose coefficient
+adapts after every epoch, Adam without gradient clipping. Common variants are switches in ``PPOConfig``.
+
+Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import torch
+import torch.nn as nn
+
+from freeform.envs.base import VecEnv
+
+CHECKPOINT_FORMAT = "freeform.ppo/1"
+ADVANTAGE_NORMS = ("batch", "minibatch", "none")
+VALUE_CLIP_MODES = ("squared", "ppo2")
+LR_SCHEDULES = ("constant", "linear")
+
+
+@dataclass
+class PPOConfig:
+    """PPO hyper-parameters. The defaults are RLlib 2.0.1's PPO with the paper's overrides (Table I)."""
+
+    lr: float = 1e-4
+    """Adam learning rate (paper: 1e-4)."""
+    gamma: float = 0.99
+    """Discount factor γ."""
+    gae_lambda: float = 1.0
+    """GAE λ; 1 = plain discounted return minus V (the paper: "GAE disabled")."""
+    clip_param: float = 0.3
+    """Surrogate clip ε: the ratio π/π_old is clipped to [1 − ε, 1 + ε]."""
+    kl_coeff: float = 0.2
+    """Initial coefficient β of the KL(π_old ‖ π) penalty; 0 disables the penalty (β then stays 0)."""
+    kl_target: float = 0.01
+    """Target KL for the adaptive β: β ×= 1.5 above 2·target, β ×= 0.5 below target/2."""
+    vf_loss_coeff: float = 1.0
+    """Weight c_v of the value loss."""
+    vf_clip_param: float = 1e5
+    """``value_clip="squared"``: clamp of the squared value error (paper: 1e5, i.e. off). ``"ppo2"``: clip range of V
+    around the rollout's V."""
+    entropy_coeff: float = 0.0
+    """Weight c_e of the entropy bonus."""
+    num_sgd_iter: int = 30
+    """SGD passes over the train batch per epoch (RLlib default 30; paper: volume 50, locomotion 10)."""
+    sgd_minibatch_size: int = 128
+    """Samples per minibatch; each pass reshuffles and uses ⌊B / size⌋ minibatches (the tail is dropped)."""
+    rollout_steps: int = 100
+    """Steps T collected from every environment per epoch (train batch = T·N)."""
+    grad_clip: float | None = None
+    """Max global gradient norm; None = no clipping (paper)."""
+    seed: int = 0
+    """Seeds the policy-sampling/shuffling generator and ``env.reset``."""
+    device: str | None = None
+    """Device of the policy and the rollout storage; None = the env's device."""
+    advantage_norm: str = "batch"
+    """"batch": standardise advantages once over the train batch (paper); "minibatch": per minibatch; "none"."""
+    value_clip: str = "squared"
+    """"squared": min((V − G)², vf_clip_param) (RLlib); "ppo2": max of the plain and the clipped-V squared error."""
+    lr_schedule: str = "constant"
+    """"constant", or "linear": lr · max(0, 1 − epoch / lr_anneal_epochs)."""
+    lr_anneal_epochs: int = 500
+    """Epochs over which the "linear" schedule anneals the lr to 0."""
+
+    def __post_init__(self) -> None:
+        positive = ("lr", "clip_param", "vf_clip_param", "kl_target")
+        for name in positive:
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"PPOConfig.{name} must be in [0, 1], got {getattr(self, name)!r}")
+        for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"PPOConfig.{name} must be an int >= 1, got {value!r}")
+        if self.grad_clip is not None and not self.grad_clip > 0:
+            raise ValueError(f"PPOConfig.grad_clip must be None or > 0, got {self.grad_clip!r}")
+        if not isinstance(self.seed, int):
+            raise ValueError(f"PPOConfig.seed must be an int, got {self.seed!r}")
+        if self.advantage_norm not in ADVANTAGE_NORMS:
+            raise ValueError(f"PPOConfig.advantage_norm must be one of {ADVANTAGE_NORMS}, got {self.advantage_norm!r}")
+        if self.value_clip not in VALUE_CLIP_MODES:
+            raise ValueError(f"PPOConfig.value_clip must be one of {VALUE_CLIP_MODES}, got {self.value_clip!r}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"PPOConfig.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+        if self.device is not None:
+            try:
+                torch.device(self.device)
+            except (RuntimeError, TypeError) as e:
+                raise ValueError(f"PPOConfig.device must be None or a torch device string, got {self.device!r}") from e
+
+
+class Logger(Protocol):
+    def log(self, stats: dict[str, float], step: int) -> None: ...
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The algorithm's pieces, as small pure functions.
+# ---------------------------------------------------------------------------------------------------------------
+
+LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log N(actions; mean, exp(log_std)) summed over the last dim: ``[..., A]`` → ``[...]``."""
+    z = (actions - mean) * torch.exp(-log_std)
+    return (-0.5 * z.square() - log_std - LOG_SQRT_2PI).sum(-1)
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    """Entropy of a diagonal Gaussian, summed over the last dim: ``[..., A]`` → ``[...]``."""
+    return (log_std + 0.5 + LOG_SQRT_2PI).sum(-1)
+
+
+def gaussian_kl(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor, log_std1: torch.Tensor) -> torch.Tensor:
+    """KL(N(mean0, σ0) ‖ N(mean1, σ1)) of diagonal Gaussians, summed over the last dim: ``[..., A]`` → ``[...]``."""
+    var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
+    mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
+    return (log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5).sum(-1)
+
+
+def compute_advantages(
+    rewards: torch.Tensor,
+    values: torch.Tensor,
+    dones: torch.Tensor,
+    last_value: torch.Tensor,
+    gamma: float,
+    gae_lambda: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """GAE(γ, λ) advantages and value targets of a rollout.
+
+    ``rewards, values, dones``: ``[T, N]`` (``dones[t]`` = the step t ended its episode); ``last_value [N]`` = V of the
+    observation after the last step, which bootstraps an episode that the rollout cut. Returns ``(advantages,
+    returns)``, both ``[T, N]``, with ``returns = advantages + values``; for λ = 1 the return is the discounted
+    return G_t = Σ_i γ^i r_{t+i} (+ γ^(T−t) V(s_T) for a cut episode).
+    """
+    steps = rewards.shape[0]
+    advantages = torch.zeros_like(rewards)
+    not_done = 1.0 - dones.to(rewards.dtype)
+    next_value, running = last_value.to(rewards.dtype), torch.zeros_like(last_value, dtype=rewards.dtype)
+    for t in reversed(range(steps)):  # a loop over time only; every env is handled at once
+        delta = rewards[t] + gamma * not_done[t] * next_value - values[t]
+        running = delta + gamma * gae_lambda * not_done[t] * running
+        advantages[t] = running
+        next_value = values[t]
+    return advantages, advantages + values
+
+
+def standardize(x: torch.Tensor, min_std: float = 1e-4) -> torch.Tensor:
+    """(x − mean) / max(std, min_std) with the population std, as RLlib's ``standardize_fields``."""
+    return (x - x.mean()) / x.std(correction=0).clamp_min(min_std)
+
+
+def clipped_surrogate(ratio: torch.Tensor, advantages: torch.Tensor, clip_param: float) -> torch.Tensor:
+    """PPO's per-sample objective (to maximise): min(A·ρ, A·clip(ρ, 1 − ε, 1 + ε))."""
+    return torch.minimum(advantages * ratio, advantages * ratio.clamp(1.0 - clip_param, 1.0 + clip_param))
+
+
+def clamped_value_loss(values: torch.Tensor, returns: torch.Tensor, vf_clip_param: float) -> torch.Tensor:
+    """RLlib's per-sample value loss: min((V − G)², vf_clip_param)."""
+    return (values - returns).square().clamp(max=vf_clip_param)
+
+
+def ppo2_value_loss(
+    values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor, vf_clip_param: float
+) -> torch.Tensor:
+    """PPO2's per-sample value loss: max((V − G)², (V_old + clip(V − V_old, ±c) − G)²)."""
+    clipped = old_values + (values - old_values).clamp(-vf_clip_param, vf_clip_param)
+    return torch.maximum((values - returns).square(), (clipped - returns).square())
+
+
+def update_kl_coeff(kl_coeff: float, mean_kl: float, kl_target: float) -> float:
+    """RLlib's adaptive KL rule: β ×= 1.5 if KL > 2·target, β ×= 0.5 if KL < target / 2, else unchanged."""
+    if mean_kl > 2.0 * kl_target:
+        return kl_coeff * 1.5
+    if mean_kl < 0.5 * kl_target:
+        return kl_coeff * 0.5
+    return kl_coeff
+
+
+def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
+    """1 − Var(target − predicted) / Var(target); NaN when the target is constant."""
+    var = target.var(correction=0)
+    return float("nan") if var.item() == 0 else (1.0 - (target - predicted).var(correction=0) / var).item()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Rollout storage.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Rollout:
+    """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
+
+    ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
+    bool, ``values [T, N]``, ``means``/``log_stds [T, N, A]`` (π_old, for the KL term), ``advantages``/``returns
+    [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
+    """
+
+    obs: torch.Tensor
+    actions: torch.Tensor
+    logprobs: torch.Tensor
+    rewards: torch.Tensor
+    dones: torch.Tensor
+    values: torch.Tensor
+    means: torch.Tensor
+    log_stds: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+    last_value: torch.Tensor
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        """Dict-style access, ``rollout["obs"]``."""
+        return getattr(self, name)
+
+    @classmethod
+    def allocate(
+        cls, steps: int, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: torch.dtype, action_dim: int, device: torch.device
+    ) -> Rollout:
+        f32 = dict(dtype=torch.float32, device=device)
+        return cls(
+            obs=torch.zeros((steps, num_envs, *obs_shape), dtype=obs_dtype, device=device),
+            actions=torch.zeros((steps, num_envs, action_dim), **f32),
+            logprobs=torch.zeros((steps, num_envs), **f32),
+            rewards=torch.zeros((steps, num_envs), **f32),
+            dones=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
+            values=torch.zeros((steps, num_envs), **f32),
+            means=torch.zeros((steps, num_envs, action_dim), **f32),
+            log_stds=torch.zeros((steps, num_envs, action_dim), **f32),
+            advantages=torch.zeros((steps, num_envs), **f32),
+            returns=torch.zeros((steps, num_envs), **f32),
+            last_value=torch.zeros((num_envs,), **f32),
+        )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# PPO.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class PPO:
+    """Proximal policy optimisation over a batched environment (``freeform.envs.VecEnv``).
+
+    After ``train_epoch()`` the caller may read ``rollout`` (the epoch's ``Rollout``) and ``episode_infos`` (the
+    ``info`` dicts of the epoch's steps where any env finished an episode, in order). ``global_step`` counts env steps
+    over all envs, ``epoch`` the epochs trained, ``kl_coeff`` is the current β.
+    """
+
+    def __init__(self, env: VecEnv, policy: nn.Module, config: PPOConfig | None = None, logger: Logger | None = None):
+        self.config = config = config if config is not None else PPOConfig()
+        if not isinstance(config, PPOConfig):
+            raise ValueError(f"config must be a PPOConfig, got {type(config).__name__}")
+        for attr in ("num_envs", "observation_shape", "action_dim", "reset", "step"):
+            if not hasattr(env, attr):
+                raise ValueError(f"env must follow freeform.envs.VecEnv; it has no {attr!r}")
+        self.env = env
+        self.device = torch.device(config.device) if config.device is not None else torch.device(env.device)
+        self.policy = policy.to(self.device)
+        self.logger = logger
+        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self.kl_coeff = float(config.kl_coeff)
+        self.epoch = 0
+        self.global_step = 0
+
+        self.obs = env.reset(seed=config.seed).to(self.device)
+        self.rollout = Rollout.allocate(
+            config.rollout_steps, env.num_envs, tuple(env.observation_shape), self.obs.dtype, env.action_dim, self.device
+        )
+        self.episode_infos: list[dict[str, Any]] = []
+        # Running return and length of each env's current episode (they span epochs when episodes are cut).
+        self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
+        self.episode_length = torch.zeros(env.num_envs, dtype=torch.int64, device=self.device)
+
+    # -- acting ----------------------------------------------------------------------------------------------------
+
+    def _sample(self, obs: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, ...]:
+        """obs ``[N, ...]`` → (action, logprob, value, mean, log_std); noise from ``self.generator``."""
+        mean, log_std, value = self.policy(obs)
+        if deterministic:
+            action = mean
+        else:
+            noise = torch.randn(mean.shape, generator=self.generator, device=self.device, dtype=mean.dtype)
+            action = mean + torch.exp(log_std) * noise
+        return action, gaussian_log_prob(action, mean, log_std), value, mean, log_std
+
+    @torch.no_grad()
+    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+        """Actions ``[N, A]`` for observations ``[N, ...]`` (the mean if ``deterministic``), on the env's device.
+
+        Sampling draws from the training generator, so calls between epochs shift the training's random stream.
+        """
+        return self._sample(obs.to(self.device), deterministic)[0].to(self.env.device)
+
+    # -- rollout ---------------------------------------------------------------------------------------------------
+
+    @torch.no_grad()
+    def collect(self) -> dict[str, float]:
+        """Step every env ``rollout_steps`` times with the current policy into ``self.rollout``; fill advantages."""
+        cfg, buf = self.config, self.rollout
+        self.episode_infos = []
+        finished_returns, finished_lengths = [], []
+        time_env = 0.0
+        self.policy.eval()
+        for t in range(cfg.rollout_steps):
+            buf.obs[t] = self.obs
+            action, logprob, value, mean, log_std = self._sample(self.obs)
+            buf.actions[t], buf.logprobs[t], buf.values[t], buf.means[t], buf.log_stds[t] = (
+                action, logprob, value, mean, log_std
+            )
+            t0 = time.perf_counter()
+            next_obs, reward, done, info = self.env.step(action.to(self.env.device))
+            time_env += time.perf_counter() - t0
+            reward, done = reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
+            buf.rewards[t], buf.dones[t] = reward, done
+            self.episode_return += reward
+            self.episode_length += 1
+            if done.any():
+                self.episode_infos.append(info)
+                finished_returns.append(self.episode_return[done])
+                finished_lengths.append(self.episode_length[done])
+                self.episode_return = torch.where(done, 0.0, self.episode_return)
+                self.episode_length = torch.where(done, 0, self.episode_length)
+            self.obs = next_obs.to(self.device)
+        # An episode that the rollout cut is bootstrapped with V of its last observation.
+        buf.last_value = self.policy(self.obs)[2]
+        buf.advantages, buf.returns = compute_advantages(
+            buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda
+        )
+        self.global_step += cfg.rollout_steps * self.env.num_envs
+
+        returns = torch.cat(finished_returns) if finished_returns else torch.zeros(0)
+        lengths = torch.cat(finished_lengths) if finished_lengths else torch.zeros(0)
+        nan = float("nan")
+        return {
+            "episode_reward_mean": returns.mean().item() if len(returns) else nan,
+            "episode_reward_max": returns.max().item() if len(returns) else nan,
+            "episode_reward_min": returns.min().item() if len(returns) else nan,
+            "episode_length_mean": lengths.float().mean().item() if len(lengths) else nan,
+            "episodes": float(len(returns)),
+            "time_env": time_env,
+        }
+
+    # -- update ----------------------------------------------------------------------------------------------------
+
+    def current_lr(self) -> float:
+        """The learning rate of the coming epoch under ``config.lr_schedule``."""
+        cfg = self.config
+        if cfg.lr_schedule == "linear":
+            return cfg.lr * max(0.0, 1.0 - self.epoch / cfg.lr_anneal_epochs)
+        return cfg.lr
+
+    def update(self) -> dict[str, float]:
+        """``num_sgd_iter`` passes of minibatch SGD over ``self.rollout``, then the KL-coefficient update."""
+        cfg, buf = self.config, self.rollout
+        batch = buf.rewards.numel()
+        obs = buf.obs.reshape(batch, *buf.obs.shape[2:])
+        actions, old_means, old_log_stds = (x.reshape(batch, -1) for x in (buf.actions, buf.means, buf.log_stds))
+        old_logprobs, old_values, returns = buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1)
+        advantages = buf.advantages.reshape(-1)
+        if cfg.advantage_norm == "batch":
+            advantages = standardize(advantages)
+
+        lr = self.current_lr()
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        kl_coeff = self.kl_coeff
+        minibatch = min(cfg.sgd_minibatch_size, batch)
+        num_minibatches = batch // minibatch
+        # Sums over minibatches, kept on the device so that no step waits for a host sync.
+        totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss
+        self.policy.train()
+        for _ in range(cfg.num_sgd_iter):
+            order = torch.randperm(batch, generator=self.generator, device=self.device)
+            for i in range(num_minibatches):
+                idx = order[i * minibatch : (i + 1) * minibatch]
+                mean, log_std, value = self.policy(obs[idx])
+                logprob = gaussian_log_prob(actions[idx], mean, log_std)
+                ratio = torch.exp(logprob - old_logprobs[idx])
+                adv = advantages[idx]
+                if cfg.advantage_norm == "minibatch":
+                    adv = standardize(adv)
+                policy_loss = -clipped_surrogate(ratio, adv, cfg.clip_param).mean()
+                if cfg.value_clip == "squared":
+                    value_loss = clamped_value_loss(value, returns[idx], cfg.vf_clip_param).mean()
+                else:
+                    value_loss = ppo2_value_loss(value, old_values[idx], returns[idx], cfg.vf_clip_param).mean()
+                entropy = gaussian_entropy(log_std).mean()
+                kl = gaussian_kl(old_means[idx], old_log_stds[idx], mean, log_std).mean()
+                loss = policy_loss + cfg.vf_loss_coeff * value_loss - cfg.entropy_coeff * entropy
+                if kl_coeff > 0.0:
+                    loss = loss + kl_coeff * kl
+
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.grad_clip is not None:
+                    nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
+                self.optimizer.step()
+
+                with torch.no_grad():
+                    clip_fraction = ((ratio - 1.0).abs() > cfg.clip_param).float().mean()
+                    totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
+
+        means = (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
+        mean_kl = means[2]
+        # RLlib's rule, on the mean KL over every minibatch update of the epoch.
+        self.kl_coeff = update_kl_coeff(kl_coeff, mean_kl, cfg.kl_target)
+        stds = buf.log_stds.exp()
+        stats = {
+            "policy_loss": means[0],
+            "value_loss": means[1],
+            "approx_kl": mean_kl,
+            "entropy": means[3],
+            "clip_fraction": means[4],
+            "total_loss": means[5],
+            "kl_coeff": kl_coeff,
+            "lr": lr,
+            "explained_variance": explained_variance(buf.values.reshape(-1), returns),
+            "value_mean": buf.values.mean().item(),
+            "action_std": stds.mean().item(),
+        }
+        for name, dims in getattr(self.policy, "action_groups", {}).items():
+            stats[f"action_std_{name}"] = stds[..., dims].mean().item()
+        return stats
+
+    # -- the loop --------------------------------------------------------------------------------------------------
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    def train_epoch(self) -> dict[str, float]:
+        """Collect ``rollout_steps`` steps from every env, update the policy; return the epoch's statistics."""
+        t0 = time.perf_counter()
+        stats = self.collect()
+        self._sync()
+        t1 = time.perf_counter()
+        stats.update(self.update())
+        self._sync()
+        t2 = time.perf_counter()
+        self.epoch += 1
+        samples = self.config.rollout_steps * self.env.num_envs
+        stats.update(
+            time_rollout=t1 - t0,
+            time_update=t2 - t1,
+            samples_per_second=samples / max(t2 - t0, 1e-9),
+            epoch=float(self.epoch),
+            global_step=float(self.global_step),
+        )
+        if self.logger is not None:
+            self.logger.log(stats, self.global_step)
+        return stats
+
+    def learn(self, epochs: int, callback: Callable[[PPO, dict[str, float]], bool | None] | None = None) -> list[dict]:
+        """Train ``epochs`` epochs; ``callback(ppo, stats)`` runs after each and stops training by returning False."""
+        if not isinstance(epochs, int) or epochs < 0:
+            raise ValueError(f"epochs must be an int >= 0, got {epochs!r}")
+        history = []
+        for _ in range(epochs):
+            history.append(self.train_epoch())
+            if callback is not None and callback(self, history[-1]) is False:
+                break
+        return history
+
+    # -- state and checkpoints -------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue exactly: policy, optimizer, β, counters, RNG, current obs, env state."""
+        state = {
+            "policy": self.policy.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "kl_coeff": self.kl_coeff,
+            "epoch": self.epoch,
+            "global_step": self.global_step,
+            "generator": self.generator.get_state(),
+            "obs": self.obs,
+            "episode_return": self.episode_return,
+            "episode_length": self.episode_length,
+        }
+        if hasattr(self.env, "state_dict"):
+            state["env"] = self.env.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what ``state_dict()`` returned (the policy and env must be built alike)."""
+        self.policy.load_state_dict(state["policy"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.kl_coeff = float(state["kl_coeff"])
+        self.epoch = int(state["epoch"])
+        self.global_step = int(state["global_step"])
+        self.generator.set_state(state["generator"].cpu())
+        self.obs = state["obs"].to(self.device)
+        self.episode_return = state["episode_return"].to(self.device)
+        self.episode_length = state["episode_length"].to(self.device)
+        if "env" in state:
+            if not hasattr(self.env, "load_state_dict"):
+                raise ValueError("the state holds an env state but the env has no load_state_dict()")
+            self.env.load_state_dict(state["env"])
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write a self-describing checkpoint atomically (temp file in the same directory, fsync, ``os.replace``)."""
+        path = os.fspath(path)
+        policy_cls = type(self.policy)
+        payload = {
+            "format": CHECKPOINT_FORMAT,
+            "policy_class": f"{policy_cls.__module__}:{policy_cls.__qualname__}",
+            "policy_kwargs": dict(getattr(self.policy, "init_kwargs", {})),
+            "config": dataclasses.asdict(self.config),
+            "state": self.state_dict(),
+        }
+        directory = os.path.dirname(os.path.abspath(path))
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=directory)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                torch.save(payload, f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+        try:  # make the rename itself durable
+            dir_fd = os.open(directory, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError:
+            pass
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, env: VecEnv, logger: Logger | None = None, device: str | None = None) -> PPO:
+        """Rebuild a PPO (policy class + kwargs, config, full training state) from ``save(path)``'s file.
+
+        ``device`` overrides the saved ``config.device``. Checkpoints are pickles: load only files you trust.
+        Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file for a corrupt or
+        incompatible one.
+        """
+        path = os.fspath(path)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"no PPO checkpoint at {path}")
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # torch raises many types for a truncated or foreign file
+            raise ValueError(f"{path}: not a readable PPO checkpoint ({type(e).__name__}: {e})") from e
+        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+            found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+            raise ValueError(f"{path}: not a PPO checkpoint of format {CHECKPOINT_FORMAT!r} (found {found!r})")
+        try:
+            module_name, qualname = payload["policy_class"].split(":")
+            policy_cls: Any = importlib.import_module(module_name)
+            for part in qualname.split("."):
+                policy_cls = getattr(policy_cls, part)
+            if not (isinstance(policy_cls, type) and issubclass(policy_cls, nn.Module)):
+                raise TypeError(f"{payload['policy_class']} is not an nn.Module")
+            policy = policy_cls(**payload["policy_kwargs"])
+            config_dict = dict(payload["config"])
+            if device is not None:
+                config_dict["device"] = device
+            config = PPOConfig(**config_dict)
+        except Exception as e:
+            raise ValueError(f"{path}: cannot rebuild the policy/config ({type(e).__name__}: {e})") from e
+        state = payload["state"]
+        saved_obs = state["obs"]
+        if saved_obs.shape[0] != env.num_envs or tuple(saved_obs.shape[1:]) != tuple(env.observation_shape):
+            raise ValueError(
+                f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
+                f"but the env has {env.num_envs} envs with observations {tuple(env.observation_shape)}"
+            )
+        ppo = cls(env, policy, config, logger)
+        try:
+            ppo.load_state_dict(state)
+        except (KeyError, RuntimeError, ValueError) as e:
+            raise ValueError(f"{path}: incompatible training state ({type(e).__name__}: {e})") from e
+        return ppo

@@ -1,0 +1,157 @@
+"""Networks: the paper's parameter counts, the init (untrained policy ≈ N(0, I)), the fast trunk = nn.Conv3d trunk."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from freeform.agents import MLPActorCritic, VoxelActorCritic
+from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
+
+torch.set_num_threads(min(2, torch.get_num_threads()))
+
+
+def n_params(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+@pytest.mark.parametrize("materials,hidden,expected", [(2, 128, 162_752), (4, 256, 391_930)])
+def test_parameter_counts_match_the_spec(materials: int, hidden: int, expected: int) -> None:
+    assert n_params(VoxelActorCritic(resolution=20, materials=materials, hidden=hidden)) == expected
+
+
+def test_layer_shapes_are_the_papers() -> None:
+    net = VoxelActorCritic(resolution=20, materials=4, hidden=256)
+    assert net.conv1.weight.shape == (1, 4, 3, 3, 3) and net.conv1.padding == (1, 1, 1)
+    assert net.conv2.weight.shape == (1, 1, 5, 5, 5) and net.conv2.stride == (2, 2, 2) and net.conv2.padding == (2, 2, 2)
+    assert net.trunk_fc.weight.shape == (256, 1000)
+    assert net.actor_out.weight.shape == (14, 256) and net.critic_out.weight.shape == (1, 256)
+    mean, log_std, value = net(torch.zeros(3, 20, 20, 20, dtype=torch.uint8))
+    assert mean.shape == log_std.shape == (3, 7) and value.shape == (3,)
+
+
+def test_head_init_is_xavier_with_zero_bias() -> None:
+    net = VoxelActorCritic(resolution=20, materials=2, hidden=128)
+    for layer in (net.actor_fc, net.actor_out, net.critic_fc, net.critic_out):
+        assert torch.all(layer.bias == 0)
+        bound = (6.0 / (layer.in_features + layer.out_features)) ** 0.5
+        assert layer.weight.abs().max() <= bound and layer.weight.abs().max() > 0.9 * bound
+
+
+@pytest.mark.parametrize("materials,hidden", [(2, 128), (4, 256)])
+def test_untrained_policy_is_near_standard_normal_on_an_empty_grid(materials: int, hidden: int) -> None:
+    """Over 20 random inits: μ ≈ 0 and log σ ≈ 0 on the empty grid (the spec's "≈ N(0, I)")."""
+    empty = torch.zeros(1, 20, 20, 20, dtype=torch.uint8)
+    means, log_stds = [], []
+    for seed in range(20):
+        torch.manual_seed(seed)
+        mean, log_std, _ = VoxelActorCritic(20, materials, hidden)(empty)
+        means.append(mean)
+        log_stds.append(log_std)
+    means, log_stds = torch.cat(means), torch.cat(log_stds)
+    assert means.abs().max() < 0.5 and log_stds.abs().max() < 0.5
+    assert means.mean().abs() < 0.1 and log_stds.mean().abs() < 0.1
+    assert means.square().mean().sqrt() < 0.25  # per-dimension spread across inits stays well under σ = 1
+
+
+def test_mlp_policy_shapes_and_init() -> None:
+    net = MLPActorCritic(obs_dim=6, action_dim=3, hidden=(32, 32))
+    mean, log_std, value = net(torch.randn(5, 6))
+    assert mean.shape == log_std.shape == (5, 3) and value.shape == (5,)
+    assert torch.all(log_std == 0) and mean.abs().max() < 0.2
+    assert net.init_kwargs == {"obs_dim": 6, "action_dim": 3, "hidden": (32, 32)}
+
+
+@pytest.mark.parametrize(
+    "kwargs,name",
+    [({"resolution": 1}, "resolution"), ({"materials": 1}, "materials"), ({"materials": 300}, "materials"),
+     ({"hidden": 0}, "hidden"), ({"trunk": "winograd"}, "trunk")],
+)
+def test_voxel_network_rejects_bad_arguments(kwargs: dict[str, Any], name: str) -> None:
+    with pytest.raises(ValueError, match=name):
+        VoxelActorCritic(**kwargs)
+
+
+def test_voxel_network_rejects_a_wrong_grid_shape() -> None:
+    with pytest.raises(ValueError, match="grids"):
+        VoxelActorCritic(resolution=8)(torch.zeros(2, 8, 8, 4, dtype=torch.uint8))
+
+
+@pytest.mark.parametrize("bad", [{"obs_dim": 0}, {"action_dim": -1}, {"hidden": ()}])
+def test_mlp_rejects_bad_arguments(bad: dict[str, Any]) -> None:
+    kwargs = {"obs_dim": 3, "action_dim": 2} | bad
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        MLPActorCritic(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The fast trunk must be the paper's network: equal outputs and gradients to plain nn.Conv3d.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def random_grids(n: int, rho: int, k: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    grids = torch.randint(0, k, (n, rho, rho, rho), generator=g, dtype=torch.uint8)
+    grids[0] = 0  # an empty grid, the state every episode starts from
+    grids[1] = k - 1  # a full one: every border case of the padding at once
+    return grids
+
+
+def _randomise(net: VoxelActorCritic, seed: int) -> None:
+    """Weights far from the init (incl. negative biases that make ReLUs cut) so every branch is exercised."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+
+
+@pytest.mark.parametrize("rho,k", [(20, 2), (20, 4), (7, 3), (6, 5)])
+def test_onehot_conv_equals_conv3d_of_the_one_hot(rho: int, k: int) -> None:
+    grids = random_grids(6, rho, k, seed=rho * k)
+    weight = torch.randn(1, k, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(1, dtype=torch.float64, requires_grad=True)
+    one_hot = F.one_hot(grids.long(), k).permute(0, 4, 1, 2, 3).double()
+    expected = F.conv3d(one_hot, weight, bias, padding=1)
+    got = onehot_conv3d(grids, weight, bias)
+    torch.testing.assert_close(got, expected)
+    upstream = torch.randn_like(expected)
+    gw_expected, gb_expected = torch.autograd.grad(expected, (weight, bias), upstream)
+    gw, gb = torch.autograd.grad(got, (weight, bias), upstream)
+    torch.testing.assert_close(gw, gw_expected)
+    torch.testing.assert_close(gb, gb_expected)
+
+
+@pytest.mark.parametrize("rho", [20, 7, 6])
+def test_strided_conv_equals_conv3d(rho: int) -> None:
+    g = torch.Generator().manual_seed(rho)
+    x = torch.randn(5, 1, rho, rho, rho, generator=g, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(1, 1, 5, 5, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(1, generator=g, dtype=torch.float64, requires_grad=True)
+    expected = F.conv3d(x, weight, bias, stride=2, padding=2)
+    got = strided_conv3d(x, weight, bias)
+    torch.testing.assert_close(got, expected)
+    upstream = torch.randn(expected.shape, generator=g, dtype=torch.float64)
+    for a, b in zip(torch.autograd.grad(got, (x, weight, bias), upstream), torch.autograd.grad(expected, (x, weight, bias), upstream)):
+        torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("k,hidden", [(2, 128), (4, 256)])
+def test_fast_network_equals_plain_network(k: int, hidden: int) -> None:
+    """Whole network, float32, the paper's sizes: same outputs and same parameter gradients."""
+    fast = VoxelActorCritic(20, k, hidden, trunk="fast")
+    _randomise(fast, seed=k)
+    plain = VoxelActorCritic(20, k, hidden, trunk="conv")
+    plain.load_state_dict(fast.state_dict())
+    grids = random_grids(16, 20, k, seed=k)
+    outs_fast, outs_plain = fast(grids), plain(grids)
+    for a, b in zip(outs_fast, outs_plain):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    loss = lambda outs: outs[0].square().sum() + outs[1].sum() + (outs[2] - 1).square().sum()
+    loss(outs_fast).backward()
+    loss(outs_plain).backward()
+    for (name, pf), pp in zip(fast.named_parameters(), plain.parameters()):
+        scale = pp.grad.abs().max().clamp_min(1.0)
+        torch.testing.assert_close(pf.grad / scale, pp.grad / scale, rtol=1e-4, atol=1e-4, msg=name)
