@@ -1,1 +1,14 @@
-"""Voxelyze's soft-voxel physics in Taichi (see docs/architecture.md)."""
+"""Voxelyze's soft-voxel physics in Taichi (see docs/physics.md).
+
+Public surface: ``Simulator(config).simulate(grids) -> SimResult``, ``SimConfig``, ``Material``.
+``Engine`` and ``Layout`` are the documented lower level (fixed voxels, initial velocities, per-step traces).
+Importing this package does not initialise Taichi; the first ``Simulator`` run does.
+"""
+
+from freeform.sim.config import Material, SimConfig
+from freeform.sim.engine import Engine, recommended_dt
+from freeform.sim.layout import Layout, build_layout
+from freeform.sim.simulator import Recording, SimResult, Simulator
+
+__all__ = ["Engine", "Layout", "Material", "Recording", "SimConfig", "SimResult", "Simulator", "build_layout",
+           "recommended_dt"]

@@ -1,0 +1,183 @@
+"""Materials and simulation settings (spec `physics.md` sections 0, 2, 3.2 and 10), plus the derived constants.
+
+Everything numeric lives here as a dataclass field with the spec's default, so the Taichi kernels see only
+tables built from these fields. The defaults are the paper's locomotion task: three materials (passive
+tissue, muscle A at phase 0, muscle B at phase 0.5 cycles), 5 s burn-in then 5 s of evaluation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+REWARDS = ("max_voxel", "com")
+SEMANTICS = ("voxelyze", "rl4design")
+PRECISIONS = ("f32", "f64")
+
+
+@dataclass
+class Material:
+    """One voxel material (Voxelyze `CVX_Material`, linear model).
+
+    E: Young's modulus (Pa). density: kg/m^3. poisson: Poisson ratio ν (volume effects; 0 switches them off).
+    mu_static / mu_kinetic: floor friction coefficients. cte: coefficient of thermal expansion (1/degree),
+    which makes a voxel a muscle. phase: actuation phase offset in cycles (VXD `PhaseOffset`).
+    """
+
+    E: float = 1e5
+    density: float = 1500.0
+    poisson: float = 0.35
+    mu_static: float = 1.0
+    mu_kinetic: float = 0.5
+    cte: float = 0.0
+    phase: float = 0.0
+
+
+def _paper_materials() -> list[Material]:
+    return [Material(), Material(cte=0.01, phase=0.0), Material(cte=0.01, phase=0.5)]
+
+
+@dataclass
+class SimConfig:
+    """Settings of one simulation batch; every number of the spec's parameter table is a field.
+
+    voxel_size: lattice dimension L (m). materials[i] is the material of index i + 1 (0 = empty).
+    bond_damping / global_damping / collision_damping: damping ratios ζ (internal, global, floor).
+    gravity: vertical acceleration (m/s^2, negative = down; 0 switches gravity off).
+    temp_amplitude / temp_period: actuation T(t) = A·sin(2π(t/period + phase)) (degrees, s).
+    dt: fixed time step (s); None = dt_frac × the recommended step of each robot (spec section 10).
+    burn_in / duration: evaluation window (s) that the reward measures.
+    reward: "max_voxel" (paper: max over voxels of the horizontal distance) or "com" (centre of mass).
+    semantics: "voxelyze" (VX) or "rl4design" (the paper simulator's deviations, spec section 13).
+    precision: "f32" (fast; normalised quaternions, atan2 rotation vectors) or "f64" (VX arithmetic).
+    floor: floor contact and friction on/off.
+    max_strain: a link strain above this marks the robot diverged (VX's check; non-finite states too).
+    chunk_steps: steps per kernel launch between host-side checks (per-robot schedule).
+    """
+
+    voxel_size: float = 0.01
+    materials: list[Material] = field(default_factory=_paper_materials)
+    bond_damping: float = 1.0
+    global_damping: float = 0.03
+    collision_damping: float = 0.8
+    gravity: float = -9.81
+    temp_amplitude: float = 10.0
+    temp_period: float = 0.25
+    dt: float | None = None
+    dt_frac: float = 0.95
+    burn_in: float = 5.0
+    duration: float = 5.0
+    reward: str = "max_voxel"
+    semantics: str = "voxelyze"
+    precision: str = "f32"
+    floor: bool = True
+    max_strain: float = 100.0
+    chunk_steps: int = 2000
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first field outside its allowed values."""
+        if self.reward not in REWARDS:
+            raise ValueError(f"SimConfig.reward must be one of {REWARDS}, got {self.reward!r}")
+        if self.semantics not in SEMANTICS:
+            raise ValueError(f"SimConfig.semantics must be one of {SEMANTICS}, got {self.semantics!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"SimConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if not self.voxel_size > 0:
+            raise ValueError(f"SimConfig.voxel_size must be > 0, got {self.voxel_size}")
+        if len(self.materials) == 0 or len(self.materials) > 254:
+            raise ValueError(f"SimConfig.materials must hold 1..254 materials, got {len(self.materials)}")
+        for i, m in enumerate(self.materials):
+            if not (m.E > 0 and m.density > 0):
+                raise ValueError(f"SimConfig.materials[{i}]: E and density must be > 0, got {m}")
+            if not (0 <= m.poisson < 0.5):
+                raise ValueError(f"SimConfig.materials[{i}].poisson must be in [0, 0.5), got {m.poisson}")
+        if self.dt is not None and not self.dt > 0:
+            raise ValueError(f"SimConfig.dt must be None or > 0, got {self.dt}")
+        if not 0 < self.dt_frac <= 1:
+            raise ValueError(f"SimConfig.dt_frac must be in (0, 1], got {self.dt_frac}")
+        if self.burn_in < 0 or not self.duration > 0:
+            raise ValueError(f"SimConfig.burn_in must be >= 0 and duration > 0, got {self.burn_in}, {self.duration}")
+        if not self.temp_period > 0:
+            raise ValueError(f"SimConfig.temp_period must be > 0, got {self.temp_period}")
+        if self.chunk_steps < 1:
+            raise ValueError(f"SimConfig.chunk_steps must be >= 1, got {self.chunk_steps}")
+
+
+# Column names of the material tables that the kernels read (one column per material index, 0 = empty).
+MAT_COLUMNS = ("L", "MASS", "INERTIA", "SQRTM", "CG", "CGR", "CC", "KPEN", "MUS", "MUK", "ZINT", "CTE",
+               "PHASE", "NU", "E")
+LINK_COLUMNS = ("E", "NU", "EHAT", "A1", "A2", "B1", "B2", "B3", "SQA1", "SQA2XIP", "SQB1", "SQB2XFMP",
+                "SQB3XIP", "RATIO")
+
+
+def e_hat(E: np.ndarray, nu: np.ndarray) -> np.ndarray:
+    """Ê = E/((1−2ν)(1+ν)), the constrained modulus (VX_Material.cpp)."""
+    return E / ((1 - 2 * nu) * (1 + nu))
+
+
+def material_table(cfg: SimConfig) -> np.ndarray:
+    """Per-voxel constants of spec section 2: float64 ``[len(MAT_COLUMNS), n_mat + 1]`` (column 0 unused)."""
+    L = cfg.voxel_size
+    n = len(cfg.materials) + 1
+    t = np.zeros((len(MAT_COLUMNS), n))
+    col = {c: i for i, c in enumerate(MAT_COLUMNS)}
+    for j, m in enumerate(cfg.materials, start=1):
+        mass = m.density * L**3
+        inertia = mass * L**2 / 6  # solid cube, the same about every axis
+        t[col["L"], j] = L
+        t[col["MASS"], j] = mass
+        t[col["INERTIA"], j] = inertia
+        t[col["SQRTM"], j] = math.sqrt(mass)
+        t[col["CG"], j] = cfg.global_damping * 2 * math.sqrt(mass * m.E * L)
+        t[col["CGR"], j] = cfg.global_damping * 2 * math.sqrt(inertia * m.E * L**3)
+        t[col["CC"], j] = cfg.collision_damping * 2 * math.sqrt(mass * m.E * L)
+        t[col["KPEN"], j] = 2 * m.E * L  # EA/ℓ of half a voxel
+        t[col["MUS"], j] = m.mu_static
+        t[col["MUK"], j] = m.mu_kinetic
+        t[col["ZINT"], j] = cfg.bond_damping
+        t[col["CTE"], j] = m.cte
+        t[col["PHASE"], j] = m.phase
+        t[col["NU"], j] = m.poisson
+        t[col["E"], j] = m.E
+    return t
+
+
+def link_table(cfg: SimConfig) -> np.ndarray:
+    """Beam constants of every material pair (spec section 3.2): float64 ``[len(LINK_COLUMNS), (n_mat+1)²]``.
+
+    Column ``i·(n_mat+1) + j`` is the link whose negative voxel has material i and positive voxel material j.
+    """
+    n = len(cfg.materials) + 1
+    t = np.zeros((len(LINK_COLUMNS), n * n))
+    col = {c: i for i, c in enumerate(LINK_COLUMNS)}
+    L = cfg.voxel_size  # nominal size: the mean of two equal nominal sizes
+    for i, mi in enumerate(cfg.materials, start=1):
+        for j, mj in enumerate(cfg.materials, start=1):
+            E = 2 * mi.E * mj.E / (mi.E + mj.E)  # springs in series
+            eh1, eh2 = e_hat(np.float64(mi.E), np.float64(mi.poisson)), e_hat(np.float64(mj.E), np.float64(mj.poisson))
+            eh = 2 * eh1 * eh2 / (eh1 + eh2)
+            # ν chosen so that Ê(E, ν) = the series Ê (VX_MaterialLink.cpp); exact ν for equal materials
+            if mi.poisson == 0 and mj.poisson == 0:
+                nu = 0.0
+            else:
+                c2 = (eh - E) / (2 * eh) + 1.0 / 16
+                nu = math.sqrt(c2) - 0.25
+                if mi.poisson == mj.poisson:
+                    nu = mi.poisson
+            k = i * n + j
+            a1, a2 = E * L, E * L**3 / (12 * (1 + nu))
+            b1, b2, b3 = E * L, E * L**2 / 2, E * L**3 / 6
+            t[col["E"], k] = E
+            t[col["NU"], k] = nu
+            t[col["EHAT"], k] = e_hat(E, nu) if nu != 0 else E
+            t[col["A1"], k], t[col["A2"], k] = a1, a2
+            t[col["B1"], k], t[col["B2"], k], t[col["B3"], k] = b1, b2, b3
+            t[col["SQA1"], k] = math.sqrt(a1)
+            t[col["SQA2XIP"], k] = math.sqrt(a2 * L * L / 6)
+            t[col["SQB1"], k] = math.sqrt(b1)
+            t[col["SQB2XFMP"], k] = math.sqrt(b2 * L / 2)
+            t[col["SQB3XIP"], k] = math.sqrt(b3 * L * L / 6)
+            t[col["RATIO"], k] = mj.E / mi.E  # strainRatio = E_pos / E_neg
+    return t

@@ -1,0 +1,198 @@
+"""The low-level engine: one batch's state in Taichi ndarrays, advanced step by step.
+
+``Simulator`` builds on this; tests and tools use it directly for what the public API does not expose —
+fixed voxels, initial velocities and constant temperatures (all on the ``Layout``), per-step traces,
+link strains. Nothing here loops over voxels in Python.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from freeform.sim import runtime
+from freeform.sim.config import SimConfig, e_hat, link_table, material_table
+from freeform.sim.kernels import GP, LI, LR, NGP, NLI, NLR, NRI, NRT, NVI, NVR, RI, RT, UNROLL, VI, VR, make_kernels
+from freeform.sim.kernels import DIVERGED, DONE, FIXED, RUNNING, SMALL, STATIC  # noqa: F401  (re-exported)
+from freeform.sim.layout import Layout
+
+SCHEDULES = ("auto", "robots", "flat")
+
+
+def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
+    """Voxelyze's recommendedTimeStep per robot at rest (spec section 10): float64 ``[R]``.
+
+    1/(2π·sqrt(max over links of k_ax/min(m₁, m₂))) with k_ax = E·L (ν = 0) or Ê·A/L0 (ν ≠ 0, at zero strain);
+    a robot without links uses E·L/m of its voxels.
+    """
+    mt = material_table(cfg)
+    n_mat = len(cfg.materials) + 1
+    L = cfg.voxel_size
+    E = np.array([0.0] + [m.E for m in cfg.materials])
+    mass = mt[1]  # MAT_COLUMNS[1] == "MASS"
+    omega2 = np.zeros(layout.num_robots)
+    # voxels alone: E·L/m (VX uses this when there are no links)
+    np.maximum.at(omega2, layout.voxel_robot, E[layout.material] * L / mass[layout.material])
+    if layout.num_links:
+        lt = link_table(cfg)
+        mn, mp = layout.material[layout.link_neg], layout.material[layout.link_pos]
+        k = mn * n_mat + mp
+        nul, El = lt[1, k], lt[0, k]
+        kax = np.where(nul == 0, El * L, e_hat(El, nul) * L * L / L)
+        per_link = kax / np.minimum(mass[mn], mass[mp])
+        has_links = np.zeros(layout.num_robots, dtype=bool)
+        has_links[layout.link_robot] = True
+        link_omega = np.zeros(layout.num_robots)
+        np.maximum.at(link_omega, layout.link_robot, per_link)
+        omega2 = np.where(has_links, link_omega, omega2)
+    return 1.0 / (2 * math.pi * np.sqrt(omega2))
+
+
+class Engine:
+    """A batch of robots in Taichi ndarrays. ``advance(n)`` runs n steps of every still-running robot.
+
+    schedule: "robots" (one thread per robot, many steps per launch; the CPU default) or "flat" (one thread
+    per link/voxel/robot; the CUDA default). Both give identical results.
+    """
+
+    def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto"):
+        config.validate()
+        if schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
+        self.arch = runtime.ensure(arch)
+        self.schedule = ("flat" if self.arch == "cuda" else "robots") if schedule == "auto" else schedule
+        self.layout, self.config = layout, config
+        self.kernels = make_kernels(config.precision)
+        self.np_real = np.float64 if config.precision == "f64" else np.float32
+        self.ifx = int(config.semantics == "rl4design")
+        self.dyn = int(self.ifx == 1 and config.dt is None)  # rl4design refreshes dt every 10 steps
+        n, m, R = layout.num_voxels, layout.num_links, layout.num_robots
+        L = config.voxel_size
+        mt = material_table(config)
+
+        if config.dt is not None:
+            dt0 = np.full(R, float(config.dt))
+        else:
+            dt0 = config.dt_frac * recommended_dt(layout, config)
+        self.dt0 = dt0
+
+        vr = np.zeros((NVR, n))
+        pos = layout.lattice.astype(np.float64) * L
+        mass = mt[1][layout.material]
+        for c in (VR.POS, VR.POS0, VR.PSTART, VR.PEND, VR.PSAMP, VR.PCS, VR.PCE):
+            vr[c:c + 3] = pos.T
+        vr[VR.MOM:VR.MOM + 3] = (layout.velocity * mass[:, None]).T
+        vr[VR.ORI] = 1.0
+        vr[VR.TBASE] = layout.temp_base
+        if self.ifx:
+            vr[VR.TEMP] = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
+        else:
+            phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
+            vr[VR.TEMP] = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)
+
+        vi = np.zeros((NVI, n), dtype=np.int32)
+        vi[VI.MAT] = layout.material
+        vi[VI.ROBOT] = layout.voxel_robot
+        # VX starts every voxel in static friction; the paper simulator starts none there
+        vi[VI.FLAGS] = np.where(layout.fixed, FIXED, 0) | (0 if self.ifx else STATIC)
+        vi[VI.SLOT:VI.SLOT + 6] = layout.slots.T
+
+        li = np.zeros((NLI, m), dtype=np.int32)
+        li[LI.NEG], li[LI.POS], li[LI.AXIS] = layout.link_neg, layout.link_pos, layout.link_axis
+        n_mat = len(config.materials) + 1
+        li[LI.LMAT] = layout.material[layout.link_neg] * n_mat + layout.material[layout.link_pos]
+        li[LI.FLAGS] = SMALL
+
+        rt = np.zeros((NRT, R))
+        rt[RT.DT] = dt0
+        ri = np.zeros((NRI, R), dtype=np.int32)
+        ri[RI.STATUS] = RUNNING
+        ri[RI.VSTART], ri[RI.VEND] = layout.voxel_start[:-1], layout.voxel_start[1:]
+        ri[RI.LSTART], ri[RI.LEND] = layout.link_start[:-1], layout.link_start[1:]
+        ri[RI.PERIOD] = np.maximum(1, np.floor(config.temp_period / dt0)).astype(np.int32)
+
+        gp = np.zeros(NGP)
+        gp[GP.BURN_IN] = config.burn_in
+        gp[GP.T_END] = config.burn_in + config.duration
+        gp[GP.GRAVITY] = config.gravity
+        gp[GP.TEMP_AMP] = config.temp_amplitude
+        gp[GP.TEMP_PERIOD] = config.temp_period
+        gp[GP.DT_FRAC] = config.dt_frac
+        gp[GP.MAX_STRAIN] = config.max_strain
+
+        real = self.np_real
+        # Taichi ndarrays cannot have a zero-length axis: pad empty batches with one inert column
+        self.vr = runtime.from_numpy(_pad(vr.astype(real)))
+        self.vi = runtime.from_numpy(_pad(vi))
+        self.lr = runtime.from_numpy(_pad(np.zeros((NLR, m), dtype=real)))
+        self.li = runtime.from_numpy(_pad(li))
+        self.rt = runtime.from_numpy(rt if R else np.zeros((NRT, 1)))
+        ri_dev = ri if R else np.full((NRI, 1), DONE, dtype=np.int32)
+        self.ri = runtime.from_numpy(ri_dev)
+        self.mt = runtime.from_numpy(mt.astype(real))
+        self.lt = runtime.from_numpy(link_table(config).astype(real))
+        self.gp = runtime.from_numpy(gp)
+        self.steps_done = 0
+
+    # ------------------------------------------------------------------ stepping
+    def advance(self, n_steps: int) -> None:
+        """Run ``n_steps`` steps of every robot still running (finished/diverged robots stay frozen)."""
+        if n_steps <= 0 or self.layout.num_robots == 0:
+            return
+        k = self.kernels
+        args = (self.vr, self.vi, self.lr, self.li, self.rt, self.ri, self.mt, self.lt, self.gp)
+        flags = (int(self.config.floor), self.ifx, self.dyn)
+        if self.schedule == "robots":
+            k.run_robots(*args, n_steps, *flags)
+        else:
+            left = n_steps
+            while left > 0:
+                k.run_flat(*args, min(left, UNROLL), *flags)
+                left -= UNROLL
+        self.steps_done += n_steps
+
+    # ------------------------------------------------------------------ reading state (host copies)
+    def voxel_state(self) -> np.ndarray:
+        """float ``[NVR, n]`` (see ``kernels.VR`` for the columns)."""
+        return self.vr.to_numpy()[:, : self.layout.num_voxels]
+
+    def positions(self) -> np.ndarray:
+        """Voxel centres, float64 ``[n, 3]`` (m; robot frame = world frame, floor plane at z = −L/2)."""
+        return self.voxel_state()[VR.POS:VR.POS + 3].T.astype(np.float64)
+
+    def orientations(self) -> np.ndarray:
+        """Voxel orientation quaternions (w, x, y, z), float64 ``[n, 4]``."""
+        return self.voxel_state()[VR.ORI:VR.ORI + 4].T.astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """Linear velocities, float64 ``[n, 3]``."""
+        mass = material_table(self.config)[1][self.layout.material]
+        return self.voxel_state()[VR.MOM:VR.MOM + 3].T.astype(np.float64) / mass[:, None]
+
+    def link_strain(self) -> np.ndarray:
+        """Axial strain of every link at its last update, float64 ``[m]``."""
+        return self.lr.to_numpy()[LR.STRAIN, : self.layout.num_links].astype(np.float64)
+
+    def static_friction(self) -> np.ndarray:
+        """Floor static-friction state per voxel, bool ``[n]``."""
+        return (self.vi.to_numpy()[VI.FLAGS, : self.layout.num_voxels] & STATIC) != 0
+
+    def robot_status(self) -> np.ndarray:
+        """int32 ``[R]``: RUNNING, DONE or DIVERGED."""
+        return self.ri.to_numpy()[RI.STATUS, : self.layout.num_robots]
+
+    def robot_steps(self) -> np.ndarray:
+        return self.ri.to_numpy()[RI.STEP, : self.layout.num_robots].astype(np.int64)
+
+    def robot_time(self) -> np.ndarray:
+        return self.rt.to_numpy()[RT.T, : self.layout.num_robots]
+
+    def robot_dt(self) -> np.ndarray:
+        return self.rt.to_numpy()[RT.DT, : self.layout.num_robots]
+
+
+def _pad(a: np.ndarray) -> np.ndarray:
+    if a.shape[1] > 0:
+        return a
+    return np.zeros((a.shape[0], 1), dtype=a.dtype)

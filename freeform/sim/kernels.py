@@ -1,0 +1,550 @@
+"""Voxelyze's link and voxel updates as Taichi functions, and the two schedules that drive them.
+
+Data layout (structure of arrays): each array is ``[columns, items]``, so item i of column c sits at
+``c·items + i`` and neighbouring threads read neighbouring addresses. Columns are named below.
+
+* ``vr`` real ``[NVR, n]`` voxel state, ``vi`` int32 ``[NVI, n]`` voxel topology/flags,
+* ``lr`` real ``[NLR, m]`` link state, ``li`` int32 ``[NLI, m]`` link topology/flags,
+* ``rt`` float64 ``[NRT, R]`` robot clocks, ``ri`` int32 ``[NRI, R]`` robot status and ranges,
+* ``mt`` real material table, ``lt`` real link-material table (``config.MAT_COLUMNS`` / ``LINK_COLUMNS``),
+* ``gp`` float64 ``[NGP]`` global parameters.
+
+One step = every link's ``link_update`` (forces into fixed per-link slots), then every voxel's
+``voxel_update`` (gathers its ≤ 6 links' forces: no atomics, deterministic), then every robot's clock.
+Schedules: ``run_flat`` is one thread per link / voxel / robot and ``UNROLL`` steps per launch (GPU);
+``run_robots`` is one thread per robot that runs many steps per launch (CPU: no per-step thread-pool
+synchronisation, the robot's data stays in cache). Both call the same functions, so they agree exactly.
+
+Precision: with f64 the arithmetic follows VX (acos rotation vector, quaternions never renormalised); with
+f32 orientations are renormalised every step and rotation vectors use atan2 (spec section 14).
+"""
+
+# (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
+
+import functools
+import math
+from types import SimpleNamespace
+
+import taichi as ti
+
+from freeform.sim.config import LINK_COLUMNS, MAT_COLUMNS
+
+
+def _columns(*spec: tuple[str, int]) -> tuple[SimpleNamespace, int]:
+    ns, at = {}, 0
+    for name, width in spec:
+        ns[name] = at
+        at += width
+    return SimpleNamespace(**ns), at
+
+
+# voxel real columns: position, linear momentum, orientation (w,x,y,z), angular momentum, original position,
+# Poisson strain (per axis, cached for the next link update), temperature in effect, constant temperature,
+# snapshots at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end.
+VR, NVR = _columns(("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("PSTR", 3), ("TEMP", 1),
+                   ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3))
+VI, NVI = _columns(("MAT", 1), ("ROBOT", 1), ("FLAGS", 1), ("SLOT", 6))
+# link real columns: pos2 / angle1v / angle2v of the last step, axial strain, forces and moments on each end
+LR, NLR = _columns(("P2", 3), ("A1", 3), ("A2", 3), ("STRAIN", 1), ("FN", 3), ("FP", 3), ("MN", 3), ("MP", 3))
+LI, NLI = _columns(("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMAT", 1), ("FLAGS", 1))
+RT, NRT = _columns(("T", 1), ("DT", 1), ("DTPREV", 1), ("OMEGA2", 1))
+RI, NRI = _columns(("STATUS", 1), ("STEP", 1), ("VSTART", 1), ("VEND", 1), ("LSTART", 1), ("LEND", 1),
+                   ("PERIOD", 1))
+GP, NGP = _columns(("BURN_IN", 1), ("T_END", 1), ("GRAVITY", 1), ("TEMP_AMP", 1), ("TEMP_PERIOD", 1),
+                   ("DT_FRAC", 1), ("MAX_STRAIN", 1))
+MT = SimpleNamespace(**{c: i for i, c in enumerate(MAT_COLUMNS)})
+LT = SimpleNamespace(**{c: i for i, c in enumerate(LINK_COLUMNS)})
+
+# voxel flags
+STATIC, FIXED = 1, 2
+# link flags
+SMALL, VALID = 1, 2
+# robot status
+RUNNING, DONE, DIVERGED = 0, 1, 2
+
+UNROLL = 2  # steps per launch of the flat schedule
+
+# Voxelyze's small/large-angle switch (VX_Link.cpp): enter small below 0.05 rad and 50 % extension, leave above
+# 1.2× those (hysteresis). These are part of the model, not tuning knobs.
+SA_BOND_BEND_RAD, SA_BOND_EXT_PERC, HYSTERESIS_FACTOR = 0.05, 0.50, 1.2
+# Quat3D thresholds (FromRotationVector, ToRotationVector, FromAngleToPosX).
+_ROTVEC_SMALL4, _TOROT_SL, _POSX_SMALL, _POSX_PI_EPS = 5.328e-15, 2.4e-3, 1.732e-2, 1e-7
+TWO_PI = 2 * math.pi
+
+
+@functools.lru_cache(maxsize=None)
+def make_kernels(precision: str) -> SimpleNamespace:
+    """Compile-once kernel set for "f32" | "f64" (explicit dtypes, so both can live in one process)."""
+    real = ti.f64 if precision == "f64" else ti.f32
+    exact_vx = precision == "f64"
+    vec3 = ti.types.vector(3, real)
+    vec4 = ti.types.vector(4, real)
+    big = 1.0e300 if exact_vx else 3.0e38  # anything beyond is treated as non-finite
+    RealArr = ti.types.ndarray(dtype=real, ndim=2)
+    IntArr = ti.types.ndarray(dtype=ti.i32, ndim=2)
+    F64Arr = ti.types.ndarray(dtype=ti.f64, ndim=2)
+    ParArr = ti.types.ndarray(dtype=ti.f64, ndim=1)
+
+    # ---------------------------------------------------------------- small helpers
+    @ti.func
+    def get3(a: ti.template(), c: ti.template(), i):
+        return vec3(a[c, i], a[c + 1, i], a[c + 2, i])
+
+    @ti.func
+    def set3(a: ti.template(), c: ti.template(), i, x):
+        a[c, i] = x[0]
+        a[c + 1, i] = x[1]
+        a[c + 2, i] = x[2]
+
+    @ti.func
+    def get4(a: ti.template(), c: ti.template(), i):
+        return vec4(a[c, i], a[c + 1, i], a[c + 2, i], a[c + 3, i])
+
+    @ti.func
+    def set4(a: ti.template(), c: ti.template(), i, x):
+        a[c, i] = x[0]
+        a[c + 1, i] = x[1]
+        a[c + 2, i] = x[2]
+        a[c + 3, i] = x[3]
+
+    @ti.func
+    def qmul(a, b):
+        """Hamilton product a*b ("apply b, then a")."""
+        return vec4(
+            a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+            a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+            a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+            a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+        )
+
+    @ti.func
+    def conj(q):
+        return vec4(q[0], -q[1], -q[2], -q[3])
+
+    @ti.func
+    def rotate(q, f):
+        """q f q* in Quat3D::RotateVec3D's arithmetic (also valid for a slightly non-unit q, as in VX)."""
+        w, x, y, z = q[0], q[1], q[2], q[3]
+        tw = f[0] * x + f[1] * y + f[2] * z
+        tx = f[0] * w - f[1] * z + f[2] * y
+        ty = f[0] * z + f[1] * w - f[2] * x
+        tz = -f[0] * y + f[1] * x + f[2] * w
+        return vec3(w * tx + x * tw + y * tz - z * ty, w * ty - x * tz + y * tw + z * tx,
+                    w * tz + x * ty - y * tx + z * tw)
+
+    @ti.func
+    def to_axis_x(v, axis):
+        """Permute a link-axis vector onto +x (VX toAxisX); for a quaternion pass its (x, y, z)."""
+        r = v
+        if axis == 1:
+            r = vec3(v[1], -v[0], v[2])
+        elif axis == 2:
+            r = vec3(v[2], v[1], -v[0])
+        return r
+
+    @ti.func
+    def to_axis_original(v, axis):
+        r = v
+        if axis == 1:
+            r = vec3(-v[1], v[0], v[2])
+        elif axis == 2:
+            r = vec3(-v[2], v[1], v[0])
+        return r
+
+    @ti.func
+    def q_to_axis_x(q, axis):
+        v = to_axis_x(vec3(q[1], q[2], q[3]), axis)
+        return vec4(q[0], v[0], v[1], v[2])
+
+    @ti.func
+    def to_rotation_vector(q):
+        r = vec3(0.0, 0.0, 0.0)
+        xyz = vec3(q[1], q[2], q[3])
+        if ti.static(exact_vx):
+            w = q[0]
+            if w < 1.0 and w > -1.0:
+                sl = 1.0 - w * w
+                if sl < _TOROT_SL:
+                    r = 2.0 * xyz * ti.sqrt((2.0 - 2.0 * w) / sl)
+                else:
+                    r = 2.0 * xyz * ti.acos(w) / ti.sqrt(sl)
+        else:
+            # atan2 form: no dead zone below ~5e-4 rad where f32 cos(θ/2) rounds to 1 (spec section 14)
+            s = xyz.norm()
+            if s > 0.0:
+                r = 2.0 * ti.atan2(s, q[0]) * xyz / s
+        return r
+
+    @ti.func
+    def from_rotation_vector(v):
+        th = 0.5 * v
+        a2 = th.dot(th)
+        w = ti.cast(1.0, real)
+        s = ti.cast(1.0, real)
+        if a2 * a2 < _ROTVEC_SMALL4:
+            w = 1.0 - a2 / 2.0
+            s = 1.0 - a2 / 6.0
+        else:
+            a = ti.sqrt(a2)
+            w = ti.cos(a)
+            s = ti.sin(a) / a
+        return vec4(w, th[0] * s, th[1] * s, th[2] * s)
+
+    @ti.func
+    def from_angle_to_pos_x(p):
+        """The rotation that takes p onto +x (Quat3D::FromAngleToPosX); identity for p = 0."""
+        q = vec4(1.0, 0.0, 0.0, 0.0)
+        if not (p[0] == 0.0 and p[1] == 0.0 and p[2] == 0.0):
+            if p[0] != 0.0 and ti.abs(p[1] / p[0]) < _POSX_SMALL and ti.abs(p[2] / p[0]) < _POSX_SMALL:
+                y = 0.5 * p[2] / p[0]
+                z = -0.5 * p[1] / p[0]
+                q = vec4(1.0 - 0.5 * (y * y + z * z), 0.0, y, z)
+            else:
+                n = p / p.norm()
+                th = ti.acos(ti.min(ti.max(n[0], -1.0), 1.0))
+                if th > math.pi - _POSX_PI_EPS:
+                    q = vec4(0.0, 0.0, 1.0, 0.0)
+                else:
+                    s = ti.sin(0.5 * th)
+                    yz = ti.sqrt(n[1] * n[1] + n[2] * n[2])
+                    q = vec4(ti.cos(0.5 * th), 0.0, n[2] * s / yz, -n[1] * s / yz)
+        return q
+
+    @ti.func
+    def base_size(mt: ti.template(), mat, temp):
+        """Rest size of a voxel along any axis: L·(1 + T·CTE) (extScale = 1)."""
+        return mt[MT.L, mat] * (1.0 + temp * mt[MT.CTE, mat])
+
+    @ti.func
+    def temperature(mt: ti.template(), gp: ti.template(), mat, tbase, t):
+        """T(t) = T_base + A·sin(2π(t/period + φ)) with φ in cycles, evaluated in float64."""
+        ph = t / gp[GP.TEMP_PERIOD] + ti.cast(mt[MT.PHASE, mat], ti.f64)
+        return ti.cast(ti.cast(tbase, ti.f64) + gp[GP.TEMP_AMP] * ti.sin(TWO_PI * ph), real)
+
+    @ti.func
+    def transverse(vr: ti.template(), mt: ti.template(), v, mat, axis):
+        """(transverse area, transverse strain sum) of voxel v for a link along ``axis`` (VX_Voxel.cpp)."""
+        L = mt[MT.L, mat]
+        area = L * L
+        ssum = ti.cast(0.0, real)
+        if mt[MT.NU, mat] != 0.0:
+            ps = get3(vr, VR.PSTR, v)
+            a, b = ps[1], ps[2]
+            if axis == 1:
+                a, b = ps[0], ps[2]
+            elif axis == 2:
+                a, b = ps[0], ps[1]
+            area = L * L * (1.0 + a) * (1.0 + b)
+            ssum = a + b
+        return area, ssum
+
+    # ---------------------------------------------------------------- the link update (spec section 5)
+    @ti.func
+    def link_update(l, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
+                    gp: ti.template(), ifx: ti.i32, dyn: ti.i32):
+        n, p, axis, k = li[LI.NEG, l], li[LI.POS, l], li[LI.AXIS, l], li[LI.LMAT, l]
+        r = vi[VI.ROBOT, n]
+        mat_n, mat_p = vi[VI.MAT, n], vi[VI.MAT, p]
+        flags = li[LI.FLAGS, l]
+        small = (flags & SMALL) != 0
+        valid = (flags & VALID) != 0
+        size_n = base_size(mt, mat_n, vr[VR.TEMP, n])
+        L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
+        if ifx == 0:
+            L0 = 0.5 * (size_n + base_size(mt, mat_p, vr[VR.TEMP, p]))
+
+        # orientLink: into the link frame, relative to the negative voxel
+        q1 = q_to_axis_x(get4(vr, VR.ORI, n), axis)
+        q2 = q_to_axis_x(get4(vr, VR.ORI, p), axis)
+        R = conj(q1)
+        pos2 = rotate(R, to_axis_x(get3(vr, VR.POS, p) - get3(vr, VR.POS, n), axis))
+        q2 = qmul(R, q2)
+        q1 = vec4(1.0, 0.0, 0.0, 0.0)
+        small_turn = (ti.abs(pos2[2]) + ti.abs(pos2[1])) / pos2[0]
+        extend = ti.abs(1.0 - pos2[0] / L0)
+        leave = small and (small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD
+                           or extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC)
+        if ifx != 0:
+            # the paper simulator's precedence slip: `small && a || b`
+            leave = (small and small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD) or \
+                extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC
+        if (not small) and small_turn < SA_BOND_BEND_RAD and extend < SA_BOND_EXT_PERC:
+            small = True
+            valid = False
+        elif leave:
+            small = False
+            valid = False
+        if small:
+            pos2[0] -= L0  # the y, z offsets stay and act as shear
+        else:
+            q1 = from_angle_to_pos_x(pos2)
+            q2 = qmul(q1, q2)
+            pos2 = vec3(pos2.norm() - L0, 0.0, 0.0)
+        a1v = to_rotation_vector(q1)
+        a2v = to_rotation_vector(q2)
+        strain = pos2[0] / L0
+        if ifx != 0:
+            pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
+
+        dP = 0.5 * (pos2 - get3(lr, LR.P2, l))
+        dA1 = 0.5 * (a1v - get3(lr, LR.A1, l))
+        dA2 = 0.5 * (a2v - get3(lr, LR.A2, l))
+
+        # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
+        nu = lt[LT.NU, k]
+        area_n, ssum_n = transverse(vr, mt, n, mat_n, axis)
+        area_p, ssum_p = transverse(vr, mt, p, mat_p, axis)
+        area = 0.5 * (area_n + area_p)
+        ssum = 0.5 * (ssum_n + ssum_p)
+        stress = lt[LT.E, k] * strain
+        if nu != 0.0:
+            stress = lt[LT.EHAT, k] * ((1.0 - nu) * strain + nu * ssum)
+
+        b1, b2, b3, a2 = lt[LT.B1, k], lt[LT.B2, k], lt[LT.B3, k], lt[LT.A2, k]
+        fN = vec3(stress * area, b1 * pos2[1] - b2 * (a1v[2] + a2v[2]), b1 * pos2[2] + b2 * (a1v[1] + a2v[1]))
+        fP = -fN
+        mN = vec3(a2 * (a2v[0] - a1v[0]), -b2 * pos2[2] - b3 * (2.0 * a1v[1] + a2v[1]),
+                  b2 * pos2[1] - b3 * (2.0 * a1v[2] + a2v[2]))
+        mP = vec3(a2 * (a1v[0] - a2v[0]), -b2 * pos2[2] - b3 * (a1v[1] + 2.0 * a2v[1]),
+                  b2 * pos2[1] - b3 * (a1v[2] + 2.0 * a2v[2]))
+
+        if valid:
+            # internal damping: D = 2·√m·ζ/previousDt of each end's voxel; posCalc are half-link displacements
+            prev_dt = ti.cast(rt[RT.DTPREV, r], real)
+            dN = 2.0 * mt[MT.SQRTM, mat_n] * mt[MT.ZINT, mat_n] / prev_dt
+            dPp = 2.0 * mt[MT.SQRTM, mat_p] * mt[MT.ZINT, mat_p] / prev_dt
+            sqA1, sqA2xIp, sqB1 = lt[LT.SQA1, k], lt[LT.SQA2XIP, k], lt[LT.SQB1, k]
+            sqB2xFMp, sqB3xIp = lt[LT.SQB2XFMP, k], lt[LT.SQB3XIP, k]
+            c = vec3(sqA1 * dP[0], sqB1 * dP[1] - sqB2xFMp * (dA1[2] + dA2[2]),
+                     sqB1 * dP[2] + sqB2xFMp * (dA1[1] + dA2[1]))
+            fN += dN * c
+            fP -= dPp * c
+            mN -= 0.5 * dN * vec3(-sqA2xIp * (dA2[0] - dA1[0]), sqB2xFMp * dP[2] + sqB3xIp * (2.0 * dA1[1] + dA2[1]),
+                                  -sqB2xFMp * dP[1] + sqB3xIp * (2.0 * dA1[2] + dA2[2]))
+            mP -= 0.5 * dPp * vec3(sqA2xIp * (dA2[0] - dA1[0]), sqB2xFMp * dP[2] + sqB3xIp * (dA1[1] + 2.0 * dA2[1]),
+                                   -sqB2xFMp * dP[1] + sqB3xIp * (dA1[2] + 2.0 * dA2[2]))
+        else:
+            valid = True  # damping resumes next step
+
+        # back into each voxel's local frame
+        if not small:
+            qc = conj(q1)
+            fN = rotate(qc, fN)
+            mN = rotate(qc, mN)
+        q2c = conj(q2)
+        fP = rotate(q2c, fP)
+        mP = rotate(q2c, mP)
+        set3(lr, LR.FN, l, to_axis_original(fN, axis))
+        set3(lr, LR.FP, l, to_axis_original(fP, axis))
+        set3(lr, LR.MN, l, to_axis_original(mN, axis))
+        set3(lr, LR.MP, l, to_axis_original(mP, axis))
+        set3(lr, LR.P2, l, pos2)
+        set3(lr, LR.A1, l, a1v)
+        set3(lr, LR.A2, l, a2v)
+        lr[LR.STRAIN, l] = strain
+        li[LI.FLAGS, l] = (SMALL if small else 0) | (VALID if valid else 0)
+
+        if not (strain <= gp[GP.MAX_STRAIN]):  # also catches NaN
+            ri[RI.STATUS, r] = DIVERGED
+        if dyn != 0 and (ri[RI.STEP, r] + 1) % 10 == 0:
+            # rl4design recomputes dt every 10 steps from the current axial stiffness (VX_Link::axialStiffness)
+            kax = lt[LT.A1, k]
+            if nu != 0.0:
+                kax = lt[LT.EHAT, k] * area / ((strain + 1.0) * L0)
+            mmin = ti.min(mt[MT.MASS, mat_n], mt[MT.MASS, mat_p])
+            ti.atomic_max(rt[RT.OMEGA2, r], ti.cast(kax / mmin, ti.f64))
+
+    # ---------------------------------------------------------------- the voxel update (spec sections 6-9)
+    @ti.func
+    def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
+                     gp: ti.template(), floor: ti.i32, ifx: ti.i32):
+        r = vi[VI.ROBOT, v]
+        mat = vi[VI.MAT, v]
+        flags = vi[VI.FLAGS, v]
+        t_before = rt[RT.T, r]
+        dt64 = rt[RT.DT, r]
+        dt = ti.cast(dt64, real)
+        mass, inertia = mt[MT.MASS, mat], mt[MT.INERTIA, mat]
+        pos = get3(vr, VR.POS, v)
+        mom = get3(vr, VR.MOM, v)
+        q = get4(vr, VR.ORI, v)
+        amom = get3(vr, VR.AMOM, v)
+        temp = vr[VR.TEMP, v]
+
+        # Poisson strain of this voxel from its links' strains of this step, cached for the next link update
+        # (VX computes it lazily at the next step's first link; nothing has changed by then: a Jacobi update).
+        s = vec3(0.0, 0.0, 0.0)
+        nu = mt[MT.NU, mat]
+        if nu != 0.0:
+            tension = ti.Vector([0, 0, 0])
+            for a in ti.static(range(3)):
+                cnt = 0
+                for side in ti.static(range(2)):
+                    l = vi[VI.SLOT + 2 * a + side, v]
+                    if l >= 0:
+                        ratio = lt[LT.RATIO, li[LI.LMAT, l]]
+                        eps = lr[LR.STRAIN, l]
+                        if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
+                            s[a] += 2.0 * eps * ratio / (1.0 + ratio)
+                        else:
+                            s[a] += 2.0 * eps / (1.0 + ratio)
+                        cnt += 1
+                if cnt == 2:
+                    s[a] *= 0.5
+                    tension[a] = 1
+            if not (tension[0] == 1 and tension[1] == 1 and tension[2] == 1):
+                add = ti.cast(0.0, real)
+                for a in ti.static(range(3)):
+                    if tension[a] == 1:
+                        add += s[a]
+                val = ti.pow(1.0 + add, -nu) - 1.0
+                for a in ti.static(range(3)):
+                    if tension[a] == 0:
+                        s[a] = val
+
+        if (flags & FIXED) != 0:
+            # held in all 6 DOF (VX isFixedAll): back to the original pose, no motion
+            pos = get3(vr, VR.POS0, v)
+            mom = vec3(0.0, 0.0, 0.0)
+            amom = vec3(0.0, 0.0, 0.0)
+            q = vec4(1.0, 0.0, 0.0, 0.0)
+        else:
+            force = vec3(0.0, 0.0, 0.0)
+            moment = vec3(0.0, 0.0, 0.0)
+            for d in ti.static(range(6)):
+                l = vi[VI.SLOT + d, v]
+                if l >= 0:
+                    if ti.static(d % 2 == 1):  # NEG slot: this voxel is the link's positive end
+                        force += get3(lr, LR.FP, l)
+                        moment += get3(lr, LR.MP, l)
+                    else:
+                        force += get3(lr, LR.FN, l)
+                        moment += get3(lr, LR.MN, l)
+            vel = mom / mass
+            force = rotate(q, force) - mt[MT.CG, mat] * vel
+            force[2] += mass * ti.cast(gp[GP.GRAVITY], real)
+            moment = rotate(q, moment) - mt[MT.CGR, mat] * (amom / inertia)
+
+            # floor contact (pen at the start of the step) and Coulomb friction with the static/kinetic states
+            static = (flags & STATIC) != 0
+            size = base_size(mt, mat, temp)
+            pen = 0.5 * size - 0.5 * mt[MT.L, mat] - pos[2]
+            fric = vec3(0.0, 0.0, 0.0)
+            if floor != 0:
+                if pen >= 0.0:
+                    normal = mt[MT.KPEN, mat] * pen
+                    force[2] += normal - mt[MT.CC, mat] * vel[2]
+                    if static:
+                        mus = mt[MT.MUS, mat] * normal
+                        if force[0] * force[0] + force[1] * force[1] > mus * mus:
+                            static = False  # breaks loose; the full force acts this step
+                    else:
+                        vh = ti.sqrt(vel[0] * vel[0] + vel[1] * vel[1])
+                        if vh > 0.0:
+                            f = mt[MT.MUK, mat] * normal / vh
+                            fric = vec3(-f * vel[0], -f * vel[1], 0.0)
+                            force += fric
+                else:
+                    static = False
+            mom += force * dt
+            delta = mom * (dt / mass)
+            if floor != 0 and pen >= 0.0:
+                # work-energy stop test: friction would reverse the horizontal motion within this step
+                work = fric[0] * delta[0] + fric[1] * delta[1]
+                hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) / mass
+                if hke + work <= 0.0:
+                    static = True
+                if static:
+                    mom[0] = 0.0
+                    mom[1] = 0.0
+                    delta[0] = 0.0
+                    delta[1] = 0.0
+            else:
+                static = False
+            pos += delta
+            amom += moment * dt
+            q = qmul(from_rotation_vector(amom * (dt / inertia)), q)
+            if ti.static(not exact_vx):
+                q = q / q.norm()
+            if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * mt[MT.L, mat] - pos[2] >= 0.0:
+                amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
+            flags = (flags & ~STATIC) | (STATIC if static else 0)
+
+        if not (ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + amom.norm() < big):
+            ri[RI.STATUS, r] = DIVERGED
+
+        set3(vr, VR.POS, v, pos)
+        set3(vr, VR.MOM, v, mom)
+        set4(vr, VR.ORI, v, q)
+        set3(vr, VR.AMOM, v, amom)
+        set3(vr, VR.PSTR, v, s)
+        vi[VI.FLAGS, v] = flags
+        # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
+        # voxel update, so its links lag one step behind
+        t_next = t_before + dt64
+        if ifx != 0:
+            t_next = t_before
+        vr[VR.TEMP, v] = temperature(mt, gp, mat, vr[VR.TBASE, v], t_next)
+
+        # snapshots: COM samples every PERIOD steps; evaluation start/end at the first step past each time
+        t_after = t_before + dt64
+        if (ri[RI.STEP, r] + 1) % ri[RI.PERIOD, r] == 0:
+            set3(vr, VR.PSAMP, v, pos)
+        if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
+            set3(vr, VR.PSTART, v, pos)
+            set3(vr, VR.PCS, v, get3(vr, VR.PSAMP, v))
+        if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
+            set3(vr, VR.PEND, v, pos)
+            set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
+
+    @ti.func
+    def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32):
+        """End of a step for robot r: clock, status, and rl4design's dt refresh every 10 steps."""
+        rt[RT.DTPREV, r] = rt[RT.DT, r]
+        rt[RT.T, r] += rt[RT.DT, r]
+        step = ri[RI.STEP, r] + 1
+        ri[RI.STEP, r] = step
+        if rt[RT.T, r] > gp[GP.T_END] and ri[RI.STATUS, r] == RUNNING:
+            ri[RI.STATUS, r] = DONE
+        if dyn != 0 and step % 10 == 0:
+            if rt[RT.OMEGA2, r] > 0.0:
+                rt[RT.DT, r] = gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(rt[RT.OMEGA2, r]))
+            rt[RT.OMEGA2, r] = 0.0
+
+    # ---------------------------------------------------------------- schedules
+    @ti.kernel
+    def run_robots(vr: RealArr, vi: IntArr, lr: RealArr, li: IntArr, rt: F64Arr, ri: IntArr, mt: RealArr,
+                   lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+        """One thread per robot, ``n_steps`` steps per launch (CPU schedule)."""
+        ti.loop_config(block_dim=1)  # robots differ in size: hand them out one at a time
+        for r in range(ri.shape[1]):
+            for _ in range(n_steps):
+                if ri[RI.STATUS, r] == RUNNING:
+                    for l in range(ri[RI.LSTART, r], ri[RI.LEND, r]):
+                        link_update(l, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                    if ri[RI.STATUS, r] == RUNNING:  # a diverged link aborts the step, as in VX
+                        for v in range(ri[RI.VSTART, r], ri[RI.VEND, r]):
+                            voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+                    if ri[RI.STATUS, r] == RUNNING:
+                        robot_advance(r, rt, ri, gp, dyn)
+
+    @ti.kernel
+    def run_flat(vr: RealArr, vi: IntArr, lr: RealArr, li: IntArr, rt: F64Arr, ri: IntArr, mt: RealArr,
+                 lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+        """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
+        for s in ti.static(range(UNROLL)):
+            for l in range(li.shape[1]):
+                # (a batch without links carries one padding column with NEG == POS: skip it)
+                if s < n_steps and li[LI.NEG, l] != li[LI.POS, l] and \
+                        ri[RI.STATUS, vi[VI.ROBOT, li[LI.NEG, l]]] == RUNNING:
+                    link_update(l, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+            for v in range(vi.shape[1]):
+                if s < n_steps and ri[RI.STATUS, vi[VI.ROBOT, v]] == RUNNING:
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+            for r in range(ri.shape[1]):
+                if s < n_steps and ri[RI.STATUS, r] == RUNNING:
+                    robot_advance(r, rt, ri, gp, dyn)
+
+    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, real=real)

@@ -1,0 +1,58 @@
+"""The one place that imports and initialises Taichi (so that a switch to a fork such as `quadrants` stays here).
+
+Taichi can be initialised once per process. ``ensure(arch)`` does it on first use — never at import — and
+later calls check that the request matches what is running. Arrays are Taichi ndarrays, created only through
+``ndarray``/``from_numpy`` below; kernels take them as arguments, so one compiled kernel serves every batch size
+(and Taichi's offline kernel cache, on by default, carries compiled kernels across processes).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import taichi as ti
+
+ARCHS = ("auto", "cpu", "cuda")
+_active: str | None = None  # "cpu" or "cuda" once initialised
+
+
+def ensure(arch: str = "auto") -> str:
+    """Initialise Taichi once for ``arch`` ("auto" | "cpu" | "cuda") and return the active arch ("cpu" | "cuda").
+
+    "auto" prefers CUDA and falls back to the CPU with a warning; "cuda" where no CUDA device exists is an error.
+    """
+    global _active
+    if arch not in ARCHS:
+        raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
+    if _active is None:
+        want = ti.cpu if arch == "cpu" else ti.cuda
+        ti.init(arch=want, log_level=ti.WARN, offline_cache=True)
+        got = "cuda" if ti.lang.impl.current_cfg().arch == ti.cuda else "cpu"
+        if arch == "cuda" and got != "cuda":
+            # Taichi silently fell back to the CPU; the caller asked for a GPU, so say so.
+            ti.reset()
+            raise RuntimeError("arch='cuda' requested but Taichi found no usable CUDA device")
+        if arch == "auto" and got != "cuda":
+            warnings.warn("freeform.sim: no CUDA device found, simulating on the CPU", RuntimeWarning, stacklevel=3)
+        _active = got
+    elif arch != "auto" and arch != _active:
+        raise RuntimeError(f"Taichi is already initialised on {_active!r} in this process; cannot switch to {arch!r}")
+    return _active
+
+
+def real(precision: str):
+    """Taichi float type for "f32" | "f64"."""
+    return ti.f64 if precision == "f64" else ti.f32
+
+
+def from_numpy(a: np.ndarray) -> ti.Ndarray:
+    """A Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32)."""
+    dtype = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32}[a.dtype]
+    arr = ti.ndarray(dtype, a.shape)
+    arr.from_numpy(np.ascontiguousarray(a))
+    return arr
+
+
+def sync() -> None:
+    ti.sync()
