@@ -1,0 +1,168 @@
+"""Checkpoints that survive a kill at any moment, and the RNG states that make a resumed run exact.
+
+A run directory keeps ``checkpoints/last.pt`` (rewritten every epoch) plus numbered ``checkpoints/epoch_<e>.pt``.
+:func:`save_checkpoint` writes to a temporary file in the same directory, flushes it to disk and renames it over
+the target (``os.replace`` is atomic on POSIX and Windows), so a reader sees either the old file or the new one,
+never a half-written one. :func:`load_checkpoint` turns any failure to read a file into a
+:class:`CheckpointError` that names it (and lists the other checkpoints next to it).
+
+Checkpoints are loaded with ``torch.load(weights_only=True)``: they hold only tensors, numbers, strings and
+containers (RNG states are converted to tensors), so loading a file cannot run code.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+CHECKPOINT_DIR = "checkpoints"
+LAST = "last.pt"
+FORMAT = "freeform-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint file is missing, truncated, corrupt or not a freeform checkpoint."""
+
+
+def numbered_name(epoch: int) -> str:
+    """File name of the checkpoint taken after ``epoch`` epochs: ``epoch_000123.pt``."""
+    return f"epoch_{epoch:06d}.pt"
+
+
+def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path:
+    """Write ``state`` to ``path`` atomically (temporary file in the same directory, fsync, rename).
+
+    ``state`` is stamped with ``format``/``version`` keys. Returns the path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"format": FORMAT, "version": VERSION, **state}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())  # the bytes are on disk before the rename makes them visible
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)  # make the rename itself durable
+    return path
+
+
+def _fsync_dir(directory: Path) -> None:
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:  # e.g. Windows cannot open directories; the rename is still atomic there
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _siblings(path: Path) -> str:
+    others = sorted(p.name for p in path.parent.glob("*.pt") if p != path) if path.parent.is_dir() else []
+    return f"; other checkpoints in {path.parent}: {others}" if others else ""
+
+
+def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint`.
+
+    Raises :class:`CheckpointError` naming ``path`` if it is missing, unreadable, truncated, corrupt or not a
+    freeform checkpoint. Nothing is written.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist{_siblings(path)}")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises a variety (RuntimeError, EOFError, UnpicklingError, ...)
+        raise CheckpointError(
+            f"checkpoint {path} is unreadable (truncated or corrupt?): {type(exc).__name__}: {exc}{_siblings(path)}"
+        ) from exc
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise CheckpointError(f"checkpoint {path} is not a freeform checkpoint (no format={FORMAT!r} key)")
+    if state.get("version") != VERSION:
+        raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads {VERSION}")
+    return state
+
+
+def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
+    """``trainer.resume`` -> the checkpoint file: a file as is; a run directory -> ``<dir>/checkpoints/last.pt``."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        inner = path / CHECKPOINT_DIR / LAST
+        if not inner.is_file() and (path / LAST).is_file():  # the checkpoints directory itself
+            inner = path / LAST
+        return inner
+    return path
+
+
+def run_dir_of(path: str | os.PathLike[str]) -> Path:
+    """The run directory a ``trainer.resume`` value belongs to (``<run>/checkpoints/x.pt`` -> ``<run>``)."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        return path.parent if path.name == CHECKPOINT_DIR else path
+    parent = path.parent
+    return parent.parent if parent.name == CHECKPOINT_DIR else parent
+
+
+def capture_rng_state() -> dict[str, Any]:
+    """The global RNG states of python, numpy and torch (CPU and every CUDA device), as tensors and ints.
+
+    numpy's MT19937 state becomes a uint32 tensor so that the checkpoint stays loadable with ``weights_only``.
+    """
+    algo, keys, pos, has_gauss, cached = np.random.get_state(legacy=True)  # type: ignore[misc]
+    py_version, py_state, py_gauss = random.getstate()
+    state: dict[str, Any] = {
+        "python": {"version": py_version, "state": torch.tensor(py_state, dtype=torch.int64), "gauss": py_gauss},
+        "numpy": {
+            "algorithm": algo,
+            "keys": torch.from_numpy(np.asarray(keys, dtype=np.uint32).astype(np.int64)),
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached_gaussian": float(cached),
+        },
+        "torch": torch.get_rng_state(),
+    }
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(state: dict[str, Any]) -> None:
+    """Inverse of :func:`capture_rng_state`."""
+    py = state["python"]
+    random.setstate((py["version"], tuple(int(v) for v in py["state"].tolist()), py["gauss"]))
+    npy = state["numpy"]
+    np.random.set_state(
+        (npy["algorithm"], npy["keys"].numpy().astype(np.uint32), npy["pos"], npy["has_gauss"], npy["cached_gaussian"])
+    )
+    torch.set_rng_state(state["torch"].cpu())
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+
+
+__all__ = [
+    "CHECKPOINT_DIR",
+    "LAST",
+    "CheckpointError",
+    "capture_rng_state",
+    "load_checkpoint",
+    "numbered_name",
+    "resolve_checkpoint",
+    "restore_rng_state",
+    "run_dir_of",
+    "save_checkpoint",
+]

@@ -1,0 +1,468 @@
+"""The training application: ``freeform-train`` / ``python -m freeform.train`` (a Hydra app over ``conf/``).
+
+    freeform-train                                   # the CPU demo (experiment=volume_cpu)
+    freeform-train experiment=paper_volume           # paper Table I, volume
+    freeform-train -m experiment=paper_volume seed=0,1,2,3,4   # five trials, one directory each
+    freeform-train trainer.resume=runs/volume_cpu/2026-01-01_12-00-00 trainer.epochs=80
+
+Each epoch: PPO collects one rollout and updates (``PPO.train_epoch``); the trainer then cuts the rollout into
+finished episodes, writes the epoch's design record, logs scalars to TensorBoard, runs the per-epoch callbacks
+(renders), flushes, and only then checkpoints — so whatever a checkpoint claims is already on disk, and a run killed
+at any moment resumes from its last checkpoint with no gap. The run directory's layout is in ``docs/training.md``.
+
+Python use: ``train(cfg, run_dir)`` with a :class:`freeform.config.TrainConfig`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import platform
+import random
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+import freeform
+from freeform.checkpoint import (
+    CHECKPOINT_DIR,
+    LAST,
+    CheckpointError,
+    capture_rng_state,
+    load_checkpoint,
+    numbered_name,
+    resolve_checkpoint,
+    restore_rng_state,
+    run_dir_of,
+    save_checkpoint,
+)
+from freeform.config import (
+    TrainConfig,
+    flatten,
+    from_container,
+    ppo_config,
+    register_configs,
+    to_container,
+    to_dataclass,
+    validate,
+)
+from freeform.envs.base import Task, VecEnv
+from freeform.logger import Logger
+from freeform.records import EpisodeCollector, EpochRecord, write_record
+
+log = logging.getLogger("freeform.train")
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+RUN_INFO = "run_info.json"
+
+# ------------------------------------------------------------------------------------------------ task registry
+
+TaskBuilder = Callable[[TrainConfig, torch.device], Task]
+TASKS: dict[str, TaskBuilder] = {}
+"""``task.name`` -> builder ``(cfg, device) -> Task``. Add one with :func:`register_task`."""
+
+
+def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
+    """Decorator: make ``task.name=<name>`` build its task with the decorated function."""
+
+    def decorate(builder: TaskBuilder) -> TaskBuilder:
+        TASKS[name] = builder
+        return builder
+
+    return decorate
+
+
+@register_task("volume")
+def _volume_task(cfg: TrainConfig, device: torch.device) -> Task:
+    from freeform.envs import VolumeTask  # type: ignore[attr-defined]
+
+    return VolumeTask(**cfg.task.options)
+
+
+@register_task("locomotion")
+def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
+    try:
+        from freeform.envs import LocomotionTask  # type: ignore[attr-defined]
+    except ImportError as exc:
+        raise ValueError(
+            "task.name=locomotion needs freeform.envs.LocomotionTask, which this version of freeform does not have yet"
+        ) from exc
+    return LocomotionTask(sim=cfg.sim, device=device, **cfg.task.options)
+
+
+def build_task(cfg: TrainConfig, device: torch.device) -> Task:
+    if cfg.task.name not in TASKS:
+        raise ValueError(f"task.name must be one of {sorted(TASKS)}, got {cfg.task.name!r}")
+    return TASKS[cfg.task.name](cfg, device)
+
+
+# ------------------------------------------------------------------------------------------------ building a run
+
+
+def resolve_device(name: str) -> torch.device:
+    """``trainer.device`` -> a torch device (``auto``: CUDA when available, else CPU)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"trainer.device={name!r} but CUDA is not available here; use trainer.device=cpu or auto")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python, numpy and torch's global RNGs (the network's initialisation draws from torch's)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def build(cfg: TrainConfig, device: torch.device) -> tuple[VecEnv, torch.nn.Module, Any]:
+    """The run's environment, policy and PPO, seeded by ``cfg.seed`` (the same cfg builds the same objects)."""
+    from freeform.agents import PPO, VoxelActorCritic
+    from freeform.envs import DesignEnv  # type: ignore[attr-defined]
+
+    seed_everything(cfg.seed)
+    env = DesignEnv(
+        num_envs=cfg.env.num_envs,
+        resolution=cfg.env.resolution,
+        materials=cfg.task.materials,
+        steps=cfg.env.steps,
+        bundle_size=cfg.env.bundle_size,
+        task=build_task(cfg, device),
+        device=device,
+        seed=cfg.seed,
+    )
+    policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
+    ppo = PPO(env, policy, ppo_config(cfg, device=str(device)))
+    return env, policy, ppo
+
+
+# ------------------------------------------------------------------------------------------------ callbacks
+
+
+@dataclass
+class EpochContext:
+    """What a per-epoch callback sees, after the epoch's scalars are written and before its checkpoint.
+
+    ``epoch``: 0-based index of the epoch just trained; ``global_step``: environment steps so far (the TensorBoard
+    step); ``episodes``: the epoch's finished episodes as written to its design record (``final_grids [E, ρ, ρ, ρ]
+    uint8``, ``rewards [E]``, ``actions [E, T, A]``, ``values [E, T]``, ``metrics`` {name: [E]}) or None;
+    ``ppo.episode_infos`` holds the environment's own info dicts (``bodies`` ...).
+    """
+
+    epoch: int
+    global_step: int
+    stats: dict[str, float]
+    episodes: dict[str, Any] | None
+    cfg: TrainConfig
+    run_dir: Path
+    logger: Logger
+    ppo: Any
+
+
+EpochCallback = Callable[[EpochContext], None]
+
+
+def render_callback(every: int) -> EpochCallback:
+    """Every ``every`` epochs, log renders of the epoch's bodies to TensorBoard (``freeform.render``).
+
+    The hook for the rendering work: ``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``.
+    """
+
+    def callback(ctx: EpochContext) -> None:
+        if ctx.episodes is None or (ctx.epoch + 1) % every and ctx.epoch:
+            return
+        try:
+            from freeform.render import log_bodies  # type: ignore[import-not-found]
+        except ImportError as exc:
+            raise ValueError("trainer.render_every > 0 needs freeform.render.log_bodies, not available yet") from exc
+        log_bodies(ctx.logger.writer, ctx.episodes["final_grids"], ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
+
+    return callback
+
+
+def default_callbacks(cfg: TrainConfig) -> list[EpochCallback]:
+    """The callbacks a run gets from its config (``trainer.render_every``)."""
+    return [render_callback(cfg.trainer.render_every)] if cfg.trainer.render_every else []
+
+
+# ------------------------------------------------------------------------------------------------ run metadata
+
+
+def _git_commit() -> tuple[str | None, bool | None]:
+    repo = Path(freeform.__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo, capture_output=True, text=True, timeout=10
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None, None
+    if sha.returncode:
+        return None, None
+    return sha.stdout.strip(), bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
+
+
+def _version(package: str) -> str | None:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def run_info(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+    """What made this run: versions, device, git commit, start time (``run_info.json``)."""
+    commit, dirty = _git_commit()
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or platform.machine())
+    return {
+        "device": str(device),
+        "device_name": name,
+        "freeform": freeform.__version__,
+        "torch": torch.__version__,
+        "taichi": _version("taichi"),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "git_commit": commit,
+        "git_dirty": dirty,
+        "start_time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "hostname": socket.gethostname(),
+        "command": sys.argv,
+        "experiment": cfg.name,
+        "seed": cfg.seed,
+        "resumes": [],
+    }
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=2, default=str) + "\n")
+    tmp.replace(path)
+
+
+# ------------------------------------------------------------------------------------------------ resuming
+
+
+def _override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("~+")
+
+
+def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[str] | None) -> TrainConfig:
+    """The config of a resumed run: the checkpoint's own, with the ``trainer`` fields given on the command line.
+
+    ``overrides`` (Hydra's command-line overrides) name what the user set; ``None`` (Python use) takes the whole
+    ``trainer`` section of ``current``. Any other explicitly set key must equal the checkpoint's value: changing
+    what the run trains mid-way would break the promise that a resumed run equals an uninterrupted one.
+    """
+    trainer = dataclasses.replace(saved.trainer, resume=current.trainer.resume)
+    if overrides is None:
+        trainer = dataclasses.replace(current.trainer)
+    else:
+        saved_flat, current_flat = flatten(to_container(saved)), flatten(to_container(current))
+        for override in overrides:
+            key = _override_key(override)
+            if key.startswith("hydra.") or key == "trainer.resume":
+                continue
+            if key.startswith("trainer."):
+                field = key.split(".", 1)[1]
+                trainer = dataclasses.replace(trainer, **{field: getattr(current.trainer, field)})
+            elif key == "experiment":
+                if current.name != saved.name:
+                    raise ValueError(f"experiment: the run being resumed is {saved.name!r}, not {current.name!r}")
+            else:
+                changed = [k for k in current_flat if (k == key or k.startswith(key + ".")) and current_flat[k] != saved_flat.get(k)]
+                if changed:
+                    raise ValueError(
+                        f"{key}: cannot change {changed[0]} when resuming ({saved_flat.get(changed[0])!r} in the "
+                        f"checkpoint); only trainer.* may differ"
+                    )
+    return validate(dataclasses.replace(saved, trainer=trainer))
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    epochs: int
+    global_step: int
+    history: list[dict[str, float]]
+    """Per epoch trained in this call: the scalars written (TensorBoard tag -> value)."""
+
+
+def _checkpoint_state(cfg: TrainConfig, ppo: Any, collector: EpisodeCollector) -> dict[str, Any]:
+    return {
+        "epoch": ppo.epoch,
+        "global_step": ppo.global_step,
+        "config": to_container(cfg),
+        "policy_kwargs": dict(getattr(ppo.policy, "init_kwargs", {})),
+        "ppo": ppo.state_dict(),
+        "collector": collector.state_dict(),
+        "rng": capture_rng_state(),
+        "freeform": freeform.__version__,
+        "saved_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def train(
+    cfg: TrainConfig,
+    run_dir: str | Path,
+    *,
+    overrides: Sequence[str] | None = None,
+    callbacks: Sequence[EpochCallback] | None = None,
+) -> TrainResult:
+    """Train (or, with ``cfg.trainer.resume``, continue) a run in ``run_dir``; see the module docstring.
+
+    ``callbacks`` run after every epoch (default: :func:`default_callbacks`). Returns the run's :class:`TrainResult`.
+    """
+    cfg = validate(cfg)
+    run_dir = Path(run_dir)
+    state: dict[str, Any] | None = None
+    if cfg.trainer.resume:
+        # Read the checkpoint before anything in the run directory is opened: a bad file loses nothing.
+        ckpt_path = resolve_checkpoint(cfg.trainer.resume)
+        state = load_checkpoint(ckpt_path)
+        try:
+            saved = from_container(state["config"])
+        except (ValueError, KeyError) as exc:
+            raise CheckpointError(f"checkpoint {ckpt_path}: its config is unusable: {exc}") from exc
+        cfg = resume_config(saved, cfg, overrides)
+        log.info("resuming %s from %s (epoch %d, step %d)", run_dir, ckpt_path, state["epoch"], state["global_step"])
+
+    if cfg.trainer.threads:
+        torch.set_num_threads(cfg.trainer.threads)
+    device = resolve_device(cfg.trainer.device)
+    env, policy, ppo = build(cfg, device)
+    collector = EpisodeCollector()
+    if state is not None:
+        ppo.load_state_dict(state["ppo"])
+        collector.load_state_dict(state["collector"])
+        restore_rng_state(state["rng"])
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt_dir = run_dir / CHECKPOINT_DIR
+    info_path = run_dir / RUN_INFO
+    if state is None:
+        _write_json(info_path, run_info(cfg, device))
+    else:
+        info = json.loads(info_path.read_text()) if info_path.is_file() else run_info(cfg, device)
+        info.setdefault("resumes", []).append(
+            {"time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "epoch": ppo.epoch, "device": str(device)}
+        )
+        _write_json(info_path, info)
+
+    logger = Logger(
+        run_dir,
+        total_epochs=cfg.trainer.epochs,
+        initial_epoch=min(ppo.epoch, cfg.trainer.epochs),
+        purge_step=ppo.global_step + 1 if state is not None else None,
+        progress=cfg.trainer.progress,
+        print_every=cfg.trainer.print_every,
+    )
+    callbacks = list(default_callbacks(cfg) if callbacks is None else callbacks)
+    history: list[dict[str, float]] = []
+    try:
+        if state is None:
+            container = to_container(cfg)
+            logger.log_config(
+                OmegaConf.to_yaml(container),
+                flatten(container),
+                {"charts/episode_reward_mean": 0.0, "charts/episode_reward_max": 0.0},
+            )
+            logger.flush()
+            if cfg.trainer.checkpoint_every:  # the untrained policy (the "untrained critic" of Fig. 5)
+                save_checkpoint(ckpt_dir / numbered_name(0), _checkpoint_state(cfg, ppo, collector))
+        time_checkpoint = 0.0
+        while ppo.epoch < cfg.trainer.epochs:
+            stats = dict(ppo.train_epoch())
+            epoch = ppo.epoch - 1
+            t0 = time.perf_counter()
+            episodes = collector.collect(ppo.rollout, ppo.episode_infos)
+            body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
+            if episodes is not None and cfg.trainer.record_designs:
+                write_record(
+                    run_dir,
+                    EpochRecord(
+                        epoch=epoch,
+                        global_step=ppo.global_step,
+                        actions=episodes["actions"],
+                        final_grids=episodes["final_grids"],
+                        rewards=episodes["rewards"],
+                        values=episodes["values"],
+                        metrics=episodes["metrics"],
+                    ),
+                )
+            stats["time_logging"] = time.perf_counter() - t0
+            stats["time_checkpoint"] = time_checkpoint  # the previous epoch's: this one's is not taken yet
+            history.append(logger.log_epoch(epoch, ppo.global_step, stats, body))
+            ctx = EpochContext(epoch, ppo.global_step, stats, episodes, cfg, run_dir, logger, ppo)
+            for callback in callbacks:
+                callback(ctx)
+            # Everything up to this step is on disk before a checkpoint says the run got this far.
+            logger.flush()
+            t1 = time.perf_counter()
+            ckpt = _checkpoint_state(cfg, ppo, collector)
+            save_checkpoint(ckpt_dir / LAST, ckpt)
+            if cfg.trainer.checkpoint_every and ppo.epoch % cfg.trainer.checkpoint_every == 0:
+                save_checkpoint(ckpt_dir / numbered_name(ppo.epoch), ckpt)
+            time_checkpoint = time.perf_counter() - t1
+    finally:
+        logger.close()
+    return TrainResult(run_dir=run_dir, epochs=ppo.epoch, global_step=ppo.global_step, history=history)
+
+
+# ------------------------------------------------------------------------------------------------ Hydra CLI
+
+
+def _resolver_run_dir(resume: str | None, default: str) -> str:
+    """``hydra.run.dir``: the resumed run's directory, else ``default`` (runs/<experiment>/<timestamp>)."""
+    return str(run_dir_of(resume)) if resume else default
+
+
+def _resolver_hydra_subdir(resume: str | None) -> str:
+    """``hydra.output_subdir``: keep the original run's ``.hydra`` when resuming in its directory."""
+    return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resume else ".hydra"
+
+
+OmegaConf.register_new_resolver("freeform_run_dir", _resolver_run_dir, replace=True)
+OmegaConf.register_new_resolver("freeform_hydra_subdir", _resolver_hydra_subdir, replace=True)
+register_configs()
+
+
+def _hydra_entry(cfg: Any) -> None:
+    from hydra.core.hydra_config import HydraConfig
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    try:
+        typed = to_dataclass(cfg)
+        with logging_redirect_tqdm():
+            result = train(typed, run_dir, overrides=list(hydra_cfg.overrides.task))
+    except (ValueError, CheckpointError) as exc:
+        # A clear one-line message (and a non-zero exit), not a traceback through Hydra's internals.
+        raise SystemExit(f"freeform-train: error: {exc}") from exc
+    log.info("done: %d epochs, %d steps, run directory %s", result.epochs, result.global_step, run_dir)
+
+
+def main() -> None:
+    """Console entry point ``freeform-train`` (Hydra parses ``sys.argv``)."""
+    import hydra
+
+    hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")(_hydra_entry)()
+
+
+if __name__ == "__main__":
+    main()
