@@ -152,6 +152,23 @@ class Engine:
                 left -= UNROLL
         self.steps_done += n_steps
 
+    def set_velocity(self, velocity: np.ndarray, release_static: bool = True) -> None:
+        """Overwrite every voxel's linear velocity (float ``[n, 3]``, m/s), e.g. to launch a settled block.
+
+        release_static: also clear the floor static-friction state (a static voxel ignores its momentum).
+        """
+        velocity = np.asarray(velocity, dtype=np.float64)
+        if velocity.shape != (self.layout.num_voxels, 3):
+            raise ValueError(f"velocity must have shape {(self.layout.num_voxels, 3)}, got {velocity.shape}")
+        vr = self.vr.to_numpy()
+        mass = material_table(self.config)[1][self.layout.material]
+        vr[VR.MOM:VR.MOM + 3, : self.layout.num_voxels] = (velocity * mass[:, None]).T
+        self.vr.from_numpy(vr)
+        if release_static:
+            vi = self.vi.to_numpy()
+            vi[VI.FLAGS] &= ~STATIC
+            self.vi.from_numpy(vi)
+
     # ------------------------------------------------------------------ reading state (host copies)
     def voxel_state(self) -> np.ndarray:
         """float ``[NVR, n]`` (see ``kernels.VR`` for the columns)."""

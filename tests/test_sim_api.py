@@ -1,0 +1,165 @@
+"""Simulator API: layout, validation, batching, robustness, recording format."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from freeform.sim import Material, SimConfig, Simulator, build_layout, recommended_dt
+
+
+def short(**kw) -> SimConfig:
+    kw.setdefault("burn_in", 0.05)
+    kw.setdefault("duration", 0.1)
+    return SimConfig(**kw)
+
+
+# ---------------------------------------------------------------- layout
+def test_layout_crops_places_on_floor_and_links_faces():
+    g = np.zeros((3, 5, 5, 5), dtype=np.uint8)
+    g[0, 2:4, 1, 3] = 1  # two voxels along x, floating at z = 3
+    g[0, 3, 1, 4] = 2  # one above the second
+    g[2, 4, 4, 4] = 3  # a single voxel in the corner
+    lay = build_layout(g, 3)
+    assert lay.num_robots == 2 and lay.num_bodies == 3
+    np.testing.assert_array_equal(lay.robot_of_body, [0, -1, 1])
+    np.testing.assert_array_equal(lay.lattice, [[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 0]])
+    np.testing.assert_array_equal(lay.material, [1, 1, 2, 3])
+    # links: x between voxels 0-1, z between 1-2; none for the single voxel
+    np.testing.assert_array_equal(lay.link_neg, [0, 1])
+    np.testing.assert_array_equal(lay.link_pos, [1, 2])
+    np.testing.assert_array_equal(lay.link_axis, [0, 2])
+    np.testing.assert_array_equal(lay.slots[1], [-1, 0, -1, -1, 1, -1])  # X_NEG = link 0, Z_POS = link 1
+    np.testing.assert_array_equal(lay.voxel_start, [0, 3, 4])
+    np.testing.assert_array_equal(lay.link_start, [0, 2, 2])
+
+
+def test_layout_link_count_of_a_cube():
+    lay = build_layout(np.ones((2, 3, 3, 3), dtype=np.uint8), 1)
+    assert lay.num_links == 2 * 3 * (2 * 3 * 3)  # per cube: 3 axes × 2 × 3 × 3
+    assert (lay.slots >= 0).sum() == 2 * lay.num_links
+
+
+def test_recommended_dt_matches_spec():
+    cfg = SimConfig()
+    lay = build_layout(np.stack([np.ones((2, 2, 2)), np.pad(np.ones((1, 1, 1)), ((0, 1), (0, 1), (0, 1)))])
+                       .astype(np.uint8), 3)
+    np.testing.assert_allclose(recommended_dt(lay, cfg), [1.240490e-4, 1.949242e-4], rtol=1e-6)
+    cfg0 = SimConfig(materials=[Material(poisson=0.0)])
+    np.testing.assert_allclose(recommended_dt(build_layout(np.ones((1, 2, 1, 1), np.uint8), 1), cfg0),
+                               [1.949242e-4], rtol=1e-6)
+
+
+# ---------------------------------------------------------------- validation
+@pytest.mark.parametrize(
+    "grids, match",
+    [
+        (np.ones((1, 2, 2, 2), dtype=np.int64), "uint8"),
+        (np.ones((2, 2, 2), dtype=np.uint8), "rank 4"),
+        (np.full((1, 2, 2, 2), 4, dtype=np.uint8), "material index 4"),
+        ([[1]], "torch.Tensor or np.ndarray"),
+    ],
+)
+def test_invalid_grids_raise_value_error(grids, match):
+    with pytest.raises(ValueError, match=match):
+        Simulator(short(), arch="cpu").simulate(grids)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"reward": "speed"}, "reward"),
+        ({"semantics": "vx3"}, "semantics"),
+        ({"precision": "f16"}, "precision"),
+        ({"dt": -1.0}, "dt"),
+        ({"materials": []}, "materials"),
+        ({"materials": [Material(poisson=0.5)]}, "poisson"),
+    ],
+)
+def test_invalid_config_raises_value_error(kw, match):
+    with pytest.raises(ValueError, match=match):
+        Simulator(SimConfig(**kw))
+
+
+def test_invalid_arch_and_schedule():
+    with pytest.raises(ValueError, match="arch"):
+        Simulator(short(), arch="tpu").simulate(np.ones((1, 1, 1, 1), np.uint8))
+    with pytest.raises(ValueError, match="schedule"):
+        Simulator(short(), arch="cpu", schedule="fast").simulate(np.ones((1, 1, 1, 1), np.uint8))
+    with pytest.raises(ValueError, match="record_every"):
+        Simulator(short(), arch="cpu").simulate(np.ones((1, 1, 1, 1), np.uint8), record_every=0)
+
+
+# ---------------------------------------------------------------- batching and robustness
+def test_empty_single_and_all_empty_batches():
+    g = np.zeros((3, 3, 3, 3), dtype=np.uint8)
+    g[1, 1, 1, 1] = 1
+    r = Simulator(short(), arch="cpu").simulate(torch.from_numpy(g))
+    np.testing.assert_array_equal(r.simulated.numpy(), [False, True, False])
+    assert r.displacement.shape == (3,) and r.displacement.dtype == torch.float32
+    assert float(r.displacement[0]) == 0.0 and float(r.displacement[2]) == 0.0
+    assert int(r.steps[0]) == 0 and int(r.steps[1]) > 0
+    assert r.com_start.shape == (3, 3)
+    r0 = Simulator(short(), arch="cpu").simulate(np.zeros((2, 4, 4, 4), np.uint8))
+    assert not r0.simulated.any() and (r0.displacement == 0).all()
+    r00 = Simulator(short(), arch="cpu").simulate(np.zeros((0, 4, 4, 4), np.uint8))
+    assert r00.displacement.shape == (0,)
+
+
+def test_batch_gives_each_robot_its_solo_result():
+    rng = np.random.default_rng(1)
+    g = (rng.random((4, 5, 4, 3)) < 0.6).astype(np.uint8) * rng.integers(1, 4, size=(4, 5, 4, 3)).astype(np.uint8)
+    g[2] = 0
+    g[3] = 0
+    g[3, 2, 2, 1] = 2
+    cfg = short(burn_in=0.02, duration=0.05)
+    sim = Simulator(cfg, arch="cpu")
+    batch = sim.simulate(g)
+    for b in range(4):
+        solo = sim.simulate(g[b:b + 1])
+        np.testing.assert_array_equal(batch.com_end[b].numpy(), solo.com_end[0].numpy())
+        np.testing.assert_array_equal(batch.max_voxel_displacement[b].numpy(), solo.max_voxel_displacement[0].numpy())
+        assert int(batch.steps[b]) == int(solo.steps[0])
+
+
+def test_diverging_robot_is_flagged_and_others_go_on():
+    g = np.zeros((2, 4, 4, 4), dtype=np.uint8)
+    g[0] = 1  # a cube: unstable at this dt
+    g[1, 0, 0, 0] = 1  # a lone voxel: stable
+    r = Simulator(SimConfig(dt=1e-3, burn_in=0.05, duration=0.1), arch="cpu").simulate(g)
+    np.testing.assert_array_equal(r.diverged.numpy(), [True, False])
+    assert float(r.displacement[0]) == 0.0
+    assert int(r.steps[1]) >= 150 and int(r.steps[0]) < 50  # the cube was stopped early, the voxel ran on
+    for x in (r.displacement, r.com_start, r.com_end, r.max_voxel_displacement, r.com_displacement):
+        assert torch.isfinite(x).all()
+
+
+def test_com_reward_option_and_windows():
+    g = np.zeros((1, 6, 3, 2), dtype=np.uint8)
+    g[0, :3] = 2
+    g[0, 3:] = 3
+    cfg = short(reward="com", burn_in=0.25, duration=0.5)
+    r = Simulator(cfg, arch="cpu").simulate(g)
+    assert float(r.displacement[0]) == float(r.com_displacement[0])
+    d = (r.com_end - r.com_start)[:, :2].norm(dim=1) / cfg.voxel_size
+    np.testing.assert_allclose(r.com_displacement.numpy(), d.numpy(), rtol=1e-5)
+    assert float(r.time[0]) > 0.75 and float(r.time[0]) < 0.75 + 2 * float(r.dt[0])
+
+
+def test_recording_format():
+    g = np.zeros((2, 3, 3, 3), dtype=np.uint8)
+    g[0, :2, 0, 0] = [1, 2]
+    cfg = short(burn_in=0.0, duration=0.01)
+    r = Simulator(cfg, arch="cpu").simulate(g, record_every=20)
+    rec = r.recording
+    n_frames = len(rec.times)
+    assert rec.times[0] == 0.0 and np.all(np.diff(rec.times) > 0)
+    assert rec.voxel_size == cfg.voxel_size
+    assert rec.positions[0].shape == (n_frames, 2, 3) and rec.positions[0].dtype == np.float32
+    assert rec.orientations[0].shape == (n_frames, 2, 4)
+    np.testing.assert_allclose(rec.orientations[0][0], [[1, 0, 0, 0]] * 2)
+    np.testing.assert_array_equal(rec.lattice[0], [[0, 0, 0], [1, 0, 0]])
+    np.testing.assert_array_equal(rec.materials[0], [1, 2])
+    assert rec.positions[1].shape == (n_frames, 0, 3)
+    np.testing.assert_allclose(rec.positions[0][0], [[0, 0, 0], [0.01, 0, 0]])
