@@ -1,0 +1,148 @@
+"""Checkpoints: round trip, atomicity (a crash or a kill mid-write leaves the last good file), clear errors, RNG."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from freeform import checkpoint as ck
+from freeform.checkpoint import (
+    CheckpointError,
+    capture_rng_state,
+    load_checkpoint,
+    resolve_checkpoint,
+    restore_rng_state,
+    run_dir_of,
+    save_checkpoint,
+)
+
+
+def _state(i: int) -> dict:
+    return {"i": i, "weights": {"w": torch.full((3, 4), float(i))}, "name": "x", "none": None, "nested": [1, 2.5]}
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    path = save_checkpoint(tmp_path / "a" / "last.pt", _state(3))
+    state = load_checkpoint(path)
+    assert state["i"] == 3 and state["name"] == "x" and state["none"] is None and state["nested"] == [1, 2.5]
+    assert torch.equal(state["weights"]["w"], torch.full((3, 4), 3.0))
+    assert state["format"] == ck.FORMAT and state["version"] == ck.VERSION
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = save_checkpoint(tmp_path / "last.pt", _state(1))
+
+    def crash(obj: object, f: object) -> None:  # dies half-way through writing
+        f.write(b"PK\x03\x04 half a zip")  # type: ignore[attr-defined]
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", crash)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, _state(2))
+    assert load_checkpoint(path)["i"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt"]  # no temporary file left behind
+
+
+def test_killed_writer_leaves_a_readable_checkpoint(tmp_path: Path) -> None:
+    """SIGKILL a process that rewrites last.pt in a loop (several MB each): the file is always complete."""
+    path = tmp_path / "last.pt"
+    script = textwrap.dedent(
+        f"""
+        import torch
+        from freeform.checkpoint import save_checkpoint
+        i = 0
+        while True:
+            save_checkpoint({str(path)!r}, {{"i": i, "big": torch.full((1_000_000,), float(i))}})
+            i += 1
+        """
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], env={**os.environ, "OMP_NUM_THREADS": "1"})
+    try:
+        deadline = time.monotonic() + 60
+        while not path.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3 + random.random() * 0.3)  # land somewhere inside a later write
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    state = load_checkpoint(path)
+    assert torch.equal(state["big"], torch.full((1_000_000,), float(state["i"])))
+
+
+def test_truncated_checkpoint_names_the_file_and_the_others(tmp_path: Path) -> None:
+    good = save_checkpoint(tmp_path / "epoch_000010.pt", _state(10))
+    bad = tmp_path / "last.pt"
+    data = good.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match=r"last\.pt is unreadable") as info:
+        load_checkpoint(bad)
+    assert str(bad) in str(info.value) and "epoch_000010.pt" in str(info.value)
+    assert good.read_bytes() == data  # loading wrote nothing
+
+
+def test_garbage_and_foreign_files_are_rejected(tmp_path: Path) -> None:
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="garbage.pt"):
+        load_checkpoint(garbage)
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"model": torch.zeros(2)}, foreign)
+    with pytest.raises(CheckpointError, match="not a freeform checkpoint"):
+        load_checkpoint(foreign)
+    newer = tmp_path / "newer.pt"
+    torch.save({"format": ck.FORMAT, "version": ck.VERSION + 1}, newer)
+    with pytest.raises(CheckpointError, match="version"):
+        load_checkpoint(newer)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_pickled_code_is_not_executed(tmp_path: Path) -> None:
+    """weights_only loading: a checkpoint cannot carry arbitrary objects."""
+
+    class Evil:
+        def __reduce__(self) -> tuple:
+            return (os.system, ("echo pwned",))
+
+    path = tmp_path / "evil.pt"
+    torch.save({"format": ck.FORMAT, "version": ck.VERSION, "x": Evil()}, path)
+    with pytest.raises(CheckpointError, match="evil.pt"):
+        load_checkpoint(path)
+
+
+def _draws() -> tuple:
+    return random.random(), random.gauss(0, 1), np.random.rand(3).tolist(), np.random.randn(), torch.rand(3).tolist()
+
+
+def test_rng_capture_restore_survives_a_file(tmp_path: Path) -> None:
+    random.seed(1)
+    np.random.seed(2)
+    torch.manual_seed(3)
+    random.gauss(0, 1)  # leave a cached gaussian in python's state
+    np.random.randn()
+    save_checkpoint(tmp_path / "rng.pt", {"rng": capture_rng_state()})
+    expected = _draws()
+    _draws()  # move every generator on
+    restore_rng_state(load_checkpoint(tmp_path / "rng.pt")["rng"])
+    assert _draws() == expected
+
+
+def test_resolve_and_run_dir(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    save_checkpoint(run / "checkpoints" / "last.pt", _state(0))
+    assert resolve_checkpoint(run) == run / "checkpoints" / "last.pt"
+    assert resolve_checkpoint(run / "checkpoints") == run / "checkpoints" / "last.pt"
+    assert resolve_checkpoint(run / "checkpoints" / "x.pt") == run / "checkpoints" / "x.pt"
+    assert run_dir_of(run / "checkpoints" / "epoch_000010.pt") == run
+    assert run_dir_of(run) == run
+    assert run_dir_of(tmp_path / "loose.pt") == tmp_path

@@ -1,0 +1,152 @@
+"""The typed config: composition of conf/, the paper presets against Table I, and clear failures on bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from freeform.agents import PPOConfig
+from freeform.config import (
+    AgentConfig,
+    TrainConfig,
+    flatten,
+    from_container,
+    ppo_config,
+    to_container,
+    to_dataclass,
+    validate,
+)
+from freeform.train import CONF_DIR, _resolver_hydra_subdir, _resolver_run_dir
+
+
+def composed(*overrides: str) -> TrainConfig:
+    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
+        return to_dataclass(compose("config", overrides=list(overrides)))
+
+
+def test_default_is_the_cpu_demo() -> None:
+    cfg = composed()
+    assert cfg.name == "volume_cpu"
+    assert cfg.task.name == "volume" and cfg.task.materials == 2
+    assert cfg.trainer.device == "cpu"
+
+
+def test_paper_volume_preset_is_table_one() -> None:
+    cfg = composed("experiment=paper_volume")
+    assert (cfg.env.num_envs, cfg.env.steps, cfg.env.resolution, cfg.env.bundle_size) == (256, 100, 20, 2)
+    assert cfg.env.num_envs * cfg.env.steps == 25_600  # the train batch of Table I
+    assert (cfg.task.name, cfg.task.materials, cfg.agent.hidden) == ("volume", 2, 128)
+    assert (cfg.agent.sgd_minibatch_size, cfg.agent.num_sgd_iter, cfg.trainer.epochs) == (128, 50, 500)
+    assert (cfg.agent.lr, cfg.agent.gamma) == (1e-4, 0.99)
+    # The paper's PPO semantics (spec ppo.md), unchanged by the preset.
+    a = cfg.agent
+    assert (a.gae_lambda, a.clip_param, a.kl_coeff, a.kl_target) == (1.0, 0.3, 0.2, 0.01)
+    assert (a.vf_loss_coeff, a.vf_clip_param, a.entropy_coeff, a.grad_clip) == (1.0, 1e5, 0.0, None)
+    assert (a.advantage_norm, a.value_clip, a.lr_schedule) == ("batch", "squared", "constant")
+    assert ppo_config(cfg, device="cpu").rollout_steps == 100  # one episode per environment per epoch
+
+
+def test_paper_locomotion_preset_is_table_one() -> None:
+    cfg = composed("experiment=paper_locomotion")
+    assert (cfg.env.num_envs, cfg.env.steps) == (128, 100)
+    assert cfg.env.num_envs * cfg.env.steps == 12_800
+    assert (cfg.task.name, cfg.task.materials, cfg.agent.hidden) == ("locomotion", 4, 256)
+    assert (cfg.agent.sgd_minibatch_size, cfg.agent.num_sgd_iter, cfg.trainer.epochs) == (128, 10, 2500)
+    assert (cfg.agent.lr, cfg.agent.gamma) == (1e-4, 0.99)
+
+
+def test_command_line_overrides_win_over_the_preset() -> None:
+    cfg = composed("experiment=paper_volume", "env.num_envs=8", "agent.lr=3e-4", "seed=7")
+    assert (cfg.env.num_envs, cfg.agent.lr, cfg.seed) == (8, 3e-4, 7)
+
+
+def test_agent_section_mirrors_ppo_config() -> None:
+    """Every PPOConfig field is settable from the command line, and nothing else is (besides hidden)."""
+    agent = {f.name for f in dataclasses.fields(AgentConfig)}
+    ppo = {f.name for f in dataclasses.fields(PPOConfig)}
+    assert agent - {"hidden"} == ppo - {"seed", "device"}
+
+
+def test_ppo_config_takes_seed_device_and_default_rollout() -> None:
+    cfg = composed("seed=11", "env.steps=7")
+    p = ppo_config(cfg, device="cpu")
+    assert (p.seed, p.device, p.rollout_steps) == (11, "cpu", 7)
+    assert p.num_sgd_iter == cfg.agent.num_sgd_iter and p.lr == cfg.agent.lr
+    cfg.agent.rollout_steps = 3
+    assert ppo_config(cfg, device=None).rollout_steps == 3
+
+
+@pytest.mark.parametrize("override", ["agent.lrr=1", "env.nope=3", "trainer.epoch=3"])
+def test_unknown_key_fails_naming_it(override: str) -> None:
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)) as info:
+        composed(override)
+    key = override.split("=")[0]
+    assert key.split(".")[1] in str(info.value) or key in str(info.value.__cause__)
+
+
+def test_wrong_type_fails_naming_the_key() -> None:
+    with pytest.raises((ConfigCompositionException, ValidationError)) as info:
+        composed("env.num_envs=abc")
+    assert "env.num_envs" in str(info.value) + str(info.value.__cause__)
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("env.resolution=7", "env.resolution"),
+        ("env.resolution=0", "env.resolution"),
+        ("env.num_envs=0", "env.num_envs"),
+        ("env.steps=0", "env.steps"),
+        ("env.bundle_size=0", "env.bundle_size"),
+        ("task.materials=1", "task.materials"),
+        ("agent.lr=-1", "agent.lr"),
+        ("agent.gamma=1.5", "agent.gamma"),
+        ("agent.num_sgd_iter=0", "agent.num_sgd_iter"),
+        ("agent.advantage_norm=sometimes", "agent.advantage_norm"),
+        ("agent.hidden=0", "agent.hidden"),
+        ("trainer.device=gpu", "trainer.device"),
+        ("trainer.epochs=-1", "trainer.epochs"),
+        ("trainer.checkpoint_every=-2", "trainer.checkpoint_every"),
+        ("sim.reward=fastest", "sim.reward"),
+    ],
+)
+def test_invalid_value_fails_naming_the_key(override: str, key: str) -> None:
+    with pytest.raises(ValueError, match="^" + re.escape(key) + " must"):
+        composed(override)
+
+
+def test_valid_edge_values_pass() -> None:
+    cfg = composed("env.resolution=2", "env.bundle_size=2", "trainer.device=cuda:1", "trainer.epochs=0")
+    assert cfg.env.resolution == 2 and cfg.trainer.device == "cuda:1"
+
+
+def test_container_round_trip() -> None:
+    cfg = composed("experiment=paper_locomotion", "seed=3")
+    data = to_container(cfg)
+    assert from_container(data) == cfg
+    flat = flatten(data)
+    assert flat["env.num_envs"] == 128 and flat["agent.hidden"] == 256 and flat["seed"] == 3
+
+
+def test_validate_rejects_a_bad_dataclass_too() -> None:
+    cfg = TrainConfig()
+    cfg.env.resolution = 5
+    with pytest.raises(ValueError, match="env.resolution"):
+        validate(cfg)
+
+
+def test_run_dir_resolvers(tmp_path: Path) -> None:
+    run = tmp_path / "runs" / "x" / "t0"
+    (run / "checkpoints").mkdir(parents=True)
+    assert _resolver_run_dir(None, "runs/a/b") == "runs/a/b"
+    assert Path(_resolver_run_dir(str(run), "unused")) == run
+    assert Path(_resolver_run_dir(str(run / "checkpoints" / "last.pt"), "unused")) == run
+    assert Path(_resolver_run_dir(str(run / "checkpoints"), "unused")) == run
+    assert _resolver_hydra_subdir(None) == ".hydra"
+    assert _resolver_hydra_subdir(str(run)).startswith(".hydra/resume_")
