@@ -264,3 +264,116 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     p.add_argument("paths", nargs="+", help="sweep directories (searched for runs) or run directories")
     p.add_argument("--out", required=True, type=Path, help="directory for the figure (PNG, PDF) and its CSV")
     return p
+
+
+# ---------------------------------------------------------------------------------------------------- trials
+@dataclass
+class Trial:
+    """One run's per-epoch summary, read from its design records (``freeform.records``).
+
+    epochs: ``[E]`` int, the recorded epochs in order. reward: ``[E]`` mean episode reward of each epoch.
+    metrics: ``{name: [E]}`` mean of each recorded body metric. episodes: ``[E]`` episodes per epoch.
+    """
+
+    path: Path
+    info: dict[str, Any]
+    epochs: np.ndarray
+    reward: np.ndarray
+    metrics: dict[str, np.ndarray]
+    episodes: np.ndarray
+
+    @property
+    def seed(self) -> Any:
+        return self.info.get("seed", self.path.name)
+
+
+def load_trial(run: Path) -> Trial:
+    """Read every design record of ``run`` into per-epoch means (``ValueError`` if it has none)."""
+    from freeform.records import iter_records
+
+    epochs, reward, episodes = [], [], []
+    metrics: dict[str, list[float]] = {}
+    for rec in iter_records(run):
+        epochs.append(rec.epoch)
+        reward.append(float(np.mean(rec.rewards)) if rec.num_episodes else np.nan)
+        episodes.append(rec.num_episodes)
+        for name, m in rec.metrics.items():
+            metrics.setdefault(name, []).append(float(np.mean(m)) if len(m) else np.nan)
+    if not epochs:
+        raise ValueError(f"paths: run {run} has no design records (records/epoch_*.npz; trainer.record_designs=true)")
+    return Trial(path=Path(run), info=read_run_info(run), epochs=np.asarray(epochs), reward=np.asarray(reward),
+                 metrics={k: np.asarray(v) for k, v in metrics.items()}, episodes=np.asarray(episodes))
+
+
+def align(trials: Sequence[Trial], values: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Put each trial's per-epoch ``values`` on the union of their epochs: ``(epochs [E], [n_trials, E])``, NaN
+    where a trial lacks an epoch (runs of different length, or a resumed run with a gap)."""
+    all_epochs = np.unique(np.concatenate([t.epochs for t in trials]))
+    out = np.full((len(trials), len(all_epochs)), np.nan)
+    for i, (t, v) in enumerate(zip(trials, values, strict=True)):
+        out[i, np.searchsorted(all_epochs, t.epochs)] = v
+    return all_epochs, out
+
+
+def run_config(run: Path) -> dict[str, Any]:
+    """The run's resolved training config as a nested dict (``freeform.config.to_container`` form).
+
+    Read from the run's last checkpoint (what the run actually used), else from Hydra's ``.hydra/config.yaml``.
+    """
+    from freeform.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+
+    run = Path(run)
+    candidates = [run / CHECKPOINT_DIR / LAST, *sorted((run / CHECKPOINT_DIR).glob("epoch_*.pt"))]
+    for path in candidates:
+        if path.is_file():
+            try:
+                return dict(load_checkpoint(path)["config"])
+            except (CheckpointError, KeyError):
+                continue
+    hydra_cfg = run / ".hydra" / "config.yaml"
+    if hydra_cfg.is_file():
+        from omegaconf import OmegaConf
+
+        from freeform.config import to_container, to_dataclass
+
+        return to_container(to_dataclass(OmegaConf.load(hydra_cfg)))
+    raise ValueError(f"paths: run {run} has neither a checkpoint nor .hydra/config.yaml to read its config from")
+
+
+# ---------------------------------------------------------------------------------------------------- bodies
+MATERIAL_COLORS = {1: "#1b2a6b", 2: "#2ca02c", 3: "#d62728"}
+"""The paper's palette: passive tissue dark blue, muscle A green, muscle B red (other materials grey)."""
+
+
+def body_of(grid: np.ndarray) -> np.ndarray:
+    """The robot body of one final grid (``[ρ, ρ, ρ] uint8``): its largest 6-connected component, same shape."""
+    import torch
+
+    from freeform.body import largest_component
+
+    return largest_component(torch.as_tensor(np.asarray(grid, dtype=np.uint8))[None])[0].numpy()
+
+
+def crop(grid: np.ndarray) -> np.ndarray:
+    """``grid`` (``[X, Y, Z] uint8``) cut to the bounding box of its non-empty voxels (``freeform.body.crop``)."""
+    import torch
+
+    from freeform.body import crop as crop_grid
+
+    return crop_grid(torch.as_tensor(np.ascontiguousarray(grid, dtype=np.uint8))).numpy()
+
+
+def draw_body(ax: Any, body: np.ndarray, title: str | None = None) -> None:
+    """Draw a body (``[X, Y, Z] uint8``, z up) on a 3-D matplotlib axis, cropped, coloured by material."""
+    body = crop(np.asarray(body))
+    ax.set_axis_off()
+    if title:
+        ax.set_title(title, fontsize=8)
+    if body.size == 0:
+        return
+    colors = np.empty(body.shape, dtype=object)
+    for m in np.unique(body[body != 0]):
+        colors[body == m] = MATERIAL_COLORS.get(int(m), "0.6")
+    ax.voxels(body != 0, facecolors=colors, edgecolor="k", linewidth=0.2)
+    ax.set_box_aspect(tuple(max(s, 1) for s in body.shape))
+    ax.view_init(elev=25, azim=-60)

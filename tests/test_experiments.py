@@ -94,3 +94,84 @@ def test_provenance_merges_runs_and_csv_round_trips(tmp_path):
     np.testing.assert_allclose(cols["mean"], [0.5, 1.25])
     with pytest.raises(ValueError, match="columns"):
         common.write_csv(tmp_path / "y.csv", {"a": [1], "b": [1, 2]})
+
+
+# ---------------------------------------------------------------------------------------------------- fixtures
+def _record_fixture(root: Path, seeds=(0, 1, 2), epochs: int = 6, episodes: int = 8, rho: int = 6,
+                    materials: int = 4, steps: int = 5) -> list[Path]:
+    """Runs written with freeform.records: random grids that fill up with the epoch, reward = body volume."""
+    import torch
+
+    from freeform.body import metrics
+    from freeform.records import EpochRecord, write_record
+
+    runs = []
+    for seed in seeds:
+        run = _fake_run(root / f"seed={seed}", seed=seed, freeform="0.1.0", torch="2.13", taichi="1.7.4",
+                        device="cpu", git_commit="f" * 40)
+        g = torch.Generator().manual_seed(seed)
+        for e in range(epochs):
+            fill = 0.15 + 0.1 * e
+            occupied = torch.rand(episodes, rho, rho, rho, generator=g) < fill
+            grids = (occupied * torch.randint(1, materials, occupied.shape, generator=g)).to(torch.uint8)
+            m = {k: v.numpy() for k, v in metrics(grids).items()}
+            write_record(run, EpochRecord(
+                epoch=e, global_step=(e + 1) * episodes * steps,
+                actions=torch.randn(episodes, steps, 3 + materials, generator=g).numpy(),
+                final_grids=grids.numpy(), rewards=m["volume"].astype(np.float32),
+                values=torch.randn(episodes, steps, generator=g).numpy(), metrics=m))
+        runs.append(run)
+    return runs
+
+
+@pytest.fixture(scope="module")
+def record_runs(tmp_path_factory) -> list[Path]:
+    return _record_fixture(tmp_path_factory.mktemp("sweep"))
+
+
+def test_load_trial_means_each_epoch(record_runs):
+    from freeform.records import iter_records
+
+    t = common.load_trial(record_runs[0])
+    recs = list(iter_records(record_runs[0]))
+    np.testing.assert_array_equal(t.epochs, np.arange(6))
+    np.testing.assert_allclose(t.reward, [r.rewards.mean() for r in recs], rtol=1e-6)
+    np.testing.assert_allclose(t.metrics["lcc_ratio"], [r.metrics["lcc_ratio"].mean() for r in recs], rtol=1e-6)
+    assert t.seed == 0
+
+
+def test_volume_figure_from_records(record_runs, tmp_path):
+    from experiments import volume
+
+    out = volume.main([str(record_runs[0].parent), "--out", str(tmp_path)])
+    for key in ("png", "pdf", "reward_csv", "bodies_csv"):
+        assert out[key].is_file() and out[key].stat().st_size > 0
+    prov, cols = common.read_csv(out["reward_csv"])
+    assert prov["git_commit"] == "f" * 40 and prov["runs"] == "3"
+    # The curve's raw mean is the mean over trials of each trial's epoch mean (independent recomputation).
+    trials = [common.load_trial(r) for r in record_runs]
+    np.testing.assert_allclose(cols["reward_raw_mean"], np.mean([t.reward for t in trials], axis=0), rtol=1e-5)
+    _, bodies = common.read_csv(out["bodies_csv"])
+    assert list(bodies["label"]) == list("ABCDEF")
+    np.testing.assert_array_equal(bodies["epoch"], [0, 0, 1, 2, 3, 5])  # round(f·5) for the paper's fractions
+    # Each drawn body is the episode closest to its epoch's mean reward, over all trials' episodes.
+    from freeform.records import read_record, record_path
+
+    for epoch, reward, target in zip(bodies["epoch"], bodies["reward"], bodies["epoch_mean_reward"], strict=True):
+        pooled = np.concatenate([read_record(record_path(r, int(epoch))).rewards for r in record_runs])
+        assert abs(reward - target) == pytest.approx(np.abs(pooled - target).min(), abs=1e-4)
+
+
+def test_locomotion_metrics_figure_from_records(record_runs, tmp_path):
+    from experiments import locomotion
+
+    out = locomotion.main([*map(str, record_runs), "--out", str(tmp_path)])
+    assert out["png"].is_file() and out["pdf"].is_file()
+    _, cols = common.read_csv(out["csv"])
+    trials = [common.load_trial(r) for r in record_runs]
+    for key, _ in locomotion.PANELS:
+        per_trial = np.array([t.reward if key == "reward" else t.metrics[key] for t in trials])
+        mean = per_trial.mean(0)
+        np.testing.assert_allclose(cols[f"{key}_raw_mean"], mean, rtol=1e-5)
+        np.testing.assert_allclose(cols[f"{key}_mean"], common.moving_average(mean), rtol=1e-5)
+        assert np.all(cols[f"{key}_upper"] >= cols[f"{key}_mean"] - 1e-9)
