@@ -56,7 +56,9 @@ class EnvConfig:
     steps: int = 100
     """T, actions per episode."""
     bundle_size: int = 2
-    """Edge of the cube of voxels one action paints."""
+    """b, edge of the cube of voxels one action paints (even: the bundle is centred between voxels)."""
+    action_bound: float = 2.0
+    """B, every action component is clipped to [−B, B] and mapped to [0, 1] (spec: 2)."""
 
 
 @dataclass
@@ -161,8 +163,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         _fail("env.resolution", "an even integer >= 2 (the network's stride-2 convolution halves it)", e.resolution)
     if e.steps < 1:
         _fail("env.steps", "an integer >= 1", e.steps)
-    if not 1 <= e.bundle_size <= e.resolution:
-        _fail("env.bundle_size", f"an integer in [1, env.resolution={e.resolution}]", e.bundle_size)
+    if not 2 <= e.bundle_size <= e.resolution or e.bundle_size % 2:
+        _fail("env.bundle_size", f"an even integer in [2, env.resolution={e.resolution}]", e.bundle_size)
+    if not e.action_bound > 0:
+        _fail("env.action_bound", "> 0", e.action_bound)
     if k.materials < 2:
         _fail("task.materials", "an integer >= 2 (index 0 is empty)", k.materials)
     if a.hidden < 1:

@@ -98,10 +98,12 @@ class Logger:
         purge_step: int | None = None,
         progress: bool = True,
         print_every: int = 0,
+        console_metrics: tuple[str, ...] = ("volume", "lcc_ratio"),
     ) -> None:
         self.run_dir = Path(run_dir)
         self.writer = SummaryWriter(log_dir=str(self.run_dir), purge_step=purge_step)
         self.print_every = print_every
+        self.console_metrics = console_metrics
         self.bar = tqdm(
             total=total_epochs,
             initial=initial_epoch,
@@ -152,7 +154,7 @@ class Logger:
         self.bar.update(1)
         if self.print_every and ((epoch + 1) % self.print_every == 0 or epoch == 0):
             parts = [f"epoch {epoch + 1}", f"step {global_step}", f"reward mean {mean:.2f} max {best:.1f}"]
-            parts += [f"{name} {value:.3g}" for name, value in body.items()]
+            parts += [f"{name} {body[name]:.3g}" for name in self.console_metrics if name in body]
             parts.append(f"{sps:.0f} samples/s")
             log.info(" | ".join(parts))
         return written

@@ -143,6 +143,7 @@ def build(cfg: TrainConfig, device: torch.device) -> tuple[VecEnv, torch.nn.Modu
         task=build_task(cfg, device),
         device=device,
         seed=cfg.seed,
+        action_bound=cfg.env.action_bound,
     )
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
     ppo = PPO(env, policy, ppo_config(cfg, device=str(device)))
@@ -436,6 +437,25 @@ def _resolver_hydra_subdir(resume: str | None) -> str:
     return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resume else ".hydra"
 
 
+def _resolver_sweep_subdir(job_overrides: Sequence[str], exclude: Sequence[str]) -> str:
+    """``hydra.sweep.subdir``: the job's values of the *swept* keys, e.g. ``seed=3`` for ``-m seed=0,1,2,3,4``.
+
+    Hydra's ``override_dirname`` names every override, swept or not; which keys are swept is read from the command
+    line (``sys.argv``). Without a sweep on the command line, every override except ``exclude`` names the job.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides([a for a in sys.argv[1:] if not a.startswith("-")])
+        swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
+    except Exception:  # an argument Hydra's grammar rejects: Hydra itself reports it
+        swept = set()
+    keys = [(_override_key(o), o) for o in job_overrides]
+    chosen = [o for k, o in keys if k in swept] or [o for k, o in keys if k not in set(exclude)]
+    return ",".join(sorted(chosen)).replace("/", "_") or "default"
+
+
+OmegaConf.register_new_resolver("freeform_sweep_subdir", _resolver_sweep_subdir, replace=True)
 OmegaConf.register_new_resolver("freeform_run_dir", _resolver_run_dir, replace=True)
 OmegaConf.register_new_resolver("freeform_hydra_subdir", _resolver_hydra_subdir, replace=True)
 register_configs()

@@ -104,6 +104,8 @@ def test_wrong_type_fails_naming_the_key() -> None:
         ("env.num_envs=0", "env.num_envs"),
         ("env.steps=0", "env.steps"),
         ("env.bundle_size=0", "env.bundle_size"),
+        ("env.bundle_size=3", "env.bundle_size"),
+        ("env.action_bound=0", "env.action_bound"),
         ("task.materials=1", "task.materials"),
         ("agent.lr=-1", "agent.lr"),
         ("agent.gamma=1.5", "agent.gamma"),

@@ -1,0 +1,193 @@
+"""The training application end to end, at tiny sizes (ρ = 6, 4 environments, T = 5).
+
+Through the CLI (``freeform.train.main`` with ``sys.argv``, as the console script calls it): a run writes events,
+checkpoints and design records; a resumed run continues the same TensorBoard curves (read back with
+EventAccumulator) with no gap and no duplicate; bad input fails with a message naming the key or file; a multirun
+writes one directory per seed; and 2 epochs equal 1 epoch + resume 1, bit for bit.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from freeform import train as train_mod
+from freeform.checkpoint import load_checkpoint
+from freeform.records import iter_records, read_record
+
+TINY = [
+    "env.num_envs=4",
+    "env.resolution=6",
+    "env.steps=5",
+    "agent.hidden=16",
+    "agent.num_sgd_iter=2",
+    "agent.sgd_minibatch_size=8",
+    "trainer.progress=false",
+    "trainer.print_every=0",
+    "trainer.checkpoint_every=1",
+]
+STEPS_PER_EPOCH = 4 * 5
+
+
+def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
+    """Run ``freeform-train *args`` in this process."""
+    monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
+    train_mod.main()
+
+
+def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
+    acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0})
+    acc.Reload()
+    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+@pytest.fixture(scope="module")
+def base_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 3-epoch tiny run (shared by the tests that only read it)."""
+    run = tmp_path_factory.mktemp("base") / "run"
+    with pytest.MonkeyPatch.context() as mp:
+        cli(mp, *TINY, "trainer.epochs=3", f"hydra.run.dir={run}")
+    return run
+
+
+def test_run_writes_events_checkpoints_records(base_run: Path) -> None:
+    tags = scalars(base_run)
+    steps = [STEPS_PER_EPOCH * (e + 1) for e in range(3)]
+    for tag in ("charts/episode_reward_mean", "charts/episode_reward_max", "losses/policy_loss",
+                "losses/value_loss", "losses/approx_kl", "losses/kl_coeff", "losses/entropy",
+                "losses/explained_variance", "perf/samples_per_second", "perf/time_update", "perf/time_logging"):
+        assert [s for s, _ in tags[tag]] == steps, tag
+    for metric in ("volume", "surface_ratio", "passive_ratio", "lcc_ratio", "substructures", "symmetry",
+                   "compressibility"):
+        assert [s for s, _ in tags[f"body/{metric}"]] == steps, metric
+    acc = EventAccumulator(str(base_run), size_guidance={"tensors": 0})
+    acc.Reload()
+    assert "config/text_summary" in acc.Tags()["tensors"]
+
+    # Records: one per epoch, 4 episodes each; their rewards are the TensorBoard mean, computed independently.
+    records = list(iter_records(base_run))
+    assert [r.epoch for r in records] == [0, 1, 2]
+    for rec, (step, mean) in zip(records, tags["charts/episode_reward_mean"], strict=True):
+        assert rec.global_step == step
+        assert rec.actions.shape == (4, 5, 3 + 2) and rec.values.shape == (4, 5)
+        assert rec.final_grids.shape == (4, 6, 6, 6) and rec.final_grids.dtype == np.uint8
+        assert rec.rewards.mean() == pytest.approx(mean)
+        # Volume task: the reward is the body's voxel count, and a body is never larger than the grid's voxels.
+        np.testing.assert_array_equal(rec.rewards, rec.metrics["volume"])
+        assert np.all(rec.rewards <= (rec.final_grids > 0).sum(axis=(1, 2, 3)))
+
+    ckpt = load_checkpoint(base_run / "checkpoints" / "last.pt")
+    assert (ckpt["epoch"], ckpt["global_step"]) == (3, 3 * STEPS_PER_EPOCH)
+    assert ckpt["config"]["env"]["resolution"] == 6
+    assert {"ppo", "rng", "collector", "policy_kwargs"} <= ckpt.keys()
+    assert sorted(p.name for p in (base_run / "checkpoints").iterdir()) == [
+        "epoch_000000.pt", "epoch_000001.pt", "epoch_000002.pt", "epoch_000003.pt", "last.pt"]
+    info = json.loads((base_run / "run_info.json").read_text())
+    assert info["torch"] == torch.__version__ and info["device"] == "cpu" and info["seed"] == 0
+    assert {"freeform", "taichi", "git_commit", "start_time"} <= info.keys()
+
+
+def test_resume_after_a_kill_continues_the_curves_exactly(
+    base_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A run killed after logging epoch 2 but before checkpointing it: resuming drops its epoch-2 events, redoes
+    epoch 2 and goes on; the curves and records equal the uninterrupted run's (``base_run``)."""
+    run = tmp_path / "run"
+    cli(monkeypatch, *TINY, "trainer.epochs=2", f"hydra.run.dir={run}")
+    shutil.copy(run / "checkpoints" / "epoch_000001.pt", run / "checkpoints" / "last.pt")  # the "kill"
+    cli(monkeypatch, f"trainer.resume={run}", "trainer.epochs=3")
+
+    got, want = scalars(run), scalars(base_run)
+    for tag in ("charts/episode_reward_mean", "losses/policy_loss", "losses/value_loss", "body/volume"):
+        assert got[tag] == want[tag], tag  # same steps, no duplicate, no gap, same values
+    for a, b in zip(iter_records(run), iter_records(base_run), strict=True):
+        np.testing.assert_array_equal(a.actions, b.actions)
+        np.testing.assert_array_equal(a.final_grids, b.final_grids)
+    assert any(p.name.startswith("resume_") for p in (run / ".hydra").iterdir())  # the original config is kept
+    info = json.loads((run / "run_info.json").read_text())
+    assert [r["epoch"] for r in info["resumes"]] == [1]
+
+
+def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(tmp_path: Path) -> None:
+    from hydra import compose, initialize_config_dir
+
+    from freeform.config import to_dataclass
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
+        cfg = to_dataclass(compose("config", overrides=[*TINY, "trainer.epochs=2", "seed=5"]))
+    train_mod.train(cfg, tmp_path / "straight")
+    cfg.trainer.epochs = 1
+    train_mod.train(cfg, tmp_path / "split")
+    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
+    train_mod.train(cfg, tmp_path / "split")
+
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    for name, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][name]), name
+    for sa, sb in zip(a["ppo"]["optimizer"]["state"].values(), b["ppo"]["optimizer"]["state"].values(), strict=True):
+        assert all(torch.equal(sa[k], sb[k]) for k in ("exp_avg", "exp_avg_sq"))
+    assert a["ppo"]["kl_coeff"] == b["ppo"]["kl_coeff"]
+    assert torch.equal(a["ppo"]["generator"], b["ppo"]["generator"])
+    assert torch.equal(a["rng"]["torch"], b["rng"]["torch"])
+    ra, rb = read_record(tmp_path / "straight" / "records" / "epoch_000001.npz"), read_record(
+        tmp_path / "split" / "records" / "epoch_000001.npz")
+    np.testing.assert_array_equal(ra.actions, rb.actions)
+    np.testing.assert_array_equal(ra.values, rb.values)
+
+
+def test_bad_override_fails_with_a_clear_message(monkeypatch: pytest.MonkeyPatch, tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli(monkeypatch, "agent.lrr=1", f"hydra.run.dir={tmp_path / 'a'}")
+    assert "agent.lrr" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match=r"env\.resolution must be an even integer"):
+        cli(monkeypatch, "env.resolution=7", f"hydra.run.dir={tmp_path / 'b'}")
+    with pytest.raises(SystemExit, match="locomotion"):
+        cli(monkeypatch, *TINY, "task=locomotion", f"hydra.run.dir={tmp_path / 'c'}") if not hasattr(
+            __import__("freeform.envs", fromlist=["x"]), "LocomotionTask") else pytest.skip("locomotion exists")
+
+
+def test_resume_errors_name_the_file_and_lose_nothing(base_run: Path, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(base_run, run)
+    last = run / "checkpoints" / "last.pt"
+    last.write_bytes(last.read_bytes()[:1000])  # truncated by a crash of the disk, say
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and ".hydra" not in p.parts}
+    with pytest.raises(SystemExit, match=r"last\.pt is unreadable.*epoch_000003\.pt"):
+        cli(monkeypatch, f"trainer.resume={run}", "trainer.epochs=4")
+    after = {p: p.read_bytes() for p in run.rglob("*") if p.is_file() and ".hydra" not in p.parts and p.suffix != ".log"}
+    assert after == {p: v for p, v in before.items() if p.suffix != ".log"}
+    # Resuming from a good numbered checkpoint while changing what the run trains is refused.
+    with pytest.raises(SystemExit, match=r"agent\.lr: cannot change"):
+        cli(monkeypatch, f"trainer.resume={run / 'checkpoints' / 'epoch_000003.pt'}", "agent.lr=0.5")
+
+
+def test_multirun_writes_one_directory_per_seed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    sweep = tmp_path / "sweep"
+    cli(monkeypatch, "-m", *TINY, "trainer.epochs=1", "trainer.checkpoint_every=0", "seed=0,1",
+        f"hydra.sweep.dir={sweep}")
+    runs = sorted(p.name for p in sweep.iterdir() if p.is_dir())
+    assert runs == ["seed=0", "seed=1"]
+    seeds = [json.loads((sweep / r / "run_info.json").read_text())["seed"] for r in runs]
+    assert seeds == [0, 1]
+    a, b = (read_record(sweep / r / "records" / "epoch_000000.npz") for r in runs)
+    assert not np.array_equal(a.actions, b.actions)  # different seeds, different designs
+    assert sorted(p.name for p in (sweep / "seed=0" / "checkpoints").iterdir()) == ["last.pt"]
+
+
+def test_console_script_is_installed() -> None:
+    script = Path(sys.executable).parent / "freeform-train"
+    out = subprocess.run([str(script), "--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    for group in ("task:", "env:", "agent:", "trainer:", "experiment:", "paper_volume", "volume_cpu"):
+        assert group in out.stdout, group
