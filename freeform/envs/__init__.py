@@ -2,6 +2,6 @@
 
 from freeform.envs.base import Task, VecEnv
 from freeform.envs.design import DesignEnv
-from freeform.envs.tasks import VolumeTask
+from freeform.envs.tasks import LocomotionTask, VolumeTask
 
-__all__ = ["VecEnv", "Task", "DesignEnv", "VolumeTask"]
+__all__ = ["VecEnv", "Task", "DesignEnv", "VolumeTask", "LocomotionTask"]

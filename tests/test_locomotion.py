@@ -1,0 +1,142 @@
+"""LocomotionTask: the reward is the simulator's displacement of each body; empty bodies are never simulated.
+
+Simulated time is kept short (a fraction of a second) so the suite stays fast on 2 CPU cores; the protocol is the
+paper's otherwise (burn-in with actuation, then the evaluation window).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from freeform.body import largest_component
+from freeform.envs import DesignEnv, LocomotionTask
+from freeform.sim import SimConfig, Simulator
+
+PASSIVE, MUSCLE_A, MUSCLE_B = 1, 2, 3
+
+
+def short_sim(**kw) -> SimConfig:
+    """Two actuation periods of burn-in and two of evaluation (4 Hz): enough for a muscle body to move."""
+    return SimConfig(burn_in=0.5, duration=0.5, **kw)
+
+
+@pytest.fixture(scope="module")
+def simulator() -> Simulator:
+    return Simulator(short_sim(), arch="cpu")
+
+
+def walker(rho: int = 8) -> torch.Tensor:
+    """A 4×2×2 bar on the floor, muscle A in its front half and muscle B (anti-phase) in its back half — it inches
+    forward (≈ 0.13 voxel lengths in 0.5 s) — in a ρ³ grid, plus a stray voxel that is not part of the body:
+    ``[ρ, ρ, ρ] uint8``."""
+    g = torch.zeros(rho, rho, rho, dtype=torch.uint8)
+    g[1:3, 2:4, 0:2] = MUSCLE_A
+    g[3:5, 2:4, 0:2] = MUSCLE_B
+    g[7, 7, 7] = MUSCLE_A  # disconnected: removed before simulation
+    return g
+
+
+class SpySimulator:
+    """Wraps a real Simulator and keeps every batch it is asked to simulate."""
+
+    def __init__(self, inner: Simulator) -> None:
+        self.inner = inner
+        self.config = inner.config
+        self.batches: list[torch.Tensor] = []
+
+    def simulate(self, grids: torch.Tensor):
+        self.batches.append(grids.clone())
+        return self.inner.simulate(grids)
+
+
+def test_reward_of_a_known_robot_is_the_engines_displacement(simulator):
+    grids = torch.stack([walker(), walker().flip(0)])
+    task = LocomotionTask(simulator=simulator)
+    reward = task.reward(grids)
+    # Independent route: the engine itself on the body alone (largest component), one robot per call.
+    for i in range(2):
+        body = largest_component(grids[i : i + 1])
+        assert int((body != 0).sum()) == 16  # the stray voxel is gone
+        expected = simulator.simulate(body).displacement[0]
+        assert reward[i].item() == pytest.approx(expected.item(), rel=1e-5, abs=1e-6)
+    assert (reward > 0.05).all(), f"a muscle body should move in 0.5 s, got {reward.tolist()}"
+    assert reward.dtype == torch.float32 and reward.shape == (2,)
+    assert task.stats["perf/sim_seconds"] > 0 and task.stats["perf/voxel_steps_per_second"] > 0
+    assert task.stats["stats/sim_bodies"] == 2
+
+
+def test_the_reward_follows_the_configured_displacement():
+    grids = walker()[None]
+    com_sim = Simulator(short_sim(reward="com"), arch="cpu")
+    result = com_sim.simulate(largest_component(grids))
+    reward = LocomotionTask(simulator=com_sim).reward(grids)
+    assert reward[0].item() == pytest.approx(result.com_displacement[0].item(), rel=1e-5, abs=1e-6)
+    assert result.com_displacement[0] != result.max_voxel_displacement[0]
+
+
+def test_passive_body_earns_nothing(simulator):
+    g = torch.zeros(1, 8, 8, 8, dtype=torch.uint8)
+    g[0, 2:5, 2:5, 0:2] = PASSIVE  # no muscle: it only settles under gravity
+    task = LocomotionTask(simulator=simulator)
+    assert task.reward(g).item() == 0.0
+    raw = simulator.simulate(largest_component(g)).max_voxel_displacement[0].item()
+    assert raw < 1e-3  # settling moves voxels sideways by far less than the reward floor
+
+
+def test_empty_bodies_score_zero_without_being_simulated(simulator):
+    spy = SpySimulator(simulator)
+    task = LocomotionTask(simulator=spy)
+    grids = torch.zeros(3, 8, 8, 8, dtype=torch.uint8)
+    grids[1] = walker()
+    reward = task.reward(grids)
+    assert reward[0] == 0 and reward[2] == 0 and reward[1] > 0
+    assert len(spy.batches) == 1 and spy.batches[0].shape[0] == 1  # one call, only the non-empty body
+    assert torch.equal(spy.batches[0][0], largest_component(grids[1:2])[0])
+    spy.batches.clear()
+    assert torch.equal(task.reward(torch.zeros(2, 8, 8, 8, dtype=torch.uint8)), torch.zeros(2))
+    assert spy.batches == []  # nothing to simulate, no call at all
+
+
+class FakeSimulator:
+    """Returns fixed results: lets the task's handling of diverged and tiny displacements be checked exactly."""
+
+    config = SimConfig()
+
+    def __init__(self, displacement: list[float], diverged: list[bool]) -> None:
+        self.result = SimpleNamespace(displacement=torch.tensor(displacement), diverged=torch.tensor(diverged),
+                                      steps=torch.full((len(displacement),), 10))
+
+    def simulate(self, grids: torch.Tensor):
+        assert grids.shape[0] == len(self.result.displacement)
+        return self.result
+
+
+def test_diverged_nonfinite_and_tiny_rewards_become_zero():
+    grids = walker()[None].repeat(4, 1, 1, 1)
+    task = LocomotionTask(simulator=FakeSimulator([3.0, 5e-4, float("nan"), 7.0], [False, False, False, True]))
+    assert task.reward(grids).tolist() == [3.0, 0.0, 0.0, 0.0]
+    assert task.stats["stats/sim_diverged"] == 2
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="min_reward"):
+        LocomotionTask(min_reward=-1)
+    with pytest.raises(ValueError, match="arch"):
+        LocomotionTask(arch="tpu")
+    with pytest.raises(ValueError, match="final_grids"):
+        LocomotionTask(simulator=FakeSimulator([], [])).reward(torch.zeros(2, 4, 4, 4))  # float, not uint8
+
+
+def test_design_env_gives_the_task_reward_at_the_last_step(simulator):
+    """End to end through DesignEnv: T actions, the last step's reward is the task's reward of the final grids."""
+    env = DesignEnv(num_envs=3, resolution=8, materials=4, steps=4, task=LocomotionTask(simulator=simulator))
+    env.reset()
+    g = torch.Generator().manual_seed(0)
+    for t in range(4):
+        _, reward, done, info = env.step(torch.randn(3, 7, generator=g))
+        assert done.all() == (t == 3)
+    expected = LocomotionTask(simulator=simulator).reward(info["final_grids"])
+    torch.testing.assert_close(reward, expected)
