@@ -107,7 +107,7 @@ class SimConfig:
 
 # Column names of the material tables that the kernels read (one column per material index, 0 = empty).
 MAT_COLUMNS = ("L", "MASS", "INERTIA", "SQRTM", "CG", "CGR", "CC", "KPEN", "MUS", "MUK", "ZINT", "CTE",
-               "PHASE", "NU", "E")
+               "PHASE", "NU", "E", "SINPHI", "COSPHI")
 LINK_COLUMNS = ("E", "NU", "EHAT", "A1", "A2", "B1", "B2", "B3", "SQA1", "SQA2XIP", "SQB1", "SQB2XFMP",
                 "SQB3XIP", "RATIO")
 
@@ -141,6 +141,8 @@ def material_table(cfg: SimConfig) -> np.ndarray:
         t[col["PHASE"], j] = m.phase
         t[col["NU"], j] = m.poisson
         t[col["E"], j] = m.E
+        t[col["SINPHI"], j] = math.sin(2 * math.pi * m.phase)
+        t[col["COSPHI"], j] = math.cos(2 * math.pi * m.phase)
     return t
 
 

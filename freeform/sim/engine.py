@@ -106,6 +106,10 @@ class Engine:
 
         rt = np.zeros((NRT, R))
         rt[RT.DT] = dt0
+        # actuation phase of the temperature written during step 0: T(dt) for VX, T(0) for rl4design
+        tau = np.zeros(R) if self.ifx else dt0
+        rt[RT.SIN] = np.sin(2 * math.pi * tau / config.temp_period)
+        rt[RT.COS] = np.cos(2 * math.pi * tau / config.temp_period)
         ri = np.zeros((NRI, R), dtype=np.int32)
         ri[RI.STATUS] = RUNNING
         ri[RI.VSTART], ri[RI.VEND] = layout.voxel_start[:-1], layout.voxel_start[1:]

@@ -47,7 +47,9 @@ VI, NVI = _columns(("MAT", 1), ("ROBOT", 1), ("FLAGS", 1), ("SLOT", 6))
 # link real columns: pos2 / angle1v / angle2v of the last step, axial strain, forces and moments on each end
 LR, NLR = _columns(("P2", 3), ("A1", 3), ("A2", 3), ("STRAIN", 1), ("FN", 3), ("FP", 3), ("MN", 3), ("MP", 3))
 LI, NLI = _columns(("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMAT", 1), ("FLAGS", 1))
-RT, NRT = _columns(("T", 1), ("DT", 1), ("DTPREV", 1), ("OMEGA2", 1))
+# SIN/COS: sin and cos of 2π·τ/period for the temperature the voxels write this step (τ = the time it is for),
+# so each voxel evaluates T = T_base + A·(sin·cos φ + cos·sin φ) without a transcendental call of its own.
+RT, NRT = _columns(("T", 1), ("DT", 1), ("DTPREV", 1), ("OMEGA2", 1), ("SIN", 1), ("COS", 1))
 RI, NRI = _columns(("STATUS", 1), ("STEP", 1), ("VSTART", 1), ("VEND", 1), ("LSTART", 1), ("LEND", 1),
                    ("PERIOD", 1))
 GP, NGP = _columns(("BURN_IN", 1), ("T_END", 1), ("GRAVITY", 1), ("TEMP_AMP", 1), ("TEMP_PERIOD", 1),
@@ -216,10 +218,16 @@ def make_kernels(precision: str) -> SimpleNamespace:
         return mt[MT.L, mat] * (1.0 + temp * mt[MT.CTE, mat])
 
     @ti.func
-    def temperature(mt: ti.template(), gp: ti.template(), mat, tbase, t):
-        """T(t) = T_base + A·sin(2π(t/period + φ)) with φ in cycles, evaluated in float64."""
-        ph = t / gp[GP.TEMP_PERIOD] + ti.cast(mt[MT.PHASE, mat], ti.f64)
-        return ti.cast(ti.cast(tbase, ti.f64) + gp[GP.TEMP_AMP] * ti.sin(TWO_PI * ph), real)
+    def temperature(mt: ti.template(), rt: ti.template(), gp: ti.template(), mat, tbase, r):
+        """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
+        s = rt[RT.SIN, r] * mt[MT.COSPHI, mat] + rt[RT.COS, r] * mt[MT.SINPHI, mat]
+        return tbase + ti.cast(gp[GP.TEMP_AMP] * s, real)
+
+    @ti.func
+    def set_phase(r, rt: ti.template(), gp: ti.template(), tau):
+        a = TWO_PI * tau / gp[GP.TEMP_PERIOD]
+        rt[RT.SIN, r] = ti.sin(a)
+        rt[RT.COS, r] = ti.cos(a)
 
     @ti.func
     def transverse(vr: ti.template(), mt: ti.template(), v, mat, axis):
@@ -277,11 +285,12 @@ def make_kernels(precision: str) -> SimpleNamespace:
             valid = False
         if small:
             pos2[0] -= L0  # the y, z offsets stay and act as shear
-        else:
+        a1v = vec3(0.0, 0.0, 0.0)  # small angle: q1 is the identity
+        if not small:
             q1 = from_angle_to_pos_x(pos2)
             q2 = qmul(q1, q2)
             pos2 = vec3(pos2.norm() - L0, 0.0, 0.0)
-        a1v = to_rotation_vector(q1)
+            a1v = to_rotation_vector(q1)
         a2v = to_rotation_vector(q2)
         strain = pos2[0] / L0
         if ifx != 0:
@@ -482,11 +491,8 @@ def make_kernels(precision: str) -> SimpleNamespace:
         set3(vr, VR.PSTR, v, s)
         vi[VI.FLAGS, v] = flags
         # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
-        # voxel update, so its links lag one step behind
-        t_next = t_before + dt64
-        if ifx != 0:
-            t_next = t_before
-        vr[VR.TEMP, v] = temperature(mt, gp, mat, vr[VR.TBASE, v], t_next)
+        # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
+        vr[VR.TEMP, v] = temperature(mt, rt, gp, mat, vr[VR.TBASE, v], r)
 
         # snapshots: COM samples every PERIOD steps; evaluation start/end at the first step past each time
         t_after = t_before + dt64
@@ -500,8 +506,8 @@ def make_kernels(precision: str) -> SimpleNamespace:
             set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
 
     @ti.func
-    def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32):
-        """End of a step for robot r: clock, status, and rl4design's dt refresh every 10 steps."""
+    def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32, ifx: ti.i32):
+        """End of a step for robot r: clock, status, rl4design's dt refresh every 10 steps, actuation phase."""
         rt[RT.DTPREV, r] = rt[RT.DT, r]
         rt[RT.T, r] += rt[RT.DT, r]
         step = ri[RI.STEP, r] + 1
@@ -512,6 +518,11 @@ def make_kernels(precision: str) -> SimpleNamespace:
             if rt[RT.OMEGA2, r] > 0.0:
                 rt[RT.DT, r] = gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(rt[RT.OMEGA2, r]))
             rt[RT.OMEGA2, r] = 0.0
+        # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
+        tau = rt[RT.T, r] + rt[RT.DT, r]
+        if ifx != 0:
+            tau = rt[RT.T, r]
+        set_phase(r, rt, gp, tau)
 
     # ---------------------------------------------------------------- schedules
     @ti.kernel
@@ -528,7 +539,7 @@ def make_kernels(precision: str) -> SimpleNamespace:
                         for v in range(ri[RI.VSTART, r], ri[RI.VEND, r]):
                             voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
                     if ri[RI.STATUS, r] == RUNNING:
-                        robot_advance(r, rt, ri, gp, dyn)
+                        robot_advance(r, rt, ri, gp, dyn, ifx)
 
     @ti.kernel
     def run_flat(vr: RealArr, vi: IntArr, lr: RealArr, li: IntArr, rt: F64Arr, ri: IntArr, mt: RealArr,
@@ -545,6 +556,6 @@ def make_kernels(precision: str) -> SimpleNamespace:
                     voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
             for r in range(ri.shape[1]):
                 if s < n_steps and ri[RI.STATUS, r] == RUNNING:
-                    robot_advance(r, rt, ri, gp, dyn)
+                    robot_advance(r, rt, ri, gp, dyn, ifx)
 
     return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, real=real)
