@@ -13,8 +13,30 @@ import numpy as np
 
 from freeform.sim import runtime
 from freeform.sim.config import SimConfig, e_hat, link_table, material_table
-from freeform.sim.kernels import GP, LI, LR, NGP, NLI, NLR, NRI, NRT, NVI, NVR, RI, RT, UNROLL, VI, VR, make_kernels
-from freeform.sim.kernels import DIVERGED, DONE, FIXED, RUNNING, SMALL, STATIC  # noqa: F401  (re-exported)
+from freeform.sim.kernels import (  # noqa: F401  (re-exported)
+    DIVERGED,
+    DONE,
+    FIXED,
+    GP,
+    LI,
+    LR,
+    NGP,
+    NLI,
+    NLR,
+    NRI,
+    NRT,
+    NVI,
+    NVR,
+    RI,
+    RT,
+    RUNNING,
+    SMALL,
+    STATIC,
+    UNROLL,
+    VI,
+    VR,
+    make_kernels,
+)
 from freeform.sim.layout import Layout
 
 SCHEDULES = ("auto", "robots", "flat")

@@ -74,7 +74,7 @@ _ROTVEC_SMALL4, _TOROT_SL, _POSX_SMALL, _POSX_PI_EPS = 5.328e-15, 2.4e-3, 1.732e
 TWO_PI = 2 * math.pi
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def make_kernels(precision: str) -> SimpleNamespace:
     """Compile-once kernel set for "f32" | "f64" (explicit dtypes, so both can live in one process)."""
     real = ti.f64 if precision == "f64" else ti.f32
@@ -248,13 +248,13 @@ def make_kernels(precision: str) -> SimpleNamespace:
 
     # ---------------------------------------------------------------- the link update (spec section 5)
     @ti.func
-    def link_update(l, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+    def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
                     gp: ti.template(), ifx: ti.i32, dyn: ti.i32):
-        n, p, axis, k = li[LI.NEG, l], li[LI.POS, l], li[LI.AXIS, l], li[LI.LMAT, l]
+        n, p, axis, k = li[LI.NEG, lk], li[LI.POS, lk], li[LI.AXIS, lk], li[LI.LMAT, lk]
         r = vi[VI.ROBOT, n]
         mat_n, mat_p = vi[VI.MAT, n], vi[VI.MAT, p]
-        flags = li[LI.FLAGS, l]
+        flags = li[LI.FLAGS, lk]
         small = (flags & SMALL) != 0
         valid = (flags & VALID) != 0
         size_n = base_size(mt, mat_n, vr[VR.TEMP, n])
@@ -296,9 +296,9 @@ def make_kernels(precision: str) -> SimpleNamespace:
         if ifx != 0:
             pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
 
-        dP = 0.5 * (pos2 - get3(lr, LR.P2, l))
-        dA1 = 0.5 * (a1v - get3(lr, LR.A1, l))
-        dA2 = 0.5 * (a2v - get3(lr, LR.A2, l))
+        dP = 0.5 * (pos2 - get3(lr, LR.P2, lk))
+        dA1 = 0.5 * (a1v - get3(lr, LR.A1, lk))
+        dA2 = 0.5 * (a2v - get3(lr, LR.A2, lk))
 
         # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
         nu = lt[LT.NU, k]
@@ -344,15 +344,15 @@ def make_kernels(precision: str) -> SimpleNamespace:
         q2c = conj(q2)
         fP = rotate(q2c, fP)
         mP = rotate(q2c, mP)
-        set3(lr, LR.FN, l, to_axis_original(fN, axis))
-        set3(lr, LR.FP, l, to_axis_original(fP, axis))
-        set3(lr, LR.MN, l, to_axis_original(mN, axis))
-        set3(lr, LR.MP, l, to_axis_original(mP, axis))
-        set3(lr, LR.P2, l, pos2)
-        set3(lr, LR.A1, l, a1v)
-        set3(lr, LR.A2, l, a2v)
-        lr[LR.STRAIN, l] = strain
-        li[LI.FLAGS, l] = (SMALL if small else 0) | (VALID if valid else 0)
+        set3(lr, LR.FN, lk, to_axis_original(fN, axis))
+        set3(lr, LR.FP, lk, to_axis_original(fP, axis))
+        set3(lr, LR.MN, lk, to_axis_original(mN, axis))
+        set3(lr, LR.MP, lk, to_axis_original(mP, axis))
+        set3(lr, LR.P2, lk, pos2)
+        set3(lr, LR.A1, lk, a1v)
+        set3(lr, LR.A2, lk, a2v)
+        lr[LR.STRAIN, lk] = strain
+        li[LI.FLAGS, lk] = (SMALL if small else 0) | (VALID if valid else 0)
 
         if not (strain <= gp[GP.MAX_STRAIN]):  # also catches NaN
             ri[RI.STATUS, r] = DIVERGED
@@ -391,10 +391,10 @@ def make_kernels(precision: str) -> SimpleNamespace:
             for a in ti.static(range(3)):
                 cnt = 0
                 for side in ti.static(range(2)):
-                    l = vi[VI.SLOT + 2 * a + side, v]
-                    if l >= 0:
-                        ratio = lt[LT.RATIO, li[LI.LMAT, l]]
-                        eps = lr[LR.STRAIN, l]
+                    lk = vi[VI.SLOT + 2 * a + side, v]
+                    if lk >= 0:
+                        ratio = lt[LT.RATIO, li[LI.LMAT, lk]]
+                        eps = lr[LR.STRAIN, lk]
                         if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
                             s[a] += 2.0 * eps * ratio / (1.0 + ratio)
                         else:
@@ -423,14 +423,14 @@ def make_kernels(precision: str) -> SimpleNamespace:
             force = vec3(0.0, 0.0, 0.0)
             moment = vec3(0.0, 0.0, 0.0)
             for d in ti.static(range(6)):
-                l = vi[VI.SLOT + d, v]
-                if l >= 0:
+                lk = vi[VI.SLOT + d, v]
+                if lk >= 0:
                     if ti.static(d % 2 == 1):  # NEG slot: this voxel is the link's positive end
-                        force += get3(lr, LR.FP, l)
-                        moment += get3(lr, LR.MP, l)
+                        force += get3(lr, LR.FP, lk)
+                        moment += get3(lr, LR.MP, lk)
                     else:
-                        force += get3(lr, LR.FN, l)
-                        moment += get3(lr, LR.MN, l)
+                        force += get3(lr, LR.FN, lk)
+                        moment += get3(lr, LR.MN, lk)
             vel = mom / mass
             force = rotate(q, force) - mt[MT.CG, mat] * vel
             force[2] += mass * ti.cast(gp[GP.GRAVITY], real)
@@ -533,8 +533,8 @@ def make_kernels(precision: str) -> SimpleNamespace:
         for r in range(ri.shape[1]):
             for _ in range(n_steps):
                 if ri[RI.STATUS, r] == RUNNING:
-                    for l in range(ri[RI.LSTART, r], ri[RI.LEND, r]):
-                        link_update(l, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                    for lk in range(ri[RI.LSTART, r], ri[RI.LEND, r]):
+                        link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
                     if ri[RI.STATUS, r] == RUNNING:  # a diverged link aborts the step, as in VX
                         for v in range(ri[RI.VSTART, r], ri[RI.VEND, r]):
                             voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
@@ -546,11 +546,11 @@ def make_kernels(precision: str) -> SimpleNamespace:
                  lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
-            for l in range(li.shape[1]):
+            for lk in range(li.shape[1]):
                 # (a batch without links carries one padding column with NEG == POS: skip it)
-                if s < n_steps and li[LI.NEG, l] != li[LI.POS, l] and \
-                        ri[RI.STATUS, vi[VI.ROBOT, li[LI.NEG, l]]] == RUNNING:
-                    link_update(l, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                if s < n_steps and li[LI.NEG, lk] != li[LI.POS, lk] and \
+                        ri[RI.STATUS, vi[VI.ROBOT, li[LI.NEG, lk]]] == RUNNING:
+                    link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
             for v in range(vi.shape[1]):
                 if s < n_steps and ri[RI.STATUS, vi[VI.ROBOT, v]] == RUNNING:
                     voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)

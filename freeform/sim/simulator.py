@@ -194,7 +194,7 @@ class Simulator:
             lattice.append(layout.lattice[lo:hi].astype(np.int64))
             materials.append(layout.material[lo:hi].astype(np.uint8))
             positions.append(np.ascontiguousarray(stack[:, lo:hi, 0:3]))
-            # orientation columns follow position, linear and angular momentum: ORI sits at offset 6
+            # the frame holds POS, MOM, ORI columns in that order: ORI sits at offset 6
             orientations.append(np.ascontiguousarray(stack[:, lo:hi, VR.ORI - VR.POS:VR.ORI - VR.POS + 4]))
         return Recording(times=times, voxel_size=self.config.voxel_size, lattice=lattice, materials=materials,
                          positions=positions, orientations=orientations)
