@@ -240,7 +240,11 @@ class _Canvas:
         """Fill quads ``corners [Q, 4, 3]`` (already in drawing order) with ``rgb [Q, 3]`` at opacity ``alpha [Q]``."""
         if len(corners) == 0:
             return
-        pts = self.pixels(corners).tolist()
+        pix = self.pixels(corners)  # [Q, 4, 2]
+        onscreen = np.all((pix.max(axis=1) >= 0) & (pix.min(axis=1) <= self.side), axis=1)
+        if not onscreen.all():  # skip what lies wholly outside the image (floor tiles mostly)
+            pix, rgb, alpha = pix[onscreen], rgb[onscreen], alpha[onscreen]
+        pts = pix.tolist()
         fill = np.concatenate([rgb, alpha[:, None]], axis=1)
         fills = [tuple(c) for c in np.rint(255 * fill).astype(int).tolist()]
         if outline and self.cfg.edge_darkening < 1.0:
@@ -524,7 +528,7 @@ def render_recording(
         tile = cfg.floor_tile * L
         seen = canvas.floor_bounds(floor_z)
         lo_f, hi_f = seen if seen is not None else (centre_xy - 1.5 * radius, centre_xy + 1.5 * radius)
-        lo_f, hi_f = np.maximum(lo_f, centre_xy - 4 * radius), np.minimum(hi_f, centre_xy + 4 * radius)  # grazing views
+        lo_f, hi_f = np.maximum(lo_f, centre_xy - 10 * radius), np.minimum(hi_f, centre_xy + 10 * radius)  # grazing
         i0, i1 = math.floor(lo_f[0] / tile), math.ceil(hi_f[0] / tile)
         j0, j1 = math.floor(lo_f[1] / tile), math.ceil(hi_f[1] / tile)
         ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij")

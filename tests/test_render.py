@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -268,3 +269,45 @@ def test_gait_video_from_the_simulator(tmp_path) -> None:
     acc.Reload()
     gif = Image.open(io.BytesIO(acc.Images("bodies/best_gait")[0].encoded_image_string))
     assert gif.size == (48, 48) and gif.n_frames >= 6  # 0.3 s at 20 fps, plus the t = 0 frame
+
+
+def test_cli_renders_a_run_directory(tmp_path, capsys) -> None:
+    """``freeform-render`` on a run with one design record: PNGs of the picks, a sheet, exports, a gait video."""
+    from freeform.io import read_vxd
+    from freeform.records import EpochRecord, write_record
+    from freeform.render_cli import main
+
+    grids = np.zeros((3, 6, 6, 6), dtype=np.uint8)
+    grids[0, 0:2, 0:2, 0] = 1
+    grids[1, 1:4, 1:3, 0] = 2
+    grids[1, 1:3, 1:3, 1] = 3  # the best body: 10 voxels of both muscles
+    grids[1, 5, 5, 5] = 1  # and a removed voxel
+    grids[2, 2, 2, 0] = 1
+    rewards = np.array([0.5, 2.5, 0.1], dtype=np.float32)
+    write_record(tmp_path, EpochRecord(epoch=4, global_step=40, actions=np.zeros((3, 2, 7), np.float32),
+                                       final_grids=grids, rewards=rewards, values=np.zeros((3, 2), np.float32)))
+    out = tmp_path / "out"
+    code = main([str(tmp_path), "--bodies", "best,worst,0", "--grid", "3", "--export", "vxd,stl", "--size", "64",
+                 "--out", str(out), "--video", "--history", "--seconds", "0.1", "--arch", "cpu"])
+    assert code == 0
+    printed = set(capsys.readouterr().out.split())
+    expected = {"best_1.png", "worst_2.png", "episode_0.png", "sheet.png", "best_1.vxd", "best_1.stl", "base.vxa",
+                "best_1_gait.gif", "best_1.history"}
+    assert expected <= {Path(p).name for p in printed}
+    assert all((out / name).is_file() for name in expected)
+    np.testing.assert_array_equal(read_vxd(out / "best_1.vxd"), grids[1, 1:4, 1:3, 0:2])  # body only, cropped
+    assert Image.open(out / "best_1.png").size == (64, 64)
+    # errors are reported, not raised
+    assert main([str(tmp_path), "--epoch", "7"]) == 2
+    assert main([str(tmp_path), "--bodies", "fastest"]) == 2
+    assert main([str(tmp_path / "missing")]) == 2
+    assert "error" in capsys.readouterr().err
+
+
+def test_cli_random_policy_designs(tmp_path) -> None:
+    from freeform.render_cli import main
+
+    assert main(["--random", "4", "--resolution", "8", "--grid", "4", "--size", "48", "--out", str(tmp_path)]) == 0
+    sheet = Image.open(tmp_path / "sheet.png")
+    assert sheet.size[0] > 2 * 96  # a 2×2 sheet of at least 96-pixel tiles
+    assert len(list(tmp_path.glob("best_*.png"))) == 1
