@@ -36,6 +36,7 @@ __all__ = [
     "crop",
     "largest_component",
     "metrics",
+    "bodies_and_metrics",
 ]
 
 #: Keys of :func:`metrics`, in the paper's Fig. 4 order.
@@ -90,36 +91,31 @@ def _components(num_nodes: int, src: torch.Tensor, dst: torch.Tensor) -> torch.T
     Returns:
         ``[M] int64``: for every node, the smallest node id of its component (its root).
     """
-    device = src.device
-    parent = torch.arange(num_nodes, device=device)
+    parent = torch.arange(num_nodes, device=src.device)
     if src.numel() == 0:
         return parent
     while True:
-        previous = parent
-        parent = parent.clone()
-        ps, pd = previous[src], previous[dst]
-        low = torch.minimum(ps, pd)
-        # Hook: the parent of each end point (usually a root) moves under the smaller parent of the edge. Parents
-        # only ever decrease and stay inside the component, so this never forms a cycle.
-        parent.scatter_reduce_(0, torch.maximum(ps, pd), low, reduce="amin")
-        # Also pull the end points themselves down (FastSV's "aggressive hooking"): it halves the rounds on paths.
-        parent.scatter_reduce_(0, src, low, reduce="amin")
-        parent.scatter_reduce_(0, dst, low, reduce="amin")
-        # Pointer jumping: two jumps per round flatten deep trees quickly.
-        parent = parent[parent]
-        parent = parent[parent]
-        if torch.equal(parent, previous):
+        ps, pd = parent.index_select(0, src), parent.index_select(0, dst)
+        # Hook: the parent of the larger end moves under the smaller parent of the edge. Parents only ever
+        # decrease and stay inside their component, so no cycle can form.
+        hooked = parent.scatter_reduce(0, torch.maximum(ps, pd), torch.minimum(ps, pd), reduce="amin")
+        # Pointer jumping, twice a round: it flattens the trees that hooking deepens.
+        hooked = hooked.index_select(0, hooked)
+        hooked = hooked.index_select(0, hooked)
+        if torch.equal(hooked, parent):
             return parent
+        parent = hooked
 
 
 class _OccupiedGraph:
-    """The graph of the occupied voxels of a batch of grids (see the module docstring).
+    """The graph of the occupied voxels of a batch of grids (see the module docstring), labelled.
 
     Attributes:
         pos: ``[M] int64`` flat positions (``n·V + x·Y·Z + y·Z + z``) of the occupied voxels, ascending.
+        values: ``[M] uint8`` their materials.
         grid: ``[M] int64`` the grid each node belongs to.
-        coords: ``[M, 3] int64`` (x, y, z) of each node.
-        src, dst: ``[E] int64`` node ids of face-adjacent occupied pairs (src < dst).
+        coords: ``[3, M] int64`` (x, y, z) of each node.
+        src, dst: ``[E] int64`` node ids of face-adjacent occupied pairs.
         root: ``[M] int64`` smallest node id of each node's component.
     """
 
@@ -130,25 +126,30 @@ class _OccupiedGraph:
         flat = grids.reshape(-1)
         self.shape = (n, sx, sy, sz)
         self.pos = torch.nonzero(flat).squeeze(1)
+        self.values = flat.index_select(0, self.pos)
         m = self.pos.numel()
         self.num_nodes = m
-        local = self.pos % volume
-        self.grid = self.pos // volume
-        self.coords = torch.stack((local // (sy * sz), (local // sz) % sy, local % sz), dim=1)
-        # Dense map flat position -> node id (-1 where empty); one pass over the grids, the rest is sparse.
-        node_of = torch.full((flat.numel(),), -1, dtype=torch.int64, device=device)
-        node_of[self.pos] = torch.arange(m, device=device)
-        nodes = torch.arange(m, device=device)
-        srcs, dsts = [], []
-        for axis, (size, stride) in enumerate(((sx, sy * sz), (sy, sz), (sz, 1))):
-            inside = self.coords[:, axis] < size - 1
-            neighbour = node_of[torch.where(inside, self.pos + stride, self.pos)]
-            keep = inside & (neighbour >= 0)
-            srcs.append(nodes[keep])
-            dsts.append(neighbour[keep])
-        self.src = torch.cat(srcs)
-        self.dst = torch.cat(dsts)
+        self.grid = torch.div(self.pos, volume, rounding_mode="floor")
+        local = self.pos - self.grid * volume
+        x = torch.div(local, sy * sz, rounding_mode="floor")
+        rest = local - x * (sy * sz)
+        y = torch.div(rest, sz, rounding_mode="floor")
+        self.coords = torch.stack((x, y, rest - y * sz))
+        strides = torch.tensor((sy * sz, sz, 1), device=device)
+        last = torch.tensor((sx - 1, sy - 1, sz - 1), device=device)
+        # Dense map flat position -> node id (-1 where empty), padded so that +stride never leaves it; the only
+        # pass over the whole grids besides nonzero(). int32 halves its memory traffic.
+        node_of = torch.full((flat.numel() + sy * sz,), -1, dtype=torch.int32, device=device)
+        node_of[self.pos] = torch.arange(m, dtype=torch.int32, device=device)
+        neighbour = node_of.index_select(0, (self.pos + strides[:, None]).reshape(-1)).view(3, m)
+        edge = torch.nonzero(((neighbour >= 0) & (self.coords < last[:, None])).view(-1)).squeeze(1)
+        self.src = edge % m
+        self.dst = neighbour.view(-1).index_select(0, edge).to(torch.int64)
         self.root = _components(m, self.src, self.dst)
+
+    def per_grid(self, weights: torch.Tensor) -> torch.Tensor:
+        """Sum ``[M]`` node weights (bool or float) per grid -> ``[N] float32``."""
+        return torch.bincount(self.grid, weights=weights.to(torch.float32), minlength=self.shape[0])
 
     def largest_root(self) -> torch.Tensor:
         """``[N] int64``: the root node of each grid's largest component (ties: smallest root), -1 if empty."""
@@ -160,6 +161,17 @@ class _OccupiedGraph:
         key = torch.where(size > 0, size * (m + 1) + (m - torch.arange(m, device=device)), 0)
         best = torch.zeros(n, dtype=torch.int64, device=device).scatter_reduce_(0, self.grid, key, reduce="amax")
         return torch.where(best > 0, m - best % (m + 1), -1)
+
+    def body_mask(self) -> torch.Tensor:
+        """``[M] bool``: the nodes in their grid's largest component."""
+        return self.root == self.largest_root().index_select(0, self.grid)
+
+    def bodies(self, in_body: torch.Tensor) -> torch.Tensor:
+        """The dense bodies ``[N, X, Y, Z] uint8`` of the nodes ``in_body``."""
+        bodies = torch.zeros(self.shape, dtype=torch.uint8, device=self.pos.device)
+        kept = self.pos[in_body]
+        bodies.view(-1)[kept] = self.values[in_body]
+        return bodies
 
 
 def component_labels(grids: torch.Tensor) -> torch.Tensor:
@@ -198,18 +210,8 @@ def largest_component(grids: torch.Tensor) -> torch.Tensor:
         ``[N, X, Y, Z] uint8``: the bodies, materials kept, everything outside the largest component set to 0.
     """
     check_grids(grids)
-    return _body_from_graph(grids, _OccupiedGraph(grids))[0]
-
-
-def _body_from_graph(grids: torch.Tensor, graph: _OccupiedGraph) -> tuple[torch.Tensor, torch.Tensor]:
-    """The bodies ``[N, X, Y, Z] uint8`` and the ``[M] bool`` mask of the graph's nodes that lie in them."""
-    best = graph.largest_root()
-    in_body = graph.root == best[graph.grid]
-    bodies = torch.zeros_like(grids)
-    flat = bodies.view(-1)
-    kept = graph.pos[in_body]
-    flat[kept] = grids.reshape(-1)[kept]
-    return bodies, in_body
+    graph = _OccupiedGraph(grids)
+    return graph.bodies(graph.body_mask())
 
 
 # ------------------------------------------------------------------------------------------------ bounding box
@@ -251,15 +253,12 @@ def crop(grid: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------------------ metrics
-def metrics(
-    grids: torch.Tensor, materials: int | None = None, bodies: torch.Tensor | None = None
-) -> dict[str, torch.Tensor]:
+def metrics(grids: torch.Tensor, materials: int | None = None) -> dict[str, torch.Tensor]:
     """The paper's body metrics (Fig. 4) of each final grid; the body is the grid's largest component.
 
     Args:
         grids: ``[N, X, Y, Z] uint8`` final design grids (the whole grid, disconnected parts included).
-        materials: k, if given every index must be below it.
-        bodies: ``[N, X, Y, Z] uint8``, ``largest_component(grids)`` if already computed (saves one labelling).
+        materials: k; if given, every index must be below it.
 
     Returns:
         ``{name: [N] float32}`` for the names of :data:`METRIC_NAMES`, on the grids' device:
@@ -272,42 +271,37 @@ def metrics(
         - ``substructures``: 6-connected regions of equal material index in the body's grid, empty regions
           (outside and each cavity, within the grid) included.
         - ``symmetry``: mean over the 3 axes of 2·#(L == R ∧ L ≠ 0) / (#(L ≠ 0) + #(R ≠ 0)), where L is the first
-          ⌊size/2⌋ slices and R the last ⌊size/2⌋ slices mirrored.
+          ⌊size/2⌋ slices and R the last ⌊size/2⌋ slices mirrored (0 when both are empty).
         - ``compressibility``: ``len(zlib.compress(body.tobytes())) / (X·Y·Z)`` (default level, C order).
 
-        An empty body gives 0 for volume and for every ratio (no division by zero, never NaN); its substructure
+        An empty body gives 0 for volume and for every ratio (never NaN, no division by zero); its substructure
         count is 1 (the empty grid is one region) and its compressibility is that of an all-empty grid.
     """
-    check_grids(grids, materials)
-    n, sx, sy, sz = grids.shape
-    device = grids.device
-    graph = _OccupiedGraph(grids)
-    if bodies is None:
-        bodies, in_body = _body_from_graph(grids, graph)
-    else:
-        check_grids(bodies, name="bodies")
-        if bodies.shape != grids.shape:
-            raise ValueError(f"bodies must have the shape of grids {tuple(grids.shape)}, got {tuple(bodies.shape)}")
-        in_body = bodies.reshape(-1)[graph.pos] != 0
+    return bodies_and_metrics(grids, materials)[1]
 
-    def per_grid(mask: torch.Tensor) -> torch.Tensor:
-        return torch.bincount(graph.grid[mask], minlength=n).to(torch.float32)
+
+def bodies_and_metrics(
+    grids: torch.Tensor, materials: int | None = None
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """``(largest_component(grids), metrics(grids))`` from one labelling: what the design env needs at the end of
+    an episode. Shapes as in those two functions."""
+    check_grids(grids, materials)
+    graph = _OccupiedGraph(grids)
+    in_body = graph.body_mask()
+    bodies = graph.bodies(in_body)
 
     def ratio(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
         return torch.where(den > 0, num / den.clamp(min=1), 0.0)
 
-    volume = per_grid(in_body)
-    nonempty = per_grid(torch.ones_like(in_body))
-
-    # Surface: a body voxel with fewer than 6 body face neighbours. Every occupied neighbour of a body voxel is in
-    # the body (same component), so the occupied-graph degree is the body degree.
-    degree = torch.bincount(graph.src, minlength=graph.num_nodes) + torch.bincount(graph.dst, minlength=graph.num_nodes)
-    surface = per_grid(in_body & (degree < 6))
-
-    values = grids.reshape(-1)[graph.pos]
-    passive = per_grid(in_body & (values == PASSIVE_MATERIAL))
-
-    return {
+    volume = graph.per_grid(in_body)
+    nonempty = graph.per_grid(torch.ones_like(in_body))
+    # Surface: a body voxel with fewer than 6 occupied face neighbours. Every occupied neighbour of a body voxel
+    # is in the body (same component), so the occupied graph's degree is the body degree.
+    m = graph.num_nodes
+    degree = torch.bincount(graph.src, minlength=m) + torch.bincount(graph.dst, minlength=m)
+    surface = graph.per_grid(in_body & (degree < 6))
+    passive = graph.per_grid(in_body & (graph.values == PASSIVE_MATERIAL))
+    return bodies, {
         "volume": volume,
         "surface_ratio": ratio(surface, volume),
         "passive_ratio": ratio(passive, volume),
@@ -321,21 +315,16 @@ def metrics(
 def _symmetry(bodies: torch.Tensor, graph: _OccupiedGraph, in_body: torch.Tensor) -> torch.Tensor:
     """Reflection symmetry ``[N] float32`` (see :func:`metrics`), from the body voxels alone."""
     n, sx, sy, sz = bodies.shape
-    flat = bodies.reshape(-1)
-    pos = graph.pos[in_body]
-    coords = graph.coords[in_body]
-    grid = graph.grid[in_body]
-    values = flat[pos]
+    flat = bodies.view(-1)
     scores = torch.zeros(n, dtype=torch.float32, device=bodies.device)
     for axis, (size, stride) in enumerate(((sx, sy * sz), (sy, sz), (sz, 1))):
         half = size // 2
-        c = coords[:, axis]
-        left = c < half
-        right = c >= size - half
-        mirror = pos + (size - 1 - 2 * c) * stride  # the cell reflected through the centre plane
-        same = left & (flat[mirror] == values)
-        s = torch.bincount(grid[same], minlength=n).to(torch.float32)
-        count = torch.bincount(grid[left], minlength=n) + torch.bincount(grid[right], minlength=n)
+        c = graph.coords[axis]
+        left = in_body & (c < half)
+        mirror = graph.pos + (size - 1 - 2 * c) * stride  # the cell reflected through the centre plane
+        same = left & (flat.index_select(0, mirror) == graph.values)
+        s = graph.per_grid(same)
+        count = graph.per_grid(left) + graph.per_grid(in_body & (c >= size - half))
         scores += torch.where(count > 0, 2 * s / count.clamp(min=1), 0.0)
     return scores / 3
 
@@ -344,48 +333,49 @@ def _substructures(bodies: torch.Tensor, graph: _OccupiedGraph, in_body: torch.T
     """Equal-label 6-connected regions of each body grid ``[N] float32``, counted on the grown bounding box."""
     n, sx, sy, sz = bodies.shape
     device = bodies.device
-    sizes = torch.tensor((sx, sy, sz), device=device)
-    grid = graph.grid[in_body]
-    coords = graph.coords[in_body]
-    big = torch.iinfo(torch.int64).max
-    lo = torch.full((n, 3), big, dtype=torch.int64, device=device)
-    hi = torch.full((n, 3), -1, dtype=torch.int64, device=device)
-    lo.scatter_reduce_(0, grid[:, None].expand(-1, 3), coords, reduce="amin")
-    hi.scatter_reduce_(0, grid[:, None].expand(-1, 3), coords, reduce="amax")
-    has_body = hi[:, 0] >= 0
-    lo = torch.where(has_body[:, None], (lo - 1).clamp(min=0), 0)
-    hi = torch.where(has_body[:, None], torch.minimum(hi + 1, sizes - 1), -1)
-    dims = hi - lo + 1  # [N, 3], 0 for an empty body
-    cells = dims.prod(dim=1)
+    last = torch.tensor((sx - 1, sy - 1, sz - 1), device=device)
+    # Bounding box of each body, grown by one cell and clipped to the grid.
+    big = max(sx, sy, sz)
+    index = graph.grid[None, :].expand(3, -1)
+    lo = torch.full((3, n), big, dtype=torch.int64, device=device)
+    lo.scatter_reduce_(1, index, torch.where(in_body, graph.coords, big), reduce="amin")
+    hi = torch.full((3, n), -1, dtype=torch.int64, device=device)
+    hi.scatter_reduce_(1, index, torch.where(in_body, graph.coords, -1), reduce="amax")
+    has_body = hi[0] >= 0
+    lo = (lo - 1).clamp(min=0)
+    hi = torch.minimum(hi + 1, last[:, None])
+    dims = torch.where(has_body, hi - lo + 1, 0)  # [3, N]; an empty body gets no cells
+    cells = dims.prod(dim=0)
     total = int(cells.sum())
+    # Enumerate every box cell of every grid: node t is cell `local` (C order) of grid `box_grid`'s box.
     box_grid = torch.repeat_interleave(torch.arange(n, device=device), cells, output_size=total)
     start = torch.cumsum(cells, 0) - cells
-    local = torch.arange(total, device=device) - start[box_grid]
-    d = dims[box_grid]
-    lz = local % d[:, 2]
-    ly = (local // d[:, 2]) % d[:, 1]
-    lx = local // (d[:, 2] * d[:, 1])
-    o = lo[box_grid]
-    pos = box_grid * (sx * sy * sz) + (o[:, 0] + lx) * (sy * sz) + (o[:, 1] + ly) * sz + (o[:, 2] + lz)
-    values = bodies.reshape(-1)[pos]
     nodes = torch.arange(total, device=device)
-    srcs, dsts = [], []
-    for coord, size, stride in ((lx, d[:, 0], d[:, 1] * d[:, 2]), (ly, d[:, 1], d[:, 2]), (lz, d[:, 2], 1)):
-        inside = coord < size - 1
-        neighbour = torch.where(inside, nodes + stride, nodes)
-        keep = inside & (values[neighbour] == values)
-        srcs.append(nodes[keep])
-        dsts.append(neighbour[keep])
-    root = _components(total, torch.cat(srcs), torch.cat(dsts))
-    regions = torch.bincount(box_grid[root == nodes], minlength=n).to(torch.float32)
+    local = nodes - start.index_select(0, box_grid)
+    d = dims.index_select(1, box_grid)  # [3, T]
+    lx = torch.div(local, d[1] * d[2], rounding_mode="floor")
+    rest = local - lx * d[1] * d[2]
+    ly = torch.div(rest, d[2], rounding_mode="floor")
+    lc = torch.stack((lx, ly, rest - ly * d[2]))  # [3, T] coordinates inside the box
+    gc = lc + lo.index_select(1, box_grid)
+    pos = box_grid * (sx * sy * sz) + gc[0] * (sy * sz) + gc[1] * sz + gc[2]
+    values = bodies.view(-1).index_select(0, pos)
+    local_strides = torch.stack((d[1] * d[2], d[2], torch.ones_like(d[2])))  # [3, T]
+    neighbour = nodes + local_strides
+    inside = lc < d - 1
+    # Clamp so the gather stays in range; cells on the box's far faces are masked by `inside` anyway.
+    same = values.index_select(0, neighbour.view(-1).clamp(max=max(total - 1, 0))).view(3, total) == values
+    edge = torch.nonzero((inside & same).view(-1)).squeeze(1)
+    root = _components(total, edge % total, neighbour.view(-1).index_select(0, edge))
+    regions = torch.bincount(box_grid, weights=(root == nodes).to(torch.float32), minlength=n)
     # An empty body grid is a single empty region.
     return torch.where(has_body, regions, 1.0)
 
 
 def _compressibility(bodies: torch.Tensor) -> torch.Tensor:
     """``len(zlib.compress(body bytes)) / cells`` per grid ``[N] float32`` (zlib runs on the CPU, one call a grid)."""
-    n = bodies.shape[0]
-    cells = bodies[0].numel() if n else 1
-    host = bodies.reshape(n, -1).cpu().numpy()
+    n, sx, sy, sz = bodies.shape
+    cells = sx * sy * sz
+    host = bodies.reshape(n, cells).cpu().numpy()
     sizes = np.fromiter((len(zlib.compress(row.tobytes())) for row in host), dtype=np.float64, count=n)
     return torch.from_numpy(sizes / cells).to(device=bodies.device, dtype=torch.float32)

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from freeform.body import check_grids, largest_component, metrics
+from freeform.body import bodies_and_metrics, check_grids, largest_component
 from freeform.envs.base import Task
 from freeform.envs.tasks import VolumeTask
 
@@ -136,7 +136,10 @@ class DesignEnv:
             return self.grids, reward, done, {}
 
         final_grids = self.grids
-        bodies = largest_component(final_grids)
+        if self.compute_metrics:
+            bodies, body_metrics = bodies_and_metrics(final_grids)
+        else:
+            bodies = largest_component(final_grids)
         if self._task_takes_bodies:
             reward = self.task.reward(final_grids, bodies=bodies)
         else:
@@ -144,7 +147,7 @@ class DesignEnv:
         reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
         info: dict[str, Any] = {"final_grids": final_grids, "bodies": bodies}
         if self.compute_metrics:
-            info["metrics"] = metrics(final_grids, bodies=bodies)
+            info["metrics"] = body_metrics
         done = torch.ones(n, dtype=torch.bool, device=self.device)
         return self.reset(), reward, done, info
 
