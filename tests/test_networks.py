@@ -11,7 +11,15 @@ import torch.nn.functional as F
 from freeform.agents import MLPActorCritic, VoxelActorCritic
 from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
 
-torch.set_num_threads(min(2, torch.get_num_threads()))
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small workloads: one intra-op thread. On a shared 2-core machine, two OpenMP threads per process spin
+    against other processes and ran the learning test 20x slower (288 s vs 13 s) under load."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 def n_params(module: torch.nn.Module) -> int:
@@ -134,7 +142,7 @@ def test_strided_conv_equals_conv3d(rho: int) -> None:
     got = strided_conv3d(x, weight, bias)
     torch.testing.assert_close(got, expected)
     upstream = torch.randn(expected.shape, generator=g, dtype=torch.float64)
-    for a, b in zip(torch.autograd.grad(got, (x, weight, bias), upstream), torch.autograd.grad(expected, (x, weight, bias), upstream)):
+    for a, b in zip(torch.autograd.grad(got, (x, weight, bias), upstream), torch.autograd.grad(expected, (x, weight, bias), upstream), strict=True):
         torch.testing.assert_close(a, b)
 
 
@@ -147,11 +155,11 @@ def test_fast_network_equals_plain_network(k: int, hidden: int) -> None:
     plain.load_state_dict(fast.state_dict())
     grids = random_grids(16, 20, k, seed=k)
     outs_fast, outs_plain = fast(grids), plain(grids)
-    for a, b in zip(outs_fast, outs_plain):
+    for a, b in zip(outs_fast, outs_plain, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
     loss = lambda outs: outs[0].square().sum() + outs[1].sum() + (outs[2] - 1).square().sum()
     loss(outs_fast).backward()
     loss(outs_plain).backward()
-    for (name, pf), pp in zip(fast.named_parameters(), plain.parameters()):
+    for (name, pf), pp in zip(fast.named_parameters(), plain.parameters(), strict=True):
         scale = pp.grad.abs().max().clamp_min(1.0)
         torch.testing.assert_close(pf.grad / scale, pp.grad / scale, rtol=1e-4, atol=1e-4, msg=name)

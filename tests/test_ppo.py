@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import pickle
 from typing import Any
 
@@ -27,7 +26,15 @@ from freeform.agents.ppo import (
 )
 from freeform.envs.base import VecEnv
 
-torch.set_num_threads(min(2, torch.get_num_threads()))
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small workloads: one intra-op thread. On a shared 2-core machine, two OpenMP threads per process spin
+    against other processes and ran the learning test 20x slower (288 s vs 13 s) under load."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -350,7 +357,7 @@ def test_save_load_round_trip(tmp_path: Any) -> None:
     assert type(loaded.policy) is MLPActorCritic and loaded.policy.init_kwargs == ppo.policy.init_kwargs
     assert loaded.config == ppo.config
     assert (loaded.epoch, loaded.global_step, loaded.kl_coeff) == (ppo.epoch, ppo.global_step, ppo.kl_coeff)
-    for a, b in zip(ppo.policy.state_dict().values(), loaded.policy.state_dict().values()):
+    for a, b in zip(ppo.policy.state_dict().values(), loaded.policy.state_dict().values(), strict=True):
         assert torch.equal(a, b)
     assert torch.equal(loaded.obs, ppo.obs) and torch.equal(loaded.env.pos, ppo.env.pos)
 
@@ -361,7 +368,7 @@ def test_voxel_policy_checkpoint_rebuilds_from_file(tmp_path: Any) -> None:
     loaded = PPO.load(tmp_path / "v.pt", PaintEnv(num_envs=8, resolution=4, materials=2, horizon=6))
     assert isinstance(loaded.policy, VoxelActorCritic) and loaded.policy.hidden == 16
     grid = torch.randint(0, 2, (3, 4, 4, 4), dtype=torch.uint8)
-    for a, b in zip(ppo.policy(grid), loaded.policy(grid)):
+    for a, b in zip(ppo.policy(grid), loaded.policy(grid), strict=True):
         assert torch.equal(a, b)
 
 
@@ -402,7 +409,7 @@ def test_resume_is_bit_for_bit(tmp_path: Any) -> None:
 
     assert _comparable(s1) == _comparable(r1)
     assert _comparable(s2) == _comparable(r2)
-    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters()):
+    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
         assert torch.equal(a, b)
     for name in ("obs", "actions", "rewards", "values", "logprobs"):
         assert torch.equal(straight.rollout[name], resumed.rollout[name])
