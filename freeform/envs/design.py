@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from freeform.body import bodies_and_metrics, check_grids, largest_component
+from freeform.body import bodies_and_metrics, check_grids, largest_component, serial_on_cpu
 from freeform.envs.base import Task
 from freeform.envs.tasks import VolumeTask
 
@@ -126,6 +126,10 @@ class DesignEnv:
         Returns:
             ``(obs [N, ρ, ρ, ρ] uint8, reward [N] float32, done [N] bool, info)`` (see the class docstring).
         """
+        with serial_on_cpu(self.device):  # small ops: threads cost more than they gain (see serial_on_cpu)
+            return self._step(actions)
+
+    def _step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
         actions = self._check_actions(actions)
         self.grids = self.place_bundles(self.grids, actions)
         self.t += 1
