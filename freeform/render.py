@@ -749,14 +749,14 @@ def log_epoch_renders(
 _GAIT_SIMULATORS: dict[Any, Simulator] = {}
 
 
-def gait_simulator(sim_config: Any, seconds: float) -> Simulator:
+def gait_simulator(sim_config: Any, seconds: float, arch: str = "auto") -> Simulator:
     """A ``Simulator`` of ``sim_config`` shortened to ``seconds`` from t = 0 (no burn-in), cached per settings."""
     from freeform.sim import Simulator
 
     short = replace(sim_config, burn_in=0.0, duration=float(seconds))
-    key = repr(short)
+    key = (repr(short), arch)
     if key not in _GAIT_SIMULATORS:
-        _GAIT_SIMULATORS[key] = Simulator(short, arch="auto")
+        _GAIT_SIMULATORS[key] = Simulator(short, arch=arch)
     return _GAIT_SIMULATORS[key]
 
 
@@ -768,8 +768,10 @@ def log_bodies(writer: SummaryWriter, final_grids: Any, rewards: Any, step: int,
     """
     rng = np.random.default_rng([int(getattr(cfg, "seed", 0)), int(step)])
     simulator = None
-    if getattr(getattr(cfg, "task", None), "name", None) == "locomotion":
-        simulator = gait_simulator(cfg.sim, VideoConfig().seconds)
+    task = getattr(cfg, "task", None)
+    if getattr(task, "name", None) == "locomotion":
+        arch = str((getattr(task, "options", None) or {}).get("arch", "auto"))  # the task's own simulator device
+        simulator = gait_simulator(cfg.sim, VideoConfig().seconds, arch)
     return log_epoch_renders(writer, final_grids, None, rewards, step, rng, simulator)
 
 

@@ -216,11 +216,12 @@ def _run(args: argparse.Namespace) -> int:
     cfg = RenderConfig(size=args.size, frame=args.frame)
     written: list[Path] = []
     where = f"epoch {epoch}" if epoch is not None else "random policy"
+    score = "reward" if epoch is not None else "volume"  # --random designs are scored by their body volume
 
     picks = pick(args.bodies, rewards, args.seed)
     for label, i in picks:
         volume = int((bodies[i] > 0).sum())
-        caption = [f"{where}, {label} #{i}", f"reward {rewards[i]:.4g}", f"{volume} voxels"]
+        caption = [f"{where}, {label} #{i}", f"{score} {rewards[i]:.4g}", f"{volume} voxels"]
         written.append(write_png(out / f"{label}_{i}.png", render_grid(shown[i], bodies[i], cfg, caption)))
 
     if args.grid:
@@ -232,7 +233,7 @@ def _run(args: argparse.Namespace) -> int:
         else:
             idx = np.arange(n)
         small = replace(cfg, size=max(96, min(args.size, 256)), caption_size=11)
-        images = render_grids(shown[idx], bodies[idx], small, [[f"#{i}  r = {rewards[i]:.3g}"] for i in idx])
+        images = render_grids(shown[idx], bodies[idx], small, [[f"#{i}  {score} {rewards[i]:.3g}"] for i in idx])
         written.append(write_png(out / "sheet.png", contact_sheet(images, args.columns)))
 
     first_label, first = picks[0]
@@ -250,11 +251,10 @@ def _run(args: argparse.Namespace) -> int:
         if not (bodies[first] > 0).any():
             raise ValueError(f"body #{first} is empty: nothing to simulate")
         from freeform.render import gait_simulator
-        from freeform.sim import SimConfig, Simulator
+        from freeform.sim import SimConfig
 
         base = sim_config if sim_config is not None else SimConfig()
-        simulator = (gait_simulator(base, args.seconds) if args.arch == "auto"
-                     else Simulator(replace(base, burn_in=0.0, duration=args.seconds), arch=args.arch))
+        simulator = gait_simulator(base, args.seconds, args.arch)
         recording = simulate_gait(simulator, bodies[first], args.fps)
         if args.video:
             frames = render_recording(recording, 0, replace(cfg, frame="grid"))
