@@ -84,7 +84,7 @@ def table(runs: Sequence[Path]) -> tuple[list[str], list[str], list[list[str]]]:
         groups.setdefault(str(cfg.get("name", run.name)), []).append(cfg)
     names = list(groups)
     cells: list[list[str]] = []
-    for label, fn in ROWS:
+    for _label, fn in ROWS:
         row = []
         for g in names:
             if fn is None:
