@@ -341,10 +341,6 @@ def run_config(run: Path) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------------------- bodies
-MATERIAL_COLORS = {1: "#1b2a6b", 2: "#2ca02c", 3: "#d62728"}
-"""The paper's palette: passive tissue dark blue, muscle A green, muscle B red (other materials grey)."""
-
-
 def body_of(grid: np.ndarray) -> np.ndarray:
     """The robot body of one final grid (``[ρ, ρ, ρ] uint8``): its largest 6-connected component, same shape."""
     import torch
@@ -354,26 +350,13 @@ def body_of(grid: np.ndarray) -> np.ndarray:
     return largest_component(torch.as_tensor(np.asarray(grid, dtype=np.uint8))[None])[0].numpy()
 
 
-def crop(grid: np.ndarray) -> np.ndarray:
-    """``grid`` (``[X, Y, Z] uint8``) cut to the bounding box of its non-empty voxels (``freeform.body.crop``)."""
-    import torch
+def draw_body(ax: Any, grid: np.ndarray, body: np.ndarray | None = None, title: str | None = None,
+              size: int = 320) -> None:
+    """Draw a final grid (``[ρ, ρ, ρ] uint8``, z up) on a 2-D matplotlib axis with ``freeform.render``: the body
+    in the paper's colours, the rest of the grid translucent grey, in the ρ³ design space."""
+    from freeform.render import RenderConfig, render_grid
 
-    from freeform.body import crop as crop_grid
-
-    return crop_grid(torch.as_tensor(np.ascontiguousarray(grid, dtype=np.uint8))).numpy()
-
-
-def draw_body(ax: Any, body: np.ndarray, title: str | None = None) -> None:
-    """Draw a body (``[X, Y, Z] uint8``, z up) on a 3-D matplotlib axis, cropped, coloured by material."""
-    body = crop(np.asarray(body))
+    ax.imshow(render_grid(grid, body, RenderConfig(size=size)))
     ax.set_axis_off()
     if title:
         ax.set_title(title, fontsize=8)
-    if body.size == 0:
-        return
-    colors = np.empty(body.shape, dtype=object)
-    for m in np.unique(body[body != 0]):
-        colors[body == m] = MATERIAL_COLORS.get(int(m), "0.6")
-    ax.voxels(body != 0, facecolors=colors, edgecolor="k", linewidth=0.2)
-    ax.set_box_aspect(tuple(max(s, 1) for s in body.shape))
-    ax.view_init(elev=25, azim=-60)

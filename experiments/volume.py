@@ -32,7 +32,8 @@ class ExampleBody:
     episode: int
     reward: float
     target: float  # the epoch's mean reward the body is closest to
-    body: np.ndarray  # [ρ, ρ, ρ] uint8, the largest component of the final grid
+    grid: np.ndarray  # [ρ, ρ, ρ] uint8, the final grid
+    body: np.ndarray  # [ρ, ρ, ρ] uint8, its largest component
 
 
 def example_bodies(trials: Sequence[common.Trial], curve: common.Curve,
@@ -63,7 +64,7 @@ def example_bodies(trials: Sequence[common.Trial], curve: common.Curve,
             continue
         _, ti, j, reward, grid = best
         out.append(ExampleBody(label=chr(ord("A") + i), epoch=epoch, trial=ti, episode=j, reward=reward,
-                               target=target, body=common.body_of(grid)))
+                               target=target, grid=grid, body=common.body_of(grid)))
     return out
 
 
@@ -108,8 +109,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     ax.set_ylabel("reward (body volume, voxels)")
     ax.set_title(f"volume, {len(runs)} trial(s), mean and 99 % band")
     for i, b in enumerate(bodies):
-        bax = fig.add_subplot(grid[i // 3, 2 + i % 3], projection="3d")
-        common.draw_body(bax, b.body, f"{b.label}: epoch {b.epoch}, volume {b.reward:.0f}")
+        bax = fig.add_subplot(grid[i // 3, 2 + i % 3])
+        common.draw_body(bax, b.grid, b.body, f"{b.label}: epoch {b.epoch}, volume {b.reward:.0f}")
     fig.text(0.01, -0.02, common.provenance_caption(prov), fontsize=6, color="0.4")
     out.update(zip(("png", "pdf"), common.save_figure(fig, args.out, "volume"), strict=True))
 
