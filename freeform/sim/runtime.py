@@ -56,3 +56,9 @@ def from_numpy(a: np.ndarray) -> ti.Ndarray:
 
 def sync() -> None:
     ti.sync()
+
+
+def num_threads() -> int:
+    """Threads Taichi's CPU backend runs a parallel loop on (1 on CUDA: not meaningful there)."""
+    cfg = ti.lang.impl.current_cfg()
+    return int(cfg.cpu_max_num_threads) if cfg.arch != ti.cuda else 1
