@@ -388,6 +388,8 @@ def train(
         time_checkpoint = 0.0
         while ppo.epoch < cfg.trainer.epochs:
             stats = dict(ppo.train_epoch())
+            # The task's own figures of the epoch's scoring (LocomotionTask: perf/sim_seconds, voxel-steps/s).
+            stats.update(getattr(env.task, "stats", None) or {})
             epoch = ppo.epoch - 1
             t0 = time.perf_counter()
             episodes = collector.collect(ppo.rollout, ppo.episode_infos)
