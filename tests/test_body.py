@@ -12,12 +12,14 @@ import torch
 
 from freeform.body import (
     METRIC_NAMES,
+    _OccupiedGraph,
     bodies_and_metrics,
     bounding_box,
     component_labels,
     crop,
     largest_component,
     metrics,
+    serial_on_cpu,
 )
 
 FACES = ndi.generate_binary_structure(3, 1)  # 6-connectivity
@@ -165,11 +167,14 @@ def snake(rho: int) -> torch.Tensor:
     return torch.from_numpy(grid)[None]
 
 
-def test_snake_is_one_component():
+def test_snake_is_one_component_found_in_few_rounds():
     grid = snake(20)
     assert ndi.label(grid[0].numpy() != 0, structure=FACES)[1] == 1
     body = largest_component(grid)
     assert torch.equal(body, grid)
+    # Plain min-label propagation would need a round per voxel of the path (~2,100); hooking with pointer jumping
+    # needs a handful.
+    assert _OccupiedGraph(grid).rounds <= 12
     # Cut the path in the middle: two components, and the larger half survives.
     cut = grid.clone()
     rows = (cut[0] != 0).nonzero()
@@ -348,3 +353,15 @@ def test_material_index_out_of_range_raises():
     metrics(grid, materials=3)
     with pytest.raises(ValueError, match="grid"):
         crop(grid)
+
+
+def test_serial_on_cpu_restores_the_thread_count():
+    before = torch.get_num_threads()
+    with serial_on_cpu("cpu"):
+        assert torch.get_num_threads() == 1
+        largest_component(torch.zeros(1, 2, 2, 2, dtype=torch.uint8))  # nested use keeps it at 1
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), serial_on_cpu("cpu"):
+        raise RuntimeError
+    assert torch.get_num_threads() == before

@@ -182,6 +182,17 @@ def test_without_metrics_and_custom_task():
     assert "metrics" not in info and set(info) == {"final_grids", "bodies"}
 
 
+def test_task_returning_the_wrong_shape_raises():
+    class Scalar:
+        def reward(self, final_grids: torch.Tensor) -> torch.Tensor:
+            return torch.tensor(1.0)
+
+    env = DesignEnv(2, resolution=4, materials=2, steps=1, task=Scalar())
+    env.reset()
+    with pytest.raises(ValueError, match="task.reward"):
+        env.step(torch.zeros(2, 5))
+
+
 def test_results_do_not_depend_on_batch_size():
     g = torch.Generator().manual_seed(1)
     actions = torch.randn(20, 7, 6, generator=g)

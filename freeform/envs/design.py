@@ -126,32 +126,30 @@ class DesignEnv:
         Returns:
             ``(obs [N, ρ, ρ, ρ] uint8, reward [N] float32, done [N] bool, info)`` (see the class docstring).
         """
-        with serial_on_cpu(self.device):  # small ops: threads cost more than they gain (see serial_on_cpu)
-            return self._step(actions)
-
-    def _step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
         actions = self._check_actions(actions)
-        self.grids = self.place_bundles(self.grids, actions)
-        self.t += 1
         n = self.num_envs
-        if self.t < self.steps:
-            reward = torch.zeros(n, dtype=torch.float32, device=self.device)
-            done = torch.zeros(n, dtype=torch.bool, device=self.device)
-            return self.grids, reward, done, {}
-
-        final_grids = self.grids
-        if self.compute_metrics:
-            bodies, body_metrics = bodies_and_metrics(final_grids)
-        else:
-            bodies = largest_component(final_grids)
+        # The env's own ops are small: torch's threads cost more than they gain here (see serial_on_cpu). The
+        # task runs outside, with the caller's threading (a simulator may want every core).
+        with serial_on_cpu(self.device):
+            self.grids = self.place_bundles(self.grids, actions)
+            self.t += 1
+            if self.t < self.steps:
+                reward = torch.zeros(n, dtype=torch.float32, device=self.device)
+                done = torch.zeros(n, dtype=torch.bool, device=self.device)
+                return self.grids, reward, done, {}
+            final_grids = self.grids
+            info: dict[str, Any] = {"final_grids": final_grids}
+            if self.compute_metrics:
+                info["bodies"], info["metrics"] = bodies_and_metrics(final_grids)
+            else:
+                info["bodies"] = largest_component(final_grids)
         if self._task_takes_bodies:
-            reward = self.task.reward(final_grids, bodies=bodies)
+            reward = self.task.reward(final_grids, bodies=info["bodies"])
         else:
             reward = self.task.reward(final_grids)
         reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
-        info: dict[str, Any] = {"final_grids": final_grids, "bodies": bodies}
-        if self.compute_metrics:
-            info["metrics"] = body_metrics
+        if tuple(reward.shape) != (n,):
+            raise ValueError(f"task.reward must return one reward per grid, shape [{n}], got {list(reward.shape)}")
         done = torch.ones(n, dtype=torch.bool, device=self.device)
         return self.reset(), reward, done, info
 
