@@ -29,7 +29,9 @@ def _clock() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
-def design_steps_per_second(materials: int, device: torch.device, compute_metrics: bool = True) -> tuple[float, float]:
+def design_steps_per_second(
+    materials: int, device: torch.device, compute_metrics: bool = True
+) -> tuple[float, float]:
     """(wall, cpu) design steps/s over EPISODES whole episodes (after one warm-up episode)."""
     env = DesignEnv(NUM_ENVS, RESOLUTION, materials, STEPS, device=device, compute_metrics=compute_metrics)
     g = torch.Generator(device=device).manual_seed(0)
@@ -72,7 +74,11 @@ def grids_per_second(fn, grids: torch.Tensor, repeats: int = 5) -> tuple[float, 
 def snake_grids(n: int, rho: int, device: torch.device) -> torch.Tensor:
     """n copies of one 6-connected path through half the rows of a ρ³ grid (label propagation's worst case)."""
     grid = torch.zeros(rho, rho, rho, dtype=torch.uint8)
-    rows = [(x, y) for x in range(0, rho, 2) for y in (range(0, rho, 2) if (x // 2) % 2 == 0 else range(rho - 2, -1, -2))]
+    rows = [
+        (x, y)
+        for x in range(0, rho, 2)
+        for y in (range(0, rho, 2) if (x // 2) % 2 == 0 else range(rho - 2, -1, -2))
+    ]
     for i, (x, y) in enumerate(rows):
         grid[x, y, :] = 1
         if i + 1 < len(rows):
@@ -89,21 +95,32 @@ def _sync(device: torch.device) -> None:
 
 def main() -> None:
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"torch {torch.__version__}, {torch.get_num_threads()} CPU threads, load average {os.getloadavg()[0]:.1f}"
+    )
     print(f"N = {NUM_ENVS}, ρ = {RESOLUTION}, T = {STEPS}; whole episodes incl. final body + metrics")
     for device in devices:
         for k in (2, 4):
             wall, cpu = design_steps_per_second(k, device)
             print(f"[{device.type}] design steps/s (k={k}): {wall:,.0f} wall, {cpu:,.0f} per CPU-second")
         wall, cpu = design_steps_per_second(4, device, compute_metrics=False)
-        print(f"[{device.type}] design steps/s (k=4, body but no metrics): {wall:,.0f} wall, {cpu:,.0f} per CPU-second")
+        print(
+            f"[{device.type}] design steps/s (k=4, body but no metrics): {wall:,.0f} wall, {cpu:,.0f} per CPU-second"
+        )
         grids = final_grids(4, device)
-        for name, fn in (("largest_component", largest_component), ("bodies_and_metrics", bodies_and_metrics)):
+        for name, fn in (
+            ("largest_component", largest_component),
+            ("bodies_and_metrics", bodies_and_metrics),
+        ):
             wall, cpu = grids_per_second(fn, grids)
-            print(f"[{device.type}] {name} on N(0,I) designs (k=4): {wall:,.0f} grids/s wall, {cpu:,.0f} per CPU-second")
+            print(
+                f"[{device.type}] {name} on N(0,I) designs (k=4): {wall:,.0f} grids/s wall, {cpu:,.0f} per CPU-second"
+            )
         snakes = snake_grids(NUM_ENVS, RESOLUTION, device)
         wall, cpu = grids_per_second(largest_component, snakes)
-        print(f"[{device.type}] largest_component on snakes (2,099 voxels each): {wall:,.0f} grids/s wall, {cpu:,.0f} per CPU-second")
+        print(
+            f"[{device.type}] largest_component on snakes (2,099 voxels each): {wall:,.0f} grids/s wall, {cpu:,.0f} per CPU-second"
+        )
     print(f"load average after: {os.getloadavg()[0]:.1f}")
 
 

@@ -103,14 +103,18 @@ def _serial(fn: _F) -> _F:
 def check_grids(grids: torch.Tensor, materials: int | None = None, name: str = "grids") -> None:
     """Raise ``ValueError`` unless ``grids`` is a uint8 ``[N, X, Y, Z]`` tensor with indices below ``materials``."""
     if not isinstance(grids, torch.Tensor):
-        raise ValueError(f"{name} must be a torch.Tensor of dtype uint8 and shape [N, X, Y, Z], got {type(grids).__name__}")
+        raise ValueError(
+            f"{name} must be a torch.Tensor of dtype uint8 and shape [N, X, Y, Z], got {type(grids).__name__}"
+        )
     if grids.dtype != torch.uint8:
         raise ValueError(f"{name} must have dtype torch.uint8 (material indices), got {grids.dtype}")
     if grids.dim() != 4:
         raise ValueError(f"{name} must have rank 4, shape [N, X, Y, Z], got shape {tuple(grids.shape)}")
     if materials is not None:
         if materials < 2:
-            raise ValueError(f"materials must be an integer >= 2 (empty + at least one material), got {materials}")
+            raise ValueError(
+                f"materials must be an integer >= 2 (empty + at least one material), got {materials}"
+            )
         if grids.numel() and int(grids.max()) >= materials:
             raise ValueError(
                 f"{name} holds material index {int(grids.max())}, allowed values are 0 … {materials - 1} "
@@ -208,7 +212,9 @@ class _OccupiedGraph:
         size = torch.bincount(self.root, minlength=m)  # nonzero only at roots
         # One integer key orders by size, then by *smaller* root id: size·(M+1) + (M - root).
         key = torch.where(size > 0, size * (m + 1) + (m - torch.arange(m, device=device)), 0)
-        best = torch.zeros(n, dtype=torch.int64, device=device).scatter_reduce_(0, self.grid, key, reduce="amax")
+        best = torch.zeros(n, dtype=torch.int64, device=device).scatter_reduce_(
+            0, self.grid, key, reduce="amax"
+        )
         return torch.where(best > 0, m - best % (m + 1), -1)
 
     def body_mask(self) -> torch.Tensor:
@@ -442,14 +448,20 @@ def _substructures(bodies: torch.Tensor, body: _BodyVoxels) -> torch.Tensor:
     for coord, size, stride in ((lx, d[0], plane), (ly, d[1], d[2])):
         inside = coord < size - 1
         neighbour = torch.where(inside, nodes + stride, nodes)
-        keep = inside & (values.index_select(0, neighbour) == values) & (starts | starts.index_select(0, neighbour))
+        keep = (
+            inside
+            & (values.index_select(0, neighbour) == values)
+            & (starts | starts.index_select(0, neighbour))
+        )
         cell = torch.nonzero(keep).squeeze(1)
         srcs.append(run.index_select(0, cell))
         dsts.append(run.index_select(0, neighbour.index_select(0, cell)))
     num_runs = int(run[-1]) + 1 if total else 0
     root, _ = _components(num_runs, torch.cat(srcs), torch.cat(dsts))
     run_grid = box_grid[starts]
-    regions = torch.bincount(run_grid, weights=(root == torch.arange(num_runs, device=device)).float(), minlength=n)
+    regions = torch.bincount(
+        run_grid, weights=(root == torch.arange(num_runs, device=device)).float(), minlength=n
+    )
     # An empty body grid is a single empty region.
     return torch.where(has_body, regions, 1.0)
 

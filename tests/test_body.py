@@ -26,7 +26,9 @@ FACES = ndi.generate_binary_structure(3, 1)  # 6-connectivity
 
 
 # ----------------------------------------------------------------------------------------------------- oracles
-def random_grids(n: int, shape: tuple[int, int, int], density: float, materials: int, seed: int) -> torch.Tensor:
+def random_grids(
+    n: int, shape: tuple[int, int, int], density: float, materials: int, seed: int
+) -> torch.Tensor:
     rng = np.random.default_rng(seed)
     occupied = rng.random((n, *shape)) < density
     return torch.from_numpy((occupied * rng.integers(1, materials, (n, *shape))).astype(np.uint8))
@@ -104,7 +106,13 @@ def assert_metrics_match(grids: torch.Tensor) -> None:
 # ------------------------------------------------------------------------------------- components against scipy
 @pytest.mark.parametrize(
     ("shape", "density", "seed"),
-    [((20, 20, 20), 0.05, 0), ((20, 20, 20), 0.25, 1), ((20, 20, 20), 0.33, 2), ((7, 11, 5), 0.4, 3), ((1, 1, 9), 0.5, 4)],
+    [
+        ((20, 20, 20), 0.05, 0),
+        ((20, 20, 20), 0.25, 1),
+        ((20, 20, 20), 0.33, 2),
+        ((7, 11, 5), 0.4, 3),
+        ((1, 1, 9), 0.5, 4),
+    ],
 )
 def test_component_labels_match_scipy(shape, density, seed):
     grids = random_grids(24, shape, density, materials=4, seed=seed)
@@ -157,7 +165,11 @@ def snake(rho: int) -> torch.Tensor:
     """A single 6-connected path through a ρ³ grid that visits half its rows: the worst case for label
     propagation (its length is ~ρ³/4 voxels, and its node ids run back and forth)."""
     grid = np.zeros((rho, rho, rho), np.uint8)
-    rows = [(x, y) for x in range(0, rho, 2) for y in (range(0, rho, 2) if (x // 2) % 2 == 0 else range(rho - 2, -1, -2))]
+    rows = [
+        (x, y)
+        for x in range(0, rho, 2)
+        for y in (range(0, rho, 2) if (x // 2) % 2 == 0 else range(rho - 2, -1, -2))
+    ]
     for i, (x, y) in enumerate(rows):
         grid[x, y, :] = 1 + i % 3
         z = rho - 1 if i % 2 == 0 else 0  # join this row to the next at alternating ends

@@ -71,7 +71,9 @@ def test_bundle_is_cut_at_the_border_not_shifted():
     assert int(obs.sum()) == 2
 
 
-@pytest.mark.parametrize(("rho", "k", "b"), [(20, 4, 2), (20, 2, 2), (10, 3, 4), (8, 4, 6), (6, 2, 6), (2, 2, 2)])
+@pytest.mark.parametrize(
+    ("rho", "k", "b"), [(20, 4, 2), (20, 2, 2), (10, 3, 4), (8, 4, 6), (6, 2, 6), (2, 2, 2)]
+)
 def test_placement_matches_literal_spec(rho, k, b):
     rng = np.random.default_rng(rho * 100 + k * 10 + b)
     n, steps = 16, 12
@@ -223,10 +225,13 @@ def test_state_dict_resumes_mid_episode_bit_for_bit():
     resumed = DesignEnv(4, resolution=10, materials=4, steps=10)
     resumed.load_state_dict(state)
     assert resumed.t == 6 and resumed.seed == 5
-    for t, (obs, reward, done, info) in zip(range(6, 10), rest):
+    for t, (obs, reward, done, info) in zip(range(6, 10), rest, strict=True):
         obs2, reward2, done2, info2 = resumed.step(actions[t])
         assert torch.equal(obs, obs2) and torch.equal(reward, reward2) and torch.equal(done, done2)
-    assert torch.equal(info["final_grids"], info2["final_grids"])
+        assert info.keys() == info2.keys()
+        for key in ("final_grids", "bodies"):
+            if key in info:
+                assert torch.equal(info[key], info2[key])
     # The state is a copy: stepping does not change it.
     assert int(state["t"]) == 6
     with pytest.raises(ValueError, match="config"):

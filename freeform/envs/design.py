@@ -149,7 +149,9 @@ class DesignEnv:
             reward = self.task.reward(final_grids)
         reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
         if tuple(reward.shape) != (n,):
-            raise ValueError(f"task.reward must return one reward per grid, shape [{n}], got {list(reward.shape)}")
+            raise ValueError(
+                f"task.reward must return one reward per grid, shape [{n}], got {list(reward.shape)}"
+            )
         done = torch.ones(n, dtype=torch.bool, device=self.device)
         return self.reset(), reward, done, info
 

@@ -48,8 +48,14 @@ class LocomotionTask:
     steps / that time), ``stats/sim_diverged`` and ``stats/sim_bodies`` (bodies simulated).
     """
 
-    def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
-                 min_reward: float = 1e-3, simulator: Any = None) -> None:
+    def __init__(
+        self,
+        sim: Any = None,
+        device: str | torch.device | None = None,
+        arch: str = "auto",
+        min_reward: float = 1e-3,
+        simulator: Any = None,
+    ) -> None:
         """
         Args:
             sim: a ``freeform.sim.SimConfig`` (default: the paper's materials and protocol, Voxelyze semantics).
@@ -86,8 +92,12 @@ class LocomotionTask:
         volume = (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1)
         reward = torch.zeros(bodies.shape[0], dtype=torch.float32, device=device)
         live = torch.nonzero(volume > 0).flatten()
-        self.stats = {"perf/sim_seconds": 0.0, "perf/voxel_steps_per_second": 0.0, "stats/sim_diverged": 0.0,
-                      "stats/sim_bodies": float(live.numel())}
+        self.stats = {
+            "perf/sim_seconds": 0.0,
+            "perf/voxel_steps_per_second": 0.0,
+            "stats/sim_diverged": 0.0,
+            "stats/sim_bodies": float(live.numel()),
+        }
         if live.numel() == 0:  # nothing to simulate: every body is empty
             return reward
         t0 = time.perf_counter()
@@ -98,9 +108,13 @@ class LocomotionTask:
         displacement = torch.where(failed | (displacement < self.min_reward), 0.0, displacement)
         reward[live.to(device)] = displacement
         voxel_steps = float((volume[live].cpu().to(torch.float64) * result.steps.to(torch.float64)).sum())
-        self.stats.update({"perf/sim_seconds": seconds,
-                           "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
-                           "stats/sim_diverged": float(failed.sum())})
+        self.stats.update(
+            {
+                "perf/sim_seconds": seconds,
+                "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
+                "stats/sim_diverged": float(failed.sum()),
+            }
+        )
         return reward
 
 
