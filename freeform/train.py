@@ -177,18 +177,16 @@ EpochCallback = Callable[[EpochContext], None]
 
 
 def render_callback(every: int) -> EpochCallback:
-    """Every ``every`` epochs, log renders of the epoch's bodies to TensorBoard (``freeform.render``).
-
-    The hook for the rendering work: ``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``.
-    """
+    """At epochs 0, ``every``, 2·``every``, ... log renders of the epoch's bodies to TensorBoard
+    (``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``: best, median and a random body)."""
 
     def callback(ctx: EpochContext) -> None:
-        if ctx.episodes is None or (ctx.epoch + 1) % every and ctx.epoch:
+        if ctx.episodes is None or ctx.epoch % every:  # epochs 0, every, 2·every, ...
             return
         try:
-            from freeform.render import log_bodies  # type: ignore[import-not-found]
+            from freeform.render import log_bodies
         except ImportError as exc:
-            raise ValueError("trainer.render_every > 0 needs freeform.render.log_bodies, not available yet") from exc
+            raise ValueError("trainer.render_every > 0 needs freeform.render.log_bodies, not available") from exc
         log_bodies(ctx.logger.writer, ctx.episodes["final_grids"], ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
 
     return callback

@@ -54,7 +54,7 @@ def base_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 3-epoch tiny run (shared by the tests that only read it)."""
     run = tmp_path_factory.mktemp("base") / "run"
     with pytest.MonkeyPatch.context() as mp:
-        cli(mp, *TINY, "trainer.epochs=3", f"hydra.run.dir={run}")
+        cli(mp, *TINY, "trainer.epochs=3", "trainer.render_every=2", f"hydra.run.dir={run}")
     return run
 
 
@@ -68,9 +68,11 @@ def test_run_writes_events_checkpoints_records(base_run: Path) -> None:
     for metric in ("volume", "surface_ratio", "passive_ratio", "lcc_ratio", "substructures", "symmetry",
                    "compressibility"):
         assert [s for s, _ in tags[f"body/{metric}"]] == steps, metric
-    acc = EventAccumulator(str(base_run), size_guidance={"tensors": 0})
+    acc = EventAccumulator(str(base_run), size_guidance={"tensors": 0, "images": 0})
     acc.Reload()
     assert "config/text_summary" in acc.Tags()["tensors"]
+    # The render hook ran at epochs 0 and 2 (trainer.render_every=2).
+    assert [e.step for e in acc.Images("bodies/best")] == [steps[0], steps[2]]
 
     # Records: one per epoch, 4 episodes each; their rewards are the TensorBoard mean, computed independently.
     records = list(iter_records(base_run))
@@ -151,9 +153,8 @@ def test_bad_override_fails_with_a_clear_message(monkeypatch: pytest.MonkeyPatch
     assert "agent.lrr" in capsys.readouterr().err
     with pytest.raises(SystemExit, match=r"env\.resolution must be an even integer"):
         cli(monkeypatch, "env.resolution=7", f"hydra.run.dir={tmp_path / 'b'}")
-    with pytest.raises(SystemExit, match="locomotion"):
-        cli(monkeypatch, *TINY, "task=locomotion", f"hydra.run.dir={tmp_path / 'c'}") if not hasattr(
-            __import__("freeform.envs", fromlist=["x"]), "LocomotionTask") else pytest.skip("locomotion exists")
+    with pytest.raises(SystemExit, match=r"task\.name must be one of \['locomotion', 'volume'\]"):
+        cli(monkeypatch, *TINY, "task.name=swim", f"hydra.run.dir={tmp_path / 'c'}")
 
 
 def test_resume_errors_name_the_file_and_lose_nothing(base_run: Path, tmp_path: Path,
