@@ -152,8 +152,10 @@ class DesignEnv:
             raise ValueError(
                 f"task.reward must return one reward per grid, shape [{n}], got {list(reward.shape)}"
             )
-        done = torch.ones(n, dtype=torch.bool, device=self.device)
-        return self.reset(), reward, done, info
+        with serial_on_cpu(self.device):
+            obs = self.reset()
+            done = torch.ones(n, dtype=torch.bool, device=self.device)
+        return obs, reward, done, info
 
     # ------------------------------------------------------------------------------------------- the design rule
     def place_bundles(self, grids: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:

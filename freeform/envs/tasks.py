@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from freeform.body import check_grids, largest_component
+from freeform.body import check_grids, largest_component, serial_on_cpu
 
 __all__ = ["VolumeTask"]
 
@@ -30,7 +30,8 @@ class VolumeTask:
         if bodies is None:
             check_grids(final_grids, name="final_grids")
             bodies = largest_component(final_grids)
-        return (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1).to(torch.float32)
+        with serial_on_cpu(bodies.device):
+            return (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1).to(torch.float32)
 
 
 class LocomotionTask:
