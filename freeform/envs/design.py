@@ -219,7 +219,7 @@ class DesignEnv:
         t = int(state["t"])
         if not 0 <= t < self.steps:
             raise ValueError(f"state['t'] must be in 0 … {self.steps - 1}, got {t}")
-        self.grids = grids.to(self.device).clone()
+        self.grids = grids.to(self.device).clone(memory_format=torch.contiguous_format)
         self.t = t
         self.seed = state.get("seed")
 
