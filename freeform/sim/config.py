@@ -106,10 +106,13 @@ class SimConfig:
 
 
 # Column names of the material tables that the kernels read (one column per material index, 0 = empty).
+# MINV/IINV (1/m, 1/I: VX's _massInverse/_momentInertiaInverse), MG (m·g) and DAMP (2·√m·ζ_int, the numerator of
+# VX's dampingMultiplier) are folded here so the kernels multiply instead of dividing every step.
 MAT_COLUMNS = ("L", "MASS", "INERTIA", "SQRTM", "CG", "CGR", "CC", "KPEN", "MUS", "MUK", "ZINT", "CTE",
-               "PHASE", "NU", "E", "SINPHI", "COSPHI")
+               "PHASE", "NU", "E", "SINPHI", "COSPHI", "MINV", "IINV", "MG", "DAMP")
+# PSNEG/PSPOS: VX_Link::axialStrain's factor for the link's negative / positive voxel, 2/(1+r) and 2r/(1+r).
 LINK_COLUMNS = ("E", "NU", "EHAT", "A1", "A2", "B1", "B2", "B3", "SQA1", "SQA2XIP", "SQB1", "SQB2XFMP",
-                "SQB3XIP", "RATIO")
+                "SQB3XIP", "RATIO", "PSNEG", "PSPOS")
 
 
 def e_hat(E: np.ndarray, nu: np.ndarray) -> np.ndarray:
@@ -143,6 +146,10 @@ def material_table(cfg: SimConfig) -> np.ndarray:
         t[col["E"], j] = m.E
         t[col["SINPHI"], j] = math.sin(2 * math.pi * m.phase)
         t[col["COSPHI"], j] = math.cos(2 * math.pi * m.phase)
+        t[col["MINV"], j] = 1.0 / mass
+        t[col["IINV"], j] = 1.0 / inertia
+        t[col["MG"], j] = mass * cfg.gravity
+        t[col["DAMP"], j] = 2.0 * math.sqrt(mass) * cfg.bond_damping
     return t
 
 
@@ -181,5 +188,8 @@ def link_table(cfg: SimConfig) -> np.ndarray:
             t[col["SQB1"], k] = math.sqrt(b1)
             t[col["SQB2XFMP"], k] = math.sqrt(b2 * L / 2)
             t[col["SQB3XIP"], k] = math.sqrt(b3 * L * L / 6)
-            t[col["RATIO"], k] = mj.E / mi.E  # strainRatio = E_pos / E_neg
+            ratio = mj.E / mi.E  # strainRatio = E_pos / E_neg
+            t[col["RATIO"], k] = ratio
+            t[col["PSNEG"], k] = 2.0 / (1.0 + ratio)
+            t[col["PSPOS"], k] = 2.0 * ratio / (1.0 + ratio)
     return t

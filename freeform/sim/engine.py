@@ -16,6 +16,9 @@ from freeform.sim.config import SimConfig, e_hat, link_table, material_table
 from freeform.sim.kernels import (  # noqa: F401  (re-exported)
     DIVERGED,
     DONE,
+    EV_END,
+    EV_SAMPLE,
+    EV_START,
     FIXED,
     GP,
     LI,
@@ -137,6 +140,12 @@ class Engine:
         ri[RI.VSTART], ri[RI.VEND] = layout.voxel_start[:-1], layout.voxel_start[1:]
         ri[RI.LSTART], ri[RI.LEND] = layout.link_start[:-1], layout.link_start[1:]
         ri[RI.PERIOD] = np.maximum(1, np.floor(config.temp_period / dt0)).astype(np.int32)
+        # step 0's snapshots (kernels.robot_advance decides them for every later step, with the same arithmetic)
+        t_end = config.burn_in + config.duration
+        t_after = 0.0 + dt0
+        ri[RI.EVENTS] = (np.where(1 % ri[RI.PERIOD] == 0, EV_SAMPLE, 0)
+                         | np.where((0.0 <= config.burn_in) & (t_after > config.burn_in), EV_START, 0)
+                         | np.where((0.0 <= t_end) & (t_after > t_end), EV_END, 0))
 
         gp = np.zeros(NGP)
         gp[GP.BURN_IN] = config.burn_in

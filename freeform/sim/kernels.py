@@ -50,8 +50,9 @@ LI, NLI = _columns(("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMAT", 1), ("FLAGS", 1
 # SIN/COS: sin and cos of 2π·τ/period for the temperature the voxels write this step (τ = the time it is for),
 # so each voxel evaluates T = T_base + A·(sin·cos φ + cos·sin φ) without a transcendental call of its own.
 RT, NRT = _columns(("T", 1), ("DT", 1), ("DTPREV", 1), ("OMEGA2", 1), ("SIN", 1), ("COS", 1))
+# EVENTS: what the coming step's voxel update snapshots (EV_* bits), decided once per robot per step
 RI, NRI = _columns(("STATUS", 1), ("STEP", 1), ("VSTART", 1), ("VEND", 1), ("LSTART", 1), ("LEND", 1),
-                   ("PERIOD", 1))
+                   ("PERIOD", 1), ("EVENTS", 1))
 GP, NGP = _columns(("BURN_IN", 1), ("T_END", 1), ("GRAVITY", 1), ("TEMP_AMP", 1), ("TEMP_PERIOD", 1),
                    ("DT_FRAC", 1), ("MAX_STRAIN", 1))
 MT = SimpleNamespace(**{c: i for i, c in enumerate(MAT_COLUMNS)})
@@ -63,6 +64,8 @@ STATIC, FIXED = 1, 2
 SMALL, VALID = 1, 2
 # robot status
 RUNNING, DONE, DIVERGED = 0, 1, 2
+# robot step events: take a COM sample; the step crosses the evaluation start; it crosses the evaluation end
+EV_SAMPLE, EV_START, EV_END = 1, 2, 4
 
 UNROLL = 2  # steps per launch of the flat schedule
 
@@ -72,6 +75,9 @@ SA_BOND_BEND_RAD, SA_BOND_EXT_PERC, HYSTERESIS_FACTOR = 0.05, 0.50, 1.2
 # Quat3D thresholds (FromRotationVector, ToRotationVector, FromAngleToPosX).
 _ROTVEC_SMALL4, _TOROT_SL, _POSX_SMALL, _POSX_PI_EPS = 5.328e-15, 2.4e-3, 1.732e-2, 1e-7
 TWO_PI = 2 * math.pi
+# f32 rotation vector: below this x² = (|xyz|/w)² (half-angle tan² 0.0256, a 0.32 rad bend) atan's series to x⁶
+# is exact to f32 rounding (truncation x⁸/9 < 5e-8).
+_ATAN_SERIES_X2 = 0.0256
 
 
 @functools.cache
@@ -171,10 +177,18 @@ def make_kernels(precision: str) -> SimpleNamespace:
                 else:
                     r = 2.0 * xyz * ti.acos(w) / ti.sqrt(sl)
         else:
-            # atan2 form: no dead zone below ~5e-4 rad where f32 cos(θ/2) rounds to 1 (spec section 14)
-            s = xyz.norm()
-            if s > 0.0:
-                r = 2.0 * ti.atan2(s, q[0]) * xyz / s
+            # atan2 form: no dead zone below ~5e-4 rad where f32 cos(θ/2) rounds to 1 (spec section 14).
+            # Links bend by well under 0.3 rad, so the common case uses the series of atan(x)/x in x² = s²/w²
+            # (to x⁶: truncation < x⁸/9 ≈ 5e-8 at the cut, below f32 rounding), with no sqrt or atan2 call.
+            w = q[0]
+            s2 = xyz.dot(xyz)
+            if w > 0.0 and s2 < _ATAN_SERIES_X2 * w * w:
+                iw = 1.0 / w
+                x2 = s2 * iw * iw
+                r = (2.0 * iw * (1.0 + x2 * (-1.0 / 3.0 + x2 * (1.0 / 5.0 - x2 * (1.0 / 7.0))))) * xyz
+            elif s2 > 0.0:
+                s = ti.sqrt(s2)
+                r = 2.0 * ti.atan2(s, w) * xyz / s
         return r
 
     @ti.func
@@ -220,8 +234,8 @@ def make_kernels(precision: str) -> SimpleNamespace:
     @ti.func
     def temperature(mt: ti.template(), rt: ti.template(), gp: ti.template(), mat, tbase, r):
         """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
-        s = rt[RT.SIN, r] * mt[MT.COSPHI, mat] + rt[RT.COS, r] * mt[MT.SINPHI, mat]
-        return tbase + ti.cast(gp[GP.TEMP_AMP] * s, real)
+        s = ti.cast(rt[RT.SIN, r], real) * mt[MT.COSPHI, mat] + ti.cast(rt[RT.COS, r], real) * mt[MT.SINPHI, mat]
+        return tbase + ti.cast(gp[GP.TEMP_AMP], real) * s
 
     @ti.func
     def set_phase(r, rt: ti.template(), gp: ti.template(), tau):
@@ -372,10 +386,8 @@ def make_kernels(precision: str) -> SimpleNamespace:
         r = vi[VI.ROBOT, v]
         mat = vi[VI.MAT, v]
         flags = vi[VI.FLAGS, v]
-        t_before = rt[RT.T, r]
-        dt64 = rt[RT.DT, r]
-        dt = ti.cast(dt64, real)
-        mass, inertia = mt[MT.MASS, mat], mt[MT.INERTIA, mat]
+        dt = ti.cast(rt[RT.DT, r], real)
+        minv, iinv = mt[MT.MINV, mat], mt[MT.IINV, mat]
         pos = get3(vr, VR.POS, v)
         mom = get3(vr, VR.MOM, v)
         q = get4(vr, VR.ORI, v)
@@ -393,12 +405,11 @@ def make_kernels(precision: str) -> SimpleNamespace:
                 for side in ti.static(range(2)):
                     lk = vi[VI.SLOT + 2 * a + side, v]
                     if lk >= 0:
-                        ratio = lt[LT.RATIO, li[LI.LMAT, lk]]
                         eps = lr[LR.STRAIN, lk]
                         if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
-                            s[a] += 2.0 * eps * ratio / (1.0 + ratio)
+                            s[a] += eps * lt[LT.PSPOS, li[LI.LMAT, lk]]
                         else:
-                            s[a] += 2.0 * eps / (1.0 + ratio)
+                            s[a] += eps * lt[LT.PSNEG, li[LI.LMAT, lk]]
                         cnt += 1
                 if cnt == 2:
                     s[a] *= 0.5
@@ -431,10 +442,10 @@ def make_kernels(precision: str) -> SimpleNamespace:
                     else:
                         force += get3(lr, LR.FN, lk)
                         moment += get3(lr, LR.MN, lk)
-            vel = mom / mass
+            vel = mom * minv
             force = rotate(q, force) - mt[MT.CG, mat] * vel
-            force[2] += mass * ti.cast(gp[GP.GRAVITY], real)
-            moment = rotate(q, moment) - mt[MT.CGR, mat] * (amom / inertia)
+            force[2] += mt[MT.MG, mat]
+            moment = rotate(q, moment) - mt[MT.CGR, mat] * (amom * iinv)
 
             # floor contact (pen at the start of the step) and Coulomb friction with the static/kinetic states
             static = (flags & STATIC) != 0
@@ -458,11 +469,11 @@ def make_kernels(precision: str) -> SimpleNamespace:
                 else:
                     static = False
             mom += force * dt
-            delta = mom * (dt / mass)
+            delta = mom * (dt * minv)
             if floor != 0 and pen >= 0.0:
                 # work-energy stop test: friction would reverse the horizontal motion within this step
                 work = fric[0] * delta[0] + fric[1] * delta[1]
-                hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) / mass
+                hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
                 if hke + work <= 0.0:
                     static = True
                 if static:
@@ -474,14 +485,16 @@ def make_kernels(precision: str) -> SimpleNamespace:
                 static = False
             pos += delta
             amom += moment * dt
-            q = qmul(from_rotation_vector(amom * (dt / inertia)), q)
+            q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
-                q = q / q.norm()
+                q = q * (1.0 / q.norm())
             if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * mt[MT.L, mat] - pos[2] >= 0.0:
                 amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
             flags = (flags & ~STATIC) | (STATIC if static else 0)
 
-        if not (ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + amom.norm() < big):
+        # (an L1 norm: no sqrt, and NaN or inf anywhere still fails the comparison)
+        if not (ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
+                + ti.abs(amom[2]) < big):
             ri[RI.STATUS, r] = DIVERGED
 
         set3(vr, VR.POS, v, pos)
@@ -495,21 +508,23 @@ def make_kernels(precision: str) -> SimpleNamespace:
         vr[VR.TEMP, v] = temperature(mt, rt, gp, mat, vr[VR.TBASE, v], r)
 
         # snapshots: COM samples every PERIOD steps; evaluation start/end at the first step past each time
-        t_after = t_before + dt64
-        if (ri[RI.STEP, r] + 1) % ri[RI.PERIOD, r] == 0:
-            set3(vr, VR.PSAMP, v, pos)
-        if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
-            set3(vr, VR.PSTART, v, pos)
-            set3(vr, VR.PCS, v, get3(vr, VR.PSAMP, v))
-        if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
-            set3(vr, VR.PEND, v, pos)
-            set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
+        # (which of these this step takes was decided once for the robot, by robot_advance or the Engine)
+        events = ri[RI.EVENTS, r]
+        if events != 0:
+            if (events & EV_SAMPLE) != 0:
+                set3(vr, VR.PSAMP, v, pos)
+            if (events & EV_START) != 0:
+                set3(vr, VR.PSTART, v, pos)
+                set3(vr, VR.PCS, v, get3(vr, VR.PSAMP, v))
+            if (events & EV_END) != 0:
+                set3(vr, VR.PEND, v, pos)
+                set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
 
     @ti.func
     def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32, ifx: ti.i32):
         """End of a step for robot r: clock, status, rl4design's dt refresh every 10 steps, actuation phase."""
         rt[RT.DTPREV, r] = rt[RT.DT, r]
-        rt[RT.T, r] += rt[RT.DT, r]
+        rt[RT.T, r] = rt[RT.T, r] + rt[RT.DT, r]  # (not `+=`: on global data that is an atomic add)
         step = ri[RI.STEP, r] + 1
         ri[RI.STEP, r] = step
         if rt[RT.T, r] > gp[GP.T_END] and ri[RI.STATUS, r] == RUNNING:
@@ -523,6 +538,17 @@ def make_kernels(precision: str) -> SimpleNamespace:
         if ifx != 0:
             tau = rt[RT.T, r]
         set_phase(r, rt, gp, tau)
+        # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
+        t_before = rt[RT.T, r]
+        t_after = t_before + rt[RT.DT, r]
+        events = 0
+        if (step + 1) % ri[RI.PERIOD, r] == 0:
+            events |= EV_SAMPLE
+        if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
+            events |= EV_START
+        if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
+            events |= EV_END
+        ri[RI.EVENTS, r] = events
 
     # ---------------------------------------------------------------- schedules
     @ti.kernel
