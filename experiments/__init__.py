@@ -11,6 +11,10 @@ with the provenance of the runs (freeform/torch/taichi versions, device, git com
 | ``critic``      | Fig. 5: trained vs untrained critic V(s_T) against the true reward, in- and out-of-domain |
 | ``robustness``  | Fig. 6: reward of the final epoch's designs truncated after each design step t |
 | ``hparams``     | Table I: the hyper-parameters actually used, from the runs' configs |
+| ``policy_eval`` | (CPU demo) fresh designs of the untrained and the trained policy, scored by the run's task |
+
+``experiments/reproduce.sh`` trains the paper's sweeps (5 seeds of paper_volume and paper_locomotion) on a GPU and
+runs every command above; docs/experiments.md describes each.
 
 Shared statistics and run reading live in ``experiments.common``. matplotlib is the ``experiments`` extra.
 """
