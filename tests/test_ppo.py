@@ -422,16 +422,16 @@ def test_resume_is_bit_for_bit(tmp_path: Any) -> None:
 
 
 def test_ppo_learns_point_mass_reaching() -> None:
-    """From a random policy (return ≈ −15) to one that heads for the goal; the best possible is ≈ −3."""
+    """From a random policy (return ≈ −22) to one that heads for the goal (≈ −5; the best possible is ≈ −3)."""
     torch.manual_seed(0)
     env = PointMassEnv(num_envs=32, horizon=20)
-    cfg = PPOConfig(rollout_steps=64, num_sgd_iter=10, sgd_minibatch_size=256, lr=3e-3, gae_lambda=0.95, seed=0)
+    cfg = PPOConfig(rollout_steps=64, num_sgd_iter=8, sgd_minibatch_size=512, lr=3e-3, gae_lambda=0.95, seed=0)
     ppo = PPO(env, MLPActorCritic(4, 2, hidden=(64, 64)), cfg)
-    history = ppo.learn(40)
+    history = ppo.learn(30)
     first = history[0]["episode_reward_mean"]
     last = np.mean([h["episode_reward_mean"] for h in history[-3:]])
-    assert first < -11.0
-    assert last > -6.0, (first, last)
+    assert first < -15.0
+    assert last > -6.5, (first, last)  # seeds 0-2 reach -5.1 ... -5.3
 
 
 def test_ppo_improves_paint_volume_with_the_voxel_network() -> None:

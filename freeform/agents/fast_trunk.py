@@ -52,11 +52,11 @@ class ConvMatrix:
 
     def matrix(self, kernel: torch.Tensor) -> torch.Tensor:
         """M with values ``kernel[tap]``: sparse CSR ``[outputs, inputs]``; ``kernel`` is ``[taps]``."""
-        return _csr(self.crow, self.col, kernel[self.tap], (self.outputs, self.inputs))
+        return _csr(self.crow, self.col, kernel.index_select(0, self.tap), (self.outputs, self.inputs))
 
     def transpose(self, kernel: torch.Tensor) -> torch.Tensor:
         """Mᵀ with values ``kernel[tap]``: sparse CSR ``[inputs, outputs]``."""
-        return _csr(self.t_crow, self.t_col, kernel[self.t_tap], (self.inputs, self.outputs))
+        return _csr(self.t_crow, self.t_col, kernel.index_select(0, self.t_tap), (self.inputs, self.outputs))
 
 
 def _csr(crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
@@ -126,65 +126,82 @@ def conv_matrix(
 
 
 class SparseConv(torch.autograd.Function):
-    """y = M(kernel) x for voxel-major activations: ``x [inputs, N]``, ``kernel [taps]`` → ``y [outputs, N]``."""
+    """y = M(kernel) x + shift for voxel-major activations.
+
+    ``x [inputs, N]``, ``kernel [taps]``, ``shift`` broadcastable to ``[outputs, N]`` (a bias, or a per-voxel
+    column) → ``y [outputs, N]``.
+    """
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, kernel: torch.Tensor, structure: ConvMatrix) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, x: torch.Tensor, kernel: torch.Tensor, shift: torch.Tensor, structure: ConvMatrix) -> torch.Tensor:  # type: ignore[override]
         ctx.structure = structure
+        ctx.shift_shape = shift.shape
         ctx.save_for_backward(x, kernel)
-        return structure.matrix(kernel) @ x
+        # addmm starts from the shift instead of zero-filling the output and adding it afterwards.
+        return torch.addmm(shift, structure.matrix(kernel), x)
 
     @staticmethod
-    def backward(ctx, grad_y: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None, None]:  # type: ignore[override]
+    def backward(ctx, grad_y: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
         x, kernel = ctx.saved_tensors
         s: ConvMatrix = ctx.structure
         grad_y = grad_y.contiguous()
-        grad_x = grad_kernel = None
+        grad_x = grad_kernel = grad_shift = None
         if ctx.needs_input_grad[0]:
             grad_x = s.transpose(kernel) @ grad_y
         if ctx.needs_input_grad[1]:
             # (∂L/∂y · xᵀ) only at M's stored entries, then summed per kernel tap.
             pattern = _csr(s.crow, s.col, grad_y.new_zeros(len(s.col)), (s.outputs, s.inputs))
             entries = torch.sparse.sampled_addmm(pattern, grad_y, x.t(), beta=0.0).values()
-            grad_kernel = torch.cat([entries, entries.new_zeros(1)])[s.tap_table].sum(1)
-        return grad_x, grad_kernel, None
+            padded = torch.cat([entries, entries.new_zeros(1)])
+            grad_kernel = padded.index_select(0, s.tap_table.view(-1)).view(s.tap_table.shape).sum(1)
+        if ctx.needs_input_grad[2]:
+            grad_shift = grad_y.sum(1, keepdim=True) if len(ctx.shift_shape) == 2 else grad_y.sum().reshape(ctx.shift_shape)
+            if len(ctx.shift_shape) == 2 and ctx.shift_shape[0] == 1:
+                grad_shift = grad_shift.sum(0, keepdim=True)
+        return grad_x, grad_kernel, grad_shift, None
 
 
-def onehot_conv3d(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """Conv3d(k→1, 3³, stride 1, pad 1) of the one-hot of uint8 ``grids [N, ρ, ρ, ρ]`` → float ``[N, 1, ρ, ρ, ρ]``.
+def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """Conv3d(k→1, 3³, stride 1, pad 1) of the one-hot of uint8 ``grids [N, ρ, ρ, ρ]`` → float ``[ρ³, N]``.
 
-    ``weight [1, k, 3, 3, 3]``, ``bias [1]``. The result is a view of a voxel-major ``[ρ³, N]`` tensor (see the
-    module docstring); ``strided_conv3d`` consumes it without a copy.
+    ``weight [1, k, 3, 3, 3]``, ``bias [1]``; output row = the voxel's C-order index.
     """
     n, rho = grids.shape[0], grids.shape[1]
     k = weight.shape[1]
     device = grids.device
     voxels = rho**3
-    # Indicators of materials 1..k−1, voxel-major: [(k−1)·ρ³, N].
+    # Indicators of materials 1..k−1, voxel-major: [(k−1)·ρ³, N], written straight as floats.
     grid_t = grids.reshape(n, voxels).t().contiguous()
-    materials = torch.arange(1, k, device=device, dtype=grids.dtype).view(-1, 1, 1)
-    indicators = (grid_t.unsqueeze(0) == materials).to(weight.dtype).reshape((k - 1) * voxels, n)
+    if k == 2:
+        indicators = grid_t.to(weight.dtype)  # 0/1 already
+    else:
+        materials = torch.arange(1, k, device=device, dtype=grids.dtype).view(-1, 1, 1)
+        indicators = torch.empty((k - 1, voxels, n), device=device, dtype=weight.dtype)
+        torch.eq(grid_t.unsqueeze(0), materials, out=indicators)
+        indicators = indicators.view((k - 1) * voxels, n)
     w0 = weight[:, :1]
     relative = (weight[:, 1:] - w0).reshape(-1)  # w_c − w_0, c ≥ 1, in tap order
-    y = SparseConv.apply(indicators, relative, conv_matrix(k - 1, rho, 3, 1, 1, device))
-    # conv(inside, w_0): the same for every grid; a [ρ³, 1] column.
+    # conv(inside, w_0) + bias: the same for every grid, a [ρ³, 1] column.
     inside = torch.ones(voxels, 1, device=device, dtype=weight.dtype)
-    base = SparseConv.apply(inside, w0.reshape(-1), conv_matrix(1, rho, 3, 1, 1, device))
-    y = y + (base + bias)
-    return y.t().reshape(n, 1, rho, rho, rho)
+    base = SparseConv.apply(inside, w0.reshape(-1), bias.view(1, 1), conv_matrix(1, rho, 3, 1, 1, device))
+    return SparseConv.apply(indicators, relative, base, conv_matrix(k - 1, rho, 3, 1, 1, device))
+
+
+def strided_conv3d_voxel_major(x: torch.Tensor, resolution: int, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """Conv3d(1→1, 5³, stride 2, pad 2) on voxel-major ``x [ρ³, N]`` → ``[⌈ρ/2⌉³, N]``; ``weight [1, 1, 5, 5, 5]``."""
+    structure = conv_matrix(1, resolution, 5, 2, 2, x.device)
+    return SparseConv.apply(x.contiguous(), weight.reshape(-1), bias.view(1, 1), structure)
+
+
+def onehot_conv3d(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``onehot_conv3d_voxel_major`` in the usual layout: → ``[N, 1, ρ, ρ, ρ]`` (a view, no copy)."""
+    n, rho = grids.shape[0], grids.shape[1]
+    return onehot_conv3d_voxel_major(grids, weight, bias).t().reshape(n, 1, rho, rho, rho)
 
 
 def strided_conv3d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """Conv3d(1→1, 5³, stride 2, pad 2): float ``[N, 1, ρ, ρ, ρ]`` → ``[N, 1, ⌈ρ/2⌉, ⌈ρ/2⌉, ⌈ρ/2⌉]``.
-
-    ``weight [1, 1, 5, 5, 5]``, ``bias [1]``. Free when ``x`` is a view of voxel-major memory (as
-    ``onehot_conv3d`` returns); otherwise one transpose copy.
-    """
+    """Conv3d(1→1, 5³, stride 2, pad 2): float ``[N, 1, ρ, ρ, ρ]`` → ``[N, 1, ⌈ρ/2⌉, ⌈ρ/2⌉, ⌈ρ/2⌉]``."""
     n, rho = x.shape[0], x.shape[2]
-    structure = conv_matrix(1, rho, 5, 2, 2, x.device)
-    x_t = x.reshape(n, rho**3).t()
-    if not x_t.is_contiguous():
-        x_t = x_t.contiguous()
-    y = SparseConv.apply(x_t, weight.reshape(-1), structure) + bias
-    half = round(structure.outputs ** (1 / 3))
+    y = strided_conv3d_voxel_major(x.reshape(n, rho**3).t(), rho, weight, bias)
+    half = (rho - 1) // 2 + 1
     return y.t().reshape(n, 1, half, half, half)

@@ -14,9 +14,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
+from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
 
-TRUNK_IMPLEMENTATIONS = ("fast", "conv")
+TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
 
 
 def _xavier_zero(layer: nn.Linear) -> nn.Linear:
@@ -33,13 +33,14 @@ class VoxelActorCritic(nn.Module):
     → flatten (⌈ρ/2⌉³) → Linear(→ h), no activation. Actor: Linear(h→h) → ReLU → Linear(h → 2(3+k)) = (μ, log σ),
     state-dependent and unclamped. Critic: Linear(h→h) → ReLU → Linear(h→1).
 
-    ``trunk="fast"`` computes the two convolutions without materialising the one-hot tensor: the first layer as a
-    table lookup over the 27 neighbours (its weight gradient a bincount), the second through a phase split of the
-    stride (``freeform.agents.fast_trunk``). ``trunk="conv"`` runs the plain ``nn.Conv3d`` layers. Both read the
-    same parameters (``conv1``, ``conv2``), so state dicts are interchangeable and a test pins them equal.
+    ``trunk="fast"`` computes the two convolutions as sparse-matrix products without building the one-hot tensor
+    (``freeform.agents.fast_trunk``; ≈ 6× faster training steps on a CPU); ``trunk="conv"`` runs the plain
+    ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere, where the
+    sparse path's speed was not measured. All read the same parameters (``conv1``, ``conv2``), so state dicts are
+    interchangeable, and a test pins the two computations equal (outputs and gradients).
     """
 
-    def __init__(self, resolution: int = 20, materials: int = 2, hidden: int = 128, trunk: str = "fast") -> None:
+    def __init__(self, resolution: int = 20, materials: int = 2, hidden: int = 128, trunk: str = "auto") -> None:
         """``resolution`` ρ: grid edge; ``materials`` k: material count incl. empty (index 0); ``hidden`` h."""
         super().__init__()
         if not isinstance(resolution, int) or resolution < 2:
@@ -78,12 +79,13 @@ class VoxelActorCritic(nn.Module):
         rho = self.resolution
         if grids.dim() != 4 or tuple(grids.shape[1:]) != (rho, rho, rho):
             raise ValueError(f"grids must have shape [N, {rho}, {rho}, {rho}], got {tuple(grids.shape)}")
-        if self.trunk == "fast":
-            x = F.relu(onehot_conv3d(grids, self.conv1.weight, self.conv1.bias))
-            x = F.relu(strided_conv3d(x, self.conv2.weight, self.conv2.bias))
-        else:
-            x = F.relu(self.conv1(self.one_hot(grids)))
-            x = F.relu(self.conv2(x))
+        if self.trunk == "fast" or (self.trunk == "auto" and grids.device.type == "cpu"):
+            # Voxel-major activations [voxels, N] throughout; the transpose at the end is free for the matmul.
+            x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias))
+            x = F.relu(strided_conv3d_voxel_major(x, rho, self.conv2.weight, self.conv2.bias))
+            return self.trunk_fc(x.t())
+        x = F.relu(self.conv1(self.one_hot(grids)))
+        x = F.relu(self.conv2(x))
         return self.trunk_fc(x.flatten(1))
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
