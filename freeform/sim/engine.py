@@ -88,7 +88,10 @@ class Engine:
         self.arch = runtime.ensure(arch)
         self.schedule = ("flat" if self.arch == "cuda" else "robots") if schedule == "auto" else schedule
         self.layout, self.config = layout, config
-        self.kernels = make_kernels(config.precision)
+        # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one
+        # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
+        self.order = "aos" if self.schedule == "robots" else "soa"
+        self.kernels = make_kernels(config.precision, self.order)
         self.np_real = np.float64 if config.precision == "f64" else np.float32
         self.ifx = int(config.semantics == "rl4design")
         self.dyn = int(self.ifx == 1 and config.dt is None)  # rl4design refreshes dt every 10 steps
@@ -158,17 +161,26 @@ class Engine:
 
         real = self.np_real
         # Taichi ndarrays cannot have a zero-length axis: pad empty batches with one inert column
-        self.vr = runtime.from_numpy(_pad(vr.astype(real)))
-        self.vi = runtime.from_numpy(_pad(vi))
-        self.lr = runtime.from_numpy(_pad(np.zeros((NLR, m), dtype=real)))
-        self.li = runtime.from_numpy(_pad(li))
-        self.rt = runtime.from_numpy(rt if R else np.zeros((NRT, 1)))
-        ri_dev = ri if R else np.full((NRI, 1), DONE, dtype=np.int32)
-        self.ri = runtime.from_numpy(ri_dev)
-        self.mt = runtime.from_numpy(mt.astype(real))
-        self.lt = runtime.from_numpy(link_table(config).astype(real))
+        self.vr = self._upload(_pad(vr.astype(real)))
+        self.vi = self._upload(_pad(vi))
+        self.lr = self._upload(_pad(np.zeros((NLR, m), dtype=real)))
+        self.li = self._upload(_pad(li))
+        self.rt = self._upload(rt if R else np.zeros((NRT, 1)))
+        self.ri = self._upload(ri if R else np.full((NRI, 1), DONE, dtype=np.int32))
+        self.mt = self._upload(mt.astype(real))
+        self.lt = self._upload(link_table(config).astype(real))
         self.gp = runtime.from_numpy(gp)
         self.steps_done = 0
+
+    # ------------------------------------------------------------------ host <-> device, in the kernels' order
+    def _upload(self, a: np.ndarray):
+        """A Taichi ndarray holding ``a`` (``[columns, items]``) in this engine's memory order."""
+        return runtime.from_numpy(a.T if self.order == "aos" else a)
+
+    def _download(self, arr) -> np.ndarray:
+        """``[columns, items]`` host copy of an array uploaded by ``_upload``."""
+        a = arr.to_numpy()
+        return a.T if self.order == "aos" else a
 
     # ------------------------------------------------------------------ stepping
     def advance(self, n_steps: int) -> None:
@@ -195,19 +207,19 @@ class Engine:
         velocity = np.asarray(velocity, dtype=np.float64)
         if velocity.shape != (self.layout.num_voxels, 3):
             raise ValueError(f"velocity must have shape {(self.layout.num_voxels, 3)}, got {velocity.shape}")
-        vr = self.vr.to_numpy()
+        vr = self._download(self.vr)
         mass = material_table(self.config)[1][self.layout.material]
         vr[VR.MOM:VR.MOM + 3, : self.layout.num_voxels] = (velocity * mass[:, None]).T
-        self.vr.from_numpy(vr)
+        self.vr = self._upload(np.ascontiguousarray(vr))
         if release_static:
-            vi = self.vi.to_numpy()
+            vi = self._download(self.vi)
             vi[VI.FLAGS] &= ~STATIC
-            self.vi.from_numpy(vi)
+            self.vi = self._upload(np.ascontiguousarray(vi))
 
     # ------------------------------------------------------------------ reading state (host copies)
     def voxel_state(self) -> np.ndarray:
         """float ``[NVR, n]`` (see ``kernels.VR`` for the columns)."""
-        return self.vr.to_numpy()[:, : self.layout.num_voxels]
+        return self._download(self.vr)[:, : self.layout.num_voxels]
 
     def positions(self) -> np.ndarray:
         """Voxel centres, float64 ``[n, 3]`` (m; robot frame = world frame, floor plane at z = −L/2)."""
@@ -224,24 +236,24 @@ class Engine:
 
     def link_strain(self) -> np.ndarray:
         """Axial strain of every link at its last update, float64 ``[m]``."""
-        return self.lr.to_numpy()[LR.STRAIN, : self.layout.num_links].astype(np.float64)
+        return self._download(self.lr)[LR.STRAIN, : self.layout.num_links].astype(np.float64)
 
     def static_friction(self) -> np.ndarray:
         """Floor static-friction state per voxel, bool ``[n]``."""
-        return (self.vi.to_numpy()[VI.FLAGS, : self.layout.num_voxels] & STATIC) != 0
+        return (self._download(self.vi)[VI.FLAGS, : self.layout.num_voxels] & STATIC) != 0
 
     def robot_status(self) -> np.ndarray:
         """int32 ``[R]``: RUNNING, DONE or DIVERGED."""
-        return self.ri.to_numpy()[RI.STATUS, : self.layout.num_robots]
+        return self._download(self.ri)[RI.STATUS, : self.layout.num_robots]
 
     def robot_steps(self) -> np.ndarray:
-        return self.ri.to_numpy()[RI.STEP, : self.layout.num_robots].astype(np.int64)
+        return self._download(self.ri)[RI.STEP, : self.layout.num_robots].astype(np.int64)
 
     def robot_time(self) -> np.ndarray:
-        return self.rt.to_numpy()[RT.T, : self.layout.num_robots]
+        return self._download(self.rt)[RT.T, : self.layout.num_robots]
 
     def robot_dt(self) -> np.ndarray:
-        return self.rt.to_numpy()[RT.DT, : self.layout.num_robots]
+        return self._download(self.rt)[RT.DT, : self.layout.num_robots]
 
 
 def _pad(a: np.ndarray) -> np.ndarray:

@@ -68,6 +68,7 @@ RUNNING, DONE, DIVERGED = 0, 1, 2
 EV_SAMPLE, EV_START, EV_END = 1, 2, 4
 
 UNROLL = 2  # steps per launch of the flat schedule
+ORDERS = ("soa", "aos")  # memory order of the state arrays (see make_kernels)
 
 # Voxelyze's small/large-angle switch (VX_Link.cpp): enter small below 0.05 rad and 50 % extension, leave above
 # 1.2× those (hysteresis). These are part of the model, not tuning knobs.
@@ -81,8 +82,13 @@ _ATAN_SERIES_X2 = 0.0256
 
 
 @functools.cache
-def make_kernels(precision: str) -> SimpleNamespace:
-    """Compile-once kernel set for "f32" | "f64" (explicit dtypes, so both can live in one process)."""
+def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
+    """Compile-once kernel set for "f32" | "f64" (explicit dtypes, so both can live in one process) and an array
+    order: "soa" (``[columns, items]``: neighbouring threads read neighbouring addresses; the GPU's) or "aos"
+    (``[items, columns]``: one item's columns share cache lines; the CPU's one-thread-per-robot schedule)."""
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    aos = order == "aos"
     real = ti.f64 if precision == "f64" else ti.f32
     exact_vx = precision == "f64"
     vec3 = ti.types.vector(3, real)
@@ -93,27 +99,56 @@ def make_kernels(precision: str) -> SimpleNamespace:
     F64Arr = ti.types.ndarray(dtype=ti.f64, ndim=2)
     ParArr = ti.types.ndarray(dtype=ti.f64, ndim=1)
 
-    # ---------------------------------------------------------------- small helpers
+    # ---------------------------------------------------------------- array access (the one place that knows
+    # the memory order: column c of item i is a[i, c] in "aos", a[c, i] in "soa")
+    @ti.func
+    def ld(a: ti.template(), c: ti.template(), i):
+        if ti.static(aos):
+            return a[i, c]
+        else:
+            return a[c, i]
+
+    @ti.func
+    def st(a: ti.template(), c: ti.template(), i, x):
+        if ti.static(aos):
+            a[i, c] = x
+        else:
+            a[c, i] = x
+
+    @ti.func
+    def amax(a: ti.template(), c: ti.template(), i, x):
+        if ti.static(aos):
+            ti.atomic_max(a[i, c], x)
+        else:
+            ti.atomic_max(a[c, i], x)
+
+    @ti.func
+    def items(a: ti.template()):
+        if ti.static(aos):
+            return a.shape[0]
+        else:
+            return a.shape[1]
+
     @ti.func
     def get3(a: ti.template(), c: ti.template(), i):
-        return vec3(a[c, i], a[c + 1, i], a[c + 2, i])
+        return vec3(ld(a, c, i), ld(a, c + 1, i), ld(a, c + 2, i))
 
     @ti.func
     def set3(a: ti.template(), c: ti.template(), i, x):
-        a[c, i] = x[0]
-        a[c + 1, i] = x[1]
-        a[c + 2, i] = x[2]
+        st(a, c, i, x[0])
+        st(a, c + 1, i, x[1])
+        st(a, c + 2, i, x[2])
 
     @ti.func
     def get4(a: ti.template(), c: ti.template(), i):
-        return vec4(a[c, i], a[c + 1, i], a[c + 2, i], a[c + 3, i])
+        return vec4(ld(a, c, i), ld(a, c + 1, i), ld(a, c + 2, i), ld(a, c + 3, i))
 
     @ti.func
     def set4(a: ti.template(), c: ti.template(), i, x):
-        a[c, i] = x[0]
-        a[c + 1, i] = x[1]
-        a[c + 2, i] = x[2]
-        a[c + 3, i] = x[3]
+        st(a, c, i, x[0])
+        st(a, c + 1, i, x[1])
+        st(a, c + 2, i, x[2])
+        st(a, c + 3, i, x[3])
 
     @ti.func
     def qmul(a, b):
@@ -229,27 +264,27 @@ def make_kernels(precision: str) -> SimpleNamespace:
     @ti.func
     def base_size(mt: ti.template(), mat, temp):
         """Rest size of a voxel along any axis: L·(1 + T·CTE) (extScale = 1)."""
-        return mt[MT.L, mat] * (1.0 + temp * mt[MT.CTE, mat])
+        return ld(mt, MT.L, mat) * (1.0 + temp * ld(mt, MT.CTE, mat))
 
     @ti.func
     def temperature(mt: ti.template(), rt: ti.template(), gp: ti.template(), mat, tbase, r):
         """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
-        s = ti.cast(rt[RT.SIN, r], real) * mt[MT.COSPHI, mat] + ti.cast(rt[RT.COS, r], real) * mt[MT.SINPHI, mat]
+        s = ti.cast(ld(rt, RT.SIN, r), real) * ld(mt, MT.COSPHI, mat) + ti.cast(ld(rt, RT.COS, r), real) * ld(mt, MT.SINPHI, mat)
         return tbase + ti.cast(gp[GP.TEMP_AMP], real) * s
 
     @ti.func
     def set_phase(r, rt: ti.template(), gp: ti.template(), tau):
         a = TWO_PI * tau / gp[GP.TEMP_PERIOD]
-        rt[RT.SIN, r] = ti.sin(a)
-        rt[RT.COS, r] = ti.cos(a)
+        st(rt, RT.SIN, r, ti.sin(a))
+        st(rt, RT.COS, r, ti.cos(a))
 
     @ti.func
     def transverse(vr: ti.template(), mt: ti.template(), v, mat, axis):
         """(transverse area, transverse strain sum) of voxel v for a link along ``axis`` (VX_Voxel.cpp)."""
-        L = mt[MT.L, mat]
+        L = ld(mt, MT.L, mat)
         area = L * L
         ssum = ti.cast(0.0, real)
-        if mt[MT.NU, mat] != 0.0:
+        if ld(mt, MT.NU, mat) != 0.0:
             ps = get3(vr, VR.PSTR, v)
             a, b = ps[1], ps[2]
             if axis == 1:
@@ -265,16 +300,16 @@ def make_kernels(precision: str) -> SimpleNamespace:
     def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
                     gp: ti.template(), ifx: ti.i32, dyn: ti.i32):
-        n, p, axis, k = li[LI.NEG, lk], li[LI.POS, lk], li[LI.AXIS, lk], li[LI.LMAT, lk]
-        r = vi[VI.ROBOT, n]
-        mat_n, mat_p = vi[VI.MAT, n], vi[VI.MAT, p]
-        flags = li[LI.FLAGS, lk]
+        n, p, axis, k = ld(li, LI.NEG, lk), ld(li, LI.POS, lk), ld(li, LI.AXIS, lk), ld(li, LI.LMAT, lk)
+        r = ld(vi, VI.ROBOT, n)
+        mat_n, mat_p = ld(vi, VI.MAT, n), ld(vi, VI.MAT, p)
+        flags = ld(li, LI.FLAGS, lk)
         small = (flags & SMALL) != 0
         valid = (flags & VALID) != 0
-        size_n = base_size(mt, mat_n, vr[VR.TEMP, n])
+        size_n = base_size(mt, mat_n, ld(vr, VR.TEMP, n))
         L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
         if ifx == 0:
-            L0 = 0.5 * (size_n + base_size(mt, mat_p, vr[VR.TEMP, p]))
+            L0 = 0.5 * (size_n + base_size(mt, mat_p, ld(vr, VR.TEMP, p)))
 
         # orientLink: into the link frame, relative to the negative voxel
         q1 = q_to_axis_x(get4(vr, VR.ORI, n), axis)
@@ -315,16 +350,16 @@ def make_kernels(precision: str) -> SimpleNamespace:
         dA2 = 0.5 * (a2v - get3(lr, LR.A2, lk))
 
         # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
-        nu = lt[LT.NU, k]
+        nu = ld(lt, LT.NU, k)
         area_n, ssum_n = transverse(vr, mt, n, mat_n, axis)
         area_p, ssum_p = transverse(vr, mt, p, mat_p, axis)
         area = 0.5 * (area_n + area_p)
         ssum = 0.5 * (ssum_n + ssum_p)
-        stress = lt[LT.E, k] * strain
+        stress = ld(lt, LT.E, k) * strain
         if nu != 0.0:
-            stress = lt[LT.EHAT, k] * ((1.0 - nu) * strain + nu * ssum)
+            stress = ld(lt, LT.EHAT, k) * ((1.0 - nu) * strain + nu * ssum)
 
-        b1, b2, b3, a2 = lt[LT.B1, k], lt[LT.B2, k], lt[LT.B3, k], lt[LT.A2, k]
+        b1, b2, b3, a2 = ld(lt, LT.B1, k), ld(lt, LT.B2, k), ld(lt, LT.B3, k), ld(lt, LT.A2, k)
         fN = vec3(stress * area, b1 * pos2[1] - b2 * (a1v[2] + a2v[2]), b1 * pos2[2] + b2 * (a1v[1] + a2v[1]))
         fP = -fN
         mN = vec3(a2 * (a2v[0] - a1v[0]), -b2 * pos2[2] - b3 * (2.0 * a1v[1] + a2v[1]),
@@ -334,11 +369,11 @@ def make_kernels(precision: str) -> SimpleNamespace:
 
         if valid:
             # internal damping: D = 2·√m·ζ/previousDt of each end's voxel; posCalc are half-link displacements
-            prev_dt = ti.cast(rt[RT.DTPREV, r], real)
-            dN = 2.0 * mt[MT.SQRTM, mat_n] * mt[MT.ZINT, mat_n] / prev_dt
-            dPp = 2.0 * mt[MT.SQRTM, mat_p] * mt[MT.ZINT, mat_p] / prev_dt
-            sqA1, sqA2xIp, sqB1 = lt[LT.SQA1, k], lt[LT.SQA2XIP, k], lt[LT.SQB1, k]
-            sqB2xFMp, sqB3xIp = lt[LT.SQB2XFMP, k], lt[LT.SQB3XIP, k]
+            prev_dt = ti.cast(ld(rt, RT.DTPREV, r), real)
+            dN = 2.0 * ld(mt, MT.SQRTM, mat_n) * ld(mt, MT.ZINT, mat_n) / prev_dt
+            dPp = 2.0 * ld(mt, MT.SQRTM, mat_p) * ld(mt, MT.ZINT, mat_p) / prev_dt
+            sqA1, sqA2xIp, sqB1 = ld(lt, LT.SQA1, k), ld(lt, LT.SQA2XIP, k), ld(lt, LT.SQB1, k)
+            sqB2xFMp, sqB3xIp = ld(lt, LT.SQB2XFMP, k), ld(lt, LT.SQB3XIP, k)
             c = vec3(sqA1 * dP[0], sqB1 * dP[1] - sqB2xFMp * (dA1[2] + dA2[2]),
                      sqB1 * dP[2] + sqB2xFMp * (dA1[1] + dA2[1]))
             fN += dN * c
@@ -365,51 +400,51 @@ def make_kernels(precision: str) -> SimpleNamespace:
         set3(lr, LR.P2, lk, pos2)
         set3(lr, LR.A1, lk, a1v)
         set3(lr, LR.A2, lk, a2v)
-        lr[LR.STRAIN, lk] = strain
-        li[LI.FLAGS, lk] = (SMALL if small else 0) | (VALID if valid else 0)
+        st(lr, LR.STRAIN, lk, strain)
+        st(li, LI.FLAGS, lk, (SMALL if small else 0) | (VALID if valid else 0))
 
         if not (strain <= gp[GP.MAX_STRAIN]):  # also catches NaN
-            ri[RI.STATUS, r] = DIVERGED
-        if dyn != 0 and (ri[RI.STEP, r] + 1) % 10 == 0:
+            st(ri, RI.STATUS, r, DIVERGED)
+        if dyn != 0 and (ld(ri, RI.STEP, r) + 1) % 10 == 0:
             # rl4design recomputes dt every 10 steps from the current axial stiffness (VX_Link::axialStiffness)
-            kax = lt[LT.A1, k]
+            kax = ld(lt, LT.A1, k)
             if nu != 0.0:
-                kax = lt[LT.EHAT, k] * area / ((strain + 1.0) * L0)
-            mmin = ti.min(mt[MT.MASS, mat_n], mt[MT.MASS, mat_p])
-            ti.atomic_max(rt[RT.OMEGA2, r], ti.cast(kax / mmin, ti.f64))
+                kax = ld(lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
+            mmin = ti.min(ld(mt, MT.MASS, mat_n), ld(mt, MT.MASS, mat_p))
+            amax(rt, RT.OMEGA2, r, ti.cast(kax / mmin, ti.f64))
 
     # ---------------------------------------------------------------- the voxel update (spec sections 6-9)
     @ti.func
     def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                      rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
                      gp: ti.template(), floor: ti.i32, ifx: ti.i32):
-        r = vi[VI.ROBOT, v]
-        mat = vi[VI.MAT, v]
-        flags = vi[VI.FLAGS, v]
-        dt = ti.cast(rt[RT.DT, r], real)
-        minv, iinv = mt[MT.MINV, mat], mt[MT.IINV, mat]
+        r = ld(vi, VI.ROBOT, v)
+        mat = ld(vi, VI.MAT, v)
+        flags = ld(vi, VI.FLAGS, v)
+        dt = ti.cast(ld(rt, RT.DT, r), real)
+        minv, iinv = ld(mt, MT.MINV, mat), ld(mt, MT.IINV, mat)
         pos = get3(vr, VR.POS, v)
         mom = get3(vr, VR.MOM, v)
         q = get4(vr, VR.ORI, v)
         amom = get3(vr, VR.AMOM, v)
-        temp = vr[VR.TEMP, v]
+        temp = ld(vr, VR.TEMP, v)
 
         # Poisson strain of this voxel from its links' strains of this step, cached for the next link update
         # (VX computes it lazily at the next step's first link; nothing has changed by then: a Jacobi update).
         s = vec3(0.0, 0.0, 0.0)
-        nu = mt[MT.NU, mat]
+        nu = ld(mt, MT.NU, mat)
         if nu != 0.0:
             tension = ti.Vector([0, 0, 0])
             for a in ti.static(range(3)):
                 cnt = 0
                 for side in ti.static(range(2)):
-                    lk = vi[VI.SLOT + 2 * a + side, v]
+                    lk = ld(vi, VI.SLOT + 2 * a + side, v)
                     if lk >= 0:
-                        eps = lr[LR.STRAIN, lk]
+                        eps = ld(lr, LR.STRAIN, lk)
                         if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
-                            s[a] += eps * lt[LT.PSPOS, li[LI.LMAT, lk]]
+                            s[a] += eps * ld(lt, LT.PSPOS, ld(li, LI.LMAT, lk))
                         else:
-                            s[a] += eps * lt[LT.PSNEG, li[LI.LMAT, lk]]
+                            s[a] += eps * ld(lt, LT.PSNEG, ld(li, LI.LMAT, lk))
                         cnt += 1
                 if cnt == 2:
                     s[a] *= 0.5
@@ -434,7 +469,7 @@ def make_kernels(precision: str) -> SimpleNamespace:
             force = vec3(0.0, 0.0, 0.0)
             moment = vec3(0.0, 0.0, 0.0)
             for d in ti.static(range(6)):
-                lk = vi[VI.SLOT + d, v]
+                lk = ld(vi, VI.SLOT + d, v)
                 if lk >= 0:
                     if ti.static(d % 2 == 1):  # NEG slot: this voxel is the link's positive end
                         force += get3(lr, LR.FP, lk)
@@ -443,27 +478,27 @@ def make_kernels(precision: str) -> SimpleNamespace:
                         force += get3(lr, LR.FN, lk)
                         moment += get3(lr, LR.MN, lk)
             vel = mom * minv
-            force = rotate(q, force) - mt[MT.CG, mat] * vel
-            force[2] += mt[MT.MG, mat]
-            moment = rotate(q, moment) - mt[MT.CGR, mat] * (amom * iinv)
+            force = rotate(q, force) - ld(mt, MT.CG, mat) * vel
+            force[2] += ld(mt, MT.MG, mat)
+            moment = rotate(q, moment) - ld(mt, MT.CGR, mat) * (amom * iinv)
 
             # floor contact (pen at the start of the step) and Coulomb friction with the static/kinetic states
             static = (flags & STATIC) != 0
             size = base_size(mt, mat, temp)
-            pen = 0.5 * size - 0.5 * mt[MT.L, mat] - pos[2]
+            pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
             fric = vec3(0.0, 0.0, 0.0)
             if floor != 0:
                 if pen >= 0.0:
-                    normal = mt[MT.KPEN, mat] * pen
-                    force[2] += normal - mt[MT.CC, mat] * vel[2]
+                    normal = ld(mt, MT.KPEN, mat) * pen
+                    force[2] += normal - ld(mt, MT.CC, mat) * vel[2]
                     if static:
-                        mus = mt[MT.MUS, mat] * normal
+                        mus = ld(mt, MT.MUS, mat) * normal
                         if force[0] * force[0] + force[1] * force[1] > mus * mus:
                             static = False  # breaks loose; the full force acts this step
                     else:
                         vh = ti.sqrt(vel[0] * vel[0] + vel[1] * vel[1])
                         if vh > 0.0:
-                            f = mt[MT.MUK, mat] * normal / vh
+                            f = ld(mt, MT.MUK, mat) * normal / vh
                             fric = vec3(-f * vel[0], -f * vel[1], 0.0)
                             force += fric
                 else:
@@ -488,28 +523,28 @@ def make_kernels(precision: str) -> SimpleNamespace:
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
                 q = q * (1.0 / q.norm())
-            if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * mt[MT.L, mat] - pos[2] >= 0.0:
+            if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
                 amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
             flags = (flags & ~STATIC) | (STATIC if static else 0)
 
         # (an L1 norm: no sqrt, and NaN or inf anywhere still fails the comparison)
         if not (ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
                 + ti.abs(amom[2]) < big):
-            ri[RI.STATUS, r] = DIVERGED
+            st(ri, RI.STATUS, r, DIVERGED)
 
         set3(vr, VR.POS, v, pos)
         set3(vr, VR.MOM, v, mom)
         set4(vr, VR.ORI, v, q)
         set3(vr, VR.AMOM, v, amom)
         set3(vr, VR.PSTR, v, s)
-        vi[VI.FLAGS, v] = flags
+        st(vi, VI.FLAGS, v, flags)
         # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
         # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
-        vr[VR.TEMP, v] = temperature(mt, rt, gp, mat, vr[VR.TBASE, v], r)
+        st(vr, VR.TEMP, v, temperature(mt, rt, gp, mat, ld(vr, VR.TBASE, v), r))
 
         # snapshots: COM samples every PERIOD steps; evaluation start/end at the first step past each time
         # (which of these this step takes was decided once for the robot, by robot_advance or the Engine)
-        events = ri[RI.EVENTS, r]
+        events = ld(ri, RI.EVENTS, r)
         if events != 0:
             if (events & EV_SAMPLE) != 0:
                 set3(vr, VR.PSAMP, v, pos)
@@ -523,32 +558,32 @@ def make_kernels(precision: str) -> SimpleNamespace:
     @ti.func
     def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32, ifx: ti.i32):
         """End of a step for robot r: clock, status, rl4design's dt refresh every 10 steps, actuation phase."""
-        rt[RT.DTPREV, r] = rt[RT.DT, r]
-        rt[RT.T, r] = rt[RT.T, r] + rt[RT.DT, r]  # (not `+=`: on global data that is an atomic add)
-        step = ri[RI.STEP, r] + 1
-        ri[RI.STEP, r] = step
-        if rt[RT.T, r] > gp[GP.T_END] and ri[RI.STATUS, r] == RUNNING:
-            ri[RI.STATUS, r] = DONE
+        st(rt, RT.DTPREV, r, ld(rt, RT.DT, r))
+        st(rt, RT.T, r, ld(rt, RT.T, r) + ld(rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
+        step = ld(ri, RI.STEP, r) + 1
+        st(ri, RI.STEP, r, step)
+        if ld(rt, RT.T, r) > gp[GP.T_END] and ld(ri, RI.STATUS, r) == RUNNING:
+            st(ri, RI.STATUS, r, DONE)
         if dyn != 0 and step % 10 == 0:
-            if rt[RT.OMEGA2, r] > 0.0:
-                rt[RT.DT, r] = gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(rt[RT.OMEGA2, r]))
-            rt[RT.OMEGA2, r] = 0.0
+            if ld(rt, RT.OMEGA2, r) > 0.0:
+                st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(ld(rt, RT.OMEGA2, r))))
+            st(rt, RT.OMEGA2, r, 0.0)
         # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
-        tau = rt[RT.T, r] + rt[RT.DT, r]
+        tau = ld(rt, RT.T, r) + ld(rt, RT.DT, r)
         if ifx != 0:
-            tau = rt[RT.T, r]
+            tau = ld(rt, RT.T, r)
         set_phase(r, rt, gp, tau)
         # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
-        t_before = rt[RT.T, r]
-        t_after = t_before + rt[RT.DT, r]
+        t_before = ld(rt, RT.T, r)
+        t_after = t_before + ld(rt, RT.DT, r)
         events = 0
-        if (step + 1) % ri[RI.PERIOD, r] == 0:
+        if (step + 1) % ld(ri, RI.PERIOD, r) == 0:
             events |= EV_SAMPLE
         if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
             events |= EV_START
         if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
             events |= EV_END
-        ri[RI.EVENTS, r] = events
+        st(ri, RI.EVENTS, r, events)
 
     # ---------------------------------------------------------------- schedules
     @ti.kernel
@@ -556,15 +591,15 @@ def make_kernels(precision: str) -> SimpleNamespace:
                    lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
         """One thread per robot, ``n_steps`` steps per launch (CPU schedule)."""
         ti.loop_config(block_dim=1)  # robots differ in size: hand them out one at a time
-        for r in range(ri.shape[1]):
+        for r in range(items(ri)):
             for _ in range(n_steps):
-                if ri[RI.STATUS, r] == RUNNING:
-                    for lk in range(ri[RI.LSTART, r], ri[RI.LEND, r]):
+                if ld(ri, RI.STATUS, r) == RUNNING:
+                    for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
                         link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
-                    if ri[RI.STATUS, r] == RUNNING:  # a diverged link aborts the step, as in VX
-                        for v in range(ri[RI.VSTART, r], ri[RI.VEND, r]):
+                    if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
+                        for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
                             voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
-                    if ri[RI.STATUS, r] == RUNNING:
+                    if ld(ri, RI.STATUS, r) == RUNNING:
                         robot_advance(r, rt, ri, gp, dyn, ifx)
 
     @ti.kernel
@@ -572,16 +607,16 @@ def make_kernels(precision: str) -> SimpleNamespace:
                  lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
-            for lk in range(li.shape[1]):
+            for lk in range(items(li)):
                 # (a batch without links carries one padding column with NEG == POS: skip it)
-                if s < n_steps and li[LI.NEG, lk] != li[LI.POS, lk] and \
-                        ri[RI.STATUS, vi[VI.ROBOT, li[LI.NEG, lk]]] == RUNNING:
+                if s < n_steps and ld(li, LI.NEG, lk) != ld(li, LI.POS, lk) and \
+                        ld(ri, RI.STATUS, ld(vi, VI.ROBOT, ld(li, LI.NEG, lk))) == RUNNING:
                     link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
-            for v in range(vi.shape[1]):
-                if s < n_steps and ri[RI.STATUS, vi[VI.ROBOT, v]] == RUNNING:
+            for v in range(items(vi)):
+                if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, v)) == RUNNING:
                     voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
-            for r in range(ri.shape[1]):
-                if s < n_steps and ri[RI.STATUS, r] == RUNNING:
+            for r in range(items(ri)):
+                if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
                     robot_advance(r, rt, ri, gp, dyn, ifx)
 
-    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, real=real)
+    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, real=real, order=order)

@@ -50,7 +50,7 @@ def from_numpy(a: np.ndarray) -> ti.Ndarray:
     """A Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32)."""
     dtype = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32}[a.dtype]
     arr = ti.ndarray(dtype, a.shape)
-    arr.from_numpy(np.ascontiguousarray(a))
+    arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
     return arr
 
 
