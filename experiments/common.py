@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
+import sys
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -120,8 +122,8 @@ def find_runs(paths: Iterable[str | Path]) -> list[Path]:
             raise ValueError(f"paths: {p} does not exist")
         if (p / RUN_INFO).is_file():
             found.append(p.resolve())
-        else:
-            found.extend(sorted(q.parent.resolve() for q in p.rglob(RUN_INFO)))
+        else:  # follow symbolic links: a sweep may be assembled from links to runs made elsewhere
+            found.extend(sorted(Path(d).resolve() for d, _, files in os.walk(p, followlinks=True) if RUN_INFO in files))
     runs = sorted(dict.fromkeys(found))
     if not runs:
         raise ValueError(f"paths: no run directory (one holding {RUN_INFO}) under {[str(p) for p in paths]}")
@@ -256,6 +258,16 @@ def plot_curve(ax: Any, curve: Curve, label: str | None = None, color: str = "0.
     """The paper's style: dark mean curve over a light 99 % band."""
     ax.fill_between(curve.epochs, curve.lower, curve.upper, color=band_color or color, alpha=0.25, linewidth=0)
     ax.plot(curve.epochs, curve.mean, color=color, linewidth=1.5, label=label)
+
+
+def run_cli(main: Any) -> None:
+    """Run a figure command's ``main()``; a ``ValueError`` (bad paths, missing records...) becomes a one-line
+    error message and exit status 1 instead of a traceback."""
+    try:
+        main()
+    except ValueError as exc:
+        name = Path(sys.argv[0]).stem
+        raise SystemExit(f"experiments.{name}: error: {exc}") from exc
 
 
 def base_parser(description: str) -> argparse.ArgumentParser:

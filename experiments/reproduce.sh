@@ -24,9 +24,9 @@ LOCOMOTION=$RUNS/paper_locomotion
 
 if [[ -z "${SKIP_TRAIN:-}" ]]; then
     "$PYTHON" -m freeform.train -m experiment=paper_volume "seed=$SEEDS" trainer.device="$DEVICE" \
-        trainer.progress=false hydra.sweep.dir="$VOLUME"
+        trainer.progress=false "hydra.sweep.dir='$VOLUME'"
     "$PYTHON" -m freeform.train -m experiment=paper_locomotion "seed=$SEEDS" trainer.device="$DEVICE" \
-        trainer.progress=false hydra.sweep.dir="$LOCOMOTION"
+        trainer.progress=false "hydra.sweep.dir='$LOCOMOTION'"
 fi
 
 "$PYTHON" -m experiments.volume "$VOLUME" --out "$OUT/volume"                        # Fig. 2

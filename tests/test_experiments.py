@@ -73,6 +73,9 @@ def test_find_runs_searches_sweeps_and_names_missing_paths(tmp_path):
     b = _fake_run(tmp_path / "sweep" / "1", seed=1)
     assert common.find_runs([tmp_path / "sweep"]) == [a.resolve(), b.resolve()]
     assert common.find_runs([a, a]) == [a.resolve()]
+    (tmp_path / "linked").mkdir()
+    (tmp_path / "linked" / "seed=0").symlink_to(a)  # a sweep assembled from links to runs
+    assert common.find_runs([tmp_path / "linked"]) == [a.resolve()]
     with pytest.raises(ValueError, match="paths"):
         common.find_runs([tmp_path / "nope"])
     (tmp_path / "empty").mkdir()
