@@ -23,6 +23,7 @@ from freeform.sim.kernels import (  # noqa: F401  (re-exported)
     GP,
     LI,
     LR,
+    MT,
     NGP,
     NLI,
     NLR,
@@ -114,10 +115,16 @@ class Engine:
         vr[VR.ORI] = 1.0
         vr[VR.TBASE] = layout.temp_base
         if self.ifx:
-            vr[VR.TEMP] = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
+            temp = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
         else:
             phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
-            vr[VR.TEMP] = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)
+            temp = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)
+        # rest size L·(1 + T·CTE) in the kernels' precision and order of operations (kernels.base_size)
+        real = self.np_real
+        L_v = mt[MT.L][layout.material].astype(real)
+        vr[VR.SIZE] = L_v * (real(1.0) + temp.astype(real) * mt[MT.CTE][layout.material].astype(real))
+        # transverse areas before any strain: L² (kernels.transverse); strain sums start at 0
+        vr[VR.TAREA:VR.TAREA + 3] = (L_v * L_v)[None, :]
 
         vi = np.zeros((NVI, n), dtype=np.int32)
         vi[VI.MAT] = layout.material
@@ -159,7 +166,6 @@ class Engine:
         gp[GP.DT_FRAC] = config.dt_frac
         gp[GP.MAX_STRAIN] = config.max_strain
 
-        real = self.np_real
         # Taichi ndarrays cannot have a zero-length axis: pad empty batches with one inert column
         self.vr = self._upload(_pad(vr.astype(real)))
         self.vi = self._upload(_pad(vi))
@@ -175,11 +181,13 @@ class Engine:
     # ------------------------------------------------------------------ host <-> device, in the kernels' order
     def _upload(self, a: np.ndarray):
         """A Taichi ndarray holding ``a`` (``[columns, items]``) in this engine's memory order."""
-        return runtime.from_numpy(a.T if self.order == "aos" else a)
+        if self.order == "aos":
+            return runtime.from_numpy(a.T, rows_as_vectors=True)
+        return runtime.from_numpy(a)
 
     def _download(self, arr) -> np.ndarray:
         """``[columns, items]`` host copy of an array uploaded by ``_upload``."""
-        a = arr.to_numpy()
+        a = runtime.to_numpy(arr)
         return a.T if self.order == "aos" else a
 
     # ------------------------------------------------------------------ stepping

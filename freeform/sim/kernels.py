@@ -39,10 +39,11 @@ def _columns(*spec: tuple[str, int]) -> tuple[SimpleNamespace, int]:
 
 
 # voxel real columns: position, linear momentum, orientation (w,x,y,z), angular momentum, original position,
-# Poisson strain (per axis, cached for the next link update), temperature in effect, constant temperature,
+# transverse area and strain sum for a link along each axis (from the Poisson strains, cached for the next link
+# update), rest size L·(1 + T·CTE) at the temperature in effect, constant temperature,
 # snapshots at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end.
-VR, NVR = _columns(("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("PSTR", 3), ("TEMP", 1),
-                   ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3))
+VR, NVR = _columns(("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("TAREA", 3), ("TSUM", 3),
+                   ("SIZE", 1), ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3))
 VI, NVI = _columns(("MAT", 1), ("ROBOT", 1), ("FLAGS", 1), ("SLOT", 6))
 # link real columns: pos2 / angle1v / angle2v of the last step, axial strain, forces and moments on each end
 LR, NLR = _columns(("P2", 3), ("A1", 3), ("A2", 3), ("STRAIN", 1), ("FN", 3), ("FP", 3), ("MN", 3), ("MP", 3))
@@ -94,31 +95,39 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     vec3 = ti.types.vector(3, real)
     vec4 = ti.types.vector(4, real)
     big = 1.0e300 if exact_vx else 3.0e38  # anything beyond is treated as non-finite
-    RealArr = ti.types.ndarray(dtype=real, ndim=2)
-    IntArr = ti.types.ndarray(dtype=ti.i32, ndim=2)
-    F64Arr = ti.types.ndarray(dtype=ti.f64, ndim=2)
     ParArr = ti.types.ndarray(dtype=ti.f64, ndim=1)
+
+    def arr(dtype, columns: int):
+        """Kernel argument type of a state array: ``[columns, items]`` (soa), or ``[items]`` of ``columns``-vectors
+        (aos: the row length is a compile-time constant, so an item's address is computed once, not per access)."""
+        if aos:
+            return ti.types.ndarray(dtype=ti.types.vector(columns, dtype), ndim=1)
+        return ti.types.ndarray(dtype=dtype, ndim=2)
+
+    VrArr, ViArr, LrArr, LiArr = arr(real, NVR), arr(ti.i32, NVI), arr(real, NLR), arr(ti.i32, NLI)
+    RtArr, RiArr = arr(ti.f64, NRT), arr(ti.i32, NRI)
+    MtArr, LtArr = arr(real, len(MAT_COLUMNS)), arr(real, len(LINK_COLUMNS))
 
     # ---------------------------------------------------------------- array access (the one place that knows
     # the memory order: column c of item i is a[i, c] in "aos", a[c, i] in "soa")
     @ti.func
-    def ld(a: ti.template(), c: ti.template(), i):
+    def ld(a: ti.template(), c, i):
         if ti.static(aos):
-            return a[i, c]
+            return a[i][c]
         else:
             return a[c, i]
 
     @ti.func
     def st(a: ti.template(), c: ti.template(), i, x):
         if ti.static(aos):
-            a[i, c] = x
+            a[i][c] = x
         else:
             a[c, i] = x
 
     @ti.func
     def amax(a: ti.template(), c: ti.template(), i, x):
         if ti.static(aos):
-            ti.atomic_max(a[i, c], x)
+            ti.atomic_max(a[i][c], x)
         else:
             ti.atomic_max(a[c, i], x)
 
@@ -279,20 +288,16 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         st(rt, RT.COS, r, ti.cos(a))
 
     @ti.func
-    def transverse(vr: ti.template(), mt: ti.template(), v, mat, axis):
-        """(transverse area, transverse strain sum) of voxel v for a link along ``axis`` (VX_Voxel.cpp)."""
+    def transverse(mt: ti.template(), mat, ps):
+        """Transverse areas and strain sums (VX_Voxel.cpp) for a link along x, y, z from the voxel's Poisson
+        strains ``ps``: two vec3, computed once per voxel per step rather than by each of its ≤ 6 links."""
         L = ld(mt, MT.L, mat)
-        area = L * L
-        ssum = ti.cast(0.0, real)
+        area = vec3(L * L, L * L, L * L)
+        ssum = vec3(0.0, 0.0, 0.0)
         if ld(mt, MT.NU, mat) != 0.0:
-            ps = get3(vr, VR.PSTR, v)
-            a, b = ps[1], ps[2]
-            if axis == 1:
-                a, b = ps[0], ps[2]
-            elif axis == 2:
-                a, b = ps[0], ps[1]
-            area = L * L * (1.0 + a) * (1.0 + b)
-            ssum = a + b
+            area = vec3(L * L * (1.0 + ps[1]) * (1.0 + ps[2]), L * L * (1.0 + ps[0]) * (1.0 + ps[2]),
+                        L * L * (1.0 + ps[0]) * (1.0 + ps[1]))
+            ssum = vec3(ps[1] + ps[2], ps[0] + ps[2], ps[0] + ps[1])
         return area, ssum
 
     # ---------------------------------------------------------------- the link update (spec section 5)
@@ -306,10 +311,10 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         flags = ld(li, LI.FLAGS, lk)
         small = (flags & SMALL) != 0
         valid = (flags & VALID) != 0
-        size_n = base_size(mt, mat_n, ld(vr, VR.TEMP, n))
+        size_n = ld(vr, VR.SIZE, n)
         L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
         if ifx == 0:
-            L0 = 0.5 * (size_n + base_size(mt, mat_p, ld(vr, VR.TEMP, p)))
+            L0 = 0.5 * (size_n + ld(vr, VR.SIZE, p))
 
         # orientLink: into the link frame, relative to the negative voxel
         q1 = q_to_axis_x(get4(vr, VR.ORI, n), axis)
@@ -351,10 +356,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
 
         # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
         nu = ld(lt, LT.NU, k)
-        area_n, ssum_n = transverse(vr, mt, n, mat_n, axis)
-        area_p, ssum_p = transverse(vr, mt, p, mat_p, axis)
-        area = 0.5 * (area_n + area_p)
-        ssum = 0.5 * (ssum_n + ssum_p)
+        area = 0.5 * (ld(vr, VR.TAREA + axis, n) + ld(vr, VR.TAREA + axis, p))
+        ssum = 0.5 * (ld(vr, VR.TSUM + axis, n) + ld(vr, VR.TSUM + axis, p))
         stress = ld(lt, LT.E, k) * strain
         if nu != 0.0:
             stress = ld(lt, LT.EHAT, k) * ((1.0 - nu) * strain + nu * ssum)
@@ -370,8 +373,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         if valid:
             # internal damping: D = 2·√m·ζ/previousDt of each end's voxel; posCalc are half-link displacements
             prev_dt = ti.cast(ld(rt, RT.DTPREV, r), real)
-            dN = 2.0 * ld(mt, MT.SQRTM, mat_n) * ld(mt, MT.ZINT, mat_n) / prev_dt
-            dPp = 2.0 * ld(mt, MT.SQRTM, mat_p) * ld(mt, MT.ZINT, mat_p) / prev_dt
+            dN = ld(mt, MT.DAMP, mat_n) / prev_dt
+            dPp = ld(mt, MT.DAMP, mat_p) / prev_dt
             sqA1, sqA2xIp, sqB1 = ld(lt, LT.SQA1, k), ld(lt, LT.SQA2XIP, k), ld(lt, LT.SQB1, k)
             sqB2xFMp, sqB3xIp = ld(lt, LT.SQB2XFMP, k), ld(lt, LT.SQB3XIP, k)
             c = vec3(sqA1 * dP[0], sqB1 * dP[1] - sqB2xFMp * (dA1[2] + dA2[2]),
@@ -427,7 +430,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         mom = get3(vr, VR.MOM, v)
         q = get4(vr, VR.ORI, v)
         amom = get3(vr, VR.AMOM, v)
-        temp = ld(vr, VR.TEMP, v)
+        size = ld(vr, VR.SIZE, v)  # the rest size at the start of the step
 
         # Poisson strain of this voxel from its links' strains of this step, cached for the next link update
         # (VX computes it lazily at the next step's first link; nothing has changed by then: a Jacobi update).
@@ -484,7 +487,6 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
 
             # floor contact (pen at the start of the step) and Coulomb friction with the static/kinetic states
             static = (flags & STATIC) != 0
-            size = base_size(mt, mat, temp)
             pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
             fric = vec3(0.0, 0.0, 0.0)
             if floor != 0:
@@ -536,11 +538,13 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         set3(vr, VR.MOM, v, mom)
         set4(vr, VR.ORI, v, q)
         set3(vr, VR.AMOM, v, amom)
-        set3(vr, VR.PSTR, v, s)
+        area, ssum = transverse(mt, mat, s)
+        set3(vr, VR.TAREA, v, area)
+        set3(vr, VR.TSUM, v, ssum)
         st(vi, VI.FLAGS, v, flags)
         # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
         # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
-        st(vr, VR.TEMP, v, temperature(mt, rt, gp, mat, ld(vr, VR.TBASE, v), r))
+        st(vr, VR.SIZE, v, base_size(mt, mat, temperature(mt, rt, gp, mat, ld(vr, VR.TBASE, v), r)))
 
         # snapshots: COM samples every PERIOD steps; evaluation start/end at the first step past each time
         # (which of these this step takes was decided once for the robot, by robot_advance or the Engine)
@@ -587,8 +591,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
 
     # ---------------------------------------------------------------- schedules
     @ti.kernel
-    def run_robots(vr: RealArr, vi: IntArr, lr: RealArr, li: IntArr, rt: F64Arr, ri: IntArr, mt: RealArr,
-                   lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+    def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
+                   lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
         """One thread per robot, ``n_steps`` steps per launch (CPU schedule)."""
         ti.loop_config(block_dim=1)  # robots differ in size: hand them out one at a time
         for r in range(items(ri)):
@@ -603,8 +607,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                         robot_advance(r, rt, ri, gp, dyn, ifx)
 
     @ti.kernel
-    def run_flat(vr: RealArr, vi: IntArr, lr: RealArr, li: IntArr, rt: F64Arr, ri: IntArr, mt: RealArr,
-                 lt: RealArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+    def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
+                 lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
             for lk in range(items(li)):

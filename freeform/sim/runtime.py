@@ -8,7 +8,9 @@ later calls check that the request matches what is running. Arrays are Taichi nd
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from collections.abc import Iterator
 
 import numpy as np
 import taichi as ti
@@ -46,19 +48,33 @@ def real(precision: str):
     return ti.f64 if precision == "f64" else ti.f32
 
 
-def from_numpy(a: np.ndarray) -> ti.Ndarray:
-    """A Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32)."""
+def from_numpy(a: np.ndarray, rows_as_vectors: bool = False) -> ti.Ndarray:
+    """A Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32).
+
+    rows_as_vectors: ``a`` ``[n, c]`` becomes a 1-D ndarray of n ``c``-vectors (same memory, C order).
+    """
     dtype = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32}[a.dtype]
-    arr = ti.ndarray(dtype, a.shape)
-    arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
+    if rows_as_vectors:
+        if a.ndim != 2:
+            raise ValueError(f"rows_as_vectors needs a 2-D array, got shape {a.shape}")
+        arr = ti.ndarray(ti.types.vector(a.shape[1], dtype), a.shape[0])
+    else:
+        arr = ti.ndarray(dtype, a.shape)
+    with _quiet_unrolling():
+        arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
     return arr
 
 
-def sync() -> None:
-    ti.sync()
+def to_numpy(arr: ti.Ndarray) -> np.ndarray:
+    """Host copy of a Taichi ndarray (a vector ndarray ``[n]`` of c-vectors comes back as ``[n, c]``)."""
+    with _quiet_unrolling():
+        return arr.to_numpy()
 
 
-def num_threads() -> int:
-    """Threads Taichi's CPU backend runs a parallel loop on (1 on CUDA: not meaningful there)."""
-    cfg = ti.lang.impl.current_cfg()
-    return int(cfg.cpu_max_num_threads) if cfg.arch != ti.cuda else 1
+@contextlib.contextmanager
+def _quiet_unrolling() -> Iterator[None]:
+    """Taichi copies vector ndarrays with its own kernels that unroll over the vector (≈ 40 columns here) and
+    warn about compile time the first time; they compile in well under a second, once (offline cache)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="You are unrolling more than", category=SyntaxWarning)
+        yield
