@@ -393,7 +393,7 @@ class PPO:
             order = torch.randperm(batch, generator=self.generator, device=self.device)
             for i in range(num_minibatches):
                 idx = order[i * minibatch : (i + 1) * minibatch]
-                mean, log_std, value = self.policy(obs[idx])
+                mean, log_std, value = self.policy(obs.index_select(0, idx))
                 logprob = gaussian_log_prob(actions[idx], mean, log_std)
                 ratio = torch.exp(logprob - old_logprobs[idx])
                 adv = advantages[idx]
