@@ -200,7 +200,7 @@ class OccupiedScatterConv(torch.autograd.Function):
         weight_index = torch.where(hit, channel[:, None] * taps + torch.arange(taps, device=voxel.device), n_weights)
         weight_index = weight_index.view(-1)
         weights = torch.cat([kernel.reshape(-1), kernel.new_zeros(1)])
-        out = shift.expand(voxels, n).contiguous()
+        out = torch.empty((voxels, n), dtype=kernel.dtype, device=kernel.device).copy_(shift.expand(voxels, n))
         out.view(-1).index_add_(0, targets, weights.index_select(0, weight_index))
         ctx.save_for_backward(targets, weight_index)
         ctx.kernel_shape = kernel.shape
@@ -217,9 +217,10 @@ class OccupiedScatterConv(torch.autograd.Function):
 
 
 #: Scatter from the occupied voxels while they number at most this fraction of the (k − 1)·ρ³·N indicator entries
-#: the CSR product would multiply. Measured on a CPU (one thread, minibatch 128, design states ≈ 3 % full): one
-#: scatter entry costs ≈ 50 sparse-product multiply-adds, so the scatter wins below ≈ 2 % per material channel —
-#: for k = 4 (≈ 42 vs 61 ms a training step) but not for k = 2 (38 vs 29 ms). Both paths compute the same map.
+#: the CSR product would multiply. Measured (CPU, one thread, minibatch 128, untrained-policy design rollouts,
+#: contended machine): k = 2 at 2.3 % filled, the two paths are within noise (≈ 28 vs 29 ms a training step);
+#: k = 4 at 3.3 % filled, the scatter wins (≈ 37-46 vs 47-52 ms). The scatter's cost grows with the filled voxels,
+#: the product's with k − 1. Both paths compute the same map (tests pin both to nn.Conv3d).
 SCATTER_MAX_DENSITY = 0.02
 
 
@@ -239,8 +240,8 @@ def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: t
     # conv(inside, w_0) + bias: the same for every grid, a [ρ³, 1] column (taps that read the padding drop out).
     table, valid = neighbour_table(rho, device)
     base = (valid.to(weight.dtype) @ w0.reshape(27) + bias).unsqueeze(1)
-    occupied = grid_t.nonzero()  # [nnz, 2] (voxel, sample), C order
-    if occupied.shape[0] <= SCATTER_MAX_DENSITY * (k - 1) * voxels * n:
+    if int(torch.count_nonzero(grid_t)) <= SCATTER_MAX_DENSITY * (k - 1) * voxels * n:
+        occupied = grid_t.nonzero()  # [nnz, 2] (voxel, sample), C order
         voxel, sample = occupied[:, 0], occupied[:, 1]
         channel = grid_t[voxel, sample].long() - 1
         return OccupiedScatterConv.apply(voxel, sample, channel, relative, base, n, table)

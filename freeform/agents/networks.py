@@ -81,8 +81,9 @@ class VoxelActorCritic(nn.Module):
             raise ValueError(f"grids must have shape [N, {rho}, {rho}, {rho}], got {tuple(grids.shape)}")
         if self.trunk == "fast" or (self.trunk == "auto" and grids.device.type == "cpu"):
             # Voxel-major activations [voxels, N] throughout; the transpose at the end is free for the matmul.
-            x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias))
-            x = F.relu(strided_conv3d_voxel_major(x, rho, self.conv2.weight, self.conv2.bias))
+            # In-place ReLUs: the sparse layers' backward passes do not read their outputs; saves two 4 MB passes.
+            x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias), inplace=True)
+            x = F.relu(strided_conv3d_voxel_major(x, rho, self.conv2.weight, self.conv2.bias), inplace=True)
             return self.trunk_fc(x.t())
         x = F.relu(self.conv1(self.one_hot(grids)))
         x = F.relu(self.conv2(x))
