@@ -475,6 +475,14 @@ def _hydra_entry(cfg: Any) -> None:
         # A clear one-line message (and a non-zero exit), not a traceback through Hydra's internals.
         raise SystemExit(f"freeform-train: error: {exc}") from exc
     log.info("done: %d epochs, %d steps, run directory %s", result.epochs, result.global_step, run_dir)
+    curve = [h["charts/episode_reward_mean"] for h in result.history if "charts/episode_reward_mean" in h]
+    if len(curve) >= 2:
+        last = curve[-min(5, len(curve) - 1) :]
+        first, tail = curve[0], sum(last) / len(last)
+        log.info(
+            "episode reward mean: first epoch of this call %.2f -> last %d epochs %.2f (x%.2f)",
+            first, len(last), tail, tail / first if first else float("nan"),
+        )
 
 
 def main() -> None:

@@ -1,0 +1,51 @@
+"""Training-application overhead: what logging, design records and checkpoints cost next to training itself.
+
+Runs the CPU demo's configuration (``experiment=volume_cpu``) for a few epochs through ``freeform.train.train`` and
+reports, per epoch, the seconds of PPO (rollout + update) and of the application's own work: cutting episodes,
+writing the compressed design record, TensorBoard scalars (``perf/time_logging``) and the atomic checkpoint
+(``perf/time_checkpoint``). ``FREEFORM_BENCH_QUICK=1`` runs 3 epochs instead of 8.
+
+The machine may be shared: timings only grow under contention, so the medians are pessimistic.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+
+from hydra import compose, initialize_config_dir
+
+from freeform import train as train_mod
+from freeform.config import to_dataclass
+
+
+def main() -> None:
+    epochs = 3 if os.environ.get("FREEFORM_BENCH_QUICK") else 8
+    with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
+        cfg = to_dataclass(
+            compose(
+                "config",
+                overrides=["experiment=volume_cpu", f"trainer.epochs={epochs}", "trainer.progress=false",
+                           "trainer.print_every=0", "trainer.checkpoint_every=1"],
+            )
+        )
+    with tempfile.TemporaryDirectory() as run_dir:
+        t0 = time.perf_counter()
+        result = train_mod.train(cfg, run_dir)
+        wall = time.perf_counter() - t0
+    hist = result.history
+    ppo = [h["perf/time_rollout"] + h["perf/time_update"] for h in hist]
+    logging_ = [h["perf/time_logging"] for h in hist]
+    ckpt = [h["perf/time_checkpoint"] for h in hist[1:]]  # each epoch reports the previous epoch's checkpoint
+    med_ppo, med_log, med_ckpt = statistics.median(ppo), statistics.median(logging_), statistics.median(ckpt)
+    print(f"volume_cpu, {epochs} epochs, {cfg.env.num_envs} envs x T={cfg.env.steps}, rho={cfg.env.resolution}: "
+          f"{wall:.1f} s wall (incl. start-up)")
+    print(f"  PPO rollout + update     median {med_ppo * 1e3:8.1f} ms / epoch")
+    print(f"  episodes+record+scalars  median {med_log * 1e3:8.1f} ms / epoch  ({100 * med_log / med_ppo:.2f} % of PPO)")
+    print(f"  checkpoint (last + numbered) median {med_ckpt * 1e3:5.1f} ms / epoch  ({100 * med_ckpt / med_ppo:.2f} % of PPO)")
+
+
+if __name__ == "__main__":
+    main()
