@@ -300,6 +300,48 @@ def test_cut_episode_bootstrap_in_the_loop() -> None:
     torch.testing.assert_close(ro.advantages, ro.returns - ro.values)
 
 
+def test_first_update_statistics_against_hand_computation() -> None:
+    """One pass, one minibatch = the whole batch: at the first step π = π_old, so ratio = 1, KL = 0, nothing is
+    clipped, the policy loss is −mean(standardised A) = 0, and the value loss is mean((V − G)²)."""
+    import copy
+
+    ppo = small_paint_ppo(num_sgd_iter=1, sgd_minibatch_size=72)
+    ppo.collect()
+    before = copy.deepcopy(ppo.policy)
+    stats = ppo.update()
+    ro = ppo.rollout
+    with torch.no_grad():
+        _, log_std, value = before(ro.obs.reshape(72, 4, 4, 4))
+    expected_value_loss = (value - ro.returns.reshape(-1)).square().mean().item()
+    assert stats["value_loss"] == pytest.approx(expected_value_loss, rel=1e-5)
+    assert stats["total_loss"] == pytest.approx(stats["policy_loss"] + expected_value_loss, rel=1e-5)
+    assert abs(stats["policy_loss"]) < 1e-6 and stats["approx_kl"] == 0.0 and stats["clip_fraction"] == 0.0
+    assert stats["entropy"] == pytest.approx(gaussian_entropy(log_std).mean().item(), rel=1e-5)
+    assert ppo.kl_coeff == pytest.approx(0.1)  # KL 0 < target / 2 halves β
+
+
+@pytest.mark.parametrize(
+    "variant",
+    [{"advantage_norm": "minibatch"}, {"advantage_norm": "none"}, {"value_clip": "ppo2", "vf_clip_param": 0.5},
+     {"grad_clip": 0.5, "entropy_coeff": 0.01}, {"kl_coeff": 0.0}, {"gae_lambda": 0.9}],
+)
+def test_variants_train(variant: dict[str, Any]) -> None:
+    ppo = small_paint_ppo(**variant)
+    before = [p.detach().clone() for p in ppo.policy.parameters()]
+    stats = ppo.learn(2)[-1]
+    assert all(math.isfinite(stats[k]) for k in ("policy_loss", "value_loss", "approx_kl", "entropy"))
+    assert any(not torch.equal(a, b) for a, b in zip(before, ppo.policy.parameters(), strict=True))
+    if variant.get("kl_coeff") == 0.0:
+        assert ppo.kl_coeff == 0.0
+
+
+def test_linear_lr_schedule() -> None:
+    ppo = small_paint_ppo(lr_schedule="linear", lr_anneal_epochs=4, lr=1e-3)
+    lrs = [s["lr"] for s in ppo.learn(5)]
+    assert lrs == pytest.approx([1e-3, 7.5e-4, 5e-4, 2.5e-4, 0.0])
+    assert ppo.optimizer.param_groups[0]["lr"] == 0.0
+
+
 def test_kl_coeff_follows_the_rule_after_each_epoch() -> None:
     ppo = small_paint_ppo(lr=3e-3, num_sgd_iter=3)
     for _ in range(3):

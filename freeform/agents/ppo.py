@@ -213,6 +213,7 @@ class Rollout:
     ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
     bool, ``values [T, N]``, ``means``/``log_stds [T, N, A]`` (π_old, for the KL term), ``advantages``/``returns
     [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
+    PPO reuses these buffers every epoch: clone what must outlive the next ``train_epoch()``.
     """
 
     obs: torch.Tensor
