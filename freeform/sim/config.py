@@ -109,7 +109,10 @@ class SimConfig:
 # MINV/IINV (1/m, 1/I: VX's _massInverse/_momentInertiaInverse), MG (m·g) and DAMP (2·√m·ζ_int, the numerator of
 # VX's dampingMultiplier) are folded here so the kernels multiply instead of dividing every step.
 MAT_COLUMNS = ("L", "MASS", "INERTIA", "SQRTM", "CG", "CGR", "CC", "KPEN", "MUS", "MUK", "ZINT", "CTE",
-               "PHASE", "NU", "E", "SINPHI", "COSPHI", "MINV", "IINV", "MG", "DAMP")
+               "PHASE", "NU", "E", "SINPHI", "COSPHI", "MINV", "IINV", "MG", "DAMP") + \
+    tuple(f"PB{k}" for k in range(1, 9))
+# PB1..PB8: binomial coefficients C(−ν, k) of (1+x)^(−ν) − 1 = Σ_k C(−ν, k)·x^k, the f32 kernels' Poisson series
+POISSON_SERIES_TERMS = 8
 # PSNEG/PSPOS: VX_Link::axialStrain's factor for the link's negative / positive voxel, 2/(1+r) and 2r/(1+r).
 LINK_COLUMNS = ("E", "NU", "EHAT", "A1", "A2", "B1", "B2", "B3", "SQA1", "SQA2XIP", "SQB1", "SQB2XFMP",
                 "SQB3XIP", "RATIO", "PSNEG", "PSPOS")
@@ -150,6 +153,10 @@ def material_table(cfg: SimConfig) -> np.ndarray:
         t[col["IINV"], j] = 1.0 / inertia
         t[col["MG"], j] = mass * cfg.gravity
         t[col["DAMP"], j] = 2.0 * math.sqrt(mass) * cfg.bond_damping
+        c = 1.0
+        for k in range(1, POISSON_SERIES_TERMS + 1):
+            c *= (-m.poisson - (k - 1)) / k
+            t[col[f"PB{k}"], j] = c
     return t
 
 
