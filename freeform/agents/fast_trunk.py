@@ -180,26 +180,33 @@ def neighbour_table(size: int, device: torch.device) -> tuple[torch.Tensor, torc
     return table.to(device), valid.to(device=device, dtype=torch.float32)
 
 
+@functools.lru_cache(maxsize=32)
+def scatter_tables(size: int, n: int, materials: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per input voxel j and tap t, for a voxel-major ``[size³, n]`` output: ``targets [size³, 27]`` = i·n (i the
+    output voxel j feeds through t; 0 off the grid) and ``weights [size³, 27]`` = t, or t + (k−1)·27 off the grid —
+    an index into the kernel followed by (k−1)·27 zeros, so misses add 0 without any compaction. int32 when the
+    flat output fits (index ops move half the bytes)."""
+    table, _ = neighbour_table(size, device)
+    dtype = torch.int32 if size**3 * n < 2**31 else torch.int64
+    hit = table >= 0
+    targets = torch.where(hit, table * n, 0).to(dtype)
+    weights = (torch.arange(27, device=device) + torch.where(hit, 0, (materials - 1) * 27)).to(dtype)
+    return targets, weights
+
+
 class OccupiedScatterConv(torch.autograd.Function):
     """The first layer's indicator part from the occupied voxels only: design grids are ≤ a few % full.
 
-    ``voxel, sample, channel [nnz]``: the occupied voxels (C-order index, batch index, material − 1);
-    ``kernel [k−1, 27]`` (w_c − w_0); ``shift [ρ³, 1]``; → ``y [ρ³, N] = shift + Σ_occupied kernel[c, t] at the
-    output each tap reaches``. The weight gradient gathers ∂L/∂y at those outputs. Sums run in a fixed order on
-    the CPU (``index_add_`` is sequential there).
+    ``targets, weight_index [nnz·27]``: for each occupied voxel and tap, the flat index into ``y [ρ³·N]`` it feeds
+    and the index into ``[kernel.flatten(), zeros]`` of its weight (see ``scatter_tables``); ``kernel [k−1, 27]``
+    (w_c − w_0); ``shift [ρ³, 1]`` → ``y [ρ³, N] = shift + the scattered weights``. The weight gradient gathers
+    ∂L/∂y at the same places. Sums run in a fixed order on the CPU (``index_add_`` is sequential there).
     """
 
     @staticmethod
-    def forward(ctx, voxel, sample, channel, kernel, shift, n: int, table: torch.Tensor):  # type: ignore[override]
-        voxels, taps = table.shape
-        n_weights = kernel.numel()
-        outputs = table.index_select(0, voxel)  # [nnz, 27], −1 where the tap leaves the grid
-        hit = outputs >= 0
-        # Misses point at output 0 with an appended zero weight (index n_weights): no boolean compaction needed.
-        targets = torch.where(hit, outputs * n + sample[:, None], 0).view(-1)
-        weight_index = torch.where(hit, channel[:, None] * taps + torch.arange(taps, device=voxel.device), n_weights)
-        weight_index = weight_index.view(-1)
-        weights = torch.cat([kernel.reshape(-1), kernel.new_zeros(1)])
+    def forward(ctx, targets, weight_index, kernel, shift, n: int):  # type: ignore[override]
+        voxels = shift.shape[0]
+        weights = torch.cat([kernel.reshape(-1), kernel.new_zeros(kernel.numel())])
         out = torch.empty((voxels, n), dtype=kernel.dtype, device=kernel.device).copy_(shift.expand(voxels, n))
         out.view(-1).index_add_(0, targets, weights.index_select(0, weight_index))
         ctx.save_for_backward(targets, weight_index)
@@ -212,16 +219,16 @@ class OccupiedScatterConv(torch.autograd.Function):
         grad_y = grad_y.contiguous()
         gathered = grad_y.view(-1).index_select(0, targets)
         n_weights = ctx.kernel_shape.numel()
-        grad_kernel = gathered.new_zeros(n_weights + 1).index_add_(0, weight_index, gathered)[:n_weights]
-        return None, None, None, grad_kernel.view(ctx.kernel_shape), grad_y.sum(1, keepdim=True), None, None
+        grad_kernel = gathered.new_zeros(2 * n_weights).index_add_(0, weight_index, gathered)[:n_weights]
+        return None, None, grad_kernel.view(ctx.kernel_shape), grad_y.sum(1, keepdim=True), None
 
 
 #: Scatter from the occupied voxels while they number at most this fraction of the (k − 1)·ρ³·N indicator entries
-#: the CSR product would multiply. Measured (CPU, one thread, minibatch 128, untrained-policy design rollouts,
-#: contended machine): k = 2 at 2.3 % filled, the two paths are within noise (≈ 28 vs 29 ms a training step);
-#: k = 4 at 3.3 % filled, the scatter wins (≈ 37-46 vs 47-52 ms). The scatter's cost grows with the filled voxels,
-#: the product's with k − 1. Both paths compute the same map (tests pin both to nn.Conv3d).
-SCATTER_MAX_DENSITY = 0.02
+#: the CSR product would multiply. Measured (CPU, one thread, N = 128, k = 2 design states 2.2 % full): scatter
+#: ≈ 1.7 ms index preparation + 1.3 forward + 1.3 backward vs CSR ≈ 0.7 indicator + 3.6 SpMM + 3.0 SDDMM. The
+#: scatter's cost grows with the filled voxels, the product's with k − 1; they meet near 3.5 % per channel.
+#: Both paths compute the same map (tests pin both to nn.Conv3d).
+SCATTER_MAX_DENSITY = 0.035
 
 
 def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
@@ -241,10 +248,16 @@ def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: t
     table, valid = neighbour_table(rho, device)
     base = (valid.to(weight.dtype) @ w0.reshape(27) + bias).unsqueeze(1)
     if int(torch.count_nonzero(grid_t)) <= SCATTER_MAX_DENSITY * (k - 1) * voxels * n:
-        occupied = grid_t.nonzero()  # [nnz, 2] (voxel, sample), C order
-        voxel, sample = occupied[:, 0], occupied[:, 1]
-        channel = grid_t[voxel, sample].long() - 1
-        return OccupiedScatterConv.apply(voxel, sample, channel, relative, base, n, table)
+        target_table, weight_table = scatter_tables(rho, n, k, device)
+        flat = grid_t.view(-1).nonzero().squeeze(1)  # occupied entries of [ρ³, N], C order
+        voxel = flat // n
+        sample = (flat - voxel * n).to(target_table.dtype)
+        targets = (target_table.index_select(0, voxel) + sample[:, None]).view(-1)
+        weight_index = weight_table.index_select(0, voxel)
+        if k > 2:  # material c ≥ 1 uses kernel row c − 1
+            channel = grid_t.view(-1).index_select(0, flat).to(weight_table.dtype) - 1
+            weight_index = weight_index + 27 * channel[:, None]
+        return OccupiedScatterConv.apply(targets, weight_index.view(-1), relative, base, n)
     # Indicators of materials 1..k−1, voxel-major: [(k−1)·ρ³, N], written straight as floats.
     if k == 2:
         indicators = grid_t.to(weight.dtype)  # 0/1 already
