@@ -80,6 +80,7 @@ TWO_PI = 2 * math.pi
 # f32 rotation vector: below this x² = (|xyz|/w)² (half-angle tan² 0.0256, a 0.32 rad bend) atan's series to x⁶
 # is exact to f32 rounding (truncation x⁸/9 < 5e-8).
 _ATAN_SERIES_X2 = 0.0256
+_RENORM_NEWTON = 1e-4  # f32 renormalisation: |1 − |q|²| below this uses one Newton step (error < 1e-8)
 _POISSON_SERIES_X = 0.1  # |Σ tension strains| below which f32 uses the binomial series (config.POISSON_SERIES_TERMS)
 
 
@@ -538,7 +539,13 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
             amom += moment * dt
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
-                q = q * (1.0 / q.norm())
+                # |q|² = 1 + e with e at rounding level (the update rotation is unit): one Newton step of 1/√ from
+                # 1, (3 − |q|²)/2, is exact to O(e²); the sqrt and division stay for anything further off
+                n2 = q.dot(q)
+                if ti.abs(n2 - 1.0) < _RENORM_NEWTON:
+                    q = q * (1.5 - 0.5 * n2)
+                else:
+                    q = q * (1.0 / ti.sqrt(n2))
             if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
                 amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
             flags = (flags & ~STATIC) | (STATIC if static else 0)
