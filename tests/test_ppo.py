@@ -364,6 +364,14 @@ def test_logger_and_callback() -> None:
     assert len(history) == 2 and [step for _, step in logged] == [72, 144]
 
 
+def test_policy_that_does_not_fit_the_env_is_rejected() -> None:
+    env = PaintEnv(num_envs=4, resolution=4, materials=2)
+    with pytest.raises(ValueError, match="policy must return"):
+        PPO(env, VoxelActorCritic(resolution=4, materials=3, hidden=8))  # 3 + 3 action dims, env has 3 + 2
+    with pytest.raises(ValueError, match="policy cannot read"):
+        PPO(env, VoxelActorCritic(resolution=6, materials=2, hidden=8))
+
+
 def test_act_shapes_and_determinism() -> None:
     ppo = small_paint_ppo()
     obs = torch.zeros(8, 4, 4, 4, dtype=torch.uint8)

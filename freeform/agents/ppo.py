@@ -284,6 +284,7 @@ class PPO:
         self.global_step = 0
 
         self.obs = env.reset(seed=config.seed).to(self.device)
+        self._check_policy()
         self.rollout = Rollout.allocate(
             config.rollout_steps, env.num_envs, tuple(env.observation_shape), self.obs.dtype, env.action_dim, self.device
         )
@@ -291,6 +292,20 @@ class PPO:
         # Running return and length of each env's current episode (they span epochs when episodes are cut).
         self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
         self.episode_length = torch.zeros(env.num_envs, dtype=torch.int64, device=self.device)
+
+    @torch.no_grad()
+    def _check_policy(self) -> None:
+        """Fail early, naming the mismatch, when the policy's outputs do not fit the env."""
+        n, a = self.env.num_envs, self.env.action_dim
+        try:
+            outputs = self.policy(self.obs)
+        except Exception as e:
+            raise ValueError(f"policy cannot read the env's observations {tuple(self.obs.shape)} ({e})") from e
+        shapes = [tuple(x.shape) for x in outputs] if isinstance(outputs, tuple) and len(outputs) == 3 else None
+        if shapes != [(n, a), (n, a), (n,)]:
+            raise ValueError(
+                f"policy must return (mean [{n}, {a}], log_std [{n}, {a}], value [{n}]) for this env, got {shapes}"
+            )
 
     # -- acting ----------------------------------------------------------------------------------------------------
 
@@ -588,7 +603,10 @@ class PPO:
                 f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
                 f"but the env has {env.num_envs} envs with observations {tuple(env.observation_shape)}"
             )
-        ppo = cls(env, policy, config, logger)
+        try:
+            ppo = cls(env, policy, config, logger)
+        except ValueError as e:
+            raise ValueError(f"{path}: the saved policy does not fit this env ({e})") from e
         try:
             ppo.load_state_dict(state)
         except (KeyError, RuntimeError, ValueError) as e:
