@@ -15,10 +15,14 @@ voxel-major (``[voxels, N]``) between the two layers; the public functions take 
 
 The first layer's input is one-hot: with ``inside`` = 1 on the grid (0 in the zero padding), channel 0 equals
 ``inside − Σ_{c≥1} 1[g = c]``, so conv(onehot, w) = Σ_{c≥1} conv(1[g = c], w_c − w_0) + conv(inside, w_0). The last
-term does not depend on the grid, so the layer needs k − 1 indicator channels and never builds the one-hot tensor.
+term does not depend on the grid (a [ρ³, 27] validity mask times w_0), so the layer needs only the k − 1 indicator
+channels and never builds the one-hot tensor. Design grids are sparse (≤ ~4 % of voxels filled), so when few
+indicators are set the layer scatters each occupied voxel's 27 weights into its neighbours (``index_add_``) and its
+weight gradient gathers ∂L/∂y there; denser batches use the CSR product.
 
-Every reduction has a fixed order (the weight gradient sums a padded per-tap table, not atomics), so results are
-deterministic on a given device and thread count.
+On the CPU every reduction has a fixed order (``index_add_`` is sequential there; the CSR weight gradient sums a
+padded per-tap table), so results are deterministic for a given thread count. (On CUDA ``index_add_`` uses atomics;
+``VoxelActorCritic(trunk="auto")`` runs nn.Conv3d there.)
 """
 
 from __future__ import annotations
