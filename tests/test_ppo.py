@@ -466,6 +466,29 @@ def test_resume_is_bit_for_bit(tmp_path: Any) -> None:
     assert straight.kl_coeff == resumed.kl_coeff and straight.global_step == resumed.global_step
 
 
+def test_resume_is_bit_for_bit_on_the_design_env(tmp_path: Any) -> None:
+    """The same with DesignEnv (its own state_dict) and the paper's network on its fast CPU trunk."""
+    design = pytest.importorskip("freeform.envs.design")
+
+    def build() -> PPO:
+        torch.manual_seed(7)
+        env = design.DesignEnv(num_envs=8, resolution=8, materials=4, steps=6, compute_metrics=False)
+        cfg = PPOConfig(rollout_steps=4, num_sgd_iter=2, sgd_minibatch_size=8, lr=1e-3, seed=7)  # episodes cut
+        return PPO(env, VoxelActorCritic(resolution=8, materials=4, hidden=16), cfg)
+
+    straight = build()
+    straight.learn(3)
+    first = build()
+    first.learn(2)
+    first.save(tmp_path / "design.pt")
+    resumed = PPO.load(tmp_path / "design.pt", design.DesignEnv(num_envs=8, resolution=8, materials=4, steps=6,
+                                                                 compute_metrics=False))
+    resumed.train_epoch()
+    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
+        assert torch.equal(a, b)
+    assert torch.equal(straight.rollout.obs, resumed.rollout.obs) and torch.equal(straight.obs, resumed.obs)
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Learning.
 # ---------------------------------------------------------------------------------------------------------------
