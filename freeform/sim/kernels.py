@@ -306,7 +306,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     @ti.func
     def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                    gp: ti.template(), ifx: ti.i32, dyn: ti.i32):
+                    gp: ti.template(), ifx: ti.template(), dyn: ti.template()):
         n, p, axis, k = ld(li, LI.NEG, lk), ld(li, LI.POS, lk), ld(li, LI.AXIS, lk), ld(li, LI.LMAT, lk)
         r = ld(vi, VI.ROBOT, n)
         mat_n, mat_p = ld(vi, VI.MAT, n), ld(vi, VI.MAT, p)
@@ -315,7 +315,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         valid = (flags & VALID) != 0
         size_n = ld(vr, VR.SIZE, n)
         L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
-        if ifx == 0:
+        if ti.static(ifx == 0):
             L0 = 0.5 * (size_n + ld(vr, VR.SIZE, p))
 
         # orientLink: into the link frame, relative to the negative voxel
@@ -329,7 +329,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         extend = ti.abs(1.0 - pos2[0] / L0)
         leave = small and (small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD
                            or extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC)
-        if ifx != 0:
+        if ti.static(ifx != 0):
             # the paper simulator's precedence slip: `small && a || b`
             leave = (small and small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD) or \
                 extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC
@@ -349,7 +349,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
             a1v = to_rotation_vector(q1)
         a2v = to_rotation_vector(q2)
         strain = pos2[0] / L0
-        if ifx != 0:
+        if ti.static(ifx != 0):
             pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
 
         dP = 0.5 * (pos2 - get3(lr, LR.P2, lk))
@@ -410,19 +410,20 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
 
         if not (strain <= gp[GP.MAX_STRAIN]):  # also catches NaN
             st(ri, RI.STATUS, r, DIVERGED)
-        if dyn != 0 and (ld(ri, RI.STEP, r) + 1) % 10 == 0:
-            # rl4design recomputes dt every 10 steps from the current axial stiffness (VX_Link::axialStiffness)
-            kax = ld(lt, LT.A1, k)
-            if nu != 0.0:
-                kax = ld(lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
-            mmin = ti.min(ld(mt, MT.MASS, mat_n), ld(mt, MT.MASS, mat_p))
-            amax(rt, RT.OMEGA2, r, ti.cast(kax / mmin, ti.f64))
+        if ti.static(dyn != 0):
+            if (ld(ri, RI.STEP, r) + 1) % 10 == 0:
+                # rl4design recomputes dt every 10 steps from the current axial stiffness (VX_Link::axialStiffness)
+                kax = ld(lt, LT.A1, k)
+                if nu != 0.0:
+                    kax = ld(lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
+                mmin = ti.min(ld(mt, MT.MASS, mat_n), ld(mt, MT.MASS, mat_p))
+                amax(rt, RT.OMEGA2, r, ti.cast(kax / mmin, ti.f64))
 
     # ---------------------------------------------------------------- the voxel update (spec sections 6-9)
     @ti.func
     def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                      rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                     gp: ti.template(), floor: ti.i32, ifx: ti.i32):
+                     gp: ti.template(), floor: ti.template(), ifx: ti.template()):
         r = ld(vi, VI.ROBOT, v)
         mat = ld(vi, VI.MAT, v)
         flags = ld(vi, VI.FLAGS, v)
@@ -504,7 +505,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
             static = (flags & STATIC) != 0
             pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
             fric = vec3(0.0, 0.0, 0.0)
-            if floor != 0:
+            if ti.static(floor != 0):
                 if pen >= 0.0:
                     normal = ld(mt, MT.KPEN, mat) * pen
                     force[2] += normal - ld(mt, MT.CC, mat) * vel[2]
@@ -522,7 +523,10 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                     static = False
             mom += force * dt
             delta = mom * (dt * minv)
-            if floor != 0 and pen >= 0.0:
+            touching = False
+            if ti.static(floor != 0):
+                touching = pen >= 0.0
+            if touching:
                 # work-energy stop test: friction would reverse the horizontal motion within this step
                 work = fric[0] * delta[0] + fric[1] * delta[1]
                 hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
@@ -546,8 +550,9 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                     q = q * (1.5 - 0.5 * n2)
                 else:
                     q = q * (1.0 / ti.sqrt(n2))
-            if ifx != 0 and floor != 0 and static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
-                amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
+            if ti.static(ifx != 0 and floor != 0):
+                if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
+                    amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
             flags = (flags & ~STATIC) | (STATIC if static else 0)
 
         # (an L1 norm: no sqrt, and NaN or inf anywhere still fails the comparison)
@@ -581,7 +586,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                 set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
 
     @ti.func
-    def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.i32, ifx: ti.i32):
+    def robot_advance(r, rt: ti.template(), ri: ti.template(), gp: ti.template(), dyn: ti.template(),
+                      ifx: ti.template()):
         """End of a step for robot r: clock, status, rl4design's dt refresh every 10 steps, actuation phase."""
         st(rt, RT.DTPREV, r, ld(rt, RT.DT, r))
         st(rt, RT.T, r, ld(rt, RT.T, r) + ld(rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
@@ -589,13 +595,14 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         st(ri, RI.STEP, r, step)
         if ld(rt, RT.T, r) > gp[GP.T_END] and ld(ri, RI.STATUS, r) == RUNNING:
             st(ri, RI.STATUS, r, DONE)
-        if dyn != 0 and step % 10 == 0:
-            if ld(rt, RT.OMEGA2, r) > 0.0:
-                st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(ld(rt, RT.OMEGA2, r))))
-            st(rt, RT.OMEGA2, r, 0.0)
+        if ti.static(dyn != 0):
+            if step % 10 == 0:
+                if ld(rt, RT.OMEGA2, r) > 0.0:
+                    st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(ld(rt, RT.OMEGA2, r))))
+                st(rt, RT.OMEGA2, r, 0.0)
         # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
         tau = ld(rt, RT.T, r) + ld(rt, RT.DT, r)
-        if ifx != 0:
+        if ti.static(ifx != 0):
             tau = ld(rt, RT.T, r)
         set_phase(r, rt, gp, tau)
         # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
@@ -613,7 +620,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     # ---------------------------------------------------------------- schedules
     @ti.kernel
     def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                   lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+                   lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.template(), ifx: ti.template(),
+                   dyn: ti.template()):
         """One thread per robot, ``n_steps`` steps per launch (CPU schedule)."""
         ti.loop_config(block_dim=1)  # robots differ in size: hand them out one at a time
         for r in range(items(ri)):
@@ -629,7 +637,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
 
     @ti.kernel
     def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                 lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.i32, ifx: ti.i32, dyn: ti.i32):
+                 lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.template(), ifx: ti.template(),
+                   dyn: ti.template()):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
             for lk in range(items(li)):
