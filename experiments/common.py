@@ -102,22 +102,14 @@ def across_trials(per_trial: np.ndarray, epochs: np.ndarray | None = None,
     )
 
 
-def stack_ragged(rows: Sequence[np.ndarray]) -> np.ndarray:
-    """Stack 1-D arrays of different lengths into ``[len(rows), max_len]``, padding with NaN."""
-    width = max((len(r) for r in rows), default=0)
-    out = np.full((len(rows), width), np.nan)
-    for i, r in enumerate(rows):
-        out[i, : len(r)] = r
-    return out
-
-
 # ---------------------------------------------------------------------------------------------------- runs
 def find_runs(paths: Iterable[str | Path]) -> list[Path]:
     """Run directories under ``paths``: each path that holds ``run_info.json`` is a run; any other directory (a
     Hydra multirun sweep) is searched recursively. Sorted, without duplicates.
     """
+    paths = [Path(p) for p in paths]
     found: list[Path] = []
-    for p in map(Path, paths):
+    for p in paths:
         if not p.exists():
             raise ValueError(f"paths: {p} does not exist")
         if (p / RUN_INFO).is_file():
@@ -157,6 +149,8 @@ def provenance(runs: Sequence[Path]) -> dict[str, str]:
     values: dict[str, list[str]] = {k: [] for k in PROVENANCE_KEYS}
     for run in runs:
         flat = _flatten(read_run_info(run))
+        if flat.get("device_name") and "device" in flat:  # e.g. "cuda (NVIDIA A100-SXM4-80GB)"
+            flat["device"] = f"{flat['device']} ({flat['device_name']})"
         for key in PROVENANCE_KEYS:
             hits = [str(v) for k, v in flat.items() if k.split(".")[-1] in _ALIASES[key]]
             if hits and hits[0] not in values[key]:
@@ -167,10 +161,10 @@ def provenance(runs: Sequence[Path]) -> dict[str, str]:
 
 
 _ALIASES = {
-    "freeform": ("freeform", "freeform_version", "version"),
+    "freeform": ("freeform", "freeform_version"),
     "torch": ("torch", "torch_version"),
     "taichi": ("taichi", "taichi_version"),
-    "device": ("device", "device_name", "gpu"),
+    "device": ("device",),
     "git_commit": ("git_commit", "commit", "git", "git_sha"),
 }
 

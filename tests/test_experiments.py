@@ -56,11 +56,6 @@ def test_across_trials_smooths_mean_and_band_together():
     np.testing.assert_array_equal(c.n_trials, [2] * 5)
 
 
-def test_stack_ragged_pads_with_nan():
-    s = common.stack_ragged([np.array([1.0, 2.0]), np.array([3.0])])
-    assert s.shape == (2, 2) and np.isnan(s[1, 1]) and s[1, 0] == 3.0
-
-
 # ---------------------------------------------------------------------------------------------------- runs, output
 def _fake_run(d: Path, **info) -> Path:
     d.mkdir(parents=True)
@@ -216,7 +211,7 @@ def test_provenance_of_real_runs_names_versions_device_and_commit(volume_runs):
     import torch
 
     prov = common.provenance(volume_runs)
-    assert prov["torch"] == torch.__version__ and prov["device"] == "cpu" and prov["freeform"] != "unknown"
+    assert prov["torch"] == torch.__version__ and prov["device"].startswith("cpu") and prov["freeform"] != "unknown"
     assert prov["taichi"] != "unknown" and prov["git_commit"] != "unknown"
 
 
