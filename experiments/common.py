@@ -151,6 +151,8 @@ def provenance(runs: Sequence[Path]) -> dict[str, str]:
         flat = _flatten(read_run_info(run))
         if flat.get("device_name") and "device" in flat:  # e.g. "cuda (NVIDIA A100-SXM4-80GB)"
             flat["device"] = f"{flat['device']} ({flat['device_name']})"
+        if flat.get("git_dirty") and flat.get("git_commit"):  # uncommitted changes made this run
+            flat["git_commit"] = f"{flat['git_commit']}+dirty"
         for key in PROVENANCE_KEYS:
             hits = [str(v) for k, v in flat.items() if k.split(".")[-1] in _ALIASES[key]]
             if hits and hits[0] not in values[key]:
