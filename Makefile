@@ -8,7 +8,7 @@ TORCH  ?= torch==2.13.0
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test train bench lint clean
+.PHONY: install test train bench lint clean reproduce
 
 install: $(STAMP)
 
@@ -27,6 +27,11 @@ train: install
 
 bench: install
 	$(BIN)/python -m benchmarks
+
+# The paper's sweeps (5 seeds of paper_volume and paper_locomotion, GPU) and every figure: docs/experiments.md.
+# SKIP_TRAIN=1 only redraws the figures from existing runs.
+reproduce: install
+	PYTHON=$(abspath $(BIN)/python) bash experiments/reproduce.sh
 
 lint: install
 	$(BIN)/python -m ruff check freeform tests benchmarks experiments
