@@ -6,6 +6,11 @@ clipped surrogate, the squared value error clamped at ``vf_clip_param``, a KL(π
 adapts after every epoch, Adam without gradient clipping. Common variants are switches in ``PPOConfig``.
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``.
+
+Under ``torch.distributed`` (a process group of R > 1 ranks, e.g. ``torchrun``) each rank's env holds its slice of
+the environments and the update is data-parallel with the statistics of the global batch; the single-process
+arithmetic below is unchanged. The rules are in ``freeform/agents/distributed.py`` (``docs/scaling.md``); in this
+module the distributed branches are the ``if self.dp is not None`` blocks.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ from typing import Any, Protocol
 import torch
 import torch.nn as nn
 
+from freeform.agents import distributed
+from freeform.agents.distributed import DataParallel
 from freeform.envs.base import VecEnv
 
 CHECKPOINT_FORMAT = "freeform.ppo/1"
@@ -263,6 +270,12 @@ class PPO:
     After ``train_epoch()`` the caller may read ``rollout`` (the epoch's ``Rollout``) and ``episode_infos`` (the
     ``info`` dicts of the epoch's steps where any env finished an episode, in order). ``global_step`` counts env steps
     over all envs, ``epoch`` the epochs trained, ``kl_coeff`` is the current β.
+
+    Data-parallel when a process group of several ranks exists at construction: ``env`` is this rank's slice of the
+    environments (slices contiguous in rank order), ``dp`` holds the collectives, ``num_envs`` is the global count;
+    ``rollout``/``episode_infos`` stay local (``distributed.gather_rollout`` gives the global view), statistics,
+    ``global_step``, ``state_dict()`` and checkpoints are global. Every rank must call ``train_epoch``,
+    ``state_dict``, ``save`` and ``load`` (collectives); only rank 0 writes the file.
     """
 
     def __init__(self, env: VecEnv, policy: nn.Module, config: PPOConfig | None = None, logger: Logger | None = None):
@@ -276,6 +289,13 @@ class PPO:
         self.device = torch.device(config.device) if config.device is not None else torch.device(env.device)
         self.policy = policy.to(self.device)
         self.logger = logger
+        # Data-parallel over the ranks of a process group; None = the single-process algorithm.
+        self.dp: DataParallel | None = DataParallel.from_local(env.num_envs, self.device) if distributed.is_distributed() else None
+        if self.dp is not None:
+            self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
+        self.num_envs = self.dp.num_envs if self.dp is not None else env.num_envs
+        """N, environments over all ranks (= ``env.num_envs`` in one process)."""
+        self._grad_buffer: torch.Tensor | None = None
         self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
@@ -314,9 +334,17 @@ class PPO:
         mean, log_std, value = self.policy(obs)
         if deterministic:
             action = mean
-        else:
+        elif self.dp is None:
             noise = torch.randn(mean.shape, generator=self.generator, device=self.device, dtype=mean.dtype)
             action = mean + torch.exp(log_std) * noise
+        else:
+            # The global batch's noise on every rank, this rank's rows kept: env n gets the same draw for any R.
+            if mean.shape[0] != self.dp.local_envs:
+                raise ValueError(
+                    f"in a data-parallel run, obs must hold this rank's {self.dp.local_envs} envs, got {mean.shape[0]}"
+                )
+            noise = torch.randn((self.num_envs, *mean.shape[1:]), generator=self.generator, device=self.device, dtype=mean.dtype)
+            action = mean + torch.exp(log_std) * noise[self.dp.lo : self.dp.hi]
         return action, gaussian_log_prob(action, mean, log_std), value, mean, log_std
 
     @torch.no_grad()
@@ -362,10 +390,12 @@ class PPO:
         buf.advantages, buf.returns = compute_advantages(
             buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda
         )
-        self.global_step += cfg.rollout_steps * self.env.num_envs
+        self.global_step += cfg.rollout_steps * self.num_envs
 
-        returns = torch.cat(finished_returns) if finished_returns else torch.zeros(0)
-        lengths = torch.cat(finished_lengths) if finished_lengths else torch.zeros(0)
+        returns = torch.cat(finished_returns) if finished_returns else torch.zeros(0, device=self.device)
+        lengths = torch.cat(finished_lengths) if finished_lengths else torch.zeros(0, dtype=torch.int64, device=self.device)
+        if self.dp is not None:  # the episodes of every rank
+            returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)
         nan = float("nan")
         return {
             "episode_reward_mean": returns.mean().item() if len(returns) else nan,
@@ -386,13 +416,25 @@ class PPO:
         return cfg.lr
 
     def update(self) -> dict[str, float]:
-        """``num_sgd_iter`` passes of minibatch SGD over ``self.rollout``, then the KL-coefficient update."""
-        cfg, buf = self.config, self.rollout
-        batch = buf.rewards.numel()
+        """``num_sgd_iter`` passes of minibatch SGD over ``self.rollout``, then the KL-coefficient update.
+
+        Data-parallel (``self.dp``): the same global permutation and minibatches of ``sgd_minibatch_size`` samples
+        on every rank; each rank computes the samples it holds, divides loss *sums* by the global minibatch size and
+        the gradients are summed over ranks (one flat buffer per step): the global minibatch's mean-loss gradient.
+        """
+        cfg, buf, dp = self.config, self.rollout, self.dp
+        batch = buf.rewards.numel()  # this rank's samples
         obs = buf.obs.reshape(batch, *buf.obs.shape[2:])
         actions, old_means, old_log_stds = (x.reshape(batch, -1) for x in (buf.actions, buf.means, buf.log_stds))
         old_logprobs, old_values, returns = buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1)
-        advantages = buf.advantages.reshape(-1)
+        if dp is None:
+            global_batch = batch
+            advantages = buf.advantages.reshape(-1)
+        else:
+            # Every rank holds the global batch's advantages ([T, N], a float per sample): standardisation over the
+            # batch or the minibatch is then the single process's formula on the same numbers.
+            global_batch = cfg.rollout_steps * dp.num_envs
+            advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
         if cfg.advantage_norm == "batch":
             advantages = standardize(advantages)
 
@@ -400,47 +442,64 @@ class PPO:
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         kl_coeff = self.kl_coeff
-        minibatch = min(cfg.sgd_minibatch_size, batch)
-        num_minibatches = batch // minibatch
+        minibatch = min(cfg.sgd_minibatch_size, global_batch)
+        num_minibatches = global_batch // minibatch
+        params = [p for p in self.policy.parameters() if p.requires_grad]
+
+        def global_mean(x: torch.Tensor) -> torch.Tensor:
+            """A rank's share of the global minibatch mean: the sum over its samples / the minibatch size."""
+            return x.sum() / minibatch
+
+        reduce = torch.mean if dp is None else global_mean
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
         totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss
         self.policy.train()
         for _ in range(cfg.num_sgd_iter):
-            order = torch.randperm(batch, generator=self.generator, device=self.device)
+            order = torch.randperm(global_batch, generator=self.generator, device=self.device)
             for i in range(num_minibatches):
                 idx = order[i * minibatch : (i + 1) * minibatch]
-                mean, log_std, value = self.policy(obs.index_select(0, idx))
-                logprob = gaussian_log_prob(actions[idx], mean, log_std)
-                ratio = torch.exp(logprob - old_logprobs[idx])
                 adv = advantages[idx]
                 if cfg.advantage_norm == "minibatch":
                     adv = standardize(adv)
-                policy_loss = -clipped_surrogate(ratio, adv, cfg.clip_param).mean()
-                if cfg.value_clip == "squared":
-                    value_loss = clamped_value_loss(value, returns[idx], cfg.vf_clip_param).mean()
-                else:
-                    value_loss = ppo2_value_loss(value, old_values[idx], returns[idx], cfg.vf_clip_param).mean()
-                entropy = gaussian_entropy(log_std).mean()
-                kl = gaussian_kl(old_means[idx], old_log_stds[idx], mean, log_std).mean()
-                loss = policy_loss + cfg.vf_loss_coeff * value_loss - cfg.entropy_coeff * entropy
-                if kl_coeff > 0.0:
-                    loss = loss + kl_coeff * kl
-
+                if dp is not None:  # this rank's part of the global minibatch
+                    mask, idx = dp.local_indices(idx)
+                    adv = adv[mask]
                 self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
+                if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
+                    mean, log_std, value = self.policy(obs.index_select(0, idx))
+                    logprob = gaussian_log_prob(actions[idx], mean, log_std)
+                    ratio = torch.exp(logprob - old_logprobs[idx])
+                    policy_loss = -reduce(clipped_surrogate(ratio, adv, cfg.clip_param))
+                    if cfg.value_clip == "squared":
+                        value_loss = reduce(clamped_value_loss(value, returns[idx], cfg.vf_clip_param))
+                    else:
+                        value_loss = reduce(ppo2_value_loss(value, old_values[idx], returns[idx], cfg.vf_clip_param))
+                    entropy = reduce(gaussian_entropy(log_std))
+                    kl = reduce(gaussian_kl(old_means[idx], old_log_stds[idx], mean, log_std))
+                    loss = policy_loss + cfg.vf_loss_coeff * value_loss - cfg.entropy_coeff * entropy
+                    if kl_coeff > 0.0:
+                        loss = loss + kl_coeff * kl
+                    loss.backward()
+                    with torch.no_grad():
+                        clip_fraction = reduce(((ratio - 1.0).abs() > cfg.clip_param).float())
+                        totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
+                if dp is not None:
+                    self._grad_buffer = dp.all_reduce_grads(params, self._grad_buffer)
                 if cfg.grad_clip is not None:
                     nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
                 self.optimizer.step()
 
-                with torch.no_grad():
-                    clip_fraction = ((ratio - 1.0).abs() > cfg.clip_param).float().mean()
-                    totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
-
+        if dp is not None:  # each rank summed its shares of the minibatch means: their sum is the global mean
+            dp.all_reduce_sum_(totals)
         means = (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
         mean_kl = means[2]
-        # RLlib's rule, on the mean KL over every minibatch update of the epoch.
+        # RLlib's rule, on the mean KL over every minibatch update of the epoch (the same number on every rank).
         self.kl_coeff = update_kl_coeff(kl_coeff, mean_kl, cfg.kl_target)
-        stds = buf.log_stds.exp()
+        values, log_stds = buf.values, buf.log_stds
+        if dp is not None:
+            values, log_stds = dp.gather_envs(values, dim=1), dp.gather_envs(log_stds, dim=1)
+            returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
+        stds = log_stds.exp()
         stats = {
             "policy_loss": means[0],
             "value_loss": means[1],
@@ -450,8 +509,8 @@ class PPO:
             "total_loss": means[5],
             "kl_coeff": kl_coeff,
             "lr": lr,
-            "explained_variance": explained_variance(buf.values.reshape(-1), returns),
-            "value_mean": buf.values.mean().item(),
+            "explained_variance": explained_variance(values.reshape(-1), returns),
+            "value_mean": values.mean().item(),
             "action_std": stds.mean().item(),
         }
         for name, dims in getattr(self.policy, "action_groups", {}).items():
@@ -474,7 +533,7 @@ class PPO:
         self._sync()
         t2 = time.perf_counter()
         self.epoch += 1
-        samples = self.config.rollout_steps * self.env.num_envs
+        samples = self.config.rollout_steps * self.num_envs
         stats.update(
             time_rollout=t1 - t0,
             time_update=t2 - t1,
@@ -500,7 +559,11 @@ class PPO:
     # -- state and checkpoints -------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue exactly: policy, optimizer, β, counters, RNG, current obs, env state."""
+        """Everything needed to continue exactly: policy, optimizer, β, counters, RNG, current obs, env state.
+
+        Data-parallel: a collective; the per-environment parts (obs, episode accumulators, the env's state) are
+        gathered from every rank, so the state is the global one — loadable with any number of ranks.
+        """
         state = {
             "policy": self.policy.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -514,10 +577,17 @@ class PPO:
         }
         if hasattr(self.env, "state_dict"):
             state["env"] = self.env.state_dict()
+        if self.dp is not None:
+            state = distributed.gather_per_env(state, self.dp)
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what ``state_dict()`` returned (the policy and env must be built alike)."""
+        """Restore what ``state_dict()`` returned (the policy and env must be built alike; in a data-parallel run,
+        a global state of any rank count: each rank takes its slice of the environments)."""
+        if self.dp is not None:
+            if state["obs"].shape[0] != self.num_envs:
+                raise ValueError(f"the state holds {state['obs'].shape[0]} envs but this run has {self.num_envs}")
+            state = distributed.shard_per_env(state, self.dp)
         self.policy.load_state_dict(state["policy"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.kl_coeff = float(state["kl_coeff"])
@@ -533,7 +603,10 @@ class PPO:
             self.env.load_state_dict(state["env"])
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write a self-describing checkpoint atomically (temp file in the same directory, fsync, ``os.replace``)."""
+        """Write a self-describing checkpoint atomically (temp file in the same directory, fsync, ``os.replace``).
+
+        Data-parallel: every rank calls it (the state is gathered); rank 0 writes.
+        """
         path = os.fspath(path)
         policy_cls = type(self.policy)
         payload = {
@@ -543,6 +616,8 @@ class PPO:
             "config": dataclasses.asdict(self.config),
             "state": self.state_dict(),
         }
+        if self.dp is not None and self.dp.rank != 0:
+            return
         directory = os.path.dirname(os.path.abspath(path))
         fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=directory)
         try:
@@ -598,15 +673,21 @@ class PPO:
             raise ValueError(f"{path}: cannot rebuild the policy/config ({type(e).__name__}: {e})") from e
         state = payload["state"]
         saved_obs = state["obs"]
-        if saved_obs.shape[0] != env.num_envs or tuple(saved_obs.shape[1:]) != tuple(env.observation_shape):
-            raise ValueError(
-                f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
-                f"but the env has {env.num_envs} envs with observations {tuple(env.observation_shape)}"
-            )
+
+        def check_envs(num_envs: int) -> None:
+            if saved_obs.shape[0] != num_envs or tuple(saved_obs.shape[1:]) != tuple(env.observation_shape):
+                raise ValueError(
+                    f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
+                    f"but the env has {num_envs} envs with observations {tuple(env.observation_shape)}"
+                )
+
+        if not distributed.is_distributed():
+            check_envs(env.num_envs)
         try:
             ppo = cls(env, policy, config, logger)
         except ValueError as e:
             raise ValueError(f"{path}: the saved policy does not fit this env ({e})") from e
+        check_envs(ppo.num_envs)  # data-parallel: the global count (a collective in the constructor learnt it)
         try:
             ppo.load_state_dict(state)
         except (KeyError, RuntimeError, ValueError) as e:
