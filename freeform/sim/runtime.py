@@ -78,3 +78,9 @@ def _quiet_unrolling() -> Iterator[None]:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="You are unrolling more than", category=SyntaxWarning)
         yield
+
+
+def num_threads() -> int:
+    """Threads Taichi's CPU backend runs a parallel loop on (1 on CUDA: not meaningful there)."""
+    cfg = ti.lang.impl.current_cfg()
+    return int(cfg.cpu_max_num_threads) if cfg.arch != ti.cuda else 1
