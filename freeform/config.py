@@ -129,6 +129,9 @@ class TrainerConfig:
     """Every this many epochs print a summary line (console and the run's log); 0 = never."""
     progress: bool = True
     """Show a tqdm bar over epochs."""
+    dry_run: bool = False
+    """Print the resolved per-rank work split (and, from the command line, the jobs and the launch command) and
+    run nothing (``docs/scaling.md``)."""
 
 
 @dataclass

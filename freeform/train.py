@@ -4,6 +4,8 @@
     freeform-train experiment=paper_volume           # paper Table I, volume
     freeform-train -m experiment=paper_volume seed=0,1,2,3,4   # five trials, one directory each
     freeform-train trainer.resume=runs/volume_cpu/2026-01-01_12-00-00 trainer.epochs=80
+    torchrun --nproc_per_node=4 -m freeform.train experiment=paper_locomotion   # one run on 4 GPUs (docs/scaling.md)
+    freeform-train trainer.dry_run=true ...          # print the per-rank split and the launch command, run nothing
 
 Each epoch: PPO collects one rollout and updates (``PPO.train_epoch``); the trainer then cuts the rollout into
 finished episodes, writes the epoch's design record, logs scalars to TensorBoard, runs the per-epoch callbacks
@@ -18,12 +20,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import platform
 import random
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -36,6 +42,7 @@ import torch
 from omegaconf import OmegaConf
 
 import freeform
+from freeform.agents import distributed
 from freeform.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
@@ -128,14 +135,21 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def build(cfg: TrainConfig, device: torch.device) -> tuple[VecEnv, torch.nn.Module, Any]:
-    """The run's environment, policy and PPO, seeded by ``cfg.seed`` (the same cfg builds the same objects)."""
+def build(
+    cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None = None
+) -> tuple[VecEnv, torch.nn.Module, Any]:
+    """The run's environment, policy and PPO, seeded by ``cfg.seed`` (the same cfg builds the same objects).
+
+    ``envs = (lo, hi)``: build only environments ``lo … hi−1`` of ``env.num_envs`` (this rank's slice in a
+    data-parallel run, :func:`freeform.agents.distributed.env_slice`); default all of them.
+    """
     from freeform.agents import PPO, VoxelActorCritic
     from freeform.envs import DesignEnv  # type: ignore[attr-defined]
 
     seed_everything(cfg.seed)
+    lo, hi = envs if envs is not None else (0, cfg.env.num_envs)
     env = DesignEnv(
-        num_envs=cfg.env.num_envs,
+        num_envs=hi - lo,
         resolution=cfg.env.resolution,
         materials=cfg.task.materials,
         steps=cfg.env.steps,
@@ -240,6 +254,7 @@ def run_info(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
         "command": sys.argv,
         "experiment": cfg.name,
         "seed": cfg.seed,
+        "world_size": distributed.world_size(),
         "resumes": [],
     }
 
@@ -325,9 +340,23 @@ def train(
     """Train (or, with ``cfg.trainer.resume``, continue) a run in ``run_dir``; see the module docstring.
 
     ``callbacks`` run after every epoch (default: :func:`default_callbacks`). Returns the run's :class:`TrainResult`.
+
+    Inside a process group of several ranks (``torchrun``; :func:`freeform.agents.distributed.init_from_env`) every
+    rank calls this: each builds its slice of the environments on its own device, PPO is data-parallel, and only
+    rank 0 writes the run directory (its ``run_dir`` is used by all), logs, records, checkpoints and runs the
+    callbacks; the other ranks return an empty history. With ``trainer.dry_run`` nothing is built: the per-rank
+    split is printed and an empty result returned.
     """
     cfg = validate(cfg)
-    run_dir = Path(run_dir)
+    run_dir = Path(distributed.broadcast_object(str(run_dir)))  # rank 0's, on every rank
+    if cfg.trainer.dry_run:
+        from freeform.launch import describe_split
+
+        if distributed.is_main_process():
+            print(describe_split(cfg, distributed.world_size()), flush=True)
+        return TrainResult(run_dir=run_dir, epochs=0, global_step=0, history=[])
+    parallel = distributed.is_distributed()
+    main_rank = distributed.is_main_process()
     state: dict[str, Any] | None = None
     if cfg.trainer.resume:
         # Read the checkpoint before anything in the run directory is opened: a bad file loses nothing.
@@ -343,97 +372,130 @@ def train(
     if cfg.trainer.threads:
         torch.set_num_threads(cfg.trainer.threads)
     device = resolve_device(cfg.trainer.device)
-    env, policy, ppo = build(cfg, device)
+    if parallel and device.type == "cuda":
+        device = torch.device("cuda", torch.cuda.current_device())  # the rank's own GPU (pin_local_gpu)
+    envs = distributed.env_slice(cfg.env.num_envs, distributed.world_size(), distributed.rank()) if parallel else None
+    env, policy, ppo = build(cfg, device, envs)
     collector = EpisodeCollector()
     if state is not None:
-        ppo.load_state_dict(state["ppo"])
+        ppo.load_state_dict(state["ppo"])  # data-parallel: each rank takes its slice of the saved environments
         collector.load_state_dict(state["collector"])
         restore_rng_state(state["rng"])
 
-    run_dir.mkdir(parents=True, exist_ok=True)
     ckpt_dir = run_dir / CHECKPOINT_DIR
-    info_path = run_dir / RUN_INFO
-    if state is None:
-        _write_json(info_path, run_info(cfg, device))
-    else:
-        info = json.loads(info_path.read_text()) if info_path.is_file() else run_info(cfg, device)
-        info.setdefault("resumes", []).append(
-            {"time": datetime.now(timezone.utc).isoformat(timespec="seconds"), "epoch": ppo.epoch, "device": str(device)}
-        )
-        _write_json(info_path, info)
+    logger: Logger | None = None
+    if main_rank:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        info_path = run_dir / RUN_INFO
+        if state is None:
+            _write_json(info_path, run_info(cfg, device))
+        else:
+            info = json.loads(info_path.read_text()) if info_path.is_file() else run_info(cfg, device)
+            info.setdefault("resumes", []).append(
+                {
+                    "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    "epoch": ppo.epoch,
+                    "device": str(device),
+                    "world_size": distributed.world_size(),
+                }
+            )
+            _write_json(info_path, info)
 
-    logger = Logger(
-        run_dir,
-        total_epochs=cfg.trainer.epochs,
-        initial_epoch=min(ppo.epoch, cfg.trainer.epochs),
-        purge_step=ppo.global_step + 1 if state is not None else None,
-        progress=cfg.trainer.progress,
-        print_every=cfg.trainer.print_every,
-    )
+        logger = Logger(
+            run_dir,
+            total_epochs=cfg.trainer.epochs,
+            initial_epoch=min(ppo.epoch, cfg.trainer.epochs),
+            purge_step=ppo.global_step + 1 if state is not None else None,
+            progress=cfg.trainer.progress,
+            print_every=cfg.trainer.print_every,
+        )
     callbacks = list(default_callbacks(cfg) if callbacks is None else callbacks)
     history: list[dict[str, float]] = []
     try:
         if state is None:
-            container = to_container(cfg)
-            logger.log_config(
-                OmegaConf.to_yaml(container),
-                flatten(container),
-                {"charts/episode_reward_mean": 0.0, "charts/episode_reward_max": 0.0},
-            )
-            logger.flush()
+            if logger is not None:
+                container = to_container(cfg)
+                logger.log_config(
+                    OmegaConf.to_yaml(container),
+                    flatten(container),
+                    {"charts/episode_reward_mean": 0.0, "charts/episode_reward_max": 0.0},
+                )
+                logger.flush()
             if cfg.trainer.checkpoint_every:  # the untrained policy (the "untrained critic" of Fig. 5)
-                save_checkpoint(ckpt_dir / numbered_name(0), _checkpoint_state(cfg, ppo, collector))
+                ckpt = _checkpoint_state(cfg, ppo, collector)  # data-parallel: a collective, every rank
+                if main_rank:
+                    save_checkpoint(ckpt_dir / numbered_name(0), ckpt)
         time_checkpoint = 0.0
         while ppo.epoch < cfg.trainer.epochs:
             stats = dict(ppo.train_epoch())
             # The task's own figures of the epoch's scoring (LocomotionTask: perf/sim_seconds, voxel-steps/s).
-            stats.update(getattr(env.task, "stats", None) or {})
+            task_stats = getattr(env.task, "stats", None) or {}
+            stats.update(distributed.reduce_task_stats(task_stats, device) if parallel else task_stats)
             epoch = ppo.epoch - 1
             t0 = time.perf_counter()
-            episodes = collector.collect(ppo.rollout, ppo.episode_infos)
-            body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
-            if episodes is not None and cfg.trainer.record_designs:
-                write_record(
-                    run_dir,
-                    EpochRecord(
-                        epoch=epoch,
-                        global_step=ppo.global_step,
-                        actions=episodes["actions"],
-                        final_grids=episodes["final_grids"],
-                        rewards=episodes["rewards"],
-                        values=episodes["values"],
-                        metrics=episodes["metrics"],
-                    ),
-                )
-            stats["time_logging"] = time.perf_counter() - t0
-            stats["time_checkpoint"] = time_checkpoint  # the previous epoch's: this one's is not taken yet
-            history.append(logger.log_epoch(epoch, ppo.global_step, stats, body))
-            ctx = EpochContext(epoch, ppo.global_step, stats, episodes, cfg, run_dir, logger, ppo)
-            for callback in callbacks:
-                callback(ctx)
-            # Everything up to this step is on disk before a checkpoint says the run got this far.
-            logger.flush()
+            if parallel:  # the records and body metrics are of the global batch: rank 0 gets every rank's episodes
+                rollout, episode_infos = distributed.gather_rollout(ppo.rollout, ppo.episode_infos, ppo.dp)
+            else:
+                rollout, episode_infos = ppo.rollout, ppo.episode_infos
+            if logger is not None:
+                episodes = collector.collect(rollout, episode_infos)
+                body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
+                if episodes is not None and cfg.trainer.record_designs:
+                    write_record(
+                        run_dir,
+                        EpochRecord(
+                            epoch=epoch,
+                            global_step=ppo.global_step,
+                            actions=episodes["actions"],
+                            final_grids=episodes["final_grids"],
+                            rewards=episodes["rewards"],
+                            values=episodes["values"],
+                            metrics=episodes["metrics"],
+                        ),
+                    )
+                stats["time_logging"] = time.perf_counter() - t0
+                stats["time_checkpoint"] = time_checkpoint  # the previous epoch's: this one's is not taken yet
+                history.append(logger.log_epoch(epoch, ppo.global_step, stats, body))
+                ctx = EpochContext(epoch, ppo.global_step, stats, episodes, cfg, run_dir, logger, ppo)
+                for callback in callbacks:
+                    callback(ctx)
+                # Everything up to this step is on disk before a checkpoint says the run got this far.
+                logger.flush()
             t1 = time.perf_counter()
             ckpt = _checkpoint_state(cfg, ppo, collector)
-            save_checkpoint(ckpt_dir / LAST, ckpt)
-            if cfg.trainer.checkpoint_every and ppo.epoch % cfg.trainer.checkpoint_every == 0:
-                save_checkpoint(ckpt_dir / numbered_name(ppo.epoch), ckpt)
+            if main_rank:
+                save_checkpoint(ckpt_dir / LAST, ckpt)
+                if cfg.trainer.checkpoint_every and ppo.epoch % cfg.trainer.checkpoint_every == 0:
+                    save_checkpoint(ckpt_dir / numbered_name(ppo.epoch), ckpt)
             time_checkpoint = time.perf_counter() - t1
     finally:
-        logger.close()
+        if logger is not None:
+            logger.close()
     return TrainResult(run_dir=run_dir, epochs=ppo.epoch, global_step=ppo.global_step, history=history)
 
 
 # ------------------------------------------------------------------------------------------------ Hydra CLI
 
 
+def _secondary_rank_dir() -> Path:
+    """Where Hydra may put a rank > 0's own output (its log, before it is silenced): a scratch directory, removed
+    at the end; the run directory is rank 0's, and its timestamp could differ from this rank's by a second."""
+    return Path(tempfile.gettempdir()) / f"freeform-rank{distributed.launch_rank()}-{os.getpid()}"
+
+
 def _resolver_run_dir(resume: str | None, default: str) -> str:
-    """``hydra.run.dir``: the resumed run's directory, else ``default`` (runs/<experiment>/<timestamp>)."""
+    """``hydra.run.dir``: the resumed run's directory, else ``default`` (runs/<experiment>/<timestamp>); a scratch
+    directory on ranks > 0 of a data-parallel run (rank 0's run directory is broadcast to them)."""
+    if distributed.launch_rank() > 0:
+        return str(_secondary_rank_dir())
     return str(run_dir_of(resume)) if resume else default
 
 
-def _resolver_hydra_subdir(resume: str | None) -> str:
-    """``hydra.output_subdir``: keep the original run's ``.hydra`` when resuming in its directory."""
+def _resolver_hydra_subdir(resume: str | None) -> str | None:
+    """``hydra.output_subdir``: keep the original run's ``.hydra`` when resuming in its directory; none on ranks > 0
+    of a data-parallel run (rank 0 writes it)."""
+    if distributed.launch_rank() > 0:
+        return None
     return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resume else ".hydra"
 
 
@@ -469,11 +531,16 @@ def _hydra_entry(cfg: Any) -> None:
     run_dir = Path(hydra_cfg.runtime.output_dir)
     try:
         typed = to_dataclass(cfg)
+        # torchrun / a multi-task SLURM step: join the process group (rank r on GPU r); ranks > 0 stay quiet.
+        if not typed.trainer.dry_run and distributed.init_from_env() and not distributed.is_main_process():
+            _silence_secondary_rank()
         with logging_redirect_tqdm():
             result = train(typed, run_dir, overrides=list(hydra_cfg.overrides.task))
     except (ValueError, CheckpointError) as exc:
         # A clear one-line message (and a non-zero exit), not a traceback through Hydra's internals.
         raise SystemExit(f"freeform-train: error: {exc}") from exc
+    if not distributed.is_main_process() or typed.trainer.dry_run:
+        return
     log.info("done: %d epochs, %d steps, run directory %s", result.epochs, result.global_step, run_dir)
     curve = [h["charts/episode_reward_mean"] for h in result.history if "charts/episode_reward_mean" in h]
     if len(curve) >= 2:
@@ -485,9 +552,44 @@ def _hydra_entry(cfg: Any) -> None:
         )
 
 
+def _silence_secondary_rank() -> None:
+    """A rank > 0 logs warnings to the console only: rank 0 writes the run's log."""
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        if isinstance(handler, logging.FileHandler):
+            root.removeHandler(handler)
+            handler.close()
+    root.setLevel(logging.WARNING)
+    scratch = _secondary_rank_dir()
+    if scratch.is_dir():
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _dry_run_requested(argv: Sequence[str]) -> bool:
+    return any(a.split("=", 1)[0].lstrip("+") == "trainer.dry_run" and a.split("=", 1)[1].lower() in ("true", "1", "yes")
+               for a in argv if "=" in a)
+
+
 def main() -> None:
-    """Console entry point ``freeform-train`` (Hydra parses ``sys.argv``)."""
+    """Console entry point ``freeform-train`` (Hydra parses ``sys.argv``).
+
+    ``trainer.dry_run=true`` on the command line is answered here, before Hydra launches anything (a sweep on the
+    submitit launcher would submit jobs): the jobs, each one's per-rank split and the launch command are printed.
+    """
     import hydra
+
+    # conf/hydra/launcher/submitit_*.yaml carry the names the plugin registers its typed schemas under, so Hydra
+    # checks them against those schemas (what we want) and warns that such matching is deprecated.
+    warnings.filterwarnings(
+        "ignore", message=r"\s*'hydra/launcher/submitit_\w+' is validated against ConfigStore schema", category=UserWarning
+    )
+    if _dry_run_requested(sys.argv[1:]):
+        from freeform.launch import dry_run
+
+        text = dry_run(sys.argv[1:], CONF_DIR)
+        if distributed.launch_rank() == 0:
+            print(text, flush=True)
+        return
 
     hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")(_hydra_entry)()
 

@@ -30,6 +30,7 @@ per-environment; an int under the key ``num_envs`` is the environment count.
 
 from __future__ import annotations
 
+import atexit
 import datetime
 import os
 from collections.abc import Iterable, Mapping
@@ -76,6 +77,16 @@ def world_size() -> int:
 def is_main_process() -> bool:
     """Rank 0, the only one that writes logs, records and checkpoints."""
     return rank() == 0
+
+
+def launch_rank() -> int:
+    """This process's rank as the launcher's environment states it, before any process group exists: ``RANK``
+    (torchrun), else ``SLURM_PROCID`` in a SLURM step of several tasks, else 0."""
+    if "RANK" in os.environ:
+        return int(os.environ["RANK"])
+    if int(os.environ.get("SLURM_NTASKS", "1")) > 1:
+        return int(os.environ.get("SLURM_PROCID", "0"))
+    return 0
 
 
 def launch_env() -> dict[str, int] | None:
@@ -145,7 +156,13 @@ def init_from_env(timeout_s: float = 1800.0) -> bool:
         return False
     pin_local_gpu()
     dist.init_process_group(backend=backend(), timeout=datetime.timedelta(seconds=timeout_s))
+    atexit.register(_destroy)
     return is_distributed()
+
+
+def _destroy() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 def broadcast_object(obj: Any, src: int = 0) -> Any:
@@ -386,6 +403,7 @@ __all__ = [
     "is_distributed",
     "is_main_process",
     "launch_env",
+    "launch_rank",
     "pin_local_gpu",
     "rank",
     "reduce_task_stats",
