@@ -499,19 +499,31 @@ def _resolver_hydra_subdir(resume: str | None) -> str | None:
     return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resume else ".hydra"
 
 
+SWEPT_KEYS_ENV = "FREEFORM_SWEPT_KEYS"
+
+
+def _swept_keys(argv: Sequence[str]) -> set[str]:
+    """The keys a command line sweeps over (``seed=0,1,2`` -> ``{"seed"}``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides([a for a in argv if not a.startswith("-")])
+        return {o.key_or_group for o in parsed if o.is_sweep_override()}
+    except Exception:  # an argument Hydra's grammar rejects: Hydra itself reports it
+        return set()
+
+
 def _resolver_sweep_subdir(job_overrides: Sequence[str], exclude: Sequence[str]) -> str:
     """``hydra.sweep.subdir``: the job's values of the *swept* keys, e.g. ``seed=3`` for ``-m seed=0,1,2,3,4``.
 
     Hydra's ``override_dirname`` names every override, swept or not; which keys are swept is read from the command
-    line (``sys.argv``). Without a sweep on the command line, every override except ``exclude`` names the job.
+    line (``sys.argv``) — or from ``FREEFORM_SWEPT_KEYS``, which :func:`main` sets for jobs that run in other
+    processes (the submitit launchers). Without a sweep, every override except ``exclude`` names the job.
     """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    try:
-        parsed = OverridesParser.create().parse_overrides([a for a in sys.argv[1:] if not a.startswith("-")])
-        swept = {o.key_or_group for o in parsed if o.is_sweep_override()}
-    except Exception:  # an argument Hydra's grammar rejects: Hydra itself reports it
-        swept = set()
+    if SWEPT_KEYS_ENV in os.environ:
+        swept = {k for k in os.environ[SWEPT_KEYS_ENV].split(",") if k}
+    else:
+        swept = _swept_keys(sys.argv[1:])
     keys = [(_override_key(o), o) for o in job_overrides]
     chosen = [o for k, o in keys if k in swept] or [o for k, o in keys if k not in set(exclude)]
     return ",".join(sorted(chosen)).replace("/", "_") or "default"
@@ -583,6 +595,8 @@ def main() -> None:
     warnings.filterwarnings(
         "ignore", message=r"\s*'hydra/launcher/submitit_\w+' is validated against ConfigStore schema", category=UserWarning
     )
+    # Jobs of the submitit launchers resolve hydra.sweep.subdir in their own processes, whose argv is submitit's.
+    os.environ[SWEPT_KEYS_ENV] = ",".join(sorted(_swept_keys(sys.argv[1:])))
     if _dry_run_requested(sys.argv[1:]):
         from freeform.launch import dry_run
 
