@@ -176,6 +176,9 @@ class Engine:
         self.mt = self._upload(mt.astype(real))
         self.lt = self._upload(link_table(config).astype(real))
         self.gp = runtime.from_numpy(gp)
+        # robots schedule: a work counter, and one worker per CPU thread (per robot on a GPU)
+        self._queue = runtime.from_numpy(np.zeros(1, dtype=np.int32))
+        self._workers = max(1, min(R, runtime.num_threads() if self.arch == "cpu" else R))
         self.steps_done = 0
 
     # ------------------------------------------------------------------ host <-> device, in the kernels' order
@@ -199,7 +202,7 @@ class Engine:
         args = (self.vr, self.vi, self.lr, self.li, self.rt, self.ri, self.mt, self.lt, self.gp)
         flags = (int(self.config.floor), self.ifx, self.dyn)
         if self.schedule == "robots":
-            k.run_robots(*args, n_steps, *flags)
+            k.run_robots(*args, n_steps, *flags, self._queue, self._workers)
         else:
             left = n_steps
             while left > 0:

@@ -69,7 +69,10 @@ RUNNING, DONE, DIVERGED = 0, 1, 2
 EV_SAMPLE, EV_START, EV_END = 1, 2, 4
 
 UNROLL = 2  # steps per launch of the flat schedule
-ORDERS = ("soa", "aos")  # memory order of the state arrays (see make_kernels)
+ORDERS = ("soa", "aos")
+# Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
+# many iterations (see run_robots); only the CPU schedule's thread count depends on it, never the results.
+CPU_MIN_TASK_ITEMS = 512  # memory order of the state arrays (see make_kernels)
 
 # Voxelyze's small/large-angle switch (VX_Link.cpp): enter small below 0.05 rad and 50 % extension, leave above
 # 1.2× those (hysteresis). These are part of the model, not tuning knobs.
@@ -621,19 +624,30 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     @ti.kernel
     def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
                    lt: LtArr, gp: ParArr, n_steps: ti.i32, floor: ti.template(), ifx: ti.template(),
-                   dyn: ti.template()):
-        """One thread per robot, ``n_steps`` steps per launch (CPU schedule)."""
-        ti.loop_config(block_dim=1)  # robots differ in size: hand them out one at a time
-        for r in range(items(ri)):
-            for _ in range(n_steps):
-                if ld(ri, RI.STATUS, r) == RUNNING:
-                    for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
-                        link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
-                    if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
-                        for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
-                            voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
-                    if ld(ri, RI.STATUS, r) == RUNNING:
-                        robot_advance(r, rt, ri, gp, dyn, ifx)
+                   dyn: ti.template(), queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
+        """``workers`` threads each take the next unclaimed robot from ``queue`` and run it ``n_steps`` steps,
+        until none is left (CPU schedule: dynamic load balance over robots of any size, no per-step barrier).
+
+        Why not ``for r in range(R)``: Taichi's CPU backend gives each thread a block of at least
+        ``CPU_MIN_TASK_ITEMS`` iterations of a range-for with a runtime bound (``loop_config(block_dim)`` is not
+        honoured there), so a batch of fewer robots than that would run on one thread. Each worker therefore owns
+        one such block of a virtual range, and the robots are handed out through an atomic counter.
+        """
+        queue[0] = 0  # (a top-level statement: runs before the parallel loop, as a serial task)
+        for t in range(workers * CPU_MIN_TASK_ITEMS):
+            if t % CPU_MIN_TASK_ITEMS == 0:
+                r = ti.atomic_add(queue[0], 1)
+                while r < items(ri):
+                    for _ in range(n_steps):
+                        if ld(ri, RI.STATUS, r) == RUNNING:
+                            for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
+                                link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                            if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
+                                for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
+                                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+                            if ld(ri, RI.STATUS, r) == RUNNING:
+                                robot_advance(r, rt, ri, gp, dyn, ifx)
+                    r = ti.atomic_add(queue[0], 1)
 
     @ti.kernel
     def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
