@@ -80,6 +80,11 @@ def _quiet_unrolling() -> Iterator[None]:
         yield
 
 
+def sync() -> None:
+    """Wait for every launched kernel to finish (timings)."""
+    ti.sync()
+
+
 def num_threads() -> int:
     """Threads Taichi's CPU backend runs a parallel loop on (1 on CUDA: not meaningful there)."""
     cfg = ti.lang.impl.current_cfg()
