@@ -103,20 +103,22 @@ def build_layout(grids: torch.Tensor | np.ndarray, num_materials: int) -> Layout
     lo = lo.scatter_reduce(0, voxel_robot[:, None].expand(-1, 3), xyz, reduce="amin", include_self=True)
     lattice = xyz - lo[voxel_robot]
 
-    # dense index grid (voxel id or -1) to find face neighbours along each axis
-    index = torch.full(grids.shape, -1, dtype=torch.int64)
-    index[b, x, y, z] = torch.arange(n)
+    # face neighbours by binary search in the sorted flat indices of the occupied cells (no dense [B, X, Y, Z]
+    # index grid: the batch's voxels are a few percent of its cells). nonzero() lists cells in C order, so
+    # `flat` is sorted and the links of each axis come out in C order of their negative voxel.
+    dims = tuple(grids.shape[1:])
+    strides = (dims[1] * dims[2], dims[2], 1)
+    flat = ((b * dims[0] + x) * dims[1] + y) * dims[2] + z
     negs, poss, axes = [], [], []
-    for axis in range(3):
-        lo_sl = [slice(None)] * 4
-        hi_sl = [slice(None)] * 4
-        lo_sl[axis + 1] = slice(0, -1)
-        hi_sl[axis + 1] = slice(1, None)
-        a, c = index[tuple(lo_sl)], index[tuple(hi_sl)]
-        both = (a >= 0) & (c >= 0)
-        negs.append(a[both])
-        poss.append(c[both])
-        axes.append(torch.full((int(both.sum()),), axis, dtype=torch.int64))
+    for axis, coord in enumerate((x, y, z)):
+        has_next = coord < dims[axis] - 1
+        cand = torch.nonzero(has_next).flatten()
+        target = flat[cand] + strides[axis]
+        at = torch.searchsorted(flat, target).clamp_max(max(n - 1, 0))
+        hit = flat[at] == target if n else torch.zeros(0, dtype=torch.bool)
+        negs.append(cand[hit])
+        poss.append(at[hit])
+        axes.append(torch.full((int(hit.sum()),), axis, dtype=torch.int64))
     link_neg, link_pos, link_axis = torch.cat(negs), torch.cat(poss), torch.cat(axes)
     # group links by robot (stable, so axis-major order inside a robot is kept)
     link_robot = voxel_robot[link_neg] if n else torch.zeros(0, dtype=torch.int64)
