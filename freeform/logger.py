@@ -2,7 +2,7 @@
 
 Tags follow CleanRL's layout, at the global step (environment steps over all environments):
 
-- ``charts/`` episode statistics: ``episode_reward_mean``, ``_max``, ``_min``, ``episodes``
+- ``charts/`` episode statistics: ``episode_reward_mean``, ``_max``, ``_min``, ``episodes``, ``episode_length_mean``
 - ``losses/`` the PPO update: ``policy_loss``, ``value_loss``, ``approx_kl``, ``kl_coeff``, ``entropy``,
   ``clip_fraction``, ``explained_variance``
 - ``policy/`` the Gaussian policy's spread (names containing ``std``/``sigma``)
@@ -30,7 +30,8 @@ from tqdm.auto import tqdm
 
 log = logging.getLogger("freeform.train")
 
-CHARTS = ("episode_reward_mean", "episode_reward_max", "episode_reward_min", "episodes", "episode_length")
+CHARTS = ("episode_reward_mean", "episode_reward_max", "episode_reward_min", "episodes", "episode_length_mean")
+SKIP = ("epoch", "global_step")  # already the x-axis (the step) and the bar
 LOSSES = (
     "policy_loss",
     "value_loss",
@@ -140,6 +141,8 @@ class Logger:
         """
         written: dict[str, float] = {}
         for name, value in stats.items():
+            if name in SKIP:
+                continue
             number = _number(value)
             if number is not None and math.isfinite(number):
                 written[tag_for(name)] = number
