@@ -537,6 +537,7 @@ register_configs()
 
 def _hydra_entry(cfg: Any) -> None:
     from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
     from tqdm.contrib.logging import logging_redirect_tqdm
 
     hydra_cfg = HydraConfig.get()
@@ -548,6 +549,8 @@ def _hydra_entry(cfg: Any) -> None:
             _silence_secondary_rank()
         with logging_redirect_tqdm():
             result = train(typed, run_dir, overrides=list(hydra_cfg.overrides.task))
+        if hydra_cfg.mode != RunMode.MULTIRUN:  # a sweep's next job in this process reuses the group
+            distributed.shutdown()  # every rank finished: tear the process group down together
     except (ValueError, CheckpointError) as exc:
         # A clear one-line message (and a non-zero exit), not a traceback through Hydra's internals.
         raise SystemExit(f"freeform-train: error: {exc}") from exc

@@ -165,6 +165,15 @@ def _destroy() -> None:
         dist.destroy_process_group()
 
 
+def shutdown() -> None:
+    """End a run's process group cleanly: wait until every rank is done with it, then destroy it (a rank that tears
+    its backend down while another still talks to it can abort)."""
+    if dist.is_available() and dist.is_initialized():
+        if dist.get_world_size() > 1:
+            dist.barrier()
+        dist.destroy_process_group()
+
+
 def broadcast_object(obj: Any, src: int = 0) -> Any:
     """``obj`` of rank ``src`` on every rank (identity without a process group)."""
     if not is_distributed():
@@ -408,5 +417,6 @@ __all__ = [
     "rank",
     "reduce_task_stats",
     "shard_per_env",
+    "shutdown",
     "world_size",
 ]

@@ -1,0 +1,251 @@
+"""Data-parallel PPO on the CPU with ``gloo``: R = 2 ranks give the single process's run, up to summation order.
+
+The 2-rank runs are real process groups spawned by the tests (``torch.multiprocessing`` for the algorithm,
+``torchrun`` for the training app); the truth they are held to is the 1-process run of the same config and seed,
+which is the unchanged single-process algorithm. The environment count (5) does not divide by the ranks (3 + 2).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from freeform import train as train_mod
+from freeform.agents import PPO, PPOConfig, VoxelActorCritic
+from freeform.agents.distributed import DataParallel, env_slice, shard_per_env
+from freeform.envs import DesignEnv
+from freeform.records import read_record
+
+NUM_ENVS, RHO, STEPS = 5, 6, 4
+# Global batch 5 x 4 = 20 samples, minibatch 6: 3 minibatches per pass (2 samples dropped), shares vary by rank.
+PPO_KW = dict(rollout_steps=STEPS, num_sgd_iter=3, sgd_minibatch_size=6, seed=3, lr=3e-3)
+NOT_COMPARED = ("time_", "samples_per_second")  # wall-clock figures
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """One intra-op thread: on the shared 2-core machine two threads per process spin against each other."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), **overrides: Any) -> PPO:
+    """Environments ``[lo, hi)`` of the run (the caller's rank slice); every rank builds the same policy."""
+    torch.manual_seed(0)
+    env = DesignEnv(num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS)
+    policy = VoxelActorCritic(resolution=RHO, materials=2, hidden=16)
+    return PPO(env, policy, PPOConfig(**{**PPO_KW, **overrides}))
+
+
+def flat_params(ppo: PPO) -> torch.Tensor:
+    return torch.cat([p.detach().reshape(-1) for p in ppo.policy.parameters()])
+
+
+def comparable(stats: dict[str, float]) -> dict[str, float]:
+    return {k: v for k, v in stats.items() if not k.startswith(NOT_COMPARED)}
+
+
+def _worker(rank: int, world: int, init_file: str, out_dir: str, advantage_norm: str) -> None:
+    """One rank: two fresh epochs (checkpoint after the first), then one epoch resumed from the 1-process checkpoint."""
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        envs = env_slice(NUM_ENVS, world, rank)
+        ppo = make_ppo(envs, advantage_norm=advantage_norm)
+        first = ppo.train_epoch()
+        actions = ppo.dp.gather_envs(ppo.rollout.actions, dim=1)
+        ppo.save(Path(out_dir) / "two_ranks_epoch1.pt")  # collective; rank 0 writes
+        second = ppo.train_epoch()
+        resumed = PPO.load(Path(out_dir) / "one_process_epoch1.pt", DesignEnv(
+            num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS))
+        resumed_stats = resumed.train_epoch()
+        torch.save(
+            {
+                "stats": [first, second],
+                "actions": actions,
+                "params": flat_params(ppo),
+                "generator": ppo.generator.get_state(),
+                "kl_coeff": ppo.kl_coeff,
+                "global_step": ppo.global_step,
+                "resumed_stats": resumed_stats,
+                "resumed_params": flat_params(resumed),
+            },
+            Path(out_dir) / f"rank{rank}.pt",
+        )
+        dist.barrier()  # both ranks are done with gloo before either tears it down
+    finally:
+        dist.destroy_process_group()
+    # Skip the interpreter's teardown: native thread pools (gloo's, Taichi's) destroyed at exit have aborted a
+    # finished worker ("terminate called without an active exception") now and then. The results are on disk.
+    os._exit(0)
+
+
+@pytest.mark.parametrize("advantage_norm", ["batch", "minibatch"])
+def test_two_gloo_ranks_match_one_process(tmp_path: Path, advantage_norm: str) -> None:
+    single = make_ppo(advantage_norm=advantage_norm)
+    first = single.train_epoch()
+    actions = single.rollout.actions.clone()
+    single.save(tmp_path / "one_process_epoch1.pt")
+    second = single.train_epoch()
+
+    mp.spawn(_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), advantage_norm), nprocs=2, join=True)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
+
+    # Identical weights, β and sampling generator on both ranks (the same all-reduced gradients, the same draws).
+    assert torch.equal(ranks[0]["params"], ranks[1]["params"])
+    assert ranks[0]["kl_coeff"] == ranks[1]["kl_coeff"] == single.kl_coeff
+    # The generator drew exactly what the single process drew: the global noise, the global permutations.
+    assert torch.equal(ranks[0]["generator"], single.generator.get_state())
+    assert ranks[0]["global_step"] == single.global_step == 2 * NUM_ENVS * STEPS
+
+    # The first epoch's global statistics, and the second's (after one data-parallel update), equal the single run's.
+    for got, want in zip(ranks[0]["stats"], [first, second], strict=True):
+        got, want = comparable(got), comparable(want)
+        assert got.keys() == want.keys()
+        for key in want:
+            assert got[key] == pytest.approx(want[key], rel=1e-4, abs=1e-6, nan_ok=True), key
+    assert ranks[1]["stats"][0]["episode_reward_mean"] == pytest.approx(first["episode_reward_mean"])
+    # Env n got the same action whatever the rank count (the policy's float order differs by batch size only).
+    torch.testing.assert_close(ranks[0]["actions"], actions, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(ranks[0]["params"], flat_params(single), rtol=1e-4, atol=1e-5)
+
+    # Resume across rank counts: 2 ranks continuing the 1-process checkpoint = the 1-process run's second epoch ...
+    for key, want in comparable(second).items():
+        assert ranks[0]["resumed_stats"][key] == pytest.approx(want, rel=1e-4, abs=1e-6, nan_ok=True), key
+    torch.testing.assert_close(ranks[0]["resumed_params"], flat_params(single), rtol=1e-4, atol=1e-5)
+    # ... and 1 process continuing the 2-rank checkpoint too.
+    back = PPO.load(tmp_path / "two_ranks_epoch1.pt", DesignEnv(num_envs=NUM_ENVS, resolution=RHO, materials=2, steps=STEPS))
+    assert back.global_step == NUM_ENVS * STEPS
+    stats = back.train_epoch()
+    for key, want in comparable(second).items():
+        assert stats[key] == pytest.approx(want, rel=1e-4, abs=1e-6, nan_ok=True), key
+    torch.testing.assert_close(flat_params(back), flat_params(single), rtol=1e-4, atol=1e-5)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The split rules, by hand.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_env_slices_are_contiguous_and_balanced() -> None:
+    assert [env_slice(5, 2, r) for r in range(2)] == [(0, 3), (3, 5)]
+    assert [env_slice(10, 3, r) for r in range(3)] == [(0, 4), (4, 7), (7, 10)]
+    assert [env_slice(8, 4, r) for r in range(4)] == [(0, 2), (2, 4), (4, 6), (6, 8)]
+    with pytest.raises(ValueError, match="num_envs"):
+        env_slice(2, 3, 0)
+    with pytest.raises(ValueError, match="rank"):
+        env_slice(4, 2, 2)
+
+
+def test_local_indices_pick_this_ranks_samples_in_minibatch_order() -> None:
+    # N = 5 envs over ranks holding 3 and 2; global sample g = t*5 + n; rank 1 holds n = 3, 4 -> local t*2 + n-3.
+    dp = DataParallel(rank=1, world_size=2, counts=(3, 2))
+    idx = torch.tensor([4, 0, 8, 13, 3, 19, 5])  # (t, n) = (0,4) (0,0) (1,3) (2,3) (0,3) (3,4) (1,0)
+    mask, local = dp.local_indices(idx)
+    assert mask.tolist() == [True, False, True, True, True, True, False]
+    assert local.tolist() == [1, 2, 4, 0, 7]
+    rank0 = DataParallel(rank=0, world_size=2, counts=(3, 2))
+    mask0, local0 = rank0.local_indices(idx)
+    assert (mask0 ^ mask).all()  # every sample belongs to exactly one rank
+    assert local0.tolist() == [0, 3]  # (0,0) -> 0, (1,0) -> 3
+
+
+def test_shard_per_env_slices_global_state_and_counts() -> None:
+    dp = DataParallel(rank=1, world_size=2, counts=(3, 2))
+    state = {
+        "obs": torch.arange(5 * 2).reshape(5, 2),
+        "generator": torch.zeros(7, dtype=torch.uint8),
+        "env": {"grids": torch.arange(5), "t": 3, "config": {"num_envs": 5, "resolution": 6}},
+    }
+    local = shard_per_env(state, dp)
+    assert local["obs"].tolist() == [[6, 7], [8, 9]]
+    assert torch.equal(local["generator"], state["generator"])
+    assert local["env"]["grids"].tolist() == [3, 4]
+    assert local["env"]["config"] == {"num_envs": 2, "resolution": 6} and local["env"]["t"] == 3
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The training app under torchrun: rank 0 writes, the records are the global batch's, resume with another R.
+# ---------------------------------------------------------------------------------------------------------------
+
+TINY = [
+    f"env.num_envs={NUM_ENVS}",
+    f"env.resolution={RHO}",
+    f"env.steps={STEPS}",
+    "agent.hidden=16",
+    "agent.num_sgd_iter=2",
+    "agent.sgd_minibatch_size=6",
+    "trainer.progress=false",
+    "trainer.print_every=1",
+    "trainer.checkpoint_every=1",
+    "trainer.threads=1",
+    "trainer.device=cpu",
+]
+
+
+def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
+    monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
+    train_mod.main()
+
+
+def scalars(run: Path) -> dict[str, dict[int, float]]:
+    acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
+    acc.Reload()
+    return {tag: {e.step: e.value for e in acc.Scalars(tag)} for tag in acc.Tags()["scalars"]}
+
+
+def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    torchrun = Path(sys.executable).parent / "torchrun"
+    if not torchrun.exists():
+        pytest.skip("torchrun is not installed beside this python")
+    two = tmp_path / "two"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "freeform.train", *TINY, "trainer.epochs=1",
+         f"hydra.run.dir={two}"],
+        capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    one = tmp_path / "one"
+    cli(monkeypatch, *TINY, "trainer.epochs=2", f"hydra.run.dir={one}")
+
+    # Rank 0 alone wrote: one event file, one summary line per epoch in the log, a world size in run_info.
+    assert len(list(two.glob("events.out.tfevents.*"))) == 1
+    assert (two / "train.log").read_text().count("epoch 1 |") == 1
+    assert '"world_size": 2' in (two / "run_info.json").read_text()
+    assert sorted(p.name for p in (two / "checkpoints").iterdir()) == ["epoch_000000.pt", "epoch_000001.pt", "last.pt"]
+
+    # The record holds all 5 environments' episodes, the same designs as the single process's.
+    r2, r1 = read_record(two / "records" / "epoch_000000.npz"), read_record(one / "records" / "epoch_000000.npz")
+    assert r2.actions.shape == r1.actions.shape == (NUM_ENVS, STEPS, 3 + 2)
+    np.testing.assert_allclose(r2.actions, r1.actions, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(r2.final_grids, r1.final_grids)
+    np.testing.assert_array_equal(r2.rewards, r1.rewards)
+    s2, s1 = scalars(two), scalars(one)
+    step = NUM_ENVS * STEPS
+    for tag in ("charts/episode_reward_mean", "losses/policy_loss", "losses/approx_kl", "losses/explained_variance",
+                "body/volume"):
+        assert s2[tag][step] == pytest.approx(s1[tag][step], rel=1e-4, abs=1e-6), tag
+
+    # Resume the 2-rank run in one process: its second epoch is the single run's second epoch.
+    cli(monkeypatch, f"trainer.resume={two}", "trainer.epochs=2", "trainer.threads=1")
+    a, b = read_record(two / "records" / "epoch_000001.npz"), read_record(one / "records" / "epoch_000001.npz")
+    np.testing.assert_allclose(a.actions, b.actions, rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(a.final_grids, b.final_grids)
+    ca = torch.load(two / "checkpoints" / "last.pt", weights_only=True)
+    cb = torch.load(one / "checkpoints" / "last.pt", weights_only=True)
+    for name, tensor in cb["ppo"]["policy"].items():
+        torch.testing.assert_close(ca["ppo"]["policy"][name], tensor, rtol=1e-4, atol=1e-5)
+    assert torch.equal(ca["ppo"]["generator"], cb["ppo"]["generator"])
