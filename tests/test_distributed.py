@@ -197,6 +197,7 @@ TINY = [
 
 def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
     monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
+    monkeypatch.setenv(train_mod.SWEPT_KEYS_ENV, "")  # main() sets it; restored after the test
     train_mod.main()
 
 
