@@ -78,8 +78,9 @@ def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
 class Engine:
     """A batch of robots in Taichi ndarrays. ``advance(n)`` runs n steps of every still-running robot.
 
-    schedule: "robots" (one thread per robot, many steps per launch; the CPU default) or "flat" (one thread
-    per link/voxel/robot; the CUDA default). Both give identical results.
+    schedule: "robots" (one worker per CPU thread taking whole robots from a queue, many steps per launch;
+    the CPU default; arrays in "aos" order) or "flat" (one thread per link/voxel/robot; the CUDA default; "soa").
+    Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     """
 
     def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto"):

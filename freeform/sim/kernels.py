@@ -1,22 +1,26 @@
 """Voxelyze's link and voxel updates as Taichi functions, and the two schedules that drive them.
 
-Data layout (structure of arrays): each array is ``[columns, items]``, so item i of column c sits at
-``c·items + i`` and neighbouring threads read neighbouring addresses. Columns are named below.
+Data layout: every state array is a table of named columns (below) in one of two memory orders (``make_kernels``):
+"soa" ``[columns, items]`` (item i of column c at ``c·items + i``: neighbouring threads read neighbouring
+addresses; the GPU's flat schedule) or "aos", a 1-D ndarray of ``columns``-vectors (one item's columns together,
+row length known at compile time; the CPU's per-robot schedule). Only ``ld/st/get3/set3`` know the order.
 
-* ``vr`` real ``[NVR, n]`` voxel state, ``vi`` int32 ``[NVI, n]`` voxel topology/flags,
-* ``lr`` real ``[NLR, m]`` link state, ``li`` int32 ``[NLI, m]`` link topology/flags,
-* ``rt`` float64 ``[NRT, R]`` robot clocks, ``ri`` int32 ``[NRI, R]`` robot status and ranges,
+* ``vr`` real, NVR columns × n voxels: voxel state; ``vi`` int32, NVI × n: voxel topology/flags,
+* ``lr`` real, NLR × m links: link state; ``li`` int32, NLI × m: link topology/flags,
+* ``rt`` float64, NRT × R robots: robot clocks; ``ri`` int32, NRI × R: robot status, ranges and step events,
 * ``mt`` real material table, ``lt`` real link-material table (``config.MAT_COLUMNS`` / ``LINK_COLUMNS``),
 * ``gp`` float64 ``[NGP]`` global parameters.
 
 One step = every link's ``link_update`` (forces into fixed per-link slots), then every voxel's
 ``voxel_update`` (gathers its ≤ 6 links' forces: no atomics, deterministic), then every robot's clock.
 Schedules: ``run_flat`` is one thread per link / voxel / robot and ``UNROLL`` steps per launch (GPU);
-``run_robots`` is one thread per robot that runs many steps per launch (CPU: no per-step thread-pool
-synchronisation, the robot's data stays in cache). Both call the same functions, so they agree exactly.
+``run_robots`` has one worker per CPU thread, each taking whole robots from an atomic queue and running them many
+steps per launch (no per-step thread-pool synchronisation, the robot's data stays in cache). Both call the same
+functions, so they compute the same thing (bit for bit up to the compiler's fast-math reassociation).
 
-Precision: with f64 the arithmetic follows VX (acos rotation vector, quaternions never renormalised); with
-f32 orientations are renormalised every step and rotation vectors use atan2 (spec section 14).
+Precision: with f64 the arithmetic follows VX (acos rotation vector, quaternions never renormalised, pow); with
+f32 orientations are renormalised every step and rotation vectors use atan2 (spec section 14), with series
+shortcuts exact to f32 rounding where they are cheaper (see the constants below and docs/physics.md).
 """
 
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
