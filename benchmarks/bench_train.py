@@ -41,7 +41,7 @@ def main() -> None:
     logging_ = [h["perf/time_logging"] for h in hist]
     ckpt = [h["perf/time_checkpoint"] for h in hist[1:]]  # each epoch reports the previous epoch's checkpoint
     # Everything in an iteration that is not PPO: episodes, record, scalars, flush, callbacks, checkpoint.
-    app = [b - a - p for a, b, p in zip(stamps, stamps[1:], ppo[1:], strict=True)]
+    app = [b - a - p for a, b, p in zip(stamps[:-1], stamps[1:], ppo[1:], strict=True)]
     med = {k: statistics.median(v) for k, v in (("ppo", ppo), ("log", logging_), ("ckpt", ckpt), ("app", app))}
     print(f"volume_cpu, {epochs} epochs, {cfg.env.num_envs} envs x T={cfg.env.steps}, rho={cfg.env.resolution}: "
           f"{wall:.1f} s wall (incl. start-up)")
