@@ -41,6 +41,19 @@ def one_thread():
     torch.set_num_threads(before)
 
 
+@pytest.fixture(autouse=True)
+def keep_global_rng():
+    """Leave torch's, numpy's and python's global RNGs as found: later tests build unseeded networks from them
+    (tests/test_ppo.py's exact first-update check holds for the weights its usual predecessors leave)."""
+    import random
+
+    torch_state, np_state, py_state = torch.get_rng_state(), np.random.get_state(), random.getstate()
+    yield
+    torch.set_rng_state(torch_state)
+    np.random.set_state(np_state)
+    random.setstate(py_state)
+
+
 def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), **overrides: Any) -> PPO:
     """Environments ``[lo, hi)`` of the run (the caller's rank slice); every rank builds the same policy."""
     torch.manual_seed(0)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from freeform import train as train_mod
 from freeform.config import TrainConfig
@@ -31,6 +32,19 @@ TINY = [
     "trainer.threads=1",
     "trainer.device=cpu",
 ]
+
+
+@pytest.fixture(autouse=True)
+def keep_global_rng():
+    """Leave torch's, numpy's and python's global RNGs as found: later tests build unseeded networks from them
+    (tests/test_ppo.py's exact first-update check holds for the weights its usual predecessors leave)."""
+    import random
+
+    torch_state, np_state, py_state = torch.get_rng_state(), np.random.get_state(), random.getstate()
+    yield
+    torch.set_rng_state(torch_state)
+    np.random.set_state(np_state)
+    random.setstate(py_state)
 
 
 def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
