@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -83,6 +84,27 @@ def _hparam_value(value: Any) -> int | float | str | bool:
     return str(value)
 
 
+def _wait_for_a_later_event_file_second(run_dir: Path) -> None:
+    """Make sure the new event file sorts after every existing one.
+
+    TensorBoard reads a directory's event files in name order, and a name is
+    ``events.out.tfevents.<unix seconds>.<host>.<pid>.<writer counter>``. A resumed run's writer created in the same
+    second as an earlier one (a quick resume in the same process, as in the tests) could sort *before* it (counter
+    "10" < "9"), and then its ``purge_step`` would be applied before the old events are read. Waiting for the
+    next second (at most one, and only when such a file exists) keeps the order = the order of writing.
+    """
+    stamps = []
+    for f in run_dir.glob("events.out.tfevents.*"):
+        try:
+            stamps.append(int(f.name.split(".")[3]))
+        except (IndexError, ValueError):
+            continue
+    if stamps:
+        latest = max(stamps)
+        while int(time.time()) <= latest:
+            time.sleep(0.05)
+
+
 class Logger:
     """TensorBoard writer plus a tqdm bar over epochs for one run directory.
 
@@ -102,6 +124,7 @@ class Logger:
         console_metrics: tuple[str, ...] = ("volume", "lcc_ratio"),
     ) -> None:
         self.run_dir = Path(run_dir)
+        _wait_for_a_later_event_file_second(self.run_dir)
         self.writer = SummaryWriter(log_dir=str(self.run_dir), purge_step=purge_step)
         self.print_every = print_every
         self.console_metrics = console_metrics
