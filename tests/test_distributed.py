@@ -26,32 +26,12 @@ from freeform.agents.distributed import DataParallel, env_slice, shard_per_env
 from freeform.envs import DesignEnv
 from freeform.records import read_record
 
+pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
+
 NUM_ENVS, RHO, STEPS = 5, 6, 4
 # Global batch 5 x 4 = 20 samples, minibatch 6: 3 minibatches per pass (2 samples dropped), shares vary by rank.
 PPO_KW = dict(rollout_steps=STEPS, num_sgd_iter=3, sgd_minibatch_size=6, seed=3, lr=3e-3)
 NOT_COMPARED = ("time_", "samples_per_second")  # wall-clock figures
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """One intra-op thread: on the shared 2-core machine two threads per process spin against each other."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(autouse=True)
-def keep_global_rng():
-    """Leave torch's, numpy's and python's global RNGs as found: later tests build unseeded networks from them
-    (tests/test_ppo.py's exact first-update check holds for the weights its usual predecessors leave)."""
-    import random
-
-    torch_state, np_state, py_state = torch.get_rng_state(), np.random.get_state(), random.getstate()
-    yield
-    torch.set_rng_state(torch_state)
-    np.random.set_state(np_state)
-    random.setstate(py_state)
 
 
 def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), **overrides: Any) -> PPO:

@@ -11,15 +11,7 @@ import torch.nn.functional as F
 from freeform.agents import MLPActorCritic, VoxelActorCritic
 from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small workloads: one intra-op thread. On a shared 2-core machine, two OpenMP threads per process spin
-    against other processes and ran the learning test 20x slower (288 s vs 13 s) under load."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def n_params(module: torch.nn.Module) -> int:

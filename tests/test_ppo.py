@@ -26,15 +26,7 @@ from freeform.agents.ppo import (
 )
 from freeform.envs.base import VecEnv
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small workloads: one intra-op thread. On a shared 2-core machine, two OpenMP threads per process spin
-    against other processes and ran the learning test 20x slower (288 s vs 13 s) under load."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from freeform import train as train_mod
 from freeform.config import TrainConfig
 from freeform.launch import describe_split
 from freeform.records import read_record
+
+pytestmark = pytest.mark.usefixtures("keep_global_rng")  # tests/conftest.py
 
 TINY = [
     "env.num_envs=4",
@@ -32,19 +33,6 @@ TINY = [
     "trainer.threads=1",
     "trainer.device=cpu",
 ]
-
-
-@pytest.fixture(autouse=True)
-def keep_global_rng():
-    """Leave torch's, numpy's and python's global RNGs as found: later tests build unseeded networks from them
-    (tests/test_ppo.py's exact first-update check holds for the weights its usual predecessors leave)."""
-    import random
-
-    torch_state, np_state, py_state = torch.get_rng_state(), np.random.get_state(), random.getstate()
-    yield
-    torch.set_rng_state(torch_state)
-    np.random.set_state(np_state)
-    random.setstate(py_state)
 
 
 def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
