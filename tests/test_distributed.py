@@ -18,9 +18,9 @@ import pytest
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from helpers import run_cli as cli  # tests/helpers.py
+from helpers import scalars
 
-from freeform import train as train_mod
 from freeform.agents import PPO, PPOConfig, VoxelActorCritic
 from freeform.agents.distributed import DataParallel, env_slice, shard_per_env
 from freeform.envs import DesignEnv
@@ -188,18 +188,6 @@ TINY = [
 ]
 
 
-def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
-    monkeypatch.setenv(train_mod.SWEPT_KEYS_ENV, "")  # main() sets it; restored after the test
-    train_mod.main()
-
-
-def scalars(run: Path) -> dict[str, dict[int, float]]:
-    acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
-    acc.Reload()
-    return {tag: {e.step: e.value for e in acc.Scalars(tag)} for tag in acc.Tags()["scalars"]}
-
-
 def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     torchrun = Path(sys.executable).parent / "torchrun"
     if not torchrun.exists():
@@ -231,7 +219,7 @@ def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monke
     step = NUM_ENVS * STEPS
     for tag in ("charts/episode_reward_mean", "losses/policy_loss", "losses/approx_kl", "losses/explained_variance",
                 "body/volume"):
-        assert s2[tag][step] == pytest.approx(s1[tag][step], rel=1e-4, abs=1e-6), tag
+        assert dict(s2[tag])[step] == pytest.approx(dict(s1[tag])[step], rel=1e-4, abs=1e-6), tag
 
     # Resume the 2-rank run in one process: its second epoch is the single run's second epoch.
     cli(monkeypatch, f"trainer.resume={two}", "trainer.epochs=2", "trainer.threads=1")

@@ -7,11 +7,11 @@ launcher config is checked through the dry run: the sbatch file submitit would s
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_cli as cli  # tests/helpers.py
 
 from freeform import train as train_mod
 from freeform.config import TrainConfig
@@ -33,12 +33,6 @@ TINY = [
     "trainer.threads=1",
     "trainer.device=cpu",
 ]
-
-
-def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
-    monkeypatch.setenv(train_mod.SWEPT_KEYS_ENV, "")  # main() sets it; restored after the test
-    train_mod.main()
 
 
 def test_submitit_local_sweep_over_two_seeds_completes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import run_cli as cli  # tests/helpers.py
+from helpers import scalars
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from freeform import train as train_mod
@@ -35,18 +37,6 @@ TINY = [
     "trainer.checkpoint_every=1",
 ]
 STEPS_PER_EPOCH = 4 * 5
-
-
-def cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
-    """Run ``freeform-train *args`` in this process."""
-    monkeypatch.setattr(sys, "argv", ["freeform-train", *args])
-    train_mod.main()
-
-
-def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
-    acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0})
-    acc.Reload()
-    return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
 
 
 @pytest.fixture(scope="module")
