@@ -72,8 +72,12 @@ def _fsync_dir(directory: Path) -> None:
 
 
 def _siblings(path: Path) -> str:
+    """What to do instead: the other checkpoints beside ``path`` (resume from one of them), or a new run."""
     others = sorted(p.name for p in path.parent.glob("*.pt") if p != path) if path.parent.is_dir() else []
-    return f"; other checkpoints in {path.parent}: {others}" if others else ""
+    if others:
+        return (f"; other checkpoints in {path.parent}: {others} — resume from one of them with "
+                f"trainer.resume={path.parent / others[-1]}")
+    return "; no other checkpoint beside it: start a new run (without trainer.resume)"
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
@@ -88,8 +92,11 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises a variety (RuntimeError, EOFError, UnpicklingError, ...)
+        # Only the cause's first line: torch's weights_only text goes on to advise weights_only=False, which would
+        # run code from an untrusted file and would not repair a truncated one.
+        cause = next((line.strip() for line in str(exc).splitlines() if line.strip()), "")
         raise CheckpointError(
-            f"checkpoint {path} is unreadable (truncated or corrupt?): {type(exc).__name__}: {exc}{_siblings(path)}"
+            f"checkpoint {path} is unreadable (truncated or corrupt?): {type(exc).__name__}: {cause}{_siblings(path)}"
         ) from exc
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not a freeform checkpoint (no format={FORMAT!r} key)")

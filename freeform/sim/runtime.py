@@ -34,7 +34,10 @@ def ensure(arch: str = "auto") -> str:
         if arch == "cuda" and got != "cuda":
             # Taichi silently fell back to the CPU; the caller asked for a GPU, so say so.
             ti.reset()
-            raise RuntimeError("arch='cuda' requested but Taichi found no usable CUDA device")
+            raise RuntimeError(
+                "arch='cuda' requested but Taichi found no usable CUDA device (no driver or GPU visible); "
+                "use arch='cpu', or arch='auto' to take CUDA where it exists and the CPU elsewhere"
+            )
         if arch == "auto" and got != "cuda":
             warnings.warn("freeform.sim: no CUDA device found, simulating on the CPU", RuntimeWarning, stacklevel=3)
         _active = got
