@@ -32,7 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from freeform.render import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, _as_numpy_grid, _exposed
+from freeform.voxels import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, check_recording, exposed
+from freeform.voxels import as_grid as _as_numpy_grid
 
 if TYPE_CHECKING:
     from freeform.sim import Recording, SimConfig
@@ -273,9 +274,7 @@ def history_string(recording: Recording, robot: int = 0, colors: tuple[RGB, ...]
     ``rescale``: positions are written in units of ``rescale`` metres (voxcraft's own files use 0.001, i.e. mm);
     ``decimals``: digits after the point of positions and angles. Step numbers are frame indices.
     """
-    from freeform.render import _check_recording
-
-    _check_recording(recording, robot)
+    check_recording(recording, robot)
     if not rescale > 0:
         raise ValueError(f"rescale must be > 0, got {rescale}")
     pos = np.asarray(recording.positions[robot], dtype=np.float64) / rescale  # [F, n, 3]
@@ -396,7 +395,7 @@ def voxel_mesh(body: torch.Tensor | np.ndarray, voxel_size: float = 1.0) -> Mesh
     offsets = np.rint((FACE_CORNERS + 1.0) / 2.0).astype(np.int64)  # unit-cube corners of each face, CCW outside
     cells_l, corners_l, mats_l = [], [], []
     for d, n in enumerate(FACE_NORMALS):
-        cells = np.argwhere(_exposed(solid, solid, n))
+        cells = np.argwhere(exposed(solid, solid, n))
         cells_l.append(cells)
         corners_l.append(cells[:, None, :] + offsets[d][None])
         mats_l.append(g[tuple(cells.T)])
