@@ -32,13 +32,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from freeform.voxels import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, check_recording, exposed
-from freeform.voxels import as_grid as _as_numpy_grid
+from freeform.body import crop as crop_to_bounding_box
+from freeform.voxels import (
+    FACE_CORNERS,
+    FACE_NORMALS,
+    PAPER_COLORS,
+    RGB,
+    as_grid,
+    check_recording,
+    exposed,
+    material_rgb,
+)
 
 if TYPE_CHECKING:
     from freeform.sim import Recording, SimConfig
-
-RGB = tuple[float, float, float]
 
 MATERIAL_NAMES = ("Passive", "MuscleA", "MuscleB")
 """Palette names of materials 1-3 in exported files (the paper's passive tissue and two muscles)."""
@@ -51,20 +58,15 @@ def _default_sim_config() -> SimConfig:
 
 
 def _crop(grid: np.ndarray) -> np.ndarray:
-    """The grid cut to the bounding box of its non-empty voxels (the lowest layer then touches the floor)."""
-    nz = np.argwhere(grid > 0)
-    if len(nz) == 0:
+    """The grid cut to its bounding box (``freeform.body.crop``), so the lowest layer touches the floor as the
+    simulator places a body; an empty body is an error here, since the file would hold nothing."""
+    if not grid.any():
         raise ValueError("body is empty: nothing to export")
-    lo, hi = nz.min(axis=0), nz.max(axis=0) + 1
-    return grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    return crop_to_bounding_box(torch.from_numpy(np.ascontiguousarray(grid))).numpy()
 
 
 def _material_name(m: int) -> str:
     return MATERIAL_NAMES[m - 1] if m - 1 < len(MATERIAL_NAMES) else f"Material{m}"
-
-
-def _color(m: int, colors: tuple[RGB, ...]) -> RGB:
-    return colors[(m - 1) % len(colors)]
 
 
 # ------------------------------------------------------------------------------------------------ VXD / VXA
@@ -79,7 +81,7 @@ def vxd_string(body: torch.Tensor | np.ndarray, sim_config: SimConfig | None = N
     """The VXD text of ``body`` (uint8 ``[X, Y, Z]``); ``crop``: cut to its bounding box first, as the simulator
     does, so the lowest layer rests on the floor. Phase offsets come from ``sim_config.materials`` (default: the
     paper's)."""
-    g = _as_numpy_grid(body, "body", 3)
+    g = as_grid(body, "body", 3)
     if crop:
         g = _crop(g)
     if g.max(initial=0) > 74:  # ASCII_READABLE: '0' + index must stay a printable, non-markup character
@@ -164,7 +166,7 @@ def vxa_string(sim_config: SimConfig | None = None, colors: tuple[RGB, ...] = PA
     cfg = sim_config if sim_config is not None else _default_sim_config()
     palette = []
     for i, m in enumerate(cfg.materials, start=1):
-        r, g, b = _color(i, colors)
+        r, g, b = material_rgb(i, colors)
         palette.append(
             f'      <Material ID="{i}">\n'
             f"        <Name>{_material_name(i)}</Name>\n"
@@ -285,7 +287,7 @@ def history_string(recording: Recording, robot: int = 0, colors: tuple[RGB, ...]
     half = float(recording.voxel_size) / 2.0 / rescale
     lines = [f"{{{{{{setting}}}}}}<rescale>{rescale:g}</rescale>"]
     for m in sorted({int(v) for v in mats}):
-        r, g, b = _color(m, colors)
+        r, g, b = material_rgb(m, colors)
         lines.append(f"{{{{{{setting}}}}}}<matcolor><id>{m}</id><r>{r:.2f}</r><g>{g:.2f}</g><b>{b:.2f}</b>"
                      "<a>1.00</a></matcolor>")
     lines.append(f"{{{{{{setting}}}}}}<voxel_size>{float(recording.voxel_size):g}</voxel_size>")
@@ -388,7 +390,7 @@ def voxel_mesh(body: torch.Tensor | np.ndarray, voxel_size: float = 1.0) -> Mesh
     get their own vertex at the edge's midpoint and are fanned from their centres — the surface pinches apart
     there instead of crossing itself, and the enclosed volume is unchanged.
     """
-    g = _as_numpy_grid(body, "body", 3)
+    g = as_grid(body, "body", 3)
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be > 0, got {voxel_size}")
     solid = g > 0
@@ -457,10 +459,9 @@ def write_obj(path: str | Path, body: torch.Tensor | np.ndarray, voxel_size: flo
     path.parent.mkdir(parents=True, exist_ok=True)
     mtl = path.with_suffix(".mtl")
     used = sorted({int(m) for m in mesh.materials})
-    mtl.write_text("".join(
-        f"newmtl {_material_name(m)}\nKd {' '.join(f'{c:.4f}' for c in _color(m, colors))}\nKa 0 0 0\nd 1\n\n"
-        for m in used
-    ), encoding="ascii")
+    kd = {m: " ".join(f"{c:.4f}" for c in material_rgb(m, colors)) for m in used}
+    mtl.write_text("".join(f"newmtl {_material_name(m)}\nKd {kd[m]}\nKa 0 0 0\nd 1\n\n" for m in used),
+                   encoding="ascii")
     lines = [f"# freeform voxel body: {len(mesh.vertices)} vertices, {len(mesh.faces)} triangles",
              f"mtllib {mtl.name}", "o body"]
     lines += [f"v {x:.6g} {y:.6g} {z:.6g}" for x, y, z in mesh.vertices.tolist()]
@@ -505,15 +506,14 @@ def _chunk(tag: bytes, content: bytes, children: bytes = b"") -> bytes:
 def write_vox(path: str | Path, body: torch.Tensor | np.ndarray, colors: tuple[RGB, ...] = PAPER_COLORS) -> Path:
     """Write ``body`` as a MagicaVoxel ``.vox`` (version 150): colour index = material, palette entries 1..
     coloured as the paper's materials; returns the path."""
-    g = _as_numpy_grid(body, "body", 3)
+    g = as_grid(body, "body", 3)
     if max(g.shape) > 256:
         raise ValueError(f".vox models are at most 256 voxels on a side, got {g.shape}")
     cells = np.argwhere(g > 0)
     xyzi = np.concatenate([cells, g[tuple(cells.T)][:, None]], axis=1).astype(np.uint8)
     palette = np.full((256, 4), 200, dtype=np.uint8)
     palette[:, 3] = 255
-    for m in range(1, 256):  # RGBA entry i is colour index i + 1
-        palette[m - 1, :3] = np.rint(255 * np.asarray(_color(m, colors)))
+    palette[:255, :3] = np.rint(255 * material_rgb(np.arange(1, 256), colors))  # RGBA entry i: colour index i + 1
     size = _chunk(b"SIZE", struct.pack("<iii", *g.shape))
     voxels = _chunk(b"XYZI", struct.pack("<i", len(cells)) + xyzi.tobytes())
     rgba = _chunk(b"RGBA", palette.tobytes())
@@ -567,7 +567,7 @@ def export_body(path: str | Path, body: torch.Tensor | np.ndarray, sim_config: S
     suffix = Path(path).suffix.lower()
     if suffix not in BODY_FORMATS:
         raise ValueError(f"path must end in one of {BODY_FORMATS}, got {Path(path).name!r}")
-    g = _crop(_as_numpy_grid(body, "body", 3))
+    g = _crop(as_grid(body, "body", 3))
     if suffix == ".vxd":
         return write_vxd(path, g, sim_config, crop=False)
     if suffix == ".vox":
