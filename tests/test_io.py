@@ -197,6 +197,74 @@ def test_stl_and_obj_parse_back(tmp_path) -> None:
     assert "newmtl Passive" in mtl and "newmtl MuscleB" in mtl and "Kd 0.1300 0.4200 0.9300" in mtl
 
 
+STL_RECORD = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+
+
+def stl_facets(path) -> tuple[np.ndarray, np.ndarray]:
+    """The stored facet normals ``[T, 3]`` and triangles ``[T, 3, 3]`` of a binary STL, read from the bytes (read_stl
+    drops the normals, so it cannot be the one to check them)."""
+    data = path.read_bytes()
+    (n,) = struct.unpack_from("<I", data, 80)
+    assert len(data) == 84 + STL_RECORD.itemsize * n
+    record = np.frombuffer(data, dtype=STL_RECORD, count=n, offset=84)
+    return record["normal"].astype(np.float64), record["v"].astype(np.float64)
+
+
+def stl_bodies() -> list[np.ndarray]:
+    """A hollow cube (its cavity walls face inwards), two voxels touching only along an edge (the fanned, pinched
+    faces), and random bodies."""
+    hollow = np.ones((4, 4, 4), dtype=np.uint8)
+    hollow[1:3, 1:3, 1:3] = 0
+    pinched = np.zeros((2, 2, 1), dtype=np.uint8)
+    pinched[0, 0, 0], pinched[1, 1, 0] = 1, 2
+    randoms = [largest_component(torch.from_numpy(random_grid(s, (7, 7, 7), 0.45))[None])[0].numpy() for s in (0, 1)]
+    return [hollow, pinched, *randoms]
+
+
+def test_stl_facet_normals_are_unit_and_follow_the_right_hand_winding(tmp_path) -> None:
+    for i, body in enumerate(stl_bodies()):
+        normal, v = stl_facets(write_stl(tmp_path / f"b{i}.stl", body, 0.01))
+        np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
+        winding = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        winding /= np.linalg.norm(winding, axis=1, keepdims=True)
+        assert np.all(np.einsum("ti,ti->t", normal, winding) > 1 - 1e-6)
+
+
+def test_stl_facet_normals_point_out_of_the_solid(tmp_path) -> None:
+    """A quarter voxel along the stored normal from a facet's centroid is empty space (or off the grid), a quarter
+    voxel against it is a voxel of the body; and the divergence theorem with the stored normals,
+    V = Σ area · (centroid · n) / 3, gives the voxel count."""
+    L = 0.01
+    for i, body in enumerate(stl_bodies()):
+        normal, v = stl_facets(write_stl(tmp_path / f"b{i}.stl", body, L))
+        centroid = v.mean(axis=1) / L  # voxel units: voxel (i, j, k) fills [i, i+1]×[j, j+1]×[k, k+1]
+        padded = np.pad(body > 0, 1)  # off the grid is empty; indices shift by one
+        outside = np.floor(centroid + 0.25 * normal).astype(np.int64) + 1
+        inside = np.floor(centroid - 0.25 * normal).astype(np.int64) + 1
+        assert not padded[tuple(outside.T)].any()
+        assert padded[tuple(inside.T)].all()
+        area = np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1) / 2
+        volume = float(np.sum(area * np.einsum("ti,ti->t", v.mean(axis=1), normal)) / 3)
+        assert volume == pytest.approx(float((body > 0).sum()) * L**3, rel=1e-5)
+
+
+def test_stl_reads_in_trimesh_as_a_closed_volume_with_its_stored_normals(tmp_path) -> None:
+    """trimesh as an independent reader: its STL parser's normals equal those it computes from the winding, and
+    the welded triangles are a watertight, consistently wound mesh of positive volume (outward winding)."""
+    trimesh = pytest.importorskip("trimesh")
+    from trimesh.exchange.stl import load_stl
+
+    L = 0.01
+    for i, body in enumerate(stl_bodies()):
+        with write_stl(tmp_path / f"b{i}.stl", body, L).open("rb") as f:
+            parsed = load_stl(f)
+        mesh = trimesh.Trimesh(vertices=parsed["vertices"], faces=parsed["faces"], process=True)
+        assert len(mesh.faces) == len(parsed["faces"])
+        assert mesh.is_watertight and mesh.is_winding_consistent and mesh.is_volume
+        assert mesh.volume == pytest.approx(float((body > 0).sum()) * L**3, rel=1e-5)
+        np.testing.assert_allclose(parsed["face_normals"], mesh.face_normals, atol=1e-6)
+
+
 # ------------------------------------------------------------------------------------------------ .vox
 
 
