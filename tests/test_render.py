@@ -271,6 +271,22 @@ def test_gait_video_from_the_simulator(tmp_path) -> None:
     assert gif.size == (48, 48) and gif.n_frames >= 6  # 0.3 s at 20 fps, plus the t = 0 frame
 
 
+def test_simulator_cache_builds_one_short_simulator_per_settings_and_arch() -> None:
+    from freeform.render import SimulatorCache
+    from freeform.sim import SimConfig
+
+    cache = SimulatorCache()
+    base = SimConfig()
+    short = cache.get(base, 1.5, "cpu")
+    assert (short.config.burn_in, short.config.duration, short.arch) == (0.0, 1.5, "cpu")
+    assert (base.burn_in, base.duration) == (SimConfig().burn_in, SimConfig().duration)  # the caller's is untouched
+    assert cache.get(SimConfig(), 1.5, "cpu") is short  # equal settings in another object: the same simulator
+    assert cache.get(base, 2.0, "cpu") is not short and cache.get(base, 1.5, "auto") is not short
+    assert len(cache) == 3
+    cache.clear()
+    assert len(cache) == 0
+
+
 def test_cli_renders_a_run_directory(tmp_path, capsys) -> None:
     """``freeform-render`` on a run with one design record: PNGs of the picks, a sheet, exports, a gait video."""
     from freeform.io import read_vxd
