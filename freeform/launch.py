@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from freeform._conf_dir import conf_dir
 from freeform.agents.distributed import env_slice, launch_env
 from freeform.config import TrainConfig, ppo_config
 
@@ -96,8 +97,10 @@ def _sbatch_script(launcher: dict[str, Any], jobs: int) -> str:
     return _make_sbatch_string(command=command, folder=folder, **params)
 
 
-def dry_run(argv: Sequence[str], config_dir: str | os.PathLike[str]) -> str:
-    """The dry-run report of ``freeform-train *argv`` (text): jobs, per-rank splits and the launch command."""
+def dry_run(argv: Sequence[str], config_dir: str | os.PathLike[str] | None = None) -> str:
+    """The dry-run report of ``freeform-train *argv`` (text): jobs, per-rank splits and the launch command.
+
+    ``config_dir``: the Hydra configs to compose (default: :func:`freeform._conf_dir.conf_dir`, freeform-train's)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.utils import setup_globals
@@ -112,6 +115,7 @@ def dry_run(argv: Sequence[str], config_dir: str | os.PathLike[str]) -> str:
     launcher: dict[str, Any] = {}
     previous: list[str] = []
     setup_globals()  # Hydra's ``now`` resolver, used by the sweep directory
+    config_dir = conf_dir() if config_dir is None else config_dir
     with initialize_config_dir(config_dir=str(Path(config_dir).resolve()), version_base="1.3", job_name="train"):
         for i, job in enumerate(jobs):
             with_hydra = compose("config", overrides=_strip_dry_run(job), return_hydra_config=True)

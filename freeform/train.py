@@ -42,6 +42,7 @@ import torch
 from omegaconf import OmegaConf
 
 import freeform
+from freeform._conf_dir import conf_dir
 from freeform.agents import distributed
 from freeform.checkpoint import (
     CHECKPOINT_DIR,
@@ -71,7 +72,7 @@ from freeform.records import EpisodeCollector, EpochRecord, write_record
 
 log = logging.getLogger("freeform.train")
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = conf_dir()  # the installed package data or the checkout's conf/ (freeform/_conf_dir.py)
 RUN_INFO = "run_info.json"
 
 # ------------------------------------------------------------------------------------------------ task registry
