@@ -27,6 +27,7 @@ from freeform.render import (
     RenderConfig,
     VideoConfig,
     contact_sheet,
+    gait_simulator,
     render_grid,
     render_grids,
     render_recording,
@@ -250,7 +251,6 @@ def _run(args: argparse.Namespace) -> int:
     if args.video or args.history:
         if not (bodies[first] > 0).any():
             raise ValueError(f"body #{first} is empty: nothing to simulate")
-        from freeform.render import gait_simulator
         from freeform.sim import SimConfig
 
         base = sim_config if sim_config is not None else SimConfig()
