@@ -8,6 +8,11 @@ never a half-written one. :func:`load_checkpoint` turns any failure to read a fi
 
 Checkpoints are loaded with ``torch.load(weights_only=True)``: they hold only tensors, numbers, strings and
 containers (RNG states are converted to tensors), so loading a file cannot run code.
+
+This is the one checkpoint path: ``PPO.save``/``PPO.load`` and the trainer's run checkpoints both go through
+:func:`save_checkpoint`/:func:`load_checkpoint`. A PPO checkpoint holds ``policy_class``, ``policy_kwargs``,
+``ppo_config``, ``epoch``, ``global_step`` and ``ppo`` (``PPO.state_dict()``); a run checkpoint adds the run's
+``config``, ``collector`` and ``rng``. Files of earlier versions are upgraded on load (:func:`_upgrade`).
 """
 
 from __future__ import annotations
@@ -24,11 +29,17 @@ import torch
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 FORMAT = "freeform-checkpoint"
-VERSION = 1
+VERSION = 2
+"""2: per-environment state named under ``per_env`` keys; PPO files in the common format (1: shapes decided)."""
+_PPO_FORMAT_V1 = "freeform.ppo/1"  # PPO.save's own format before version 2
 
 
-class CheckpointError(RuntimeError):
-    """A checkpoint file is missing, truncated, corrupt or not a freeform checkpoint."""
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, truncated, corrupt, not a freeform checkpoint, or does not fit."""
+
+
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """There is no checkpoint file at the path."""
 
 
 def numbered_name(epoch: int) -> str:
@@ -88,7 +99,7 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     """
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"checkpoint {path} does not exist{_siblings(path)}")
+        raise CheckpointNotFoundError(f"checkpoint {path} does not exist{_siblings(path)}")
     try:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises a variety (RuntimeError, EOFError, UnpicklingError, ...)
@@ -98,11 +109,49 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         raise CheckpointError(
             f"checkpoint {path} is unreadable (truncated or corrupt?): {type(exc).__name__}: {cause}{_siblings(path)}"
         ) from exc
+    if isinstance(state, dict) and state.get("format") == _PPO_FORMAT_V1:
+        return _upgrade_ppo_v1(state)
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not a freeform checkpoint (no format={FORMAT!r} key)")
-    if state.get("version") != VERSION:
-        raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads {VERSION}")
+    if state.get("version") not in range(1, VERSION + 1):
+        raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads 1 to {VERSION}")
+    return _upgrade(state)
+
+
+def _upgrade(state: dict[str, Any]) -> dict[str, Any]:
+    """A run checkpoint of any earlier version in today's layout."""
+    if state["version"] == 1 and isinstance(state.get("ppo"), dict):
+        state = {**state, "version": VERSION, "ppo": _name_per_env_v1(state["ppo"])}
+        state.setdefault("policy_class", "freeform.agents.networks:VoxelActorCritic")  # the trainer's only network
     return state
+
+
+def _upgrade_ppo_v1(old: dict[str, Any]) -> dict[str, Any]:
+    """``PPO.save``'s version-1 file (its own format) in the common layout."""
+    ppo = _name_per_env_v1(old["state"])
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "policy_class": old["policy_class"],
+        "policy_kwargs": old["policy_kwargs"],
+        "ppo_config": old["config"],
+        "epoch": ppo["epoch"],
+        "global_step": ppo["global_step"],
+        "ppo": ppo,
+    }
+
+
+def _name_per_env_v1(ppo: dict[str, Any]) -> dict[str, Any]:
+    """Version 1 kept PPO's per-environment tensors at the top of its state (and the design env's grids at the top
+    of the env's state, with ``config.num_envs``); version 2 names them under ``per_env``."""
+    names = ("obs", "episode_return", "episode_length")
+    out = {k: v for k, v in ppo.items() if k not in names}
+    out["per_env"] = {k: ppo[k] for k in names}
+    env = ppo.get("env")
+    if isinstance(env, dict) and "grids" in env:
+        config = {k: v for k, v in env.get("config", {}).items() if k != "num_envs"}
+        out["env"] = {**{k: v for k, v in env.items() if k != "grids"}, "config": config, "per_env": {"grids": env["grids"]}}
+    return out
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
@@ -165,6 +214,7 @@ __all__ = [
     "CHECKPOINT_DIR",
     "LAST",
     "CheckpointError",
+    "CheckpointNotFoundError",
     "capture_rng_state",
     "load_checkpoint",
     "numbered_name",

@@ -66,7 +66,7 @@ from freeform.config import (
     to_dataclass,
     validate,
 )
-from freeform.envs.base import Task, VecEnv
+from freeform.envs.base import ReportsStats, Task, VecEnv
 from freeform.logger import Logger
 from freeform.records import EpisodeCollector, EpochRecord, write_record
 
@@ -94,38 +94,47 @@ def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
 
 @register_task("volume")
 def _volume_task(cfg: TrainConfig, device: torch.device) -> Task:
-    from freeform.envs import VolumeTask  # type: ignore[attr-defined]
+    from freeform.envs import VolumeTask
 
     return VolumeTask(**cfg.task.options)
 
 
 @register_task("locomotion")
 def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
-    try:
-        from freeform.envs import LocomotionTask  # type: ignore[attr-defined]
-    except ImportError as exc:
-        raise ValueError(
-            "task.name=locomotion needs freeform.envs.LocomotionTask, which this version of freeform does not have yet"
-        ) from exc
-    return LocomotionTask(sim=cfg.sim, device=device, **cfg.task.options)
+    from freeform.envs import LocomotionTask
+
+    # The simulator runs where the run does: no silent CPU fallback under a GPU run (resolve_device checked CUDA).
+    arch = "cuda" if device.type == "cuda" else "cpu"
+    return LocomotionTask(sim=cfg.sim, device=device, arch=arch, **cfg.task.options)
 
 
 def build_task(cfg: TrainConfig, device: torch.device) -> Task:
+    """The run's task from the registry, checked against the :class:`freeform.envs.Task` protocol."""
     if cfg.task.name not in TASKS:
         raise ValueError(f"task.name must be one of {sorted(TASKS)}, got {cfg.task.name!r}")
-    return TASKS[cfg.task.name](cfg, device)
+    task = TASKS[cfg.task.name](cfg, device)
+    if not isinstance(task, Task):
+        raise ValueError(f"task.name={cfg.task.name!r} built a {type(task).__name__}, which has no reward(final_grids)")
+    return task
 
 
 # ------------------------------------------------------------------------------------------------ building a run
 
 
-def resolve_device(name: str) -> torch.device:
-    """``trainer.device`` -> a torch device (``auto``: CUDA when available, else CPU)."""
+def resolve_device(name: str, experiment: str | None = None) -> torch.device:
+    """``trainer.device`` -> a torch device (``auto``: CUDA when available, else CPU; ``cuda``: this process's
+    current GPU, which is the rank's own under torchrun, see ``distributed.pin_local_gpu``).
+
+    A run that asks for CUDA where there is none stops here with one line naming the override that runs it on the
+    CPU anyway (the paper's GPU presets set ``trainer.device: cuda``)."""
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"trainer.device={name!r} but CUDA is not available here; use trainer.device=cpu or auto")
+        what = f"experiment={experiment} is meant for a GPU (trainer.device={name})" if experiment else f"trainer.device={name}"
+        raise ValueError(f"{what} but no CUDA device is available here; add trainer.device=cpu to run it on the CPU anyway")
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
     return device
 
 
@@ -145,7 +154,7 @@ def build(
     data-parallel run, :func:`freeform.agents.distributed.env_slice`); default all of them.
     """
     from freeform.agents import PPO, VoxelActorCritic
-    from freeform.envs import DesignEnv  # type: ignore[attr-defined]
+    from freeform.envs import DesignEnv
 
     seed_everything(cfg.seed)
     lo, hi = envs if envs is not None else (0, cfg.env.num_envs)
@@ -318,12 +327,11 @@ class TrainResult:
 
 
 def _checkpoint_state(cfg: TrainConfig, ppo: Any, collector: EpisodeCollector) -> dict[str, Any]:
+    """A run checkpoint: PPO's own (``PPO.load`` reads it) plus the run's config, records cursor and global RNGs.
+    A collective in a data-parallel run (the state is gathered)."""
     return {
-        "epoch": ppo.epoch,
-        "global_step": ppo.global_step,
+        **ppo.checkpoint(),
         "config": to_container(cfg),
-        "policy_kwargs": dict(getattr(ppo.policy, "init_kwargs", {})),
-        "ppo": ppo.state_dict(),
         "collector": collector.state_dict(),
         "rng": capture_rng_state(),
         "freeform": freeform.__version__,
@@ -356,7 +364,6 @@ def train(
         if distributed.is_main_process():
             print(describe_split(cfg, distributed.world_size()), flush=True)
         return TrainResult(run_dir=run_dir, epochs=0, global_step=0, history=[])
-    parallel = distributed.is_distributed()
     main_rank = distributed.is_main_process()
     state: dict[str, Any] | None = None
     if cfg.trainer.resume:
@@ -372,11 +379,8 @@ def train(
 
     if cfg.trainer.threads:
         torch.set_num_threads(cfg.trainer.threads)
-    device = resolve_device(cfg.trainer.device)
-    if parallel and device.type == "cuda":
-        device = torch.device("cuda", torch.cuda.current_device())  # the rank's own GPU (pin_local_gpu)
-    envs = distributed.env_slice(cfg.env.num_envs, distributed.world_size(), distributed.rank()) if parallel else None
-    env, policy, ppo = build(cfg, device, envs)
+    device = resolve_device(cfg.trainer.device, cfg.name)
+    env, policy, ppo = build(cfg, device, distributed.env_slice(cfg.env.num_envs, distributed.world_size(), distributed.rank()))
     collector = EpisodeCollector()
     if state is not None:
         ppo.load_state_dict(state["ppo"])  # data-parallel: each rank takes its slice of the saved environments
@@ -430,14 +434,12 @@ def train(
         while ppo.epoch < cfg.trainer.epochs:
             stats = dict(ppo.train_epoch())
             # The task's own figures of the epoch's scoring (LocomotionTask: perf/sim_seconds, voxel-steps/s).
-            task_stats = getattr(env.task, "stats", None) or {}
-            stats.update(distributed.reduce_task_stats(task_stats, device) if parallel else task_stats)
+            if isinstance(env.task, ReportsStats):
+                stats.update(ppo.dp.reduce_stats(env.task.stats))
             epoch = ppo.epoch - 1
             t0 = time.perf_counter()
-            if parallel:  # the records and body metrics are of the global batch: rank 0 gets every rank's episodes
-                rollout, episode_infos = distributed.gather_rollout(ppo.rollout, ppo.episode_infos, ppo.dp)
-            else:
-                rollout, episode_infos = ppo.rollout, ppo.episode_infos
+            # The records and body metrics are of the global batch: every rank's episodes.
+            rollout, episode_infos = ppo.dp.gather_rollout(ppo.rollout, ppo.episode_infos)
             if logger is not None:
                 episodes = collector.collect(rollout, episode_infos)
                 body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}

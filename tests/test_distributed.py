@@ -21,8 +21,8 @@ import torch.multiprocessing as mp
 from helpers import run_cli as cli  # tests/helpers.py
 from helpers import scalars
 
-from freeform.agents import PPO, PPOConfig, VoxelActorCritic
-from freeform.agents.distributed import DataParallel, env_slice, shard_per_env
+from freeform.agents import MLPActorCritic, PPO, PPOConfig, VoxelActorCritic
+from freeform.agents.distributed import Collectives, DataParallel, env_slice
 from freeform.envs import DesignEnv
 from freeform.records import read_record
 
@@ -155,18 +155,93 @@ def test_local_indices_pick_this_ranks_samples_in_minibatch_order() -> None:
     assert local0.tolist() == [0, 3]  # (0,0) -> 0, (1,0) -> 3
 
 
-def test_shard_per_env_slices_global_state_and_counts() -> None:
+def test_shard_state_slices_only_what_is_named_per_env() -> None:
+    """Per-environment state is named (under ``per_env``), never guessed from a shape: a weight matrix or an RNG
+    state whose first dimension equals the env count is left whole."""
     dp = DataParallel(rank=1, world_size=2, counts=(3, 2))
     state = {
-        "obs": torch.arange(5 * 2).reshape(5, 2),
-        "generator": torch.zeros(7, dtype=torch.uint8),
-        "env": {"grids": torch.arange(5), "t": 3, "config": {"num_envs": 5, "resolution": 6}},
+        "per_env": {"obs": torch.arange(5 * 2).reshape(5, 2)},
+        "policy": {"w": torch.arange(5 * 3).reshape(5, 3)},  # 5 rows, like the global env count: not per env
+        "generator": torch.zeros(5, dtype=torch.uint8),
+        "env": {"per_env": {"grids": torch.arange(5)}, "t": 3, "config": {"resolution": 6}},
     }
-    local = shard_per_env(state, dp)
-    assert local["obs"].tolist() == [[6, 7], [8, 9]]
+    local = dp.shard_state(state)
+    assert local["per_env"]["obs"].tolist() == [[6, 7], [8, 9]]
+    assert torch.equal(local["policy"]["w"], state["policy"]["w"])
     assert torch.equal(local["generator"], state["generator"])
-    assert local["env"]["grids"].tolist() == [3, 4]
-    assert local["env"]["config"] == {"num_envs": 2, "resolution": 6} and local["env"]["t"] == 3
+    assert local["env"]["per_env"]["grids"].tolist() == [3, 4]
+    assert local["env"]["config"] == {"resolution": 6} and local["env"]["t"] == 3
+    with pytest.raises(ValueError, match=r"per_env\.obs.*global env count 5"):
+        dp.shard_state({"per_env": {"obs": torch.zeros(4, 2)}})
+    # The single-process collectives are the identity.
+    single = Collectives.single(5)
+    assert single.shard_state(state) == state and single.gather_state(state) == state
+
+
+class ToyEnv:
+    """Points on a line pushed by the action: obs = position [N, 2], reward = −|position|, episodes of 3 steps.
+    Its state names its per-environment part (``per_env``)."""
+
+    def __init__(self, num_envs: int) -> None:
+        self.num_envs, self.observation_shape, self.action_dim, self.device = num_envs, (2,), 2, torch.device("cpu")
+        self.pos, self.t = torch.zeros(num_envs, 2), 0
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        self.pos, self.t = torch.zeros(self.num_envs, 2), 0
+        return self.pos.clone()
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        self.pos = self.pos + 0.1 * actions.clamp(-1, 1)
+        self.t += 1
+        reward = -self.pos.norm(dim=1)
+        done = torch.full((self.num_envs,), self.t % 3 == 0)
+        return self.pos.clone(), reward, done, {}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"per_env": {"pos": self.pos.clone()}, "t": self.t}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.pos, self.t = state["per_env"]["pos"].clone(), int(state["t"])
+
+
+def _named_state_worker(rank: int, world: int, init_file: str, out_dir: str, local_envs: int, hidden: int) -> None:
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        torch.manual_seed(0)
+        cfg = PPOConfig(rollout_steps=2, num_sgd_iter=2, sgd_minibatch_size=min(4096, local_envs), seed=1, lr=1e-2)
+        ppo = PPO(ToyEnv(local_envs), MLPActorCritic(2, 2, hidden=(hidden, hidden)), cfg)
+        ppo.train_epoch()
+        ppo.save(Path(out_dir) / "two_ranks.pt")  # collective; rank 0 writes
+        if rank == 0:
+            torch.save({"policy": ppo.policy.state_dict(), "optimizer": ppo.optimizer.state_dict(),
+                        "generator": ppo.generator.get_state()}, Path(out_dir) / "rank0.pt")
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
+    os._exit(0)
+
+
+@pytest.mark.parametrize("case", ["hidden width = local envs", "generator state length = local envs"])
+def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(tmp_path: Path, case: str) -> None:
+    """The data-loss bug: deciding per-environment state by shape stacked the two ranks' identical weights (and
+    Adam moments, or the generator state) when a dimension happened to equal the local env count."""
+    if case.startswith("hidden"):
+        local_envs = hidden = 4
+    else:
+        local_envs, hidden = torch.Generator().get_state().numel(), 8
+    mp.spawn(_named_state_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), local_envs, hidden), nprocs=2, join=True)
+    rank0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    loaded = PPO.load(tmp_path / "two_ranks.pt", ToyEnv(2 * local_envs))
+    assert loaded.num_envs == 2 * local_envs and loaded.env.pos.shape == (2 * local_envs, 2)
+    for name, tensor in rank0["policy"].items():
+        assert torch.equal(loaded.policy.state_dict()[name], tensor), name
+    want, got = rank0["optimizer"]["state"], loaded.optimizer.state_dict()["state"]
+    assert want.keys() == got.keys()
+    for key in want:
+        for name in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(got[key][name], want[key][name]), (key, name)
+    assert torch.equal(loaded.generator.get_state(), rank0["generator"])
 
 
 # ---------------------------------------------------------------------------------------------------------------

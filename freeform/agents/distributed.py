@@ -20,10 +20,14 @@ slice on its own device; what the update needs from the other slices is exchange
 
 With the same seed, R ranks and one process therefore differ only by floating-point summation order.
 
-State (checkpoints) is kept global: :func:`gather_per_env` concatenates per-environment tensors over ranks and
-:func:`shard_per_env` slices them back, so a checkpoint written with R ranks resumes with any other R. The
-convention: inside a state or ``info`` mapping, a tensor whose first dimension is the local environment count is
-per-environment; an int under the key ``num_envs`` is the environment count.
+State (checkpoints) is kept global: :meth:`Collectives.gather_state` concatenates the per-environment tensors over
+ranks and :meth:`Collectives.shard_state` slices them back, so a checkpoint written with R ranks resumes with any
+other R. Per-environment state is named: the tensors under a ``per_env`` key (:data:`PER_ENV`), nothing else —
+never guessed from a shape. Every tensor of an env's ``info`` is per environment (the ``VecEnv`` protocol).
+
+All of this sits behind one object, :class:`Collectives`: its single-process version (``Collectives.single``) is
+the identity, :class:`DataParallel` the process-group version, :func:`collectives` picks one. PPO calls its
+methods unconditionally and so reads as the single-process algorithm.
 
 :func:`init_from_env` creates the process group from ``torchrun``'s (or a SLURM job's) environment variables.
 """
@@ -33,17 +37,13 @@ from __future__ import annotations
 import atexit
 import datetime
 import os
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 import torch.distributed as dist
 import torch.nn as nn
-
-ENV_COUNT_KEY = "num_envs"
-"""Key of an environment count inside an env's ``state_dict()`` (gathered -> global, sharded -> local)."""
-
 
 def env_slice(num_envs: int, world_size: int, rank: int) -> tuple[int, int]:
     """The environments ``[lo, hi)`` of ``rank`` among ``world_size`` ranks: contiguous slices in rank order whose
@@ -184,8 +184,13 @@ def broadcast_object(obj: Any, src: int = 0) -> Any:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# The data-parallel layer PPO uses.
+# The collectives PPO and the trainer use: the identity in one process, torch.distributed across ranks.
 # ---------------------------------------------------------------------------------------------------------------
+
+PER_ENV = "per_env"
+"""Key of the per-environment part of a state mapping: every tensor below it is ``[num_envs, ...]`` (local on a
+rank, global in a checkpoint). Per-environment state is *named*: a tensor elsewhere is never split or stacked over
+ranks, whatever its shape (policy weights and Adam moments can share their first dimension with the env count)."""
 
 
 def _wire(x: torch.Tensor) -> torch.Tensor:
@@ -193,12 +198,26 @@ def _wire(x: torch.Tensor) -> torch.Tensor:
     return x.to(torch.uint8) if x.dtype == torch.bool else x
 
 
-@dataclass
-class DataParallel:
-    """The collectives of one data-parallel PPO run, for a rank holding environments ``[lo, hi)`` of ``num_envs``.
+def _map_per_env(obj: Any, fn: Callable[[torch.Tensor, str], torch.Tensor], path: str = "", inside: bool = False) -> Any:
+    """``obj`` with ``fn(tensor, path)`` applied to every tensor under a :data:`PER_ENV` key (at any depth)."""
+    if isinstance(obj, torch.Tensor):
+        return fn(obj, path) if inside else obj
+    if isinstance(obj, Mapping):
+        return {k: _map_per_env(v, fn, f"{path}.{k}" if path else str(k), inside or k == PER_ENV) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        items = [_map_per_env(v, fn, f"{path}[{i}]", inside) for i, v in enumerate(obj)]
+        return items if isinstance(obj, list) else tuple(items)
+    return obj
 
-    Build it with :meth:`from_local` (every rank at once: it all-gathers the local counts). ``counts[r]`` is rank
-    r's environment count; slices are contiguous in rank order.
+
+@dataclass
+class Collectives:
+    """Every collective PPO and the trainer need, for a process holding environments ``[lo, hi)`` of ``num_envs``.
+
+    This class is the single-process version: ``Collectives.single(n)`` holds all ``n`` environments and every
+    method is the identity (or the plain single-process formula), so the algorithm reads as one process.
+    :class:`DataParallel` implements the same methods over a ``torch.distributed`` process group; build the right
+    one with :func:`collectives`. ``counts[r]`` is rank r's environment count; slices are contiguous in rank order.
     """
 
     rank: int
@@ -206,13 +225,8 @@ class DataParallel:
     counts: tuple[int, ...]
 
     @classmethod
-    def from_local(cls, local_envs: int, device: torch.device) -> DataParallel:
-        """Collective: learn every rank's environment count from the local one."""
-        size = dist.get_world_size()
-        mine = torch.tensor([local_envs], dtype=torch.int64, device=device)
-        counts = [torch.zeros_like(mine) for _ in range(size)]
-        dist.all_gather(counts, mine)
-        return cls(rank=dist.get_rank(), world_size=size, counts=tuple(int(c.item()) for c in counts))
+    def single(cls, num_envs: int) -> Collectives:
+        return cls(rank=0, world_size=1, counts=(num_envs,))
 
     @property
     def num_envs(self) -> int:
@@ -231,31 +245,147 @@ class DataParallel:
     def local_envs(self) -> int:
         return self.counts[self.rank]
 
-    # -- minibatches -----------------------------------------------------------------------------------------------
+    @property
+    def is_writer(self) -> bool:
+        """Rank 0: the one process that writes files (checkpoints, logs, records)."""
+        return self.rank == 0
+
+    # -- acting ----------------------------------------------------------------------------------------------------
+
+    def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """N(0, 1) noise for this process's environments, shaped like ``like [n_local, A]``, from ``generator``."""
+        return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
+
+    def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
+        """Give every rank rank ``src``'s parameters and buffers (identical starting weights)."""
+
+    # -- update ----------------------------------------------------------------------------------------------------
+
+    def local_share(self, idx: torch.Tensor, *per_sample: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Global flat sample indices ``idx [M]`` of a minibatch (into ``[T, N]`` flattened, ``g = t·N + n``) and
+        tensors aligned with them -> this process's share: ``(local indices into its [T, n_local] rollout, *those
+        tensors' matching entries)``, in minibatch order."""
+        return (idx, *per_sample)
+
+    def minibatch_mean(self, x: torch.Tensor, size: int) -> torch.Tensor:
+        """This process's part of the mean of a per-sample quantity over a global minibatch of ``size`` samples."""
+        return x.mean()
+
+    def all_reduce_grads_(self, params: Sequence[nn.Parameter]) -> None:
+        """Sum the gradients over ranks (after each backward)."""
+
+    def sum_(self, x: torch.Tensor) -> torch.Tensor:
+        """In-place sum over ranks; returns ``x``."""
+        return x
+
+    # -- global views ----------------------------------------------------------------------------------------------
+
+    def gather_envs(self, x: torch.Tensor, dim: int = 0) -> torch.Tensor:
+        """Every rank's per-environment tensor concatenated along ``dim`` (``[.., n_r, ..]`` -> ``[.., N, ..]``)."""
+        return x
+
+    def gather_varlen(self, x: torch.Tensor) -> torch.Tensor:
+        """Every rank's 1-D tensor of any length, concatenated in rank order."""
+        return x
+
+    def shard_envs(self, x: torch.Tensor, dim: int = 0) -> torch.Tensor:
+        """This rank's slice ``[lo, hi)`` of a global per-environment tensor along ``dim``."""
+        if x.shape[dim] != self.num_envs:
+            raise ValueError(f"shard_envs: dim {dim} of a {list(x.shape)} tensor is not the global env count {self.num_envs}")
+        return x.narrow(dim, self.lo, self.local_envs)
+
+    def gather_state(self, state: Mapping[str, Any]) -> dict[str, Any]:
+        """A state mapping with every tensor under a :data:`PER_ENV` key made global (concatenated over ranks);
+        all else is rank 0's (the same on every rank). A collective: every rank passes an alike state."""
+        return _map_per_env(state, self._gather_named)
+
+    def shard_state(self, state: Mapping[str, Any]) -> dict[str, Any]:
+        """Inverse of :meth:`gather_state`: this rank's slice of every tensor under a :data:`PER_ENV` key (each must
+        hold the global env count; the error names the key). No communication."""
+        return _map_per_env(state, self._shard_named)
+
+    def gather_rollout(self, rollout: Any, episode_infos: list[dict[str, Any]]) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
+        """The global view of an epoch's rollout for records: ``actions [T, N, A]``, ``values``, ``rewards``,
+        ``dones [T, N]``, and ``episode_infos`` whose tensors (per environment, by the ``VecEnv`` protocol) are
+        gathered. Environments must finish in lock-step across ranks (the design env's episodes all end at T)."""
+        view = {name: getattr(rollout, name) for name in ("actions", "values", "rewards", "dones")}
+        return view, episode_infos
+
+    def reduce_stats(self, stats: Mapping[str, float]) -> dict[str, float]:
+        """A per-rank figure over all ranks: times (``*seconds*``) by max (ranks run in parallel), else by sum."""
+        return dict(stats)
+
+    def _gather_named(self, x: torch.Tensor, key: str) -> torch.Tensor:
+        self._check_envs(x, key, self.local_envs, "local")
+        return x
+
+    def _shard_named(self, x: torch.Tensor, key: str) -> torch.Tensor:
+        self._check_envs(x, key, self.num_envs, "global")
+        return x
+
+    @staticmethod
+    def _check_envs(x: torch.Tensor, key: str, count: int, which: str) -> None:
+        if x.dim() == 0 or x.shape[0] != count:
+            raise ValueError(f"per-environment state {key!r} has shape {list(x.shape)}; its first dimension must be "
+                             f"the {which} env count {count}")
+
+
+@dataclass
+class DataParallel(Collectives):
+    """:class:`Collectives` over the ranks of a ``torch.distributed`` process group (the rules: module docstring).
+
+    Build it with :meth:`from_local` (every rank at once: it all-gathers the local counts).
+    """
+
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    """Where this rank's collectives run (its PPO device)."""
+    _grad_buffer: torch.Tensor | None = field(default=None, repr=False, compare=False)
+
+    @classmethod
+    def from_local(cls, local_envs: int, device: torch.device) -> DataParallel:
+        """Collective: learn every rank's environment count from the local one."""
+        size = dist.get_world_size()
+        mine = torch.tensor([local_envs], dtype=torch.int64, device=device)
+        counts = [torch.zeros_like(mine) for _ in range(size)]
+        dist.all_gather(counts, mine)
+        return cls(rank=dist.get_rank(), world_size=size, counts=tuple(int(c.item()) for c in counts), device=device)
+
+    def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """The global batch's noise ``[N, A]`` drawn on every rank, this rank's rows kept: env n gets the same draw
+        whatever the rank count, and every rank's generator stays where a single process's would be."""
+        if like.shape[0] != self.local_envs:
+            raise ValueError(f"in a data-parallel run, obs must hold this rank's {self.local_envs} envs, got {like.shape[0]}")
+        noise = torch.randn((self.num_envs, *like.shape[1:]), generator=generator, device=like.device, dtype=like.dtype)
+        return noise[self.lo : self.hi]
+
+    def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
+        with torch.no_grad():
+            for tensor in list(module.parameters()) + list(module.buffers()):
+                dist.broadcast(tensor.data, src=src)
 
     def local_indices(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Global flat sample indices ``idx [M]`` (into ``[T, N]`` flattened, ``g = t·N + n``) -> ``(mask [M] bool,
-        local [m])``: which of them this rank holds, and their flat indices into its ``[T, n_r]`` rollout (in the
-        minibatch's order)."""
+        """Global flat sample indices ``idx [M]`` -> ``(mask [M] bool, local [m])``: which of them this rank holds,
+        and their flat indices into its ``[T, n_r]`` rollout (in the minibatch's order)."""
         n = self.num_envs
         t, env = idx // n, idx % n
         mask = (env >= self.lo) & (env < self.hi)
         return mask, t[mask] * self.local_envs + (env[mask] - self.lo)
 
-    # -- collectives -----------------------------------------------------------------------------------------------
+    def local_share(self, idx: torch.Tensor, *per_sample: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        mask, local = self.local_indices(idx)
+        return (local, *(x[mask] for x in per_sample))
 
-    def all_reduce_sum_(self, x: torch.Tensor) -> torch.Tensor:
-        """In-place sum over ranks; returns ``x``."""
-        dist.all_reduce(x, op=dist.ReduceOp.SUM)
-        return x
+    def minibatch_mean(self, x: torch.Tensor, size: int) -> torch.Tensor:
+        # A rank's share of the global minibatch mean: the sum over its samples / the global minibatch size. Summed
+        # over ranks (the gradients by all_reduce_grads_, the logged sums by sum_) it is the global mean.
+        return x.sum() / size
 
-    def all_reduce_grads(self, params: Iterable[nn.Parameter], buffer: torch.Tensor | None = None) -> torch.Tensor:
-        """Sum every parameter's gradient over ranks as **one** flat buffer (one collective per SGD step); a missing
-        gradient counts as zeros. Returns the buffer (pass it back in to reuse its memory)."""
-        params = list(params)
+    def all_reduce_grads_(self, params: Sequence[nn.Parameter]) -> None:
+        """One flat buffer, one collective per SGD step; a missing gradient counts as zeros."""
         total = sum(p.numel() for p in params)
+        buffer = self._grad_buffer
         if buffer is None or buffer.numel() != total:
-            buffer = torch.empty(total, dtype=params[0].dtype, device=params[0].device)
+            buffer = self._grad_buffer = torch.empty(total, dtype=params[0].dtype, device=params[0].device)
         offset = 0
         for p in params:
             part = buffer[offset : offset + p.numel()]
@@ -273,17 +403,13 @@ class DataParallel:
             else:
                 p.grad.copy_(part)
             offset += p.numel()
-        return buffer
 
-    def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
-        """Copy rank ``src``'s parameters and buffers into every rank's ``module`` (identical starting weights)."""
-        with torch.no_grad():
-            for tensor in list(module.parameters()) + list(module.buffers()):
-                dist.broadcast(tensor.data, src=src)
+    def sum_(self, x: torch.Tensor) -> torch.Tensor:
+        dist.all_reduce(x, op=dist.ReduceOp.SUM)
+        return x
 
     def gather_envs(self, x: torch.Tensor, dim: int = 0) -> torch.Tensor:
-        """Concatenate every rank's per-environment tensor along its environment dimension ``dim`` (``[.., n_r,
-        ..]`` -> ``[.., N, ..]``), in rank order, on every rank. Uneven slices are padded on the wire."""
+        """Uneven slices are padded on the wire; the result is on every rank, on ``x``'s device."""
         if x.shape[dim] != self.local_envs:
             raise ValueError(f"gather_envs: dim {dim} of a {list(x.shape)} tensor is not the local env count {self.local_envs}")
         moved = _wire(x).movedim(dim, 0)
@@ -297,7 +423,6 @@ class DataParallel:
         return out.to(x.dtype)
 
     def gather_varlen(self, x: torch.Tensor) -> torch.Tensor:
-        """Concatenate every rank's 1-D tensor of any length, in rank order, on every rank."""
         length = torch.tensor([x.shape[0]], dtype=torch.int64, device=x.device)
         lengths = [torch.zeros_like(length) for _ in range(self.world_size)]
         dist.all_gather(lengths, length)
@@ -311,103 +436,58 @@ class DataParallel:
         dist.all_gather(parts, padded)
         return torch.cat([p[:s] for p, s in zip(parts, sizes, strict=True)]).to(x.dtype)
 
-    def shard_envs(self, x: torch.Tensor, dim: int = 0) -> torch.Tensor:
-        """This rank's slice ``[lo, hi)`` of a global per-environment tensor along ``dim``."""
-        if x.shape[dim] != self.num_envs:
-            raise ValueError(f"shard_envs: dim {dim} of a {list(x.shape)} tensor is not the global env count {self.num_envs}")
-        return x.narrow(dim, self.lo, self.local_envs)
+    def _gather_named(self, x: torch.Tensor, key: str) -> torch.Tensor:
+        self._check_envs(x, key, self.local_envs, "local")
+        return self.gather_envs(x).to(x.device)  # gloo moves CPU tensors, NCCL CUDA ones: keep each where it is
+
+    def _shard_named(self, x: torch.Tensor, key: str) -> torch.Tensor:
+        self._check_envs(x, key, self.num_envs, "global")
+        return self.shard_envs(x).clone()
+
+    def gather_rollout(self, rollout: Any, episode_infos: list[dict[str, Any]]) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
+        count = torch.tensor([len(episode_infos)], dtype=torch.int64, device=rollout.rewards.device)
+        low, high = count.clone(), count.clone()
+        dist.all_reduce(low, op=dist.ReduceOp.MIN)
+        dist.all_reduce(high, op=dist.ReduceOp.MAX)
+        if int(low.item()) != int(high.item()):
+            raise ValueError(
+                "distributed records need environments that finish in lock-step on every rank; "
+                f"ranks finished episodes at {int(low.item())}..{int(high.item())} steps of this rollout"
+            )
+        view = {name: self.gather_envs(getattr(rollout, name), dim=1) for name in ("actions", "values", "rewards", "dones")}
+        # By the VecEnv protocol every tensor of an info is per environment: the whole info is gathered.
+        return view, [self.gather_state({PER_ENV: info})[PER_ENV] for info in episode_infos]
+
+    def reduce_stats(self, stats: Mapping[str, float]) -> dict[str, float]:
+        if not stats:
+            return {}
+        device = self.device
+        keys = sorted(stats)
+        values = torch.tensor([float(stats[k]) for k in keys], dtype=torch.float64, device=device)
+        is_time = torch.tensor(["seconds" in k for k in keys], device=device)
+        summed, maxed = values.clone(), values.clone()
+        dist.all_reduce(summed, op=dist.ReduceOp.SUM)
+        dist.all_reduce(maxed, op=dist.ReduceOp.MAX)
+        return {k: float(v) for k, v in zip(keys, torch.where(is_time, maxed, summed).tolist(), strict=True)}
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# Per-environment state: gather to global (checkpoints, records), shard back to local (resume).
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def gather_per_env(obj: Any, dp: DataParallel) -> Any:
-    """Collective: ``obj`` (nested dicts/lists/tuples of tensors and plain values) with every per-environment tensor
-    (first dimension = the local env count) concatenated over ranks and ``num_envs`` counts made global. Every rank
-    must pass structurally equal objects; plain values are rank 0's (they are the same on every rank)."""
-    if isinstance(obj, torch.Tensor):
-        if obj.dim() >= 1 and obj.shape[0] == dp.local_envs:
-            device = obj.device
-            # gloo moves CPU tensors only; NCCL CUDA ones: keep each tensor where it is.
-            return dp.gather_envs(obj).to(device)
-        return obj
-    if isinstance(obj, Mapping):
-        out = {}
-        for key, value in obj.items():
-            if key == ENV_COUNT_KEY and isinstance(value, int) and not isinstance(value, bool):
-                out[key] = dp.num_envs
-            else:
-                out[key] = gather_per_env(value, dp)
-        return out
-    if isinstance(obj, (list, tuple)):
-        items = [gather_per_env(v, dp) for v in obj]
-        return type(obj)(items) if isinstance(obj, list) else tuple(items)
-    return obj
-
-
-def shard_per_env(obj: Any, dp: DataParallel) -> Any:
-    """Inverse of :func:`gather_per_env`: this rank's slice of every global per-environment tensor (first dimension
-    = the global env count) and ``num_envs`` counts made local. No communication."""
-    if isinstance(obj, torch.Tensor):
-        if obj.dim() >= 1 and obj.shape[0] == dp.num_envs:
-            return dp.shard_envs(obj).clone()
-        return obj
-    if isinstance(obj, Mapping):
-        out = {}
-        for key, value in obj.items():
-            if key == ENV_COUNT_KEY and isinstance(value, int) and not isinstance(value, bool):
-                out[key] = dp.local_envs
-            else:
-                out[key] = shard_per_env(value, dp)
-        return out
-    if isinstance(obj, (list, tuple)):
-        items = [shard_per_env(v, dp) for v in obj]
-        return type(obj)(items) if isinstance(obj, list) else tuple(items)
-    return obj
-
-
-def gather_rollout(rollout: Any, episode_infos: list[dict[str, Any]], dp: DataParallel) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
-    """Collective: the global view of an epoch's rollout for records — ``actions [T, N, A]``, ``values``,
-    ``rewards [T, N]``, ``dones [T, N]`` — and ``episode_infos`` with their per-environment entries gathered
-    (``final_grids``, ``bodies``, ``metrics``). Environments must finish in lock-step across ranks (the design
-    environment's episodes all end at step T), so every rank has the same number of infos."""
-    count = torch.tensor([len(episode_infos)], dtype=torch.int64, device=rollout.rewards.device)
-    low, high = count.clone(), count.clone()
-    dist.all_reduce(low, op=dist.ReduceOp.MIN)
-    dist.all_reduce(high, op=dist.ReduceOp.MAX)
-    if int(low.item()) != int(high.item()):
-        raise ValueError(
-            "distributed records need environments that finish in lock-step on every rank; "
-            f"ranks finished episodes at {int(low.item())}..{int(high.item())} steps of this rollout"
-        )
-    view = {name: dp.gather_envs(getattr(rollout, name), dim=1) for name in ("actions", "values", "rewards", "dones")}
-    return view, [gather_per_env(info, dp) for info in episode_infos]
-
-
-def reduce_task_stats(stats: Mapping[str, float], device: torch.device) -> dict[str, float]:
-    """Collective: a task's per-rank figures over all ranks — times (``*seconds*``) by max (ranks run in
-    parallel), everything else (counts, per-second rates) by sum. Every rank must report the same keys."""
-    if not stats or not is_distributed():
-        return dict(stats)
-    keys = sorted(stats)
-    values = torch.tensor([float(stats[k]) for k in keys], dtype=torch.float64, device=device)
-    is_time = torch.tensor(["seconds" in k for k in keys], device=device)
-    summed, maxed = values.clone(), values.clone()
-    dist.all_reduce(summed, op=dist.ReduceOp.SUM)
-    dist.all_reduce(maxed, op=dist.ReduceOp.MAX)
-    return {k: float(v) for k, v in zip(keys, torch.where(is_time, maxed, summed).tolist(), strict=True)}
+def collectives(local_envs: int, device: torch.device) -> Collectives:
+    """The collectives of this process: :class:`DataParallel` inside a process group of several ranks (a
+    collective: every rank calls it), else the single-process identity."""
+    if is_distributed():
+        return DataParallel.from_local(local_envs, device)
+    return Collectives.single(local_envs)
 
 
 __all__ = [
+    "PER_ENV",
+    "Collectives",
     "DataParallel",
     "backend",
     "broadcast_object",
+    "collectives",
     "env_slice",
     "export_slurm_env",
-    "gather_per_env",
-    "gather_rollout",
     "init_from_env",
     "is_distributed",
     "is_main_process",
@@ -415,8 +495,6 @@ __all__ = [
     "launch_rank",
     "pin_local_gpu",
     "rank",
-    "reduce_task_stats",
-    "shard_per_env",
     "shutdown",
     "world_size",
 ]

@@ -7,21 +7,19 @@ adapts after every epoch, Adam without gradient clipping. Common variants are sw
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``.
 
-Under ``torch.distributed`` (a process group of R > 1 ranks, e.g. ``torchrun``) each rank's env holds its slice of
-the environments and the update is data-parallel with the statistics of the global batch; the single-process
-arithmetic below is unchanged. The rules are in ``freeform/agents/distributed.py`` (``docs/scaling.md``); in this
-module the distributed branches are the ``if self.dp is not None`` blocks.
+Every collective sits behind ``self.dp`` (``freeform.agents.distributed.Collectives``), the identity in one process:
+the code below is the single-process algorithm. Under ``torch.distributed`` (a process group of R > 1 ranks, e.g.
+``torchrun``) each rank's env holds its slice of the environments, ``self.dp`` is a ``DataParallel`` and the update
+uses the statistics of the global batch; the rules are in ``distributed.py`` (``docs/scaling.md``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import math
 import os
-import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -29,10 +27,11 @@ import torch
 import torch.nn as nn
 
 from freeform.agents import distributed
-from freeform.agents.distributed import DataParallel
+from freeform.agents.distributed import PER_ENV
+from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
+from freeform.validation import is_int, is_number, require
 
-CHECKPOINT_FORMAT = "freeform.ppo/1"
 ADVANTAGE_NORMS = ("batch", "minibatch", "none")
 VALUE_CLIP_MODES = ("squared", "ppo2")
 LR_SCHEDULES = ("constant", "linear")
@@ -83,35 +82,32 @@ class PPOConfig:
     """Epochs over which the "linear" schedule anneals the lr to 0."""
 
     def __post_init__(self) -> None:
-        positive = ("lr", "clip_param", "vf_clip_param", "kl_target")
-        for name in positive:
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
-                raise ValueError(f"PPOConfig.{name} must be > 0, got {getattr(self, name)!r}")
-        for name in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"PPOConfig.{name} must be in [0, 1], got {getattr(self, name)!r}")
-        for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
-            if not getattr(self, name) >= 0.0:
-                raise ValueError(f"PPOConfig.{name} must be >= 0, got {getattr(self, name)!r}")
-        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs"):
+        self.validate("PPOConfig")
+
+    def validate(self, key: str) -> None:
+        """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its range."""
+        for name in ("lr", "clip_param", "vf_clip_param", "kl_target"):
             value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise ValueError(f"PPOConfig.{name} must be an int >= 1, got {value!r}")
-        if self.grad_clip is not None and not self.grad_clip > 0:
-            raise ValueError(f"PPOConfig.grad_clip must be None or > 0, got {self.grad_clip!r}")
-        if not isinstance(self.seed, int):
-            raise ValueError(f"PPOConfig.seed must be an int, got {self.seed!r}")
-        if self.advantage_norm not in ADVANTAGE_NORMS:
-            raise ValueError(f"PPOConfig.advantage_norm must be one of {ADVANTAGE_NORMS}, got {self.advantage_norm!r}")
-        if self.value_clip not in VALUE_CLIP_MODES:
-            raise ValueError(f"PPOConfig.value_clip must be one of {VALUE_CLIP_MODES}, got {self.value_clip!r}")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"PPOConfig.lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+            require(is_number(value) and value > 0, f"{key}.{name}", "> 0", value)
+        for name in ("gamma", "gae_lambda"):
+            value = getattr(self, name)
+            require(is_number(value) and 0.0 <= value <= 1.0, f"{key}.{name}", "in [0, 1]", value)
+        for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
+            value = getattr(self, name)
+            require(is_number(value) and value >= 0.0, f"{key}.{name}", ">= 0", value)
+        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs"):
+            require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
+        require(self.grad_clip is None or (is_number(self.grad_clip) and self.grad_clip > 0), f"{key}.grad_clip",
+                "None or > 0", self.grad_clip)
+        require(is_int(self.seed, -(2**63)), f"{key}.seed", "an int", self.seed)
+        require(self.advantage_norm in ADVANTAGE_NORMS, f"{key}.advantage_norm", f"one of {ADVANTAGE_NORMS}", self.advantage_norm)
+        require(self.value_clip in VALUE_CLIP_MODES, f"{key}.value_clip", f"one of {VALUE_CLIP_MODES}", self.value_clip)
+        require(self.lr_schedule in LR_SCHEDULES, f"{key}.lr_schedule", f"one of {LR_SCHEDULES}", self.lr_schedule)
         if self.device is not None:
             try:
                 torch.device(self.device)
             except (RuntimeError, TypeError) as e:
-                raise ValueError(f"PPOConfig.device must be None or a torch device string, got {self.device!r}") from e
+                raise ValueError(f"{key}.device must be None or a torch device string, got {self.device!r}") from e
 
 
 class Logger(Protocol):
@@ -271,9 +267,10 @@ class PPO:
     ``info`` dicts of the epoch's steps where any env finished an episode, in order). ``global_step`` counts env steps
     over all envs, ``epoch`` the epochs trained, ``kl_coeff`` is the current β.
 
-    Data-parallel when a process group of several ranks exists at construction: ``env`` is this rank's slice of the
-    environments (slices contiguous in rank order), ``dp`` holds the collectives, ``num_envs`` is the global count;
-    ``rollout``/``episode_infos`` stay local (``distributed.gather_rollout`` gives the global view), statistics,
+    ``dp`` holds the collectives (``distributed.Collectives``; the identity in one process). Data-parallel when a
+    process group of several ranks exists at construction: ``env`` is this rank's slice of the environments (slices
+    contiguous in rank order), ``dp`` is a ``DataParallel``, ``num_envs`` is the global count;
+    ``rollout``/``episode_infos`` stay local (``dp.gather_rollout`` gives the global view), statistics,
     ``global_step``, ``state_dict()`` and checkpoints are global. Every rank must call ``train_epoch``,
     ``state_dict``, ``save`` and ``load`` (collectives); only rank 0 writes the file.
     """
@@ -289,13 +286,10 @@ class PPO:
         self.device = torch.device(config.device) if config.device is not None else torch.device(env.device)
         self.policy = policy.to(self.device)
         self.logger = logger
-        # Data-parallel over the ranks of a process group; None = the single-process algorithm.
-        self.dp: DataParallel | None = DataParallel.from_local(env.num_envs, self.device) if distributed.is_distributed() else None
-        if self.dp is not None:
-            self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
-        self.num_envs = self.dp.num_envs if self.dp is not None else env.num_envs
+        self.dp = distributed.collectives(env.num_envs, self.device)
+        self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
+        self.num_envs = self.dp.num_envs
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
-        self._grad_buffer: torch.Tensor | None = None
         self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
@@ -334,17 +328,8 @@ class PPO:
         mean, log_std, value = self.policy(obs)
         if deterministic:
             action = mean
-        elif self.dp is None:
-            noise = torch.randn(mean.shape, generator=self.generator, device=self.device, dtype=mean.dtype)
-            action = mean + torch.exp(log_std) * noise
         else:
-            # The global batch's noise on every rank, this rank's rows kept: env n gets the same draw for any R.
-            if mean.shape[0] != self.dp.local_envs:
-                raise ValueError(
-                    f"in a data-parallel run, obs must hold this rank's {self.dp.local_envs} envs, got {mean.shape[0]}"
-                )
-            noise = torch.randn((self.num_envs, *mean.shape[1:]), generator=self.generator, device=self.device, dtype=mean.dtype)
-            action = mean + torch.exp(log_std) * noise[self.dp.lo : self.dp.hi]
+            action = mean + torch.exp(log_std) * self.dp.env_noise(mean, self.generator)
         return action, gaussian_log_prob(action, mean, log_std), value, mean, log_std
 
     @torch.no_grad()
@@ -394,8 +379,7 @@ class PPO:
 
         returns = torch.cat(finished_returns) if finished_returns else torch.zeros(0, device=self.device)
         lengths = torch.cat(finished_lengths) if finished_lengths else torch.zeros(0, dtype=torch.int64, device=self.device)
-        if self.dp is not None:  # the episodes of every rank
-            returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)
+        returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)  # every rank's episodes
         nan = float("nan")
         return {
             "episode_reward_mean": returns.mean().item() if len(returns) else nan,
@@ -418,23 +402,20 @@ class PPO:
     def update(self) -> dict[str, float]:
         """``num_sgd_iter`` passes of minibatch SGD over ``self.rollout``, then the KL-coefficient update.
 
-        Data-parallel (``self.dp``): the same global permutation and minibatches of ``sgd_minibatch_size`` samples
-        on every rank; each rank computes the samples it holds, divides loss *sums* by the global minibatch size and
-        the gradients are summed over ranks (one flat buffer per step): the global minibatch's mean-loss gradient.
+        Minibatches are drawn from the global batch (``B = T·N`` over all ranks). Data-parallel, every rank draws the
+        same permutation, computes the samples of each minibatch it holds (``dp.local_share``) with loss *sums*
+        divided by the global minibatch size (``dp.minibatch_mean``), and the gradients are summed over ranks
+        (``dp.all_reduce_grads_``): the global minibatch's mean-loss gradient. In one process all three are plain.
         """
         cfg, buf, dp = self.config, self.rollout, self.dp
         batch = buf.rewards.numel()  # this rank's samples
         obs = buf.obs.reshape(batch, *buf.obs.shape[2:])
         actions, old_means, old_log_stds = (x.reshape(batch, -1) for x in (buf.actions, buf.means, buf.log_stds))
         old_logprobs, old_values, returns = buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1)
-        if dp is None:
-            global_batch = batch
-            advantages = buf.advantages.reshape(-1)
-        else:
-            # Every rank holds the global batch's advantages ([T, N], a float per sample): standardisation over the
-            # batch or the minibatch is then the single process's formula on the same numbers.
-            global_batch = cfg.rollout_steps * dp.num_envs
-            advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
+        # The global batch's advantages (a float per sample) on every rank: standardising over the batch or a
+        # minibatch is then the single process's formula on the same numbers.
+        advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
+        global_batch = advantages.numel()
         if cfg.advantage_norm == "batch":
             advantages = standardize(advantages)
 
@@ -446,11 +427,9 @@ class PPO:
         num_minibatches = global_batch // minibatch
         params = [p for p in self.policy.parameters() if p.requires_grad]
 
-        def global_mean(x: torch.Tensor) -> torch.Tensor:
-            """A rank's share of the global minibatch mean: the sum over its samples / the minibatch size."""
-            return x.sum() / minibatch
+        def reduce(x: torch.Tensor) -> torch.Tensor:
+            return dp.minibatch_mean(x, minibatch)
 
-        reduce = torch.mean if dp is None else global_mean
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
         totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss
         self.policy.train()
@@ -461,9 +440,7 @@ class PPO:
                 adv = advantages[idx]
                 if cfg.advantage_norm == "minibatch":
                     adv = standardize(adv)
-                if dp is not None:  # this rank's part of the global minibatch
-                    mask, idx = dp.local_indices(idx)
-                    adv = adv[mask]
+                idx, adv = dp.local_share(idx, adv)
                 self.optimizer.zero_grad(set_to_none=True)
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
                     mean, log_std, value = self.policy(obs.index_select(0, idx))
@@ -483,22 +460,18 @@ class PPO:
                     with torch.no_grad():
                         clip_fraction = reduce(((ratio - 1.0).abs() > cfg.clip_param).float())
                         totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
-                if dp is not None:
-                    self._grad_buffer = dp.all_reduce_grads(params, self._grad_buffer)
+                dp.all_reduce_grads_(params)
                 if cfg.grad_clip is not None:
                     nn.utils.clip_grad_norm_(self.policy.parameters(), cfg.grad_clip)
                 self.optimizer.step()
 
-        if dp is not None:  # each rank summed its shares of the minibatch means: their sum is the global mean
-            dp.all_reduce_sum_(totals)
+        dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
         means = (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
         mean_kl = means[2]
         # RLlib's rule, on the mean KL over every minibatch update of the epoch (the same number on every rank).
         self.kl_coeff = update_kl_coeff(kl_coeff, mean_kl, cfg.kl_target)
-        values, log_stds = buf.values, buf.log_stds
-        if dp is not None:
-            values, log_stds = dp.gather_envs(values, dim=1), dp.gather_envs(log_stds, dim=1)
-            returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
+        values, log_stds = dp.gather_envs(buf.values, dim=1), dp.gather_envs(buf.log_stds, dim=1)
+        returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
         stds = log_stds.exp()
         stats = {
             "policy_loss": means[0],
@@ -561,8 +534,9 @@ class PPO:
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue exactly: policy, optimizer, β, counters, RNG, current obs, env state.
 
-        Data-parallel: a collective; the per-environment parts (obs, episode accumulators, the env's state) are
-        gathered from every rank, so the state is the global one — loadable with any number of ranks.
+        What is per environment is named: it lives under ``per_env`` (``distributed.PER_ENV``; the env's own state
+        names its part the same way). Data-parallel: a collective; the per-environment parts are gathered from
+        every rank, so the state is the global one — loadable with any number of ranks.
         """
         state = {
             "policy": self.policy.state_dict(),
@@ -571,112 +545,97 @@ class PPO:
             "epoch": self.epoch,
             "global_step": self.global_step,
             "generator": self.generator.get_state(),
-            "obs": self.obs,
-            "episode_return": self.episode_return,
-            "episode_length": self.episode_length,
+            PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
         }
         if hasattr(self.env, "state_dict"):
             state["env"] = self.env.state_dict()
-        if self.dp is not None:
-            state = distributed.gather_per_env(state, self.dp)
-        return state
+        return self.dp.gather_state(state)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what ``state_dict()`` returned (the policy and env must be built alike; in a data-parallel run,
         a global state of any rank count: each rank takes its slice of the environments)."""
-        if self.dp is not None:
-            if state["obs"].shape[0] != self.num_envs:
-                raise ValueError(f"the state holds {state['obs'].shape[0]} envs but this run has {self.num_envs}")
-            state = distributed.shard_per_env(state, self.dp)
+        saved_envs = state[PER_ENV]["obs"].shape[0]
+        if saved_envs != self.num_envs:
+            raise ValueError(f"the state holds {saved_envs} envs but this run has {self.num_envs}")
+        state = self.dp.shard_state(state)
         self.policy.load_state_dict(state["policy"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.kl_coeff = float(state["kl_coeff"])
         self.epoch = int(state["epoch"])
         self.global_step = int(state["global_step"])
         self.generator.set_state(state["generator"].cpu())
-        self.obs = state["obs"].to(self.device)
-        self.episode_return = state["episode_return"].to(self.device)
-        self.episode_length = state["episode_length"].to(self.device)
+        per_env = state[PER_ENV]
+        self.obs = per_env["obs"].to(self.device)
+        self.episode_return = per_env["episode_return"].to(self.device)
+        self.episode_length = per_env["episode_length"].to(self.device)
         if "env" in state:
             if not hasattr(self.env, "load_state_dict"):
                 raise ValueError("the state holds an env state but the env has no load_state_dict()")
             self.env.load_state_dict(state["env"])
 
+    def checkpoint(self) -> dict[str, Any]:
+        """A self-describing checkpoint's content: the policy's class name and constructor arguments, this
+        ``PPOConfig`` and the training state (a collective when data-parallel). The trainer's run checkpoints are
+        this plus the run's own parts, so :meth:`load` reads both."""
+        return {
+            "policy_class": policy_class_name(type(self.policy)),
+            "policy_kwargs": dict(getattr(self.policy, "init_kwargs", {})),
+            "ppo_config": dataclasses.asdict(self.config),
+            "epoch": self.epoch,
+            "global_step": self.global_step,
+            "ppo": self.state_dict(),
+        }
+
     def save(self, path: str | os.PathLike) -> None:
-        """Write a self-describing checkpoint atomically (temp file in the same directory, fsync, ``os.replace``).
+        """Write :meth:`checkpoint` atomically (``freeform.checkpoint.save_checkpoint``).
 
         Data-parallel: every rank calls it (the state is gathered); rank 0 writes.
         """
-        path = os.fspath(path)
-        policy_cls = type(self.policy)
-        payload = {
-            "format": CHECKPOINT_FORMAT,
-            "policy_class": f"{policy_cls.__module__}:{policy_cls.__qualname__}",
-            "policy_kwargs": dict(getattr(self.policy, "init_kwargs", {})),
-            "config": dataclasses.asdict(self.config),
-            "state": self.state_dict(),
-        }
-        if self.dp is not None and self.dp.rank != 0:
-            return
-        directory = os.path.dirname(os.path.abspath(path))
-        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=directory)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                torch.save(payload, f)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        try:  # make the rename itself durable
-            dir_fd = os.open(directory, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
-        except OSError:
-            pass
+        payload = self.checkpoint()
+        if self.dp.is_writer:
+            save_checkpoint(path, payload)
 
     @classmethod
-    def load(cls, path: str | os.PathLike, env: VecEnv, logger: Logger | None = None, device: str | None = None) -> PPO:
-        """Rebuild a PPO (policy class + kwargs, config, full training state) from ``save(path)``'s file.
+    def load(
+        cls,
+        path: str | os.PathLike,
+        env: VecEnv,
+        logger: Logger | None = None,
+        device: str | None = None,
+        policy_classes: Sequence[type[nn.Module]] = (),
+    ) -> PPO:
+        """Rebuild a PPO (policy, config, full training state) from a file of :meth:`save` or a run's checkpoint.
 
-        ``device`` overrides the saved ``config.device``. Checkpoints are pickles: load only files you trust.
+        The file names its policy class; it is built only if it is one of freeform's networks or in
+        ``policy_classes`` (the caller's own, allowed explicitly): loading never imports what a file names, and the
+        file itself is read with ``weights_only`` (no code runs). ``device`` overrides the saved ``config.device``.
         Raises ``FileNotFoundError`` for a missing file and ``ValueError`` naming the file for a corrupt or
         incompatible one.
         """
-        path = os.fspath(path)
-        if not os.path.isfile(path):
-            raise FileNotFoundError(f"no PPO checkpoint at {path}")
+        payload = load_checkpoint(path)
+        allowed = {policy_class_name(c): c for c in (*builtin_policies(), *policy_classes)}
         try:
-            payload = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # torch raises many types for a truncated or foreign file
-            raise ValueError(f"{path}: not a readable PPO checkpoint ({type(e).__name__}: {e})") from e
-        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-            found = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
-            raise ValueError(f"{path}: not a PPO checkpoint of format {CHECKPOINT_FORMAT!r} (found {found!r})")
-        try:
-            module_name, qualname = payload["policy_class"].split(":")
-            policy_cls: Any = importlib.import_module(module_name)
-            for part in qualname.split("."):
-                policy_cls = getattr(policy_cls, part)
-            if not (isinstance(policy_cls, type) and issubclass(policy_cls, nn.Module)):
-                raise TypeError(f"{payload['policy_class']} is not an nn.Module")
-            policy = policy_cls(**payload["policy_kwargs"])
-            config_dict = dict(payload["config"])
+            name = payload["policy_class"]
+            if name not in allowed:
+                raise CheckpointError(
+                    f"{path}: its policy class {name!r} is not one of freeform's networks; pass "
+                    f"policy_classes=[<that class>] to PPO.load to build it"
+                )
+            policy = allowed[name](**payload["policy_kwargs"])
+            config_dict = dict(payload["ppo_config"])
             if device is not None:
                 config_dict["device"] = device
             config = PPOConfig(**config_dict)
+        except CheckpointError:
+            raise
         except Exception as e:
-            raise ValueError(f"{path}: cannot rebuild the policy/config ({type(e).__name__}: {e})") from e
-        state = payload["state"]
-        saved_obs = state["obs"]
+            raise CheckpointError(f"{path}: cannot rebuild the policy/config ({type(e).__name__}: {e})") from e
+        state = payload["ppo"]
+        saved_obs = state[PER_ENV]["obs"]
 
         def check_envs(num_envs: int) -> None:
             if saved_obs.shape[0] != num_envs or tuple(saved_obs.shape[1:]) != tuple(env.observation_shape):
-                raise ValueError(
+                raise CheckpointError(
                     f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
                     f"but the env has {num_envs} envs with observations {tuple(env.observation_shape)}"
                 )
@@ -686,10 +645,22 @@ class PPO:
         try:
             ppo = cls(env, policy, config, logger)
         except ValueError as e:
-            raise ValueError(f"{path}: the saved policy does not fit this env ({e})") from e
+            raise CheckpointError(f"{path}: the saved policy does not fit this env ({e})") from e
         check_envs(ppo.num_envs)  # data-parallel: the global count (a collective in the constructor learnt it)
         try:
             ppo.load_state_dict(state)
         except (KeyError, RuntimeError, ValueError) as e:
-            raise ValueError(f"{path}: incompatible training state ({type(e).__name__}: {e})") from e
+            raise CheckpointError(f"{path}: incompatible training state ({type(e).__name__}: {e})") from e
         return ppo
+
+
+def policy_class_name(cls: type) -> str:
+    """How a checkpoint names a policy class: ``module:qualname``."""
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def builtin_policies() -> tuple[type[nn.Module], ...]:
+    """The networks any checkpoint may name (freeform's own)."""
+    from freeform.agents.networks import MLPActorCritic, VoxelActorCritic
+
+    return (VoxelActorCritic, MLPActorCritic)

@@ -1,7 +1,9 @@
-"""The batched-environment protocol that every freeform environment follows (and that PPO consumes)."""
+"""The protocols the rest of freeform relies on: a batched environment (what PPO consumes) and a task (what a
+design is scored by). The trainer checks its env and task against them when it builds a run."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
 
 import torch
@@ -14,7 +16,8 @@ class VecEnv(Protocol):
     ``reset(seed)`` returns the first observations ``[num_envs, *observation_shape]``.
     ``step(actions [num_envs, action_dim])`` returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``.
     When ``done[i]`` the environment resets itself: ``obs[i]`` is the first observation of the next episode, and
-    whatever describes the finished episode travels in ``info``.
+    whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
+    ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).
     """
 
     num_envs: int
@@ -27,9 +30,35 @@ class VecEnv(Protocol):
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]: ...
 
 
+@runtime_checkable
+class StatefulVecEnv(VecEnv, Protocol):
+    """A :class:`VecEnv` that can be checkpointed mid-episode (optional: PPO saves the state of envs that have it).
+
+    ``state_dict()`` names its per-environment tensors: they sit under a ``"per_env"`` key (each ``[num_envs,
+    ...]``), so that a data-parallel checkpoint concatenates exactly those over ranks and nothing else.
+    """
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@runtime_checkable
 class Task(Protocol):
-    """What a design is scored by: one reward per final grid."""
+    """What a design is scored by: one reward per final grid.
+
+    ``reward`` may also take a keyword ``bodies=`` (the grids' largest components, same shape): ``DesignEnv`` then
+    passes the bodies it has already computed instead of labelling the grids twice.
+    """
 
     def reward(self, final_grids: torch.Tensor) -> torch.Tensor:
         """``final_grids``: uint8 ``[N, ρ, ρ, ρ]`` material indices -> float32 ``[N]``."""
         ...
+
+
+@runtime_checkable
+class ReportsStats(Protocol):
+    """A task that reports figures of its last ``reward`` call (TensorBoard tag -> value, e.g. the simulation's
+    ``perf/sim_seconds``); the trainer logs them every epoch (summed over ranks; times by max)."""
+
+    stats: Mapping[str, float]

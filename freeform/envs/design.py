@@ -197,9 +197,10 @@ class DesignEnv:
 
     # ----------------------------------------------------------------------------------------------- checkpoint
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume mid-episode bit for bit: the grids, the step counter and the config."""
+        """Everything needed to resume mid-episode bit for bit: the grids (per environment, so under ``per_env``:
+        a data-parallel checkpoint concatenates them over ranks), the step counter and the configuration."""
         return {
-            "grids": self.grids.clone(),
+            "per_env": {"grids": self.grids.clone()},
             "t": self.t,
             "seed": self.seed,
             "config": self._config(),
@@ -210,11 +211,11 @@ class DesignEnv:
         config = state.get("config")
         if config != self._config():
             raise ValueError(f"state config {config} does not match this environment's {self._config()}")
-        grids = state["grids"]
-        check_grids(grids, self.materials, name="state['grids']")
+        grids = state["per_env"]["grids"]
+        check_grids(grids, self.materials, name="state['per_env']['grids']")
         if tuple(grids.shape) != (self.num_envs, *self.observation_shape):
             raise ValueError(
-                f"state['grids'] must have shape {[self.num_envs, *self.observation_shape]}, got {list(grids.shape)}"
+                f"state['per_env']['grids'] must have shape {[self.num_envs, *self.observation_shape]}, got {list(grids.shape)}"
             )
         t = int(state["t"])
         if not 0 <= t < self.steps:
@@ -224,8 +225,8 @@ class DesignEnv:
         self.seed = state.get("seed")
 
     def _config(self) -> dict[str, Any]:
+        """What must match for a state to load (the env count is the grids' first dimension)."""
         return {
-            "num_envs": self.num_envs,
             "resolution": self.resolution,
             "materials": self.materials,
             "steps": self.steps,
@@ -234,7 +235,7 @@ class DesignEnv:
         }
 
     def __repr__(self) -> str:
-        cfg = ", ".join(f"{k}={v}" for k, v in self._config().items())
+        cfg = ", ".join(f"{k}={v}" for k, v in {"num_envs": self.num_envs, **self._config()}.items())
         return f"DesignEnv({cfg}, task={type(self.task).__name__}, device={self.device})"
 
 

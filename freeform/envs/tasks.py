@@ -2,7 +2,8 @@
 
 A task follows :class:`freeform.envs.base.Task`: ``reward(final_grids [N, ρ, ρ, ρ] uint8) -> [N] float32``. A task
 may also accept a keyword ``bodies=`` (the grids' largest components, ``[N, ρ, ρ, ρ] uint8``); ``DesignEnv``
-passes the bodies it has already computed to such tasks, so they are not labelled twice.
+passes the bodies it has already computed to such tasks, so they are not labelled twice. A task with a ``stats``
+mapping (:class:`freeform.envs.base.ReportsStats`, as ``LocomotionTask``) has its figures logged every epoch.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import torch
 
 from freeform.body import check_grids, largest_component, serial_on_cpu
 
-__all__ = ["VolumeTask"]
+__all__ = ["LocomotionTask", "VolumeTask"]
 
 
 @dataclass
@@ -118,5 +119,3 @@ class LocomotionTask:
         )
         return reward
 
-
-__all__ += ["LocomotionTask"]
