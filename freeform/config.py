@@ -3,8 +3,12 @@
 Hydra composes ``conf/config.yaml`` (groups ``task``, ``env``, ``agent``, ``sim``, ``trainer``, ``experiment``) on
 top of :class:`TrainConfig`, registered as the schema ``train_schema``. Because the schema is a structured config,
 an unknown key (``agent.lrr=1``) or a value of the wrong type (``env.num_envs=abc``) fails while composing, with
-Hydra's message naming the key. Value ranges (``env.resolution=7``) are checked by :func:`validate`, which raises a
-``ValueError`` naming the dotted key and the allowed values.
+Hydra's message naming the key. Value ranges (``env.resolution=7``) are checked by :func:`validate` (each section's
+``validate(key)``, in the one style of ``freeform.validation``), which raises a ``ValueError`` naming the dotted key
+and the allowed values: ``agent.lr must be > 0, got -1``.
+
+One config: the ``agent`` section *is* ``freeform.agents.PPOConfig`` (:class:`AgentConfig` subclasses it and adds
+the network's width), and the ``sim`` section is ``freeform.sim.SimConfig``.
 
 The dataclasses hold the spec's defaults (``docs/training.md`` lists every field); the presets in
 ``conf/experiment/`` are the paper's Table I runs and the CPU demo.
@@ -12,25 +16,16 @@ The dataclasses hold the spec's defaults (``docs/training.md`` lists every field
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-if TYPE_CHECKING:
-    from freeform.agents import PPOConfig
-
-try:  # The simulator's typed config, once freeform.sim provides it (the physics work fills it in).
-    from freeform.sim import SimConfig  # type: ignore[attr-defined]
-except ImportError:  # pragma: no cover - exercised until freeform.sim lands
-
-    @dataclass
-    class SimConfig:  # type: ignore[no-redef]
-        """Placeholder for ``freeform.sim.SimConfig`` (the Voxelyze simulation's parameters).
-
-        It has no fields yet, so ``conf/sim/default.yaml`` is empty and any ``sim.*`` override fails as unknown.
-        """
+from freeform.agents.ppo import PPOConfig
+from freeform.sim import SimConfig
+from freeform.validation import require
 
 
 @dataclass
@@ -62,47 +57,29 @@ class EnvConfig:
 
 
 @dataclass
-class AgentConfig:
-    """PPO and the actor-critic (``conf/agent/``). Every field but ``hidden`` is the ``freeform.agents.PPOConfig``
-    field of the same name (a test keeps the two in step); the run's ``seed`` and ``trainer.device`` fill
-    PPOConfig's ``seed`` and ``device``, and PPOConfig checks the values (errors name ``agent.<field>``)."""
+class AgentConfig(PPOConfig):
+    """PPO and the actor-critic (``conf/agent/``): every field of ``freeform.agents.PPOConfig`` (same names, same
+    meaning, same checks) plus the network's. Three PPO fields take their value from the run when left None."""
 
+    rollout_steps: int | None = None  # type: ignore[assignment]
+    """Steps per environment per epoch; None = env.steps (one episode per environment per epoch, the paper's)."""
+    seed: int | None = None  # type: ignore[assignment]
+    """Seed of PPO's sampling/shuffling generator and ``env.reset``; None = the run's ``seed``."""
+    device: str | None = None
+    """Device of the policy and the rollout storage; None = ``trainer.device``."""
     hidden: int = 128
     """h, width of the trunk's output and of both heads (128 volume, 256 locomotion)."""
-    lr: float = 1e-4
-    """Adam learning rate."""
-    gamma: float = 0.99
-    """Discount γ."""
-    gae_lambda: float = 1.0
-    """GAE λ (1 = the paper's Monte-Carlo advantage G_t − V(s_t))."""
-    clip_param: float = 0.3
-    """PPO ratio clip ε."""
-    kl_coeff: float = 0.2
-    """Initial coefficient β of the KL penalty."""
-    kl_target: float = 0.01
-    """Target KL of the adaptive β."""
-    vf_loss_coeff: float = 1.0
-    """c_v, weight of the value loss."""
-    vf_clip_param: float = 1e5
-    """Clamp on the squared value error (RLlib's vf_clip_param)."""
-    entropy_coeff: float = 0.0
-    """c_e, weight of the entropy bonus."""
-    num_sgd_iter: int = 50
-    """SGD passes over each train batch."""
-    sgd_minibatch_size: int = 128
-    """Samples per minibatch."""
-    rollout_steps: int | None = None
-    """Steps per environment per epoch; None = env.steps (one episode per environment per epoch, the paper's)."""
-    grad_clip: float | None = None
-    """Global gradient-norm clip; None = none (the paper's)."""
-    advantage_norm: str = "batch"
-    """Advantage standardisation: "batch" (once over the train batch, the paper's), "minibatch" or "none"."""
-    value_clip: str = "squared"
-    """"squared": min((V − G)², vf_clip_param) (RLlib, the paper's); "ppo2": PPO2's clipped-V loss."""
-    lr_schedule: str = "constant"
-    """"constant" or "linear" (lr annealed to 0 over ``lr_anneal_epochs``)."""
-    lr_anneal_epochs: int = 500
-    """Epochs of the linear lr schedule."""
+
+    def __post_init__(self) -> None:
+        self.validate("agent")
+
+    def validate(self, key: str) -> None:
+        # The run-filled fields are checked once filled (ppo_config); here only their own ranges.
+        filled = copy.copy(self)
+        filled.rollout_steps = 1 if self.rollout_steps is None else self.rollout_steps
+        filled.seed = 0 if self.seed is None else self.seed
+        PPOConfig.validate(filled, key)
+        require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
 
 
 @dataclass
@@ -149,61 +126,53 @@ class TrainConfig:
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
 
 
-_DEVICE_PREFIXES = ("cuda:",)
 _DEVICES = ("auto", "cpu", "cuda", "mps")
 
 
-def _fail(key: str, allowed: str, value: object) -> None:
-    raise ValueError(f"{key} must be {allowed}, got {value!r}")
+def _validate_env(e: EnvConfig) -> None:
+    require(e.num_envs >= 1, "env.num_envs", "an integer >= 1", e.num_envs)
+    require(e.resolution >= 2 and e.resolution % 2 == 0, "env.resolution",
+            "an even integer >= 2 (the network's stride-2 convolution halves it)", e.resolution)
+    require(e.steps >= 1, "env.steps", "an integer >= 1", e.steps)
+    require(2 <= e.bundle_size <= e.resolution and e.bundle_size % 2 == 0, "env.bundle_size",
+            f"an even integer in [2, env.resolution={e.resolution}]", e.bundle_size)
+    require(e.action_bound > 0, "env.action_bound", "> 0", e.action_bound)
+
+
+def _validate_trainer(t: TrainerConfig) -> None:
+    require(t.epochs >= 0, "trainer.epochs", "an integer >= 0", t.epochs)
+    require(t.device in _DEVICES or (t.device.startswith("cuda:") and t.device[5:].isdigit()), "trainer.device",
+            f"one of {list(_DEVICES)} or 'cuda:<index>'", t.device)
+    for name in ("threads", "checkpoint_every", "render_every", "print_every"):
+        require(getattr(t, name) >= 0, f"trainer.{name}", "an integer >= 0 (0 = off/default)", getattr(t, name))
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Check value ranges the types cannot express; raise ``ValueError`` naming the dotted key. Returns ``cfg``."""
-    e, a, t, k = cfg.env, cfg.agent, cfg.trainer, cfg.task
-    if e.num_envs < 1:
-        _fail("env.num_envs", "an integer >= 1", e.num_envs)
-    if e.resolution < 2 or e.resolution % 2:
-        _fail("env.resolution", "an even integer >= 2 (the network's stride-2 convolution halves it)", e.resolution)
-    if e.steps < 1:
-        _fail("env.steps", "an integer >= 1", e.steps)
-    if not 2 <= e.bundle_size <= e.resolution or e.bundle_size % 2:
-        _fail("env.bundle_size", f"an even integer in [2, env.resolution={e.resolution}]", e.bundle_size)
-    if not e.action_bound > 0:
-        _fail("env.action_bound", "> 0", e.action_bound)
-    if k.materials < 2:
-        _fail("task.materials", "an integer >= 2 (index 0 is empty)", k.materials)
-    if a.hidden < 1:
-        _fail("agent.hidden", "an integer >= 1", a.hidden)
-    ppo_config(cfg, device="cpu")  # PPOConfig checks the rest of the agent section
-    sim_validate = getattr(cfg.sim, "validate", None)
-    if callable(sim_validate):
-        try:
-            sim_validate()
-        except ValueError as exc:
-            raise ValueError(str(exc).replace("SimConfig.", "sim.")) from exc
-    if t.epochs < 0:
-        _fail("trainer.epochs", "an integer >= 0", t.epochs)
-    if t.device not in _DEVICES and not (t.device.startswith(_DEVICE_PREFIXES) and t.device[5:].isdigit()):
-        _fail("trainer.device", f"one of {list(_DEVICES)} or 'cuda:<index>'", t.device)
-    for name in ("threads", "checkpoint_every", "render_every", "print_every"):
-        if getattr(t, name) < 0:
-            _fail(f"trainer.{name}", "an integer >= 0 (0 = off/default)", getattr(t, name))
+    _validate_env(cfg.env)
+    require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
+    cfg.agent.validate("agent")
+    ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
+    try:
+        cfg.sim.validate()
+    except ValueError as exc:
+        raise ValueError(str(exc).replace("SimConfig.", "sim.", 1)) from exc
+    _validate_trainer(cfg.trainer)
     return cfg
 
 
 def ppo_config(cfg: TrainConfig, device: str | None) -> PPOConfig:
-    """The run's ``freeform.agents.PPOConfig``: the ``agent`` section (less ``hidden``), ``rollout_steps`` defaulting
-    to ``env.steps``, the run's ``seed`` and ``device``. A value PPOConfig rejects raises ``ValueError`` naming
-    ``agent.<field>``."""
-    from freeform.agents import PPOConfig
-
-    fields = {f.name: getattr(cfg.agent, f.name) for f in dataclasses.fields(AgentConfig) if f.name != "hidden"}
-    if fields["rollout_steps"] is None:
-        fields["rollout_steps"] = cfg.env.steps
+    """The run's ``freeform.agents.PPOConfig``: the ``agent`` section (less the network's fields) with
+    ``rollout_steps`` defaulting to ``env.steps``, ``seed`` to the run's and ``device`` to ``device``."""
+    agent = cfg.agent
+    values = {f.name: getattr(agent, f.name) for f in dataclasses.fields(PPOConfig)}
+    values["rollout_steps"] = agent.rollout_steps if agent.rollout_steps is not None else cfg.env.steps
+    values["seed"] = agent.seed if agent.seed is not None else cfg.seed
+    values["device"] = agent.device if agent.device is not None else device
     try:
-        return PPOConfig(**fields, seed=cfg.seed, device=device)
+        return PPOConfig(**values)
     except ValueError as exc:
-        raise ValueError(str(exc).replace("PPOConfig.", "agent.")) from exc
+        raise ValueError(str(exc).replace("PPOConfig.", "agent.", 1)) from exc
 
 
 def to_dataclass(cfg: DictConfig | TrainConfig) -> TrainConfig:

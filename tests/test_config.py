@@ -66,11 +66,29 @@ def test_command_line_overrides_win_over_the_preset() -> None:
     assert (cfg.env.num_envs, cfg.agent.lr, cfg.seed) == (8, 3e-4, 7)
 
 
-def test_agent_section_mirrors_ppo_config() -> None:
-    """Every PPOConfig field is settable from the command line, and nothing else is (besides hidden)."""
-    agent = {f.name for f in dataclasses.fields(AgentConfig)}
-    ppo = {f.name for f in dataclasses.fields(PPOConfig)}
-    assert agent - {"hidden"} == ppo - {"seed", "device"}
+def test_agent_section_is_ppo_config() -> None:
+    """One config: the agent section is PPOConfig itself (a subclass adding the network's width), not a copy."""
+    assert issubclass(AgentConfig, PPOConfig)
+    assert [f.name for f in dataclasses.fields(AgentConfig)] == [f.name for f in dataclasses.fields(PPOConfig)] + ["hidden"]
+    # The agent YAML names every field the section has (no field hides behind a dataclass default).
+    yaml_keys = {line.split(":")[0] for line in (Path(CONF_DIR) / "agent" / "ppo.yaml").read_text().splitlines()
+                 if line and not line.startswith("#")}
+    assert yaml_keys == {f.name for f in dataclasses.fields(AgentConfig)}
+
+
+def test_agent_errors_name_the_dotted_key_in_one_style() -> None:
+    with pytest.raises(ValueError, match=r"^agent\.lr must be > 0, got -1\.0$"):
+        composed("agent.lr=-1")
+    with pytest.raises(ValueError, match=r"^PPOConfig\.lr must be > 0, got -1$"):
+        PPOConfig(lr=-1)
+    with pytest.raises(ValueError, match=r"^agent\.hidden must be an int >= 1, got 0$"):
+        composed("agent.hidden=0")
+
+
+def test_agent_seed_and_device_default_to_the_runs() -> None:
+    cfg = composed("seed=5", "agent.seed=9")
+    assert ppo_config(cfg, device="cpu").seed == 9
+    assert ppo_config(composed("seed=5"), device="cpu").seed == 5
 
 
 def test_ppo_config_takes_seed_device_and_default_rollout() -> None:
