@@ -146,3 +146,74 @@ def test_resolve_and_run_dir(tmp_path: Path) -> None:
     assert run_dir_of(run / "checkpoints" / "epoch_000010.pt") == run
     assert run_dir_of(run) == run
     assert run_dir_of(tmp_path / "loose.pt") == tmp_path
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# One path for PPO files and run checkpoints: what a file names is built only if allowed; old files still load.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class _FlatEnv:
+    """Four envs whose observation never changes (enough to build, save and load a PPO)."""
+
+    num_envs, observation_shape, action_dim, device = 4, (3,), 2, torch.device("cpu")
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        return torch.ones(4, 3)
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        return torch.ones(4, 3), torch.zeros(4), torch.zeros(4, dtype=torch.bool), {}
+
+
+class MyPolicy(torch.nn.Module):
+    """A user's own policy class: a checkpoint may name it, but loading builds it only when the caller allows it."""
+
+    built = 0
+
+    def __init__(self, scale: float = 1.0) -> None:
+        super().__init__()
+        MyPolicy.built += 1
+        self.init_kwargs = {"scale": scale}
+        self.body = torch.nn.Linear(3, 5)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = self.body(obs)
+        return out[:, :2], out[:, 2:4], out[:, 4]
+
+
+def test_ppo_files_and_run_checkpoints_share_one_writer_and_a_class_is_built_only_if_allowed(tmp_path: Path) -> None:
+    from freeform.agents import PPO, PPOConfig
+
+    ppo = PPO(_FlatEnv(), MyPolicy(scale=2.0), PPOConfig(rollout_steps=2, sgd_minibatch_size=4, num_sgd_iter=1))
+    ppo.train_epoch()
+    ppo.save(tmp_path / "mine.pt")
+    raw = load_checkpoint(tmp_path / "mine.pt")  # the one loader reads it: weights_only, format and version stamped
+    assert raw["policy_class"].endswith(":MyPolicy") and raw["version"] == ck.VERSION
+    built = MyPolicy.built
+    with pytest.raises(CheckpointError, match=r"mine\.pt: its policy class .*MyPolicy.* policy_classes="):
+        PPO.load(tmp_path / "mine.pt", _FlatEnv())
+    assert MyPolicy.built == built  # nothing named by the file was built
+    loaded = PPO.load(tmp_path / "mine.pt", _FlatEnv(), policy_classes=[MyPolicy])
+    assert loaded.policy.init_kwargs == {"scale": 2.0} and loaded.epoch == 1
+    for name, tensor in ppo.policy.state_dict().items():
+        assert torch.equal(loaded.policy.state_dict()[name], tensor)
+
+
+def test_version_1_files_are_upgraded_on_load(tmp_path: Path) -> None:
+    """Files written before per-environment state was named still load: PPO.save's old format and old run
+    checkpoints (the design env's grids and config.num_envs at the top of its state)."""
+    obs, grids = torch.arange(8.0).reshape(4, 2), torch.zeros(4, 2, 2, 2, dtype=torch.uint8)
+    old_state = {"policy": {}, "optimizer": {}, "kl_coeff": 0.2, "epoch": 3, "global_step": 12,
+                 "generator": torch.zeros(5, dtype=torch.uint8), "obs": obs, "episode_return": torch.zeros(4),
+                 "episode_length": torch.zeros(4, dtype=torch.int64),
+                 "env": {"grids": grids, "t": 1, "seed": 0, "config": {"num_envs": 4, "resolution": 2}}}
+    torch.save({"format": "freeform.ppo/1", "policy_class": "freeform.agents.networks:MLPActorCritic",
+                "policy_kwargs": {}, "config": {"lr": 1e-3}, "state": old_state}, tmp_path / "ppo_v1.pt")
+    ppo_file = load_checkpoint(tmp_path / "ppo_v1.pt")
+    assert ppo_file["ppo_config"] == {"lr": 1e-3} and ppo_file["epoch"] == 3
+    assert torch.equal(ppo_file["ppo"]["per_env"]["obs"], obs) and "obs" not in ppo_file["ppo"]
+    env = ppo_file["ppo"]["env"]
+    assert torch.equal(env["per_env"]["grids"], grids) and env["config"] == {"resolution": 2} and env["t"] == 1
+    torch.save({"format": ck.FORMAT, "version": 1, "epoch": 3, "ppo": old_state, "config": {}}, tmp_path / "run_v1.pt")
+    run = load_checkpoint(tmp_path / "run_v1.pt")
+    assert run["version"] == ck.VERSION and torch.equal(run["ppo"]["per_env"]["episode_length"], old_state["episode_length"])

@@ -182,3 +182,16 @@ def test_console_script_is_installed() -> None:
     assert out.returncode == 0, out.stderr
     for group in ("task:", "env:", "agent:", "trainer:", "experiment:", "paper_volume", "volume_cpu"):
         assert group in out.stdout, group
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given where no CUDA device exists")
+def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path: Path) -> None:
+    from freeform.config import to_dataclass
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(train_mod.CONF_DIR), version_base="1.3"):
+        cfg = to_dataclass(compose(config_name="config", overrides=["experiment=paper_locomotion"]))
+    assert cfg.trainer.device == "cuda"
+    with pytest.raises(ValueError, match=r"experiment=paper_locomotion is meant for a GPU.*add trainer\.device=cpu"):
+        train_mod.train(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # nothing was written
