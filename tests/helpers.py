@@ -10,6 +10,30 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 from freeform import train as train_mod
 
+TINY = {
+    "env.num_envs": 4,
+    "env.resolution": 6,
+    "env.steps": 5,
+    "agent.hidden": 16,
+    "agent.num_sgd_iter": 2,
+    "agent.sgd_minibatch_size": 8,
+    "trainer.progress": "false",
+    "trainer.print_every": 0,
+    "trainer.checkpoint_every": 1,
+    "trainer.threads": 1,
+    "trainer.device": "cpu",
+}
+"""A training run of a few seconds (4 envs of 6³ grids, 5 steps, a 16-wide network), as command-line values."""
+
+
+def tiny(*overrides: str) -> list[str]:
+    """The tiny run's command-line overrides, with ``key=value`` overrides replacing (or adding to) its own."""
+    values: dict[str, object] = dict(TINY)
+    for override in overrides:
+        key, value = override.split("=", 1)
+        values[key] = value
+    return [f"{k}={v}" for k, v in values.items()]
+
 
 def run_cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
     """Run ``freeform-train *args`` in this process (argv and the swept-keys variable restored after the test)."""

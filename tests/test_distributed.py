@@ -19,9 +19,9 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 from helpers import run_cli as cli  # tests/helpers.py
-from helpers import scalars
+from helpers import scalars, tiny
 
-from freeform.agents import MLPActorCritic, PPO, PPOConfig, VoxelActorCritic
+from freeform.agents import PPO, MLPActorCritic, PPOConfig, VoxelActorCritic
 from freeform.agents.distributed import Collectives, DataParallel, env_slice
 from freeform.envs import DesignEnv
 from freeform.records import read_record
@@ -248,19 +248,7 @@ def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(tmp_pa
 # The training app under torchrun: rank 0 writes, the records are the global batch's, resume with another R.
 # ---------------------------------------------------------------------------------------------------------------
 
-TINY = [
-    f"env.num_envs={NUM_ENVS}",
-    f"env.resolution={RHO}",
-    f"env.steps={STEPS}",
-    "agent.hidden=16",
-    "agent.num_sgd_iter=2",
-    "agent.sgd_minibatch_size=6",
-    "trainer.progress=false",
-    "trainer.print_every=1",
-    "trainer.checkpoint_every=1",
-    "trainer.threads=1",
-    "trainer.device=cpu",
-]
+TINY = tiny(f"env.num_envs={NUM_ENVS}", f"env.steps={STEPS}", "agent.sgd_minibatch_size=6", "trainer.print_every=1")
 
 
 def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

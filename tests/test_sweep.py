@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from helpers import run_cli as cli  # tests/helpers.py
+from helpers import tiny
 
 from freeform import train as train_mod
 from freeform.config import TrainConfig
@@ -20,19 +21,7 @@ from freeform.records import read_record
 
 pytestmark = pytest.mark.usefixtures("keep_global_rng")  # tests/conftest.py
 
-TINY = [
-    "env.num_envs=4",
-    "env.resolution=6",
-    "env.steps=5",
-    "agent.hidden=16",
-    "agent.num_sgd_iter=2",
-    "agent.sgd_minibatch_size=8",
-    "trainer.progress=false",
-    "trainer.print_every=0",
-    "trainer.checkpoint_every=0",
-    "trainer.threads=1",
-    "trainer.device=cpu",
-]
+TINY = tiny("trainer.checkpoint_every=0")
 
 
 def test_submitit_local_sweep_over_two_seeds_completes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

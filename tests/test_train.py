@@ -18,24 +18,14 @@ import numpy as np
 import pytest
 import torch
 from helpers import run_cli as cli  # tests/helpers.py
-from helpers import scalars
+from helpers import scalars, tiny
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from freeform import train as train_mod
 from freeform.checkpoint import load_checkpoint
 from freeform.records import iter_records, read_record
 
-TINY = [
-    "env.num_envs=4",
-    "env.resolution=6",
-    "env.steps=5",
-    "agent.hidden=16",
-    "agent.num_sgd_iter=2",
-    "agent.sgd_minibatch_size=8",
-    "trainer.progress=false",
-    "trainer.print_every=0",
-    "trainer.checkpoint_every=1",
-]
+TINY = tiny()
 STEPS_PER_EPOCH = 4 * 5
 
 
@@ -186,8 +176,9 @@ def test_console_script_is_installed() -> None:
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given where no CUDA device exists")
 def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path: Path) -> None:
-    from freeform.config import to_dataclass
     from hydra import compose, initialize_config_dir
+
+    from freeform.config import to_dataclass
 
     with initialize_config_dir(config_dir=str(train_mod.CONF_DIR), version_base="1.3"):
         cfg = to_dataclass(compose(config_name="config", overrides=["experiment=paper_locomotion"]))
