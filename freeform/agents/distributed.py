@@ -45,6 +45,7 @@ import torch
 import torch.distributed as dist
 import torch.nn as nn
 
+
 def env_slice(num_envs: int, world_size: int, rank: int) -> tuple[int, int]:
     """The environments ``[lo, hi)`` of ``rank`` among ``world_size`` ranks: contiguous slices in rank order whose
     sizes differ by at most one (the first ``num_envs % world_size`` ranks hold one more)."""
