@@ -19,24 +19,13 @@ import zipfile
 from pathlib import Path
 
 import pytest
+from helpers import tiny  # tests/helpers.py
 
 REPO = Path(__file__).resolve().parent.parent
 SOURCES = ("pyproject.toml", "README.md", "freeform", "conf")
 """What a build of the wheel reads (pyproject.toml: readme, packages, package-dir)."""
 
-TINY = [
-    "env.num_envs=4",
-    "env.resolution=6",
-    "env.steps=5",
-    "agent.hidden=16",
-    "agent.num_sgd_iter=1",
-    "agent.sgd_minibatch_size=8",
-    "trainer.epochs=1",
-    "trainer.device=cpu",
-    "trainer.threads=1",
-    "trainer.progress=false",
-    "trainer.print_every=0",
-]
+TINY = tiny("agent.num_sgd_iter=1", "trainer.epochs=1", "trainer.checkpoint_every=0")
 
 
 def _run(cmd: list[str | Path], cwd: Path | None = None) -> str:
