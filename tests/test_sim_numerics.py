@@ -14,13 +14,15 @@ from scipy.special import binom
 
 from freeform.sim import SimConfig, runtime
 from freeform.sim.config import MAT_COLUMNS, POISSON_SERIES_TERMS, Material, material_table
-from freeform.sim.kernels import _ATAN_SERIES_X2, _POISSON_SERIES_X, make_kernels
+from freeform.sim.quat import ATAN_SERIES_X2
+from freeform.sim.schedules import make_kernels
+from freeform.sim.voxels import POISSON_SERIES_X
 
 
 def _unit_quaternions(rng: np.random.Generator) -> np.ndarray:
     """(w, x, y, z) float64 [n, 4] with w >= 0: angles from 0 to just under π, dense around the series switch
     (tan(θ/4)² = 0.0256, θ ≈ 0.634 rad) and tiny angles down to 1e-7 rad."""
-    angle_switch = 4 * np.arctan(np.sqrt(_ATAN_SERIES_X2))
+    angle_switch = 4 * np.arctan(np.sqrt(ATAN_SERIES_X2))
     angles = np.concatenate([
         np.geomspace(1e-7, 1e-2, 40),
         np.linspace(0.0, 3.1, 80),
@@ -71,7 +73,7 @@ def test_poisson_series_coefficients_and_accuracy():
     cfg = SimConfig(materials=[Material(poisson=0.35), Material(poisson=0.1), Material(poisson=0.0)])
     t = material_table(cfg)
     pb = np.stack([t[MAT_COLUMNS.index(f"PB{k}")] for k in range(1, POISSON_SERIES_TERMS + 1)])  # [8, n_mat+1]
-    x = np.linspace(-_POISSON_SERIES_X, _POISSON_SERIES_X, 401)
+    x = np.linspace(-POISSON_SERIES_X, POISSON_SERIES_X, 401)
     for j, m in enumerate(cfg.materials, start=1):
         np.testing.assert_allclose(pb[:, j], binom(-m.poisson, np.arange(1, POISSON_SERIES_TERMS + 1)), rtol=1e-14)
         series = sum(pb[k, j] * x ** (k + 1) for k in range(POISSON_SERIES_TERMS))

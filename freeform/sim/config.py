@@ -15,6 +15,8 @@ import numpy as np
 REWARDS = ("max_voxel", "com")
 SEMANTICS = ("voxelyze", "rl4design")
 PRECISIONS = ("f32", "f64")
+# the least step cap accepted: a fixed-dt robot needs floor(T/dt) + 1 steps, and the clock's rounding may add one
+MIN_STEP_CAP = 1.5
 
 
 @dataclass
@@ -55,6 +57,9 @@ class SimConfig:
     floor: floor contact and friction on/off.
     max_strain: a link strain above this marks the robot diverged (VX's check; non-finite states too).
     chunk_steps: steps per kernel launch between host-side checks (per-robot schedule).
+    step_cap: a robot still running after ``step_cap`` × the steps its burn_in + duration take at its initial dt
+        is stopped and flagged stalled (reward 0): under rl4design's dynamic dt a robot whose step collapses
+        would otherwise hold up the whole batch. Healthy robots stay within a few % of their initial dt.
     """
 
     voxel_size: float = 0.01
@@ -75,6 +80,7 @@ class SimConfig:
     floor: bool = True
     max_strain: float = 100.0
     chunk_steps: int = 2000
+    step_cap: float = 3.0
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first field outside its allowed values."""
@@ -103,6 +109,9 @@ class SimConfig:
             raise ValueError(f"SimConfig.temp_period must be > 0, got {self.temp_period}")
         if self.chunk_steps < 1:
             raise ValueError(f"SimConfig.chunk_steps must be >= 1, got {self.chunk_steps}")
+        if not self.step_cap >= MIN_STEP_CAP:
+            raise ValueError(f"SimConfig.step_cap must be >= {MIN_STEP_CAP} (times the protocol's steps; less could "
+                             f"stop healthy robots), got {self.step_cap}")
 
 
 # Column names of the material tables that the kernels read (one column per material index, 0 = empty).

@@ -3,6 +3,11 @@
 ``Simulator`` builds on this; tests and tools use it directly for what the public API does not expose —
 fixed voxels, initial velocities and constant temperatures (all on the ``Layout``), per-step traces,
 link strains. Nothing here loops over voxels in Python.
+
+The arrays' columns are declared in ``state.py``; the Engine fills them by name. The device arrays themselves live in
+a ``DeviceArrays`` that outlives the Engine: a ``Simulator`` keeps one and every batch reuses it, grown only when a
+batch outgrows it, so a long training run stops allocating device memory once its largest batch has been seen
+(Taichi's CUDA pool splits blocks and never merges them: fresh arrays every epoch fragment it).
 """
 
 from __future__ import annotations
@@ -13,7 +18,9 @@ import numpy as np
 
 from freeform.sim import runtime
 from freeform.sim.config import SimConfig, e_hat, link_table, material_table
-from freeform.sim.kernels import (  # noqa: F401  (re-exported)
+from freeform.sim.layout import Layout
+from freeform.sim.schedules import ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
+from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     DIVERGED,
     DONE,
     EV_END,
@@ -23,27 +30,26 @@ from freeform.sim.kernels import (  # noqa: F401  (re-exported)
     GP,
     LI,
     LR,
+    LT,
     MT,
-    NGP,
-    NLI,
-    NLR,
-    NRI,
-    NRT,
-    NVI,
-    NVR,
     RI,
     RT,
     RUNNING,
     SMALL,
+    STALLED,
     STATIC,
-    UNROLL,
+    TABLES,
     VI,
     VR,
-    make_kernels,
+    Table,
 )
-from freeform.sim.layout import Layout
 
-SCHEDULES = ("auto", "robots", "flat")
+__all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
+
+# A batch that outgrows the arrays gets this much room beyond its own size, so a run whose bodies grow slowly
+# reallocates a logarithmic number of times, not every epoch.
+CAPACITY_HEADROOM = 1.25
+INT32_MAX = np.iinfo(np.int32).max
 
 
 def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
@@ -56,7 +62,7 @@ def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
     n_mat = len(cfg.materials) + 1
     L = cfg.voxel_size
     E = np.array([0.0] + [m.E for m in cfg.materials])
-    mass = mt[1]  # MAT_COLUMNS[1] == "MASS"
+    mass = mt[MT.MASS]
     omega2 = np.zeros(layout.num_robots)
     # voxels alone: E·L/m (VX uses this when there are no links)
     np.maximum.at(omega2, layout.voxel_robot, E[layout.material] * L / mass[layout.material])
@@ -64,7 +70,7 @@ def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
         lt = link_table(cfg)
         mn, mp = layout.material[layout.link_neg], layout.material[layout.link_pos]
         k = mn * n_mat + mp
-        nul, El = lt[1, k], lt[0, k]
+        nul, El = lt[LT.NU, k], lt[LT.E, k]
         kax = np.where(nul == 0, El * L, e_hat(El, nul) * L * L / L)
         per_link = kax / np.minimum(mass[mn], mass[mp])
         has_links = np.zeros(layout.num_robots, dtype=bool)
@@ -75,29 +81,77 @@ def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
     return 1.0 / (2 * math.pi * np.sqrt(omega2))
 
 
+class DeviceArrays:
+    """Device arrays kept across Engines: one per state table, precision and memory order, each grown to the
+    largest batch seen (plus ``CAPACITY_HEADROOM``) and never shrunk; items past a batch's own are stale and
+    never read (the kernels' loops are bounded by the batch's counts).
+
+    One Engine uses them at a time: building an Engine claims them, and an older Engine on the same arrays refuses
+    to run or read (its state has been overwritten). ``allocations`` counts the device arrays made.
+    """
+
+    def __init__(self) -> None:
+        self._arrays: dict[tuple[str, str, str], tuple[object, int]] = {}  # key -> (ndarray, capacity)
+        self.allocations = 0
+        self.owner: object | None = None
+
+    def table(self, name: str, table: Table, items: int, precision: str, order: str):
+        """The ndarray of ``table`` (stored as ``name``) with room for at least ``items`` items in ``order``, made or
+        grown as needed: (ndarray, capacity in items)."""
+        key = (name, precision, order)
+        arr, cap = self._arrays.get(key, (None, 0))
+        if arr is None or items > cap:
+            cap = max(1, math.ceil(CAPACITY_HEADROOM * items))
+            dtype = table.np_dtype(precision)
+            if order == "aos":
+                arr = runtime.ndarray(dtype, (cap, table.width), rows_as_vectors=True)
+            else:
+                arr = runtime.ndarray(dtype, (table.width, cap))
+            self.allocations += 1
+            self._arrays[key] = (arr, cap)
+        return arr, cap
+
+    def vector(self, name: str, dtype: np.dtype, length: int):
+        """A plain 1-D ndarray of ``length`` values (parameters, counters), made once."""
+        key = (name, np.dtype(dtype).name, str(length))
+        if key not in self._arrays:
+            self._arrays[key] = (runtime.ndarray(np.dtype(dtype), (length,)), length)
+            self.allocations += 1
+        return self._arrays[key][0]
+
+    def arrays(self) -> dict[tuple[str, str, str], object]:
+        """The ndarrays held now, by (name, precision, order) (tests check reuse through object identity)."""
+        return {k: a for k, (a, _) in self._arrays.items()}
+
+
 class Engine:
     """A batch of robots in Taichi ndarrays. ``advance(n)`` runs n steps of every still-running robot.
 
     schedule: "robots" (one worker per CPU thread taking whole robots from a queue, many steps per launch;
     the CPU default; arrays in "aos" order) or "flat" (one thread per link/voxel/robot; the CUDA default; "soa").
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
+    arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
     """
 
-    def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto"):
+    def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto",
+                 arrays: DeviceArrays | None = None):
         config.validate()
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.arch = runtime.ensure(arch)
-        self.schedule = ("flat" if self.arch == "cuda" else "robots") if schedule == "auto" else schedule
+        self.schedule = resolve_schedule(schedule, self.arch)
         self.layout, self.config = layout, config
         # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one
         # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
-        self.order = "aos" if self.schedule == "robots" else "soa"
+        self.order = ORDER_OF[self.schedule]
+        self.precision = config.precision
         self.kernels = make_kernels(config.precision, self.order)
         self.np_real = np.float64 if config.precision == "f64" else np.float32
         self.ifx = int(config.semantics == "rl4design")
-        self.dyn = int(self.ifx == 1 and config.dt is None)  # rl4design refreshes dt every 10 steps
+        self.dyn = int(self.ifx == 1 and config.dt is None)  # rl4design refreshes dt every few steps
         n, m, R = layout.num_voxels, layout.num_links, layout.num_robots
+        self.counts = {"voxels": n, "links": m, "robots": R, "materials": len(config.materials) + 1,
+                       "material_pairs": (len(config.materials) + 1) ** 2}
         L = config.voxel_size
         mt = material_table(config)
 
@@ -106,13 +160,17 @@ class Engine:
         else:
             dt0 = config.dt_frac * recommended_dt(layout, config)
         self.dt0 = dt0
+        t_end = config.burn_in + config.duration
+        # the step cap: step_cap × the protocol's steps at the initial dt (+1: the first step past t_end)
+        self.max_steps = np.minimum(np.ceil(config.step_cap * t_end / dt0) + 1, INT32_MAX).astype(np.int64)
 
-        vr = np.zeros((NVR, n))
+        host = {name: t.zeros(self.counts[t.items], self.precision) for name, t in TABLES.items()}
+        vr, vi, li, rt, ri = host["vr"], host["vi"], host["li"], host["rt"], host["ri"]
         pos = layout.lattice.astype(np.float64) * L
-        mass = mt[1][layout.material]
-        for c in (VR.POS, VR.POS0, VR.PSTART, VR.PEND, VR.PSAMP, VR.PCS, VR.PCE):
-            vr[c:c + 3] = pos.T
-        vr[VR.MOM:VR.MOM + 3] = (layout.velocity * mass[:, None]).T
+        mass = mt[MT.MASS][layout.material]
+        for c in ("POS", "POS0", "PSTART", "PEND", "PSAMP", "PCS", "PCE"):
+            vr[VR.span(c)] = pos.T
+        vr[VR.span("MOM")] = (layout.velocity * mass[:, None]).T
         vr[VR.ORI] = 1.0
         vr[VR.TBASE] = layout.temp_base
         if self.ifx:
@@ -120,94 +178,108 @@ class Engine:
         else:
             phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
             temp = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)
-        # rest size L·(1 + T·CTE) in the kernels' precision and order of operations (kernels.base_size)
+        # rest size L·(1 + T·CTE) in the kernels' precision and order of operations (voxels.base_size)
         real = self.np_real
         L_v = mt[MT.L][layout.material].astype(real)
         vr[VR.SIZE] = L_v * (real(1.0) + temp.astype(real) * mt[MT.CTE][layout.material].astype(real))
-        # transverse areas before any strain: L² (kernels.transverse); strain sums start at 0
-        vr[VR.TAREA:VR.TAREA + 3] = (L_v * L_v)[None, :]
+        # transverse areas before any strain: L² (voxels.transverse); strain sums start at 0
+        vr[VR.span("TAREA")] = (L_v * L_v)[None, :]
 
-        vi = np.zeros((NVI, n), dtype=np.int32)
         vi[VI.MAT] = layout.material
         vi[VI.ROBOT] = layout.voxel_robot
         # VX starts every voxel in static friction; the paper simulator starts none there
         vi[VI.FLAGS] = np.where(layout.fixed, FIXED, 0) | (0 if self.ifx else STATIC)
-        vi[VI.SLOT:VI.SLOT + 6] = layout.slots.T
+        vi[VI.span("SLOT")] = layout.slots.T
 
-        li = np.zeros((NLI, m), dtype=np.int32)
         li[LI.NEG], li[LI.POS], li[LI.AXIS] = layout.link_neg, layout.link_pos, layout.link_axis
         n_mat = len(config.materials) + 1
         li[LI.LMAT] = layout.material[layout.link_neg] * n_mat + layout.material[layout.link_pos]
         li[LI.FLAGS] = SMALL
 
-        rt = np.zeros((NRT, R))
         rt[RT.DT] = dt0
         # actuation phase of the temperature written during step 0: T(dt) for VX, T(0) for rl4design
         tau = np.zeros(R) if self.ifx else dt0
         rt[RT.SIN] = np.sin(2 * math.pi * tau / config.temp_period)
         rt[RT.COS] = np.cos(2 * math.pi * tau / config.temp_period)
-        ri = np.zeros((NRI, R), dtype=np.int32)
         ri[RI.STATUS] = RUNNING
         ri[RI.VSTART], ri[RI.VEND] = layout.voxel_start[:-1], layout.voxel_start[1:]
         ri[RI.LSTART], ri[RI.LEND] = layout.link_start[:-1], layout.link_start[1:]
         ri[RI.PERIOD] = np.maximum(1, np.floor(config.temp_period / dt0)).astype(np.int32)
-        # step 0's snapshots (kernels.robot_advance decides them for every later step, with the same arithmetic)
-        t_end = config.burn_in + config.duration
+        ri[RI.MAXSTEP] = self.max_steps
+        # step 0's snapshots (clock.robot_advance decides them for every later step, with the same arithmetic)
         t_after = 0.0 + dt0
         ri[RI.EVENTS] = (np.where(1 % ri[RI.PERIOD] == 0, EV_SAMPLE, 0)
                          | np.where((0.0 <= config.burn_in) & (t_after > config.burn_in), EV_START, 0)
                          | np.where((0.0 <= t_end) & (t_after > t_end), EV_END, 0))
+        host["mt"] = mt.astype(real)
+        host["lt"] = link_table(config).astype(real)
 
-        gp = np.zeros(NGP)
+        gp = np.zeros(GP.width)
         gp[GP.BURN_IN] = config.burn_in
-        gp[GP.T_END] = config.burn_in + config.duration
+        gp[GP.T_END] = t_end
         gp[GP.GRAVITY] = config.gravity
         gp[GP.TEMP_AMP] = config.temp_amplitude
         gp[GP.TEMP_PERIOD] = config.temp_period
         gp[GP.DT_FRAC] = config.dt_frac
         gp[GP.MAX_STRAIN] = config.max_strain
 
-        # Taichi ndarrays cannot have a zero-length axis: pad empty batches with one inert column
-        self.vr = self._upload(_pad(vr.astype(real)))
-        self.vi = self._upload(_pad(vi))
-        self.lr = self._upload(_pad(np.zeros((NLR, m), dtype=real)))
-        self.li = self._upload(_pad(li))
-        self.rt = self._upload(rt if R else np.zeros((NRT, 1)))
-        self.ri = self._upload(ri if R else np.full((NRI, 1), DONE, dtype=np.int32))
-        self.mt = self._upload(mt.astype(real))
-        self.lt = self._upload(link_table(config).astype(real))
-        self.gp = runtime.from_numpy(gp)
-        # robots schedule: a work counter, and one worker per CPU thread (per robot on a GPU)
-        self._queue = runtime.from_numpy(np.zeros(1, dtype=np.int32))
-        self._workers = max(1, min(R, runtime.num_threads() if self.arch == "cpu" else R))
+        self._arrays = arrays if arrays is not None else DeviceArrays()
+        self._arrays.owner = self
+        self._dev = {}
+        self._cap = {}
+        for name, t in TABLES.items():
+            self._dev[name], self._cap[name] = self._arrays.table(name, t, self.counts[t.items], self.precision,
+                                                                  self.order)
+            self._upload(name, host[name])
+        self.gp = self._arrays.vector("gp", np.float64, GP.width)
+        runtime.upload(self.gp, gp)
+        # robots schedule: a work counter, and one worker per CPU thread
+        self._queue = self._arrays.vector("queue", np.int32, 1)
+        self._workers = max(1, min(R, runtime.num_threads()))
         self.steps_done = 0
 
     # ------------------------------------------------------------------ host <-> device, in the kernels' order
-    def _upload(self, a: np.ndarray):
-        """A Taichi ndarray holding ``a`` (``[columns, items]``) in this engine's memory order."""
-        if self.order == "aos":
-            return runtime.from_numpy(a.T, rows_as_vectors=True)
-        return runtime.from_numpy(a)
+    def _check_owner(self) -> None:
+        if self._arrays.owner is not self:
+            raise RuntimeError(
+                "this Engine's device arrays were reused by a later Engine (a Simulator reuses one set of arrays "
+                "across batches): read an Engine's results before building the next one from the same Simulator, "
+                "or give each live Engine its own Simulator (or Engine(..., arrays=None))")
 
-    def _download(self, arr) -> np.ndarray:
-        """``[columns, items]`` host copy of an array uploaded by ``_upload``."""
-        a = runtime.to_numpy(arr)
+    def _upload(self, name: str, a: np.ndarray) -> None:
+        """Copy host ``a`` (``[columns, items]`` of table ``name``, items ≤ capacity) into its device array."""
+        self._check_owner()
+        cap = self._cap[name]
+        if a.shape[1] < cap:  # the tail is stale on the device anyway; zeros keep uploads a fixed size
+            a = np.concatenate([a, np.zeros((a.shape[0], cap - a.shape[1]), dtype=a.dtype)], axis=1)
+        runtime.upload(self._dev[name], a.T if self.order == "aos" else a)
+
+    def _download(self, name: str) -> np.ndarray:
+        """Host copy ``[columns, capacity]`` of table ``name`` (items past the batch's own are stale)."""
+        self._check_owner()
+        a = runtime.to_numpy(self._dev[name])
         return a.T if self.order == "aos" else a
+
+    def _table(self, name: str) -> np.ndarray:
+        """Host copy ``[columns, items]`` of table ``name``, this batch's items only."""
+        return self._download(name)[:, : self.counts[TABLES[name].items]]
 
     # ------------------------------------------------------------------ stepping
     def advance(self, n_steps: int) -> None:
-        """Run ``n_steps`` steps of every robot still running (finished/diverged robots stay frozen)."""
+        """Run ``n_steps`` steps of every robot still running (finished, diverged or stalled robots stay frozen)."""
+        self._check_owner()
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
-        k = self.kernels
-        args = (self.vr, self.vi, self.lr, self.li, self.rt, self.ri, self.mt, self.lt, self.gp)
+        k, d = self.kernels, self._dev
+        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp)
         flags = (int(self.config.floor), self.ifx, self.dyn)
+        n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
         if self.schedule == "robots":
-            k.run_robots(*args, n_steps, *flags, self._queue, self._workers)
+            k.run_robots(*args, R, n_steps, *flags, self._queue, self._workers)
         else:
             left = n_steps
             while left > 0:
-                k.run_flat(*args, min(left, UNROLL), *flags)
+                k.run_flat(*args, n, m, R, min(left, UNROLL), *flags)
                 left -= UNROLL
         self.steps_done += n_steps
 
@@ -219,56 +291,53 @@ class Engine:
         velocity = np.asarray(velocity, dtype=np.float64)
         if velocity.shape != (self.layout.num_voxels, 3):
             raise ValueError(f"velocity must have shape {(self.layout.num_voxels, 3)}, got {velocity.shape}")
-        vr = self._download(self.vr)
-        mass = material_table(self.config)[1][self.layout.material]
-        vr[VR.MOM:VR.MOM + 3, : self.layout.num_voxels] = (velocity * mass[:, None]).T
-        self.vr = self._upload(np.ascontiguousarray(vr))
+        vr = self._table("vr")
+        mass = material_table(self.config)[MT.MASS][self.layout.material]
+        vr[VR.span("MOM")] = (velocity * mass[:, None]).T
+        self._upload("vr", vr)
         if release_static:
-            vi = self._download(self.vi)
+            vi = self._table("vi")
             vi[VI.FLAGS] &= ~STATIC
-            self.vi = self._upload(np.ascontiguousarray(vi))
+            self._upload("vi", vi)
 
     # ------------------------------------------------------------------ reading state (host copies)
     def voxel_state(self) -> np.ndarray:
-        """float ``[NVR, n]`` (see ``kernels.VR`` for the columns)."""
-        return self._download(self.vr)[:, : self.layout.num_voxels]
+        """float ``[VR.width, n]`` (see ``state.VR`` for the columns)."""
+        return self._table("vr")
 
     def positions(self) -> np.ndarray:
         """Voxel centres, float64 ``[n, 3]`` (m; robot frame = world frame, floor plane at z = −L/2)."""
-        return self.voxel_state()[VR.POS:VR.POS + 3].T.astype(np.float64)
+        return self.voxel_state()[VR.span("POS")].T.astype(np.float64)
 
     def orientations(self) -> np.ndarray:
         """Voxel orientation quaternions (w, x, y, z), float64 ``[n, 4]``."""
-        return self.voxel_state()[VR.ORI:VR.ORI + 4].T.astype(np.float64)
+        return self.voxel_state()[VR.span("ORI")].T.astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         """Linear velocities, float64 ``[n, 3]``."""
-        mass = material_table(self.config)[1][self.layout.material]
-        return self.voxel_state()[VR.MOM:VR.MOM + 3].T.astype(np.float64) / mass[:, None]
+        mass = material_table(self.config)[MT.MASS][self.layout.material]
+        return self.voxel_state()[VR.span("MOM")].T.astype(np.float64) / mass[:, None]
 
     def link_strain(self) -> np.ndarray:
         """Axial strain of every link at its last update, float64 ``[m]``."""
-        return self._download(self.lr)[LR.STRAIN, : self.layout.num_links].astype(np.float64)
+        return self._table("lr")[LR.STRAIN].astype(np.float64)
 
     def static_friction(self) -> np.ndarray:
         """Floor static-friction state per voxel, bool ``[n]``."""
-        return (self._download(self.vi)[VI.FLAGS, : self.layout.num_voxels] & STATIC) != 0
+        return (self._table("vi")[VI.FLAGS] & STATIC) != 0
 
     def robot_status(self) -> np.ndarray:
-        """int32 ``[R]``: RUNNING, DONE or DIVERGED."""
-        return self._download(self.ri)[RI.STATUS, : self.layout.num_robots]
+        """int32 ``[R]``: RUNNING, DONE, DIVERGED or STALLED (stopped at its step cap)."""
+        return self._table("ri")[RI.STATUS]
 
     def robot_steps(self) -> np.ndarray:
-        return self._download(self.ri)[RI.STEP, : self.layout.num_robots].astype(np.int64)
+        """Steps each robot has run, int64 ``[R]``."""
+        return self._table("ri")[RI.STEP].astype(np.int64)
 
     def robot_time(self) -> np.ndarray:
-        return self._download(self.rt)[RT.T, : self.layout.num_robots]
+        """Each robot's clock, float64 ``[R]`` (s)."""
+        return self._table("rt")[RT.T]
 
     def robot_dt(self) -> np.ndarray:
-        return self._download(self.rt)[RT.DT, : self.layout.num_robots]
-
-
-def _pad(a: np.ndarray) -> np.ndarray:
-    if a.shape[1] > 0:
-        return a
-    return np.zeros((a.shape[0], 1), dtype=a.dtype)
+        """Each robot's current step, float64 ``[R]`` (s)."""
+        return self._table("rt")[RT.DT]

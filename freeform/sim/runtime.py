@@ -1,4 +1,5 @@
-"""The one place that imports and initialises Taichi (so that a switch to a fork such as `quadrants` stays here).
+"""The one place that initialises Taichi and makes its arrays (so that a switch to a fork such as `quadrants` stays
+here); besides this module only the kernel modules (access, quat, links, voxels, clock, schedules) import Taichi.
 
 Taichi can be initialised once per process. ``ensure(arch)`` does it on first use — never at import — and
 later calls check that the request matches what is running. Arrays are Taichi ndarrays, created only through
@@ -51,20 +52,38 @@ def real(precision: str):
     return ti.f64 if precision == "f64" else ti.f32
 
 
+_TI_DTYPES = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32}
+
+
+def ndarray(dtype: np.dtype, shape: tuple[int, ...], rows_as_vectors: bool = False) -> ti.Ndarray:
+    """An uninitialised Taichi ndarray of numpy ``dtype`` (float32/float64/int32) and ``shape``.
+
+    rows_as_vectors: ``shape`` ``(n, c)`` gives a 1-D ndarray of n ``c``-vectors (same memory, C order).
+    """
+    if np.dtype(dtype) not in _TI_DTYPES:
+        raise ValueError(f"dtype must be float32, float64 or int32, got {dtype}")
+    ti_dtype = _TI_DTYPES[np.dtype(dtype)]
+    if rows_as_vectors:
+        if len(shape) != 2:
+            raise ValueError(f"rows_as_vectors needs a 2-D shape, got {shape}")
+        return ti.ndarray(ti.types.vector(shape[1], ti_dtype), shape[0])
+    return ti.ndarray(ti_dtype, shape)
+
+
+def upload(arr: ti.Ndarray, a: np.ndarray) -> None:
+    """Copy host array ``a`` into the existing ndarray ``arr`` (same shape; a vector ndarray ``[n]`` of c-vectors
+    takes ``[n, c]``). No new device array is made."""
+    with _quiet_unrolling():
+        arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
+
+
 def from_numpy(a: np.ndarray, rows_as_vectors: bool = False) -> ti.Ndarray:
-    """A Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32).
+    """A new Taichi ndarray holding a copy of ``a`` (dtype float32/float64/int32).
 
     rows_as_vectors: ``a`` ``[n, c]`` becomes a 1-D ndarray of n ``c``-vectors (same memory, C order).
     """
-    dtype = {np.dtype(np.float32): ti.f32, np.dtype(np.float64): ti.f64, np.dtype(np.int32): ti.i32}[a.dtype]
-    if rows_as_vectors:
-        if a.ndim != 2:
-            raise ValueError(f"rows_as_vectors needs a 2-D array, got shape {a.shape}")
-        arr = ti.ndarray(ti.types.vector(a.shape[1], dtype), a.shape[0])
-    else:
-        arr = ti.ndarray(dtype, a.shape)
-    with _quiet_unrolling():
-        arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
+    arr = ndarray(a.dtype, a.shape, rows_as_vectors)
+    upload(arr, a)
     return arr
 
 

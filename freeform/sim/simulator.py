@@ -13,10 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from freeform.sim.config import SimConfig
-from freeform.sim.engine import DIVERGED, RUNNING, Engine
-from freeform.sim.kernels import VR
+from freeform.sim import runtime
+from freeform.sim.config import SimConfig, material_table
+from freeform.sim.engine import DeviceArrays, Engine
 from freeform.sim.layout import Layout, build_layout
+from freeform.sim.schedules import SCHEDULES, resolve_schedule
+from freeform.sim.state import DIVERGED, MT, RUNNING, STALLED, VR
 
 
 @dataclass
@@ -48,7 +50,8 @@ class SimResult:
     com_displacement: float32 — horizontal distance between the COM samples (taken once per actuation
         period) last before the evaluation start and end, in voxel lengths.
     com_start / com_end: float64 ``[B, 3]`` — those COM samples (metres, robot frame).
-    diverged: bool. simulated: bool (False for empty bodies).
+    diverged: bool — a link strain above max_strain or a non-finite state. stalled: bool — stopped at the step cap
+        (SimConfig.step_cap) before the evaluation ended; it scores 0 too. simulated: bool (False for empty bodies).
     dt: float64 — each robot's initial step (s). steps: int64 — steps run. time: float64 — simulated seconds.
     recording: ``Recording`` or None.
     """
@@ -59,6 +62,7 @@ class SimResult:
     com_start: torch.Tensor
     com_end: torch.Tensor
     diverged: torch.Tensor
+    stalled: torch.Tensor
     simulated: torch.Tensor
     dt: torch.Tensor
     steps: torch.Tensor
@@ -70,22 +74,32 @@ class Simulator:
     """Voxelyze-model simulator of a batch of voxel bodies.
 
     ``arch``: "auto" (CUDA if present, else CPU with a warning) | "cpu" | "cuda"; Taichi is initialised once
-    per process, on the first Simulator. ``schedule``: "auto" | "robots" | "flat" (see ``Engine``).
+    per process, on the first Simulator run. ``schedule``: "auto" | "robots" | "flat" (see ``Engine``; "robots"
+    is refused on CUDA). Every batch reuses the Simulator's device arrays (``arrays``), grown only when a batch
+    outgrows them; so one Engine of a Simulator is live at a time.
     """
 
     def __init__(self, config: SimConfig | None = None, arch: str = "auto", schedule: str = "auto"):
         self.config = config if config is not None else SimConfig()
         self.config.validate()
+        if arch not in runtime.ARCHS:
+            raise ValueError(f"arch must be one of {runtime.ARCHS}, got {arch!r}")
+        if schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
+        if arch != "auto":
+            resolve_schedule(schedule, arch)  # refuse a schedule the arch cannot run before anything starts
         self.arch = arch
         self.schedule = schedule
+        self.arrays = DeviceArrays()
 
     def layout(self, grids: torch.Tensor | np.ndarray) -> Layout:
         """Validate and flatten ``grids`` (uint8 ``[B, X, Y, Z]``)."""
         return build_layout(grids, len(self.config.materials))
 
     def engine(self, layout: Layout) -> Engine:
-        """A low-level ``Engine`` for ``layout`` (tests use this for fixed voxels, initial velocities...)."""
-        return Engine(layout, self.config, arch=self.arch, schedule=self.schedule)
+        """A low-level ``Engine`` for ``layout`` (tests use this for fixed voxels, initial velocities...), on this
+        Simulator's reused device arrays: an Engine built earlier from this Simulator stops working."""
+        return Engine(layout, self.config, arch=self.arch, schedule=self.schedule, arrays=self.arrays)
 
     def simulate(self, grids: torch.Tensor | np.ndarray, record_every: int | None = None) -> SimResult:
         """Simulate every body of ``grids`` (uint8 ``[B, X, Y, Z]``) for burn_in + duration seconds.
@@ -125,6 +139,7 @@ class Simulator:
         vr_ = torch.from_numpy(layout.voxel_robot.astype(np.int64))
         status = engine.robot_status()
         diverged_r = torch.from_numpy(status == DIVERGED)
+        stalled_r = torch.from_numpy(status == STALLED)
 
         def cols(c: int) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(vs[c:c + 3].T))
@@ -134,9 +149,7 @@ class Simulator:
         dxy = torch.nan_to_num(dxy, nan=0.0, posinf=0.0, neginf=0.0)
         max_vox = torch.zeros(R, dtype=torch.float64).scatter_reduce(0, vr_, dxy, reduce="amax", include_self=True)
         # mass-weighted COM of the period samples last taken before the start and the end
-        from freeform.sim.config import material_table
-
-        mass = torch.from_numpy(material_table(cfg)[1][layout.material])
+        mass = torch.from_numpy(material_table(cfg)[MT.MASS][layout.material])
         msum = torch.zeros(R, dtype=torch.float64).index_add_(0, vr_, mass)
 
         def com(c: int) -> torch.Tensor:
@@ -145,7 +158,7 @@ class Simulator:
 
         com_s, com_e = com(VR.PCS), com(VR.PCE)
         com_d = (com_e - com_s)[:, :2].norm(dim=1) / L
-        bad = diverged_r | ~torch.isfinite(com_d) | ~torch.isfinite(max_vox)
+        bad = diverged_r | stalled_r | ~torch.isfinite(com_d) | ~torch.isfinite(max_vox)
         max_vox = torch.where(bad, 0.0, max_vox)
         com_d = torch.where(bad, 0.0, com_d)
         com_s = torch.nan_to_num(com_s, nan=0.0, posinf=0.0, neginf=0.0)
@@ -172,7 +185,8 @@ class Simulator:
             com_displacement=per_body(com_d).float(),
             com_start=per_body(com_s),
             com_end=per_body(com_e),
-            diverged=per_body(bad, False) if R else torch.zeros(B, dtype=torch.bool),
+            diverged=per_body(bad & ~stalled_r, False) if R else torch.zeros(B, dtype=torch.bool),
+            stalled=per_body(stalled_r, False) if R else torch.zeros(B, dtype=torch.bool),
             simulated=has.clone(),
             dt=per_body(torch.from_numpy(engine.dt0.astype(np.float64))),
             steps=per_body(torch.from_numpy(engine.robot_steps())),

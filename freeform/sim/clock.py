@@ -1,0 +1,79 @@
+"""The end of a step for one robot (spec sections 4, 10 and 12): its clock, status, rl4design's dynamic dt, the
+step cap, the actuation phase of the next step and which snapshots that step takes.
+
+Every robot has its own t, dt, step count and status: robots never interact, so a batch gives each robot exactly
+its solo result, and one robot can stop (done, diverged, stalled) while the others go on.
+"""
+
+# (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
+
+import functools
+import math
+from types import SimpleNamespace
+
+import taichi as ti
+
+from freeform.sim.access import make_access
+from freeform.sim.links import DT_REFRESH_STEPS
+from freeform.sim.state import DONE, EV_END, EV_SAMPLE, EV_START, GP, LR, RI, RT, RUNNING, STALLED
+
+TWO_PI = 2 * math.pi
+
+
+@functools.cache
+def make_clock(precision: str, order: str) -> SimpleNamespace:
+    """``robot_advance`` and ``set_phase`` for a precision and memory order."""
+    acc = make_access(precision, order)
+    ld, st = acc.ld, acc.st
+
+    @ti.func
+    def set_phase(r, rt: ti.template(), gp: ti.template(), tau):
+        """sin and cos of 2π·τ/period: the actuation phase every voxel of robot r combines with its own φ."""
+        a = TWO_PI * tau / gp[GP.TEMP_PERIOD]
+        st(rt, RT.SIN, r, ti.sin(a))
+        st(rt, RT.COS, r, ti.cos(a))
+
+    @ti.func
+    def max_link_omega2(r, lr: ti.template(), ri: ti.template()):
+        """The largest ω² the robot's links stored this step (f64; 0 without links). A serial max in the robot
+        phase: rl4design's dt refresh needs no float64 atomic (a compare-and-swap loop on CUDA)."""
+        w = ti.cast(0.0, ti.f64)
+        for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
+            w = ti.max(w, ti.cast(ld(lr, LR.OMEGA2, lk), ti.f64))
+        return w
+
+    @ti.func
+    def robot_advance(r, lr: ti.template(), rt: ti.template(), ri: ti.template(), gp: ti.template(),
+                      dyn: ti.template(), ifx: ti.template()):
+        """End of a step for robot r. dyn: rl4design's dt refresh on; ifx: rl4design semantics."""
+        st(rt, RT.DTPREV, r, ld(rt, RT.DT, r))
+        st(rt, RT.T, r, ld(rt, RT.T, r) + ld(rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
+        step = ld(ri, RI.STEP, r) + 1
+        st(ri, RI.STEP, r, step)
+        if ld(rt, RT.T, r) > gp[GP.T_END] and ld(ri, RI.STATUS, r) == RUNNING:
+            st(ri, RI.STATUS, r, DONE)
+        if step >= ld(ri, RI.MAXSTEP, r) and ld(ri, RI.STATUS, r) == RUNNING:
+            st(ri, RI.STATUS, r, STALLED)  # its dt collapsed: stop it rather than hold up the batch
+        if ti.static(dyn != 0):
+            if step % DT_REFRESH_STEPS == 0:
+                omega2 = max_link_omega2(r, lr, ri)
+                if omega2 > 0.0:
+                    st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(omega2)))
+        # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
+        tau = ld(rt, RT.T, r) + ld(rt, RT.DT, r)
+        if ti.static(ifx != 0):
+            tau = ld(rt, RT.T, r)
+        set_phase(r, rt, gp, tau)
+        # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
+        t_before = ld(rt, RT.T, r)
+        t_after = t_before + ld(rt, RT.DT, r)
+        events = 0
+        if (step + 1) % ld(ri, RI.PERIOD, r) == 0:
+            events |= EV_SAMPLE
+        if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
+            events |= EV_START
+        if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
+            events |= EV_END
+        st(ri, RI.EVENTS, r, events)
+
+    return SimpleNamespace(robot_advance=robot_advance, set_phase=set_phase)

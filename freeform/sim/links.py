@@ -1,0 +1,159 @@
+"""The link update (spec section 5, ``CVX_Link::updateForces``): one beam between two face-adjacent voxels.
+
+A link reads both voxels' poses and cached Poisson terms, and writes the force and moment on each end into its
+own columns (``LR.FN/FP/MN/MP``, in each voxel's local frame); the voxel update gathers them through fixed slots,
+so no atomics are needed and results are deterministic.
+"""
+
+# (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
+
+import functools
+from types import SimpleNamespace
+
+import taichi as ti
+
+from freeform.sim.access import make_access, make_numbers
+from freeform.sim.quat import make_quat
+from freeform.sim.state import DIVERGED, GP, LI, LR, LT, MT, RI, RT, SMALL, VALID, VI, VR
+
+# Voxelyze's small/large-angle switch (VX_Link.cpp): enter small below 0.05 rad and 50 % extension, leave above
+# 1.2× those (hysteresis). These are part of the model, not tuning knobs.
+SA_BOND_BEND_RAD, SA_BOND_EXT_PERC, HYSTERESIS_FACTOR = 0.05, 0.50, 1.2
+# rl4design recomputes dt every this many steps (the paper simulator's constant)
+DT_REFRESH_STEPS = 10
+
+
+@functools.cache
+def make_links(precision: str, order: str) -> SimpleNamespace:
+    """``link_update`` for "f32" | "f64" and memory order "soa" | "aos"."""
+    num = make_numbers(precision)
+    acc = make_access(precision, order)
+    q = make_quat(precision)
+    real, vec3, vec4, nonfinite = num.real, num.vec3, num.vec4, num.nonfinite
+    ld, st, get3, set3, get4 = acc.ld, acc.st, acc.get3, acc.set3, acc.get4
+    qmul, conj, rotate = q.qmul, q.conj, q.rotate
+    to_axis_x, to_axis_original, q_to_axis_x = q.to_axis_x, q.to_axis_original, q.q_to_axis_x
+    to_rotation_vector, from_angle_to_pos_x = q.to_rotation_vector, q.from_angle_to_pos_x
+
+    @ti.func
+    def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
+                    gp: ti.template(), ifx: ti.template(), dyn: ti.template()):
+        """Forces and moments of link ``lk`` from its voxels' poses; marks the robot DIVERGED on a strain above
+        ``max_strain`` or a non-finite one. ifx: rl4design semantics; dyn: store ω² for the dt refresh."""
+        n, p, axis, k = ld(li, LI.NEG, lk), ld(li, LI.POS, lk), ld(li, LI.AXIS, lk), ld(li, LI.LMAT, lk)
+        r = ld(vi, VI.ROBOT, n)
+        mat_n, mat_p = ld(vi, VI.MAT, n), ld(vi, VI.MAT, p)
+        flags = ld(li, LI.FLAGS, lk)
+        valid = (flags & VALID) != 0
+        size_n = ld(vr, VR.SIZE, n)
+        L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
+        if ti.static(ifx == 0):
+            L0 = 0.5 * (size_n + ld(vr, VR.SIZE, p))
+
+        # orientLink (VX_Link.cpp): into the link frame, x along the link, relative to the negative voxel
+        small = (flags & SMALL) != 0
+        q1 = q_to_axis_x(get4(vr, VR.ORI, n), axis)
+        q2 = q_to_axis_x(get4(vr, VR.ORI, p), axis)
+        R = conj(q1)
+        pos2 = rotate(R, to_axis_x(get3(vr, VR.POS, p) - get3(vr, VR.POS, n), axis))
+        q2 = qmul(R, q2)
+        q1 = vec4(1.0, 0.0, 0.0, 0.0)
+        small_turn = (ti.abs(pos2[2]) + ti.abs(pos2[1])) / pos2[0]
+        extend = ti.abs(1.0 - pos2[0] / L0)
+        leave = small and (small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD
+                           or extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC)
+        if ti.static(ifx != 0):
+            # the paper simulator's precedence slip: `small && a || b`
+            leave = (small and small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD) or \
+                extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC
+        # after a switch the rates below would compare poses from the two paths: no damping this step
+        if (not small) and small_turn < SA_BOND_BEND_RAD and extend < SA_BOND_EXT_PERC:
+            small = True
+            valid = False
+        elif leave:
+            small = False
+            valid = False
+        if small:
+            pos2[0] -= L0  # the y, z offsets stay and act as shear
+        a1v = vec3(0.0, 0.0, 0.0)  # small angle: q1 is the identity
+        if not small:
+            q1 = from_angle_to_pos_x(pos2)
+            q2 = qmul(q1, q2)
+            pos2 = vec3(pos2.norm() - L0, 0.0, 0.0)
+            a1v = to_rotation_vector(q1)
+        a2v = to_rotation_vector(q2)
+        strain = pos2[0] / L0
+        if ti.static(ifx != 0):
+            pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
+
+        # half the change since the last step: the displacement of the link's centre relative to each end
+        dP = 0.5 * (pos2 - get3(lr, LR.P2, lk))
+        dA1 = 0.5 * (a1v - get3(lr, LR.A1, lk))
+        dA2 = 0.5 * (a2v - get3(lr, LR.A2, lk))
+
+        # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
+        nu = ld(lt, LT.NU, k)
+        area = 0.5 * (ld(vr, VR.TAREA + axis, n) + ld(vr, VR.TAREA + axis, p))
+        ssum = 0.5 * (ld(vr, VR.TSUM + axis, n) + ld(vr, VR.TSUM + axis, p))
+        stress = ld(lt, LT.E, k) * strain
+        if nu != 0.0:
+            stress = ld(lt, LT.EHAT, k) * ((1.0 - nu) * strain + nu * ssum)
+
+        # elastic beam: axial stress, shear and bending (b1, b2, b3) and torsion (a2)
+        b1, b2, b3, a2 = ld(lt, LT.B1, k), ld(lt, LT.B2, k), ld(lt, LT.B3, k), ld(lt, LT.A2, k)
+        fN = vec3(stress * area, b1 * pos2[1] - b2 * (a1v[2] + a2v[2]), b1 * pos2[2] + b2 * (a1v[1] + a2v[1]))
+        fP = -fN
+        mN = vec3(a2 * (a2v[0] - a1v[0]), -b2 * pos2[2] - b3 * (2.0 * a1v[1] + a2v[1]),
+                  b2 * pos2[1] - b3 * (2.0 * a1v[2] + a2v[2]))
+        mP = vec3(a2 * (a1v[0] - a2v[0]), -b2 * pos2[2] - b3 * (a1v[1] + 2.0 * a2v[1]),
+                  b2 * pos2[1] - b3 * (a1v[2] + 2.0 * a2v[2]))
+
+        if valid:
+            # internal damping: D = 2·√m·ζ/previousDt of each end's voxel; posCalc are half-link displacements
+            prev_dt = ti.cast(ld(rt, RT.DTPREV, r), real)
+            dN = ld(mt, MT.DAMP, mat_n) / prev_dt
+            dPp = ld(mt, MT.DAMP, mat_p) / prev_dt
+            sqA1, sqA2xIp, sqB1 = ld(lt, LT.SQA1, k), ld(lt, LT.SQA2XIP, k), ld(lt, LT.SQB1, k)
+            sqB2xFMp, sqB3xIp = ld(lt, LT.SQB2XFMP, k), ld(lt, LT.SQB3XIP, k)
+            c = vec3(sqA1 * dP[0], sqB1 * dP[1] - sqB2xFMp * (dA1[2] + dA2[2]),
+                     sqB1 * dP[2] + sqB2xFMp * (dA1[1] + dA2[1]))
+            fN += dN * c
+            fP -= dPp * c
+            mN -= 0.5 * dN * vec3(-sqA2xIp * (dA2[0] - dA1[0]), sqB2xFMp * dP[2] + sqB3xIp * (2.0 * dA1[1] + dA2[1]),
+                                  -sqB2xFMp * dP[1] + sqB3xIp * (2.0 * dA1[2] + dA2[2]))
+            mP -= 0.5 * dPp * vec3(sqA2xIp * (dA2[0] - dA1[0]), sqB2xFMp * dP[2] + sqB3xIp * (dA1[1] + 2.0 * dA2[1]),
+                                   -sqB2xFMp * dP[1] + sqB3xIp * (dA1[2] + 2.0 * dA2[2]))
+        else:
+            valid = True  # damping resumes next step
+
+        # back into each voxel's local frame
+        if not small:
+            qc = conj(q1)
+            fN = rotate(qc, fN)
+            mN = rotate(qc, mN)
+        q2c = conj(q2)
+        fP = rotate(q2c, fP)
+        mP = rotate(q2c, mP)
+        set3(lr, LR.FN, lk, to_axis_original(fN, axis))
+        set3(lr, LR.FP, lk, to_axis_original(fP, axis))
+        set3(lr, LR.MN, lk, to_axis_original(mN, axis))
+        set3(lr, LR.MP, lk, to_axis_original(mP, axis))
+        set3(lr, LR.P2, lk, pos2)
+        set3(lr, LR.A1, lk, a1v)
+        set3(lr, LR.A2, lk, a2v)
+        st(lr, LR.STRAIN, lk, strain)
+        st(li, LI.FLAGS, lk, (SMALL if small else 0) | (VALID if valid else 0))
+
+        if strain > gp[GP.MAX_STRAIN] or nonfinite(strain):
+            st(ri, RI.STATUS, r, DIVERGED)
+        if ti.static(dyn != 0):
+            if (ld(ri, RI.STEP, r) + 1) % DT_REFRESH_STEPS == 0:
+                # rl4design's dt refresh: this link's ω² from its current axial stiffness (VX_Link::axialStiffness);
+                # the robot phase takes the max over the robot's links (clock.py)
+                kax = ld(lt, LT.A1, k)
+                if nu != 0.0:
+                    kax = ld(lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
+                st(lr, LR.OMEGA2, lk, kax / ti.min(ld(mt, MT.MASS, mat_n), ld(mt, MT.MASS, mat_p)))
+
+    return SimpleNamespace(link_update=link_update)

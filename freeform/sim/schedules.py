@@ -1,0 +1,123 @@
+"""The two schedules that drive one physics: which thread runs which link, voxel and robot, and when.
+
+One step = every link's ``link_update`` (links.py), then every voxel's ``voxel_update`` (voxels.py), then every
+robot's ``robot_advance`` (clock.py). Both schedules call these same functions:
+
+* ``flat`` (the CUDA default, "soa" arrays): one thread per link, then per voxel, then per robot, ``UNROLL``
+  steps per launch.
+* ``robots`` (the CPU default, "aos" arrays): one worker per CPU thread; each takes the next unclaimed robot from an
+  atomic queue and runs it many steps (no per-step thread-pool synchronisation, which would cost more than a step
+  of a small robot; the robot's data stays in cache; robots of any size balance dynamically). On a GPU it would
+  run one thread per robot, so it is refused there (``resolve_schedule``).
+
+Loops are bounded by the batch's counts, passed as arguments, not by the arrays' shapes: the Engine reuses arrays
+sized for the largest batch seen, whose tail holds stale items.
+"""
+
+# (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
+
+import functools
+from types import SimpleNamespace
+
+import taichi as ti
+
+from freeform.sim.access import make_access
+from freeform.sim.clock import make_clock
+from freeform.sim.links import make_links
+from freeform.sim.quat import make_quat
+from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR
+from freeform.sim.voxels import make_voxels
+
+SCHEDULES = ("auto", "robots", "flat")
+# the memory order each schedule reads best (access.py)
+ORDER_OF = {"robots": "aos", "flat": "soa"}
+UNROLL = 2  # steps per launch of the flat schedule
+# Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
+# many iterations (see run_robots); only the CPU schedule's thread count depends on it, never the results.
+CPU_MIN_TASK_ITEMS = 512
+
+
+def resolve_schedule(schedule: str, arch: str) -> str:
+    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "flat" on CUDA and "robots" on the CPU.
+
+    "robots" on CUDA is refused: it would run one GPU thread per robot (128 threads for a paper batch)."""
+    if schedule not in SCHEDULES:
+        raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
+    if arch not in ("cpu", "cuda"):
+        raise ValueError(f"arch must be 'cpu' or 'cuda' here (the arch Taichi runs on), got {arch!r}")
+    if schedule == "auto":
+        return "flat" if arch == "cuda" else "robots"
+    if schedule == "robots" and arch == "cuda":
+        raise ValueError("schedule='robots' runs one GPU thread per robot and is refused on CUDA; "
+                         "use schedule='flat' (or 'auto', which picks it there)")
+    return schedule
+
+
+@functools.cache
+def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
+    """Compile-once kernels for "f32" | "f64" and memory order "soa" | "aos": ``run_robots``, ``run_flat`` and the
+    test hook ``probe_rotations``. The floor, rl4design and dynamic-dt switches are compile-time arguments
+    (``ti.template``): each combination used compiles once."""
+    acc = make_access(precision, order)
+    ld = acc.ld
+    link_update = make_links(precision, order).link_update
+    voxel_update = make_voxels(precision, order).voxel_update
+    robot_advance = make_clock(precision, order).robot_advance
+    VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
+    RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
+    GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
+
+    @ti.func
+    def robot_step(r, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+                   rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(), gp: ti.template(),
+                   floor: ti.template(), ifx: ti.template(), dyn: ti.template()):
+        """One step of robot r by the calling thread alone."""
+        if ld(ri, RI.STATUS, r) == RUNNING:
+            for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
+                link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+            if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
+                for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+            if ld(ri, RI.STATUS, r) == RUNNING:
+                robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+
+    @ti.kernel
+    def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
+                   lt: LtArr, gp: GpArr, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(),
+                   ifx: ti.template(), dyn: ti.template(), queue: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                   workers: ti.i32):
+        """``workers`` threads each take the next unclaimed robot (of ``n_robots``) from ``queue`` and run it
+        ``n_steps`` steps, until none is left.
+
+        Why not ``for r in range(R)``: Taichi's CPU backend gives each thread a block of at least
+        ``CPU_MIN_TASK_ITEMS`` iterations of a range-for with a runtime bound (``loop_config(block_dim)`` is not
+        honoured there), so a batch of fewer robots than that would run on one thread. Each worker therefore owns
+        one such block of a virtual range, and the robots are handed out through an atomic counter.
+        """
+        queue[0] = 0  # (a top-level statement: runs before the parallel loop, as a serial task)
+        for t in range(workers * CPU_MIN_TASK_ITEMS):
+            if t % CPU_MIN_TASK_ITEMS == 0:
+                r = ti.atomic_add(queue[0], 1)
+                while r < n_robots:
+                    for _ in range(n_steps):
+                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx, dyn)
+                    r = ti.atomic_add(queue[0], 1)
+
+    @ti.kernel
+    def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
+                 lt: LtArr, gp: GpArr, n_voxels: ti.i32, n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32,
+                 floor: ti.template(), ifx: ti.template(), dyn: ti.template()):
+        """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
+        for s in ti.static(range(UNROLL)):
+            for lk in range(n_links):
+                if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, ld(li, LI.NEG, lk))) == RUNNING:
+                    link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+            for v in range(n_voxels):
+                if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, v)) == RUNNING:
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+            for r in range(n_robots):
+                if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
+                    robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+
+    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat,
+                           probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order)

@@ -1,0 +1,277 @@
+"""The voxel update (spec sections 6-9, ``CVX_Voxel::timeStep``): Poisson strain, forces, floor contact and friction,
+symplectic Euler with the quaternion update, then the rest size for the next step's actuation (spec section 4).
+
+A voxel gathers the forces of its ≤ 6 links from the links' own columns through its fixed slots (``VI.SLOT``).
+"""
+
+# (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
+
+import functools
+from types import SimpleNamespace
+
+import taichi as ti
+
+from freeform.sim.access import make_access, make_numbers
+from freeform.sim.config import POISSON_SERIES_TERMS
+from freeform.sim.quat import make_quat
+from freeform.sim.state import (
+    DIVERGED,
+    EV_END,
+    EV_SAMPLE,
+    EV_START,
+    FIXED,
+    GP,
+    LI,
+    LR,
+    LT,
+    MT,
+    RI,
+    RT,
+    STATIC,
+    VI,
+    VR,
+)
+
+RENORM_NEWTON = 1e-4  # f32 renormalisation: |1 − |q|²| below this uses one Newton step (error < 1e-8)
+POISSON_SERIES_X = 0.1  # |Σ tension strains| below which f32 uses the binomial series (config.POISSON_SERIES_TERMS)
+
+
+@functools.cache
+def make_voxels(precision: str, order: str) -> SimpleNamespace:
+    """``voxel_update`` (and the actuation's ``temperature``/``base_size``) for a precision and memory order."""
+    num = make_numbers(precision)
+    acc = make_access(precision, order)
+    q = make_quat(precision)
+    real, vec3, vec4, exact_vx, nonfinite = num.real, num.vec3, num.vec4, num.exact_vx, num.nonfinite
+    ld, st, get3, set3, get4, set4 = acc.ld, acc.st, acc.get3, acc.set3, acc.get4, acc.set4
+    qmul, rotate, from_rotation_vector = q.qmul, q.rotate, q.from_rotation_vector
+
+    # ------------------------------------------------------------ actuation (spec section 4)
+    @ti.func
+    def base_size(mt: ti.template(), mat, temp):
+        """Rest size of a voxel along any axis: L·(1 + T·CTE) (extScale = 1)."""
+        return ld(mt, MT.L, mat) * (1.0 + temp * ld(mt, MT.CTE, mat))
+
+    @ti.func
+    def temperature(mt: ti.template(), rt: ti.template(), gp: ti.template(), mat, tbase, r):
+        """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
+        s = ti.cast(ld(rt, RT.SIN, r), real) * ld(mt, MT.COSPHI, mat) + \
+            ti.cast(ld(rt, RT.COS, r), real) * ld(mt, MT.SINPHI, mat)
+        return tbase + ti.cast(gp[GP.TEMP_AMP], real) * s
+
+    # ------------------------------------------------------------ Poisson effects (spec section 6)
+    @ti.func
+    def poisson_strain(v, vi: ti.template(), lr: ti.template(), li: ti.template(), mt: ti.template(),
+                       lt: ti.template(), mat, nu):
+        """This voxel's strain along each axis from its links' strains of this step (VX ``strain(true)``).
+
+        An axis with links on both sides is in tension and keeps its mean link strain; a free axis takes
+        (1 + Σ tension strains)^(−ν) − 1. Cached for the next link update: VX computes it lazily at the next
+        step's first link, and nothing has changed by then (a Jacobi update)."""
+        s = vec3(0.0, 0.0, 0.0)
+        if nu != 0.0:
+            tension = ti.Vector([0, 0, 0])
+            for a in ti.static(range(3)):
+                cnt = 0
+                for side in ti.static(range(2)):
+                    lk = ld(vi, VI.SLOT + 2 * a + side, v)
+                    if lk >= 0:
+                        eps = ld(lr, LR.STRAIN, lk)
+                        if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
+                            s[a] += eps * ld(lt, LT.PSPOS, ld(li, LI.LMAT, lk))
+                        else:
+                            s[a] += eps * ld(lt, LT.PSNEG, ld(li, LI.LMAT, lk))
+                        cnt += 1
+                if cnt == 2:
+                    s[a] *= 0.5
+                    tension[a] = 1
+            if not (tension[0] == 1 and tension[1] == 1 and tension[2] == 1):
+                add = ti.cast(0.0, real)
+                for a in ti.static(range(3)):
+                    if tension[a] == 1:
+                        add += s[a]
+                val = ti.cast(0.0, real)
+                if ti.static(exact_vx):
+                    val = ti.pow(1.0 + add, -nu) - 1.0
+                else:
+                    # f32: the binomial series where it converges fast (|x| < 0.1: truncation < 3e-9 relative, 20×
+                    # below f32 rounding), else powf. Cheaper than the libm call (~10 % of a CPU step on design
+                    # bodies, mostly surface voxels) and no 1 − 1 cancellation.
+                    if ti.abs(add) < POISSON_SERIES_X:
+                        c = ld(mt, MT.PB1 + POISSON_SERIES_TERMS - 1, mat)
+                        for k in ti.static(range(POISSON_SERIES_TERMS - 1, 0, -1)):
+                            c = ld(mt, MT.PB1 + k - 1, mat) + add * c
+                        val = add * c
+                    else:
+                        val = ti.pow(1.0 + add, -nu) - 1.0
+                for a in ti.static(range(3)):
+                    if tension[a] == 0:
+                        s[a] = val
+        return s
+
+
+    @ti.func
+    def transverse(mt: ti.template(), mat, ps):
+        """Transverse areas and strain sums (VX_Voxel.cpp) for a link along x, y, z from the voxel's Poisson
+        strains ``ps``: two vec3, computed once per voxel per step rather than by each of its ≤ 6 links."""
+        L = ld(mt, MT.L, mat)
+        area = vec3(L * L, L * L, L * L)
+        ssum = vec3(0.0, 0.0, 0.0)
+        if ld(mt, MT.NU, mat) != 0.0:
+            area = vec3(L * L * (1.0 + ps[1]) * (1.0 + ps[2]), L * L * (1.0 + ps[0]) * (1.0 + ps[2]),
+                        L * L * (1.0 + ps[0]) * (1.0 + ps[1]))
+            ssum = vec3(ps[1] + ps[2], ps[0] + ps[2], ps[0] + ps[1])
+        return area, ssum
+
+    # ------------------------------------------------------------ forces (spec sections 7 and 8)
+    @ti.func
+    def link_loads(v, vi: ti.template(), lr: ti.template()):
+        """Sum of the force and moment of the voxel's links, in its local frame (VX_Voxel::force/moment)."""
+        force = vec3(0.0, 0.0, 0.0)
+        moment = vec3(0.0, 0.0, 0.0)
+        for d in ti.static(range(6)):
+            lk = ld(vi, VI.SLOT + d, v)
+            if lk >= 0:
+                if ti.static(d % 2 == 1):  # NEG slot: this voxel is the link's positive end
+                    force += get3(lr, LR.FP, lk)
+                    moment += get3(lr, LR.MP, lk)
+                else:
+                    force += get3(lr, LR.FN, lk)
+                    moment += get3(lr, LR.MN, lk)
+        return force, moment
+
+    @ti.func
+    def floor_force(mt: ti.template(), mat, force, vel, pen, static):
+        """Floor contact at penetration ``pen`` (the start of the step) and Coulomb friction with the static/kinetic
+        states (VX_Voxel::floorForce). Returns (force with contact, the kinetic friction part, static)."""
+        fric = vec3(0.0, 0.0, 0.0)
+        if pen >= 0.0:
+            normal = ld(mt, MT.KPEN, mat) * pen
+            force[2] += normal - ld(mt, MT.CC, mat) * vel[2]  # collision damping only while in contact
+            if static:
+                mus = ld(mt, MT.MUS, mat) * normal
+                if force[0] * force[0] + force[1] * force[1] > mus * mus:
+                    static = False  # breaks loose; the full force acts this step
+            else:
+                vh = ti.sqrt(vel[0] * vel[0] + vel[1] * vel[1])
+                if vh > 0.0:
+                    f = ld(mt, MT.MUK, mat) * normal / vh
+                    fric = vec3(-f * vel[0], -f * vel[1], 0.0)
+                    force += fric
+        else:
+            static = False
+        return force, fric, static
+
+    @ti.func
+    def renormalise(q):
+        """f32 keeps orientations unit (spec section 14): |q|² = 1 + e with e at rounding level (the update rotation
+        is unit), so one Newton step of 1/√ from 1, (3 − |q|²)/2, is exact to O(e²); the sqrt and division stay
+        for anything further off."""
+        n2 = q.dot(q)
+        r = q
+        if ti.abs(n2 - 1.0) < RENORM_NEWTON:
+            r = q * (1.5 - 0.5 * n2)
+        else:
+            r = q * (1.0 / ti.sqrt(n2))
+        return r
+
+    @ti.func
+    def snapshots(v, vr: ti.template(), ri: ti.template(), r, pos):
+        """COM samples every PERIOD steps; the evaluation start/end at the first step past each time (which of
+        these this step takes was decided once for the robot, by the clock or the Engine)."""
+        events = ld(ri, RI.EVENTS, r)
+        if events != 0:
+            if (events & EV_SAMPLE) != 0:
+                set3(vr, VR.PSAMP, v, pos)
+            if (events & EV_START) != 0:
+                set3(vr, VR.PSTART, v, pos)
+                set3(vr, VR.PCS, v, get3(vr, VR.PSAMP, v))
+            if (events & EV_END) != 0:
+                set3(vr, VR.PEND, v, pos)
+                set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
+
+    # ------------------------------------------------------------ the voxel update (spec section 9)
+    @ti.func
+    def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
+                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
+                     gp: ti.template(), floor: ti.template(), ifx: ti.template()):
+        """One step of voxel ``v``; marks its robot DIVERGED if its pose becomes non-finite.
+        floor: floor contact on; ifx: rl4design semantics (both compile-time)."""
+        r = ld(vi, VI.ROBOT, v)
+        mat = ld(vi, VI.MAT, v)
+        flags = ld(vi, VI.FLAGS, v)
+        dt = ti.cast(ld(rt, RT.DT, r), real)
+        minv, iinv = ld(mt, MT.MINV, mat), ld(mt, MT.IINV, mat)
+        pos = get3(vr, VR.POS, v)
+        mom = get3(vr, VR.MOM, v)
+        q = get4(vr, VR.ORI, v)
+        amom = get3(vr, VR.AMOM, v)
+        size = ld(vr, VR.SIZE, v)  # the rest size at the start of the step
+        s = poisson_strain(v, vi, lr, li, mt, lt, mat, ld(mt, MT.NU, mat))
+
+        if (flags & FIXED) != 0:
+            # held in all 6 DOF (VX isFixedAll): back to the original pose, no motion
+            pos = get3(vr, VR.POS0, v)
+            mom = vec3(0.0, 0.0, 0.0)
+            amom = vec3(0.0, 0.0, 0.0)
+            q = vec4(1.0, 0.0, 0.0, 0.0)
+        else:
+            force, moment = link_loads(v, vi, lr)
+            vel = mom * minv
+            # global damping acts on the absolute velocity (VX's "slow" damping)
+            force = rotate(q, force) - ld(mt, MT.CG, mat) * vel
+            force[2] += ld(mt, MT.MG, mat)
+            moment = rotate(q, moment) - ld(mt, MT.CGR, mat) * (amom * iinv)
+
+            static = (flags & STATIC) != 0
+            pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
+            fric = vec3(0.0, 0.0, 0.0)
+            if ti.static(floor != 0):
+                force, fric, static = floor_force(mt, mat, force, vel, pen, static)
+            mom += force * dt
+            delta = mom * (dt * minv)
+            touching = False
+            if ti.static(floor != 0):
+                touching = pen >= 0.0
+            if touching:
+                # work-energy stop test: friction would reverse the horizontal motion within this step
+                work = fric[0] * delta[0] + fric[1] * delta[1]
+                hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
+                if hke + work <= 0.0:
+                    static = True
+                if static:
+                    mom[0] = 0.0
+                    mom[1] = 0.0
+                    delta[0] = 0.0
+                    delta[1] = 0.0
+            else:
+                static = False
+            pos += delta
+            amom += moment * dt
+            q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
+            if ti.static(not exact_vx):
+                q = renormalise(q)
+            if ti.static(ifx != 0 and floor != 0):
+                if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
+                    amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
+            flags = (flags & ~STATIC) | (STATIC if static else 0)
+
+        # NaN or inf anywhere makes the L1 norm non-finite, and so does a finite state beyond the float range
+        if nonfinite(ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
+                     + ti.abs(amom[2])):
+            st(ri, RI.STATUS, r, DIVERGED)
+
+        set3(vr, VR.POS, v, pos)
+        set3(vr, VR.MOM, v, mom)
+        set4(vr, VR.ORI, v, q)
+        set3(vr, VR.AMOM, v, amom)
+        area, ssum = transverse(mt, mat, s)
+        set3(vr, VR.TAREA, v, area)
+        set3(vr, VR.TSUM, v, ssum)
+        st(vi, VI.FLAGS, v, flags)
+        # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
+        # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
+        st(vr, VR.SIZE, v, base_size(mt, mat, temperature(mt, rt, gp, mat, ld(vr, VR.TBASE, v), r)))
+        snapshots(v, vr, ri, r, pos)
+
+    return SimpleNamespace(voxel_update=voxel_update, base_size=base_size, temperature=temperature)
