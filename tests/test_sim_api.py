@@ -7,6 +7,8 @@ import pytest
 import torch
 
 from freeform.sim import Material, SimConfig, Simulator, build_layout, recommended_dt
+from freeform.sim.schedules import resolve_schedule
+from freeform.sim.state import DIVERGED, LT, RUNNING, VR
 
 
 def short(**kw) -> SimConfig:
@@ -75,6 +77,7 @@ def test_invalid_grids_raise_value_error(grids, match):
         ({"dt": -1.0}, "dt"),
         ({"materials": []}, "materials"),
         ({"materials": [Material(poisson=0.5)]}, "poisson"),
+        ({"step_cap": 1.0}, "step_cap"),
     ],
 )
 def test_invalid_config_raises_value_error(kw, match):
@@ -89,6 +92,17 @@ def test_invalid_arch_and_schedule():
         Simulator(short(), arch="cpu", schedule="fast").simulate(np.ones((1, 1, 1, 1), np.uint8))
     with pytest.raises(ValueError, match="record_every"):
         Simulator(short(), arch="cpu").simulate(np.ones((1, 1, 1, 1), np.uint8), record_every=0)
+
+
+def test_robots_schedule_is_refused_on_cuda():
+    """One GPU thread per robot would idle the GPU: refused where the arch is known, naming the schedule to use
+    (checked here without a GPU by passing the arch; Simulator refuses before Taichi starts)."""
+    with pytest.raises(ValueError, match="schedule='flat'"):
+        resolve_schedule("robots", "cuda")
+    with pytest.raises(ValueError, match="schedule='flat'"):
+        Simulator(short(), arch="cuda", schedule="robots")
+    assert resolve_schedule("auto", "cuda") == "flat" and resolve_schedule("flat", "cuda") == "flat"
+    assert resolve_schedule("auto", "cpu") == "robots" and resolve_schedule("flat", "cpu") == "flat"
 
 
 # ---------------------------------------------------------------- batching and robustness
@@ -183,3 +197,112 @@ def test_recording_format():
     np.testing.assert_array_equal(rec.materials[0], [1, 2])
     assert rec.positions[1].shape == (n_frames, 0, 3)
     np.testing.assert_allclose(rec.positions[0][0], [[0, 0, 0], [0.01, 0, 0]])
+
+
+# ---------------------------------------------------------------- GPU hardening, exercised on the CPU
+def three_robots() -> np.ndarray:
+    """Three small bodies with links (2×2×2 of materials 1, 2, 3): uint8 [3, 2, 2, 2]."""
+    return np.stack([np.full((2, 2, 2), m, dtype=np.uint8) for m in (1, 2, 3)])
+
+
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+@pytest.mark.parametrize("where", ["velocity", "position"])
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_planted_nonfinite_state_diverges_its_robot_only(schedule, precision, where, value):
+    """A NaN or an infinity planted in one voxel of robot 1 (an initial velocity: caught by the voxel update; a
+    position: caught by the link update's strain) flags robot 1 DIVERGED; robots 0 and 2 run on bit for bit as
+    without it. The check reads the float's exponent bits, which no fast-math assumption can fold away."""
+    sim = Simulator(short(precision=precision), arch="cpu", schedule=schedule)
+    g = three_robots()
+    clean = sim.engine(sim.layout(g))
+    clean.advance(20)
+    clean_pos = clean.positions()
+    layout = sim.layout(g)
+    planted = int(layout.voxel_start[1]) + 3
+    if where == "velocity":
+        layout.velocity[planted, 0] = value
+    eng = sim.engine(layout)
+    if where == "position":
+        vr = eng._table("vr")
+        vr[VR.POS + 2, planted] = value
+        eng._upload("vr", vr)
+    eng.advance(20)
+    np.testing.assert_array_equal(eng.robot_status(), [RUNNING, DIVERGED, RUNNING])
+    others = layout.voxel_robot != 1
+    np.testing.assert_array_equal(eng.positions()[others], clean_pos[others])
+    assert eng.robot_steps()[1] < 20 and (eng.robot_steps()[[0, 2]] == 20).all()
+
+
+def test_planted_nan_scores_zero_and_leaves_results_finite():
+    sim = Simulator(short(), arch="cpu")
+    layout = sim.layout(three_robots())
+    layout.velocity[int(layout.voxel_start[1]), 2] = np.nan
+    r = sim.run(layout)
+    np.testing.assert_array_equal(r.diverged.numpy(), [False, True, False])
+    assert float(r.displacement[1]) == 0.0 and not r.stalled.any()
+    for x in (r.displacement, r.com_start, r.com_end, r.max_voxel_displacement, r.com_displacement):
+        assert torch.isfinite(x).all()
+
+
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+def test_robot_whose_dynamic_dt_collapses_is_stalled_and_others_finish(schedule):
+    """rl4design refreshes dt from the links' stiffness. Robot 1's material pair is made 30× stiffer after its
+    initial dt was set (a planted stiffness, still stable at that dt for the 10 steps before the first refresh):
+    its dt drops ~5.5×, so it would need ~5.5× the protocol's steps. It is stopped at SimConfig.step_cap (3) × those
+    steps and flagged stalled (reward 0); robot 0 ends exactly as it does alone."""
+    cfg = short(semantics="rl4design", burn_in=0.02, duration=0.03)
+    sim = Simulator(cfg, arch="cpu", schedule=schedule)
+    g = three_robots()[:2]
+    solo = sim.simulate(g[:1])
+    eng = sim.engine(sim.layout(g))
+    lt = eng._table("lt")
+    pair = 2 * (len(cfg.materials) + 1) + 2  # material 2 with material 2
+    lt[LT.EHAT, pair] *= 30
+    eng._upload("lt", lt)
+    r = sim.finish(eng)
+    np.testing.assert_array_equal(r.stalled.numpy(), [False, True])
+    assert not r.diverged.any()
+    assert int(r.steps[1]) == int(eng.max_steps[1])
+    assert eng.max_steps[1] == np.ceil(cfg.step_cap * 0.05 / eng.dt0[1]) + 1
+    assert float(r.time[1]) < 0.05 and float(r.displacement[1]) == 0.0
+    assert eng.robot_dt()[1] < eng.dt0[1] / 4
+    assert float(r.dt[0]) == float(solo.dt[0]) and int(r.steps[0]) == int(solo.steps[0])
+    np.testing.assert_array_equal(r.com_end[0].numpy(), solo.com_end[0].numpy())
+    np.testing.assert_array_equal(r.max_voxel_displacement[0].numpy(), solo.max_voxel_displacement[0].numpy())
+
+
+def test_device_arrays_are_reused_across_batches():
+    """A Simulator keeps one set of device arrays: a smaller batch reuses them (the same ndarray objects, nothing
+    allocated: a 2,500-epoch run allocates nothing after its largest batch), results on reused arrays equal those
+    on fresh ones bit for bit, and only a batch that outgrows them gets new ones."""
+    rng = np.random.default_rng(3)
+    g = (rng.random((6, 5, 4, 3)) < 0.6).astype(np.uint8) * rng.integers(1, 4, size=(6, 5, 4, 3)).astype(np.uint8)
+    g[:, 0, 0, 0] = 1
+    sim = Simulator(short(burn_in=0.01, duration=0.02), arch="cpu")
+    sim.simulate(g)
+    first, allocated = sim.arrays.arrays(), sim.arrays.allocations
+    for batch in (g[3:5], g[:1], g[1:6], g[2:3]):
+        reused = sim.simulate(batch)
+        fresh = Simulator(sim.config, arch="cpu").simulate(batch)
+        for name in ("displacement", "com_end", "steps", "dt"):
+            np.testing.assert_array_equal(getattr(reused, name).numpy(), getattr(fresh, name).numpy())
+    now = sim.arrays.arrays()
+    assert sim.arrays.allocations == allocated and all(now[k] is a for k, a in first.items())
+    sim.simulate(np.concatenate([g, g, g]))  # 3× the voxels, links and robots: outgrows every per-item table
+    grown = sim.arrays.arrays()
+    assert sim.arrays.allocations > allocated
+    for key, a in first.items():
+        per_item = key[0] in ("vr", "vi", "lr", "li", "rt", "ri")  # material tables and parameters keep theirs
+        assert (grown[key] is not a) == per_item, key
+
+
+def test_engine_on_arrays_taken_over_refuses_to_run():
+    sim = Simulator(short(), arch="cpu")
+    layout = sim.layout(three_robots())
+    old = sim.engine(layout)
+    sim.engine(layout)
+    with pytest.raises(RuntimeError, match="reused by a later Engine"):
+        old.advance(1)
+    with pytest.raises(RuntimeError, match="reused by a later Engine"):
+        old.positions()

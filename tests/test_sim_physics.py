@@ -179,15 +179,18 @@ def test_passive_body_at_rest_stays_at_rest(precision):
     assert float(r.time[0]) > 5.0
 
 
-def test_free_muscle_pair_follows_actuation():
-    """Two free muscle voxels: their separation tracks L·(1 + 0.1·sin(8πt)) (quasi-static, ω ≪ ω_link)."""
-    cfg = SimConfig(precision="f64", gravity=0.0, floor=False, materials=[Material(cte=0.01)],
+@pytest.mark.parametrize("phase", [0.0, 0.5])
+def test_free_muscle_pair_follows_actuation(phase):
+    """Two free muscle voxels: their separation tracks L·(1 + 0.1·sin 2π(t/0.25 + φ)) (quasi-static, ω ≪ ω_link).
+    φ = 0.5 cycles (muscle B) is the case that catches a phase in the wrong unit (π·φ instead of 2π·φ: a quarter
+    period off); φ = 0 cannot."""
+    cfg = SimConfig(precision="f64", gravity=0.0, floor=False, materials=[Material(cte=0.01, phase=phase)],
                     burn_in=0.0, duration=0.5)
     r = Simulator(cfg, arch="cpu").simulate(body((2, 1, 1)), record_every=40)
     rec = r.recording
     sep = rec.positions[0][:, 1, 0] - rec.positions[0][:, 0, 0]
     t = rec.times
-    target = L * (1 + 0.1 * np.sin(8 * np.pi * t))
+    target = L * (1 + 0.1 * np.sin(2 * np.pi * (t / cfg.temp_period + phase)))
     # skip the first period's transient; the link lags its rest length by a few steps
     late = t > 0.25
     np.testing.assert_allclose(sep[late], target[late], atol=2e-3 * L)

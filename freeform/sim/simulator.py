@@ -113,7 +113,12 @@ class Simulator:
 
     def run(self, layout: Layout, record_every: int | None = None) -> SimResult:
         """Simulate a prepared ``Layout`` (the hooks on it — fixed voxels, velocities — are honoured)."""
-        engine = self.engine(layout)
+        return self.finish(self.engine(layout), record_every)
+
+    def finish(self, engine: Engine, record_every: int | None = None) -> SimResult:
+        """Run ``engine`` (from ``self.engine``, possibly advanced or edited already) until every robot has
+        stopped, and give its results."""
+        layout = engine.layout
         frames: list[tuple[float, np.ndarray]] = []
 
         def snapshot() -> None:
