@@ -3,7 +3,8 @@
 A run directory keeps ``checkpoints/last.pt`` (rewritten every epoch) plus numbered ``checkpoints/epoch_<e>.pt``.
 :func:`save_checkpoint` writes to a temporary file in the same directory, flushes it to disk and renames it over
 the target (``os.replace`` is atomic on POSIX and Windows), so a reader sees either the old file or the new one,
-never a half-written one. :func:`load_checkpoint` turns any failure to read a file into a
+never a half-written one; a write that fails (disk full, quota, a vanished mount) raises the ``OSError`` that says
+so, removes the temporary file and leaves the target as it was. :func:`load_checkpoint` turns any failure to read a file into a
 :class:`CheckpointError` that names it (and lists the other checkpoints next to it).
 
 Checkpoints are loaded with ``torch.load(weights_only=True)``: they hold only tensors, numbers, strings and
@@ -42,6 +43,11 @@ class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
     """There is no checkpoint file at the path."""
 
 
+class CheckpointWriteError(CheckpointError):
+    """A run could not write its checkpoint (or the epoch's files that must be on disk before it): disk full, quota,
+    a vanished mount. The message names what failed and which checkpoint is still the run's last good one."""
+
+
 def numbered_name(epoch: int) -> str:
     """File name of the checkpoint taken after ``epoch`` epochs: ``epoch_000123.pt``."""
     return f"epoch_{epoch:06d}.pt"
@@ -58,7 +64,13 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
+            sink = _Sink(f)
+            try:
+                torch.save(payload, sink)
+            except Exception as exc:
+                if sink.error is not None:  # torch words a failed write as a RuntimeError about zip offsets
+                    raise sink.error from exc
+                raise
             f.flush()
             os.fsync(f.fileno())  # the bytes are on disk before the rename makes them visible
         os.replace(tmp, path)
@@ -67,6 +79,26 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path
         raise
     _fsync_dir(path.parent)  # make the rename itself durable
     return path
+
+
+class _Sink:
+    """The file ``torch.save`` writes to, remembering the first ``OSError`` (disk full, quota, a vanished mount):
+    torch reports such a failure as ``RuntimeError: [enforce fail at inline_container.cc] unexpected pos``, so
+    :func:`save_checkpoint` raises the ``OSError`` instead, which says what happened."""
+
+    def __init__(self, file: Any) -> None:
+        self.file = file
+        self.error: OSError | None = None
+
+    def write(self, data: Any) -> int:
+        try:
+            return self.file.write(data)
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
+
+    def flush(self) -> None:
+        self.file.flush()
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -165,6 +197,18 @@ def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:
     return path
 
 
+AUTO = "auto"
+"""``trainer.resume=auto``: continue the run directory's own checkpoint when there is one (:func:`auto_checkpoint`)."""
+
+
+def auto_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
+    """What ``trainer.resume=auto`` continues from: ``<run_dir>/checkpoints/last.pt`` if it exists, else None (start
+    fresh). Only ``last.pt`` counts: a run killed before finishing its first epoch has none, and starting it again
+    from scratch is the same run (same seed)."""
+    path = Path(run_dir) / CHECKPOINT_DIR / LAST
+    return path if path.is_file() else None
+
+
 def run_dir_of(path: str | os.PathLike[str]) -> Path:
     """The run directory a ``trainer.resume`` value belongs to (``<run>/checkpoints/x.pt`` -> ``<run>``)."""
     path = Path(path).expanduser()
@@ -211,10 +255,13 @@ def restore_rng_state(state: dict[str, Any]) -> None:
 
 
 __all__ = [
+    "AUTO",
     "CHECKPOINT_DIR",
     "LAST",
     "CheckpointError",
     "CheckpointNotFoundError",
+    "CheckpointWriteError",
+    "auto_checkpoint",
     "capture_rng_state",
     "load_checkpoint",
     "numbered_name",

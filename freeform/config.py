@@ -95,9 +95,14 @@ class TrainerConfig:
     checkpoint_every: int = 10
     """Every this many epochs keep a numbered checkpoint ``checkpoints/epoch_<e>.pt`` (``last.pt`` is rewritten
     every epoch); 0 = numbered ones off."""
-    resume: str | None = None
-    """Run directory or checkpoint file to continue from (the run's own config is used; only ``trainer.*`` may
-    differ)."""
+    resume: str | None = "auto"
+    """``auto``: continue the run in its own run directory when ``checkpoints/last.pt`` is there, else start fresh
+    (a requeued job, or the same command with the same ``hydra.run.dir``, picks up where it stopped); a run
+    directory or checkpoint file: continue that run, in its directory; None: always start fresh. A resumed run uses
+    the checkpoint's config: only ``trainer.*`` may differ."""
+    stop_grace_s: float = 60.0
+    """After SIGTERM/SIGUSR2, how long the epoch in progress may take to finish before it is abandoned (0: at
+    once); the run then checkpoints and exits with status 75 (``freeform.preemption``)."""
     record_designs: bool = True
     """Write ``records/epoch_<e>.npz`` (actions, final grids, rewards, critic values, body metrics) every epoch."""
     render_every: int = 0
@@ -145,6 +150,7 @@ def _validate_trainer(t: TrainerConfig) -> None:
             f"one of {list(_DEVICES)} or 'cuda:<index>'", t.device)
     for name in ("threads", "checkpoint_every", "render_every", "print_every"):
         require(getattr(t, name) >= 0, f"trainer.{name}", "an integer >= 0 (0 = off/default)", getattr(t, name))
+    require(t.stop_grace_s >= 0, "trainer.stop_grace_s", "a number of seconds >= 0", t.stop_grace_s)
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:

@@ -4,6 +4,7 @@
     freeform-train experiment=paper_volume           # paper Table I, volume
     freeform-train -m experiment=paper_volume seed=0,1,2,3,4   # five trials, one directory each
     freeform-train trainer.resume=runs/volume_cpu/2026-01-01_12-00-00 trainer.epochs=80
+    freeform-train hydra.run.dir=runs/mine      # again after a kill or SIGTERM: continues (trainer.resume=auto)
     torchrun --nproc_per_node=4 -m freeform.train experiment=paper_locomotion   # one run on 4 GPUs (docs/scaling.md)
     freeform-train trainer.dry_run=true ...          # print the per-rank split and the launch command, run nothing
 
@@ -11,6 +12,11 @@ Each epoch: PPO collects one rollout and updates (``PPO.train_epoch``); the trai
 finished episodes, writes the epoch's design record, logs scalars to TensorBoard, runs the per-epoch callbacks
 (renders), flushes, and only then checkpoints — so whatever a checkpoint claims is already on disk, and a run killed
 at any moment resumes from its last checkpoint with no gap. The run directory's layout is in ``docs/training.md``.
+
+On SIGTERM/SIGUSR2 (a cluster's preemption or time limit) the run finishes the epoch in progress, checkpoints and
+exits with status 75, "requeue me" (``freeform.preemption``); with ``trainer.resume=auto`` (the default) the same
+command in the same run directory continues it. A failed write (disk full, quota, a vanished mount) stops the run
+cleanly with a one-line reason and status 1, the previous ``last.pt`` intact.
 
 Python use: ``train(cfg, run_dir)`` with a :class:`freeform.config.TrainConfig`.
 """
@@ -42,12 +48,16 @@ import torch
 from omegaconf import OmegaConf
 
 import freeform
+from freeform import preemption
 from freeform._conf_dir import conf_dir
 from freeform.agents import distributed
 from freeform.checkpoint import (
+    AUTO,
     CHECKPOINT_DIR,
     LAST,
     CheckpointError,
+    CheckpointWriteError,
+    auto_checkpoint,
     capture_rng_state,
     load_checkpoint,
     numbered_name,
@@ -68,7 +78,7 @@ from freeform.config import (
 )
 from freeform.envs.base import ReportsStats, Task, VecEnv
 from freeform.logger import Logger
-from freeform.records import EpisodeCollector, EpochRecord, write_record
+from freeform.records import EpisodeCollector, EpochRecord, record_path, write_record
 
 log = logging.getLogger("freeform.train")
 
@@ -324,6 +334,29 @@ class TrainResult:
     global_step: int
     history: list[dict[str, float]]
     """Per epoch trained in this call: the scalars written (TensorBoard tag -> value)."""
+    stopped: str | None = None
+    """Why the run stopped before ``trainer.epochs`` (a stop signal; ``freeform.preemption``), None if it did not.
+    ``checkpoints/last.pt`` then holds epoch ``epochs``, and the same command continues the run."""
+    stop_signal: int | None = None
+    """The stop signal this process received (None: none, or only another rank did)."""
+
+
+def _agree(dp: Any, signalled: bool, failed: bool) -> tuple[bool, bool]:
+    """Whether any rank was signalled to stop / failed to write: every rank stops at the same epoch boundary even
+    when a signal reached rank 0 alone (one small all-reduce per epoch; the identity in one process)."""
+    flags = dp.sum_(torch.tensor([int(signalled), int(failed)], dtype=torch.int64))
+    return bool(flags[0] > 0), bool(flags[1] > 0)
+
+
+def _write_failure(what: Path, exc: OSError, run_dir: Path, saved_epoch: int | None) -> str:
+    """One line: what could not be written, why, and what the run directory still holds."""
+    where = what.relative_to(run_dir) if what.is_relative_to(run_dir) else what
+    where = where if str(where) != "." else f"the run directory {run_dir}"
+    kept = (f"{CHECKPOINT_DIR}/{LAST} still holds the state after {saved_epoch} epochs and loads"
+            if saved_epoch is not None else "no checkpoint was written yet (the run starts afresh)")
+    reason = f"[Errno {exc.errno}] {exc.strerror}" if exc.errno and exc.strerror else (str(exc) or type(exc).__name__)
+    return (f"could not write {where}: {type(exc).__name__} {reason}; stopped cleanly, {kept}; free the space or "
+            f"fix the mount, then run the same command again (trainer.resume=auto) or trainer.resume={run_dir}")
 
 
 def _checkpoint_state(cfg: TrainConfig, ppo: Any, collector: EpisodeCollector) -> dict[str, Any]:
@@ -366,9 +399,18 @@ def train(
         return TrainResult(run_dir=run_dir, epochs=0, global_step=0, history=[])
     main_rank = distributed.is_main_process()
     state: dict[str, Any] | None = None
-    if cfg.trainer.resume:
-        # Read the checkpoint before anything in the run directory is opened: a bad file loses nothing.
+    ckpt_path: Path | None = None
+    if cfg.trainer.resume == AUTO:
+        # This run directory's own checkpoint, if any (rank 0 looks: its directory is everyone's).
+        found = auto_checkpoint(run_dir) if main_rank else None
+        found = distributed.broadcast_object(str(found) if found is not None else None)
+        ckpt_path = Path(found) if found is not None else None
+        if ckpt_path is None:
+            log.info("trainer.resume=auto: no %s/%s in %s, starting a new run", CHECKPOINT_DIR, LAST, run_dir)
+    elif cfg.trainer.resume:
         ckpt_path = resolve_checkpoint(cfg.trainer.resume)
+    if ckpt_path is not None:
+        # Read the checkpoint before anything in the run directory is opened: a bad file loses nothing.
         state = load_checkpoint(ckpt_path)
         try:
             saved = from_container(state["config"])
@@ -390,6 +432,8 @@ def train(
     ckpt_dir = run_dir / CHECKPOINT_DIR
     logger: Logger | None = None
     if main_rank:
+        # A new run in a directory a killed attempt wrote events to (trainer.resume=auto, no last.pt yet): drop them.
+        stale_events = state is None and any(run_dir.glob("events.out.tfevents.*"))
         run_dir.mkdir(parents=True, exist_ok=True)
         info_path = run_dir / RUN_INFO
         if state is None:
@@ -410,71 +454,161 @@ def train(
             run_dir,
             total_epochs=cfg.trainer.epochs,
             initial_epoch=min(ppo.epoch, cfg.trainer.epochs),
-            purge_step=ppo.global_step + 1 if state is not None else None,
+            purge_step=ppo.global_step + 1 if state is not None else (0 if stale_events else None),
             progress=cfg.trainer.progress,
             print_every=cfg.trainer.print_every,
         )
     callbacks = list(default_callbacks(cfg) if callbacks is None else callbacks)
     history: list[dict[str, float]] = []
+    stop = preemption.StopSignals(cfg.trainer.stop_grace_s)
+    stopped: str | None = None
+    failure: str | None = None  # rank 0's first failed write: the run stops at the next epoch boundary
+    saved_epoch = ppo.epoch if state is not None else None  # what checkpoints/last.pt holds
+    done = (ppo.epoch, ppo.global_step)  # epochs and steps of the last complete epoch
     try:
-        if state is None:
-            if logger is not None:
-                container = to_container(cfg)
-                logger.log_config(
-                    OmegaConf.to_yaml(container),
-                    flatten(container),
-                    {"charts/episode_reward_mean": 0.0, "charts/episode_reward_max": 0.0},
-                )
-                logger.flush()
-            if cfg.trainer.checkpoint_every:  # the untrained policy (the "untrained critic" of Fig. 5)
-                ckpt = _checkpoint_state(cfg, ppo, collector)  # data-parallel: a collective, every rank
-                if main_rank:
-                    save_checkpoint(ckpt_dir / numbered_name(0), ckpt)
-        time_checkpoint = 0.0
-        while ppo.epoch < cfg.trainer.epochs:
-            stats = dict(ppo.train_epoch())
-            # The task's own figures of the epoch's scoring (LocomotionTask: perf/sim_seconds, voxel-steps/s).
-            if isinstance(env.task, ReportsStats):
-                stats.update(ppo.dp.reduce_stats(env.task.stats))
-            epoch = ppo.epoch - 1
-            t0 = time.perf_counter()
-            # The records and body metrics are of the global batch: every rank's episodes.
-            rollout, episode_infos = ppo.dp.gather_rollout(ppo.rollout, ppo.episode_infos)
-            if logger is not None:
-                episodes = collector.collect(rollout, episode_infos)
-                body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
-                if episodes is not None and cfg.trainer.record_designs:
-                    write_record(
-                        run_dir,
-                        EpochRecord(
-                            epoch=epoch,
-                            global_step=ppo.global_step,
-                            actions=episodes["actions"],
-                            final_grids=episodes["final_grids"],
-                            rewards=episodes["rewards"],
-                            values=episodes["values"],
-                            metrics=episodes["metrics"],
-                        ),
+        with stop:
+            if state is None:
+                if logger is not None:
+                    container = to_container(cfg)
+                    logger.log_config(
+                        OmegaConf.to_yaml(container),
+                        flatten(container),
+                        {"charts/episode_reward_mean": 0.0, "charts/episode_reward_max": 0.0},
                     )
-                stats["time_logging"] = time.perf_counter() - t0
-                stats["time_checkpoint"] = time_checkpoint  # the previous epoch's: this one's is not taken yet
-                history.append(logger.log_epoch(epoch, ppo.global_step, stats, body))
-                ctx = EpochContext(epoch, ppo.global_step, stats, episodes, cfg, run_dir, logger, ppo)
-                for callback in callbacks:
-                    callback(ctx)
-                # Everything up to this step is on disk before a checkpoint says the run got this far.
-                logger.flush()
-            t1 = time.perf_counter()
-            ckpt = _checkpoint_state(cfg, ppo, collector)
-            if main_rank:
-                save_checkpoint(ckpt_dir / LAST, ckpt)
-                if cfg.trainer.checkpoint_every and ppo.epoch % cfg.trainer.checkpoint_every == 0:
-                    save_checkpoint(ckpt_dir / numbered_name(ppo.epoch), ckpt)
-            time_checkpoint = time.perf_counter() - t1
+                    logger.flush()
+                if cfg.trainer.checkpoint_every:  # the untrained policy (the "untrained critic" of Fig. 5)
+                    with stop.writing():
+                        ckpt = _checkpoint_state(cfg, ppo, collector)  # data-parallel: a collective, every rank
+                        if main_rank:
+                            path = ckpt_dir / numbered_name(0)
+                            try:
+                                save_checkpoint(path, ckpt)
+                            except OSError as exc:
+                                failure = _write_failure(path, exc, run_dir, saved_epoch)
+            time_checkpoint = 0.0
+            while True:
+                # The epoch boundary: every rank learns whether any was signalled or failed to write.
+                signalled, failed = _agree(ppo.dp, stop.requested, failure is not None)
+                if failed:
+                    break
+                if ppo.epoch >= cfg.trainer.epochs:
+                    break
+                if signalled:
+                    stopped = preemption.signal_name(stop.signum) if stop.signum is not None else "a signal to another rank"
+                    break
+                try:
+                    with stop.epoch():
+                        stats = dict(ppo.train_epoch())
+                        # The task's own figures of the epoch's scoring (LocomotionTask: perf/sim_seconds, ...).
+                        if isinstance(env.task, ReportsStats):
+                            stats.update(ppo.dp.reduce_stats(env.task.stats))
+                        epoch = ppo.epoch - 1
+                        t0 = time.perf_counter()
+                        # The records and body metrics are of the global batch: every rank's episodes.
+                        rollout, episode_infos = ppo.dp.gather_rollout(ppo.rollout, ppo.episode_infos)
+                        if logger is not None:
+                            try:
+                                _log_epoch(cfg, run_dir, ppo, logger, collector, callbacks, history, rollout,
+                                           episode_infos, epoch, stats, t0, time_checkpoint)
+                            except _EpochWriteError as exc:
+                                failure = _write_failure(exc.path, exc.cause, run_dir, saved_epoch)
+                except preemption.EpochAbandoned:
+                    # PPO's state is half-way through the epoch: nothing more is written, last.pt stays as it was.
+                    log.warning("epoch %d abandoned: it did not finish within trainer.stop_grace_s=%g s of %s",
+                                done[0], cfg.trainer.stop_grace_s, preemption.signal_name(stop.signum or 0))
+                    stopped = f"{preemption.signal_name(stop.signum or 0)} (epoch in progress abandoned)"
+                    break
+                t1 = time.perf_counter()
+                with stop.writing():
+                    ckpt = _checkpoint_state(cfg, ppo, collector)  # data-parallel: a collective, every rank
+                    if main_rank and failure is None:  # never a checkpoint past an epoch whose files are missing
+                        path = ckpt_dir / LAST
+                        try:
+                            save_checkpoint(path, ckpt)
+                            saved_epoch = ppo.epoch
+                            if cfg.trainer.checkpoint_every and ppo.epoch % cfg.trainer.checkpoint_every == 0:
+                                path = ckpt_dir / numbered_name(ppo.epoch)
+                                save_checkpoint(path, ckpt)
+                        except OSError as exc:
+                            failure = _write_failure(path, exc, run_dir, saved_epoch)
+                time_checkpoint = time.perf_counter() - t1
+                if failure is None:  # ranks > 0 take rank 0's write as done: a failure stops all at the next boundary
+                    saved_epoch = ppo.epoch
+                done = (ppo.epoch, ppo.global_step)
     finally:
         if logger is not None:
-            logger.close()
-    return TrainResult(run_dir=run_dir, epochs=ppo.epoch, global_step=ppo.global_step, history=history)
+            try:
+                logger.close()  # flushes TensorBoard
+            except OSError as exc:
+                if failure is None:
+                    raise
+                log.warning("could not flush TensorBoard events either: %s", exc)
+    if failure is not None or (stopped is None and done[0] < cfg.trainer.epochs):
+        raise CheckpointWriteError(failure or "stopped: rank 0 could not write the run's files (its log says which)")
+    if stopped is not None:
+        kept = f"{CHECKPOINT_DIR}/{LAST} holds the state after {saved_epoch} epochs" if saved_epoch is not None else (
+            "no checkpoint was written yet")
+        log.warning("stopped on %s, %d of %d epochs done; %s: the same command continues the run "
+                    "(trainer.resume=auto), or trainer.resume=%s", stopped, saved_epoch or 0, cfg.trainer.epochs,
+                    kept, run_dir)
+        done = (saved_epoch or 0, done[1])
+    return TrainResult(run_dir=run_dir, epochs=done[0], global_step=done[1], history=history,
+                       stopped=stopped, stop_signal=stop.signum)
+
+
+class _EpochWriteError(Exception):
+    """An OSError while writing an epoch's record or events, with the file it concerned."""
+
+    def __init__(self, path: Path, cause: OSError) -> None:
+        super().__init__(f"{path}: {cause}")
+        self.path, self.cause = path, cause
+
+
+def _log_epoch(
+    cfg: TrainConfig,
+    run_dir: Path,
+    ppo: Any,
+    logger: Logger,
+    collector: EpisodeCollector,
+    callbacks: Sequence[EpochCallback],
+    history: list[dict[str, float]],
+    rollout: Any,
+    episode_infos: list[dict[str, Any]],
+    epoch: int,
+    stats: dict[str, float],
+    t0: float,
+    time_checkpoint: float,
+) -> None:
+    """Rank 0's writing of an epoch before its checkpoint: the design record, the scalars, the callbacks, a flush —
+    so that whatever the checkpoint claims is on disk. An OSError becomes an :class:`_EpochWriteError` naming the
+    file (the record, or the run directory for TensorBoard's events and the callbacks' files)."""
+    episodes = collector.collect(rollout, episode_infos)
+    body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
+    if episodes is not None and cfg.trainer.record_designs:
+        record = EpochRecord(
+            epoch=epoch,
+            global_step=ppo.global_step,
+            actions=episodes["actions"],
+            final_grids=episodes["final_grids"],
+            rewards=episodes["rewards"],
+            values=episodes["values"],
+            metrics=episodes["metrics"],
+        )
+        try:
+            write_record(run_dir, record)
+        except OSError as exc:
+            raise _EpochWriteError(record_path(run_dir, epoch), exc) from exc
+    stats["time_logging"] = time.perf_counter() - t0
+    stats["time_checkpoint"] = time_checkpoint  # the previous epoch's: this one's is not taken yet
+    try:
+        history.append(logger.log_epoch(epoch, ppo.global_step, stats, body))
+        ctx = EpochContext(epoch, ppo.global_step, stats, episodes, cfg, run_dir, logger, ppo)
+        for callback in callbacks:
+            callback(ctx)
+        # Everything up to this step is on disk before a checkpoint says the run got this far.
+        logger.flush()
+    except OSError as exc:
+        raise _EpochWriteError(run_dir, exc) from exc
 
 
 # ------------------------------------------------------------------------------------------------ Hydra CLI
@@ -487,19 +621,26 @@ def _secondary_rank_dir() -> Path:
 
 
 def _resolver_run_dir(resume: str | None, default: str) -> str:
-    """``hydra.run.dir``: the resumed run's directory, else ``default`` (runs/<experiment>/<timestamp>); a scratch
-    directory on ranks > 0 of a data-parallel run (rank 0's run directory is broadcast to them)."""
+    """``hydra.run.dir``: the resumed run's directory (``trainer.resume=<run or file>``), else ``default``
+    (runs/<experiment>/<timestamp>, or what ``hydra.run.dir`` says: ``trainer.resume=auto`` continues whatever
+    directory that is); a scratch directory on ranks > 0 of a data-parallel run (rank 0's run directory is
+    broadcast to them)."""
     if distributed.launch_rank() > 0:
         return str(_secondary_rank_dir())
-    return str(run_dir_of(resume)) if resume else default
+    return str(run_dir_of(resume)) if resume and resume != AUTO else default
 
 
-def _resolver_hydra_subdir(resume: str | None) -> str | None:
-    """``hydra.output_subdir``: keep the original run's ``.hydra`` when resuming in its directory; none on ranks > 0
+def _resolver_hydra_subdir(resume: str | None, output_dir: str | None = None) -> str | None:
+    """``hydra.output_subdir``: keep the original run's ``.hydra`` when resuming in its directory (an explicit
+    ``trainer.resume``, or ``auto`` where the job's directory ``output_dir`` has a checkpoint); none on ranks > 0
     of a data-parallel run (rank 0 writes it)."""
     if distributed.launch_rank() > 0:
         return None
-    return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resume else ".hydra"
+    if resume == AUTO:
+        resuming = output_dir is not None and auto_checkpoint(output_dir) is not None
+    else:
+        resuming = bool(resume)
+    return f".hydra/resume_{datetime.now():%Y-%m-%d_%H-%M-%S}" if resuming else ".hydra"
 
 
 SWEPT_KEYS_ENV = "FREEFORM_SWEPT_KEYS"
@@ -552,11 +693,14 @@ def _hydra_entry(cfg: Any) -> None:
             _silence_secondary_rank()
         with logging_redirect_tqdm():
             result = train(typed, run_dir, overrides=list(hydra_cfg.overrides.task))
-        if hydra_cfg.mode != RunMode.MULTIRUN:  # a sweep's next job in this process reuses the group
+        if hydra_cfg.mode != RunMode.MULTIRUN or result.stopped:  # a sweep's next job in this process reuses the group
             distributed.shutdown()  # every rank finished: tear the process group down together
     except (ValueError, CheckpointError) as exc:
         # A clear one-line message (and a non-zero exit), not a traceback through Hydra's internals.
         raise SystemExit(f"freeform-train: error: {exc}") from exc
+    if result.stopped:
+        # Stopped by a signal, checkpoint written: exit 75 "requeue me" (or submitit's handler requeues the job).
+        preemption.exit_for_requeue(result.stop_signal)
     if not distributed.is_main_process() or typed.trainer.dry_run:
         return
     log.info("done: %d epochs, %d steps, run directory %s", result.epochs, result.global_step, run_dir)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import random
 import signal
@@ -49,6 +50,25 @@ def test_failed_write_keeps_the_previous_file(tmp_path: Path, monkeypatch: pytes
     monkeypatch.setattr(torch, "save", crash)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, _state(2))
+    assert load_checkpoint(path)["i"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt"]  # no temporary file left behind
+
+
+def test_a_write_the_file_system_refuses_raises_its_oserror_and_keeps_the_previous_file(tmp_path: Path) -> None:
+    """A file-size limit (like a quota or a full disk, and enforced for root too) hit half-way through torch.save:
+    torch itself would report ``RuntimeError: ... unexpected pos``; save_checkpoint raises the OSError (EFBIG)."""
+    resource = pytest.importorskip("resource")
+    path = save_checkpoint(tmp_path / "last.pt", _state(1))
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # else the kernel's SIGXFSZ ends the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, hard))
+    try:
+        with pytest.raises(OSError) as info:
+            save_checkpoint(path, {"big": torch.zeros(100_000), **_state(2)})
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, previous)
+    assert info.value.errno == errno.EFBIG
     assert load_checkpoint(path)["i"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt"]  # no temporary file left behind
 
