@@ -152,7 +152,7 @@ def test_training_app_runs_the_locomotion_task_and_logs_simulation_speed(tmp_pat
 
     cfg = TrainConfig(
         name="tiny_locomotion", seed=3,
-        task=TaskConfig(name="locomotion", materials=4, options={"arch": "cpu"}),
+        task=TaskConfig(name="locomotion", materials=4),  # the simulator takes its arch from trainer.device
         env=EnvConfig(num_envs=4, resolution=6, steps=4),
         agent=AgentConfig(hidden=16, num_sgd_iter=1, sgd_minibatch_size=16),
         sim=short_sim(semantics="rl4design", reward="com"),
