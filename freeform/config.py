@@ -159,10 +159,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
     cfg.agent.validate("agent")
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
-    try:
-        cfg.sim.validate()
-    except ValueError as exc:
-        raise ValueError(str(exc).replace("SimConfig.", "sim.", 1)) from exc
+    cfg.sim.validate("sim")
     _validate_trainer(cfg.trainer)
     return cfg
 

@@ -47,7 +47,8 @@ class LocomotionTask:
 
     After each :meth:`reward` call, :attr:`stats` holds the call's timings as TensorBoard tags:
     ``perf/sim_seconds`` (wall time of the simulate call), ``perf/voxel_steps_per_second`` (simulated voxels ×
-    steps / that time), ``stats/sim_diverged`` and ``stats/sim_bodies`` (bodies simulated).
+    steps / that time), ``stats/sim_diverged`` (robots that scored 0 by failing: diverged or stalled),
+    ``stats/sim_stalled`` (stopped by ``sim.step_cap``) and ``stats/sim_bodies`` (bodies simulated).
     """
 
     def __init__(
@@ -98,6 +99,7 @@ class LocomotionTask:
             "perf/sim_seconds": 0.0,
             "perf/voxel_steps_per_second": 0.0,
             "stats/sim_diverged": 0.0,
+            "stats/sim_stalled": 0.0,
             "stats/sim_bodies": float(live.numel()),
         }
         if live.numel() == 0:  # nothing to simulate: every body is empty
@@ -106,7 +108,11 @@ class LocomotionTask:
         result = self.simulator.simulate(bodies[live])
         seconds = time.perf_counter() - t0
         displacement = torch.nan_to_num(result.displacement.to(device, torch.float32), nan=0.0, posinf=0.0)
+        # A diverged robot and one stopped by the step cap (its dt collapsed) both score 0 and count as failures.
+        stalled = getattr(result, "stalled", None)
         failed = result.diverged.to(device) | ~torch.isfinite(result.displacement.to(device))
+        if stalled is not None:
+            failed = failed | stalled.to(device)
         displacement = torch.where(failed | (displacement < self.min_reward), 0.0, displacement)
         reward[live.to(device)] = displacement
         voxel_steps = float((volume[live].cpu().to(torch.float64) * result.steps.to(torch.float64)).sum())
@@ -115,6 +121,7 @@ class LocomotionTask:
                 "perf/sim_seconds": seconds,
                 "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
                 "stats/sim_diverged": float(failed.sum()),
+                "stats/sim_stalled": float(stalled.sum()) if stalled is not None else 0.0,
             }
         )
         return reward

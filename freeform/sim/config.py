@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from freeform.validation import require
+
 REWARDS = ("max_voxel", "com")
 SEMANTICS = ("voxelyze", "rl4design")
 PRECISIONS = ("f32", "f64")
@@ -82,36 +84,26 @@ class SimConfig:
     chunk_steps: int = 2000
     step_cap: float = 3.0
 
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the first field outside its allowed values."""
-        if self.reward not in REWARDS:
-            raise ValueError(f"SimConfig.reward must be one of {REWARDS}, got {self.reward!r}")
-        if self.semantics not in SEMANTICS:
-            raise ValueError(f"SimConfig.semantics must be one of {SEMANTICS}, got {self.semantics!r}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"SimConfig.precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if not self.voxel_size > 0:
-            raise ValueError(f"SimConfig.voxel_size must be > 0, got {self.voxel_size}")
-        if len(self.materials) == 0 or len(self.materials) > 254:
-            raise ValueError(f"SimConfig.materials must hold 1..254 materials, got {len(self.materials)}")
+    def validate(self, key: str = "SimConfig") -> None:
+        """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its allowed values
+        (``key="sim"`` from the command line)."""
+        require(self.reward in REWARDS, f"{key}.reward", f"one of {REWARDS}", self.reward)
+        require(self.semantics in SEMANTICS, f"{key}.semantics", f"one of {SEMANTICS}", self.semantics)
+        require(self.precision in PRECISIONS, f"{key}.precision", f"one of {PRECISIONS}", self.precision)
+        require(self.voxel_size > 0, f"{key}.voxel_size", "> 0", self.voxel_size)
+        require(1 <= len(self.materials) <= 254, f"{key}.materials", "1..254 materials", len(self.materials))
         for i, m in enumerate(self.materials):
-            if not (m.E > 0 and m.density > 0):
-                raise ValueError(f"SimConfig.materials[{i}]: E and density must be > 0, got {m}")
-            if not (0 <= m.poisson < 0.5):
-                raise ValueError(f"SimConfig.materials[{i}].poisson must be in [0, 0.5), got {m.poisson}")
-        if self.dt is not None and not self.dt > 0:
-            raise ValueError(f"SimConfig.dt must be None or > 0, got {self.dt}")
-        if not 0 < self.dt_frac <= 1:
-            raise ValueError(f"SimConfig.dt_frac must be in (0, 1], got {self.dt_frac}")
-        if self.burn_in < 0 or not self.duration > 0:
-            raise ValueError(f"SimConfig.burn_in must be >= 0 and duration > 0, got {self.burn_in}, {self.duration}")
-        if not self.temp_period > 0:
-            raise ValueError(f"SimConfig.temp_period must be > 0, got {self.temp_period}")
-        if self.chunk_steps < 1:
-            raise ValueError(f"SimConfig.chunk_steps must be >= 1, got {self.chunk_steps}")
-        if not self.step_cap >= MIN_STEP_CAP:
-            raise ValueError(f"SimConfig.step_cap must be >= {MIN_STEP_CAP} (times the protocol's steps; less could "
-                             f"stop healthy robots), got {self.step_cap}")
+            require(m.E > 0, f"{key}.materials[{i}].E", "> 0", m.E)
+            require(m.density > 0, f"{key}.materials[{i}].density", "> 0", m.density)
+            require(0 <= m.poisson < 0.5, f"{key}.materials[{i}].poisson", "in [0, 0.5)", m.poisson)
+        require(self.dt is None or self.dt > 0, f"{key}.dt", "None or > 0", self.dt)
+        require(0 < self.dt_frac <= 1, f"{key}.dt_frac", "in (0, 1]", self.dt_frac)
+        require(self.burn_in >= 0, f"{key}.burn_in", ">= 0", self.burn_in)
+        require(self.duration > 0, f"{key}.duration", "> 0", self.duration)
+        require(self.temp_period > 0, f"{key}.temp_period", "> 0", self.temp_period)
+        require(self.chunk_steps >= 1, f"{key}.chunk_steps", ">= 1", self.chunk_steps)
+        # Times the protocol's steps; less could stop healthy robots whose dt dips for a while.
+        require(self.step_cap >= MIN_STEP_CAP, f"{key}.step_cap", f">= {MIN_STEP_CAP}", self.step_cap)
 
 
 # Column names of the material tables that the kernels read (one column per material index, 0 = empty).
