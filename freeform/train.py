@@ -115,7 +115,7 @@ def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
 
     # The simulator runs where the run does: no silent CPU fallback under a GPU run (resolve_device checked CUDA).
     arch = "cuda" if device.type == "cuda" else "cpu"
-    return LocomotionTask(sim=cfg.sim, device=device, arch=arch, **cfg.task.options)
+    return LocomotionTask(sim=cfg.sim, device=device, **{"arch": arch, **cfg.task.options})  # an explicit option wins
 
 
 def build_task(cfg: TrainConfig, device: torch.device) -> Task:
