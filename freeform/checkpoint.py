@@ -1,7 +1,7 @@
 """Checkpoints that survive a kill at any moment, and the RNG states that make a resumed run exact.
 
 A run directory keeps ``checkpoints/last.pt`` (rewritten every epoch) plus numbered ``checkpoints/epoch_<e>.pt``.
-:func:`save_checkpoint` writes to a temporary file in the same directory, flushes it to disk and renames it over
+:func:`save_checkpoint` writes through ``freeform.files.write_atomically``: a temporary file in the same directory, flushed to disk and renamed over
 the target (``os.replace`` is atomic on POSIX and Windows), so a reader sees either the old file or the new one,
 never a half-written one; a write that fails (disk full, quota, a vanished mount) raises the ``OSError`` that says
 so, removes the temporary file and leaves the target as it was. :func:`load_checkpoint` turns any failure to read a file into a
@@ -20,12 +20,13 @@ from __future__ import annotations
 
 import os
 import random
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+
+from freeform.files import write_atomically
 
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
@@ -58,27 +59,18 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path
 
     ``state`` is stamped with ``format``/``version`` keys. Returns the path written.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {"format": FORMAT, "version": VERSION, **state}
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            sink = _Sink(f)
-            try:
-                torch.save(payload, sink)
-            except Exception as exc:
-                if sink.error is not None:  # torch words a failed write as a RuntimeError about zip offsets
-                    raise sink.error from exc
-                raise
-            f.flush()
-            os.fsync(f.fileno())  # the bytes are on disk before the rename makes them visible
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)  # make the rename itself durable
-    return path
+
+    def write(f: Any) -> None:
+        sink = _Sink(f)
+        try:
+            torch.save(payload, sink)
+        except Exception as exc:
+            if sink.error is not None:  # torch words a failed write as a RuntimeError about zip offsets
+                raise sink.error from exc
+            raise
+
+    return write_atomically(path, write)
 
 
 class _Sink:
@@ -99,19 +91,6 @@ class _Sink:
 
     def flush(self) -> None:
         self.file.flush()
-
-
-def _fsync_dir(directory: Path) -> None:
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:  # e.g. Windows cannot open directories; the rename is still atomic there
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _siblings(path: Path) -> str:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +32,8 @@ from typing import Any
 
 import numpy as np
 import torch
+
+from freeform.files import write_atomically
 
 RECORDS_DIR = "records"
 _METRIC_PREFIX = "metric_"
@@ -74,9 +75,8 @@ def record_path(run_dir: str | os.PathLike[str], epoch: int) -> Path:
 
 
 def write_record(run_dir: str | os.PathLike[str], record: EpochRecord) -> Path:
-    """Write ``record`` compressed and atomically (temporary file + rename); returns its path."""
+    """Write ``record`` compressed and atomically (``freeform.files.write_atomically``); returns its path."""
     path = record_path(run_dir, record.epoch)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {
         "actions": record.actions.astype(np.float32, copy=False),
         "final_grids": record.final_grids.astype(np.uint8, copy=False),
@@ -87,15 +87,7 @@ def write_record(run_dir: str | os.PathLike[str], record: EpochRecord) -> Path:
     }
     for name, m in record.metrics.items():
         arrays[_METRIC_PREFIX + name] = m.astype(np.float32, copy=False)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **arrays)  # type: ignore[arg-type]
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_atomically(path, lambda f: np.savez_compressed(f, **arrays))  # type: ignore[arg-type]
 
 
 def read_record(path: str | os.PathLike[str]) -> EpochRecord:

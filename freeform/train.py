@@ -77,6 +77,7 @@ from freeform.config import (
     validate,
 )
 from freeform.envs.base import ReportsStats, Task, VecEnv
+from freeform.files import write_atomically
 from freeform.logger import Logger
 from freeform.records import EpisodeCollector, EpochRecord, record_path, write_record
 
@@ -280,9 +281,8 @@ def run_info(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=2, default=str) + "\n")
-    tmp.replace(path)
+    text = json.dumps(data, indent=2, default=str) + "\n"
+    write_atomically(path, lambda f: f.write(text.encode()))
 
 
 # ------------------------------------------------------------------------------------------------ resuming

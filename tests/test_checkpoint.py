@@ -237,3 +237,18 @@ def test_version_1_files_are_upgraded_on_load(tmp_path: Path) -> None:
     torch.save({"format": ck.FORMAT, "version": 1, "epoch": 3, "ppo": old_state, "config": {}}, tmp_path / "run_v1.pt")
     run = load_checkpoint(tmp_path / "run_v1.pt")
     assert run["version"] == ck.VERSION and torch.equal(run["ppo"]["per_env"]["episode_length"], old_state["episode_length"])
+
+
+def test_run_files_get_the_umask_permissions_not_mkstemps_0600(tmp_path: Path) -> None:
+    """Group members of a shared cluster read each other's runs: the atomic writer's temporary file (0600) must not
+    leave checkpoints and records private."""
+    from freeform.files import write_atomically
+
+    old = os.umask(0o022)
+    try:
+        path = save_checkpoint(tmp_path / "last.pt", _state(1))
+        other = write_atomically(tmp_path / "info.json", lambda f: f.write(b"{}"))
+    finally:
+        os.umask(old)
+    assert (path.stat().st_mode & 0o777) == (other.stat().st_mode & 0o777) == 0o644
+    assert other.read_bytes() == b"{}" and sorted(p.name for p in tmp_path.iterdir()) == ["info.json", "last.pt"]
