@@ -28,6 +28,7 @@ import torch.nn as nn
 
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
+from freeform.agents.normalization import RunningMeanStd
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
 from freeform.validation import is_int, is_number, require
@@ -80,13 +81,36 @@ class PPOConfig:
     """"constant", or "linear": lr · max(0, 1 − epoch / lr_anneal_epochs)."""
     lr_anneal_epochs: int = 500
     """Epochs over which the "linear" schedule anneals the lr to 0."""
+    adam_eps: float = 1e-8
+    """Adam's ε (torch's default 1e-8; CleanRL 1e-5)."""
+    obs_norm: bool = False
+    """Normalise observations by their running mean/variance (over all envs, updated every step), clipped to
+    ±``obs_clip``; the statistics are saved in checkpoints and applied by ``act``. Off for the paper."""
+    obs_clip: float = 10.0
+    """Clip of the normalised observations (``obs_norm``)."""
+    reward_norm: bool = False
+    """Divide the rewards PPO trains on by the running std of each env's discounted return, clipped to
+    ±``reward_clip`` (Gymnasium's ``NormalizeReward``, SB3's ``VecNormalize``); episode statistics stay raw. Off for
+    the paper."""
+    reward_clip: float = 10.0
+    """Clip of the scaled rewards (``reward_norm``)."""
+    eval_every: int = 0
+    """Every this many epochs run ``eval_episodes`` deterministic episodes on the ``eval_env`` given to PPO and
+    report ``eval_return`` (logged as ``charts/eval_return``); 0 = off."""
+    eval_episodes: int = 10
+    """Episodes per evaluation, spread over the eval env's environments."""
 
     def __post_init__(self) -> None:
         self.validate("PPOConfig")
 
+    @classmethod
+    def cleanrl(cls, **overrides: Any) -> PPOConfig:
+        """CleanRL's ``ppo_continuous_action`` defaults (:data:`CLEANRL_PRESET`) with ``overrides`` on top."""
+        return cls(**{**CLEANRL_PRESET, **overrides})
+
     def validate(self, key: str) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its range."""
-        for name in ("lr", "clip_param", "vf_clip_param", "kl_target"):
+        for name in ("lr", "clip_param", "vf_clip_param", "kl_target", "adam_eps", "obs_clip", "reward_clip"):
             value = getattr(self, name)
             require(is_number(value) and value > 0, f"{key}.{name}", "> 0", value)
         for name in ("gamma", "gae_lambda"):
@@ -95,8 +119,11 @@ class PPOConfig:
         for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
             value = getattr(self, name)
             require(is_number(value) and value >= 0.0, f"{key}.{name}", ">= 0", value)
-        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs"):
+        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
+        require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
+        for name in ("obs_norm", "reward_norm"):
+            require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
         require(self.grad_clip is None or (is_number(self.grad_clip) and self.grad_clip > 0), f"{key}.grad_clip",
                 "None or > 0", self.grad_clip)
         require(is_int(self.seed, -(2**63)), f"{key}.seed", "an int", self.seed)
@@ -108,6 +135,21 @@ class PPOConfig:
                 torch.device(self.device)
             except (RuntimeError, TypeError) as e:
                 raise ValueError(f"{key}.device must be None or a torch device string, got {self.device!r}") from e
+
+
+CLEANRL_PRESET: dict[str, Any] = dict(
+    lr=3e-4, adam_eps=1e-5, lr_schedule="linear", lr_anneal_epochs=488,  # anneal over 1M steps / 2048 per epoch
+    gamma=0.99, gae_lambda=0.95, rollout_steps=2048, sgd_minibatch_size=64, num_sgd_iter=10,  # 32 minibatches of 2048
+    clip_param=0.2, kl_coeff=0.0, value_clip="ppo2", vf_clip_param=0.2, vf_loss_coeff=0.25,  # 0.5 · ½(V − G)²
+    entropy_coeff=0.0, grad_clip=0.5, advantage_norm="minibatch", obs_norm=True, obs_clip=10.0, reward_norm=True,
+    reward_clip=10.0, seed=1,
+)
+"""CleanRL's ``ppo_continuous_action.py`` defaults in PPOConfig's terms (one env × 2048 steps per epoch; with N envs
+set ``rollout_steps`` = 2048 / N and ``lr_anneal_epochs`` = total steps / 2048 to keep its batch and schedule).
+Its value loss ``vf_coef · ½ · max((V − G)², (V_clip − G)²)`` is ``vf_loss_coeff = 0.25`` with the PPO2 clip at
+ε = 0.2. One difference is left: CleanRL divides minibatch advantages by the sample std + 1e-8, freeform by the
+population std (a factor √(63/64) at 64 samples). Use it with ``MLPActorCritic`` (orthogonal init, state-independent
+log σ) and actions clipped by the env (``freeform.envs.from_gymnasium`` clips)."""
 
 
 class Logger(Protocol):
@@ -146,6 +188,8 @@ def compute_advantages(
     last_value: torch.Tensor,
     gamma: float,
     gae_lambda: float,
+    truncated: torch.Tensor | None = None,
+    final_values: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """GAE(γ, λ) advantages and value targets of a rollout.
 
@@ -153,13 +197,26 @@ def compute_advantages(
     observation after the last step, which bootstraps an episode that the rollout cut. Returns ``(advantages,
     returns)``, both ``[T, N]``, with ``returns = advantages + values``; for λ = 1 the return is the discounted
     return G_t = Σ_i γ^i r_{t+i} (+ γ^(T−t) V(s_T) for a cut episode).
+
+    ``truncated [T, N]`` bool (⊆ ``dones``): the episode was cut by a time limit at step t, not terminated; it is
+    bootstrapped with ``final_values[t]`` = V(its last observation), while a terminated one is not. The recursion
+    stops at every done either way. None (the design env: episodes never truncate) = no step is truncated.
     """
     steps = rewards.shape[0]
     advantages = torch.zeros_like(rewards)
     not_done = 1.0 - dones.to(rewards.dtype)
     next_value, running = last_value.to(rewards.dtype), torch.zeros_like(last_value, dtype=rewards.dtype)
-    for t in reversed(range(steps)):  # a loop over time only; every env is handled at once
-        delta = rewards[t] + gamma * not_done[t] * next_value - values[t]
+    if truncated is None or final_values is None:
+        for t in reversed(range(steps)):  # a loop over time only; every env is handled at once
+            delta = rewards[t] + gamma * not_done[t] * next_value - values[t]
+            running = delta + gamma * gae_lambda * not_done[t] * running
+            advantages[t] = running
+            next_value = values[t]
+        return advantages, advantages + values
+    cut = truncated.to(rewards.dtype)
+    for t in reversed(range(steps)):
+        bootstrap = not_done[t] * next_value + cut[t] * final_values[t]  # V(s_t+1), V(s_final) or 0 (terminated)
+        delta = rewards[t] + gamma * bootstrap - values[t]
         running = delta + gamma * gae_lambda * not_done[t] * running
         advantages[t] = running
         next_value = values[t]
@@ -216,6 +273,10 @@ class Rollout:
     ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
     bool, ``values [T, N]``, ``means``/``log_stds [T, N, A]`` (π_old, for the KL term), ``advantages``/``returns
     [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
+    ``truncated [T, N]`` bool (the env's ``info["truncated"]``: ended by a time limit) and ``final_values [T, N]``
+    (V of such an episode's last observation, its bootstrap); ``valid [T, N]`` bool (False where the env only reset,
+    ``info["autoreset"]``: such samples never enter the loss). ``obs`` holds what the policy saw (normalised, with
+    ``obs_norm``) and ``rewards`` what it trained on (scaled, with ``reward_norm``).
     PPO reuses these buffers every epoch: clone what must outlive the next ``train_epoch()``.
     """
 
@@ -230,6 +291,9 @@ class Rollout:
     advantages: torch.Tensor
     returns: torch.Tensor
     last_value: torch.Tensor
+    truncated: torch.Tensor
+    final_values: torch.Tensor
+    valid: torch.Tensor
 
     def __getitem__(self, name: str) -> torch.Tensor:
         """Dict-style access, ``rollout["obs"]``."""
@@ -252,6 +316,9 @@ class Rollout:
             advantages=torch.zeros((steps, num_envs), **f32),
             returns=torch.zeros((steps, num_envs), **f32),
             last_value=torch.zeros((num_envs,), **f32),
+            truncated=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
+            final_values=torch.zeros((steps, num_envs), **f32),
+            valid=torch.ones((steps, num_envs), dtype=torch.bool, device=device),
         )
 
 
@@ -275,7 +342,14 @@ class PPO:
     ``state_dict``, ``save`` and ``load`` (collectives); only rank 0 writes the file.
     """
 
-    def __init__(self, env: VecEnv, policy: nn.Module, config: PPOConfig | None = None, logger: Logger | None = None):
+    def __init__(
+        self,
+        env: VecEnv,
+        policy: nn.Module,
+        config: PPOConfig | None = None,
+        logger: Logger | None = None,
+        eval_env: VecEnv | None = None,
+    ):
         self.config = config = config if config is not None else PPOConfig()
         if not isinstance(config, PPOConfig):
             raise ValueError(f"config must be a PPOConfig, got {type(config).__name__}")
@@ -290,18 +364,28 @@ class PPO:
         self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
         self.num_envs = self.dp.num_envs
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
-        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr)
+        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr, eps=config.adam_eps)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.kl_coeff = float(config.kl_coeff)
         self.epoch = 0
         self.global_step = 0
 
+        self.eval_env = eval_env
+        """Where ``evaluate`` runs (every ``config.eval_every`` epochs); None = no evaluation."""
+        self._eval_seeded = False
+        # Running statistics of the optional normalisations (None when off, the paper's case).
+        obs_shape = tuple(env.observation_shape)
+        self.obs_rms = RunningMeanStd(obs_shape, self.device) if config.obs_norm else None
+        self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
+        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
+        """Each env's discounted return of raw rewards, whose running std scales the rewards (``reward_norm``)."""
+
         self.obs = env.reset(seed=config.seed).to(self.device)
+        self._update_obs_rms(self.obs)
         self._check_policy()
-        self.rollout = Rollout.allocate(
-            config.rollout_steps, env.num_envs, tuple(env.observation_shape), self.obs.dtype, env.action_dim, self.device
-        )
+        obs_dtype = torch.float32 if self.obs_rms is not None else self.obs.dtype
+        self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, obs_shape, obs_dtype, env.action_dim, self.device)
         self.episode_infos: list[dict[str, Any]] = []
         # Running return and length of each env's current episode (they span epochs when episodes are cut).
         self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
@@ -312,7 +396,7 @@ class PPO:
         """Fail early, naming the mismatch, when the policy's outputs do not fit the env."""
         n, a = self.env.num_envs, self.env.action_dim
         try:
-            outputs = self.policy(self.obs)
+            outputs = self.policy(self.normalize_obs(self.obs))
         except Exception as e:
             raise ValueError(f"policy cannot read the env's observations {tuple(self.obs.shape)} ({e})") from e
         shapes = [tuple(x.shape) for x in outputs] if isinstance(outputs, tuple) and len(outputs) == 3 else None
@@ -334,11 +418,35 @@ class PPO:
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
-        """Actions ``[N, A]`` for observations ``[N, ...]`` (the mean if ``deterministic``), on the env's device.
+        """Actions ``[N, A]`` for raw observations ``[N, ...]`` (the mean if ``deterministic``), on the env's device.
 
-        Sampling draws from the training generator, so calls between epochs shift the training's random stream.
+        With ``obs_norm`` the observations are normalised by the saved statistics (not updated). Sampling draws from
+        the training generator, so calls between epochs shift the training's random stream.
         """
-        return self._sample(obs.to(self.device), deterministic)[0].to(self.env.device)
+        x = self.normalize_obs(obs.to(self.device))
+        return self._sample(x, deterministic)[0].to(self.env.device)
+
+    def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
+        """What the policy sees: ``obs`` itself, or with ``obs_norm`` ``clip((obs − μ) / √(σ² + 1e-8), ±obs_clip)``."""
+        if self.obs_rms is None:
+            return obs
+        return self.obs_rms.normalize(obs, self.config.obs_clip)
+
+    def _update_obs_rms(self, obs: torch.Tensor) -> None:
+        if self.obs_rms is not None:
+            self.obs_rms.update(self.dp.gather_envs(obs).reshape(-1, *self.obs_rms.mean.shape))  # every rank's envs
+
+    def _scale_rewards(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """``reward_norm``: reward / √(Var[discounted return] + 1e-8), clipped (the return resets at a done)."""
+        if self.return_rms is None:
+            return reward
+        self.discounted_return = self.discounted_return * self.config.gamma + reward
+        self.return_rms.update(self.dp.gather_envs(self.discounted_return))
+        scaled = (reward / torch.sqrt(self.return_rms.var + 1e-8).to(reward.dtype)).clamp(
+            -self.config.reward_clip, self.config.reward_clip
+        )
+        self.discounted_return = torch.where(done, 0.0, self.discounted_return)
+        return scaled
 
     # -- rollout ---------------------------------------------------------------------------------------------------
 
@@ -349,10 +457,15 @@ class PPO:
         self.episode_infos = []
         finished_returns, finished_lengths = [], []
         time_env = 0.0
+        any_truncated = False
+        buf.truncated.zero_()
+        buf.final_values.zero_()
+        buf.valid.fill_(True)
         self.policy.eval()
         for t in range(cfg.rollout_steps):
-            buf.obs[t] = self.obs
-            action, logprob, value, mean, log_std = self._sample(self.obs)
+            x = self.normalize_obs(self.obs)
+            buf.obs[t] = x
+            action, logprob, value, mean, log_std = self._sample(x)
             buf.actions[t], buf.logprobs[t], buf.values[t], buf.means[t], buf.log_stds[t] = (
                 action, logprob, value, mean, log_std
             )
@@ -360,20 +473,35 @@ class PPO:
             next_obs, reward, done, info = self.env.step(action.to(self.env.device))
             time_env += time.perf_counter() - t0
             reward, done = reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
-            buf.rewards[t], buf.dones[t] = reward, done
+            next_obs = next_obs.to(self.device)
+            self._update_obs_rms(next_obs)
+            buf.rewards[t], buf.dones[t] = self._scale_rewards(reward, done), done
+            if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
+                truncated = info["truncated"].to(self.device, torch.bool)
+                if truncated.any():
+                    any_truncated = True
+                    buf.truncated[t] = truncated
+                    final_value = self.policy(self.normalize_obs(info["final_obs"].to(self.device)))[2]
+                    buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             self.episode_return += reward
-            self.episode_length += 1
+            if "autoreset" in info:  # the env only reset (Gymnasium's next-step autoreset): not a transition
+                resetting = info["autoreset"].to(self.device, torch.bool)
+                buf.valid[t] = ~resetting
+                self.episode_length += (~resetting).to(self.episode_length.dtype)
+            else:
+                self.episode_length += 1
             if done.any():
                 self.episode_infos.append(info)
                 finished_returns.append(self.episode_return[done])
                 finished_lengths.append(self.episode_length[done])
                 self.episode_return = torch.where(done, 0.0, self.episode_return)
                 self.episode_length = torch.where(done, 0, self.episode_length)
-            self.obs = next_obs.to(self.device)
+            self.obs = next_obs
         # An episode that the rollout cut is bootstrapped with V of its last observation.
-        buf.last_value = self.policy(self.obs)[2]
+        buf.last_value = self.policy(self.normalize_obs(self.obs))[2]
         buf.advantages, buf.returns = compute_advantages(
-            buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda
+            buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda,
+            *((buf.truncated, buf.final_values) if any_truncated else ()),
         )
         self.global_step += cfg.rollout_steps * self.num_envs
 
@@ -415,9 +543,17 @@ class PPO:
         # The global batch's advantages (a float per sample) on every rank: standardising over the batch or a
         # minibatch is then the single process's formula on the same numbers.
         advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
-        global_batch = advantages.numel()
+        # Samples where an env only reset (Gymnasium's next-step autoreset) are no transitions: they are left out of
+        # the minibatches and the batch statistics. ``kept`` = the global indices of the others (None: all of them).
+        valid = dp.gather_envs(buf.valid, dim=1).reshape(-1)
+        kept = None if bool(valid.all()) else valid.nonzero().squeeze(1)
+        global_batch = advantages.numel() if kept is None else kept.numel()
         if cfg.advantage_norm == "batch":
-            advantages = standardize(advantages)
+            if kept is None:
+                advantages = standardize(advantages)
+            else:
+                advantages = advantages.clone()
+                advantages[kept] = standardize(advantages[kept])
 
         lr = self.current_lr()
         for group in self.optimizer.param_groups:
@@ -435,6 +571,8 @@ class PPO:
         self.policy.train()
         for _ in range(cfg.num_sgd_iter):
             order = torch.randperm(global_batch, generator=self.generator, device=self.device)
+            if kept is not None:
+                order = kept[order]
             for i in range(num_minibatches):
                 idx = order[i * minibatch : (i + 1) * minibatch]
                 adv = advantages[idx]
@@ -472,7 +610,10 @@ class PPO:
         self.kl_coeff = update_kl_coeff(kl_coeff, mean_kl, cfg.kl_target)
         values, log_stds = dp.gather_envs(buf.values, dim=1), dp.gather_envs(buf.log_stds, dim=1)
         returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
+        values = values.reshape(-1)
         stds = log_stds.exp()
+        if kept is not None:
+            values, returns, stds = values[kept], returns[kept], stds.reshape(-1, stds.shape[-1])[kept]
         stats = {
             "policy_loss": means[0],
             "value_loss": means[1],
@@ -482,7 +623,7 @@ class PPO:
             "total_loss": means[5],
             "kl_coeff": kl_coeff,
             "lr": lr,
-            "explained_variance": explained_variance(values.reshape(-1), returns),
+            "explained_variance": explained_variance(values, returns),
             "value_mean": values.mean().item(),
             "action_std": stds.mean().item(),
         }
@@ -514,9 +655,58 @@ class PPO:
             epoch=float(self.epoch),
             global_step=float(self.global_step),
         )
+        if self.config.eval_every and self.eval_env is not None and self.epoch % self.config.eval_every == 0:
+            stats.update(self.evaluate())
         if self.logger is not None:
             self.logger.log(stats, self.global_step)
         return stats
+
+    @torch.no_grad()
+    def evaluate(self, env: VecEnv | None = None, episodes: int | None = None) -> dict[str, float]:
+        """Deterministic episodes (the policy's mean action) on ``env`` (default ``self.eval_env``), never the
+        training env: ``eval_return`` (mean raw return), ``eval_return_std``, ``eval_length_mean``.
+
+        ``episodes`` (default ``config.eval_episodes``) are spread over the env's environments as evenly as possible
+        (env i runs ⌈(episodes − i) / n⌉ of them, as SB3's ``evaluate_policy``), so short episodes are not favoured.
+        The env is reset first (seeded ``config.seed + 1`` the first time); the training generator draws nothing and
+        observation statistics are applied, not updated. Data-parallel, each rank evaluates its own eval env and
+        the figures are over every rank's episodes.
+        """
+        env = self.eval_env if env is None else env
+        if env is None:
+            raise ValueError("evaluate needs an env: pass one, or eval_env to PPO")
+        episodes = self.config.eval_episodes if episodes is None else episodes
+        n = env.num_envs
+        targets = torch.tensor([(episodes + n - 1 - i) // n for i in range(n)], device=self.device)
+        counts = torch.zeros(n, dtype=torch.int64, device=self.device)
+        returns, lengths = [], []
+        seed = None if self._eval_seeded else self.config.seed + 1
+        self._eval_seeded = True
+        obs = env.reset(seed=seed).to(self.device)
+        ep_return = torch.zeros(n, device=self.device)
+        ep_length = torch.zeros(n, dtype=torch.int64, device=self.device)
+        self.policy.eval()
+        while bool((counts < targets).any()):
+            mean = self.policy(self.normalize_obs(obs))[0]
+            obs, reward, done, info = env.step(mean.to(env.device))
+            obs, reward, done = obs.to(self.device), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
+            moving = ~info["autoreset"].to(self.device, torch.bool) if "autoreset" in info else torch.ones_like(done)
+            ep_return += reward
+            ep_length += moving.to(ep_length.dtype)
+            wanted = done & (counts < targets)
+            if wanted.any():
+                returns.append(ep_return[wanted])
+                lengths.append(ep_length[wanted])
+            counts += done.to(counts.dtype)
+            ep_return = torch.where(done, 0.0, ep_return)
+            ep_length = torch.where(done, 0, ep_length)
+        all_returns = self.dp.gather_varlen(torch.cat(returns))
+        all_lengths = self.dp.gather_varlen(torch.cat(lengths))
+        return {
+            "eval_return": all_returns.mean().item(),
+            "eval_return_std": all_returns.std(correction=0).item(),
+            "eval_length_mean": all_lengths.float().mean().item(),
+        }
 
     def learn(self, epochs: int, callback: Callable[[PPO, dict[str, float]], bool | None] | None = None) -> list[dict]:
         """Train ``epochs`` epochs; ``callback(ppo, stats)`` runs after each and stops training by returning False."""
@@ -547,6 +737,11 @@ class PPO:
             "generator": self.generator.get_state(),
             PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
         }
+        if self.obs_rms is not None:
+            state["obs_rms"] = self.obs_rms.state_dict()
+        if self.return_rms is not None:
+            state["return_rms"] = self.return_rms.state_dict()
+            state[PER_ENV]["discounted_return"] = self.discounted_return
         if hasattr(self.env, "state_dict"):
             state["env"] = self.env.state_dict()
         return self.dp.gather_state(state)
@@ -568,6 +763,13 @@ class PPO:
         self.obs = per_env["obs"].to(self.device)
         self.episode_return = per_env["episode_return"].to(self.device)
         self.episode_length = per_env["episode_length"].to(self.device)
+        for name, rms in (("obs_rms", self.obs_rms), ("return_rms", self.return_rms)):
+            if rms is not None:
+                if name not in state:
+                    raise ValueError(f"the config normalises ({name}) but the state holds no {name} statistics")
+                rms.load_state_dict(state[name])
+        if self.return_rms is not None:
+            self.discounted_return = per_env["discounted_return"].to(self.device)
         if "env" in state:
             if not hasattr(self.env, "load_state_dict"):
                 raise ValueError("the state holds an env state but the env has no load_state_dict()")

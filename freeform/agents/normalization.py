@@ -1,0 +1,45 @@
+"""Running statistics for PPO's optional normalisations (``PPOConfig.obs_norm``, ``PPOConfig.reward_norm``).
+
+``RunningMeanStd`` is the parallel mean/variance update of Chan et al. that Gymnasium's ``NormalizeObservation`` /
+``NormalizeReward`` and Stable-Baselines3's ``VecNormalize`` use (float64, starting count 1e-4), kept as torch tensors
+on the PPO device so that its state is three tensors in a checkpoint (``weights_only``-loadable).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+class RunningMeanStd:
+    """Mean and (population) variance of every sample seen so far, per element of ``shape``.
+
+    ``update(batch [B, *shape])`` folds in B samples; ``mean``/``var`` are float64 tensors of ``shape``.
+    """
+
+    def __init__(self, shape: tuple[int, ...], device: torch.device | str = "cpu", epsilon: float = 1e-4) -> None:
+        self.mean = torch.zeros(shape, dtype=torch.float64, device=device)
+        self.var = torch.ones(shape, dtype=torch.float64, device=device)
+        self.count = torch.tensor(epsilon, dtype=torch.float64, device=device)
+
+    @torch.no_grad()
+    def update(self, batch: torch.Tensor) -> None:
+        x = batch.to(self.mean.dtype)
+        batch_mean, batch_var, n = x.mean(0), x.var(0, correction=0), x.shape[0]
+        delta = batch_mean - self.mean
+        total = self.count + n
+        self.mean = self.mean + delta * (n / total)
+        m2 = self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)
+        self.var = m2 / total
+        self.count = total
+
+    def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
+        """``clip((x − mean) / sqrt(var + ε), ±clip)`` as float32."""
+        out = (x.to(self.mean.dtype) - self.mean) / torch.sqrt(self.var + epsilon)
+        return out.clamp(-clip, clip).to(torch.float32)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"mean": self.mean.clone(), "var": self.var.clone(), "count": self.count.clone()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        device = self.mean.device
+        self.mean, self.var, self.count = (state[k].to(device, torch.float64).clone() for k in ("mean", "var", "count"))
