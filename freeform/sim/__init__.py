@@ -8,7 +8,8 @@ Importing this package does not initialise Taichi; the first ``Simulator`` run d
 from freeform.sim.config import Material, SimConfig
 from freeform.sim.engine import Engine, recommended_dt
 from freeform.sim.layout import Layout, build_layout
-from freeform.sim.simulator import Recording, SimResult, Simulator
+from freeform.sim.simulator import Recording, SimResult, Simulator, Trace
+from freeform.sim.terrain import Terrain
 
-__all__ = ["Engine", "Layout", "Material", "Recording", "SimConfig", "SimResult", "Simulator", "build_layout",
-           "recommended_dt"]
+__all__ = ["Engine", "Layout", "Material", "Recording", "SimConfig", "SimResult", "Simulator", "Terrain", "Trace",
+           "build_layout", "recommended_dt"]

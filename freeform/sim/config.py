@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from freeform.sim.terrain import Terrain
 from freeform.validation import require
 
 REWARDS = ("max_voxel", "com")
@@ -57,6 +58,7 @@ class SimConfig:
     semantics: "voxelyze" (VX) or "rl4design" (the paper simulator's deviations, spec section 13).
     precision: "f32" (fast; normalised quaternions, atan2 rotation vectors) or "f64" (VX arithmetic).
     floor: floor contact and friction on/off.
+    terrain: the ground's shape (``freeform.sim.Terrain``; flat by default, Voxelyze's floor bit for bit).
     max_strain: a link strain above this marks the robot diverged (VX's check; non-finite states too).
     chunk_steps: steps per kernel launch between host-side checks (per-robot schedule).
     step_cap: a robot still running after ``step_cap`` × the steps its burn_in + duration take at its initial dt
@@ -80,6 +82,7 @@ class SimConfig:
     semantics: str = "voxelyze"
     precision: str = "f32"
     floor: bool = True
+    terrain: Terrain = field(default_factory=Terrain)
     max_strain: float = 100.0
     chunk_steps: int = 2000
     step_cap: float = 3.0
@@ -104,6 +107,12 @@ class SimConfig:
         require(self.chunk_steps >= 1, f"{key}.chunk_steps", ">= 1", self.chunk_steps)
         # Times the protocol's steps; less could stop healthy robots whose dt dips for a while.
         require(self.step_cap >= MIN_STEP_CAP, f"{key}.step_cap", f">= {MIN_STEP_CAP}", self.step_cap)
+        self.terrain.validate(f"{key}.terrain")
+        if self.terrain.kind == "steps" or (self.terrain.kind == "heightmap" and not self.terrain.smooth):
+            # a voxel's contact looks at its own cell and the nearest neighbours only
+            cell = self.terrain.depth if self.terrain.kind == "steps" else self.terrain.cell_size
+            require(cell >= self.voxel_size, f"{key}.terrain.{'depth' if self.terrain.kind == 'steps' else 'cell_size'}",
+                    f">= voxel_size ({self.voxel_size}) for columnar terrain", cell)
 
 
 # Column names of the material tables that the kernels read (one column per material index, 0 = empty).

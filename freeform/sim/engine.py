@@ -20,6 +20,7 @@ from freeform.sim import runtime
 from freeform.sim.config import SimConfig, e_hat, link_table, material_table
 from freeform.sim.layout import Layout
 from freeform.sim.schedules import ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
+from freeform.sim.terrain import placement
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     DIVERGED,
     DONE,
@@ -167,6 +168,11 @@ class Engine:
         host = {name: t.zeros(self.counts[t.items], self.precision) for name, t in TABLES.items()}
         vr, vi, li, rt, ri = host["vr"], host["vi"], host["li"], host["rt"], host["ri"]
         pos = layout.lattice.astype(np.float64) * L
+        # the terrain: each robot rests on it under its footprint (flat ground: no offset at all)
+        self.terrain = config.terrain.field(L)
+        self.offset = placement(config.terrain, self.terrain, layout.lattice, layout.voxel_robot, R, L)
+        if self.terrain.mode != 0 and n:
+            pos = pos + self.offset[layout.voxel_robot]
         mass = mt[MT.MASS][layout.material]
         for c in ("POS", "POS0", "PSTART", "PEND", "PSAMP", "PCS", "PCE"):
             vr[VR.span(c)] = pos.T
@@ -222,6 +228,9 @@ class Engine:
         gp[GP.TEMP_PERIOD] = config.temp_period
         gp[GP.DT_FRAC] = config.dt_frac
         gp[GP.MAX_STRAIN] = config.max_strain
+        ter_params, ter_grid = self.terrain.arrays()
+        for c, value in ter_params.items():
+            gp[getattr(GP, c)] = value
 
         self._arrays = arrays if arrays is not None else DeviceArrays()
         self._arrays.owner = self
@@ -233,6 +242,8 @@ class Engine:
             self._upload(name, host[name])
         self.gp = self._arrays.vector("gp", np.float64, GP.width)
         runtime.upload(self.gp, gp)
+        self.hf = self._arrays.vector("hf", np.dtype(self.np_real), ter_grid.size)  # one per terrain size
+        runtime.upload(self.hf, ter_grid.astype(self.np_real))
         # robots schedule: a work counter, and one worker per CPU thread
         self._queue = self._arrays.vector("queue", np.int32, 1)
         self._workers = max(1, min(R, runtime.num_threads()))
@@ -271,8 +282,8 @@ class Engine:
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
         k, d = self.kernels, self._dev
-        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp)
-        flags = (int(self.config.floor), self.ifx, self.dyn)
+        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp, self.hf)
+        flags = (int(self.config.floor), int(self.terrain.mode), self.ifx, self.dyn)
         n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
         if self.schedule == "robots":
             k.run_robots(*args, R, n_steps, *flags, self._queue, self._workers)

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import taichi as ti
 
-from freeform.sim.access import make_access
+from freeform.sim.access import make_access, make_numbers
 from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
@@ -56,7 +56,7 @@ def resolve_schedule(schedule: str, arch: str) -> str:
 @functools.cache
 def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     """Compile-once kernels for "f32" | "f64" and memory order "soa" | "aos": ``run_robots``, ``run_flat`` and the
-    test hook ``probe_rotations``. The floor, rl4design and dynamic-dt switches are compile-time arguments
+    test hook ``probe_rotations``. The floor, terrain mode, rl4design and dynamic-dt switches are compile-time arguments
     (``ti.template``): each combination used compiles once."""
     acc = make_access(precision, order)
     ld = acc.ld
@@ -66,26 +66,28 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
     RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
     GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
+    HfArr = ti.types.ndarray(dtype=make_numbers(precision).real, ndim=1)  # the terrain's height grid
 
     @ti.func
     def robot_step(r, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(), gp: ti.template(),
-                   floor: ti.template(), ifx: ti.template(), dyn: ti.template()):
+                   hf: ti.template(), floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
+                   dyn: ti.template()):
         """One step of robot r by the calling thread alone."""
         if ld(ri, RI.STATUS, r) == RUNNING:
             for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
                 link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
             if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
                 for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx)
             if ld(ri, RI.STATUS, r) == RUNNING:
                 robot_advance(r, lr, rt, ri, gp, dyn, ifx)
 
     @ti.kernel
     def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                   lt: LtArr, gp: GpArr, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(),
-                   ifx: ti.template(), dyn: ti.template(), queue: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   workers: ti.i32):
+                   lt: LtArr, gp: GpArr, hf: HfArr, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(),
+                   terrain: ti.template(), ifx: ti.template(), dyn: ti.template(),
+                   queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
         """``workers`` threads each take the next unclaimed robot (of ``n_robots``) from ``queue`` and run it
         ``n_steps`` steps, until none is left.
 
@@ -100,13 +102,14 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                 r = ti.atomic_add(queue[0], 1)
                 while r < n_robots:
                     for _ in range(n_steps):
-                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx, dyn)
+                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx, dyn)
                     r = ti.atomic_add(queue[0], 1)
 
     @ti.kernel
     def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                 lt: LtArr, gp: GpArr, n_voxels: ti.i32, n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32,
-                 floor: ti.template(), ifx: ti.template(), dyn: ti.template()):
+                 lt: LtArr, gp: GpArr, hf: HfArr, n_voxels: ti.i32, n_links: ti.i32, n_robots: ti.i32,
+                 n_steps: ti.i32, floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
+                 dyn: ti.template()):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
             for lk in range(n_links):
@@ -114,7 +117,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                     link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
             for v in range(n_voxels):
                 if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, v)) == RUNNING:
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, floor, ifx)
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx)
             for r in range(n_robots):
                 if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
                     robot_advance(r, lr, rt, ri, gp, dyn, ifx)

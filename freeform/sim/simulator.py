@@ -8,6 +8,7 @@ without stopping the others; no NaN leaves the simulator.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +19,7 @@ from freeform.sim.config import SimConfig, material_table
 from freeform.sim.engine import DeviceArrays, Engine
 from freeform.sim.layout import Layout, build_layout
 from freeform.sim.schedules import SCHEDULES, resolve_schedule
-from freeform.sim.state import DIVERGED, MT, RUNNING, STALLED, VR
+from freeform.sim.state import CONTACT, DIVERGED, MT, RUNNING, STALLED, VI, VR
 
 
 @dataclass
@@ -40,6 +41,53 @@ class Recording:
 
 
 @dataclass
+class Trace:
+    """Each robot's trajectory, sampled every ``every`` steps from t = 0 (before the first step) to its end:
+    torch float64 CPU tensors, B bodies (one row per body passed in) × F samples. Positions are metres in the
+    terrain's frame (the flat floor's plane at z = −L/2). The evaluation window is ``time > burn_in``.
+
+    time ``[B, F]``: each robot's clock at the sample. valid ``[B, F]`` bool: the robot was still simulated (not
+        empty, not yet diverged or stalled; a robot that has finished repeats its last state, valid).
+    com ``[B, F, 3]``: centre of mass. z_min / z_max ``[B, F]``: lowest / highest voxel centre.
+    bbox_min / bbox_max ``[B, F, 3]``: the voxel centres' bounding box. contacts ``[B, F]``: voxels touching the
+        ground (at the start of their last step). orientation ``[B, F, 4]``: mean voxel orientation (w, x, y, z;
+        each voxel's quaternion taken with w ≥ 0, averaged, normalised). voxels ``[B]``: voxels in the body.
+    voxel_size, burn_in, duration: the protocol's (m, s, s).
+    """
+
+    time: torch.Tensor
+    valid: torch.Tensor
+    com: torch.Tensor
+    z_min: torch.Tensor
+    z_max: torch.Tensor
+    bbox_min: torch.Tensor
+    bbox_max: torch.Tensor
+    contacts: torch.Tensor
+    orientation: torch.Tensor
+    voxels: torch.Tensor
+    voxel_size: float
+    burn_in: float
+    duration: float
+    every: int
+
+    @property
+    def evaluation(self) -> torch.Tensor:
+        """bool ``[B, F]``: samples inside the evaluation window (t > burn_in) of a valid robot."""
+        return self.valid & (self.time > self.burn_in)
+
+    @property
+    def burn_in_end(self) -> torch.Tensor:
+        """long ``[B]``: the index of each robot's last sample at or before the end of the burn-in (the settled
+        state that evaluation-window rewards start from)."""
+        return ((self.time <= self.burn_in) & self.valid).sum(dim=1).clamp_min(1) - 1
+
+    def to(self, device: torch.device | str) -> Trace:
+        """A copy with every tensor on ``device``."""
+        kw = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in self.__dict__.items()}
+        return Trace(**kw)
+
+
+@dataclass
 class SimResult:
     """Per-body results, torch CPU tensors with leading dimension B (one row per body passed in).
 
@@ -53,7 +101,7 @@ class SimResult:
     diverged: bool — a link strain above max_strain or a non-finite state. stalled: bool — stopped at the step cap
         (SimConfig.step_cap) before the evaluation ended; it scores 0 too. simulated: bool (False for empty bodies).
     dt: float64 — each robot's initial step (s). steps: int64 — steps run. time: float64 — simulated seconds.
-    recording: ``Recording`` or None.
+    recording: ``Recording`` or None. trace: ``Trace`` or None (``simulate(..., trace_every=...)``).
     """
 
     displacement: torch.Tensor
@@ -68,6 +116,7 @@ class SimResult:
     steps: torch.Tensor
     time: torch.Tensor
     recording: Recording | None = None
+    trace: Trace | None = None
 
 
 class Simulator:
@@ -101,42 +150,114 @@ class Simulator:
         Simulator's reused device arrays: an Engine built earlier from this Simulator stops working."""
         return Engine(layout, self.config, arch=self.arch, schedule=self.schedule, arrays=self.arrays)
 
-    def simulate(self, grids: torch.Tensor | np.ndarray, record_every: int | None = None) -> SimResult:
+    def simulate(self, grids: torch.Tensor | np.ndarray, record_every: int | None = None,
+                 trace_every: float | None = None) -> SimResult:
         """Simulate every body of ``grids`` (uint8 ``[B, X, Y, Z]``) for burn_in + duration seconds.
 
-        record_every: if set, voxel poses are recorded at t = 0 and every ``record_every`` steps.
+        record_every: if set, voxel poses are recorded at t = 0 and every ``record_every`` steps (``Recording``).
+        trace_every: if set (seconds), each robot's trajectory summary is sampled at t = 0 and about every
+            ``trace_every`` seconds (a whole number of steps of the batch's median initial dt; ``Trace``).
         """
         if record_every is not None and (not isinstance(record_every, int) or record_every < 1):
             raise ValueError(f"record_every must be None or a positive int, got {record_every!r}")
+        if trace_every is not None and not trace_every > 0:
+            raise ValueError(f"trace_every must be None or > 0 seconds, got {trace_every!r}")
         layout = self.layout(grids)
-        return self.run(layout, record_every)
+        return self.run(layout, record_every, trace_every)
 
-    def run(self, layout: Layout, record_every: int | None = None) -> SimResult:
+    def run(self, layout: Layout, record_every: int | None = None, trace_every: float | None = None) -> SimResult:
         """Simulate a prepared ``Layout`` (the hooks on it — fixed voxels, velocities — are honoured)."""
-        return self.finish(self.engine(layout), record_every)
+        return self.finish(self.engine(layout), record_every, trace_every)
 
-    def finish(self, engine: Engine, record_every: int | None = None) -> SimResult:
+    def finish(self, engine: Engine, record_every: int | None = None,
+               trace_every: float | None = None) -> SimResult:
         """Run ``engine`` (from ``self.engine``, possibly advanced or edited already) until every robot has
         stopped, and give its results."""
         layout = engine.layout
         frames: list[tuple[float, np.ndarray]] = []
+        samples: list[dict[str, torch.Tensor]] = []
 
-        def snapshot() -> None:
-            vs = engine.voxel_state()
+        def snapshot(vs: np.ndarray) -> None:
             t = float(engine.robot_time()[0]) if layout.num_robots else 0.0
             frames.append((t, vs[VR.POS:VR.ORI + 4].T.astype(np.float32).copy()))
 
-        chunk = record_every if record_every is not None else self.config.chunk_steps
-        if record_every is not None:
-            snapshot()
+        trace_steps = None
+        if trace_every is not None and layout.num_robots:
+            trace_steps = max(1, int(round(trace_every / float(np.median(engine.dt0)))))
+        every = [k for k in (record_every, trace_steps) if k is not None]
+        chunk = math.gcd(*every) if every else self.config.chunk_steps
+        start = engine.steps_done
+
+        def observe() -> None:
+            done = engine.steps_done - start
+            want_frame = record_every is not None and done % record_every == 0
+            want_sample = trace_steps is not None and done % trace_steps == 0
+            if want_frame or want_sample:
+                vs = engine.voxel_state()
+                if want_frame:
+                    snapshot(vs)
+                if want_sample:
+                    samples.append(self._sample(engine, vs))
+
+        observe()
         while layout.num_robots and (engine.robot_status() == RUNNING).any():
             engine.advance(chunk)
-            if record_every is not None:
-                snapshot()
-        return self._result(engine, frames if record_every is not None else None)
+            observe()
+        trace = self._trace(engine, samples, trace_steps) if trace_every is not None else None
+        return self._result(engine, frames if record_every is not None else None, trace)
+
+    # ------------------------------------------------------------------ traces
+    def _sample(self, engine: Engine, vs: np.ndarray) -> dict[str, torch.Tensor]:
+        """One trace sample of every robot (torch float64 ``[R, ...]``), reduced from the voxels with scatters."""
+        layout = engine.layout
+        R = layout.num_robots
+        vr_ = torch.from_numpy(layout.voxel_robot.astype(np.int64))
+        pos = torch.from_numpy(np.ascontiguousarray(vs[VR.span("POS")].T.astype(np.float64)))
+        ori = torch.from_numpy(np.ascontiguousarray(vs[VR.span("ORI")].T.astype(np.float64)))
+        mass = torch.from_numpy(material_table(self.config)[MT.MASS][layout.material])
+        msum = torch.zeros(R, dtype=torch.float64).index_add_(0, vr_, mass)
+        com = torch.zeros(R, 3, dtype=torch.float64).index_add_(0, vr_, pos * mass[:, None]) / msum[:, None]
+        idx3 = vr_[:, None].expand(-1, 3)
+        lo = torch.full((R, 3), math.inf, dtype=torch.float64).scatter_reduce(0, idx3, pos, "amin")
+        hi = torch.full((R, 3), -math.inf, dtype=torch.float64).scatter_reduce(0, idx3, pos, "amax")
+        flags = torch.from_numpy(engine._table("vi")[VI.FLAGS].astype(np.int64))
+        contacts = torch.zeros(R, dtype=torch.float64).index_add_(0, vr_, ((flags & CONTACT) != 0).double())
+        ori = torch.where(ori[:, :1] < 0, -ori, ori)
+        q = torch.zeros(R, 4, dtype=torch.float64).index_add_(0, vr_, ori)
+        q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-300)
+        status = torch.from_numpy(engine.robot_status().astype(np.int64))
+        return {"time": torch.from_numpy(engine.robot_time().astype(np.float64)), "com": com, "lo": lo, "hi": hi,
+                "contacts": contacts, "orientation": q, "ok": (status != DIVERGED) & (status != STALLED)}
+
+    def _trace(self, engine: Engine, samples: list[dict[str, torch.Tensor]], every: int | None) -> Trace:
+        layout, cfg = engine.layout, self.config
+        B = layout.num_bodies
+        F = len(samples)
+        rob = torch.from_numpy(layout.robot_of_body)
+        has = rob >= 0
+        idx = rob.clamp_min(0)
+
+        def stack(key: str, width: tuple[int, ...] = ()) -> torch.Tensor:
+            out = torch.zeros((B, F, *width), dtype=torch.float64)
+            if F and layout.num_robots:
+                x = torch.stack([s[key].to(torch.float64) for s in samples], dim=1)[idx]
+                out = torch.where(has.view(B, 1, *([1] * len(width))), x, out)
+            return out
+
+        valid = stack("ok") > 0.5 if F else torch.zeros((B, 0), dtype=torch.bool)
+        lo, hi = stack("lo", (3,)), stack("hi", (3,))
+        clean = lambda x: torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)  # noqa: E731
+        voxels = torch.zeros(B, dtype=torch.float64)
+        if layout.num_robots:
+            counts = torch.from_numpy(np.diff(layout.voxel_start).astype(np.float64))
+            voxels = torch.where(has, counts[idx], voxels)
+        return Trace(time=stack("time"), valid=valid, com=clean(stack("com", (3,))), z_min=clean(lo[..., 2]),
+                     z_max=clean(hi[..., 2]), bbox_min=clean(lo), bbox_max=clean(hi), contacts=stack("contacts"),
+                     orientation=clean(stack("orientation", (4,))), voxels=voxels, voxel_size=cfg.voxel_size,
+                     burn_in=cfg.burn_in, duration=cfg.duration, every=int(every or 0))
 
     # ------------------------------------------------------------------ results
-    def _result(self, engine: Engine, frames: list | None) -> SimResult:
+    def _result(self, engine: Engine, frames: list | None, trace: Trace | None = None) -> SimResult:
         layout, cfg = engine.layout, self.config
         B, R = layout.num_bodies, layout.num_robots
         L = cfg.voxel_size
@@ -197,6 +318,7 @@ class Simulator:
             steps=per_body(torch.from_numpy(engine.robot_steps())),
             time=per_body(torch.from_numpy(engine.robot_time().astype(np.float64))),
             recording=recording,
+            trace=trace,
         )
 
     def _recording(self, layout: Layout, frames: list) -> Recording:

@@ -107,11 +107,15 @@ LT = Table("link_material", REAL, "material_pairs", tuple((c, 1) for c in LINK_C
 TABLES = {"vr": VR, "vi": VI, "lr": LR, "li": LI, "rt": RT, "ri": RI, "mt": MT, "lt": LT}
 
 # global parameters (a plain f64 vector)
+# TER_*: the terrain's height field S(x, y) = BASE + GX·x + GY·y + grid (terrain.HeightField; the grid itself is the
+# real-typed vector ``hf``, NX·NY values, row-major)
 GP = Table("params", F64, None, (("BURN_IN", 1), ("T_END", 1), ("GRAVITY", 1), ("TEMP_AMP", 1),
-                                     ("TEMP_PERIOD", 1), ("DT_FRAC", 1), ("MAX_STRAIN", 1)))
+                                     ("TEMP_PERIOD", 1), ("DT_FRAC", 1), ("MAX_STRAIN", 1), ("TER_BASE", 1),
+                                     ("TER_GX", 1), ("TER_GY", 1), ("TER_X0", 1), ("TER_Y0", 1), ("TER_CELL", 1),
+                                     ("TER_NX", 1), ("TER_NY", 1)))
 
-# voxel flags
-STATIC, FIXED = 1, 2
+# voxel flags: STATIC = in static friction; CONTACT = touched the ground at the start of its last step (traces)
+STATIC, FIXED, CONTACT = 1, 2, 4
 # link flags
 SMALL, VALID = 1, 2
 # robot status: STALLED = stopped at its step cap (its dt collapsed under rl4design's dynamic step)

@@ -14,7 +14,9 @@ import taichi as ti
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.config import POISSON_SERIES_TERMS
 from freeform.sim.quat import make_quat
+from freeform.sim.terrain import COLUMNS, SMOOTH
 from freeform.sim.state import (
+    CONTACT,
     DIVERGED,
     EV_END,
     EV_SAMPLE,
@@ -162,6 +164,86 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             static = False
         return force, fric, static
 
+    # ------------------------------------------------------------ terrain (terrain.py): distance and normal
+    @ti.func
+    def ground(gp: ti.template(), hf: ti.template(), p, mode: ti.template()):
+        """Signed distance from point ``p`` to the terrain's surface (positive above) and the unit normal there.
+
+        SMOOTH: S = base + gx·x + gy·y + the bilinear grid; distance (z − S)·n_z (exact for a plane).
+        COLUMNS: flat-topped cells; the nearest of the own cell's top and the three nearest neighbours that rise
+        above it (their top, edge or side: a voxel meets a riser on its face). Cells are at least a voxel wide,
+        so no farther cell is within a voxel's half size."""
+        c = ti.cast(gp[GP.TER_CELL], real)
+        nx, ny = ti.cast(gp[GP.TER_NX], ti.i32), ti.cast(gp[GP.TER_NY], ti.i32)
+        x0, y0 = ti.cast(gp[GP.TER_X0], real), ti.cast(gp[GP.TER_Y0], real)
+        base = ti.cast(gp[GP.TER_BASE], real)
+        # bounded before the integer conversion (a diverging robot's position must not overflow it)
+        u = ti.min(ti.max((p[0] - x0) / c, -2.0), ti.cast(nx, real) + 2.0)
+        v = ti.min(ti.max((p[1] - y0) / c, -2.0), ti.cast(ny, real) + 2.0)
+        dist = ti.cast(0.0, real)
+        n = vec3(0.0, 0.0, 1.0)
+        if ti.static(mode == SMOOTH):
+            gx, gy = ti.cast(gp[GP.TER_GX], real), ti.cast(gp[GP.TER_GY], real)
+            i = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), nx - 2)
+            j = ti.min(ti.max(ti.cast(ti.floor(v), ti.i32), 0), ny - 2)
+            fu, fv = u - ti.cast(i, real), v - ti.cast(j, real)
+            inu = ti.cast(0.0 <= fu <= 1.0, real)  # beyond the grid the edge values go on: no grid slope there
+            inv = ti.cast(0.0 <= fv <= 1.0, real)
+            fu, fv = ti.min(ti.max(fu, 0.0), 1.0), ti.min(ti.max(fv, 0.0), 1.0)
+            h00, h10 = hf[i * ny + j], hf[(i + 1) * ny + j]
+            h01, h11 = hf[i * ny + j + 1], hf[(i + 1) * ny + j + 1]
+            s = base + gx * p[0] + gy * p[1] + (h00 * (1.0 - fu) + h10 * fu) * (1.0 - fv) + \
+                (h01 * (1.0 - fu) + h11 * fu) * fv
+            sx = gx + inu * ((h10 - h00) * (1.0 - fv) + (h11 - h01) * fv) / c
+            sy = gy + inv * ((h01 - h00) * (1.0 - fu) + (h11 - h10) * fu) / c
+            nz = 1.0 / ti.sqrt(1.0 + sx * sx + sy * sy)
+            n = vec3(-sx * nz, -sy * nz, nz)
+            dist = (p[2] - s) * nz
+        else:
+            fi, fj = ti.floor(u), ti.floor(v)
+            i, j = ti.cast(fi, ti.i32), ti.cast(fj, ti.i32)
+            top0 = base + hf[ti.min(ti.max(i, 0), nx - 1) * ny + ti.min(ti.max(j, 0), ny - 1)]
+            dist = p[2] - top0
+            si = 1 if u - fi >= 0.5 else -1
+            sj = 1 if v - fj >= 0.5 else -1
+            for k in ti.static(range(3)):
+                a = i + (si if k != 1 else 0)
+                b = j + (sj if k != 0 else 0)
+                top = base + hf[ti.min(ti.max(a, 0), nx - 1) * ny + ti.min(ti.max(b, 0), ny - 1)]
+                if top > top0:
+                    lox, loy = x0 + ti.cast(a, real) * c, y0 + ti.cast(b, real) * c
+                    d = p - vec3(ti.min(ti.max(p[0], lox), lox + c), ti.min(ti.max(p[1], loy), loy + c),
+                                 ti.min(p[2], top))
+                    dl = ti.sqrt(d.dot(d))
+                    if dl < dist:
+                        dist = dl
+                        if dl > 0.0:
+                            n = d / dl
+        return dist, n
+
+    @ti.func
+    def terrain_contact(mt: ti.template(), mat, force, vel, pen, n, static):
+        """``floor_force`` along the surface normal ``n``: penalty force and collision damping along n, Coulomb
+        friction on the tangential force (static test) and velocity (kinetic). Returns (force, friction, static)."""
+        fric = vec3(0.0, 0.0, 0.0)
+        if pen >= 0.0:
+            normal = ld(mt, MT.KPEN, mat) * pen
+            force += (normal - ld(mt, MT.CC, mat) * vel.dot(n)) * n
+            if static:
+                mus = ld(mt, MT.MUS, mat) * normal
+                fn = force.dot(n)
+                if force.dot(force) - fn * fn > mus * mus:
+                    static = False  # breaks loose; the full force acts this step
+            else:
+                vt = vel - vel.dot(n) * n
+                vh = ti.sqrt(vt.dot(vt))
+                if vh > 0.0:
+                    fric = -(ld(mt, MT.MUK, mat) * normal / vh) * vt
+                    force += fric
+        else:
+            static = False
+        return force, fric, static
+
     @ti.func
     def renormalise(q):
         """f32 keeps orientations unit (spec section 14): |q|² = 1 + e with e at rounding level (the update rotation
@@ -194,9 +276,11 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
     @ti.func
     def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                      rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                     gp: ti.template(), floor: ti.template(), ifx: ti.template()):
+                     gp: ti.template(), hf: ti.template(), floor: ti.template(), terrain: ti.template(),
+                     ifx: ti.template()):
         """One step of voxel ``v``; marks its robot DIVERGED if its pose becomes non-finite.
-        floor: floor contact on; ifx: rl4design semantics (both compile-time)."""
+        floor: floor contact on; terrain: terrain.FLAT (Voxelyze's own floor code) | SMOOTH | COLUMNS (the height
+        field in ``gp``/``hf``); ifx: rl4design semantics (all compile-time)."""
         r = ld(vi, VI.ROBOT, v)
         mat = ld(vi, VI.MAT, v)
         flags = ld(vi, VI.FLAGS, v)
@@ -224,37 +308,68 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             moment = rotate(q, moment) - ld(mt, MT.CGR, mat) * (amom * iinv)
 
             static = (flags & STATIC) != 0
-            pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
-            fric = vec3(0.0, 0.0, 0.0)
-            if ti.static(floor != 0):
-                force, fric, static = floor_force(mt, mat, force, vel, pen, static)
-            mom += force * dt
-            delta = mom * (dt * minv)
             touching = False
-            if ti.static(floor != 0):
-                touching = pen >= 0.0
-            if touching:
-                # work-energy stop test: friction would reverse the horizontal motion within this step
-                work = fric[0] * delta[0] + fric[1] * delta[1]
-                hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
-                if hke + work <= 0.0:
-                    static = True
-                if static:
-                    mom[0] = 0.0
-                    mom[1] = 0.0
-                    delta[0] = 0.0
-                    delta[1] = 0.0
+            if ti.static(terrain == 0):
+                # Voxelyze's flat floor, its own code (results bit for bit those of the simulator before terrain)
+                pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
+                fric = vec3(0.0, 0.0, 0.0)
+                if ti.static(floor != 0):
+                    force, fric, static = floor_force(mt, mat, force, vel, pen, static)
+                mom += force * dt
+                delta = mom * (dt * minv)
+                if ti.static(floor != 0):
+                    touching = pen >= 0.0
+                if touching:
+                    # work-energy stop test: friction would reverse the horizontal motion within this step
+                    work = fric[0] * delta[0] + fric[1] * delta[1]
+                    hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
+                    if hke + work <= 0.0:
+                        static = True
+                    if static:
+                        mom[0] = 0.0
+                        mom[1] = 0.0
+                        delta[0] = 0.0
+                        delta[1] = 0.0
+                else:
+                    static = False
+                pos += delta
             else:
-                static = False
-            pos += delta
+                # the same model along the local surface normal n: "horizontal" becomes tangential
+                dist, n = ground(gp, hf, pos, terrain)
+                pen = 0.5 * size - dist
+                fric = vec3(0.0, 0.0, 0.0)
+                if ti.static(floor != 0):
+                    force, fric, static = terrain_contact(mt, mat, force, vel, pen, n, static)
+                mom += force * dt
+                delta = mom * (dt * minv)
+                if ti.static(floor != 0):
+                    touching = pen >= 0.0
+                if touching:
+                    work = fric.dot(delta)
+                    mn = mom.dot(n)
+                    mt_ = mom - mn * n
+                    hke = 0.5 * mt_.dot(mt_) * minv
+                    if hke + work <= 0.0:
+                        static = True
+                    if static:
+                        mom = mn * n
+                        delta = delta.dot(n) * n
+                else:
+                    static = False
+                pos += delta
             amom += moment * dt
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
                 q = renormalise(q)
             if ti.static(ifx != 0 and floor != 0):
-                if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
-                    amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
-            flags = (flags & ~STATIC) | (STATIC if static else 0)
+                if ti.static(terrain == 0):
+                    if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
+                        amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
+                else:
+                    dist_new, _n = ground(gp, hf, pos, terrain)
+                    if static and 0.5 * size - dist_new >= 0.0:
+                        amom = vec3(0.0, 0.0, 0.0)
+            flags = (flags & ~(STATIC | CONTACT)) | (STATIC if static else 0) | (CONTACT if touching else 0)
 
         # NaN or inf anywhere makes the L1 norm non-finite, and so does a finite state beyond the float range
         if nonfinite(ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
