@@ -1,7 +1,28 @@
-"""Batched environments: the VecEnv and Task protocols, the design environment and its tasks."""
+"""Batched environments: the VecEnv and Task protocols, the design environment and its tasks.
+
+``from_gymnasium`` / ``to_gymnasium`` (``freeform.envs.adapters``) need the optional ``gym`` extra; they are imported
+on first use, so the core install never imports Gymnasium.
+"""
+
+from typing import Any
 
 from freeform.envs.base import ReportsStats, StatefulVecEnv, Task, VecEnv
 from freeform.envs.design import DesignEnv
 from freeform.envs.tasks import LocomotionTask, VolumeTask
 
-__all__ = ["VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "DesignEnv", "VolumeTask", "LocomotionTask"]
+__all__ = [
+    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "DesignEnv", "VolumeTask", "LocomotionTask",
+    "from_gymnasium", "to_gymnasium",
+]
+
+_ADAPTERS = ("from_gymnasium", "to_gymnasium")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _ADAPTERS:
+        try:
+            from freeform.envs import adapters
+        except ImportError as exc:  # pragma: no cover - the gym extra is missing
+            raise ImportError(f"freeform.envs.{name} needs Gymnasium: pip install 'freeform[gym]' ({exc})") from exc
+        return getattr(adapters, name)
+    raise AttributeError(f"module 'freeform.envs' has no attribute {name!r}")

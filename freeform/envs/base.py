@@ -18,6 +18,17 @@ class VecEnv(Protocol):
     When ``done[i]`` the environment resets itself: ``obs[i]`` is the first observation of the next episode, and
     whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
     ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).
+
+    Optional ``info`` keys PPO reads (the design env sets none: its episodes end only by termination, at step T):
+
+    - ``truncated [num_envs]`` bool (⊆ ``done``): a time limit cut the episode; it was not terminated. PPO then
+      bootstraps the episode's return with V(``final_obs``); a terminated episode gets no bootstrap.
+    - ``final_obs [num_envs, *observation_shape]``: the last observation of the episodes that ended at this step
+      (rows of the other envs are ignored); needed whenever some ``truncated`` is set.
+    - ``autoreset [num_envs]`` bool: this step only reset the env (Gymnasium's next-step autoreset: the action was
+      ignored, the reward is 0, ``obs`` is the new episode's first observation). PPO keeps such samples out of the
+      loss and the episode lengths. An env using it returns, at the step that ends an episode, that episode's last
+      observation as ``obs``.
     """
 
     num_envs: int

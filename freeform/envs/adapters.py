@@ -1,0 +1,238 @@
+"""Gymnasium both ways: any ``gymnasium.vector.VectorEnv`` as a freeform :class:`~freeform.envs.VecEnv`
+(:func:`from_gymnasium`, so ``freeform.agents.PPO`` trains MuJoCo or your own env), and any freeform ``VecEnv`` as a
+``gymnasium.vector.VectorEnv`` (:func:`to_gymnasium`, so SB3/CleanRL code trains on the design env's tasks).
+
+Gymnasium is optional (``pip install 'freeform[gym]'``); it is imported when this module is.
+
+Episode ends (Gymnasium 1.x): ``terminated`` and ``truncated`` are kept apart. A freeform env reports ``done =
+terminated | truncated`` and, in ``info``, ``truncated`` (a time limit cut the episode: PPO bootstraps it with
+V(``final_obs``)) and ``final_obs`` (the episode's last observation). How the vector env resets its envs
+(``metadata["autoreset_mode"]``):
+
+- ``SAME_STEP``: the step that ends an episode returns the next episode's first observation; the last one is in
+  Gymnasium's ``info["final_obs"]``. Nothing is lost: the recommended mode
+  (``gym.make_vec(..., vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})``).
+- ``NEXT_STEP`` (Gymnasium's default): the step after an episode's end only resets that env (its action is ignored,
+  reward 0). The adapter flags it in ``info["autoreset"]``; PPO keeps such samples out of the loss and the episode
+  lengths, so no reset step is ever trained on as if it followed the last one.
+- ``DISABLED``: the adapter resets the finished envs itself (``reset(options={"reset_mask": done})``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+
+__all__ = ["GymnasiumVecEnv", "FreeformVectorEnv", "from_gymnasium", "to_gymnasium"]
+
+
+def _box(space: Any, what: str) -> gym.spaces.Box:
+    if not isinstance(space, gym.spaces.Box):
+        raise ValueError(f"from_gymnasium needs Box {what} spaces, got {type(space).__name__} ({space})")
+    return space
+
+
+def _mode(vector_env: gym.vector.VectorEnv) -> AutoresetMode:
+    mode = vector_env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
+    return AutoresetMode(mode) if not isinstance(mode, AutoresetMode) else mode
+
+
+class GymnasiumVecEnv:
+    """A ``gymnasium.vector.VectorEnv`` with Box observations and actions as a freeform ``VecEnv`` (build it with
+    :func:`from_gymnasium`).
+
+    ``step(actions [N, A])``: the actions are clipped to the action space's bounds for the env (PPO stores what it
+    sampled, unclipped); returns float32 tensors on ``device``: ``obs [N, *obs_shape]``, ``reward [N]``, ``done [N]``
+    (terminated or truncated) and ``info`` with ``truncated [N]`` (truncated and not terminated), ``terminated [N]``,
+    ``final_obs [N, *obs_shape]`` when an episode ended (rows of the other envs are their current observation), and in
+    ``NEXT_STEP`` mode ``autoreset [N]`` (this step only reset the env). The vector env's own info is kept under
+    ``gym_info``.
+    """
+
+    def __init__(self, vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"):
+        obs_space = _box(vector_env.single_observation_space, "observation")
+        act_space = _box(vector_env.single_action_space, "action")
+        self.vector_env = vector_env
+        self.num_envs = int(vector_env.num_envs)
+        self.observation_shape = tuple(obs_space.shape)
+        self.action_shape = tuple(act_space.shape)
+        self.action_dim = int(math.prod(self.action_shape))
+        self.device = torch.device(device)
+        self.seed = seed
+        self.autoreset_mode = _mode(vector_env)
+        self.action_low = np.broadcast_to(act_space.low, self.action_shape).reshape(-1).astype(np.float64)
+        self.action_high = np.broadcast_to(act_space.high, self.action_shape).reshape(-1).astype(np.float64)
+        self._action_dtype = act_space.dtype
+        self._resetting = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: these envs' next step only resets them
+
+    def _tensor(self, x: Any) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(x), dtype=torch.float32).to(self.device)
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every env (seeded with ``seed``, else the adapter's ``seed``; Gymnasium gives env i seed + i)."""
+        seed = seed if seed is not None else self.seed
+        obs, _ = self.vector_env.reset(seed=seed)
+        self._resetting[:] = False
+        return self._tensor(obs).reshape(self.num_envs, *self.observation_shape)
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        raw = actions.detach().to("cpu", torch.float64).numpy().reshape(self.num_envs, self.action_dim)
+        clipped = np.clip(raw, self.action_low, self.action_high).astype(self._action_dtype)
+        obs, reward, terminated, truncated, gym_info = self.vector_env.step(
+            clipped.reshape(self.num_envs, *self.action_shape)
+        )
+        terminated, truncated = np.asarray(terminated, dtype=bool), np.asarray(truncated, dtype=bool)
+        done = terminated | truncated
+        obs = np.asarray(obs)
+        info: dict[str, Any] = {"gym_info": gym_info}
+        final_obs = None
+        if self.autoreset_mode == AutoresetMode.NEXT_STEP:
+            info["autoreset"] = torch.as_tensor(self._resetting.copy(), device=self.device)
+            self._resetting = done.copy()
+            if done.any():
+                final_obs = obs  # the episode's last observation; the reset comes with the next step
+        elif self.autoreset_mode == AutoresetMode.SAME_STEP:
+            if done.any():
+                final_obs = obs.copy()
+                mask = np.asarray(gym_info.get("_final_obs", done), dtype=bool)
+                for i in np.flatnonzero(mask):
+                    final_obs[i] = gym_info["final_obs"][i]
+        else:  # DISABLED: reset the finished envs here
+            if done.any():
+                final_obs = obs.copy()
+                obs, _ = self.vector_env.reset(options={"reset_mask": done})
+                obs = np.asarray(obs)
+        shape = (self.num_envs, *self.observation_shape)
+        info["terminated"] = torch.as_tensor(terminated, device=self.device)
+        info["truncated"] = torch.as_tensor(truncated & ~terminated, device=self.device)
+        if final_obs is not None:
+            info["final_obs"] = self._tensor(final_obs).reshape(shape)
+        return (
+            self._tensor(obs).reshape(shape),
+            self._tensor(reward).reshape(self.num_envs),
+            torch.as_tensor(done, device=self.device),
+            info,
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """The adapter's own state (which envs reset next step) and the vector env's ``state_dict()`` if it has one.
+        (Gymnasium's MuJoCo envs have none: a resumed run then continues with freshly reset envs.)"""
+        state: dict[str, Any] = {"per_env": {"resetting": torch.as_tensor(self._resetting.copy())}}
+        if hasattr(self.vector_env, "state_dict"):
+            state["vector_env"] = self.vector_env.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self._resetting = state["per_env"]["resetting"].cpu().numpy().astype(bool).copy()
+        if "vector_env" in state and hasattr(self.vector_env, "load_state_dict"):
+            self.vector_env.load_state_dict(state["vector_env"])
+
+    def close(self) -> None:
+        self.vector_env.close()
+
+
+def from_gymnasium(
+    vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"
+) -> GymnasiumVecEnv:
+    """Wrap a ``gymnasium.vector.VectorEnv`` (sync or async; Box observations and actions) as a freeform ``VecEnv``
+    for ``freeform.agents.PPO`` (see :class:`GymnasiumVecEnv` and the module docstring for the episode ends).
+
+    ``seed`` seeds the first ``reset`` when the caller passes none (PPO passes ``config.seed``).
+    """
+    if not isinstance(vector_env, gym.vector.VectorEnv):
+        raise ValueError(f"from_gymnasium needs a gymnasium.vector.VectorEnv, got {type(vector_env).__name__}")
+    return GymnasiumVecEnv(vector_env, seed=seed, device=device)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The other direction.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class FreeformVectorEnv(gym.vector.VectorEnv):
+    """A freeform ``VecEnv`` as a ``gymnasium.vector.VectorEnv`` (build it with :func:`to_gymnasium`).
+
+    numpy in and out; ``SAME_STEP`` autoreset (a freeform env resets its finished envs itself): the step that ends an
+    episode returns the next episode's first observation and puts the last one in ``info["final_obs"]`` (with the
+    ``_final_obs`` mask). ``terminated = done & ~info["truncated"]`` (the design env never truncates).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP}
+
+    def __init__(
+        self,
+        env: Any,
+        observation_space: gym.spaces.Box | None = None,
+        action_space: gym.spaces.Box | None = None,
+    ) -> None:
+        self.env = env
+        self.num_envs = int(env.num_envs)
+        self.single_observation_space = observation_space or _default_observation_space(env)
+        self.single_action_space = action_space or _default_action_space(env)
+        self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
+        self._obs_dtype = self.single_observation_space.dtype
+
+    def _obs(self, obs: torch.Tensor) -> np.ndarray:
+        return obs.detach().cpu().numpy().astype(self._obs_dtype, copy=True)
+
+    def reset(self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None):  # type: ignore[override]
+        super().reset(seed=seed if isinstance(seed, int) or seed is None else seed[0])
+        if options and "reset_mask" in options:
+            raise ValueError("a freeform env resets its environments together: reset_mask is not supported")
+        return self._obs(self.env.reset(seed=seed if isinstance(seed, int) or seed is None else seed[0])), {}
+
+    def step(self, actions: Any):  # type: ignore[override]
+        action = torch.as_tensor(np.asarray(actions, dtype=np.float32)).reshape(self.num_envs, -1)
+        obs, reward, done, info = self.env.step(action.to(self.env.device))
+        done = done.detach().cpu().numpy().astype(bool)
+        truncated = info.get("truncated")
+        truncated = np.zeros_like(done) if truncated is None else truncated.detach().cpu().numpy().astype(bool) & done
+        out: dict[str, Any] = {}
+        if done.any():
+            final = info.get("final_obs", info.get("final_grids"))  # the design env names its last grids so
+            if final is not None:
+                final = self._obs(final)
+                out["final_obs"] = np.array([final[i] if done[i] else None for i in range(self.num_envs)], dtype=object)
+                out["_final_obs"] = done.copy()
+        return (
+            self._obs(obs),
+            reward.detach().cpu().numpy().astype(np.float64),
+            done & ~truncated,
+            truncated,
+            out,
+        )
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if hasattr(self.env, "close"):
+            self.env.close()
+
+
+def _default_observation_space(env: Any) -> gym.spaces.Box:
+    shape = tuple(env.observation_shape)
+    materials = getattr(env, "materials", None)
+    if materials is not None:  # the design env: uint8 grids of material indices 0 … k − 1
+        return gym.spaces.Box(0, int(materials) - 1, shape, dtype=np.uint8)
+    return gym.spaces.Box(-np.inf, np.inf, shape, dtype=np.float32)
+
+
+def _default_action_space(env: Any) -> gym.spaces.Box:
+    bound = float(getattr(env, "action_bound", np.inf))  # the design env clips actions to ±action_bound
+    return gym.spaces.Box(-bound, bound, (int(env.action_dim),), dtype=np.float32)
+
+
+def to_gymnasium(
+    env: Any, observation_space: gym.spaces.Box | None = None, action_space: gym.spaces.Box | None = None
+) -> FreeformVectorEnv:
+    """Expose a freeform ``VecEnv`` (e.g. ``DesignEnv`` with any task) as a ``gymnasium.vector.VectorEnv``.
+
+    Spaces default to: observations ``Box(0, k − 1, uint8)`` for an env with ``materials`` (the design env), else
+    ``Box(−∞, ∞, float32)``; actions ``Box(−action_bound, action_bound, float32)`` (the design env's clip), else
+    unbounded.
+    """
+    return FreeformVectorEnv(env, observation_space, action_space)
