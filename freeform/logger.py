@@ -31,7 +31,8 @@ from tqdm.auto import tqdm
 
 log = logging.getLogger("freeform.train")
 
-CHARTS = ("episode_reward_mean", "episode_reward_max", "episode_reward_min", "episodes", "episode_length_mean")
+CHARTS = ("episode_reward_mean", "episode_reward_max", "episode_reward_min", "episodes", "episode_length_mean",
+          "eval_return", "eval_return_std", "eval_length_mean")
 SKIP = ("epoch", "global_step")  # already the x-axis (the step) and the bar
 LOSSES = (
     "policy_loss",
@@ -180,6 +181,8 @@ class Logger:
         self.bar.update(1)
         if self.print_every and ((epoch + 1) % self.print_every == 0 or epoch == 0):
             parts = [f"epoch {epoch + 1}", f"step {global_step}", f"reward mean {mean:.2f} max {best:.1f}"]
+            if "charts/eval_return" in written:
+                parts.append(f"eval return {written['charts/eval_return']:.2f}")
             parts += [f"{name} {body[name]:.3g}" for name in self.console_metrics if name in body]
             parts.append(f"{sps:.0f} samples/s")
             log.info(" | ".join(parts))

@@ -119,8 +119,26 @@ def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
     return LocomotionTask(sim=cfg.sim, device=device, **{"arch": arch, **cfg.task.options})  # an explicit option wins
 
 
+def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
+    """A ``TrajectoryTask`` of the reward registered as ``task.name`` (freeform/envs/trajectory.py)."""
+    from freeform.envs.trajectory import TrajectoryTask
+
+    arch = "cuda" if device.type == "cuda" else "cpu"
+    return TrajectoryTask(cfg.task.name, sim=cfg.sim, device=device, **{"arch": arch, **cfg.task.options})
+
+
+# the built-in trajectory rewards (docs/tasks.md); a reward registered later with
+# freeform.envs.trajectory.trajectory_reward is found by build_task too
+for _name in ("directional", "rough", "climb", "stairs", "jump", "tallest"):
+    register_task(_name)(_trajectory_task)
+
+
 def build_task(cfg: TrainConfig, device: torch.device) -> Task:
     """The run's task from the registry, checked against the :class:`freeform.envs.Task` protocol."""
+    from freeform.envs.trajectory import TRAJECTORY_REWARDS
+
+    if cfg.task.name not in TASKS and cfg.task.name in TRAJECTORY_REWARDS:
+        register_task(cfg.task.name)(_trajectory_task)
     if cfg.task.name not in TASKS:
         raise ValueError(f"task.name must be one of {sorted(TASKS)}, got {cfg.task.name!r}")
     task = TASKS[cfg.task.name](cfg, device)
@@ -181,7 +199,12 @@ def build(
         action_bound=cfg.env.action_bound,
     )
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
-    ppo = PPO(env, policy, ppo_config(cfg, device=str(device)))
+    eval_env = None
+    if cfg.agent.eval_every:  # deterministic evaluation episodes on an env of their own (charts/eval_return)
+        eval_env = DesignEnv(num_envs=hi - lo, resolution=cfg.env.resolution, materials=cfg.task.materials,
+                             steps=cfg.env.steps, bundle_size=cfg.env.bundle_size, task=build_task(cfg, device), device=device,
+                             seed=cfg.seed + 1, action_bound=cfg.env.action_bound)
+    ppo = PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
     return env, policy, ppo
 
 

@@ -298,6 +298,26 @@ def test_cleanrl_preset_is_cleanrls_defaults() -> None:
     assert set(CLEANRL_PRESET) <= {f for f in PPOConfig.__dataclass_fields__}
 
 
+def test_cleanrl_agent_yaml_is_the_preset() -> None:
+    """``agent=cleanrl`` (conf/agent/cleanrl.yaml) names every agent field and equals PPOConfig.cleanrl() but for
+    the run-filled ones (rollout_steps, seed: the run's)."""
+    import dataclasses
+
+    from omegaconf import OmegaConf
+
+    from freeform._conf_dir import conf_dir
+    from freeform.config import AgentConfig
+
+    path = conf_dir() / "agent" / "cleanrl.yaml"
+    values = OmegaConf.to_container(OmegaConf.load(path))
+    assert set(values) == {f.name for f in dataclasses.fields(AgentConfig)}
+    agent = AgentConfig(**values)
+    preset = PPOConfig.cleanrl()
+    for field in dataclasses.fields(PPOConfig):
+        if field.name not in ("rollout_steps", "seed", "device"):
+            assert getattr(agent, field.name) == getattr(preset, field.name), field.name
+
+
 def test_cleanrl_preset_solves_inverted_pendulum() -> None:
     """CleanRL's defaults (batch 2048 = 8 envs × 256 steps, 32 minibatches, 10 passes, lr annealed over 100k steps)
     reach a deterministic evaluation return ≥ 950 (the maximum is 1000) within 100k steps, in under a minute."""
