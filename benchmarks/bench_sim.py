@@ -2,7 +2,8 @@
 
 Figures: a batch of 128 bodies designed by N(0, I) actions through the real ``DesignEnv`` (k = 4 materials,
 ρ = 20, T = 100 actions, b = 2; the body is the largest component, ``info["bodies"]`` at the last step); a batch of
-muscle cubes of 10³; throughput against batch size (1 … 512 design bodies) and against body size (5³, 10³, 20³).
+muscle cubes of 10³; throughput against batch size (1 … 512 design bodies) and against body size (5³, 10³, 20³);
+the 128 design bodies on rough ground, stairs and a slope against flat ground (kernels only, alternated).
 Voxelyze does 2.2-3.0 M voxel-steps/s on one core of the reference machine (spec section 15).
 
 Every figure is given twice: per wall-clock second (what a user waits) and per CPU second of this process
@@ -21,7 +22,7 @@ import time
 import torch
 
 from freeform.envs.design import DesignEnv
-from freeform.sim import SimConfig, Simulator
+from freeform.sim import SimConfig, Simulator, Terrain
 
 RHO, K, T_ACTIONS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
 DT = 1.1785e-4  # the recommended step of the paper's materials × 0.95 (every robot with links gets this)
@@ -86,6 +87,25 @@ def engine_throughput(sim: Simulator, grids: torch.Tensor, steps: int) -> tuple[
     return n / wall, n / cpu
 
 
+def terrain_comparison(sim: Simulator, design: torch.Tensor, rounds: int = 3) -> dict[str, float]:
+    """Kernels-only M voxel-steps per CPU second of ``design`` on each terrain (the best of ``rounds`` alternated
+    runs, so that every terrain sees the same machine load); printed with the cost relative to flat ground."""
+    terrains = {"flat": Terrain.flat(), "rough (3 mm, 4 cm)": Terrain.rough(0.003, 0.04),
+                "stairs (3 mm, 2 cm)": Terrain.steps(0.003, 0.02), "slope 5 deg": Terrain.slope(5)}
+    nv = int((design > 0).sum())
+    steps = max(200, int(TARGET_VOXEL_STEPS / nv / rounds))
+    best = dict.fromkeys(terrains, 0.0)
+    for _ in range(rounds):
+        for name, terrain in terrains.items():
+            tsim = Simulator(SimConfig(**{**sim.config.__dict__, "terrain": terrain}), arch=sim.arch,
+                             schedule=sim.schedule)
+            best[name] = max(best[name], engine_throughput(tsim, design, steps)[1] / 1e6)
+    for name, rate in best.items():
+        print(f"  {name:<34s} {rate:6.2f} per CPU-s  ({100 * (best['flat'] / rate - 1):+5.1f} % time vs flat)",
+              flush=True)
+    return best
+
+
 def main() -> None:
     precision = os.environ.get("FREEFORM_BENCH_PRECISION", "f32")
     sim = Simulator(SimConfig(precision=precision), arch="auto")
@@ -107,6 +127,8 @@ def main() -> None:
     rate, crate = engine_throughput(sim, design, max(200, int(TARGET_VOXEL_STEPS / nv)))
     print(f"  {'  the same, kernels only':<34s} {'':27s}{rate / 1e6:6.2f} | {crate / 1e6:6.2f}", flush=True)
     row("32 muscle cubes 10^3", cubes(32, 10, 2))
+    print(f"terrain ({design.shape[0]} design bodies, kernels only, best of 3 alternated runs):")
+    terrain_comparison(sim, design)
     print("batch size (N(0,I) design bodies):")
     for b in (1, 8, 32, 128, 512):
         row(f"B={b}", bodies[:b])
