@@ -1,0 +1,224 @@
+"""freeform vs Stable-Baselines3 vs CleanRL's own ``ppo_continuous_action.py`` on Gymnasium MuJoCo tasks.
+
+Every run trains one framework on one task and seed for the same number of environment steps with CleanRL's
+``ppo_continuous_action`` hyper-parameters (1 env × 2048 steps per update, 32 minibatches of 64, 10 passes, lr 3e-4
+annealed linearly to 0, γ 0.99, λ 0.95, clip 0.2, grad-norm 0.5, Adam ε 1e-5, observations and rewards normalised
+and clipped at 10, 64-64 tanh actor and critic, orthogonal init, state-independent log σ), in its own process with
+one torch thread, one run at a time, and reports the **final return** (mean raw return of its last 20 training
+episodes) and the **wall time** of the whole run (start-up included):
+
+- ``freeform``: ``PPO`` with ``PPOConfig.cleanrl()`` on ``from_gymnasium(gym.make_vec(task, 1, SAME_STEP))``.
+- ``sb3``: ``stable_baselines3.PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with the same values.
+  SB3's value loss has no PPO2 max-clipping: ``vf_coef = 0.25`` gives the squared error CleanRL's weight
+  (0.5 · ½), unclipped.
+- ``cleanrl``: CleanRL's script itself (``--cleanrl-script``, default: the file of CleanRL's repository at the
+  pinned commit below, fetched from GitHub into ``~/.cache/freeform``), run unmodified through
+  ``benchmarks/cleanrl_compat.py``: the script was written for Gymnasium 0.29, which has no ``-v5`` tasks; the shim
+  gives it 0.29's API on Gymnasium 1.x (``TransformObservation`` without an explicit space; vector envs that reset in
+  the same step and report ``final_info`` per env), nothing else.
+
+    python -m benchmarks.bench_gym --tasks HalfCheetah-v5 Hopper-v5 --steps 500000 --seeds 0 1   # the issue's table
+    python -m benchmarks.bench_gym --tasks InvertedPendulum-v5 --steps 5000 --seeds 0            # end-to-end check
+    python -m benchmarks gym        # (make bench) a short InvertedPendulum-v5 comparison, 3 × 50k steps
+
+Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, tyro).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
+CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/ppo_continuous_action.py"
+FRAMEWORKS = ("freeform", "sb3", "cleanrl")
+LAST_EPISODES = 20
+BATCH = 2048
+
+
+def final_return(returns: list[float]) -> float:
+    """Mean of the last 20 episodes' returns (NaN when none finished)."""
+    tail = returns[-LAST_EPISODES:]
+    return sum(tail) / len(tail) if tail else math.nan
+
+
+# ----------------------------------------------------------------------------------------------- the three runners
+
+
+def run_freeform(task: str, steps: int, seed: int) -> list[float]:
+    import gymnasium as gym
+    import torch
+
+    from freeform.agents import PPO, MLPActorCritic, PPOConfig
+    from freeform.envs import from_gymnasium
+
+    vec = gym.wrappers.vector.RecordEpisodeStatistics(
+        gym.make_vec(task, num_envs=1, vectorization_mode="sync",
+                     vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    )
+    env = from_gymnasium(vec)
+    torch.manual_seed(seed)
+    policy = MLPActorCritic(env.observation_shape[0], env.action_dim)
+    ppo = PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH)))
+    returns: list[float] = []
+    for _ in range(steps // BATCH):
+        ppo.train_epoch()
+        for info in ppo.episode_infos:
+            gym_info = info["gym_info"]
+            if "episode" in gym_info:
+                returns += [float(r) for r, ended in zip(gym_info["episode"]["r"], gym_info["_episode"], strict=True) if ended]
+    return returns
+
+
+def run_sb3(task: str, steps: int, seed: int) -> list[float]:
+    import torch.nn as nn
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
+    model = PPO(
+        "MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=BATCH, batch_size=64, n_epochs=10,
+        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.25, max_grad_norm=0.5,
+        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), device="cpu",
+        seed=seed, stats_window_size=LAST_EPISODES, verbose=0,
+    )
+    returns: list[float] = []
+    model.learn(total_timesteps=(steps // BATCH) * BATCH, callback=_SB3Episodes(returns))
+    return returns
+
+
+def _SB3Episodes(returns: list[float]):  # noqa: N802 - a factory for SB3's callback class (imported lazily)
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Episodes(BaseCallback):
+        def _on_step(self) -> bool:
+            for info in self.locals["infos"]:
+                if "episode" in info:
+                    returns.append(float(info["episode"]["r"]))
+            return True
+
+    return Episodes()
+
+
+def cleanrl_script(path: str | None) -> Path:
+    """CleanRL's ``ppo_continuous_action.py``: ``path``, else the pinned commit's file, fetched once and cached."""
+    if path:
+        return Path(path)
+    cached = Path.home() / ".cache" / "freeform" / f"cleanrl-{CLEANRL_COMMIT[:12]}" / "ppo_continuous_action.py"
+    if not cached.is_file():
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with urllib.request.urlopen(CLEANRL_URL, timeout=60) as response:
+                cached.write_bytes(response.read())
+        except OSError as exc:
+            raise SystemExit(f"cannot fetch {CLEANRL_URL} ({exc}); pass --cleanrl-script <ppo_continuous_action.py>") from exc
+    return cached
+
+
+def run_cleanrl(task: str, steps: int, seed: int, script: Path, workdir: Path) -> list[float]:
+    """CleanRL's script, unmodified, in a child process (through the API shim); its printed episodic returns."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    command = [sys.executable, str(Path(__file__).with_name("cleanrl_compat.py")), str(script),
+               "--env-id", task, "--total-timesteps", str((steps // BATCH) * BATCH), "--seed", str(seed), "--no-cuda"]
+    done = subprocess.run(command, cwd=workdir, capture_output=True, text=True, env=_child_env())
+    if done.returncode != 0:
+        raise RuntimeError(f"CleanRL's script failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    return [float(m) for m in re.findall(r"episodic_return=\[?([-0-9.eE+]+)", done.stdout)]
+
+
+# ----------------------------------------------------------------------------------------------- orchestration
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(OMP_NUM_THREADS=env.get("OMP_NUM_THREADS", "1"), MKL_NUM_THREADS=env.get("OMP_NUM_THREADS", "1"))
+    return env
+
+
+def one_run(framework: str, task: str, steps: int, seed: int, script: str | None, workdir: Path) -> dict:
+    """One framework × task × seed in a fresh process: final return, episodes, wall seconds."""
+    start = time.perf_counter()
+    if framework == "cleanrl":
+        returns = run_cleanrl(task, steps, seed, cleanrl_script(script), workdir / f"cleanrl-{task}-{seed}")
+    else:
+        command = [sys.executable, "-m", "benchmarks.bench_gym", "--child", framework, "--tasks", task,
+                   "--steps", str(steps), "--seeds", str(seed)]
+        done = subprocess.run(command, capture_output=True, text=True, env=_child_env(),
+                              cwd=Path(__file__).resolve().parent.parent)
+        if done.returncode != 0:
+            raise RuntimeError(f"{framework} failed ({done.returncode}):\n{done.stderr[-3000:]}")
+        returns = json.loads(done.stdout.strip().splitlines()[-1])["returns"]
+    wall = time.perf_counter() - start
+    return {"framework": framework, "task": task, "seed": seed, "steps": (steps // BATCH) * BATCH,
+            "final_return": final_return(returns), "episodes": len(returns), "wall_s": wall}
+
+
+def table(results: list[dict]) -> str:
+    """Markdown: per task and framework, the final return and wall time of every seed and their mean."""
+    lines = ["| task | framework | final return (mean of last 20 episodes), per seed | mean | wall time per seed (s) | "
+             "mean wall (s) | × freeform's wall |", "|---|---|---|---|---|---|---|"]
+    for task in dict.fromkeys(r["task"] for r in results):
+        base = [r["wall_s"] for r in results if r["task"] == task and r["framework"] == "freeform"]
+        base_wall = sum(base) / len(base) if base else math.nan
+        for fw in FRAMEWORKS:
+            rs = [r for r in results if r["task"] == task and r["framework"] == fw]
+            if not rs:
+                continue
+            rets, walls = [r["final_return"] for r in rs], [r["wall_s"] for r in rs]
+            mean_wall = sum(walls) / len(walls)
+            lines.append(f"| {task} | {fw} | {', '.join(f'{x:.1f}' for x in rets)} | {sum(rets) / len(rets):.1f} | "
+                         f"{', '.join(f'{w:.0f}' for w in walls)} | {mean_wall:.0f} | {mean_wall / base_wall:.2f} |")
+    return "\n".join(lines)
+
+
+def parse(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.bench_gym", description=__doc__.split("\n\n")[0])
+    p.add_argument("--tasks", nargs="+", default=["HalfCheetah-v5", "Hopper-v5"])
+    p.add_argument("--steps", type=int, default=500_000, help="environment steps per run (rounded down to 2048s)")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
+    p.add_argument("--frameworks", nargs="+", choices=FRAMEWORKS, default=list(FRAMEWORKS))
+    p.add_argument("--cleanrl-script", default=os.environ.get("CLEANRL_SCRIPT"),
+                   help="path of CleanRL's ppo_continuous_action.py (default: fetch the pinned commit's)")
+    p.add_argument("--workdir", default="runs/bench_gym", help="where CleanRL's runs/ and the JSON results go")
+    p.add_argument("--child", choices=("freeform", "sb3"), help=argparse.SUPPRESS)
+    return p.parse_args(argv)
+
+
+def run(argv: list[str] | None = None) -> list[dict]:
+    args = parse(argv)
+    if args.child:  # inside one run's own process
+        returns = (run_freeform if args.child == "freeform" else run_sb3)(args.tasks[0], args.steps, args.seeds[0])
+        print(json.dumps({"returns": returns}))
+        return []
+    workdir = Path(args.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for task in args.tasks:
+        for seed in args.seeds:
+            for fw in args.frameworks:
+                result = one_run(fw, task, args.steps, seed, args.cleanrl_script, workdir)
+                results.append(result)
+                print(f"{fw:9s} {task} seed {seed}: final return {result['final_return']:.1f} "
+                      f"({result['episodes']} episodes), wall {result['wall_s']:.1f} s", flush=True)
+    (workdir / "results.json").write_text(json.dumps(results, indent=1))
+    print()
+    print(table(results))
+    return results
+
+
+def main() -> None:
+    """``python -m benchmarks gym`` / ``make bench``: a short InvertedPendulum-v5 comparison (50k steps, seed 0)."""
+    run(["--tasks", "InvertedPendulum-v5", "--steps", "50000", "--seeds", "0"])
+
+
+if __name__ == "__main__":
+    run(sys.argv[1:])
