@@ -130,6 +130,9 @@ class MLPActorCritic(nn.Module):
         self.actor = mlp(action_dim, 0.01)
         self.critic = mlp(1, 1.0)
         self.log_std = nn.Parameter(torch.zeros(action_dim))
+        # The Linear layers in order (plain tuples: not registered twice), for a forward without module calls.
+        self._actor_linears = tuple(self.actor[::2])
+        self._critic_linears = tuple(self.critic[::2])
 
     @staticmethod
     def _orthogonal(layer: nn.Linear, gain: float) -> nn.Linear:
@@ -137,8 +140,15 @@ class MLPActorCritic(nn.Module):
         nn.init.zeros_(layer.bias)
         return layer
 
+    @staticmethod
+    def _mlp(linears: tuple[nn.Linear, ...], x: torch.Tensor) -> torch.Tensor:
+        """The Sequential's computation (Linear, tanh, …, Linear) without its per-module call overhead."""
+        for layer in linears[:-1]:
+            x = torch.tanh(F.linear(x, layer.weight, layer.bias))
+        return F.linear(x, linears[-1].weight, linears[-1].bias)
+
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``, value ``[N]``)."""
         x = obs.reshape(obs.shape[0], -1).to(self.log_std.dtype)
-        mean = self.actor(x)
-        return mean, self.log_std.expand_as(mean), self.critic(x).squeeze(-1)
+        mean = self._mlp(self._actor_linears, x)
+        return mean, self.log_std.expand_as(mean), self._mlp(self._critic_linears, x).squeeze(-1)

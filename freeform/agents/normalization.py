@@ -19,17 +19,17 @@ class RunningMeanStd:
     def __init__(self, shape: tuple[int, ...], device: torch.device | str = "cpu", epsilon: float = 1e-4) -> None:
         self.mean = torch.zeros(shape, dtype=torch.float64, device=device)
         self.var = torch.ones(shape, dtype=torch.float64, device=device)
-        self.count = torch.tensor(epsilon, dtype=torch.float64, device=device)
+        self.count = float(epsilon)  # a python float: the update's scalar arithmetic stays off the tensor path
 
     @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
         x = batch.to(self.mean.dtype)
-        batch_mean, batch_var, n = x.mean(0), x.var(0, correction=0), x.shape[0]
+        n = x.shape[0]
+        batch_var, batch_mean = torch.var_mean(x, 0, correction=0)
         delta = batch_mean - self.mean
         total = self.count + n
         self.mean = self.mean + delta * (n / total)
-        m2 = self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)
-        self.var = m2 / total
+        self.var = (self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)) / total
         self.count = total
 
     def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
@@ -38,8 +38,10 @@ class RunningMeanStd:
         return out.clamp(-clip, clip).to(torch.float32)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
-        return {"mean": self.mean.clone(), "var": self.var.clone(), "count": self.count.clone()}
+        count = torch.tensor(self.count, dtype=torch.float64)
+        return {"mean": self.mean.clone(), "var": self.var.clone(), "count": count}
 
     def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
         device = self.mean.device
-        self.mean, self.var, self.count = (state[k].to(device, torch.float64).clone() for k in ("mean", "var", "count"))
+        self.mean, self.var = (state[k].to(device, torch.float64).clone() for k in ("mean", "var"))
+        self.count = float(state["count"])

@@ -71,7 +71,12 @@ class GymnasiumVecEnv:
         self._resetting = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: these envs' next step only resets them
 
     def _tensor(self, x: Any) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(x), dtype=torch.float32).to(self.device)
+        x = torch.from_numpy(np.ascontiguousarray(x)).to(torch.float32)
+        return x if self.device.type == "cpu" else x.to(self.device)
+
+    def _flags(self, x: np.ndarray) -> torch.Tensor:
+        x = torch.from_numpy(x)
+        return x if self.device.type == "cpu" else x.to(self.device)
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         """Reset every env (seeded with ``seed``, else the adapter's ``seed``; Gymnasium gives env i seed + i)."""
@@ -82,7 +87,8 @@ class GymnasiumVecEnv:
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
         raw = actions.detach().to("cpu", torch.float64).numpy().reshape(self.num_envs, self.action_dim)
-        clipped = np.clip(raw, self.action_low, self.action_high).astype(self._action_dtype)
+        # np.minimum/np.maximum: np.clip's checks cost more than the clip at these sizes.
+        clipped = np.minimum(np.maximum(raw, self.action_low), self.action_high).astype(self._action_dtype)
         obs, reward, terminated, truncated, gym_info = self.vector_env.step(
             clipped.reshape(self.num_envs, *self.action_shape)
         )
@@ -92,7 +98,7 @@ class GymnasiumVecEnv:
         info: dict[str, Any] = {"gym_info": gym_info}
         final_obs = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
-            info["autoreset"] = torch.as_tensor(self._resetting.copy(), device=self.device)
+            info["autoreset"] = self._flags(self._resetting.copy())
             self._resetting = done.copy()
             if done.any():
                 final_obs = obs  # the episode's last observation; the reset comes with the next step
@@ -108,14 +114,14 @@ class GymnasiumVecEnv:
                 obs, _ = self.vector_env.reset(options={"reset_mask": done})
                 obs = np.asarray(obs)
         shape = (self.num_envs, *self.observation_shape)
-        info["terminated"] = torch.as_tensor(terminated, device=self.device)
-        info["truncated"] = torch.as_tensor(truncated & ~terminated, device=self.device)
+        info["terminated"] = self._flags(terminated)
+        info["truncated"] = self._flags(truncated & ~terminated)
         if final_obs is not None:
             info["final_obs"] = self._tensor(final_obs).reshape(shape)
         return (
             self._tensor(obs).reshape(shape),
             self._tensor(reward).reshape(self.num_envs),
-            torch.as_tensor(done, device=self.device),
+            self._flags(done),
             info,
         )
 
