@@ -1,0 +1,174 @@
+"""Evolution behind the trainer's one loop: :class:`Evolution` has PPO's surface (``train_epoch()``, ``epoch``,
+``global_step``, ``state_dict()``/``load_state_dict()``, ``checkpoint()``, ``dp``), so ``freeform-train algo=ga``
+gets the same run directory, TensorBoard tags, design records, checkpoints, resume and preemption as PPO.
+
+An epoch is one generation: the optimiser's ``N = env.num_envs`` genomes are scored in one batch — action
+sequences by running the design environment for its T steps (the same code path, task and simulator as PPO's
+rollout), grids by the task directly — and the scores are told back. Its cost is N scored designs, what a PPO epoch
+with ``rollout_steps = T`` costs; ``global_step`` advances by N·T as PPO's does, so TensorBoard curves of both
+line up at equal designs.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from freeform.agents.distributed import Collectives
+from freeform.body import bodies_and_metrics, largest_component, serial_on_cpu
+
+
+class Optimizer(Protocol):
+    """An evolutionary optimiser: ``genome`` is ``"actions"`` (``ask() -> [N, T, A]`` float) or ``"grids"``
+    (``ask() -> [N, ρ, ρ, ρ]`` uint8); ``tell(fitness [N])`` with higher = better."""
+
+    genome: str
+
+    def ask(self) -> torch.Tensor: ...
+
+    def tell(self, fitness: torch.Tensor) -> None: ...
+
+    def stats(self) -> dict[str, float]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+def run_sequences(env: Any, actions: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
+    """Play ``actions [N, T, A]`` through a fresh episode of ``env`` (a design ``VecEnv``): ``(returns [N], info of
+    the last step)`` — the info holds ``final_grids``, ``bodies`` and ``metrics`` as in PPO's rollout."""
+    actions = actions.to(env.device, torch.float32)
+    env.reset()
+    total = torch.zeros(env.num_envs, dtype=torch.float32, device=env.device)
+    info: dict[str, Any] = {}
+    for t in range(actions.shape[1]):
+        _, reward, done, info = env.step(actions[:, t])
+        total += reward.to(total)
+    if not bool(done.all()):
+        raise ValueError(f"the env's episodes did not all end after the genome's {actions.shape[1]} actions")
+    return total, info
+
+
+def score_grids(env: Any, grids: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
+    """Score final grids ``[N, ρ, ρ, ρ] uint8`` with ``env.task`` as the env's last step would: ``(rewards [N],
+    info)`` with ``final_grids``, ``bodies`` and (when the env computes them) ``metrics``."""
+    grids = grids.to(env.device)
+    with serial_on_cpu(env.device):
+        if getattr(env, "compute_metrics", True):
+            bodies, metrics = bodies_and_metrics(grids)
+        else:
+            bodies, metrics = largest_component(grids), None
+    task = env.task
+    try:
+        takes_bodies = "bodies" in inspect.signature(task.reward).parameters
+    except (TypeError, ValueError):
+        takes_bodies = False
+    reward = task.reward(grids, bodies=bodies) if takes_bodies else task.reward(grids)
+    info: dict[str, Any] = {"final_grids": grids, "bodies": bodies}
+    if metrics is not None:
+        info["metrics"] = metrics
+    return torch.as_tensor(reward, dtype=torch.float32).to(env.device), info
+
+
+def design_grids(env: Any, actions: torch.Tensor) -> torch.Tensor:
+    """The final grids ``[N, ρ, ρ, ρ] uint8`` that ``actions [N, T, A]`` design in ``env`` (no task, no cost)."""
+    actions = actions.to(env.device, torch.float32)
+    grids = torch.zeros((actions.shape[0], *env.observation_shape), dtype=torch.uint8, device=env.device)
+    with serial_on_cpu(env.device):
+        for t in range(actions.shape[1]):
+            grids = env.place_bundles(grids, actions[:, t])
+    return grids
+
+
+def _np(x: torch.Tensor) -> np.ndarray:
+    return x.detach().to("cpu").numpy()
+
+
+class Evolution:
+    """One evolutionary optimiser on a design env, with the trainer's surface (module docstring).
+
+    After ``train_epoch()``: :meth:`episodes` is the generation as the trainer's episode collector would give it
+    (``actions [N, T, A]`` — the genomes; ``[N, 0, A]`` for grid genomes —, ``values [N, T]`` NaN (no critic),
+    ``rewards [N]``, ``final_grids``, ``metrics``), and ``episode_infos`` holds the env's info of the generation.
+    """
+
+    def __init__(self, env: Any, optimizer: Optimizer, name: str) -> None:
+        self.env, self.optimizer, self.name = env, optimizer, name
+        self.num_envs = env.num_envs
+        self.dp = Collectives.single(env.num_envs)  # one process: every collective is the identity
+        self.epoch = 0
+        self.global_step = 0
+        self.designs = 0
+        """Designs scored so far (N per generation): the cost unit of the comparison with PPO."""
+        self.best = float("-inf")
+        """The best reward scored so far."""
+        self.episode_infos: list[dict[str, Any]] = []
+        self._episodes: dict[str, Any] | None = None
+
+    def train_epoch(self) -> dict[str, float]:
+        """Score one generation and breed the next; return its statistics (PPO's names where they mean the same)."""
+        t0 = time.perf_counter()
+        genomes = self.optimizer.ask()
+        if self.optimizer.genome == "actions":
+            rewards, info = run_sequences(self.env, genomes)
+            actions = genomes
+        else:
+            rewards, info = score_grids(self.env, genomes)
+            actions = torch.zeros((len(genomes), 0, self.env.action_dim))
+        t1 = time.perf_counter()
+        self.optimizer.tell(rewards)
+        t2 = time.perf_counter()
+        n, steps = self.num_envs, self.env.steps
+        self.epoch += 1
+        self.global_step += n * steps
+        self.designs += n
+        self.best = max(self.best, float(rewards.max()))
+        self.episode_infos = [info]
+        self._episodes = {
+            "actions": _np(actions.to(torch.float32)),
+            "values": np.full(actions.shape[:2], np.nan, dtype=np.float32),
+            "rewards": _np(rewards.to(torch.float32)),
+            "final_grids": _np(info["final_grids"]).astype(np.uint8),
+            "metrics": {k: _np(torch.as_tensor(v)).astype(np.float32) for k, v in (info.get("metrics") or {}).items()},
+        }
+        return {
+            "episode_reward_mean": float(rewards.mean()),
+            "episode_reward_max": float(rewards.max()),
+            "episode_reward_min": float(rewards.min()),
+            "episodes": float(n),
+            "charts/best_reward": self.best,
+            "charts/designs_scored": float(self.designs),
+            "time_rollout": t1 - t0,
+            "time_update": t2 - t1,
+            "samples_per_second": n * steps / max(t2 - t0, 1e-9),
+            "epoch": float(self.epoch),
+            "global_step": float(self.global_step),
+            **self.optimizer.stats(),
+        }
+
+    def episodes(self) -> dict[str, Any] | None:
+        """The last generation as finished episodes (class docstring); None before the first."""
+        return self._episodes
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "epoch": self.epoch, "global_step": self.global_step, "designs": self.designs,
+                "best": self.best, "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state.get("name") != self.name:
+            raise ValueError(f"the state is of algo.name={state.get('name')!r}, this run's is {self.name!r}")
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.epoch, self.global_step = int(state["epoch"]), int(state["global_step"])
+        self.designs, self.best = int(state["designs"]), float(state["best"])
+
+    def checkpoint(self) -> dict[str, Any]:
+        """A run checkpoint's content (as ``PPO.checkpoint()``'s): the algorithm, counters and ``evolution`` state."""
+        return {"algo": self.name, "epoch": self.epoch, "global_step": self.global_step, "evolution": self.state_dict()}
+
+
+__all__ = ["Evolution", "Optimizer", "design_grids", "run_sequences", "score_grids"]
