@@ -1,6 +1,6 @@
 """Typed configuration of a training run: the dataclasses behind ``conf/`` and their validation.
 
-Hydra composes ``conf/config.yaml`` (groups ``task``, ``env``, ``agent``, ``sim``, ``trainer``, ``experiment``) on
+Hydra composes ``conf/config.yaml`` (groups ``task``, ``env``, ``algo``, ``agent``, ``sim``, ``trainer``, ``experiment``) on
 top of :class:`TrainConfig`, registered as the schema ``train_schema``. Because the schema is a structured config,
 an unknown key (``agent.lrr=1``) or a value of the wrong type (``env.num_envs=abc``) fails while composing, with
 Hydra's message naming the key. Value ranges (``env.resolution=7``) are checked by :func:`validate` (each section's
@@ -8,7 +8,8 @@ Hydra's message naming the key. Value ranges (``env.resolution=7``) are checked 
 and the allowed values: ``agent.lr must be > 0, got -1``.
 
 One config: the ``agent`` section *is* ``freeform.agents.PPOConfig`` (:class:`AgentConfig` subclasses it and adds
-the network's width), and the ``sim`` section is ``freeform.sim.SimConfig``.
+the network's width), the ``sim`` section is ``freeform.sim.SimConfig``, and the ``algo`` section (which optimiser
+designs: ``ppo``, or an evolutionary baseline) is ``freeform.evolve.AlgoConfig``.
 
 The dataclasses hold the spec's defaults (``docs/training.md`` lists every field); the presets in
 ``conf/experiment/`` are the paper's Table I runs and the CPU demo.
@@ -24,6 +25,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.ppo import PPOConfig
+from freeform.evolve.config import AlgoConfig
 from freeform.sim import SimConfig
 from freeform.validation import require
 
@@ -126,6 +128,8 @@ class TrainConfig:
     """Seeds the network's initialisation, the environment and PPO (torch, numpy and python RNGs)."""
     task: TaskConfig = field(default_factory=TaskConfig)
     env: EnvConfig = field(default_factory=EnvConfig)
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    """``ppo`` (the ``agent`` section) or an evolutionary optimiser (``freeform.evolve``)."""
     agent: AgentConfig = field(default_factory=AgentConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
@@ -157,6 +161,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     """Check value ranges the types cannot express; raise ``ValueError`` naming the dotted key. Returns ``cfg``."""
     _validate_env(cfg.env)
     require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
+    cfg.algo.validate("algo", cfg.env.num_envs)
     cfg.agent.validate("agent")
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
     cfg.sim.validate("sim")
@@ -221,6 +226,7 @@ def register_configs() -> None:
 
 __all__ = [
     "AgentConfig",
+    "AlgoConfig",
     "EnvConfig",
     "SimConfig",
     "TaskConfig",

@@ -7,11 +7,14 @@
     freeform-train hydra.run.dir=runs/mine      # again after a kill or SIGTERM: continues (trainer.resume=auto)
     torchrun --nproc_per_node=4 -m freeform.train experiment=paper_locomotion   # one run on 4 GPUs (docs/scaling.md)
     freeform-train trainer.dry_run=true ...          # print the per-rank split and the launch command, run nothing
+    freeform-train algo=ga                           # an evolutionary baseline instead of PPO (algo=cmaes, grid_ga)
 
-Each epoch: PPO collects one rollout and updates (``PPO.train_epoch``); the trainer then cuts the rollout into
-finished episodes, writes the epoch's design record, logs scalars to TensorBoard, runs the per-epoch callbacks
-(renders), flushes, and only then checkpoints — so whatever a checkpoint claims is already on disk, and a run killed
-at any moment resumes from its last checkpoint with no gap. The run directory's layout is in ``docs/training.md``.
+Each epoch: PPO collects one rollout and updates (``PPO.train_epoch``) — or, with ``algo=ga|cmaes|grid_ga``, an
+evolutionary optimiser scores and breeds one generation (``freeform.evolve.Evolution.train_epoch``); the trainer
+then cuts the rollout into finished episodes, writes the epoch's design record, logs scalars to TensorBoard, runs
+the per-epoch callbacks (renders), flushes, and only then checkpoints — so whatever a checkpoint claims is already
+on disk, and a run killed at any moment resumes from its last checkpoint with no gap. The run directory's layout is
+in ``docs/training.md``.
 
 On SIGTERM/SIGUSR2 (a cluster's preemption or time limit) the run finishes the epoch in progress, checkpoints and
 exits with status 75, "requeue me" (``freeform.preemption``); with ``trainer.resume=auto`` (the default) the same
@@ -179,6 +182,9 @@ def build(
 ) -> tuple[VecEnv, torch.nn.Module, Any]:
     """The run's environment, policy and PPO, seeded by ``cfg.seed`` (the same cfg builds the same objects).
 
+    With ``algo.name`` other than ``ppo`` the third object is the evolutionary optimiser (``freeform.evolve``,
+    PPO's ``train_epoch()/state_dict()/checkpoint()`` surface) on the same environment, and there is no policy.
+
     ``envs = (lo, hi)``: build only environments ``lo … hi−1`` of ``env.num_envs`` (this rank's slice in a
     data-parallel run, :func:`freeform.agents.distributed.env_slice`); default all of them.
     """
@@ -198,6 +204,12 @@ def build(
         seed=cfg.seed,
         action_bound=cfg.env.action_bound,
     )
+    if cfg.algo.name != "ppo":  # evolution: the same env, task and simulator; one process
+        from freeform.evolve import build_evolution
+
+        if (lo, hi) != (0, cfg.env.num_envs):
+            raise ValueError(f"algo.name={cfg.algo.name} runs in one process; launch it without torchrun")
+        return env, None, build_evolution(cfg.algo, env, cfg.seed)
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
     eval_env = None
     if cfg.agent.eval_every:  # deterministic evaluation episodes on an env of their own (charts/eval_return)
@@ -448,7 +460,7 @@ def train(
     env, policy, ppo = build(cfg, device, distributed.env_slice(cfg.env.num_envs, distributed.world_size(), distributed.rank()))
     collector = EpisodeCollector()
     if state is not None:
-        ppo.load_state_dict(state["ppo"])  # data-parallel: each rank takes its slice of the saved environments
+        ppo.load_state_dict(state["ppo"] if cfg.algo.name == "ppo" else state["evolution"])  # data-parallel: each rank takes its slice of the saved environments
         collector.load_state_dict(state["collector"])
         restore_rng_state(state["rng"])
 
@@ -528,7 +540,10 @@ def train(
                         epoch = ppo.epoch - 1
                         t0 = time.perf_counter()
                         # The records and body metrics are of the global batch: every rank's episodes.
-                        rollout, episode_infos = ppo.dp.gather_rollout(ppo.rollout, ppo.episode_infos)
+                        if cfg.algo.name == "ppo":
+                            rollout, episode_infos = ppo.dp.gather_rollout(ppo.rollout, ppo.episode_infos)
+                        else:  # a generation of evolution is already a batch of finished episodes
+                            rollout, episode_infos = None, ppo.episode_infos
                         if logger is not None:
                             try:
                                 _log_epoch(cfg, run_dir, ppo, logger, collector, callbacks, history, rollout,
@@ -605,7 +620,7 @@ def _log_epoch(
     """Rank 0's writing of an epoch before its checkpoint: the design record, the scalars, the callbacks, a flush —
     so that whatever the checkpoint claims is on disk. An OSError becomes an :class:`_EpochWriteError` naming the
     file (the record, or the run directory for TensorBoard's events and the callbacks' files)."""
-    episodes = collector.collect(rollout, episode_infos)
+    episodes = collector.collect(rollout, episode_infos) if rollout is not None else ppo.episodes()
     body = {k: float(np.mean(v)) for k, v in episodes["metrics"].items()} if episodes else {}
     if episodes is not None and cfg.trainer.record_designs:
         record = EpochRecord(
