@@ -56,6 +56,10 @@ class EnvConfig:
     """b, edge of the cube of voxels one action paints (even: the bundle is centred between voxels)."""
     action_bound: float = 2.0
     """B, every action component is clipped to [−B, B] and mapped to [0, 1] (spec: 2)."""
+    dense_every: int = 0
+    """k > 0: dense design rewards — the partial body is scored by the task every k design steps and the
+    improvement is the reward (``freeform.envs.DenseDesignReward``; an episode's rewards still sum to the terminal
+    reward); 0 = the paper's sparse terminal reward."""
 
 
 @dataclass
@@ -146,6 +150,8 @@ def _validate_env(e: EnvConfig) -> None:
     require(2 <= e.bundle_size <= e.resolution and e.bundle_size % 2 == 0, "env.bundle_size",
             f"an even integer in [2, env.resolution={e.resolution}]", e.bundle_size)
     require(e.action_bound > 0, "env.action_bound", "> 0", e.action_bound)
+    require(0 <= e.dense_every <= e.steps, "env.dense_every", f"an integer in [0, env.steps={e.steps}] (0 = sparse)",
+            e.dense_every)
 
 
 def _validate_trainer(t: TrainerConfig) -> None:

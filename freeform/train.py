@@ -210,6 +210,10 @@ def build(
         if (lo, hi) != (0, cfg.env.num_envs):
             raise ValueError(f"algo.name={cfg.algo.name} runs in one process; launch it without torchrun")
         return env, None, build_evolution(cfg.algo, env, cfg.seed)
+    if cfg.env.dense_every:  # the partial body scored every k steps; records and returns keep the terminal reward
+        from freeform.envs import DenseDesignReward
+
+        env = DenseDesignReward(env, cfg.env.dense_every)
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
     eval_env = None
     if cfg.agent.eval_every:  # deterministic evaluation episodes on an env of their own (charts/eval_return)

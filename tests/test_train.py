@@ -186,3 +186,21 @@ def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path:
     with pytest.raises(ValueError, match=r"experiment=paper_locomotion is meant for a GPU.*add trainer\.device=cpu"):
         train_mod.train(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()  # nothing was written
+
+
+def test_dense_rewards_from_the_command_line_keep_the_terminal_return(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """env.dense_every=k wraps the design env in DenseDesignReward: the episode's rewards (what PPO learns from)
+    differ from the sparse run's, but they sum to the same terminal reward, so the records and the logged return —
+    and the designs, which do not depend on the rewards in the first epoch — equal the sparse run's."""
+    sparse, dense = tmp_path / "sparse", tmp_path / "dense"
+    cli(monkeypatch, *TINY, "trainer.epochs=1", f"hydra.run.dir={sparse}")
+    cli(monkeypatch, *TINY, "trainer.epochs=1", "env.dense_every=2", f"hydra.run.dir={dense}")
+    a, b = read_record(sparse / "records" / "epoch_000000.npz"), read_record(dense / "records" / "epoch_000000.npz")
+    np.testing.assert_array_equal(a.final_grids, b.final_grids)
+    np.testing.assert_allclose(b.rewards, a.rewards, rtol=1e-6)
+    assert a.rewards.max() > 0
+    # The dense run's env is the wrapper (its per-environment scoring state is checkpointed); the sparse one is not.
+    assert "dense_last" in load_checkpoint(dense / "checkpoints" / "last.pt")["ppo"]["env"]["per_env"]
+    assert "dense_last" not in load_checkpoint(sparse / "checkpoints" / "last.pt")["ppo"]["env"]["per_env"]
+    with pytest.raises(SystemExit, match=r"env\.dense_every must be an integer in \[0, env\.steps=5\]"):
+        cli(monkeypatch, *TINY, "env.dense_every=9", f"hydra.run.dir={tmp_path / 'bad'}")
