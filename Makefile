@@ -19,8 +19,12 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[dev]"
 	touch $(STAMP)
 
+# The simulator's tests run a second time on the quadrants backend (Taichi's fork; one backend per process).
+SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py
+
 test: install
 	$(BIN)/python -m pytest -q tests
+	FREEFORM_BACKEND=quadrants $(BIN)/python -m pytest -q $(SIM_TESTS)
 
 train: install
 	$(BIN)/freeform-train

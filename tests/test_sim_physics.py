@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from freeform.sim import Material, SimConfig, Simulator
+from freeform.sim import Material, SimConfig, Simulator, runtime
 
 L = 0.01
 REC = 1.240490e-4  # VX recommendedTimeStep, ν = 0.35
@@ -225,12 +225,20 @@ def test_f32_agrees_with_f64():
 
 
 def test_schedules_agree_exactly_in_f64():
+    """Bit for bit on Taichi (and on either backend with FREEFORM_FAST_MATH=0). quadrants' fast-math (LLVM 22)
+    reassociates the two schedules' kernels differently: the passive slab's max displacement (3.9e-7 voxel lengths,
+    a difference of nearly equal positions) then differs by 2e-10 voxel lengths (2e-12 m)."""
     cfg = SimConfig(precision="f64", burn_in=0.05, duration=0.1)
     g = actuated_batch()
     a = Simulator(cfg, arch="cpu", schedule="robots").simulate(g)
     b = Simulator(cfg, arch="cpu", schedule="flat").simulate(g)
-    np.testing.assert_array_equal(a.com_end.numpy(), b.com_end.numpy())
-    np.testing.assert_array_equal(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy())
+    if runtime.backend() == "taichi" or not runtime.fast_math():
+        np.testing.assert_array_equal(a.com_end.numpy(), b.com_end.numpy())
+        np.testing.assert_array_equal(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy())
+    else:
+        np.testing.assert_allclose(a.com_end.numpy(), b.com_end.numpy(), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy(), rtol=0,
+                                   atol=1e-9)
 
 
 def test_rl4design_rest_length_uses_negative_voxel():

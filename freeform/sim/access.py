@@ -15,8 +15,7 @@ exactly (f64), and ``nonfinite(x)``. ``make_access(order)``: the kernel-argument
 import functools
 from types import SimpleNamespace
 
-import taichi as ti
-
+from freeform.sim.runtime import ti
 from freeform.sim.state import F64, I32
 
 ORDERS = ("soa", "aos")

@@ -11,10 +11,9 @@ import functools
 import math
 from types import SimpleNamespace
 
-import taichi as ti
-
 from freeform.sim.access import make_access
 from freeform.sim.links import DT_REFRESH_STEPS
+from freeform.sim.runtime import ti
 from freeform.sim.state import DONE, EV_END, EV_SAMPLE, EV_START, GP, LR, RI, RT, RUNNING, STALLED
 
 TWO_PI = 2 * math.pi

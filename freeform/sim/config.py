@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from freeform.sim.runtime import BACKENDS
 from freeform.sim.terrain import Terrain
 from freeform.validation import require
 
@@ -64,6 +65,9 @@ class SimConfig:
     step_cap: a robot still running after ``step_cap`` × the steps its burn_in + duration take at its initial dt
         is stopped and flagged stalled (reward 0): under rl4design's dynamic dt a robot whose step collapses
         would otherwise hold up the whole batch. Healthy robots stay within a few % of their initial dt.
+    backend: "taichi" (Taichi 1.7.4) | "quadrants" (its maintained fork, the ``quadrants`` extra) | None (the
+        environment's ``FREEFORM_BACKEND``, else taichi). One backend per process: it must be chosen before the
+        process's first simulation (``freeform.sim.runtime``). Not physics: both run the same kernels.
     """
 
     voxel_size: float = 0.01
@@ -86,6 +90,7 @@ class SimConfig:
     max_strain: float = 100.0
     chunk_steps: int = 2000
     step_cap: float = 3.0
+    backend: str | None = None
 
     def validate(self, key: str = "SimConfig") -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its allowed values
@@ -107,6 +112,7 @@ class SimConfig:
         require(self.chunk_steps >= 1, f"{key}.chunk_steps", ">= 1", self.chunk_steps)
         # Times the protocol's steps; less could stop healthy robots whose dt dips for a while.
         require(self.step_cap >= MIN_STEP_CAP, f"{key}.step_cap", f">= {MIN_STEP_CAP}", self.step_cap)
+        require(self.backend in (None, *BACKENDS), f"{key}.backend", f"None or one of {BACKENDS}", self.backend)
         self.terrain.validate(f"{key}.terrain")
         if self.terrain.kind == "steps" or (self.terrain.kind == "heightmap" and not self.terrain.smooth):
             # a voxel's contact looks at its own cell and the nearest neighbours only

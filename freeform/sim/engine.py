@@ -20,7 +20,6 @@ from freeform.sim import runtime
 from freeform.sim.config import SimConfig, e_hat, link_table, material_table
 from freeform.sim.layout import Layout
 from freeform.sim.schedules import ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
-from freeform.sim.terrain import placement
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     DIVERGED,
     DONE,
@@ -44,6 +43,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     VR,
     Table,
 )
+from freeform.sim.terrain import placement
 
 __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
 
@@ -139,7 +139,7 @@ class Engine:
         config.validate()
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
-        self.arch = runtime.ensure(arch)
+        self.arch = runtime.ensure(arch, config.backend)
         self.schedule = resolve_schedule(schedule, self.arch)
         self.layout, self.config = layout, config
         # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one

@@ -10,10 +10,9 @@ so no atomics are needed and results are deterministic.
 import functools
 from types import SimpleNamespace
 
-import taichi as ti
-
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.quat import make_quat
+from freeform.sim.runtime import ti
 from freeform.sim.state import DIVERGED, GP, LI, LR, LT, MT, RI, RT, SMALL, VALID, VI, VR
 
 # Voxelyze's small/large-angle switch (VX_Link.cpp): enter small below 0.05 rad and 50 % extension, leave above

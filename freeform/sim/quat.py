@@ -12,9 +12,8 @@ import functools
 import math
 from types import SimpleNamespace
 
-import taichi as ti
-
 from freeform.sim.access import make_numbers
+from freeform.sim.runtime import ti
 
 # Quat3D thresholds: FromRotationVector's |θ|⁴ below which it uses the Taylor form; ToRotationVector's sin²(θ/2)
 # below which it uses its sqrt shortcut; FromAngleToPosX's |p.y/p.x|, |p.z/p.x| below which the rotation is

@@ -19,12 +19,11 @@ sized for the largest batch seen, whose tail holds stale items.
 import functools
 from types import SimpleNamespace
 
-import taichi as ti
-
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
+from freeform.sim.runtime import ti
 from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR
 from freeform.sim.voxels import make_voxels
 

@@ -9,12 +9,10 @@ A voxel gathers the forces of its ≤ 6 links from the links' own columns throug
 import functools
 from types import SimpleNamespace
 
-import taichi as ti
-
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.config import POISSON_SERIES_TERMS
 from freeform.sim.quat import make_quat
-from freeform.sim.terrain import COLUMNS, SMOOTH
+from freeform.sim.runtime import ti
 from freeform.sim.state import (
     CONTACT,
     DIVERGED,
@@ -33,6 +31,7 @@ from freeform.sim.state import (
     VI,
     VR,
 )
+from freeform.sim.terrain import SMOOTH
 
 RENORM_NEWTON = 1e-4  # f32 renormalisation: |1 − |q|²| below this uses one Newton step (error < 1e-8)
 POISSON_SERIES_X = 0.1  # |Σ tension strains| below which f32 uses the binomial series (config.POISSON_SERIES_TERMS)
