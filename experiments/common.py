@@ -128,7 +128,10 @@ def read_run_info(run: Path) -> dict[str, Any]:
         return json.load(f)
 
 
-PROVENANCE_KEYS = ("freeform", "torch", "taichi", "device", "git_commit")
+PROVENANCE_KEYS = ("freeform", "torch", "taichi", "sim_backend", "device", "git_commit")
+# sim_backend: what ran the simulator's kernels, "taichi 1.7.4" | "quadrants 1.3.3" (run_info.json names it since
+# there are two); a run from before that ran on Taichi, whose version it records.
+PRE_BACKEND_DEFAULT = "taichi"
 
 
 def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -151,6 +154,9 @@ def provenance(runs: Sequence[Path]) -> dict[str, str]:
         flat = _flatten(read_run_info(run))
         if flat.get("device_name") and "device" in flat:  # e.g. "cuda (NVIDIA A100-SXM4-80GB)"
             flat["device"] = f"{flat['device']} ({flat['device_name']})"
+        last = {k.split(".")[-1]: v for k, v in flat.items()}
+        if "sim_backend" not in last and last.get("taichi"):  # a run from before the backend switch
+            flat["sim_backend"] = f"{PRE_BACKEND_DEFAULT} {last['taichi']}"
         if flat.get("git_dirty") and flat.get("git_commit"):  # uncommitted changes made this run
             flat["git_commit"] = f"{flat['git_commit']}+dirty"
         for key in PROVENANCE_KEYS:
@@ -166,6 +172,7 @@ _ALIASES = {
     "freeform": ("freeform", "freeform_version"),
     "torch": ("torch", "torch_version"),
     "taichi": ("taichi", "taichi_version"),
+    "sim_backend": ("sim_backend",),
     "device": ("device",),
     "git_commit": ("git_commit", "commit", "git", "git_sha"),
 }
@@ -173,7 +180,7 @@ _ALIASES = {
 
 def provenance_caption(prov: dict[str, str]) -> str:
     """One line naming what made a figure."""
-    return (f"{prov['runs']} run(s); freeform {prov['freeform']}, torch {prov['torch']}, taichi {prov['taichi']}, "
+    return (f"{prov['runs']} run(s); freeform {prov['freeform']}, torch {prov['torch']}, sim {prov['sim_backend']}, "
             f"device {prov['device']}, commit {prov['git_commit'][:12]}")
 
 

@@ -83,6 +83,7 @@ from freeform.envs.base import ReportsStats, Task, VecEnv
 from freeform.files import write_atomically
 from freeform.logger import Logger
 from freeform.records import EpisodeCollector, EpochRecord, record_path, write_record
+from freeform.sim import runtime as sim_runtime
 
 log = logging.getLogger("freeform.train")
 
@@ -305,6 +306,7 @@ def run_info(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
         "freeform": freeform.__version__,
         "torch": torch.__version__,
         "taichi": _version("taichi"),
+        "sim_backend": sim_runtime.describe(cfg.sim.backend),  # "taichi 1.7.4" | "quadrants 1.3.3": what ran the kernels
         "numpy": np.__version__,
         "python": platform.python_version(),
         "git_commit": commit,

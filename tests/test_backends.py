@@ -162,5 +162,30 @@ def test_config_validates_backend():
         SimConfig(backend="jax").validate("sim")
 
 
+def test_provenance_names_the_backend(tmp_path, monkeypatch):
+    """run_info.json and the figure footers name the backend and its version; a run from before the switch
+    (no sim_backend) ran on Taichi, whose version it records."""
+    import json
+
+    import torch
+
+    from experiments import common
+    from freeform.config import TrainConfig
+    from freeform.train import run_info
+
+    monkeypatch.setenv("FREEFORM_BACKEND", "taichi")
+    assert run_info(TrainConfig(), torch.device("cpu"))["sim_backend"].startswith("taichi 1.7.")
+    runs = []
+    for i, extra in enumerate(({"sim_backend": "quadrants 1.3.3"}, {})):
+        run = tmp_path / str(i)
+        run.mkdir()
+        info = {"freeform": "0.1.0", "torch": "2.13", "taichi": "1.7.4", "device": "cpu", "git_commit": "abc", **extra}
+        (run / common.RUN_INFO).write_text(json.dumps(info))
+        runs.append(run)
+    prov = common.provenance(runs)
+    assert prov["sim_backend"] == "quadrants 1.3.3 | taichi 1.7.4"
+    assert "sim quadrants 1.3.3 | taichi 1.7.4, device cpu" in common.provenance_caption(prov)
+
+
 if __name__ == "__main__":
     _simulate(sys.argv[1])
