@@ -10,14 +10,25 @@ Every figure is given twice: per wall-clock second (what a user waits) and per C
 (``time.process_time``, all threads) — on a shared machine the wall figure mostly measures the other tenants,
 while the CPU-second figure is what the engine does with the core time it actually receives.
 
-``python -m benchmarks sim``; environment: ``FREEFORM_BENCH_PRECISION=f64`` measures double precision,
-``FREEFORM_BENCH_SCALE=0.2`` shortens every run (a quick look; launch overheads then weigh more).
+Every row runs on each simulator backend (Taichi 1.7.4 and, where installed, quadrants; ``freeform.sim.runtime``)
+side by side. The two cannot share a process, so each backend is a worker subprocess kept for the whole run (its
+kernels compiled once, before any timing), and every row is measured on one backend and then at once on the other,
+so that both see the same machine load; the load average is printed with each row.
+
+``python -m benchmarks sim``; environment: ``FREEFORM_BENCH_PRECISION=f64`` measures double precision
+(``f32,f64`` both, in one run), ``FREEFORM_BENCH_BACKENDS=taichi`` one backend only (default: both where quadrants
+is installed), ``FREEFORM_BENCH_SCALE=0.2`` shortens every run (a quick look; launch overheads then weigh more).
 """
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import os
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -87,56 +98,138 @@ def engine_throughput(sim: Simulator, grids: torch.Tensor, steps: int) -> tuple[
     return n / wall, n / cpu
 
 
-def terrain_comparison(sim: Simulator, design: torch.Tensor, rounds: int = 3) -> dict[str, float]:
-    """Kernels-only M voxel-steps per CPU second of ``design`` on each terrain (the best of ``rounds`` alternated
-    runs, so that every terrain sees the same machine load); printed with the cost relative to flat ground."""
-    terrains = {"flat": Terrain.flat(), "rough (3 mm, 4 cm)": Terrain.rough(0.003, 0.04),
-                "stairs (3 mm, 2 cm)": Terrain.steps(0.003, 0.02), "slope 5 deg": Terrain.slope(5)}
-    nv = int((design > 0).sum())
-    steps = max(200, int(TARGET_VOXEL_STEPS / nv / rounds))
-    best = dict.fromkeys(terrains, 0.0)
-    for _ in range(rounds):
-        for name, terrain in terrains.items():
-            tsim = Simulator(SimConfig(**{**sim.config.__dict__, "terrain": terrain}), arch=sim.arch,
-                             schedule=sim.schedule)
-            best[name] = max(best[name], engine_throughput(tsim, design, steps)[1] / 1e6)
-    for name, rate in best.items():
-        print(f"  {name:<34s} {rate:6.2f} per CPU-s  ({100 * (best['flat'] / rate - 1):+5.1f} % time vs flat)",
+TERRAINS = {"flat": Terrain.flat(), "rough (3 mm, 4 cm)": Terrain.rough(0.003, 0.04),
+            "stairs (3 mm, 2 cm)": Terrain.steps(0.003, 0.02), "slope 5 deg": Terrain.slope(5)}
+TERRAIN_ROUNDS = 3  # best of this many alternated runs per terrain
+
+
+def rows(precisions: list[str]) -> list[tuple[str, str, dict]]:
+    """Every measurement, in the order printed: (section, label, what the worker runs)."""
+    out = []
+    for p in precisions:
+        sec = f"{p}: 128 design bodies, cubes"
+        out += [(sec, "128 N(0,I) design bodies", {"p": p, "kind": "simulate", "bodies": 128}),
+                (sec, "  the same, kernels only", {"p": p, "kind": "kernels", "bodies": 128}),
+                (sec, "32 muscle cubes 10^3", {"p": p, "kind": "simulate", "cubes": [32, 10, 2]})]
+        sec = f"{p}: terrain (128 design bodies, kernels only, best of {TERRAIN_ROUNDS} alternated runs)"
+        for i in range(TERRAIN_ROUNDS):
+            out += [(sec, name, {"p": p, "kind": "kernels", "bodies": 128, "terrain": name, "round": i,
+                                 "rounds": TERRAIN_ROUNDS}) for name in TERRAINS]
+        sec = f"{p}: batch size (N(0,I) design bodies, whole simulate)"
+        out += [(sec, f"B={b}", {"p": p, "kind": "simulate", "bodies": b}) for b in (1, 8, 32, 128, 512)]
+        sec = f"{p}: body size (passive cubes)"
+        out += [(sec, f"{b} cubes {n}^3", {"p": p, "kind": "simulate", "cubes": [b, n, 1]})
+                for n, b in ((5, 64), (10, 16), (20, 4))]
+    return out
+
+
+def worker() -> None:
+    """A backend's worker (``FREEFORM_BACKEND`` set by ``main``): one JSON request per line on stdin, one JSON
+    answer per line on stdout: (wall, cpu) M voxel-steps/s, voxels, steps."""
+    from freeform.sim import runtime
+
+    bodies = random_design_bodies(512, seed=0)
+    sims: dict[tuple[str, str], Simulator] = {}
+    real_stdout = sys.stdout
+    sys.stdout = sys.stderr  # the backends' banners and anything else printed stay off the answer channel
+    for line in sys.stdin:
+        req = json.loads(line)
+        if req.get("kind") == "info":
+            runtime.ensure("auto")
+            ans = {"backend": runtime.describe(), "arch": runtime.ensure("auto"), "threads": runtime.num_threads()}
+            print(json.dumps(ans), file=real_stdout, flush=True)
+            continue
+        key = (req["p"], req.get("terrain", "flat"))
+        if key not in sims:
+            sims[key] = Simulator(SimConfig(precision=req["p"], terrain=TERRAINS[key[1]]), arch="auto")
+            throughput(sims[key], bodies[:2])  # compile (or load from the offline cache) outside the timings
+            engine_throughput(sims[key], bodies[:2], 20)
+        sim = sims[key]
+        grids = bodies[:req["bodies"]] if "bodies" in req else cubes(*req["cubes"])
+        if req["kind"] == "simulate":
+            rate, crate, nv, st = throughput(sim, grids)
+        else:
+            nv = int((grids > 0).sum())
+            st = max(200, int(TARGET_VOXEL_STEPS / nv / req.get("rounds", 1)))
+            rate, crate = engine_throughput(sim, grids, st)
+        print(json.dumps({"wall": rate / 1e6, "cpu": crate / 1e6, "voxels": nv, "steps": st}), file=real_stdout,
               flush=True)
-    return best
+
+
+class Worker:
+    """A worker subprocess on one backend."""
+
+    def __init__(self, backend: str):
+        env = {**os.environ, "FREEFORM_BACKEND": backend}
+        self.proc = subprocess.Popen([sys.executable, "-m", "benchmarks.bench_sim", "--worker"], env=env, text=True,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                                     cwd=Path(__file__).resolve().parents[1])
+
+    def ask(self, req: dict) -> dict:
+        self.proc.stdin.write(json.dumps(req) + "\n")
+        self.proc.stdin.flush()
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"benchmark worker died on {req} (run it alone: FREEFORM_BACKEND=... python -m "
+                               f"benchmarks.bench_sim --worker)")
+        return json.loads(line)
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait()
 
 
 def main() -> None:
-    precision = os.environ.get("FREEFORM_BENCH_PRECISION", "f32")
-    sim = Simulator(SimConfig(precision=precision), arch="auto")
-    bodies = random_design_bodies(512, seed=0)
-    throughput(sim, bodies[:2])  # compile (or load from the offline cache) outside the timings
-    from freeform.sim import runtime
-
-    print(f"precision {precision}; arch {runtime.ensure('auto')}, {runtime.num_threads()} Taichi threads on "
-          f"{os.cpu_count()} CPU cores; load average {os.getloadavg()[0]:.1f} at the start")
-    print("M voxel-steps/s: per wall second | per CPU second (wall is pessimistic on a shared machine)")
-
-    def row(label: str, grids: torch.Tensor) -> None:
-        rate, crate, nv, st = throughput(sim, grids)
-        print(f"  {label:<34s} voxels={nv:6d} steps={st:5d}  {rate / 1e6:6.2f} | {crate / 1e6:6.2f}", flush=True)
-
-    design = bodies[:128]
-    nv = int((design > 0).sum())
-    row(f"128 N(0,I) design bodies ({nv / 128:.1f}/body)", design)
-    rate, crate = engine_throughput(sim, design, max(200, int(TARGET_VOXEL_STEPS / nv)))
-    print(f"  {'  the same, kernels only':<34s} {'':27s}{rate / 1e6:6.2f} | {crate / 1e6:6.2f}", flush=True)
-    row("32 muscle cubes 10^3", cubes(32, 10, 2))
-    print(f"terrain ({design.shape[0]} design bodies, kernels only, best of 3 alternated runs):")
-    terrain_comparison(sim, design)
-    print("batch size (N(0,I) design bodies):")
-    for b in (1, 8, 32, 128, 512):
-        row(f"B={b}", bodies[:b])
-    print("body size (passive cubes):")
-    for n, b in ((5, 64), (10, 16), (20, 4)):
-        row(f"{b} cubes {n}^3", cubes(b, n, 1))
-    print(f"load average {os.getloadavg()[0]:.1f} at the end")
+    precisions = os.environ.get("FREEFORM_BENCH_PRECISION", "f32").split(",")
+    default = "taichi,quadrants" if importlib.util.find_spec("quadrants") is not None else "taichi"
+    backends = os.environ.get("FREEFORM_BENCH_BACKENDS", default).split(",")
+    workers = {b: Worker(b) for b in backends}
+    try:
+        infos = {b: w.ask({"kind": "info"}) for b, w in workers.items()}
+        for b in backends:  # warm every simulator before any timing (compile or load the kernel cache)
+            for p in precisions:
+                for terrain in TERRAINS:
+                    workers[b].ask({"p": p, "kind": "kernels", "bodies": 2, "terrain": terrain})
+        print(", ".join(f"{i['backend']} ({i['arch']}, {i['threads']} threads)" for i in infos.values())
+              + f" on {os.cpu_count()} CPU cores; load average {os.getloadavg()[0]:.1f} at the start")
+        print("M voxel-steps/s per wall second | per CPU second (wall is pessimistic on a shared machine); each row "
+              "runs on every backend in turn (who goes first alternates); the last column is the load average")
+        head = "".join(f"{b:>17s}" for b in backends)
+        best: dict[tuple[str, str, str], tuple[float, float]] = {}
+        section = None
+        for i, (sec, label, req) in enumerate(rows(precisions)):
+            if sec != section:
+                print(f"{sec}:\n  {'':34s} {'':23s}{head}", flush=True)
+                section = sec
+            order = backends if i % 2 == 0 else backends[::-1]  # who goes first alternates from row to row
+            got = {b: workers[b].ask(req) for b in order}
+            got = {b: got[b] for b in backends}
+            if "terrain" in req:
+                for b, g in got.items():
+                    old = best.get((sec, label, b), (0.0, 0.0))
+                    best[(sec, label, b)] = (max(old[0], g["wall"]), max(old[1], g["cpu"]))
+                if label != list(TERRAINS)[-1] or req["round"] != TERRAIN_ROUNDS - 1:
+                    continue
+                for name in TERRAINS:
+                    cells = "".join(f"  {best[(sec, name, b)][0]:6.2f} | {best[(sec, name, b)][1]:6.2f}"
+                                    for b in backends)
+                    flat = best[(sec, "flat", backends[0])][1]
+                    cost = 100 * (flat / best[(sec, name, backends[0])][1] - 1)
+                    print(f"  {name:<34s} {f'({cost:+5.1f} % time vs flat)':>23s}{cells}"
+                          f"  (load {os.getloadavg()[0]:.1f})", flush=True)
+                continue
+            g0 = got[backends[0]]
+            cells = "".join(f"  {g['wall']:6.2f} | {g['cpu']:6.2f}" for g in got.values())
+            print(f"  {label:<34s} voxels={g0['voxels']:6d} steps={g0['steps']:5d}{cells}"
+                  f"  (load {os.getloadavg()[0]:.1f})", flush=True)
+        print(f"load average {os.getloadavg()[0]:.1f} at the end")
+    finally:
+        for w in workers.values():
+            w.close()
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:] == ["--worker"]:
+        worker()
+    else:
+        main()
