@@ -168,6 +168,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     _validate_env(cfg.env)
     require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
     cfg.algo.validate("algo", cfg.env.num_envs)
+    require(cfg.algo.name == "ppo" or not cfg.env.dense_every, "env.dense_every",
+            f"0 with algo.name={cfg.algo.name} (evolution scores whole designs; dense rewards are for PPO)",
+            cfg.env.dense_every)
     cfg.agent.validate("agent")
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
     cfg.sim.validate("sim")

@@ -171,6 +171,7 @@ def test_bad_algo_config_fails_naming_the_key(tmp_path: Path, monkeypatch: pytes
         "algo.tournament=0": r"algo\.tournament must be an integer >= 1, got 0",
         "algo.variant=diag": r"algo\.variant must be one of \['sep', 'full'\], got 'diag'",
         "algo.sigma=0": r"algo\.sigma must be > 0, got 0",
+        "env.dense_every=2": r"env\.dense_every must be 0 with algo\.name=ga",
     }
     for i, (override, message) in enumerate(bad.items()):
         with pytest.raises(SystemExit, match=message):
