@@ -68,6 +68,11 @@ class CMAES:
         self._class = _optimizer_class(variant)
         self.optimizer = self._class(mean=np.zeros(steps * action_dim), sigma=float(sigma), population_size=population,
                                      seed=seed)
+        # cmaes allocates its fitness history with np.empty and reads it only once every slot is written: zero it so
+        # the state (and a checkpoint) holds no uninitialised memory and equal runs have equal states.
+        history = getattr(self.optimizer, "_funhist_values", None)
+        if isinstance(history, np.ndarray):
+            history.fill(0.0)
         self.generator = torch.Generator().manual_seed(seed)
         self._asked: np.ndarray | None = None
 
