@@ -134,7 +134,7 @@ class Terrain:
             ph = rng.uniform(0, 2 * math.pi, ROUGH_WAVES)
             k = 2 * math.pi / self.wavelength
             X, Y = np.meshgrid(xs, xs, indexing="ij")
-            h = sum(np.cos(k * (np.cos(a) * X + np.sin(a) * Y) + p) for a, p in zip(ang, ph))
+            h = sum(np.cos(k * (np.cos(a) * X + np.sin(a) * Y) + p) for a, p in zip(ang, ph, strict=True))
             h = self.amplitude * h / max(np.abs(h).max(), 1e-12)
             return HeightField(SMOOTH, -0.5 * L, 0.0, 0.0, h, xs[0], xs[0], cell)
         if self.kind == "steps":
