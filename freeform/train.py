@@ -114,38 +114,35 @@ def _volume_task(cfg: TrainConfig, device: torch.device) -> Task:
     return VolumeTask(**cfg.task.options)
 
 
+def _simulator_options(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+    """A simulated task's constructor arguments: the run's ``sim`` and device, and the simulator's arch taken from
+    the run's device (no silent CPU fallback under a GPU run: resolve_device checked CUDA); ``task.options`` win."""
+    return {"sim": cfg.sim, "device": device, "arch": "cuda" if device.type == "cuda" else "cpu", **cfg.task.options}
+
+
 @register_task("locomotion")
 def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
     from freeform.envs import LocomotionTask
 
-    # The simulator runs where the run does: no silent CPU fallback under a GPU run (resolve_device checked CUDA).
-    arch = "cuda" if device.type == "cuda" else "cpu"
-    return LocomotionTask(sim=cfg.sim, device=device, **{"arch": arch, **cfg.task.options})  # an explicit option wins
+    return LocomotionTask(**_simulator_options(cfg, device))
 
 
 def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
     """A ``TrajectoryTask`` of the reward registered as ``task.name`` (freeform/envs/trajectory.py)."""
-    from freeform.envs.trajectory import TrajectoryTask
+    from freeform.envs import TrajectoryTask
 
-    arch = "cuda" if device.type == "cuda" else "cpu"
-    return TrajectoryTask(cfg.task.name, sim=cfg.sim, device=device, **{"arch": arch, **cfg.task.options})
-
-
-# the built-in trajectory rewards (docs/tasks.md); a reward registered later with
-# freeform.envs.trajectory.trajectory_reward is found by build_task too
-for _name in ("directional", "rough", "climb", "stairs", "jump", "tallest"):
-    register_task(_name)(_trajectory_task)
+    return TrajectoryTask(cfg.task.name, **_simulator_options(cfg, device))
 
 
 def build_task(cfg: TrainConfig, device: torch.device) -> Task:
     """The run's task from the registry, checked against the :class:`freeform.envs.Task` protocol."""
     from freeform.envs.trajectory import TRAJECTORY_REWARDS
 
-    if cfg.task.name not in TASKS and cfg.task.name in TRAJECTORY_REWARDS:
-        register_task(cfg.task.name)(_trajectory_task)
-    if cfg.task.name not in TASKS:
-        raise ValueError(f"task.name must be one of {sorted(TASKS)}, got {cfg.task.name!r}")
-    task = TASKS[cfg.task.name](cfg, device)
+    # Every reward registered with trajectory_reward (the built-ins and a user's own) is a task of that name.
+    builders = {**dict.fromkeys(TRAJECTORY_REWARDS, _trajectory_task), **TASKS}
+    if cfg.task.name not in builders:
+        raise ValueError(f"task.name must be one of {sorted(builders)}, got {cfg.task.name!r}")
+    task = builders[cfg.task.name](cfg, device)
     if not isinstance(task, Task):
         raise ValueError(f"task.name={cfg.task.name!r} built a {type(task).__name__}, which has no reward(final_grids)")
     return task

@@ -107,6 +107,7 @@ class FakeSimulator:
 
     def __init__(self, displacement: list[float], diverged: list[bool]) -> None:
         self.result = SimpleNamespace(displacement=torch.tensor(displacement), diverged=torch.tensor(diverged),
+                                      stalled=torch.zeros(len(displacement), dtype=torch.bool),
                                       steps=torch.full((len(displacement),), 10))
 
     def simulate(self, grids: torch.Tensor):

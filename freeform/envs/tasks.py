@@ -16,7 +16,7 @@ import torch
 
 from freeform.body import check_grids, largest_component, serial_on_cpu
 
-__all__ = ["LocomotionTask", "VolumeTask"]
+__all__ = ["LocomotionTask", "SimulatedTask", "VolumeTask"]
 
 
 @dataclass
@@ -35,49 +35,39 @@ class VolumeTask:
             return (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1).to(torch.float32)
 
 
-class LocomotionTask:
-    """The paper's locomotion task: the reward is how far the body moves in simulation (voxel lengths).
+ARCHS = ("auto", "cpu", "cuda")
 
-    The body (largest 6-connected component) of every final grid is simulated by :mod:`freeform.sim` — the whole
-    batch in one ``Simulator.simulate`` call — with ``sim``'s protocol (paper: 5 s burn-in with actuation running,
-    then a 5 s evaluation window). The reward is ``SimResult.displacement``: by default the maximum over voxels of
-    the horizontal displacement across the window (``sim.reward = "max_voxel"``), or the centre of mass's
-    (``"com"``). Empty bodies score 0 and are not simulated; a diverged simulation scores 0 (and is counted);
-    rewards below ``min_reward`` become 0 (spec design.md, "Rewards"). A body without muscle earns ≈ 0.
 
-    After each :meth:`reward` call, :attr:`stats` holds the call's timings as TensorBoard tags:
+class SimulatedTask:
+    """What every task scored in simulation shares: the bodies (largest 6-connected components) of a batch are
+    simulated by :mod:`freeform.sim` in one ``Simulator.simulate`` call; empty bodies are not simulated and score 0;
+    a robot that fails (diverged, stopped by ``sim.step_cap``, or a non-finite score) scores 0 and is counted.
+    A subclass says what it asks of the simulator (:meth:`simulate_options`) and how a result becomes rewards
+    (:meth:`score`).
+
+    After each :meth:`reward` call, :attr:`stats` holds the call's figures as TensorBoard tags:
     ``perf/sim_seconds`` (wall time of the simulate call), ``perf/voxel_steps_per_second`` (simulated voxels ×
     steps / that time), ``stats/sim_diverged`` (robots that scored 0 by failing: diverged or stalled),
     ``stats/sim_stalled`` (stopped by ``sim.step_cap``) and ``stats/sim_bodies`` (bodies simulated).
     """
 
-    def __init__(
-        self,
-        sim: Any = None,
-        device: str | torch.device | None = None,
-        arch: str = "auto",
-        min_reward: float = 1e-3,
-        simulator: Any = None,
-    ) -> None:
+    def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
+                 simulator: Any = None) -> None:
         """
         Args:
             sim: a ``freeform.sim.SimConfig`` (default: the paper's materials and protocol, Voxelyze semantics).
             device: where the rewards are returned (default: the final grids' device).
-            arch: Taichi backend of the simulator: "auto" (CUDA when present), "cpu" or "cuda".
-            min_reward: rewards below it become 0 (spec: 1e-3 voxel lengths).
+            arch: backend of the simulator: "auto" (CUDA when present), "cpu" or "cuda".
             simulator: a ready ``freeform.sim.Simulator`` (overrides ``sim`` and ``arch``; tests use it).
         """
         from freeform.sim import SimConfig, Simulator
 
-        if not min_reward >= 0:
-            raise ValueError(f"min_reward must be >= 0, got {min_reward}")
         if simulator is None:
-            if arch not in ("auto", "cpu", "cuda"):
-                raise ValueError(f"arch must be one of ('auto', 'cpu', 'cuda'), got {arch!r}")
+            if arch not in ARCHS:
+                raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
             simulator = Simulator(sim if sim is not None else SimConfig(), arch=arch)
         self.simulator = simulator
         self.device = torch.device(device) if device is not None else None
-        self.min_reward = float(min_reward)
         self.stats: dict[str, float] = {}
 
     @property
@@ -85,9 +75,17 @@ class LocomotionTask:
         """The ``SimConfig`` the bodies are simulated with."""
         return self.simulator.config
 
+    def simulate_options(self) -> dict[str, Any]:
+        """Keyword arguments of ``Simulator.simulate`` beyond the bodies."""
+        return {}
+
+    def score(self, result: Any) -> torch.Tensor:
+        """``SimResult`` of the ``B`` simulated bodies -> their rewards ``[B]`` (a non-finite one counts as failed)."""
+        raise NotImplementedError
+
     def reward(self, final_grids: torch.Tensor, bodies: torch.Tensor | None = None) -> torch.Tensor:
         """``final_grids`` ``[N, ρ, ρ, ρ] uint8`` (``bodies`` optional: their largest components, same shape) ->
-        displacement of each body ``[N] float32``, voxel lengths."""
+        rewards ``[N] float32``."""
         if bodies is None:
             check_grids(final_grids, name="final_grids")
             bodies = largest_component(final_grids)
@@ -95,34 +93,42 @@ class LocomotionTask:
         volume = (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1)
         reward = torch.zeros(bodies.shape[0], dtype=torch.float32, device=device)
         live = torch.nonzero(volume > 0).flatten()
-        self.stats = {
-            "perf/sim_seconds": 0.0,
-            "perf/voxel_steps_per_second": 0.0,
-            "stats/sim_diverged": 0.0,
-            "stats/sim_stalled": 0.0,
-            "stats/sim_bodies": float(live.numel()),
-        }
+        self.stats = {"perf/sim_seconds": 0.0, "perf/voxel_steps_per_second": 0.0, "stats/sim_diverged": 0.0,
+                      "stats/sim_stalled": 0.0, "stats/sim_bodies": float(live.numel())}
         if live.numel() == 0:  # nothing to simulate: every body is empty
             return reward
         t0 = time.perf_counter()
-        result = self.simulator.simulate(bodies[live])
+        result = self.simulator.simulate(bodies[live], **self.simulate_options())
         seconds = time.perf_counter() - t0
-        displacement = torch.nan_to_num(result.displacement.to(device, torch.float32), nan=0.0, posinf=0.0)
-        # A diverged robot and one stopped by the step cap (its dt collapsed) both score 0 and count as failures.
-        stalled = getattr(result, "stalled", None)
-        failed = result.diverged.to(device) | ~torch.isfinite(result.displacement.to(device))
-        if stalled is not None:
-            failed = failed | stalled.to(device)
-        displacement = torch.where(failed | (displacement < self.min_reward), 0.0, displacement)
-        reward[live.to(device)] = displacement
+        score = self.score(result).to(device, torch.float32)
+        failed = (result.diverged | result.stalled).to(device) | ~torch.isfinite(score)
+        reward[live.to(device)] = torch.where(failed, 0.0, score)
         voxel_steps = float((volume[live].cpu().to(torch.float64) * result.steps.to(torch.float64)).sum())
-        self.stats.update(
-            {
-                "perf/sim_seconds": seconds,
-                "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
-                "stats/sim_diverged": float(failed.sum()),
-                "stats/sim_stalled": float(stalled.sum()) if stalled is not None else 0.0,
-            }
-        )
+        self.stats.update({"perf/sim_seconds": seconds,
+                           "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
+                           "stats/sim_diverged": float(failed.sum()),
+                           "stats/sim_stalled": float(result.stalled.sum())})
         return reward
 
+
+class LocomotionTask(SimulatedTask):
+    """The paper's locomotion task: the reward is how far the body moves in simulation (voxel lengths).
+
+    The bodies are simulated with ``sim``'s protocol (paper: 5 s burn-in with actuation running, then a 5 s
+    evaluation window; :class:`SimulatedTask` for what all simulated tasks share). The reward is
+    ``SimResult.displacement``: by default the maximum over voxels of the horizontal displacement across the window
+    (``sim.reward = "max_voxel"``), or the centre of mass's (``"com"``); rewards below ``min_reward`` become 0
+    (spec design.md, "Rewards"). A body without muscle earns ≈ 0.
+    """
+
+    def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
+                 min_reward: float = 1e-3, simulator: Any = None) -> None:
+        """``min_reward``: rewards below it become 0 (spec: 1e-3 voxel lengths); the rest as :class:`SimulatedTask`."""
+        if not min_reward >= 0:
+            raise ValueError(f"min_reward must be >= 0, got {min_reward}")
+        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator)
+        self.min_reward = float(min_reward)
+
+    def score(self, result: Any) -> torch.Tensor:
+        displacement = result.displacement.to(torch.float32)
+        return torch.where(displacement < self.min_reward, 0.0, displacement)  # NaN stays NaN: counted as failed

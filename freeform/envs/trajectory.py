@@ -20,13 +20,12 @@ voxel lengths, from the settled state (the last sample of the burn-in) to the en
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any
 
 import torch
 
-from freeform.body import check_grids, largest_component
+from freeform.envs.tasks import SimulatedTask
 
 __all__ = ["TRAJECTORY_REWARDS", "TrajectoryTask", "final", "settled", "trajectory_reward"]
 
@@ -104,13 +103,11 @@ def tallest(trace: Any) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------------ the task
-class TrajectoryTask:
+class TrajectoryTask(SimulatedTask):
     """Reward = ``reward_fn(trace)`` of each body's simulated trajectory (``freeform.sim.Trace``).
 
-    Like ``LocomotionTask``, the bodies (largest components) of a batch are simulated in one call, empty bodies
-    are not simulated, and failures (diverged or stalled) score 0; ``stats`` holds the call's figures
-    (``perf/sim_seconds``, ``perf/voxel_steps_per_second``, ``stats/sim_diverged``, ``stats/sim_stalled``,
-    ``stats/sim_bodies``).
+    What all simulated tasks share (one batched simulate call, empty bodies unsimulated, failures scoring 0,
+    ``stats``) is :class:`freeform.envs.tasks.SimulatedTask`; ``last_trace`` keeps the last call's trace.
     """
 
     def __init__(self, reward_fn: RewardFn | str, sim: Any = None, trace_every: float = 0.02,
@@ -120,55 +117,22 @@ class TrajectoryTask:
             reward_fn: ``(trace) -> [B]`` rewards (torch), or a name in ``TRAJECTORY_REWARDS``.
             sim: a ``freeform.sim.SimConfig`` (its ``terrain`` is the ground; default: flat, the paper's protocol).
             trace_every: seconds between trace samples.
-            device: where rewards are returned (default: the final grids' device).
-            arch: Taichi backend ("auto" | "cpu" | "cuda"). simulator: a ready ``Simulator`` (overrides both).
+            device, arch, simulator: as :class:`freeform.envs.tasks.SimulatedTask`.
         """
-        from freeform.sim import SimConfig, Simulator
-
         if isinstance(reward_fn, str):
             if reward_fn not in TRAJECTORY_REWARDS:
                 raise ValueError(f"reward_fn must be one of {sorted(TRAJECTORY_REWARDS)}, got {reward_fn!r}")
             reward_fn = TRAJECTORY_REWARDS[reward_fn]
         if not trace_every > 0:
             raise ValueError(f"trace_every must be > 0 seconds, got {trace_every}")
-        if simulator is None:
-            if arch not in ("auto", "cpu", "cuda"):
-                raise ValueError(f"arch must be one of ('auto', 'cpu', 'cuda'), got {arch!r}")
-            simulator = Simulator(sim if sim is not None else SimConfig(), arch=arch)
+        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator)
         self.reward_fn = reward_fn
-        self.simulator = simulator
         self.trace_every = float(trace_every)
-        self.device = torch.device(device) if device is not None else None
-        self.stats: dict[str, float] = {}
         self.last_trace: Any = None
 
-    @property
-    def sim_config(self) -> Any:
-        return self.simulator.config
+    def simulate_options(self) -> dict[str, Any]:
+        return {"trace_every": self.trace_every}
 
-    def reward(self, final_grids: torch.Tensor, bodies: torch.Tensor | None = None) -> torch.Tensor:
-        """``final_grids`` ``[N, ρ, ρ, ρ] uint8`` (``bodies``: their largest components) -> rewards ``[N] float32``."""
-        if bodies is None:
-            check_grids(final_grids, name="final_grids")
-            bodies = largest_component(final_grids)
-        device = self.device if self.device is not None else final_grids.device
-        volume = (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1)
-        reward = torch.zeros(bodies.shape[0], dtype=torch.float32, device=device)
-        live = torch.nonzero(volume > 0).flatten()
-        self.stats = {"perf/sim_seconds": 0.0, "perf/voxel_steps_per_second": 0.0, "stats/sim_diverged": 0.0,
-                      "stats/sim_stalled": 0.0, "stats/sim_bodies": float(live.numel())}
-        if live.numel() == 0:
-            return reward
-        t0 = time.perf_counter()
-        result = self.simulator.simulate(bodies[live], trace_every=self.trace_every)
-        seconds = time.perf_counter() - t0
+    def score(self, result: Any) -> torch.Tensor:
         self.last_trace = result.trace
-        r = self.reward_fn(result.trace).to(device, torch.float32)
-        failed = (result.diverged | result.stalled).to(device) | ~torch.isfinite(r)
-        reward[live.to(device)] = torch.where(failed, 0.0, r)
-        voxel_steps = float((volume[live].cpu().to(torch.float64) * result.steps.to(torch.float64)).sum())
-        self.stats.update({"perf/sim_seconds": seconds,
-                           "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
-                           "stats/sim_diverged": float(failed.sum()),
-                           "stats/sim_stalled": float(result.stalled.sum())})
-        return reward
+        return self.reward_fn(result.trace)
