@@ -10,14 +10,12 @@ action: the designs an untrained Gaussian policy of unit σ makes.
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 
-from freeform.evolve.operators import ranking, tournament
+from freeform.evolve.operators import Population, ranking, tournament
 
 
-class SequenceGA:
+class SequenceGA(Population):
     """Population ``[N, T, A]`` float32 of action sequences (CPU). ``ask()`` gives the generation to score,
     ``tell(fitness [N])`` (higher is better) breeds the next."""
 
@@ -25,16 +23,10 @@ class SequenceGA:
 
     def __init__(self, population: int, steps: int, action_dim: int, *, elite: int = 2, tournament: int = 3,
                  crossover: float = 0.5, mutation_rate: float = 0.05, seed: int = 0) -> None:
-        if not 0 <= elite < population:
-            raise ValueError(f"elite must be in [0, population - 1 = {population - 1}], got {elite}")
-        self.size, self.steps, self.action_dim = population, steps, action_dim
-        self.elite, self.tournament, self.crossover, self.mutation_rate = elite, tournament, crossover, mutation_rate
-        self.generator = torch.Generator().manual_seed(seed)
+        super().__init__(population, elite, seed)
+        self.steps, self.action_dim = steps, action_dim
+        self.tournament, self.crossover, self.mutation_rate = tournament, crossover, mutation_rate
         self.population = torch.randn((population, steps, action_dim), generator=self.generator)
-
-    def ask(self) -> torch.Tensor:
-        """The generation to score, ``[N, T, A]`` float32."""
-        return self.population
 
     def tell(self, fitness: torch.Tensor) -> None:
         """Breed the next generation from the scores ``[N]`` of :meth:`ask`'s genomes."""
@@ -52,20 +44,6 @@ class SequenceGA:
         children = torch.where(from_second[..., None], pop[second], pop[first])
         children = torch.where(mutated[..., None], fresh, children)
         self.population = torch.cat([elites, children])
-
-    def stats(self) -> dict[str, float]:
-        return {}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"population": self.population.clone(), "generator": self.generator.get_state()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        population = state["population"]
-        if tuple(population.shape) != (self.size, self.steps, self.action_dim):
-            raise ValueError(f"the state's population has shape {list(population.shape)}, this run's is "
-                             f"{[self.size, self.steps, self.action_dim]}")
-        self.population = population.clone()
-        self.generator.set_state(state["generator"])
 
 
 __all__ = ["SequenceGA"]

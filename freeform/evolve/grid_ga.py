@@ -10,12 +10,11 @@ draws its first generation, so with the same seed both start from the same desig
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 import torch
 
 from freeform.body import largest_component
-from freeform.evolve.operators import ranking, tournament
+from freeform.evolve.operators import Population, ranking, tournament
 
 
 def touching(occupied: torch.Tensor) -> torch.Tensor:
@@ -28,7 +27,7 @@ def touching(occupied: torch.Tensor) -> torch.Tensor:
     return out
 
 
-class GridGA:
+class GridGA(Population):
     """Population ``[N, ρ, ρ, ρ]`` uint8 (CPU). ``ask()`` gives the grids to score, ``tell(fitness [N])`` breeds."""
 
     genome = "grids"
@@ -37,17 +36,10 @@ class GridGA:
                  design: Callable[[torch.Tensor], torch.Tensor], *, elite: int = 2, tournament: int = 3,
                  mutation_voxels: int = 4, seed: int = 0) -> None:
         """``design(actions [N, T, A]) -> final grids [N, ρ, ρ, ρ] uint8`` makes generation 0 (no scoring)."""
-        if not 0 <= elite < population:
-            raise ValueError(f"elite must be in [0, population - 1 = {population - 1}], got {elite}")
-        self.size, self.materials = population, materials
-        self.elite, self.tournament, self.mutation_voxels = elite, tournament, mutation_voxels
-        self.generator = torch.Generator().manual_seed(seed)
+        super().__init__(population, elite, seed)
+        self.materials, self.tournament, self.mutation_voxels = materials, tournament, mutation_voxels
         first = torch.randn((population, steps, action_dim), generator=self.generator)  # as SequenceGA's generation 0
         self.population = design(first).to("cpu", torch.uint8)
-
-    def ask(self) -> torch.Tensor:
-        """The generation to score, ``[N, ρ, ρ, ρ]`` uint8."""
-        return self.population
 
     def tell(self, fitness: torch.Tensor) -> None:
         """Breed the next generation from the scores ``[N]`` of :meth:`ask`'s grids."""
@@ -68,20 +60,6 @@ class GridGA:
         flat = bodies.reshape(n, -1).to(torch.int64)
         flat.scatter_(1, cells, (flat.gather(1, cells) + shift) % k)
         self.population = torch.cat([elites, flat.to(torch.uint8).reshape(bodies.shape)])
-
-    def stats(self) -> dict[str, float]:
-        return {}
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"population": self.population.clone(), "generator": self.generator.get_state()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        population = state["population"]
-        if population.shape != self.population.shape:
-            raise ValueError(f"the state's population has shape {list(population.shape)}, this run's is "
-                             f"{list(self.population.shape)}")
-        self.population = population.to(torch.uint8).clone()
-        self.generator.set_state(state["generator"])
 
 
 __all__ = ["GridGA", "touching"]
