@@ -137,7 +137,18 @@ class DesignEnv:
                 reward = torch.zeros(n, dtype=torch.float32, device=self.device)
                 done = torch.zeros(n, dtype=torch.bool, device=self.device)
                 return self.grids, reward, done, {}
-            final_grids = self.grids
+        reward, info = self.score(self.grids)
+        with serial_on_cpu(self.device):
+            obs = self.reset()
+            done = torch.ones(n, dtype=torch.bool, device=self.device)
+        return obs, reward, done, info
+
+    def score(self, final_grids: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
+        """Score final grids ``[M, ρ, ρ, ρ] uint8`` as an episode's last step does: ``(reward [M] float32, info)``
+        with ``final_grids``, ``bodies`` and (``compute_metrics``) ``metrics``. The evolutionary grid GA scores its
+        genomes through it too."""
+        m = final_grids.shape[0]
+        with serial_on_cpu(self.device):
             info: dict[str, Any] = {"final_grids": final_grids}
             if self.compute_metrics:
                 info["bodies"], info["metrics"] = bodies_and_metrics(final_grids)
@@ -148,14 +159,11 @@ class DesignEnv:
         else:
             reward = self.task.reward(final_grids)
         reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
-        if tuple(reward.shape) != (n,):
+        if tuple(reward.shape) != (m,):
             raise ValueError(
-                f"task.reward must return one reward per grid, shape [{n}], got {list(reward.shape)}"
+                f"task.reward must return one reward per grid, shape [{m}], got {list(reward.shape)}"
             )
-        with serial_on_cpu(self.device):
-            obs = self.reset()
-            done = torch.ones(n, dtype=torch.bool, device=self.device)
-        return obs, reward, done, info
+        return reward, info
 
     # ------------------------------------------------------------------------------------------- the design rule
     def place_bundles(self, grids: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:

@@ -11,7 +11,6 @@ line up at equal designs.
 
 from __future__ import annotations
 
-import inspect
 import time
 from typing import Any, Protocol
 
@@ -19,7 +18,7 @@ import numpy as np
 import torch
 
 from freeform.agents.distributed import Collectives
-from freeform.body import bodies_and_metrics, largest_component, serial_on_cpu
+from freeform.body import serial_on_cpu
 
 
 class Optimizer(Protocol):
@@ -52,27 +51,6 @@ def run_sequences(env: Any, actions: torch.Tensor) -> tuple[torch.Tensor, dict[s
     if not bool(done.all()):
         raise ValueError(f"the env's episodes did not all end after the genome's {actions.shape[1]} actions")
     return total, info
-
-
-def score_grids(env: Any, grids: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
-    """Score final grids ``[N, ρ, ρ, ρ] uint8`` with ``env.task`` as the env's last step would: ``(rewards [N],
-    info)`` with ``final_grids``, ``bodies`` and (when the env computes them) ``metrics``."""
-    grids = grids.to(env.device)
-    with serial_on_cpu(env.device):
-        if getattr(env, "compute_metrics", True):
-            bodies, metrics = bodies_and_metrics(grids)
-        else:
-            bodies, metrics = largest_component(grids), None
-    task = env.task
-    try:
-        takes_bodies = "bodies" in inspect.signature(task.reward).parameters
-    except (TypeError, ValueError):
-        takes_bodies = False
-    reward = task.reward(grids, bodies=bodies) if takes_bodies else task.reward(grids)
-    info: dict[str, Any] = {"final_grids": grids, "bodies": bodies}
-    if metrics is not None:
-        info["metrics"] = metrics
-    return torch.as_tensor(reward, dtype=torch.float32).to(env.device), info
 
 
 def design_grids(env: Any, actions: torch.Tensor) -> torch.Tensor:
@@ -118,7 +96,7 @@ class Evolution:
             rewards, info = run_sequences(self.env, genomes)
             actions = genomes
         else:
-            rewards, info = score_grids(self.env, genomes)
+            rewards, info = self.env.score(genomes.to(self.env.device))
             actions = torch.zeros((len(genomes), 0, self.env.action_dim))
         t1 = time.perf_counter()
         self.optimizer.tell(rewards)
@@ -171,4 +149,4 @@ class Evolution:
         return {"algo": self.name, "epoch": self.epoch, "global_step": self.global_step, "evolution": self.state_dict()}
 
 
-__all__ = ["Evolution", "Optimizer", "design_grids", "run_sequences", "score_grids"]
+__all__ = ["Evolution", "Optimizer", "design_grids", "run_sequences"]
