@@ -184,6 +184,7 @@ class Simulator:
         trace_steps = None
         if trace_every is not None and layout.num_robots:
             trace_steps = max(1, int(round(trace_every / float(np.median(engine.dt0)))))
+        masses = self._robot_masses(engine) if trace_steps is not None else None  # constant over the run
         every = [k for k in (record_every, trace_steps) if k is not None]
         chunk = math.gcd(*every) if every else self.config.chunk_steps
         start = engine.steps_done
@@ -197,7 +198,7 @@ class Simulator:
                 if want_frame:
                     snapshot(vs)
                 if want_sample:
-                    samples.append(self._sample(engine, vs))
+                    samples.append(self._sample(engine, vs, masses))
 
         observe()
         while layout.num_robots and (engine.robot_status() == RUNNING).any():
@@ -207,15 +208,22 @@ class Simulator:
         return self._result(engine, frames if record_every is not None else None, trace)
 
     # ------------------------------------------------------------------ traces
-    def _sample(self, engine: Engine, vs: np.ndarray) -> dict[str, torch.Tensor]:
-        """One trace sample of every robot (torch float64 ``[R, ...]``), reduced from the voxels with scatters."""
+    def _robot_masses(self, engine: Engine) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What every trace sample reduces with: each voxel's robot ``[V]`` int64, its mass ``[V]`` and each robot's
+        total mass ``[R]`` (float64)."""
         layout = engine.layout
-        R = layout.num_robots
-        vr_ = torch.from_numpy(layout.voxel_robot.astype(np.int64))
+        voxel_robot = torch.from_numpy(layout.voxel_robot.astype(np.int64))
+        mass = torch.from_numpy(material_table(self.config)[MT.MASS][layout.material])
+        total = torch.zeros(layout.num_robots, dtype=torch.float64).index_add_(0, voxel_robot, mass)
+        return voxel_robot, mass, total
+
+    def _sample(self, engine: Engine, vs: np.ndarray,
+                masses: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """One trace sample of every robot (torch float64 ``[R, ...]``), reduced from the voxels with scatters."""
+        R = engine.layout.num_robots
+        vr_, mass, msum = masses
         pos = torch.from_numpy(np.ascontiguousarray(vs[VR.span("POS")].T.astype(np.float64)))
         ori = torch.from_numpy(np.ascontiguousarray(vs[VR.span("ORI")].T.astype(np.float64)))
-        mass = torch.from_numpy(material_table(self.config)[MT.MASS][layout.material])
-        msum = torch.zeros(R, dtype=torch.float64).index_add_(0, vr_, mass)
         com = torch.zeros(R, 3, dtype=torch.float64).index_add_(0, vr_, pos * mass[:, None]) / msum[:, None]
         idx3 = vr_[:, None].expand(-1, 3)
         lo = torch.full((R, 3), math.inf, dtype=torch.float64).scatter_reduce(0, idx3, pos, "amin")
