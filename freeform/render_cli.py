@@ -56,6 +56,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=int, default=384, help="image edge in pixels (default: 384)")
     p.add_argument("--frame", choices=("grid", "body"), default="grid",
                    help="frame the whole design space (grid, one scale for all) or zoom to the voxels (body)")
+    p.add_argument("--azimuth", type=float, default=RenderConfig.azimuth,
+                   help="camera azimuth in degrees about +z from +x (default: -60, the paper's view; -120 looks "
+                        "up a slope or staircase rising towards +x)")
+    p.add_argument("--elevation", type=float, default=RenderConfig.elevation,
+                   help="camera elevation in degrees (default: 30)")
     p.add_argument("--no-removed", action="store_true", help="hide the translucent voxels outside the body")
     p.add_argument("--grid", type=int, default=0, metavar="N", help="also write sheet.png of N bodies")
     p.add_argument("--grid-order", choices=("best", "random", "first"), default="best",
@@ -214,7 +219,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("the record holds no designs")
     bodies = largest_component(torch.from_numpy(np.ascontiguousarray(grids))).numpy()
     shown = grids if not args.no_removed else bodies
-    cfg = RenderConfig(size=args.size, frame=args.frame)
+    cfg = RenderConfig(size=args.size, frame=args.frame, azimuth=args.azimuth, elevation=args.elevation)
     written: list[Path] = []
     where = f"epoch {epoch}" if epoch is not None else "random policy"
     score = "reward" if epoch is not None else "volume"  # --random designs are scored by their body volume

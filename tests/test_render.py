@@ -170,6 +170,73 @@ def test_render_recording_moves_the_robot_and_draws_the_trace() -> None:
         render_recording(rec, frames=[12])
 
 
+# The relief factor of a face with unit normal n against the flat floor's: shade(n) / shade(+z).
+def relief(normal: tuple[float, float, float]) -> float:
+    return (0.45 + 0.6 * max(0.0, float(np.dot(normal, LIGHT)))) / (0.45 + 0.6 * LIGHT[2])
+
+
+def test_ground_quads_lie_on_slopes_and_bumps() -> None:
+    from freeform.render import ground_quads
+    from freeform.sim import Terrain
+
+    L, cfg = 0.01, RenderConfig()
+    lo, hi = np.array([-0.05, -0.04]), np.array([0.06, 0.05])
+    theta = math.radians(5)
+    corners, rgb = ground_quads(Terrain.slope(5).field(L), lo, hi, 2 * L, cfg)
+    assert len(corners) == 6 * 5  # a plane needs no subdivision: the 2-voxel checker tiles covering the box
+    np.testing.assert_allclose(corners[..., 2], math.tan(theta) * corners[..., 0] - 0.5 * L, atol=1e-15)
+    tilted = (-math.sin(theta), 0.0, math.cos(theta))  # the slope's upward normal
+    floor = np.asarray(cfg.floor_colors)
+    assert all(np.allclose(c, floor[0] * relief(tilted)) or np.allclose(c, floor[1] * relief(tilted)) for c in rgb)
+    rough = Terrain.rough(0.003, 0.04).field(L)
+    corners, _ = ground_quads(rough, lo, hi, 2 * L, cfg)
+    assert len(corners) == 6 * 5 * 8 * 8  # 4 cm bumps: tiles cut in 8 x 8 quads of 2.5 mm
+    np.testing.assert_allclose(corners[..., 2], rough.height(corners[..., 0], corners[..., 1]), atol=1e-15)
+    assert np.ptp(corners[..., 2]) > 0.003  # the bumps are there (peak 3 mm either way)
+
+
+def test_ground_quads_build_a_staircase_with_its_risers_facing_the_camera() -> None:
+    """Steps of 3 mm risers and 2 cm treads up +x: tops at the analytic heights, one riser per tread edge in view
+    facing -x (seen from azimuth -120, hidden from -60), shaded as a face turned from the light."""
+    from freeform.render import ground_quads
+    from freeform.sim import Terrain
+
+    L, h, d = 0.01, 0.003, 0.02
+    field = Terrain.steps(h, d, gap=0.002).field(L)
+    lo, hi = np.array([-0.05, -0.04]), np.array([0.07, 0.04])
+    up_hill = RenderConfig(azimuth=-120.0)
+    corners, rgb = ground_quads(field, lo, hi, 2 * L, up_hill)
+    vertical = np.ptp(corners[..., 0], axis=1) == 0  # a riser spans one x
+    tops, risers = corners[~vertical], corners[vertical]
+    cx = tops[..., 0].mean(axis=1)
+    expected = np.where(cx < 0, 0.0, h * (np.floor(cx / d) + 1)) - 0.5 * L  # the first riser stands at x = 0
+    np.testing.assert_allclose(tops[..., 2], np.repeat(expected[:, None], 4, axis=1), atol=1e-15)
+    edges = np.unique(np.round(risers[:, 0, 0] / d, 9))
+    np.testing.assert_array_equal(edges, [0, 1, 2, 3])  # x = 0, 2, 4, 6 cm: every riser in the box
+    np.testing.assert_allclose(np.ptp(risers[..., 2], axis=1), h, atol=1e-15)
+    floor = np.asarray(up_hill.floor_colors)
+    dark = [floor[0] * relief((-1.0, 0.0, 0.0)), floor[1] * relief((-1.0, 0.0, 0.0))]
+    assert all(np.allclose(c, dark[0]) or np.allclose(c, dark[1]) for c in rgb[vertical])
+    corners, _ = ground_quads(field, lo, hi, 2 * L, RenderConfig())  # azimuth -60 looks down the stairs
+    assert not (np.ptp(corners[..., 0], axis=1) == 0).any()
+
+
+def test_render_recording_draws_the_recordings_terrain() -> None:
+    """The same recording on stairs: risers (the dark face colour) appear where the flat floor has none."""
+    from dataclasses import replace
+
+    from freeform.sim import Terrain
+
+    rec = synthetic_recording(frames=2)
+    cfg = RenderConfig(size=128, azimuth=-120.0, supersample=1)
+    flat = render_recording(rec, config=cfg, caption=False)[0]
+    stairs = replace(rec, ground=Terrain.steps(0.003, 0.02, gap=0.002).field(rec.voxel_size))
+    drawn = render_recording(stairs, config=cfg, caption=False)[0]
+    riser = np.rint(np.asarray(cfg.floor_colors) * relief((-1.0, 0.0, 0.0)) * 255)
+    is_riser = lambda im: sum(np.all(np.abs(im.astype(float) - c) <= 1, axis=-1).sum() for c in riser)
+    assert is_riser(flat) == 0 and is_riser(drawn) > 100
+
+
 def test_gif_lands_in_a_tensorboard_event_file(tmp_path) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     from torch.utils.tensorboard import SummaryWriter

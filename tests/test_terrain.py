@@ -128,14 +128,22 @@ def test_voxel_dropped_on_slope_comes_to_rest_on_it():
 
 
 def test_walker_climbs_slope_more_slowly_than_it_walks_on_flat_ground():
+    grounds = []
+
     def progress(terrain: Terrain) -> float:
-        r = Simulator(SimConfig(burn_in=0.5, duration=1.0, terrain=terrain), arch="cpu").simulate(walker())
+        r = Simulator(SimConfig(burn_in=0.5, duration=1.0, terrain=terrain), arch="cpu").simulate(
+            walker(), record_every=5000)
         assert not r.diverged.any()
+        grounds.append(r.recording.ground)
         return float(r.com_end[0, 0] - r.com_start[0, 0]) / L
 
     flat, up = progress(Terrain.flat()), progress(Terrain.slope(5))
     assert flat > 0.3  # it walks (+x, voxel lengths in 1 s)
     assert 0 < up < 0.6 * flat
+    # the recordings carry the ground for drawing: none for the flat floor, the slope's plane otherwise
+    assert grounds[0] is None
+    x = np.linspace(-0.1, 0.1, 7)
+    np.testing.assert_allclose(grounds[1].height(x, 0 * x), math.tan(math.radians(5)) * x - 0.5 * L, atol=1e-15)
 
 
 # ---------------------------------------------------------------- steps and columns

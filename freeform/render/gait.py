@@ -16,10 +16,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from freeform.render.raster import Camera, Canvas, RenderConfig, shade
+from freeform.sim.terrain import COLUMNS, SMOOTH
 from freeform.voxels import FACE_CORNERS, FACE_NORMALS, as_grid, check_recording, material_rgb
 
 if TYPE_CHECKING:  # the type hints only: drawing a recording never needs Taichi
     from freeform.sim import Recording, Simulator
+    from freeform.sim.terrain import HeightField
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -55,6 +57,94 @@ def com_trajectory(recording: Recording, robot: int = 0) -> np.ndarray:
     return recording.positions[robot].astype(np.float64).mean(axis=1)
 
 
+def _draw_floor(canvas: Canvas, cfg: RenderConfig, lo: np.ndarray, hi: np.ndarray, tile: float, z: float) -> None:
+    """The flat floor: checker tiles of edge ``tile`` at height ``z`` over the (x, y) box ``lo``..``hi``."""
+    i0, i1 = math.floor(lo[0] / tile), math.ceil(hi[0] / tile)
+    j0, j1 = math.floor(lo[1] / tile), math.ceil(hi[1] / tile)
+    ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij")
+    ii, jj = ii.ravel(), jj.ravel()
+    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)
+    xy = (np.stack([ii, jj], axis=1)[:, None, :] + sq[None]) * tile  # [T, 4, 2]
+    floor = np.concatenate([xy, np.full(xy.shape[:2] + (1,), z)], axis=2)
+    floor_rgb = np.asarray(cfg.floor_colors, dtype=np.float64)[(ii + jj) % 2]
+    canvas.quads(floor, floor_rgb, np.ones(len(floor)), outline=False)
+
+
+# Quads per tile edge on a bumpy smooth terrain: half a height-field cell each, at most this many (a 4 cm bump
+# wavelength on 1 cm voxels and 2-voxel tiles gives 8).
+_MAX_SUBDIVISION = 8
+
+
+def _breaks(lo: float, hi: float, tile: float, sub: int, cells: np.ndarray | None) -> np.ndarray:
+    """Sorted cut positions along one axis: tile edges (each split in ``sub``) plus ``cells`` (column edges)."""
+    start, stop = math.floor(lo / tile), math.ceil(hi / tile)
+    cuts = np.arange(start * sub, stop * sub + 1, dtype=np.float64) * (tile / sub)
+    if cells is not None:
+        cuts = np.sort(np.concatenate([cuts, cells[(cells > cuts[0]) & (cells < cuts[-1])]]))
+        cuts = cuts[np.concatenate([[True], np.diff(cuts) > 1e-9 * tile])]  # a column edge on a tile edge: once
+    return cuts
+
+
+def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: float,
+                 cfg: RenderConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The terrain over the (x, y) box ``lo``..``hi`` as quads ``[Q, 4, 3]`` and colours ``[Q, 3]``.
+
+    The checker of the flat floor (tiles of edge ``tile``, colour by the tile a quad lies in), bent over the
+    surface: a smooth terrain as small quads with their corners on it (a plane needs no subdivision), a columnar
+    one (stairs, ``smooth=False`` height maps) as flat tops cut at the column edges plus the vertical faces
+    between columns of different height. Shaded by each quad's normal relative to the flat floor's, so flat
+    ground keeps the floor's colours and relief shows.
+    """
+    columns = ground.mode == COLUMNS
+    bumpy = ground.mode == SMOOTH and float(np.ptp(ground.grid)) > 0
+    sub = min(_MAX_SUBDIVISION, max(1, math.ceil(tile / (ground.cell / 2)))) if bumpy else 1
+    col_x = ground.x0 + ground.cell * np.arange(1, ground.nx) if columns else None
+    col_y = ground.y0 + ground.cell * np.arange(1, ground.ny) if columns else None
+    xs, ys = _breaks(lo[0], hi[0], tile, sub, col_x), _breaks(lo[1], hi[1], tile, sub, col_y)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")  # cut points [nx, ny]
+    cx, cy = (X[:-1, :-1] + X[1:, 1:]) / 2, (Y[:-1, :-1] + Y[1:, 1:]) / 2  # quad centres [nx-1, ny-1]
+    if columns:  # flat tops: every corner at the column's height under the quad's centre
+        top = ground.height(cx, cy)
+        z = [top, top, top, top]
+    else:
+        Z = ground.height(X, Y)
+        z = [Z[:-1, :-1], Z[1:, :-1], Z[1:, 1:], Z[:-1, 1:]]
+    xy = [(X[:-1, :-1], Y[:-1, :-1]), (X[1:, :-1], Y[1:, :-1]), (X[1:, 1:], Y[1:, 1:]), (X[:-1, 1:], Y[:-1, 1:])]
+    quads = np.stack([np.stack([x, y, zz], axis=-1) for (x, y), zz in zip(xy, z, strict=True)], axis=-2)
+    checker = (np.floor(cx / tile) + np.floor(cy / tile)).astype(np.int64) % 2
+    corners, colours = [quads.reshape(-1, 4, 3)], [np.asarray(cfg.floor_colors)[checker.ravel()]]
+    normals = [np.broadcast_to([0.0, 0.0, 1.0], (len(corners[0]), 3))]  # columns' tops are level
+    if not columns:
+        n = np.cross(corners[0][:, 2] - corners[0][:, 0], corners[0][:, 3] - corners[0][:, 1])
+        normals = [n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)]
+    if columns:  # risers: where neighbouring tops differ, a vertical face on their shared edge, facing the lower
+        towards = Camera.from_config(cfg).towards
+        for axis in (0, 1):
+            a, b = (top[:-1], top[1:]) if axis == 0 else (top[:, :-1], top[:, 1:])
+            facing = np.sign(a - b)  # +1: the face looks towards +axis (the lower top lies there)
+            seen = facing * towards[axis] > 0  # faces turned away from the camera are hidden behind a tread
+            i, j = np.nonzero(seen)
+            if not len(i):
+                continue
+            lo_z, hi_z = np.minimum(a, b)[i, j], np.maximum(a, b)[i, j]
+            if axis == 0:  # the face at x = xs[i + 1] spanning the quad's y range
+                p, q0, q1 = xs[i + 1], ys[j], ys[j + 1]
+                face = [np.stack([p, q0, lo_z], -1), np.stack([p, q1, lo_z], -1), np.stack([p, q1, hi_z], -1),
+                        np.stack([p, q0, hi_z], -1)]
+            else:
+                p, q0, q1 = ys[j + 1], xs[i], xs[i + 1]
+                face = [np.stack([q0, p, lo_z], -1), np.stack([q1, p, lo_z], -1), np.stack([q1, p, hi_z], -1),
+                        np.stack([q0, p, hi_z], -1)]
+            corners.append(np.stack(face, axis=1))
+            colours.append(np.asarray(cfg.floor_colors)[checker[i, j]])
+            normal = np.zeros((len(i), 3))
+            normal[:, axis] = facing[i, j]
+            normals.append(normal)
+    corners_all, rgb, normal_all = np.concatenate(corners), np.concatenate(colours), np.concatenate(normals)
+    up = shade(np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3)), cfg)[0]
+    return corners_all, np.clip(shade(normal_all, rgb, cfg) / up, 0.0, 1.0)
+
+
 def render_recording(
     recording: Recording,
     robot: int = 0,
@@ -64,9 +154,10 @@ def render_recording(
 ) -> np.ndarray:
     """Frames of a recorded simulation (``Simulator.simulate(..., record_every=k).recording``).
 
-    Draws robot ``robot``'s voxels as cubes of the nominal voxel size at their recorded poses, a checkered floor
-    at z = −L/2 (tiles fixed to the world, so motion shows even when the camera follows), and the path of the
-    centre of mass on the floor up to each frame. ``frames``: which frame indices (default: all).
+    Draws robot ``robot``'s voxels as cubes of the nominal voxel size at their recorded poses, the checkered ground
+    (the flat floor at z = −L/2, or the recording's terrain with its relief shaded; tiles fixed to the world, so
+    motion shows even when the camera follows), and the path of the centre of mass on the ground up to each
+    frame. ``frames``: which frame indices (default: all).
     Returns RGB uint8 ``[F', size, size, 3]``.
     """
     cfg = config if config is not None else RenderConfig()
@@ -85,6 +176,9 @@ def render_recording(
     com = pos.mean(axis=1)  # [F, 3]
     floor_z = -L / 2.0
     start = com[0]
+    ground = recording.ground
+    # the path is drawn on the ground under the centre of mass (a hair above it, so a slope does not hide it)
+    path_z = np.full(len(com), floor_z) if ground is None else ground.height(com[:, 0], com[:, 1]) + 0.02 * L
 
     # One framing for the whole video (so the scale does not breathe): the robot's largest half-extent plus a view
     # radius, around its centre of mass (follow) or around the whole trajectory (fixed).
@@ -100,29 +194,34 @@ def render_recording(
     light_normals = FACE_NORMALS.astype(np.float64)
     for i, f in enumerate(chosen.tolist()):  # frames are independent images; the work inside is vectorised
         centre_xy = com[f, :2] if cfg.follow else fixed_centre
+        ground_lo = ground_hi = floor_z
+        if ground is not None:  # the ground under the framed square sets its lowest and highest point
+            gx, gy = np.meshgrid(*(np.linspace(c - radius, c + radius, 9) for c in centre_xy), indexing="ij")
+            heights = ground.height(gx, gy)
+            ground_lo, ground_hi = float(heights.min()), float(heights.max())
         box = np.array([[centre_xy[0] + sx * radius, centre_xy[1] + sy * radius, z]
-                        for sx in (-1, 1) for sy in (-1, 1) for z in (floor_z, top)])
+                        for sx in (-1, 1) for sy in (-1, 1) for z in (ground_lo, max(top, ground_hi))])
         canvas = Canvas(cfg, camera, box)
 
-        # Floor: world-aligned checker tiles covering the view (drawn first: nothing is ever below it).
+        # Ground: world-aligned checker tiles covering the view (drawn first: nothing is ever below it).
         tile = cfg.floor_tile * L
-        seen = canvas.floor_bounds(floor_z)
-        lo_f, hi_f = seen if seen is not None else (centre_xy - 1.5 * radius, centre_xy + 1.5 * radius)
+        seen = [b for b in (canvas.floor_bounds(z) for z in (ground_lo, ground_hi)) if b is not None]
+        if seen:
+            lo_f, hi_f = np.min([b[0] for b in seen], axis=0), np.max([b[1] for b in seen], axis=0)
+        else:
+            lo_f, hi_f = centre_xy - 1.5 * radius, centre_xy + 1.5 * radius
         lo_f, hi_f = np.maximum(lo_f, centre_xy - 10 * radius), np.minimum(hi_f, centre_xy + 10 * radius)  # grazing
-        i0, i1 = math.floor(lo_f[0] / tile), math.ceil(hi_f[0] / tile)
-        j0, j1 = math.floor(lo_f[1] / tile), math.ceil(hi_f[1] / tile)
-        ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij")
-        ii, jj = ii.ravel(), jj.ravel()
-        sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)
-        xy = (np.stack([ii, jj], axis=1)[:, None, :] + sq[None]) * tile  # [T, 4, 2]
-        floor = np.concatenate([xy, np.full(xy.shape[:2] + (1,), floor_z)], axis=2)
-        floor_rgb = np.asarray(cfg.floor_colors, dtype=np.float64)[(ii + jj) % 2]
-        canvas.quads(floor, floor_rgb, np.ones(len(floor)), outline=False)
+        if ground is None:
+            _draw_floor(canvas, cfg, lo_f, hi_f, tile, floor_z)
+        else:
+            corners_g, rgb_g = ground_quads(ground, lo_f, hi_f, tile, cfg)
+            order = np.argsort(corners_g.mean(axis=1) @ camera.towards, kind="stable")  # far quads first
+            canvas.quads(corners_g[order], rgb_g[order], np.ones(len(order)), outline=False)
 
-        # Trace of the centre of mass, on the floor.
-        path = np.concatenate([com[: f + 1, :2], np.full((f + 1, 1), floor_z)], axis=1)
+        # Trace of the centre of mass, on the ground.
+        path = np.concatenate([com[: f + 1, :2], path_z[: f + 1, None]], axis=1)
         canvas.polyline(path, cfg.trace_color, cfg.trace_width)
-        canvas.dot(np.array([start[0], start[1], floor_z]), cfg.trace_color, cfg.trace_width * 1.5)
+        canvas.dot(np.array([start[0], start[1], path_z[0]]), cfg.trace_color, cfg.trace_width * 1.5)
 
         # Robot: each voxel a cube at its pose; faces bonded to a neighbour or turned away are skipped.
         rot = quat_to_matrix(ori[f])  # [n, 3, 3]
@@ -221,6 +320,7 @@ __all__ = [
     "VideoConfig",
     "com_trajectory",
     "gait_simulator",
+    "ground_quads",
     "quat_to_matrix",
     "render_recording",
     "simulate_gait",

@@ -20,6 +20,7 @@ from freeform.sim.engine import DeviceArrays, Engine
 from freeform.sim.layout import Layout, build_layout
 from freeform.sim.schedules import SCHEDULES, resolve_schedule
 from freeform.sim.state import CONTACT, DIVERGED, MT, RUNNING, STALLED, VI, VR
+from freeform.sim.terrain import FLAT, HeightField
 
 
 @dataclass
@@ -30,6 +31,7 @@ class Recording:
     lattice[b]: int ``[n_b, 3]`` voxel index in the cropped body. materials[b]: uint8 ``[n_b]``.
     positions[b]: float32 ``[F, n_b, 3]`` metres, world frame, floor plane at z = −voxel_size/2.
     orientations[b]: float32 ``[F, n_b, 4]`` quaternions (w, x, y, z).
+    ground: the terrain's surface the bodies stood on (``HeightField``; None: the flat floor), for drawing.
     """
 
     times: np.ndarray
@@ -38,6 +40,7 @@ class Recording:
     materials: list[np.ndarray]
     positions: list[np.ndarray]
     orientations: list[np.ndarray]
+    ground: HeightField | None = None
 
 
 @dataclass
@@ -345,5 +348,7 @@ class Simulator:
             positions.append(np.ascontiguousarray(stack[:, lo:hi, 0:3]))
             # the frame holds POS, MOM, ORI columns in that order: ORI sits at offset 6
             orientations.append(np.ascontiguousarray(stack[:, lo:hi, VR.ORI - VR.POS:VR.ORI - VR.POS + 4]))
+        ground = self.config.terrain.field(self.config.voxel_size)
         return Recording(times=times, voxel_size=self.config.voxel_size, lattice=lattice, materials=materials,
-                         positions=positions, orientations=orientations)
+                         positions=positions, orientations=orientations,
+                         ground=None if ground.mode == FLAT else ground)
