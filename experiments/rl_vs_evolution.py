@@ -33,6 +33,8 @@ LAST_EPOCHS = 5
 """The population mean at the budget is each seed's mean over its last this many epochs (one epoch is noisy)."""
 
 COLORS = {"ppo": "tab:blue", "ga": "tab:orange", "cmaes": "tab:green", "grid_ga": "tab:red"}
+VARIANT_COLOR = "tab:purple"
+"""A variant (``ppo+dense(k)``) drawn beside its base method: this colour, dashed."""
 
 
 def method_of(config: dict[str, Any]) -> str:
@@ -209,10 +211,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for m in methods:
-        color = COLORS.get(m.name.split("+")[0], None) or f"C{methods.index(m)}"
+        variant = "+" in m.name  # ppo+dense(k): told apart from its base method by colour and dashes
+        color = VARIANT_COLOR if variant else COLORS.get(m.name) or f"C{methods.index(m)}"
+        style = "--" if variant else "-"
         for ax, curve in zip(axes, (m.mean, m.best), strict=True):
             ax.fill_between(m.designs, curve.lower, curve.upper, color=color, alpha=0.2, linewidth=0)
-            ax.plot(m.designs, curve.mean, color=color, linewidth=1.5, label=f"{m.name} ({len(m.runs)} seeds)")
+            ax.plot(m.designs, curve.mean, color=color, linestyle=style, linewidth=1.5,
+                    label=f"{m.name} ({len(m.runs)} seeds)")
     for ax, what in zip(axes, ("population mean reward (±2-epoch average)", "best reward so far"), strict=True):
         ax.axvline(budget, color="0.6", linestyle=":", linewidth=1)
         ax.set_xlabel("designs scored (= simulated bodies on a physics task)")
