@@ -37,6 +37,8 @@ import time
 import urllib.request
 from pathlib import Path
 
+from freeform.files import write_atomically
+
 CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
 CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/ppo_continuous_action.py"
 FRAMEWORKS = ("freeform", "sb3", "cleanrl")
@@ -201,18 +203,25 @@ def run(argv: list[str] | None = None) -> list[dict]:
         return []
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    results = []
+    store = workdir / "results.json"
+    # the file accumulates over invocations (a table can be run in parts: frameworks or seeds apart) and is
+    # rewritten after every run, so hours of runs survive an interruption; a rerun replaces its own row
+    results = json.loads(store.read_text()) if store.exists() else []
+    key = lambda r: (r["framework"], r["task"], r["seed"], r["steps"])  # noqa: E731
     for task in args.tasks:
         for seed in args.seeds:
             for fw in args.frameworks:
                 result = one_run(fw, task, args.steps, seed, args.cleanrl_script, workdir)
-                results.append(result)
+                results = [r for r in results if key(r) != key(result)] + [result]
+                text = json.dumps(results, indent=1).encode()
+                write_atomically(store, lambda f, text=text: f.write(text))
                 print(f"{fw:9s} {task} seed {seed}: final return {result['final_return']:.1f} "
                       f"({result['episodes']} episodes), wall {result['wall_s']:.1f} s", flush=True)
-    (workdir / "results.json").write_text(json.dumps(results, indent=1))
+    steps = (args.steps // BATCH) * BATCH
+    shown = [r for r in results if r["steps"] == steps and r["task"] in args.tasks]
     print()
-    print(table(results))
-    return results
+    print(table(shown))
+    return shown
 
 
 def main() -> None:
