@@ -8,6 +8,7 @@ Examples (RUN is a run directory, or one ``records/epoch_<e>.npz`` file)::
     freeform-render RUN --video --seconds 5          # GIF of the best robot's simulated gait (--video-format mp4)
     freeform-render RUN --history --export vxd,obj,stl,vox   # voxcraft-viz replay + files for other tools
     freeform-render --random 16 --grid 16            # no run: designs of an untrained (N(0, I)) policy
+    freeform-render RUN_A RUN_B ... --grid 4 --out D # several runs: D/sheet.png, a row of each run's 4 best
 
 Files go to ``RUN/renders/epoch_<e>/`` (or ``--out``); their paths are printed, one per line.
 """
@@ -15,6 +16,7 @@ Files go to ``RUN/renders/epoch_<e>/`` (or ``--out``); their paths are printed, 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -48,7 +50,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog=__doc__.split("Examples", 1)[1].split("Files go", 1)[0].split("::", 1)[1] if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("run", nargs="?", help="run directory, or a records/epoch_<e>.npz file")
+    p.add_argument("run", nargs="*", help="run directory, or a records/epoch_<e>.npz file (several: with --grid "
+                   "and --out only, a sheet with a row of best bodies per run)")
     p.add_argument("--epoch", type=int, default=None, help="epoch whose record to read (default: the last)")
     p.add_argument("--bodies", default="best",
                    help=f"comma-separated picks: {', '.join(PICKS)} or episode indices (default: best)")
@@ -198,6 +201,9 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.size < 16:
         raise ValueError(f"--size must be >= 16 pixels, got {args.size}")
+    if len(args.run) > 1:
+        return _runs_sheet(args)
+    args.run = args.run[0] if args.run else None
     exports = [e.strip() for e in args.export.split(",") if e.strip()]
     unknown = sorted(set(exports) - set(EXPORTS))
     if unknown:
@@ -271,6 +277,32 @@ def _run(args: argparse.Namespace) -> int:
 
     for path in written:
         print(path)
+    return 0
+
+
+def _runs_sheet(args: argparse.Namespace) -> int:
+    """Several runs side by side (e.g. one per task): ``--out/sheet.png``, row r = the ``--grid`` best bodies of run
+    r's record (``--epoch``, default each run's last), captioned with the run's experiment and the reward."""
+    from freeform.body import largest_component
+
+    if not args.grid or args.out is None:
+        raise ValueError("several runs make one sheet: give --grid N (bodies per run) and --out DIR")
+    if args.video or args.history or args.export or args.random:
+        raise ValueError("several runs make one sheet only: --video, --history, --export and --random take one run")
+    cfg = RenderConfig(size=max(96, min(args.size, 256)), frame=args.frame, azimuth=args.azimuth,
+                       elevation=args.elevation, caption_size=11)
+    images = []
+    for run in args.run:
+        grids, rewards, epoch, run_dir = read_designs(run, args.epoch)
+        info = run_dir / "run_info.json"
+        name = (json.loads(info.read_text()).get("experiment") if info.is_file() else None) or run_dir.name
+        best = np.argsort(-rewards, kind="stable")[: args.grid]
+        if len(best) < args.grid:
+            raise ValueError(f"run {run} recorded {len(best)} designs in epoch {epoch}, fewer than --grid {args.grid}")
+        bodies = largest_component(torch.from_numpy(np.ascontiguousarray(grids[best]))).numpy()
+        shown = grids[best] if not args.no_removed else bodies
+        images.extend(render_grids(shown, bodies, cfg, [[name, f"reward {rewards[i]:.3g}"] for i in best]))
+    print(write_png(args.out / "sheet.png", contact_sheet(images, args.grid)))
     return 0
 
 

@@ -387,6 +387,45 @@ def test_cli_renders_a_run_directory(tmp_path, capsys) -> None:
     assert "error" in capsys.readouterr().err
 
 
+def test_cli_sheet_of_several_runs_has_a_row_of_best_bodies_per_run(tmp_path, capsys) -> None:
+    """Two runs (say two tasks): one sheet, row r = run r's best bodies in reward order, each tile the same picture
+    ``render_grids`` draws of that design."""
+    import json
+
+    from freeform.records import EpochRecord, write_record
+    from freeform.render import render_grids
+    from freeform.render_cli import main
+
+    runs = []
+    for r, name in enumerate(("climb_cpu", "jump_cpu")):
+        grids = np.zeros((3, 4, 4, 4), dtype=np.uint8)
+        for e in range(3):
+            grids[e, : e + 1, : r + 1, 0] = 1 + e  # a design per episode, different in every run
+        run = tmp_path / name
+        write_record(run, EpochRecord(epoch=2, global_step=6, actions=np.zeros((3, 1, 7), np.float32),
+                                      final_grids=grids, rewards=np.array([0.2, 0.9, 0.5], np.float32),
+                                      values=np.zeros((3, 1), np.float32)))
+        (run / "run_info.json").write_text(json.dumps({"experiment": name}))
+        runs.append((run, grids))
+    out = tmp_path / "out"
+    assert main([str(runs[0][0]), str(runs[1][0]), "--grid", "2", "--size", "96", "--out", str(out)]) == 0
+    sheet = np.asarray(Image.open(out / "sheet.png"))
+    gap = 4
+    assert sheet.shape == (2 * 96 + 3 * gap, 2 * 96 + 3 * gap, 3)
+    cfg = RenderConfig(size=96, caption_size=11)
+    for row, (run, grids) in enumerate(runs):
+        for col, episode in enumerate((1, 2)):  # rewards 0.9 then 0.5
+            name = run.name
+            tile = render_grids(grids[[episode]], grids[[episode]], cfg, [[name, f"reward {[0.2, 0.9, 0.5][episode]:.3g}"]])[0]
+            y, x = gap + row * (96 + gap), gap + col * (96 + gap)
+            np.testing.assert_array_equal(sheet[y:y + 96, x:x + 96], tile)
+    capsys.readouterr()
+    assert main([str(runs[0][0]), str(runs[1][0]), "--grid", "2"]) == 2  # no --out
+    assert main([str(runs[0][0]), str(runs[1][0]), "--grid", "4", "--out", str(out)]) == 2  # 3 designs only
+    assert main([str(runs[0][0]), str(runs[1][0]), "--grid", "2", "--out", str(out), "--video"]) == 2
+    assert "several runs" in capsys.readouterr().err
+
+
 def test_cli_random_policy_designs(tmp_path) -> None:
     from freeform.render_cli import main
 
