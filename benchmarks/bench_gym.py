@@ -191,8 +191,17 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--cleanrl-script", default=os.environ.get("CLEANRL_SCRIPT"),
                    help="path of CleanRL's ppo_continuous_action.py (default: fetch the pinned commit's)")
     p.add_argument("--workdir", default="runs/bench_gym", help="where CleanRL's runs/ and the JSON results go")
+    p.add_argument("--show", action="store_true", help="print the table of WORKDIR/results.json; run nothing")
     p.add_argument("--child", choices=("freeform", "sb3"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
+
+
+def _key(row: dict) -> tuple:
+    return row["framework"], row["task"], row["seed"], row["steps"]
+
+
+def _read(store: Path) -> list[dict]:
+    return json.loads(store.read_text()) if store.exists() else []
 
 
 def run(argv: list[str] | None = None) -> list[dict]:
@@ -204,21 +213,22 @@ def run(argv: list[str] | None = None) -> list[dict]:
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     store = workdir / "results.json"
-    # the file accumulates over invocations (a table can be run in parts: frameworks or seeds apart) and is
-    # rewritten after every run, so hours of runs survive an interruption; a rerun replaces its own row
-    results = json.loads(store.read_text()) if store.exists() else []
-    key = lambda r: (r["framework"], r["task"], r["seed"], r["steps"])  # noqa: E731
-    for task in args.tasks:
+    # The file accumulates over invocations (a table can be run in parts, frameworks or seeds apart, even two
+    # invocations at once) and is re-read and rewritten after every run, so hours of runs survive an interruption;
+    # a rerun replaces its own row. --show prints the table of what it holds without running anything.
+    for task in args.tasks if not args.show else ():
         for seed in args.seeds:
             for fw in args.frameworks:
                 result = one_run(fw, task, args.steps, seed, args.cleanrl_script, workdir)
-                results = [r for r in results if key(r) != key(result)] + [result]
-                text = json.dumps(results, indent=1).encode()
+                rows = [r for r in _read(store) if _key(r) != _key(result)] + [result]
+                text = json.dumps(rows, indent=1).encode()
                 write_atomically(store, lambda f, text=text: f.write(text))
                 print(f"{fw:9s} {task} seed {seed}: final return {result['final_return']:.1f} "
                       f"({result['episodes']} episodes), wall {result['wall_s']:.1f} s", flush=True)
     steps = (args.steps // BATCH) * BATCH
-    shown = [r for r in results if r["steps"] == steps and r["task"] in args.tasks]
+    shown = [r for r in _read(store) if r["steps"] == steps and r["task"] in args.tasks
+             and r["seed"] in args.seeds and r["framework"] in args.frameworks]
+    shown.sort(key=lambda r: (args.tasks.index(r["task"]), r["seed"], FRAMEWORKS.index(r["framework"])))
     print()
     print(table(shown))
     return shown

@@ -44,6 +44,18 @@ def test_builtin_rewards_on_a_hand_made_trace():
     assert r["tallest"] == pytest.approx(3.5)
 
 
+def test_directional_rewards_score_going_back_as_standing_still():
+    # settled at (1, 0), ends at (-1, 0.5): 2 voxels back (and 0.5 sideways)
+    tr = hand_trace([[0, 0, 0.0], [1, 0, 0.5], [0, 0.2, 0.5], [-1, 0.5, 0.5]], [0.0, 0.2, 0.4, 0.6], burn_in=0.2)
+    r = {name: float(fn(tr)[0]) for name, fn in TRAJECTORY_REWARDS.items()}
+    assert r["climb"] == 0.0 and r["stairs"] == 0.0 and r["directional"] == 0.0
+    assert r["rough"] == pytest.approx((4 + 0.25) ** 0.5)  # any direction counts there
+    # forward but drifting more sideways than forward: directional clamps too
+    tr = hand_trace([[0, 0, 0.0], [0, 0, 0.5], [1, 2, 0.5]], [0.0, 0.2, 0.6], burn_in=0.2)
+    assert float(TRAJECTORY_REWARDS["directional"](tr)[0]) == 0.0
+    assert float(TRAJECTORY_REWARDS["climb"](tr)[0]) == pytest.approx(1.0)
+
+
 def test_jump_ignores_the_burn_in_and_never_goes_negative():
     tr = hand_trace([[0, 0, 3.0], [0, 0, 1.0], [0, 0, 0.8], [0, 0, 0.9]], [0.0, 0.2, 0.3, 0.4], burn_in=0.2)
     assert float(TRAJECTORY_REWARDS["jump"](tr)[0]) == 0.0  # a fall during the burn-in is not a jump

@@ -61,11 +61,20 @@ def final(trace: Any, x: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------------------------------------ built-in rewards
+def forward_progress(trace: Any) -> torch.Tensor:
+    """``[B]`` the centre of mass's +x progress from its settled state to the end, or 0 when it went back (voxel
+    lengths). Why not the net progress: a random body's is as often negative as positive (on a slope most slide
+    down), and a design policy cuts that tail most easily by designing bodies that do not move at all, a local
+    optimum it then stays in (docs/tasks.md, "Why forward progress"); scoring going back as standing still leaves
+    moving worth exploring."""
+    return ((final(trace, trace.com) - settled(trace, trace.com))[:, 0] / trace.voxel_size).clamp_min(0.0)
+
+
 @trajectory_reward("directional")
 def directional(trace: Any) -> torch.Tensor:
-    """+x progress of the centre of mass, minus its sideways drift |Δy| (voxel lengths)."""
+    """+x progress of the centre of mass, minus its sideways drift |Δy|; 0 when that is negative (voxel lengths)."""
     d = (final(trace, trace.com) - settled(trace, trace.com)) / trace.voxel_size
-    return d[:, 0] - d[:, 1].abs()
+    return (d[:, 0] - d[:, 1].abs()).clamp_min(0.0)
 
 
 @trajectory_reward("rough")
@@ -77,14 +86,15 @@ def rough(trace: Any) -> torch.Tensor:
 
 @trajectory_reward("climb")
 def climb(trace: Any) -> torch.Tensor:
-    """Net progress of the centre of mass towards +x (uphill on ``Terrain.slope(degrees, "x")``), voxel lengths."""
-    return (final(trace, trace.com) - settled(trace, trace.com))[:, 0] / trace.voxel_size
+    """Progress of the centre of mass towards +x, uphill on ``Terrain.slope(degrees, "x")``; a body that slides or
+    walks back scores 0, as one that stands (voxel lengths)."""
+    return forward_progress(trace)
 
 
 @trajectory_reward("stairs")
 def stairs(trace: Any) -> torch.Tensor:
-    """Net progress of the centre of mass towards +x, up ``Terrain.steps`` (voxel lengths)."""
-    return (final(trace, trace.com) - settled(trace, trace.com))[:, 0] / trace.voxel_size
+    """Progress of the centre of mass towards +x, up ``Terrain.steps``; 0 for going back (voxel lengths)."""
+    return forward_progress(trace)
 
 
 @trajectory_reward("jump")
