@@ -338,3 +338,32 @@ def test_cleanrl_preset_solves_inverted_pendulum() -> None:
     elapsed = time.perf_counter() - start
     assert best >= 950, (best, ppo.global_step)
     assert elapsed < 60, elapsed
+
+
+def test_bench_gym_results_accumulate_across_invocations_and_a_rerun_replaces_its_row(tmp_path, monkeypatch, capsys):
+    """The 12-run MuJoCo table runs for hours, possibly in parts: every run lands in results.json at once, a second
+    invocation (other frameworks) adds to it, a rerun of the same framework/task/seed/steps replaces its row."""
+    import json
+
+    from benchmarks import bench_gym
+
+    walls = iter([100.0, 200.0, 300.0, 50.0])
+
+    def fake_run(fw, task, steps, seed, script, workdir):
+        return {"framework": fw, "task": task, "seed": seed, "steps": steps, "final_return": 1.0, "episodes": 3,
+                "wall_s": next(walls)}
+
+    monkeypatch.setattr(bench_gym, "one_run", fake_run)
+    common = ["--tasks", "Hopper-v5", "--steps", "4096", "--seeds", "0", "--workdir", str(tmp_path)]
+    bench_gym.run([*common, "--frameworks", "sb3", "cleanrl"])
+    assert len(json.loads((tmp_path / "results.json").read_text())) == 2
+    bench_gym.run([*common, "--frameworks", "freeform"])
+    bench_gym.run([*common, "--frameworks", "freeform"])  # rerun: replaces the 300 s row with 50 s
+    rows = json.loads((tmp_path / "results.json").read_text())
+    assert sorted((r["framework"], r["wall_s"]) for r in rows) == [("cleanrl", 200.0), ("freeform", 50.0),
+                                                                     ("sb3", 100.0)]
+    capsys.readouterr()
+    shown = bench_gym.run([*common, "--show"])
+    assert [r["framework"] for r in shown] == ["freeform", "sb3", "cleanrl"]
+    table = capsys.readouterr().out
+    assert "| Hopper-v5 | sb3 | 1.0 | 1.0 | 100 | 100 | 2.00 |" in table  # 100 s against freeform's 50 s
