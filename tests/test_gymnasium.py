@@ -180,6 +180,23 @@ def test_actions_are_clipped_for_the_env_and_stored_unclipped() -> None:
     torch.testing.assert_close(logprob, gaussian_log_prob(stored, ppo.rollout.means, ppo.rollout.log_stds))
 
 
+def test_running_statistics_match_gymnasiums_reference_for_single_samples_and_batches() -> None:
+    """freeform's torch RunningMeanStd (in-place, a one-sample fast path) against Gymnasium's numpy original."""
+    from gymnasium.wrappers.utils import RunningMeanStd as Reference
+
+    from freeform.agents.normalization import RunningMeanStd
+
+    rng = np.random.default_rng(0)
+    ours, ref = RunningMeanStd((3,)), Reference(shape=(3,))
+    for n in [1, 1, 5, 1, 2, 64, 1]:
+        x = rng.normal([1.0, -2.0, 30.0], [0.5, 3.0, 0.01], size=(n, 3))
+        ours.update(torch.from_numpy(x).float())
+        ref.update(x.astype(np.float32).astype(np.float64))
+        np.testing.assert_allclose(ours.mean.numpy(), ref.mean, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(ours.var.numpy(), ref.var, rtol=1e-12, atol=1e-15)
+        assert ours.count == pytest.approx(ref.count, rel=1e-15)
+
+
 def _comparable(stats: dict[str, float]) -> dict[str, float]:
     return {k: v for k, v in stats.items() if not (k.startswith("time_") or k == "samples_per_second")}
 

@@ -23,13 +23,21 @@ class RunningMeanStd:
 
     @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
+        # var <- (var·count + batch_var·n + delta²·count·n/total) / total, in place: with one env this runs at every
+        # step for the observations and again for the returns, where each tensor op costs more than its arithmetic
         x = batch.to(self.mean.dtype)
         n = x.shape[0]
-        batch_var, batch_mean = torch.var_mean(x, 0, correction=0)
-        delta = batch_mean - self.mean
         total = self.count + n
-        self.mean = self.mean + delta * (n / total)
-        self.var = (self.var * self.count + batch_var * n + delta.square() * (self.count * n / total)) / total
+        if n == 1:  # a single sample has no spread of its own
+            delta = x[0] - self.mean
+        else:
+            batch_var, batch_mean = torch.var_mean(x, 0, correction=0)
+            delta = batch_mean - self.mean
+        self.var.mul_(self.count / total)
+        if n > 1:
+            self.var.add_(batch_var, alpha=n / total)
+        self.var.addcmul_(delta, delta, value=self.count * n / (total * total))
+        self.mean.add_(delta, alpha=n / total)
         self.count = total
 
     def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
