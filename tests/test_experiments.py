@@ -312,3 +312,28 @@ def test_hparams_table_from_the_configs_used(volume_runs, locomotion_runs, tmp_p
     assert loco[rows.index("Burn-in / evaluation (s)")] == "0.05 / 0.05"
     assert vol[rows.index("Seeds")] == "0, 1"
     assert "PPO GAE" in out["md"].read_text() and r"\begin{tabular}" in out["tex"].read_text()
+
+
+def test_rescore_reproduces_the_recorded_rewards_and_applies_the_overrides(locomotion_runs, tmp_path):
+    from experiments import rescore
+    from freeform.records import read_record, record_path
+
+    run = str(locomotion_runs[0])
+    out = rescore.main([run, "--out", str(tmp_path), "--set", "sim.burn_in=0.05"])  # the run's own protocol
+    _, cols = common.read_csv(out["csv"])
+    np.testing.assert_array_equal(cols["epoch"], [0, 1])
+    for i, epoch in enumerate((0, 1)):
+        recorded = read_record(record_path(locomotion_runs[0], epoch)).rewards.mean()
+        assert cols["recorded"][i] == pytest.approx(recorded, rel=1e-5)  # the CSV keeps 6 digits
+        # the same designs, protocol and engine earn their recorded rewards again, and so does the identity override
+        assert cols["as_trained"][i] == pytest.approx(recorded, rel=1e-4, abs=1e-5)
+        assert cols["rescored"][i] == cols["as_trained"][i]
+    out = rescore.main([run, "--out", str(tmp_path), "--set", "sim.burn_in=0.3", "--epochs", "last"])
+    _, cols = common.read_csv(out["csv"])
+    assert len(cols["epoch"]) == 1 and cols["rescored"][0] != pytest.approx(cols["as_trained"][0], rel=1e-3)
+    with pytest.raises(ValueError, match="--epochs"):
+        rescore.main([run, "--out", str(tmp_path), "--set", "sim.burn_in=0.3", "--epochs", "7"])
+    with pytest.raises(ValueError, match="--set"):
+        rescore.main([run, "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="sim.burn_in"):
+        rescore.main([run, "--out", str(tmp_path), "--set", "sim.burn_in=-1"])
