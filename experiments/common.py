@@ -287,6 +287,7 @@ class Trial:
     """One run's per-epoch summary, read from its design records (``freeform.records``).
 
     epochs: ``[E]`` int, the recorded epochs in order. reward: ``[E]`` mean episode reward of each epoch.
+    reward_max: ``[E]`` the epoch's best episode reward (−inf for an epoch without episodes).
     metrics: ``{name: [E]}`` mean of each recorded body metric. episodes: ``[E]`` episodes per epoch.
     """
 
@@ -294,6 +295,7 @@ class Trial:
     info: dict[str, Any]
     epochs: np.ndarray
     reward: np.ndarray
+    reward_max: np.ndarray
     metrics: dict[str, np.ndarray]
     episodes: np.ndarray
 
@@ -306,17 +308,19 @@ def load_trial(run: Path) -> Trial:
     """Read every design record of ``run`` into per-epoch means (``ValueError`` if it has none)."""
     from freeform.records import iter_records
 
-    epochs, reward, episodes = [], [], []
+    epochs, reward, reward_max, episodes = [], [], [], []
     metrics: dict[str, list[float]] = {}
     for rec in iter_records(run):
         epochs.append(rec.epoch)
         reward.append(float(np.mean(rec.rewards)) if rec.num_episodes else np.nan)
+        reward_max.append(float(np.max(rec.rewards)) if rec.num_episodes else -np.inf)
         episodes.append(rec.num_episodes)
         for name, m in rec.metrics.items():
             metrics.setdefault(name, []).append(float(np.mean(m)) if len(m) else np.nan)
     if not epochs:
         raise ValueError(f"paths: run {run} has no design records (records/epoch_*.npz; trainer.record_designs=true)")
     return Trial(path=Path(run), info=read_run_info(run), epochs=np.asarray(epochs), reward=np.asarray(reward),
+                 reward_max=np.asarray(reward_max),
                  metrics={k: np.asarray(v) for k, v in metrics.items()}, episodes=np.asarray(episodes))
 
 

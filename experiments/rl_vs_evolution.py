@@ -78,21 +78,11 @@ def _wall_seconds(run: Path, info: dict[str, Any]) -> float:
 
 def load_run(path: Path) -> Run:
     """A run's per-epoch mean and maximum reward and its cumulative cost, from its design records."""
-    from freeform.records import iter_records
-
     config = common.run_config(path)
-    epochs, means, maxima, episodes = [], [], [], []
-    for rec in iter_records(path):
-        epochs.append(rec.epoch)
-        means.append(float(np.mean(rec.rewards)) if rec.num_episodes else np.nan)
-        maxima.append(float(np.max(rec.rewards)) if rec.num_episodes else -np.inf)
-        episodes.append(rec.num_episodes)
-    if not epochs:
-        raise ValueError(f"paths: run {path} has no design records (records/epoch_*.npz; trainer.record_designs=true)")
-    designs = np.cumsum(np.asarray(episodes) * designs_per_episode(config))
-    return Run(path=path, method=method_of(config), epochs=np.asarray(epochs), designs=designs,
-               mean=np.asarray(means), best=np.maximum.accumulate(np.asarray(maxima)),
-               wall_s=_wall_seconds(path, common.read_run_info(path)))
+    trial = common.load_trial(path)
+    designs = np.cumsum(trial.episodes * designs_per_episode(config))
+    return Run(path=path, method=method_of(config), epochs=trial.epochs, designs=designs, mean=trial.reward,
+               best=np.maximum.accumulate(trial.reward_max), wall_s=_wall_seconds(path, trial.info))
 
 
 @dataclass
@@ -104,23 +94,15 @@ class Method:
     best: common.Curve
 
 
-def _aligned(runs: Sequence[Run], field: str) -> tuple[np.ndarray, np.ndarray]:
-    epochs = np.unique(np.concatenate([r.epochs for r in runs]))
-    out = np.full((len(runs), len(epochs)), np.nan)
-    for i, r in enumerate(runs):
-        out[i, np.searchsorted(epochs, r.epochs)] = getattr(r, field)
-    return epochs, out
-
-
 def group(runs: Sequence[Run]) -> list[Method]:
     """Runs grouped by method (PPO first, then the baselines by name), each with its across-seed curves."""
     names = sorted({r.method for r in runs}, key=lambda m: (not m.startswith("ppo"), m))
     methods = []
     for name in names:
         mine = [r for r in runs if r.method == name]
-        epochs, means = _aligned(mine, "mean")
-        _, best = _aligned(mine, "best")
-        _, designs = _aligned(mine, "designs")
+        epochs, means = common.align(mine, [r.mean for r in mine])
+        _, best = common.align(mine, [r.best for r in mine])
+        _, designs = common.align(mine, [r.designs for r in mine])
         methods.append(Method(name=name, runs=mine, designs=np.nanmean(designs, axis=0),
                               mean=common.across_trials(means, epochs),
                               best=common.across_trials(best, epochs, half_window=0)))
@@ -142,7 +124,7 @@ class AtBudget:
 def at_budget(method: Method, budget: float) -> AtBudget:
     """The method after its last epoch within ``budget`` designs: population mean (each seed's last
     ``LAST_EPOCHS`` epochs) and best so far, across-seed mean ± 99 % half-width."""
-    means, bests = [], []
+    means, bests, used = [], [], []
     for r in method.runs:
         within = np.flatnonzero(r.designs <= budget)
         if not len(within):
@@ -151,10 +133,11 @@ def at_budget(method: Method, budget: float) -> AtBudget:
         last = within[-1]
         means.append(np.nanmean(r.mean[max(0, last - LAST_EPOCHS + 1): last + 1]))
         bests.append(r.best[last])
+        used.append(float(r.designs[last]))
     m, mh = common.mean_band(np.asarray(means))
     b, bh = common.mean_band(np.asarray(bests))
     walls = [r.wall_s for r in method.runs if np.isfinite(r.wall_s)]
-    used = max(float(r.designs[np.flatnonzero(r.designs <= budget)[-1]]) for r in method.runs)
+    used = max(used)
     return AtBudget(method=method.name, designs=used, mean=float(m), mean_band=float(mh), best=float(b),
                     best_band=float(bh), wall_s=float(np.mean(walls)) if walls else float("nan"),
                     seeds=len(method.runs))

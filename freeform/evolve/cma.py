@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-VARIANTS = ("sep", "full")
+from freeform.evolve.config import CMA_VARIANTS
 
 
 def _optimizer_class(variant: str) -> type:
@@ -26,8 +26,8 @@ def _optimizer_class(variant: str) -> type:
         from cmaes import CMA, SepCMA
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ValueError(f"algo.name=cmaes needs the cmaes library: pip install 'freeform[evolve]' ({exc})") from exc
-    if variant not in VARIANTS:
-        raise ValueError(f"variant must be one of {list(VARIANTS)}, got {variant!r}")
+    if variant not in CMA_VARIANTS:
+        raise ValueError(f"variant must be one of {list(CMA_VARIANTS)}, got {variant!r}")
     return SepCMA if variant == "sep" else CMA
 
 

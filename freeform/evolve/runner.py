@@ -3,8 +3,8 @@
 gets the same run directory, TensorBoard tags, design records, checkpoints, resume and preemption as PPO.
 
 An epoch is one generation: the optimiser's ``N = env.num_envs`` genomes are scored in one batch — action
-sequences by running the design environment for its T steps (the same code path, task and simulator as PPO's
-rollout), grids by the task directly — and the scores are told back. Its cost is N scored designs, what a PPO epoch
+sequences by placing their T bundles with the design rule and scoring the final grids with ``DesignEnv.score``
+(what the last step of PPO's rollout calls: the same task and simulator), grids by ``DesignEnv.score`` directly — and the scores are told back. Its cost is N scored designs, what a PPO epoch
 with ``rollout_steps = T`` costs; ``global_step`` advances by N·T as PPO's does, so TensorBoard curves of both
 line up at equal designs.
 """
@@ -38,21 +38,6 @@ class Optimizer(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
-def run_sequences(env: Any, actions: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
-    """Play ``actions [N, T, A]`` through a fresh episode of ``env`` (a design ``VecEnv``): ``(returns [N], info of
-    the last step)`` — the info holds ``final_grids``, ``bodies`` and ``metrics`` as in PPO's rollout."""
-    actions = actions.to(env.device, torch.float32)
-    env.reset()
-    total = torch.zeros(env.num_envs, dtype=torch.float32, device=env.device)
-    info: dict[str, Any] = {}
-    for t in range(actions.shape[1]):
-        _, reward, done, info = env.step(actions[:, t])
-        total += reward.to(total)
-    if not bool(done.all()):
-        raise ValueError(f"the env's episodes did not all end after the genome's {actions.shape[1]} actions")
-    return total, info
-
-
 def design_grids(env: Any, actions: torch.Tensor) -> torch.Tensor:
     """The final grids ``[N, ρ, ρ, ρ] uint8`` that ``actions [N, T, A]`` design in ``env`` (no task, no cost)."""
     actions = actions.to(env.device, torch.float32)
@@ -80,9 +65,6 @@ class Evolution:
         self.num_envs = env.num_envs
         self.dp = Collectives.single(env.num_envs)  # one process: every collective is the identity
         self.epoch = 0
-        self.global_step = 0
-        self.designs = 0
-        """Designs scored so far (N per generation): the cost unit of the comparison with PPO."""
         self.best = float("-inf")
         """The best reward scored so far."""
         self.episode_infos: list[dict[str, Any]] = []
@@ -92,19 +74,16 @@ class Evolution:
         """Score one generation and breed the next; return its statistics (PPO's names where they mean the same)."""
         t0 = time.perf_counter()
         genomes = self.optimizer.ask()
-        if self.optimizer.genome == "actions":
-            rewards, info = run_sequences(self.env, genomes)
-            actions = genomes
+        if self.optimizer.genome == "actions":  # the grids the sequences design, scored as an episode's last step
+            grids, actions = design_grids(self.env, genomes), genomes
         else:
-            rewards, info = self.env.score(genomes.to(self.env.device))
-            actions = torch.zeros((len(genomes), 0, self.env.action_dim))
+            grids, actions = genomes.to(self.env.device), torch.zeros((len(genomes), 0, self.env.action_dim))
+        rewards, info = self.env.score(grids)
         t1 = time.perf_counter()
         self.optimizer.tell(rewards)
         t2 = time.perf_counter()
         n, steps = self.num_envs, self.env.steps
         self.epoch += 1
-        self.global_step += n * steps
-        self.designs += n
         self.best = max(self.best, float(rewards.max()))
         self.episode_infos = [info]
         self._episodes = {
@@ -129,6 +108,16 @@ class Evolution:
             **self.optimizer.stats(),
         }
 
+    @property
+    def designs(self) -> int:
+        """Designs scored so far (N per generation): the cost unit of the comparison with PPO."""
+        return self.epoch * self.num_envs
+
+    @property
+    def global_step(self) -> int:
+        """Design steps so far, N·T per generation, as a PPO epoch of ``rollout_steps = T`` counts them."""
+        return self.epoch * self.num_envs * self.env.steps
+
     def episodes(self) -> dict[str, Any] | None:
         """The last generation as finished episodes (class docstring); None before the first."""
         return self._episodes
@@ -141,12 +130,11 @@ class Evolution:
         if state.get("name") != self.name:
             raise ValueError(f"the state is of algo.name={state.get('name')!r}, this run's is {self.name!r}")
         self.optimizer.load_state_dict(state["optimizer"])
-        self.epoch, self.global_step = int(state["epoch"]), int(state["global_step"])
-        self.designs, self.best = int(state["designs"]), float(state["best"])
+        self.epoch, self.best = int(state["epoch"]), float(state["best"])
 
     def checkpoint(self) -> dict[str, Any]:
         """A run checkpoint's content (as ``PPO.checkpoint()``'s): the algorithm, counters and ``evolution`` state."""
         return {"algo": self.name, "epoch": self.epoch, "global_step": self.global_step, "evolution": self.state_dict()}
 
 
-__all__ = ["Evolution", "Optimizer", "design_grids", "run_sequences"]
+__all__ = ["Evolution", "Optimizer", "design_grids"]

@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from freeform.render.raster import Camera, Canvas, RenderConfig, shade
-from freeform.sim.terrain import COLUMNS, SMOOTH
+from freeform.render.raster import Camera, Canvas, RenderConfig, lambert, shade
+from freeform.sim.terrain import COLUMNS, SMOOTH, Terrain
 from freeform.voxels import FACE_CORNERS, FACE_NORMALS, as_grid, check_recording, material_rgb
 
 if TYPE_CHECKING:  # the type hints only: drawing a recording never needs Taichi
@@ -57,19 +57,6 @@ def com_trajectory(recording: Recording, robot: int = 0) -> np.ndarray:
     return recording.positions[robot].astype(np.float64).mean(axis=1)
 
 
-def _draw_floor(canvas: Canvas, cfg: RenderConfig, lo: np.ndarray, hi: np.ndarray, tile: float, z: float) -> None:
-    """The flat floor: checker tiles of edge ``tile`` at height ``z`` over the (x, y) box ``lo``..``hi``."""
-    i0, i1 = math.floor(lo[0] / tile), math.ceil(hi[0] / tile)
-    j0, j1 = math.floor(lo[1] / tile), math.ceil(hi[1] / tile)
-    ii, jj = np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij")
-    ii, jj = ii.ravel(), jj.ravel()
-    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)
-    xy = (np.stack([ii, jj], axis=1)[:, None, :] + sq[None]) * tile  # [T, 4, 2]
-    floor = np.concatenate([xy, np.full(xy.shape[:2] + (1,), z)], axis=2)
-    floor_rgb = np.asarray(cfg.floor_colors, dtype=np.float64)[(ii + jj) % 2]
-    canvas.quads(floor, floor_rgb, np.ones(len(floor)), outline=False)
-
-
 # Quads per tile edge on a bumpy smooth terrain: half a height-field cell each, at most this many (a 4 cm bump
 # wavelength on 1 cm voxels and 2-voxel tiles gives 8).
 _MAX_SUBDIVISION = 8
@@ -87,7 +74,8 @@ def _breaks(lo: float, hi: float, tile: float, sub: int, cells: np.ndarray | Non
 
 def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: float,
                  cfg: RenderConfig) -> tuple[np.ndarray, np.ndarray]:
-    """The terrain over the (x, y) box ``lo``..``hi`` as quads ``[Q, 4, 3]`` and colours ``[Q, 3]``.
+    """The terrain over the (x, y) box ``lo``..``hi`` as quads ``[Q, 4, 3]`` and colours ``[Q, 3]``, in drawing
+    order (far first).
 
     The checker of the flat floor (tiles of edge ``tile``, colour by the tile a quad lies in), bent over the
     surface: a smooth terrain as small quads with their corners on it (a plane needs no subdivision), a columnar
@@ -95,6 +83,7 @@ def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: floa
     between columns of different height. Shaded by each quad's normal relative to the flat floor's, so flat
     ground keeps the floor's colours and relief shows.
     """
+    towards = Camera.from_config(cfg).towards
     columns = ground.mode == COLUMNS
     bumpy = ground.mode == SMOOTH and float(np.ptp(ground.grid)) > 0
     sub = min(_MAX_SUBDIVISION, max(1, math.ceil(tile / (ground.cell / 2)))) if bumpy else 1
@@ -113,12 +102,10 @@ def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: floa
     quads = np.stack([np.stack([x, y, zz], axis=-1) for (x, y), zz in zip(xy, z, strict=True)], axis=-2)
     checker = (np.floor(cx / tile) + np.floor(cy / tile)).astype(np.int64) % 2
     corners, colours = [quads.reshape(-1, 4, 3)], [np.asarray(cfg.floor_colors)[checker.ravel()]]
-    normals = [np.broadcast_to([0.0, 0.0, 1.0], (len(corners[0]), 3))]  # columns' tops are level
-    if not columns:
-        n = np.cross(corners[0][:, 2] - corners[0][:, 0], corners[0][:, 3] - corners[0][:, 1])
-        normals = [n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)]
+    # a quad's normal from its diagonals (exactly +z on level ground: flat floors and columns' tops)
+    n = np.cross(corners[0][:, 2] - corners[0][:, 0], corners[0][:, 3] - corners[0][:, 1])
+    normals = [n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)]
     if columns:  # risers: where neighbouring tops differ, a vertical face on their shared edge, facing the lower
-        towards = Camera.from_config(cfg).towards
         for axis in (0, 1):
             a, b = (top[:-1], top[1:]) if axis == 0 else (top[:, :-1], top[:, 1:])
             facing = np.sign(a - b)  # +1: the face looks towards +axis (the lower top lies there)
@@ -141,8 +128,12 @@ def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: floa
             normal[:, axis] = facing[i, j]
             normals.append(normal)
     corners_all, rgb, normal_all = np.concatenate(corners), np.concatenate(colours), np.concatenate(normals)
-    up = shade(np.array([[0.0, 0.0, 1.0]]), np.ones((1, 3)), cfg)[0]
-    return corners_all, np.clip(shade(normal_all, rgb, cfg) / up, 0.0, 1.0)
+    # relief: each quad's Lambert factor over level ground's, so level ground keeps the floor's colours exactly
+    relief = (lambert(normal_all, cfg) / lambert(np.array([[0.0, 0.0, 1.0]]), cfg))[:, None]
+    # drawing order: far quads first where they can hide one another; level ground keeps the checker's own order
+    depth = corners_all.mean(axis=1) @ towards
+    order = np.argsort(depth, kind="stable") if np.ptp(corners_all[..., 2]) > 0 else np.arange(len(depth))
+    return corners_all[order], np.clip(rgb * relief, 0.0, 1.0)[order]
 
 
 def render_recording(
@@ -174,11 +165,9 @@ def render_recording(
     base = material_rgb(np.asarray(recording.materials[robot]), cfg.material_colors)  # [n, 3]
     camera = Camera.from_config(cfg)
     com = pos.mean(axis=1)  # [F, 3]
-    floor_z = -L / 2.0
     start = com[0]
-    ground = recording.ground
-    # the path is drawn on the ground under the centre of mass (a hair above it, so a slope does not hide it)
-    path_z = np.full(len(com), floor_z) if ground is None else ground.height(com[:, 0], com[:, 1]) + 0.02 * L
+    ground = recording.ground if recording.ground is not None else Terrain.flat().field(L)
+    path_z = ground.height(com[:, 0], com[:, 1])  # the path lies on the ground (drawn after it, so never hidden)
 
     # One framing for the whole video (so the scale does not breathe): the robot's largest half-extent plus a view
     # radius, around its centre of mass (follow) or around the whole trajectory (fixed).
@@ -194,11 +183,10 @@ def render_recording(
     light_normals = FACE_NORMALS.astype(np.float64)
     for i, f in enumerate(chosen.tolist()):  # frames are independent images; the work inside is vectorised
         centre_xy = com[f, :2] if cfg.follow else fixed_centre
-        ground_lo = ground_hi = floor_z
-        if ground is not None:  # the ground under the framed square sets its lowest and highest point
-            gx, gy = np.meshgrid(*(np.linspace(c - radius, c + radius, 9) for c in centre_xy), indexing="ij")
-            heights = ground.height(gx, gy)
-            ground_lo, ground_hi = float(heights.min()), float(heights.max())
+        # the ground under the framed square sets its lowest and highest point
+        gx, gy = np.meshgrid(*(np.linspace(c - radius, c + radius, 9) for c in centre_xy), indexing="ij")
+        heights = ground.height(gx, gy)
+        ground_lo, ground_hi = float(heights.min()), float(heights.max())
         box = np.array([[centre_xy[0] + sx * radius, centre_xy[1] + sy * radius, z]
                         for sx in (-1, 1) for sy in (-1, 1) for z in (ground_lo, max(top, ground_hi))])
         canvas = Canvas(cfg, camera, box)
@@ -211,12 +199,8 @@ def render_recording(
         else:
             lo_f, hi_f = centre_xy - 1.5 * radius, centre_xy + 1.5 * radius
         lo_f, hi_f = np.maximum(lo_f, centre_xy - 10 * radius), np.minimum(hi_f, centre_xy + 10 * radius)  # grazing
-        if ground is None:
-            _draw_floor(canvas, cfg, lo_f, hi_f, tile, floor_z)
-        else:
-            corners_g, rgb_g = ground_quads(ground, lo_f, hi_f, tile, cfg)
-            order = np.argsort(corners_g.mean(axis=1) @ camera.towards, kind="stable")  # far quads first
-            canvas.quads(corners_g[order], rgb_g[order], np.ones(len(order)), outline=False)
+        corners_g, rgb_g = ground_quads(ground, lo_f, hi_f, tile, cfg)
+        canvas.quads(corners_g, rgb_g, np.ones(len(corners_g)), outline=False)
 
         # Trace of the centre of mass, on the ground.
         path = np.concatenate([com[: f + 1, :2], path_z[: f + 1, None]], axis=1)

@@ -114,12 +114,16 @@ class Camera:
         return np.stack([points @ self.right, points @ self.up], axis=-1)
 
 
-def shade(normals: np.ndarray, colors: np.ndarray, cfg: RenderConfig) -> np.ndarray:
-    """Lambert shading: float ``[Q, 3]`` colours of faces with unit ``normals [Q, 3]``."""
+def lambert(normals: np.ndarray, cfg: RenderConfig) -> np.ndarray:
+    """Brightness ``[Q]`` of faces with unit ``normals [Q, 3]``: ambient + diffuse · max(0, n·light)."""
     light = np.asarray(cfg.light, dtype=np.float64)
     light = light / np.linalg.norm(light)
-    k = cfg.ambient + cfg.diffuse * np.clip(normals @ light, 0.0, None)
-    return np.clip(colors * k[:, None], 0.0, 1.0)
+    return cfg.ambient + cfg.diffuse * np.clip(normals @ light, 0.0, None)
+
+
+def shade(normals: np.ndarray, colors: np.ndarray, cfg: RenderConfig) -> np.ndarray:
+    """Lambert shading: float ``[Q, 3]`` colours of faces with unit ``normals [Q, 3]``."""
+    return np.clip(colors * lambert(normals, cfg)[:, None], 0.0, 1.0)
 
 
 def _font(size: int) -> ImageFont.ImageFont | ImageFont.FreeTypeFont:
@@ -209,4 +213,4 @@ class Canvas:
         return np.asarray(image, dtype=np.uint8).copy()
 
 
-__all__ = ["Camera", "Canvas", "RenderConfig", "shade"]
+__all__ = ["Camera", "Canvas", "RenderConfig", "lambert", "shade"]

@@ -315,7 +315,7 @@ class Simulator:
 
         recording = None
         if frames is not None:
-            recording = self._recording(layout, frames)
+            recording = self._recording(layout, frames, engine.terrain)
         return SimResult(
             displacement=per_body(disp).float(),
             max_voxel_displacement=per_body(max_vox).float(),
@@ -332,7 +332,7 @@ class Simulator:
             trace=trace,
         )
 
-    def _recording(self, layout: Layout, frames: list) -> Recording:
+    def _recording(self, layout: Layout, frames: list, ground: HeightField) -> Recording:
         times = np.array([t for t, _ in frames])
         stack = np.stack([f for _, f in frames]) if frames else np.zeros((0, layout.num_voxels, 7), np.float32)
         stack = np.nan_to_num(stack, nan=0.0, posinf=0.0, neginf=0.0)
@@ -348,7 +348,6 @@ class Simulator:
             positions.append(np.ascontiguousarray(stack[:, lo:hi, 0:3]))
             # the frame holds POS, MOM, ORI columns in that order: ORI sits at offset 6
             orientations.append(np.ascontiguousarray(stack[:, lo:hi, VR.ORI - VR.POS:VR.ORI - VR.POS + 4]))
-        ground = self.config.terrain.field(self.config.voxel_size)
         return Recording(times=times, voxel_size=self.config.voxel_size, lattice=lattice, materials=materials,
                          positions=positions, orientations=orientations,
                          ground=None if ground.mode == FLAT else ground)
