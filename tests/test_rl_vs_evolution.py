@@ -78,3 +78,16 @@ def test_cost_of_dense_rewards_counts_the_partial_bodies() -> None:
         assert rl_vs_evolution.method_of({"algo": {"name": "ppo"}, **config}) == f"ppo+dense({every})"
     assert rl_vs_evolution.designs_per_episode({"env": {"steps": 100}}) == 1
     assert rl_vs_evolution.method_of({"env": {}}) == "ppo"
+
+
+def test_population_mean_at_the_budget_averages_only_the_last_epochs(sweep: Path, tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a window shorter than the run (2 epochs), the mean at 24 designs (epoch 3) is epochs 2-3's, not 0-3's."""
+    monkeypatch.setattr(rl_vs_evolution, "LAST_EPOCHS", 2)
+    out = rl_vs_evolution.main([str(sweep), "--out", str(tmp_path), "--budget", "24"])
+    _, summary = common.read_csv(out["summary_csv"])
+    for method in ("ppo", "ga"):
+        runs = sorted(sweep.glob(f"algo={method},seed=*"))
+        means = np.array([[r.rewards.mean() for r in iter_records(run)] for run in runs])  # [seeds, 4 epochs]
+        row = list(summary["method"]).index(method)
+        assert summary["population_mean"][row] == pytest.approx(means[:, 2:4].mean(axis=1).mean(), rel=1e-5)
