@@ -16,7 +16,9 @@ from helpers import scalars, tiny
 from freeform import train as train_mod
 from freeform.checkpoint import load_checkpoint
 from freeform.envs import DesignEnv
+from freeform.body import largest_component
 from freeform.evolve import CMAES, Evolution, GridGA, SequenceGA, design_grids
+from freeform.evolve.grid_ga import touching
 from freeform.records import iter_records, read_record
 
 EVOLUTION = ("ga", "cmaes", "grid_ga")
@@ -90,6 +92,43 @@ def test_grid_ga_starts_from_the_designs_of_the_sequence_ga() -> None:
     assert torch.equal(design_grids(env, ga.ask()), grid.ask())
 
 
+
+
+def test_touching_is_the_six_neighbour_dilation() -> None:
+    """``touching`` = scipy's binary dilation with the 6-neighbour cross, nothing beyond the grid."""
+    from scipy import ndimage
+
+    occupied = torch.rand((5, 6, 6, 6), generator=torch.Generator().manual_seed(0)) < 0.1
+    cross = ndimage.generate_binary_structure(3, 1)
+    expected = np.stack([ndimage.binary_dilation(o, structure=cross) for o in occupied.numpy()])
+    assert np.array_equal(touching(occupied).numpy(), expected)
+
+
+@pytest.mark.parametrize("materials", [2, 4])
+def test_grid_ga_child_is_its_parents_body_with_mutation_voxels_cells_changed_next_to_it(materials: int) -> None:
+    """Each child differs from one parent's largest component in exactly ``mutation_voxels`` cells, all on the body
+    or touching it; the elites are the best grids unchanged."""
+    gen = torch.Generator().manual_seed(1)
+    grids = torch.zeros((8, 6, 6, 6), dtype=torch.uint8)
+    for i in range(8):  # distinct bodies, each with a stray voxel that the child must lose
+        grids[i, 1:4, 1:3, 0 : 1 + i % 3] = torch.randint(1, materials, (3, 2, 1 + i % 3), generator=gen).to(torch.uint8)
+        grids[i, 5, 5, 5] = 1
+        grids[i, 1, 1, 0] = 1 + i % (materials - 1)
+        grids[i, 3, 2 + i % 2, 5] = 1
+    m, elite = 3, 2
+    ga = GridGA(8, 1, 5, materials, lambda a: grids, elite=elite, mutation_voxels=m, seed=0)
+    fitness = torch.arange(8, dtype=torch.float32)
+    ga.tell(fitness)
+    children = ga.ask()
+    assert torch.equal(children[:elite], grids[[7, 6]])
+    bodies = largest_component(grids)
+    near = touching(bodies != 0)
+    for child in children[elite:]:
+        differs = child.unsqueeze(0) != bodies  # against every parent's body
+        parent = int(differs.reshape(8, -1).sum(1).argmin())
+        assert int(differs[parent].sum()) == m
+        assert bool(near[parent][differs[parent]].all())
+        assert int(child.max()) < materials
 # ---------------------------------------------------------------------------------------------- through the app
 
 TINY = tiny("env.num_envs=6")
