@@ -6,8 +6,10 @@ For each run and each checkpoint (default: ``epoch_000000.pt``, the untrained po
 designs ``--episodes`` robots (actions sampled from its Gaussian as in training, or its mean with
 ``--deterministic``), the run's task scores them (locomotion: simulated with the run's protocol), and the mean
 reward with its 99 % band and the mean body metrics are reported. Unlike the training curve, these are new designs
-of a fixed policy, all scored after training, so the two policies are compared on equal terms. Writes
-``policy_eval.csv``.
+of a fixed policy, all scored after training, so the two policies are compared on equal terms. ``--set KEY=VALUE``
+scores them under another protocol than the run trained with (dotted keys of its config, as
+``experiments.rescore``), e.g. ``--set sim.burn_in=3.0``: is what the policy learned still there once every body has
+landed? Writes ``policy_eval.csv``.
 """
 
 from __future__ import annotations
@@ -54,6 +56,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     p.add_argument("--seed", type=int, default=12345, help="seed of the action noise (the same for every policy)")
     p.add_argument("--deterministic", action="store_true", help="use the policy's mean action")
     p.add_argument("--device", default="cpu", help="torch device (cpu | cuda[:i])")
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help="dotted overrides of each run's config to design and score under, e.g. sim.burn_in=3.0")
     args = p.parse_args(argv)
     if args.episodes < 1:
         raise SystemExit(f"--episodes must be >= 1, got {args.episodes}")
@@ -66,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
                              "reward_lower": [], "reward_upper": []}
     metric_rows: dict[str, list] = {}
     for run in runs:
-        cfg = run_train_config(run)
+        cfg = run_train_config(run, args.overrides)
         for name in args.checkpoints:
             path = run / CHECKPOINT_DIR / name
             if not path.is_file():
@@ -88,6 +92,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
                                                          if k in ("volume", "lcc_ratio")))
     prov = common.provenance(runs)
     prov["action_noise"] = "mean action" if args.deterministic else f"sampled, seed {args.seed}"
+    if args.overrides:
+        prov["overrides"] = " ".join(args.overrides)
     out = {"csv": common.write_csv(args.out / "policy_eval.csv", {**rows, **metric_rows}, prov)}
     print("wrote " + str(out["csv"]))
     return out

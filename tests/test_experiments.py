@@ -337,3 +337,22 @@ def test_rescore_reproduces_the_recorded_rewards_and_applies_the_overrides(locom
         rescore.main([run, "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="sim.burn_in"):
         rescore.main([run, "--out", str(tmp_path), "--set", "sim.burn_in=-1"])
+
+
+def test_policy_eval_designs_with_the_checkpoint_and_scores_under_the_given_protocol(locomotion_runs, tmp_path):
+    """The same policy and noise design the same bodies whatever the protocol (metrics equal); the run's own
+    protocol given as an override changes nothing; another burn-in changes the rewards and is recorded."""
+    from experiments import policy_eval
+
+    run, common_args = str(locomotion_runs[0]), ["--episodes", "6", "--out", str(tmp_path)]
+    prov_own, own = common.read_csv(policy_eval.main([run, *common_args])["csv"])
+    _, same = common.read_csv(policy_eval.main([run, *common_args, "--set", "sim.burn_in=0.05"])["csv"])
+    prov_other, other = common.read_csv(policy_eval.main([run, *common_args, "--set", "sim.burn_in=0.3"])["csv"])
+    np.testing.assert_array_equal(own["epoch"], [0, 2])
+    for key in ("reward_mean", "volume_mean", "passive_ratio_mean"):
+        np.testing.assert_array_equal(same[key], own[key])
+    np.testing.assert_array_equal(other["volume_mean"], own["volume_mean"])
+    assert not np.allclose(other["reward_mean"], own["reward_mean"], rtol=1e-3)
+    assert "overrides" not in prov_own and prov_other["overrides"] == "sim.burn_in=0.3"
+    with pytest.raises(ValueError, match="sim.burn_in"):
+        policy_eval.main([run, *common_args, "--set", "sim.burn_in=-1"])
