@@ -198,4 +198,27 @@ def test_paper_locomotion_preset_is_table_one_with_the_paper_simulator():
 def test_cpu_demo_preset_is_small():
     cfg = _composed("experiment=locomotion_cpu")
     assert cfg.task.name == "locomotion" and cfg.trainer.device == "cpu"
-    assert cfg.env.resolution <= 8 and cfg.env.steps <= 20 and cfg.sim.burn_in + cfg.sim.duration <= 1.0
+    assert cfg.env.resolution <= 8 and cfg.env.steps <= 20 and cfg.sim.burn_in + cfg.sim.duration <= 2.5
+
+
+def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over():
+    """A passive body cannot walk. Under the demo's protocol the evaluation starts after nearly every random design
+    made passive has landed, so they earn ≈ 0; with the 0.25 s burn-in the demo had until 2026-11-23 most of the same
+    bodies earned voxel lengths by toppling during the evaluation window."""
+    import dataclasses
+
+    from freeform.train import build_task
+
+    cfg = _composed("experiment=locomotion_cpu")
+    env = DesignEnv(32, resolution=cfg.env.resolution, materials=4, steps=cfg.env.steps, compute_metrics=False)
+    env.reset()
+    noise = torch.Generator().manual_seed(0)
+    for _ in range(cfg.env.steps):
+        _, _, _, info = env.step(torch.randn((32, env.action_dim), generator=noise))
+    passive = (info["final_grids"] != 0).to(torch.uint8)  # the untrained policy's shapes, every voxel passive tissue
+    demo = build_task(cfg, torch.device("cpu")).reward(passive)
+    short = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, burn_in=0.25))
+    toppling = build_task(short, torch.device("cpu")).reward(passive)
+    # measured: demo mean 0.071 with 1 of 32 bodies moving > 0.1 (a late fall); 0.25 s: mean 1.58, 27 of 32 moving
+    assert float((demo > 0.1).float().mean()) <= 0.1 and float((toppling > 0.1).float().mean()) >= 0.5
+    assert float(demo.mean()) < 0.1 * float(toppling.mean())
