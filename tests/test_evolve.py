@@ -14,9 +14,9 @@ from helpers import run_cli as cli  # tests/helpers.py
 from helpers import scalars, tiny
 
 from freeform import train as train_mod
+from freeform.body import largest_component
 from freeform.checkpoint import load_checkpoint
 from freeform.envs import DesignEnv
-from freeform.body import largest_component
 from freeform.evolve import CMAES, Evolution, GridGA, SequenceGA, design_grids
 from freeform.evolve.grid_ga import touching
 from freeform.records import iter_records, read_record
@@ -92,8 +92,6 @@ def test_grid_ga_starts_from_the_designs_of_the_sequence_ga() -> None:
     assert torch.equal(design_grids(env, ga.ask()), grid.ask())
 
 
-
-
 def test_touching_is_the_six_neighbour_dilation() -> None:
     """``touching`` = scipy's binary dilation with the 6-neighbour cross, nothing beyond the grid."""
     from scipy import ndimage
@@ -110,7 +108,7 @@ def test_grid_ga_child_is_its_parents_body_with_mutation_voxels_cells_changed_ne
     or touching it; the elites are the best grids unchanged."""
     gen = torch.Generator().manual_seed(1)
     grids = torch.zeros((8, 6, 6, 6), dtype=torch.uint8)
-    for i in range(8):  # distinct bodies, each with a stray voxel that the child must lose
+    for i in range(8):  # bodies of different shapes, each with a stray voxel that the child must lose
         grids[i, 1:4, 1:3, 0 : 1 + i % 3] = torch.randint(1, materials, (3, 2, 1 + i % 3), generator=gen).to(torch.uint8)
         grids[i, 5, 5, 5] = 1
         grids[i, 1, 1, 0] = 1 + i % (materials - 1)
@@ -129,6 +127,8 @@ def test_grid_ga_child_is_its_parents_body_with_mutation_voxels_cells_changed_ne
         assert int(differs[parent].sum()) == m
         assert bool(near[parent][differs[parent]].all())
         assert int(child.max()) < materials
+
+
 # ---------------------------------------------------------------------------------------------- through the app
 
 TINY = tiny("env.num_envs=6")

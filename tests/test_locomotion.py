@@ -201,6 +201,15 @@ def test_cpu_demo_preset_is_small():
     assert cfg.env.resolution <= 8 and cfg.env.steps <= 20 and cfg.sim.burn_in + cfg.sim.duration <= 2.5
 
 
+def test_rl_vs_evolution_preset_keeps_the_protocol_its_documented_table_was_measured_with():
+    """docs/experiments.md's locomotion comparison ran 80 epochs with a 0.25 s burn-in, before the demo settled for
+    2 s and shortened to 60 epochs: the preset pins both, whatever locomotion_cpu becomes."""
+    cfg = _composed("experiment=rl_vs_evolution_locomotion")
+    demo = _composed("experiment=locomotion_cpu")
+    assert (cfg.sim.burn_in, cfg.sim.duration, cfg.trainer.epochs, cfg.env.num_envs) == (0.25, 0.5, 80, 64)
+    assert (cfg.env, cfg.agent) == (demo.env, demo.agent)
+
+
 def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over():
     """A passive body cannot walk. Under the demo's protocol the evaluation starts after nearly every random design
     made passive has landed, so they earn ≈ 0; with the 0.25 s burn-in the demo had until 2026-11-23 most of the same
