@@ -281,6 +281,13 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
+def add_overrides(p: argparse.ArgumentParser, use: str) -> None:
+    """``--set KEY=VALUE ...`` (``args.overrides``): dotted keys of each run's config, merged and validated by
+    ``experiments.robustness.run_train_config``; ``use`` says what the command does with them."""
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help=f"dotted overrides of each run's config {use}, e.g. sim.burn_in=2.0")
+
+
 # ---------------------------------------------------------------------------------------------------- trials
 @dataclass
 class Trial:

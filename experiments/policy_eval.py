@@ -56,8 +56,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     p.add_argument("--seed", type=int, default=12345, help="seed of the action noise (the same for every policy)")
     p.add_argument("--deterministic", action="store_true", help="use the policy's mean action")
     p.add_argument("--device", default="cpu", help="torch device (cpu | cuda[:i])")
-    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
-                   help="dotted overrides of each run's config to design and score under, e.g. sim.burn_in=3.0")
+    common.add_overrides(p, "to design and score under")
     args = p.parse_args(argv)
     if args.episodes < 1:
         raise SystemExit(f"--episodes must be >= 1, got {args.episodes}")

@@ -31,14 +31,14 @@ def pick_epochs(epochs: Sequence[int], spec: str) -> list[int]:
         elif token.isdigit() and int(token) in epochs:
             out.append(int(token))
         else:
-            raise ValueError(f"--epochs entries must be 'first', 'last' or a recorded epoch, got {token!r}")
+            raise ValueError(f"--epochs entries must be 'first', 'last' or a recorded epoch, got {token!r}; this "
+                             f"run recorded epochs {epochs[0]}..{epochs[-1]} ({len(epochs)} records)")
     return list(dict.fromkeys(out))
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     p = common.base_parser(__doc__.splitlines()[0])
-    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", dest="overrides",
-                   help="dotted overrides of each run's config for the second scoring, e.g. sim.burn_in=1.0")
+    common.add_overrides(p, "for the second scoring")
     p.add_argument("--epochs", default="first,last", help="recorded epochs: first, last or numbers (default both)")
     p.add_argument("--designs", type=int, default=64, help="at most this many designs of each epoch (default 64)")
     p.add_argument("--device", default="cpu", help="torch device of the task (cpu | cuda[:i])")

@@ -124,7 +124,7 @@ class AtBudget:
 def at_budget(method: Method, budget: float) -> AtBudget:
     """The method after its last epoch within ``budget`` designs: population mean (each seed's last
     ``LAST_EPOCHS`` epochs) and best so far, across-seed mean ± 99 % half-width."""
-    means, bests, used = [], [], []
+    means, bests, spent = [], [], []
     for r in method.runs:
         within = np.flatnonzero(r.designs <= budget)
         if not len(within):
@@ -133,12 +133,11 @@ def at_budget(method: Method, budget: float) -> AtBudget:
         last = within[-1]
         means.append(np.nanmean(r.mean[max(0, last - LAST_EPOCHS + 1): last + 1]))
         bests.append(r.best[last])
-        used.append(float(r.designs[last]))
+        spent.append(float(r.designs[last]))
     m, mh = common.mean_band(np.asarray(means))
     b, bh = common.mean_band(np.asarray(bests))
     walls = [r.wall_s for r in method.runs if np.isfinite(r.wall_s)]
-    used = max(used)
-    return AtBudget(method=method.name, designs=used, mean=float(m), mean_band=float(mh), best=float(b),
+    return AtBudget(method=method.name, designs=max(spent), mean=float(m), mean_band=float(mh), best=float(b),
                     best_band=float(bh), wall_s=float(np.mean(walls)) if walls else float("nan"),
                     seeds=len(method.runs))
 

@@ -98,8 +98,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     p.add_argument("--steps", type=int, nargs="+", default=None, help="design steps t to score (default: 1 … T)")
     p.add_argument("--device", default="cpu", help="torch device of the replay and the task (cpu | cuda[:i])")
     p.add_argument("--batch-size", type=int, default=1024, help="designs per task.reward call (simulation batch)")
-    p.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE",
-                   help="override the runs' config for scoring, e.g. sim.duration=1.0")
+    common.add_overrides(p, "for scoring")
     args = p.parse_args(argv)
     if args.batch_size < 1:
         raise SystemExit(f"--batch-size must be >= 1, got {args.batch_size}")

@@ -216,15 +216,13 @@ def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over()
     bodies earned voxel lengths by toppling during the evaluation window."""
     import dataclasses
 
+    from freeform.evolve import design_grids
     from freeform.train import build_task
 
     cfg = _composed("experiment=locomotion_cpu")
     env = DesignEnv(32, resolution=cfg.env.resolution, materials=4, steps=cfg.env.steps, compute_metrics=False)
-    env.reset()
-    noise = torch.Generator().manual_seed(0)
-    for _ in range(cfg.env.steps):
-        _, _, _, info = env.step(torch.randn((32, env.action_dim), generator=noise))
-    passive = (info["final_grids"] != 0).to(torch.uint8)  # the untrained policy's shapes, every voxel passive tissue
+    noise = torch.randn((env.steps, 32, env.action_dim), generator=torch.Generator().manual_seed(0))  # step-major
+    passive = (design_grids(env, noise.transpose(0, 1)) != 0).to(torch.uint8)  # untrained shapes, all passive tissue
     demo = build_task(cfg, torch.device("cpu")).reward(passive)
     short = dataclasses.replace(cfg, sim=dataclasses.replace(cfg.sim, burn_in=0.25))
     toppling = build_task(short, torch.device("cpu")).reward(passive)

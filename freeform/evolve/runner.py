@@ -2,11 +2,11 @@
 ``global_step``, ``state_dict()``/``load_state_dict()``, ``checkpoint()``, ``dp``), so ``freeform-train algo=ga``
 gets the same run directory, TensorBoard tags, design records, checkpoints, resume and preemption as PPO.
 
-An epoch is one generation: the optimiser's ``N = env.num_envs`` genomes are scored in one batch — action
-sequences by placing their T bundles with the design rule and scoring the final grids with ``DesignEnv.score``
-(what the last step of PPO's rollout calls: the same task and simulator), grids by ``DesignEnv.score`` directly — and the scores are told back. Its cost is N scored designs, what a PPO epoch
-with ``rollout_steps = T`` costs; ``global_step`` advances by N·T as PPO's does, so TensorBoard curves of both
-line up at equal designs.
+An epoch is one generation: the optimiser's ``N = env.num_envs`` genomes are scored in one batch by
+``DesignEnv.score`` (what the last step of PPO's rollout calls: the same task and simulator) — action sequences
+after their T bundles are placed by the design rule, grids directly — and the scores are told back. Its cost is N
+scored designs, what a PPO epoch with ``rollout_steps = T`` costs; ``global_step`` advances by N·T as PPO's does,
+so TensorBoard curves of both line up at equal designs.
 """
 
 from __future__ import annotations
