@@ -4,6 +4,10 @@ A policy is an ``nn.Module`` whose ``forward(obs)`` returns ``(mean [N, A], log_
 Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). Every policy keeps its
 constructor arguments in ``init_kwargs`` so that a checkpoint can rebuild it from the file alone, and names groups of
 action dimensions in ``action_groups`` (PPO logs the mean σ of each group).
+
+A policy whose actor and critic share no layers may also define ``action_params(obs) -> (mean, log_std)`` and
+``value(obs) -> [N]`` (the two halves of ``forward``): PPO then runs only the actor at each rollout step and the
+critic once over the whole rollout, which with one env is most of the acting cost left.
 """
 
 from __future__ import annotations
@@ -147,8 +151,15 @@ class MLPActorCritic(nn.Module):
             x = torch.tanh(F.linear(x, layer.weight, layer.bias))
         return F.linear(x, linears[-1].weight, linears[-1].bias)
 
+    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``)."""
+        mean = self._mlp(self._actor_linears, obs.reshape(obs.shape[0], -1).to(self.log_std.dtype))
+        return mean, self.log_std.expand_as(mean)
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """float ``[N, obs_dim]`` → V(obs) ``[N]``."""
+        return self._mlp(self._critic_linears, obs.reshape(obs.shape[0], -1).to(self.log_std.dtype)).squeeze(-1)
+
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``, value ``[N]``)."""
-        x = obs.reshape(obs.shape[0], -1).to(self.log_std.dtype)
-        mean = self._mlp(self._actor_linears, x)
-        return mean, self.log_std.expand_as(mean), self._mlp(self._critic_linears, x).squeeze(-1)
+        return (*self.action_params(obs), self.value(obs))

@@ -40,6 +40,26 @@ class RunningMeanStd:
         self.mean.add_(delta, alpha=n / total)
         self.count = total
 
+    @torch.no_grad()
+    def update_steps(self, batches: torch.Tensor) -> torch.Tensor:
+        """Fold in S batches one after the other (``batches [S, B, *shape]``, as S calls of ``update``) and return the
+        variance after each, ``[S, *shape]``: what a rollout's reward scaling reads at each of its S steps.
+
+        Chan's update is exact pooling, so the state after s batches is the pooled moments of the prior and those
+        samples — prefix sums, not S small updates. Sums are taken about the prior mean (better conditioned).
+        """
+        x = batches.to(self.mean.dtype) - self.mean
+        n = x.shape[1]
+        sums, squares = x.sum(1).cumsum(0), x.square().sum(1).cumsum(0)
+        counts = self.count + n * torch.arange(1, x.shape[0] + 1, dtype=x.dtype, device=x.device)
+        counts = counts.reshape(-1, *([1] * (x.dim() - 2)))
+        shift = sums / counts  # pooled mean − prior mean
+        var = ((self.var * self.count + squares) / counts - shift.square()).clamp_min(0.0)
+        self.mean = self.mean + shift[-1]
+        self.var = var[-1].clone()
+        self.count = self.count + n * x.shape[0]
+        return var
+
     def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
         """``clip((x − mean) / sqrt(var + ε), ±clip)`` as float32."""
         out = (x.to(self.mean.dtype) - self.mean) / torch.sqrt(self.var + epsilon)

@@ -28,6 +28,7 @@ import torch.nn as nn
 
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
+from freeform.agents.flat_params import FlatParameters
 from freeform.agents.normalization import RunningMeanStd
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
@@ -184,6 +185,51 @@ def gaussian_kl(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor
     return (log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5).sum(-1)
 
 
+def discounted_cumsum(
+    x: torch.Tensor,
+    discount: float,
+    starts: torch.Tensor,
+    initial: torch.Tensor | None = None,
+    reverse: bool = False,
+) -> torch.Tensor:
+    """``y_t = x_t + discount · y_{t−1}``, restarted where ``starts[t]`` (there ``y_t = x_t``); ``y_{−1} = initial``
+    (default 0). ``reverse=True`` runs backwards in time: ``y_t = x_t + discount · y_{t+1}`` unless ``starts[t]``.
+
+    ``x [T, ...]``, ``starts [T, ...]`` bool; ``initial [...]``; returns ``[T, ...]`` in ``x``'s dtype. One
+    recurrence for the returns, GAE and the episode sums. Why not a loop over t: with few envs and long rollouts
+    (a Gymnasium env, T = 2,048, N = 1) the loop's per-step tensor operations cost more than the rollout's own
+    arithmetic. So time is cut into blocks of K steps, each solved at once as ``y = L x`` with
+    ``L[i, j] = discount^(i − j)`` where no start lies in ``(j, i]`` (else 0), and only the T / K block ends are
+    carried in a loop. K shrinks as the batch grows (``L`` holds T·K·N numbers); at K = 1 it is the plain loop.
+    """
+    if reverse:
+        return discounted_cumsum(x.flip(0), discount, starts.flip(0), initial).flip(0)
+    steps, rest = x.shape[0], x.shape[1:]
+    width = max(1, x[0].numel())
+    block = max(1, min(64, steps, 4096 // width))
+    pad = (-steps) % block
+    flat_x, flat_starts = x.reshape(steps, width), starts.reshape(steps, width)
+    if pad:
+        flat_x = torch.cat([flat_x, flat_x.new_zeros(pad, width)])
+        flat_starts = torch.cat([flat_starts, flat_starts.new_ones(pad, width)])
+    blocks = (steps + pad) // block
+    xb = flat_x.reshape(blocks, block, width)
+    segment = flat_starts.reshape(blocks, block, width).cumsum(1)  # starts in the block up to and including step i
+    i = torch.arange(block, device=x.device)
+    lag = (i[:, None] - i[None, :]).to(x.dtype)
+    powers = torch.where(lag >= 0, torch.full_like(lag, discount).pow(lag.clamp_min(0)), 0.0)  # discount^(i − j), i ≥ j
+    same_run = segment[:, :, None, :] == segment[:, None, :, :]  # [blocks, i, j, width]: no start in (j, i]
+    local = (same_run * powers[None, :, :, None] * xb[:, None, :, :]).sum(2)  # each block from a zero carry
+    carry = (segment == 0) * (discount * torch.full_like(lag[0], discount).pow(i.to(x.dtype)))[None, :, None]
+    previous = x.new_zeros(width) if initial is None else initial.reshape(width).to(x.dtype)
+    out = []
+    for b in range(blocks):  # a loop over blocks only: the carry of one block's last step into the next
+        y = torch.addcmul(local[b], carry[b], previous)
+        out.append(y)
+        previous = y[-1]
+    return torch.cat(out)[:steps].reshape(steps, *rest)
+
+
 def compute_advantages(
     rewards: torch.Tensor,
     values: torch.Tensor,
@@ -205,24 +251,12 @@ def compute_advantages(
     bootstrapped with ``final_values[t]`` = V(its last observation), while a terminated one is not. The recursion
     stops at every done either way. None (the design env: episodes never truncate) = no step is truncated.
     """
-    steps = rewards.shape[0]
-    advantages = torch.zeros_like(rewards)
-    not_done = 1.0 - dones.to(rewards.dtype)
-    next_value, running = last_value.to(rewards.dtype), torch.zeros_like(last_value, dtype=rewards.dtype)
-    if truncated is None or final_values is None:
-        for t in reversed(range(steps)):  # a loop over time only; every env is handled at once
-            delta = rewards[t] + gamma * not_done[t] * next_value - values[t]
-            running = delta + gamma * gae_lambda * not_done[t] * running
-            advantages[t] = running
-            next_value = values[t]
-        return advantages, advantages + values
-    cut = truncated.to(rewards.dtype)
-    for t in reversed(range(steps)):
-        bootstrap = not_done[t] * next_value + cut[t] * final_values[t]  # V(s_t+1), V(s_final) or 0 (terminated)
-        delta = rewards[t] + gamma * bootstrap - values[t]
-        running = delta + gamma * gae_lambda * not_done[t] * running
-        advantages[t] = running
-        next_value = values[t]
+    next_values = torch.cat([values[1:], last_value.to(values.dtype)[None]])
+    bootstrap = torch.where(dones, 0.0, next_values)  # V(s_t+1), or 0 where the episode ended at t …
+    if truncated is not None and final_values is not None:
+        bootstrap = bootstrap + truncated.to(rewards.dtype) * final_values  # … unless a time limit cut it: V(s_final)
+    deltas = rewards + gamma * bootstrap - values
+    advantages = discounted_cumsum(deltas, gamma * gae_lambda, dones, reverse=True)
     return advantages, advantages + values
 
 
@@ -367,9 +401,14 @@ class PPO:
         self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
         self.num_envs = self.dp.num_envs
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
-        # Multi-tensor Adam (foreach) gives the single-tensor loop's numbers bit for bit, with fewer Python-level ops.
+        self.critic_apart = all(callable(getattr(policy, name, None)) for name in ("action_params", "value"))
+        """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
+        step and the critic once over the rollout (``networks.py``)."""
+        self.flat = FlatParameters(self.policy.parameters())
+        """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
+        clipping and zeroing are one operation each (``flat_params.py``)."""
         impl = {"fused": True} if config.fused_adam else {"foreach": True}
-        self.optimizer = torch.optim.Adam(self.policy.parameters(), lr=config.lr, eps=config.adam_eps, **impl)
+        self.optimizer = torch.optim.Adam([self.flat.value], lr=config.lr, eps=config.adam_eps, **impl)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.kl_coeff = float(config.kl_coeff)
@@ -413,13 +452,19 @@ class PPO:
     # -- acting ----------------------------------------------------------------------------------------------------
 
     def _sample(self, obs: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, ...]:
-        """obs ``[N, ...]`` → (action, logprob, value, mean, log_std); noise from ``self.generator``."""
-        mean, log_std, value = self.policy(obs)
-        if deterministic:
-            action = mean
+        """obs ``[N, ...]`` → (action, value, mean, log_std); noise from ``self.generator``. ``value`` is None when
+        the critic runs apart (``critic_apart``)."""
+        if self.critic_apart:
+            (mean, log_std), value = self.policy.action_params(obs), None
         else:
-            action = mean + torch.exp(log_std) * self.dp.env_noise(mean, self.generator)
-        return action, gaussian_log_prob(action, mean, log_std), value, mean, log_std
+            mean, log_std, value = self.policy(obs)
+        if deterministic:
+            return mean, value, mean, log_std
+        return torch.addcmul(mean, torch.exp(log_std), self.dp.env_noise(mean, self.generator)), value, mean, log_std
+
+    def _value(self, obs: torch.Tensor) -> torch.Tensor:
+        """V(obs) ``[N]`` for observations as the policy sees them."""
+        return self.policy.value(obs) if self.critic_apart else self.policy(obs)[2]
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
@@ -441,17 +486,20 @@ class PPO:
         if self.obs_rms is not None:
             self.obs_rms.update(self.dp.gather_envs(obs).reshape(-1, *self.obs_rms.mean.shape))  # every rank's envs
 
-    def _scale_rewards(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
-        """``reward_norm``: reward / √(Var[discounted return] + 1e-8), clipped (the return resets at a done)."""
+    def _scale_rewards(self, rewards: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+        """``reward_norm``: the rollout's rewards ``[T, N]`` divided by √(Var[discounted return] + 1e-8), clipped.
+
+        Step t reads the variance after the returns of steps ≤ t were folded in, as a per-step update would
+        (Gymnasium's ``NormalizeReward``); each env's discounted return restarts where ``starts`` (its episode began)
+        and carries over between rollouts in ``self.discounted_return``.
+        """
         if self.return_rms is None:
-            return reward
-        self.discounted_return = self.discounted_return * self.config.gamma + reward
-        self.return_rms.update(self.dp.gather_envs(self.discounted_return))
-        scaled = (reward / torch.sqrt(self.return_rms.var + 1e-8).to(reward.dtype)).clamp(
-            -self.config.reward_clip, self.config.reward_clip
-        )
-        self.discounted_return = torch.where(done, 0.0, self.discounted_return)
-        return scaled
+            return rewards
+        returns = discounted_cumsum(rewards.double(), self.config.gamma, starts, self.discounted_return)
+        var = self.return_rms.update_steps(self.dp.gather_envs(returns, dim=1))  # every rank's envs, step by step
+        self.discounted_return = returns[-1].to(self.discounted_return.dtype)
+        scale = torch.rsqrt(var + 1e-8).to(rewards.dtype)
+        return (rewards * scale[:, None]).clamp(-self.config.reward_clip, self.config.reward_clip)
 
     # -- rollout ---------------------------------------------------------------------------------------------------
 
@@ -460,58 +508,70 @@ class PPO:
         """Step every env ``rollout_steps`` times with the current policy into ``self.rollout``; fill advantages."""
         cfg, buf = self.config, self.rollout
         self.episode_infos = []
-        finished_returns, finished_lengths = [], []
         time_env = 0.0
         any_truncated = False
         buf.truncated.zero_()
         buf.final_values.zero_()
         buf.valid.fill_(True)
         self.policy.eval()
+        # Each step's tensors are listed and stacked into the buffers once, after the loop; what needs no policy
+        # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
+        # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
+        seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
         for t in range(cfg.rollout_steps):
             x = self.normalize_obs(self.obs)
-            buf.obs[t] = x
-            action, logprob, value, mean, log_std = self._sample(x)
-            buf.actions[t], buf.logprobs[t], buf.values[t], buf.means[t], buf.log_stds[t] = (
-                action, logprob, value, mean, log_std
-            )
+            action, value, mean, log_std = self._sample(x)
+            for store, item in ((seen, x), (actions, action), (values, value), (means, mean), (log_stds, log_std)):
+                store.append(item)  # (values: None when the critic runs apart, after the loop)
             t0 = time.perf_counter()
             next_obs, reward, done, info = self.env.step(action.to(self.env.device))
             time_env += time.perf_counter() - t0
             reward, done = reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             next_obs = next_obs.to(self.device)
             self._update_obs_rms(next_obs)
-            buf.rewards[t], buf.dones[t] = self._scale_rewards(reward, done), done
+            rewards.append(reward)
+            dones.append(done)
             if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
                 truncated = info["truncated"].to(self.device, torch.bool)
                 if truncated.any():
                     any_truncated = True
                     buf.truncated[t] = truncated
-                    final_value = self.policy(self.normalize_obs(info["final_obs"].to(self.device)))[2]
+                    final_value = self._value(self.normalize_obs(info["final_obs"].to(self.device)))
                     buf.final_values[t] = torch.where(truncated, final_value, 0.0)
-            self.episode_return += reward
             if "autoreset" in info:  # the env only reset (Gymnasium's next-step autoreset): not a transition
-                resetting = info["autoreset"].to(self.device, torch.bool)
-                buf.valid[t] = ~resetting
-                self.episode_length += (~resetting).to(self.episode_length.dtype)
-            else:
-                self.episode_length += 1
+                buf.valid[t] = ~info["autoreset"].to(self.device, torch.bool)
             if done.any():
                 self.episode_infos.append(info)
-                finished_returns.append(self.episode_return[done])
-                finished_lengths.append(self.episode_length[done])
-                self.episode_return = torch.where(done, 0.0, self.episode_return)
-                self.episode_length = torch.where(done, 0, self.episode_length)
             self.obs = next_obs
+        for name, steps in (("obs", seen), ("actions", actions), ("means", means), ("log_stds", log_stds),
+                            ("rewards", rewards), ("dones", dones)):
+            torch.stack(steps, out=buf[name])
+        if self.critic_apart:
+            buf.values = self._value(buf.obs.reshape(-1, *buf.obs.shape[2:])).reshape(buf.values.shape)
+        else:
+            torch.stack(values, out=buf.values)
+        buf.logprobs = gaussian_log_prob(buf.actions, buf.means, buf.log_stds)
+        starts = torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])  # an episode begins after a done
+
+        # Episode figures from the raw rewards (an episode may span rollouts: the sums carry over).
+        episode_returns = discounted_cumsum(buf.rewards.double(), 1.0, starts, self.episode_return)
+        episode_lengths = discounted_cumsum(buf.valid.double(), 1.0, starts, self.episode_length)
+        returns, lengths = episode_returns[buf.dones].float(), episode_lengths[buf.dones].round().long()
+        last_done = buf.dones[-1]
+        self.episode_return = torch.where(last_done, 0.0, episode_returns[-1]).to(self.episode_return.dtype)
+        self.episode_length = torch.where(last_done, 0.0, episode_lengths[-1]).round().to(self.episode_length.dtype)
+
+        buf.rewards = self._scale_rewards(buf.rewards, starts)
+        if self.return_rms is not None:
+            self.discounted_return = torch.where(last_done, 0.0, self.discounted_return)
         # An episode that the rollout cut is bootstrapped with V of its last observation.
-        buf.last_value = self.policy(self.normalize_obs(self.obs))[2]
+        buf.last_value = self._value(self.normalize_obs(self.obs))
         buf.advantages, buf.returns = compute_advantages(
             buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda,
             *((buf.truncated, buf.final_values) if any_truncated else ()),
         )
         self.global_step += cfg.rollout_steps * self.num_envs
 
-        returns = torch.cat(finished_returns) if finished_returns else torch.zeros(0, device=self.device)
-        lengths = torch.cat(finished_lengths) if finished_lengths else torch.zeros(0, dtype=torch.int64, device=self.device)
         returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)  # every rank's episodes
         nan = float("nan")
         return {
@@ -566,7 +626,8 @@ class PPO:
         kl_coeff = self.kl_coeff
         minibatch = min(cfg.sgd_minibatch_size, global_batch)
         num_minibatches = global_batch // minibatch
-        params = [p for p in self.policy.parameters() if p.requires_grad]
+        flat = self.flat
+        flat.check()
 
         def reduce(x: torch.Tensor) -> torch.Tensor:
             return dp.minibatch_mean(x, minibatch)
@@ -584,7 +645,7 @@ class PPO:
                 if cfg.advantage_norm == "minibatch":
                     adv = standardize(adv)
                 idx, adv = dp.local_share(idx, adv)
-                self.optimizer.zero_grad(set_to_none=True)
+                flat.zero_grad()
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
                     mean, log_std, value = self.policy(obs.index_select(0, idx))
                     logprob = gaussian_log_prob(actions[idx], mean, log_std)
@@ -603,9 +664,9 @@ class PPO:
                     with torch.no_grad():
                         clip_fraction = reduce(((ratio - 1.0).abs() > cfg.clip_param).float())
                         totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
-                dp.all_reduce_grads_(params)
+                dp.all_reduce_grads_([flat.value])
                 if cfg.grad_clip is not None:
-                    nn.utils.clip_grad_norm_(params, cfg.grad_clip, foreach=True)
+                    flat.clip_grad_norm_(cfg.grad_clip)
                 self.optimizer.step()
 
         dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
@@ -692,7 +753,7 @@ class PPO:
         ep_length = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.policy.eval()
         while bool((counts < targets).any()):
-            mean = self.policy(self.normalize_obs(obs))[0]
+            mean = self._sample(self.normalize_obs(obs), deterministic=True)[0]
             obs, reward, done, info = env.step(mean.to(env.device))
             obs, reward, done = obs.to(self.device), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             moving = ~info["autoreset"].to(self.device, torch.bool) if "autoreset" in info else torch.ones_like(done)
@@ -759,7 +820,7 @@ class PPO:
             raise ValueError(f"the state holds {saved_envs} envs but this run has {self.num_envs}")
         state = self.dp.shard_state(state)
         self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        self.optimizer.load_state_dict(flat_optimizer_state(state["optimizer"], self.flat.params))
         self.kl_coeff = float(state["kl_coeff"])
         self.epoch = int(state["epoch"])
         self.global_step = int(state["global_step"])
@@ -859,6 +920,25 @@ class PPO:
         except (KeyError, RuntimeError, ValueError) as e:
             raise CheckpointError(f"{path}: incompatible training state ({type(e).__name__}: {e})") from e
         return ppo
+
+
+def flat_optimizer_state(state: dict[str, Any], params: Sequence[torch.Tensor]) -> dict[str, Any]:
+    """An Adam state dict over the flat parameter vector: ``state`` itself, or one saved over the policy's parameter
+    tensors one by one (checkpoints written before ``FlatParameters``), with its moments concatenated in order."""
+    groups = state["param_groups"]
+    if len(groups) != 1 or len(groups[0]["params"]) in (0, 1):
+        return state
+    ids = groups[0]["params"]
+    if len(ids) != len(params):
+        raise ValueError(f"the optimizer state holds {len(ids)} parameter tensors, the policy has {len(params)}")
+    per_param = [state["state"].get(i, {}) for i in ids]
+    flat_state: dict[Any, Any] = {}
+    if all(per_param):
+        flat_state[0] = {"step": per_param[0]["step"]}
+        for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
+            if key in per_param[0]:
+                flat_state[0][key] = torch.cat([s[key].reshape(-1) for s in per_param])
+    return {"state": flat_state, "param_groups": [{**groups[0], "params": [0]}]}
 
 
 def policy_class_name(cls: type) -> str:

@@ -65,13 +65,15 @@ class GymnasiumVecEnv:
         self.device = torch.device(device)
         self.seed = seed
         self.autoreset_mode = _mode(vector_env)
-        self.action_low = np.broadcast_to(act_space.low, self.action_shape).reshape(-1).astype(np.float64)
-        self.action_high = np.broadcast_to(act_space.high, self.action_shape).reshape(-1).astype(np.float64)
         self._action_dtype = act_space.dtype
+        self.action_low = np.broadcast_to(act_space.low, self.action_shape).reshape(-1).astype(self._action_dtype)
+        self.action_high = np.broadcast_to(act_space.high, self.action_shape).reshape(-1).astype(self._action_dtype)
         self._resetting = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: these envs' next step only resets them
 
-    def _tensor(self, x: Any) -> torch.Tensor:
-        x = torch.from_numpy(np.ascontiguousarray(x)).to(torch.float32)
+    def _tensor(self, x: Any, *shape: int) -> torch.Tensor:
+        # Cast and reshape in numpy (with one env a torch op costs several times a numpy one), always into a new array:
+        # a vector env built with copy=False reuses its buffers, and PPO keeps each step's tensors for the rollout.
+        x = torch.from_numpy(np.array(x, dtype=np.float32).reshape(shape))
         return x if self.device.type == "cpu" else x.to(self.device)
 
     def _flags(self, x: np.ndarray) -> torch.Tensor:
@@ -83,12 +85,12 @@ class GymnasiumVecEnv:
         seed = seed if seed is not None else self.seed
         obs, _ = self.vector_env.reset(seed=seed)
         self._resetting[:] = False
-        return self._tensor(obs).reshape(self.num_envs, *self.observation_shape)
+        return self._tensor(obs, self.num_envs, *self.observation_shape)
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        raw = actions.detach().to("cpu", torch.float64).numpy().reshape(self.num_envs, self.action_dim)
+        raw = actions.detach().cpu().numpy().reshape(self.num_envs, self.action_dim)
         # np.minimum/np.maximum: np.clip's checks cost more than the clip at these sizes.
-        clipped = np.minimum(np.maximum(raw, self.action_low), self.action_high).astype(self._action_dtype)
+        clipped = np.minimum(np.maximum(raw, self.action_low), self.action_high).astype(self._action_dtype, copy=False)
         obs, reward, terminated, truncated, gym_info = self.vector_env.step(
             clipped.reshape(self.num_envs, *self.action_shape)
         )
@@ -117,13 +119,8 @@ class GymnasiumVecEnv:
         info["terminated"] = self._flags(terminated)
         info["truncated"] = self._flags(truncated & ~terminated)
         if final_obs is not None:
-            info["final_obs"] = self._tensor(final_obs).reshape(shape)
-        return (
-            self._tensor(obs).reshape(shape),
-            self._tensor(reward).reshape(self.num_envs),
-            self._flags(done),
-            info,
-        )
+            info["final_obs"] = self._tensor(final_obs, *shape)
+        return self._tensor(obs, *shape), self._tensor(reward, self.num_envs), self._flags(done), info
 
     def state_dict(self) -> dict[str, Any]:
         """The adapter's own state (which envs reset next step) and the vector env's ``state_dict()`` if it has one.

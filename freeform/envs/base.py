@@ -14,7 +14,8 @@ class VecEnv(Protocol):
     """A batch of ``num_envs`` environments stepped together, on one torch device.
 
     ``reset(seed)`` returns the first observations ``[num_envs, *observation_shape]``.
-    ``step(actions [num_envs, action_dim])`` returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``.
+    ``step(actions [num_envs, action_dim])`` returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``,
+    new tensors each step: PPO keeps them until its rollout ends, so an env must not write into one it returned.
     When ``done[i]`` the environment resets itself: ``obs[i]`` is the first observation of the next episode, and
     whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
     ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).

@@ -1,0 +1,61 @@
+"""A network's trainable parameters as views of one flat tensor, and their gradients as views of another.
+
+Why: a small network's update step (the 64-64 MLPs of a Gymnasium task: 13 tensors, ≈ 10k numbers) costs what its
+Python-level operations cost, and zeroing the gradients, their global norm for clipping and Adam each cost one
+operation per tensor. Over one flat tensor each is a single operation. Backward accumulates into the gradient views
+in place (they are zeroed, never set to None), and the module keeps its parameters, so nothing else changes: its
+state dict, loading into it, and the numbers — Adam is elementwise, so the flat tensor gets the per-tensor update
+bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import torch
+import torch.nn as nn
+
+
+class FlatParameters:
+    """``params`` (the trainable ones; all of one dtype and device) re-seated as views of ``value [P]``, their
+    gradients as views of ``grad [P]`` (``value.grad``). Optimise ``[value]``; after ``zero_grad()`` and a backward
+    pass ``grad`` holds every parameter's gradient."""
+
+    def __init__(self, params: Iterable[nn.Parameter]) -> None:
+        self.params = [p for p in params if p.requires_grad]
+        if not self.params:
+            raise ValueError("the policy has no trainable parameters")
+        kinds = {(p.dtype, p.device) for p in self.params}
+        if len(kinds) > 1:
+            raise ValueError(f"the policy's parameters must share one dtype and device, got {sorted(map(str, kinds))}")
+        with torch.no_grad():
+            self.value = nn.Parameter(torch.cat([p.detach().reshape(-1) for p in self.params]))
+        self.grad = torch.zeros_like(self.value)
+        self.value.grad = self.grad
+        offset = 0
+        for p in self.params:
+            n = p.numel()
+            p.data = self.value.data[offset : offset + n].view_as(p)
+            p.grad = self.grad[offset : offset + n].view_as(p)
+            offset += n
+
+    def zero_grad(self) -> None:
+        self.grad.zero_()
+
+    def clip_grad_norm_(self, max_norm: float) -> torch.Tensor:
+        """``torch.nn.utils.clip_grad_norm_`` on the flat gradient: scale it by min(1, max_norm / (‖g‖₂ + 1e-6));
+        returns ‖g‖₂ before scaling."""
+        total = torch.linalg.vector_norm(self.grad)
+        self.grad.mul_((max_norm / (total + 1e-6)).clamp(max=1.0))
+        return total
+
+    def check(self) -> None:
+        """Raise if something re-seated a parameter or its gradient (e.g. ``policy.to(...)`` or
+        ``zero_grad(set_to_none=True)`` after construction): the flat tensors would no longer see it."""
+        offset = 0
+        for p in self.params:
+            n = p.numel()
+            if p.data_ptr() != self.value[offset:].data_ptr() or p.grad is None or p.grad.data_ptr() != self.grad[offset:].data_ptr():
+                raise RuntimeError("a policy parameter or gradient was replaced after PPO was built; build PPO after "
+                                   "moving the policy, and do not set its gradients to None")
+            offset += n
