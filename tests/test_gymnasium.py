@@ -197,6 +197,84 @@ def test_running_statistics_match_gymnasiums_reference_for_single_samples_and_ba
         assert ours.count == pytest.approx(ref.count, rel=1e-15)
 
 
+def test_update_steps_is_one_update_per_step_of_gymnasiums_reference() -> None:
+    """``update_steps`` (pooled prefix sums) = Gymnasium's RunningMeanStd updated batch by batch, after every batch."""
+    from gymnasium.wrappers.utils import RunningMeanStd as Reference
+
+    from freeform.agents.normalization import RunningMeanStd
+
+    rng = np.random.default_rng(1)
+    ours, ref = RunningMeanStd(()), Reference(shape=())
+    ours.update(torch.tensor([3.0, -1.0]))
+    ref.update(np.array([3.0, -1.0]))
+    batches = rng.normal(50.0, 20.0, size=(300, 4))  # far from the prior mean: the sums must be well conditioned
+    variances = ours.update_steps(torch.from_numpy(batches))
+    for step, batch in enumerate(batches):
+        ref.update(batch)
+        assert variances[step].item() == pytest.approx(ref.var, rel=1e-10), step
+    assert ours.mean.item() == pytest.approx(ref.mean, rel=1e-12) and ours.var.item() == pytest.approx(ref.var, rel=1e-10)
+    assert ours.count == pytest.approx(ref.count, rel=1e-15)
+
+
+def test_reward_scaling_is_gymnasiums_normalize_reward_step_by_step() -> None:
+    """The rollout's scaled rewards = the per-step procedure of Gymnasium's NormalizeReward (each env's discounted
+    return, its running variance updated every step, reward / √(var + 1e-8), reset at an episode's end), over two
+    rollouts so that the carried returns and statistics count too. Raw rewards and dones are read off the env."""
+    from gymnasium.wrappers.utils import RunningMeanStd as Reference
+
+    ppo = toy_ppo(AutoresetMode.SAME_STEP, terminate_at=(3, 5), truncate_at=(0, 4), reward_norm=True)
+    raw: list[tuple[np.ndarray, np.ndarray]] = []
+    step = ppo.env.step
+
+    def recording_step(actions: torch.Tensor):
+        obs, reward, done, info = step(actions)
+        raw.append((reward.numpy().astype(np.float64), done.numpy().copy()))
+        return obs, reward, done, info
+
+    ppo.env.step = recording_step  # type: ignore[method-assign]
+    rms, returns, expected = Reference(shape=()), np.zeros(2), []
+    for _ in range(2):
+        ppo.collect()
+        got = ppo.rollout.rewards.clone()
+        for reward, done in raw:
+            returns = returns * GAMMA + reward
+            rms.update(returns)
+            expected.append(np.clip(reward / np.sqrt(rms.var + 1e-8), -10, 10))
+            returns[done] = 0.0
+        unscaled = np.array([reward for reward, _ in raw])
+        raw.clear()
+        np.testing.assert_allclose(got.numpy(), np.array(expected[-8:]), rtol=1e-6)
+        assert np.abs(got.numpy() - unscaled).max() > 0.1  # the scaling did act
+    assert ppo.return_rms.var.item() == pytest.approx(rms.var, rel=1e-10)
+
+
+def test_critic_run_after_the_rollout_gives_the_values_of_a_per_step_forward() -> None:
+    """MLPActorCritic's critic runs once over the rollout: the stored values are V of the stored observations, and
+    every cut episode's bootstrap (``last_value``) is V of the observation it stopped at."""
+    ppo = toy_ppo(AutoresetMode.NEXT_STEP)
+    assert ppo.critic_apart
+    ppo.collect()
+    buf = ppo.rollout
+    with torch.no_grad():
+        values = ppo.policy(buf.obs.reshape(-1, 3))[2].reshape(buf.values.shape)
+        last = ppo.policy(ppo.obs)[2]
+    torch.testing.assert_close(buf.values, values)
+    torch.testing.assert_close(buf.last_value, last)
+    assert buf.values.std() > 0
+
+
+def test_adapter_returns_new_tensors_even_when_the_vector_env_reuses_its_buffers() -> None:
+    """``copy=False``: Gymnasium hands out the same observation array every step; PPO keeps a rollout's tensors, so
+    the adapter must not alias it (the stored observations would all become the last one)."""
+    vec = gym.vector.SyncVectorEnv([lambda: gym.make("Pendulum-v1")] * 2, copy=False)
+    env = from_gymnasium(vec)
+    first = env.reset(seed=0)
+    second = env.step(torch.zeros(2, 1))[0]
+    third = env.step(torch.ones(2, 1))[0]
+    assert not torch.equal(first, second) and not torch.equal(second, third)
+    assert first.data_ptr() != second.data_ptr() != third.data_ptr()
+
+
 def _comparable(stats: dict[str, float]) -> dict[str, float]:
     return {k: v for k, v in stats.items() if not (k.startswith("time_") or k == "samples_per_second")}
 

@@ -16,6 +16,7 @@ from freeform.agents.ppo import (
     clamped_value_loss,
     clipped_surrogate,
     compute_advantages,
+    discounted_cumsum,
     explained_variance,
     gaussian_entropy,
     gaussian_kl,
@@ -172,6 +173,42 @@ def test_gae_lambda_matches_hand_computation() -> None:
     )
     torch.testing.assert_close(adv[:, 0], torch.tensor([a0, a1, a2]))
     torch.testing.assert_close(ret[:, 0], torch.tensor([a0, a1, a2]) + torch.tensor(v))
+
+
+def _sequential_cumsum(x: np.ndarray, discount: float, starts: np.ndarray, initial: np.ndarray) -> np.ndarray:
+    """The recurrence one step at a time, in float64 numpy: the reference for the blocked scan."""
+    y, previous = np.zeros_like(x), initial.copy()
+    for t in range(len(x)):
+        previous = x[t] + discount * np.where(starts[t], 0.0, previous)
+        y[t] = previous
+    return y
+
+
+@pytest.mark.parametrize("steps, envs", [(1, 1), (7, 1), (2048, 1), (130, 3), (37, 64), (20, 5000), (65, 70)])
+@pytest.mark.parametrize("reverse", [False, True])
+def test_discounted_cumsum_is_the_step_by_step_recurrence(steps: int, envs: int, reverse: bool) -> None:
+    """The blocked scan against the plain loop, for block lengths from 64 (one env) down to 1 (5,000 envs), rollouts
+    that are not a multiple of the block, restarts anywhere (also at t = 0 and at block edges) and a carried value."""
+    rng = np.random.default_rng(steps * envs)
+    x = rng.normal(size=(steps, envs))
+    starts = rng.random((steps, envs)) < 0.05
+    starts[0, 0] = True
+    starts[min(63, steps - 1), -1] = True
+    initial = rng.normal(size=envs)
+    got = discounted_cumsum(torch.from_numpy(x), 0.97, torch.from_numpy(starts), torch.from_numpy(initial), reverse)
+    flip = (lambda a: a[::-1]) if reverse else (lambda a: a)
+    expected = flip(_sequential_cumsum(flip(x), 0.97, flip(starts), initial))
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-12, atol=1e-12)
+
+
+def test_discounted_cumsum_keeps_shape_dtype_and_sums_episodes() -> None:
+    """γ = 1 and restarts after each done: the running episode sums (as PPO reports episode returns); trailing
+    dims are kept, float32 stays float32, no initial = 0."""
+    rewards = torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])[:, :, None]  # [T=3, N=2, 1]
+    starts = torch.tensor([[False, False], [True, False], [False, True]])[:, :, None]
+    got = discounted_cumsum(rewards, 1.0, starts)
+    assert got.dtype == torch.float32 and got.shape == (3, 2, 1)
+    torch.testing.assert_close(got[:, :, 0], torch.tensor([[1.0, 2.0], [3.0, 6.0], [8.0, 6.0]]))
 
 
 def test_standardize_over_the_batch_uses_population_std() -> None:
@@ -526,3 +563,104 @@ def test_ppo_improves_the_volume_reward_of_the_design_env() -> None:
     first = history[0]["episode_reward_mean"]
     last = np.mean([h["episode_reward_mean"] for h in history[-3:]])
     assert last > first + 10.0, (first, last)  # random designs: ≈ 17 voxels in the body; trained: ≈ 35-40
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The flat parameter vector (freeform.agents.flat_params) against torch's per-tensor Adam and clipping.
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _two_identical_mlps() -> tuple[MLPActorCritic, MLPActorCritic]:
+    torch.manual_seed(3)
+    a = MLPActorCritic(5, 2, hidden=(16, 16))
+    b = MLPActorCritic(5, 2, hidden=(16, 16))
+    b.load_state_dict(a.state_dict())
+    return a, b
+
+
+def _mlp_loss(policy: MLPActorCritic, obs: torch.Tensor) -> torch.Tensor:
+    mean, log_std, value = policy(obs)
+    return (mean - 1.0).square().mean() + log_std.sum() + value.square().mean()
+
+
+@pytest.mark.parametrize("impl", ["foreach", "fused"])
+def test_flat_parameters_give_torchs_per_tensor_adam_bit_for_bit(impl: str) -> None:
+    """Adam over the flat vector (gradients accumulated into its views, zeroed in place) = torch's Adam over the
+    module's own tensors, for 5 steps; the module's parameters and state dict are still its own."""
+    from freeform.agents.flat_params import FlatParameters
+
+    ours, reference = _two_identical_mlps()
+    flat = FlatParameters(ours.parameters())
+    names = [name for name, _ in ours.named_parameters()]
+    assert all(p.data_ptr() >= flat.value.data_ptr() for p in ours.parameters()) and flat.value.numel() == sum(
+        p.numel() for p in reference.parameters())
+    opt_ours = torch.optim.Adam([flat.value], lr=1e-2, **{impl: True})
+    opt_ref = torch.optim.Adam(reference.parameters(), lr=1e-2, **{impl: True})
+    obs = torch.randn(32, 5, generator=torch.Generator().manual_seed(0))
+    for _ in range(5):
+        flat.zero_grad()
+        _mlp_loss(ours, obs).backward()
+        opt_ours.step()
+        opt_ref.zero_grad()
+        _mlp_loss(reference, obs).backward()
+        opt_ref.step()
+    for name, a, b in zip(names, ours.parameters(), reference.parameters(), strict=True):
+        assert torch.equal(a, b), name
+    assert list(ours.state_dict()) == list(reference.state_dict())
+
+
+def test_flat_gradient_clipping_matches_torchs() -> None:
+    from freeform.agents.flat_params import FlatParameters
+
+    ours, reference = _two_identical_mlps()
+    flat = FlatParameters(ours.parameters())
+    obs = torch.randn(32, 5, generator=torch.Generator().manual_seed(1)) * 10
+    for policy in (ours, reference):
+        _mlp_loss(policy, obs).backward()
+    total = flat.clip_grad_norm_(0.5)
+    expected = torch.nn.utils.clip_grad_norm_(list(reference.parameters()), 0.5)
+    torch.testing.assert_close(total, expected)
+    assert total > 0.5  # the clip did act
+    for a, b in zip(ours.parameters(), reference.parameters(), strict=True):
+        torch.testing.assert_close(a.grad, b.grad)
+
+
+def test_flat_parameters_survive_zero_grad_and_refuse_a_moved_policy() -> None:
+    from freeform.agents.flat_params import FlatParameters
+
+    ours, _ = _two_identical_mlps()
+    flat = FlatParameters(ours.parameters())
+    ours.zero_grad()  # torch's default: gradients set to None
+    flat.check()  # … re-seated as views of the flat gradient
+    _mlp_loss(ours, torch.ones(4, 5)).backward()
+    assert flat.grad.abs().sum() > 0
+    ours.double()
+    with pytest.raises(RuntimeError, match="replaced after PPO was built"):
+        flat.check()
+
+
+def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam() -> None:
+    """A checkpoint written before the flat vector (Adam over the module's tensors) resumes the same training."""
+    from freeform.agents.flat_params import FlatParameters
+    from freeform.agents.ppo import flat_optimizer_state
+
+    ours, reference = _two_identical_mlps()
+    opt_ref = torch.optim.Adam(reference.parameters(), lr=1e-2, foreach=True)
+    obs = torch.randn(16, 5, generator=torch.Generator().manual_seed(2))
+    for _ in range(3):
+        opt_ref.zero_grad()
+        _mlp_loss(reference, obs).backward()
+        opt_ref.step()
+    ours.load_state_dict(reference.state_dict())
+    flat = FlatParameters(ours.parameters())
+    opt_ours = torch.optim.Adam([flat.value], lr=1e-2, foreach=True)
+    saved = pickle.loads(pickle.dumps(opt_ref.state_dict()))  # as read from a file: no tensor shared with opt_ref
+    opt_ours.load_state_dict(flat_optimizer_state(saved, flat.params))
+    for policy, opt, zero in ((ours, opt_ours, flat.zero_grad), (reference, opt_ref, opt_ref.zero_grad)):
+        zero()
+        _mlp_loss(policy, obs).backward()
+        opt.step()
+    for a, b in zip(ours.parameters(), reference.parameters(), strict=True):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="parameter tensors"):
+        flat_optimizer_state(opt_ref.state_dict(), flat.params[:-1])

@@ -50,12 +50,14 @@ class FlatParameters:
         return total
 
     def check(self) -> None:
-        """Raise if something re-seated a parameter or its gradient (e.g. ``policy.to(...)`` or
-        ``zero_grad(set_to_none=True)`` after construction): the flat tensors would no longer see it."""
+        """Re-seat gradients that were replaced (``zero_grad()`` sets them to None) and raise ``RuntimeError`` if a
+        parameter was (``policy.to(...)`` after PPO was built): the flat tensor would no longer be what it trains."""
         offset = 0
         for p in self.params:
             n = p.numel()
-            if p.data_ptr() != self.value[offset:].data_ptr() or p.grad is None or p.grad.data_ptr() != self.grad[offset:].data_ptr():
-                raise RuntimeError("a policy parameter or gradient was replaced after PPO was built; build PPO after "
-                                   "moving the policy, and do not set its gradients to None")
+            if p.data_ptr() != self.value[offset:].data_ptr():
+                raise RuntimeError("a policy parameter was replaced after PPO was built (moved or cast?): build PPO "
+                                   "after moving the policy")
+            if p.grad is None or p.grad.data_ptr() != self.grad[offset:].data_ptr():
+                p.grad = self.grad[offset : offset + n].view_as(p)
             offset += n

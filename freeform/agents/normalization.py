@@ -21,17 +21,15 @@ class RunningMeanStd:
         self.var = torch.ones(shape, dtype=torch.float64, device=device)
         self.count = float(epsilon)  # a python float: the update's scalar arithmetic stays off the tensor path
 
-    @torch.no_grad()
     def update(self, batch: torch.Tensor) -> None:
         # var <- (var·count + batch_var·n + delta²·count·n/total) / total, in place: with one env this runs at every
         # step for the observations and again for the returns, where each tensor op costs more than its arithmetic
-        x = batch.to(self.mean.dtype)
-        n = x.shape[0]
+        n = batch.shape[0]
         total = self.count + n
-        if n == 1:  # a single sample has no spread of its own
-            delta = x[0] - self.mean
+        if n == 1:  # a single sample has no spread of its own (the subtraction promotes it to float64)
+            delta = batch[0] - self.mean
         else:
-            batch_var, batch_mean = torch.var_mean(x, 0, correction=0)
+            batch_var, batch_mean = torch.var_mean(batch.to(self.mean.dtype), 0, correction=0)
             delta = batch_mean - self.mean
         self.var.mul_(self.count / total)
         if n > 1:
@@ -40,7 +38,6 @@ class RunningMeanStd:
         self.mean.add_(delta, alpha=n / total)
         self.count = total
 
-    @torch.no_grad()
     def update_steps(self, batches: torch.Tensor) -> torch.Tensor:
         """Fold in S batches one after the other (``batches [S, B, *shape]``, as S calls of ``update``) and return the
         variance after each, ``[S, *shape]``: what a rollout's reward scaling reads at each of its S steps.
@@ -62,8 +59,8 @@ class RunningMeanStd:
 
     def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
         """``clip((x − mean) / sqrt(var + ε), ±clip)`` as float32."""
-        out = (x.to(self.mean.dtype) - self.mean) / torch.sqrt(self.var + epsilon)
-        return out.clamp(-clip, clip).to(torch.float32)
+        out = (x - self.mean) / torch.sqrt(self.var + epsilon)  # float64: the subtraction promotes x
+        return out.clamp_(-clip, clip).to(torch.float32)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         count = torch.tensor(self.count, dtype=torch.float64)

@@ -422,7 +422,7 @@ class PPO:
         obs_shape = tuple(env.observation_shape)
         self.obs_rms = RunningMeanStd(obs_shape, self.device) if config.obs_norm else None
         self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
-        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
+        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64, device=self.device)
         """Each env's discounted return of raw rewards, whose running std scales the rewards (``reward_norm``)."""
 
         self.obs = env.reset(seed=config.seed).to(self.device)
@@ -497,7 +497,7 @@ class PPO:
             return rewards
         returns = discounted_cumsum(rewards.double(), self.config.gamma, starts, self.discounted_return)
         var = self.return_rms.update_steps(self.dp.gather_envs(returns, dim=1))  # every rank's envs, step by step
-        self.discounted_return = returns[-1].to(self.discounted_return.dtype)
+        self.discounted_return = returns[-1]
         scale = torch.rsqrt(var + 1e-8).to(rewards.dtype)
         return (rewards * scale[:, None]).clamp(-self.config.reward_clip, self.config.reward_clip)
 
@@ -531,17 +531,17 @@ class PPO:
             self._update_obs_rms(next_obs)
             rewards.append(reward)
             dones.append(done)
-            if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
-                truncated = info["truncated"].to(self.device, torch.bool)
-                if truncated.any():
-                    any_truncated = True
-                    buf.truncated[t] = truncated
-                    final_value = self._value(self.normalize_obs(info["final_obs"].to(self.device)))
-                    buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             if "autoreset" in info:  # the env only reset (Gymnasium's next-step autoreset): not a transition
                 buf.valid[t] = ~info["autoreset"].to(self.device, torch.bool)
             if done.any():
                 self.episode_infos.append(info)
+                if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
+                    truncated = info["truncated"].to(self.device, torch.bool)
+                    if truncated.any():
+                        any_truncated = True
+                        buf.truncated[t] = truncated
+                        final_value = self._value(self.normalize_obs(info["final_obs"].to(self.device)))
+                        buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             self.obs = next_obs
         for name, steps in (("obs", seen), ("actions", actions), ("means", means), ("log_stds", log_stds),
                             ("rewards", rewards), ("dones", dones)):
@@ -835,7 +835,7 @@ class PPO:
                     raise ValueError(f"the config normalises ({name}) but the state holds no {name} statistics")
                 rms.load_state_dict(state[name])
         if self.return_rms is not None:
-            self.discounted_return = per_env["discounted_return"].to(self.device)
+            self.discounted_return = per_env["discounted_return"].to(self.device, torch.float64)
         if "env" in state:
             if not hasattr(self.env, "load_state_dict"):
                 raise ValueError("the state holds an env state but the env has no load_state_dict()")
@@ -934,7 +934,8 @@ def flat_optimizer_state(state: dict[str, Any], params: Sequence[torch.Tensor]) 
     per_param = [state["state"].get(i, {}) for i in ids]
     flat_state: dict[Any, Any] = {}
     if all(per_param):
-        flat_state[0] = {"step": per_param[0]["step"]}
+        step = per_param[0]["step"]
+        flat_state[0] = {"step": step.clone() if isinstance(step, torch.Tensor) else step}
         for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
             if key in per_param[0]:
                 flat_state[0][key] = torch.cat([s[key].reshape(-1) for s in per_param])
