@@ -34,12 +34,24 @@ PPO_KW = dict(rollout_steps=STEPS, num_sgd_iter=3, sgd_minibatch_size=6, seed=3,
 NOT_COMPARED = ("time_", "samples_per_second")  # wall-clock figures
 
 
-def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), **overrides: Any) -> PPO:
+# The cases: the paper's network and advantage standardisations; and the MLP over the flattened grids with both
+# running normalisations (its critic runs once per rollout; the reward scaling gathers every rank's returns).
+CASES = {
+    "batch": dict(advantage_norm="batch"),
+    "minibatch": dict(advantage_norm="minibatch"),
+    "mlp_normalised": dict(advantage_norm="minibatch", obs_norm=True, reward_norm=True, grad_clip=0.5),
+}
+
+
+def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), case: str = "batch") -> PPO:
     """Environments ``[lo, hi)`` of the run (the caller's rank slice); every rank builds the same policy."""
     torch.manual_seed(0)
     env = DesignEnv(num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS)
-    policy = VoxelActorCritic(resolution=RHO, materials=2, hidden=16)
-    return PPO(env, policy, PPOConfig(**{**PPO_KW, **overrides}))
+    if case == "mlp_normalised":
+        policy = MLPActorCritic(RHO**3, env.action_dim, hidden=(16,))
+    else:
+        policy = VoxelActorCritic(resolution=RHO, materials=2, hidden=16)
+    return PPO(env, policy, PPOConfig(**{**PPO_KW, **CASES[case]}))
 
 
 def flat_params(ppo: PPO) -> torch.Tensor:
@@ -50,13 +62,13 @@ def comparable(stats: dict[str, float]) -> dict[str, float]:
     return {k: v for k, v in stats.items() if not k.startswith(NOT_COMPARED)}
 
 
-def _worker(rank: int, world: int, init_file: str, out_dir: str, advantage_norm: str) -> None:
+def _worker(rank: int, world: int, init_file: str, out_dir: str, case: str) -> None:
     """One rank: two fresh epochs (checkpoint after the first), then one epoch resumed from the 1-process checkpoint."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
     try:
         envs = env_slice(NUM_ENVS, world, rank)
-        ppo = make_ppo(envs, advantage_norm=advantage_norm)
+        ppo = make_ppo(envs, case)
         first = ppo.train_epoch()
         actions = ppo.dp.gather_envs(ppo.rollout.actions, dim=1)
         ppo.save(Path(out_dir) / "two_ranks_epoch1.pt")  # collective; rank 0 writes
@@ -85,15 +97,15 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str, advantage_norm:
     os._exit(0)
 
 
-@pytest.mark.parametrize("advantage_norm", ["batch", "minibatch"])
-def test_two_gloo_ranks_match_one_process(tmp_path: Path, advantage_norm: str) -> None:
-    single = make_ppo(advantage_norm=advantage_norm)
+@pytest.mark.parametrize("case", list(CASES))
+def test_two_gloo_ranks_match_one_process(tmp_path: Path, case: str) -> None:
+    single = make_ppo(case=case)
     first = single.train_epoch()
     actions = single.rollout.actions.clone()
     single.save(tmp_path / "one_process_epoch1.pt")
     second = single.train_epoch()
 
-    mp.spawn(_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), advantage_norm), nprocs=2, join=True)
+    mp.spawn(_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), case), nprocs=2, join=True)
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
 
     # Identical weights, β and sampling generator on both ranks (the same all-reduced gradients, the same draws).

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+import torch.nn as nn
 
 gym = pytest.importorskip("gymnasium")
 from gymnasium.vector import AutoresetMode  # noqa: E402
@@ -248,19 +249,63 @@ def test_reward_scaling_is_gymnasiums_normalize_reward_step_by_step() -> None:
     assert ppo.return_rms.var.item() == pytest.approx(rms.var, rel=1e-10)
 
 
-def test_critic_run_after_the_rollout_gives_the_values_of_a_per_step_forward() -> None:
-    """MLPActorCritic's critic runs once over the rollout: the stored values are V of the stored observations, and
-    every cut episode's bootstrap (``last_value``) is V of the observation it stopped at."""
-    ppo = toy_ppo(AutoresetMode.NEXT_STEP)
-    assert ppo.critic_apart
-    ppo.collect()
-    buf = ppo.rollout
-    with torch.no_grad():
-        values = ppo.policy(buf.obs.reshape(-1, 3))[2].reshape(buf.values.shape)
-        last = ppo.policy(ppo.obs)[2]
-    torch.testing.assert_close(buf.values, values)
-    torch.testing.assert_close(buf.last_value, last)
-    assert buf.values.std() > 0
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_episode_figures_match_gymnasiums_record_episode_statistics_across_rollouts(mode: AutoresetMode) -> None:
+    """Episodes of 5 and 3 steps in rollouts of 8 (so episodes span rollouts, and in NEXT_STEP mode reset-only steps
+    fall anywhere): PPO's episode returns and lengths, summed over each rollout after the loop and carried across
+    rollouts, = what Gymnasium's own RecordEpisodeStatistics reports, every epoch."""
+    torch.manual_seed(0)
+    vec = gym.wrappers.vector.RecordEpisodeStatistics(ToyVectorEnv([5, 3], [0, 0], mode))
+    ppo = PPO(from_gymnasium(vec), MLPActorCritic(3, 1, hidden=(8,)),
+              PPOConfig(rollout_steps=8, num_sgd_iter=1, sgd_minibatch_size=4, seed=1))
+    finished = 0
+    for _ in range(4):
+        stats = ppo.collect()
+        returns, lengths = [], []
+        for info in ppo.episode_infos:
+            episode = info["gym_info"].get("episode")
+            if episode is not None:
+                ended = info["gym_info"]["_episode"]
+                returns += list(episode["r"][ended])
+                lengths += list(episode["l"][ended])
+        assert stats["episodes"] == len(returns) > 0
+        assert stats["episode_reward_mean"] == pytest.approx(np.mean(returns), rel=1e-6)
+        assert (stats["episode_reward_min"], stats["episode_reward_max"]) == pytest.approx((min(returns), max(returns)))
+        assert stats["episode_length_mean"] == pytest.approx(np.mean(lengths))
+        finished += len(returns)
+    assert finished >= 8
+
+
+def test_critic_run_apart_trains_as_the_whole_network_run_each_step() -> None:
+    """The same MLP behind a plain forward (PPO then runs actor and critic at every step, the general path) and
+    with its halves (critic once per rollout): the same actions, log-probabilities, values and advantages over
+    three epochs of training, up to float rounding (batched matrix products sum in another order)."""
+
+    class Whole(nn.Module):  # forward only: no action_params/value, so PPO cannot split it
+        def __init__(self, inner: MLPActorCritic) -> None:
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            return self.inner(obs)
+
+    runs = []
+    for wrap in (False, True):
+        torch.manual_seed(0)
+        policy = MLPActorCritic(3, 1, hidden=(8,))
+        env = from_gymnasium(ToyVectorEnv([3, 0], [0, 4], AutoresetMode.SAME_STEP))
+        ppo = PPO(env, Whole(policy) if wrap else policy,
+                  PPOConfig(rollout_steps=8, num_sgd_iter=2, sgd_minibatch_size=4, lr=1e-2, seed=1, obs_norm=True))
+        assert ppo.critic_apart is not wrap
+        epochs = []
+        for _ in range(3):
+            ppo.train_epoch()
+            epochs.append({k: ppo.rollout[k].clone() for k in ("actions", "logprobs", "values", "advantages")})
+        runs.append(epochs)
+    for apart, whole in zip(*runs, strict=True):
+        for key in apart:
+            torch.testing.assert_close(apart[key], whole[key], rtol=1e-5, atol=1e-6)
+    assert runs[0][2]["values"].std() > 0
 
 
 def test_adapter_returns_new_tensors_even_when_the_vector_env_reuses_its_buffers() -> None:

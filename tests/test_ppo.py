@@ -639,12 +639,15 @@ def test_flat_parameters_survive_zero_grad_and_refuse_a_moved_policy() -> None:
         flat.check()
 
 
-def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam() -> None:
-    """A checkpoint written before the flat vector (Adam over the module's tensors) resumes the same training."""
+@pytest.mark.parametrize("frozen", [False, True])
+def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam(frozen: bool) -> None:
+    """A checkpoint written before the flat vector (Adam over every module tensor, a frozen one without moments)
+    resumes the same training."""
     from freeform.agents.flat_params import FlatParameters
-    from freeform.agents.ppo import flat_optimizer_state
 
     ours, reference = _two_identical_mlps()
+    for policy in (ours, reference):
+        policy.actor[0].bias.requires_grad_(not frozen)
     opt_ref = torch.optim.Adam(reference.parameters(), lr=1e-2, foreach=True)
     obs = torch.randn(16, 5, generator=torch.Generator().manual_seed(2))
     for _ in range(3):
@@ -655,12 +658,16 @@ def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam() -> None:
     flat = FlatParameters(ours.parameters())
     opt_ours = torch.optim.Adam([flat.value], lr=1e-2, foreach=True)
     saved = pickle.loads(pickle.dumps(opt_ref.state_dict()))  # as read from a file: no tensor shared with opt_ref
-    opt_ours.load_state_dict(flat_optimizer_state(saved, flat.params))
+    opt_ours.load_state_dict(flat.optimizer_state(saved))
     for policy, opt, zero in ((ours, opt_ours, flat.zero_grad), (reference, opt_ref, opt_ref.zero_grad)):
         zero()
         _mlp_loss(policy, obs).backward()
         opt.step()
     for a, b in zip(ours.parameters(), reference.parameters(), strict=True):
         assert torch.equal(a, b)
+    short = {"state": saved["state"], "param_groups": [{**saved["param_groups"][0], "params": list(range(5))}]}
     with pytest.raises(ValueError, match="parameter tensors"):
-        flat_optimizer_state(opt_ref.state_dict(), flat.params[:-1])
+        flat.optimizer_state(short)
+    saved["state"].pop(3)
+    with pytest.raises(ValueError, match="some trainable parameters but not others"):
+        flat.optimizer_state(saved)

@@ -383,6 +383,9 @@ class DataParallel(Collectives):
 
     def all_reduce_grads_(self, params: Sequence[nn.Parameter]) -> None:
         """One flat buffer, one collective per SGD step; a missing gradient counts as zeros."""
+        if len(params) == 1 and params[0].grad is not None and params[0].grad.is_contiguous():
+            dist.all_reduce(params[0].grad, op=dist.ReduceOp.SUM)  # PPO's flat gradient: already one buffer
+            return
         total = sum(p.numel() for p in params)
         buffer = self._grad_buffer
         if buffer is None or buffer.numel() != total:

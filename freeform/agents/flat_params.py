@@ -11,6 +11,7 @@ bit for bit.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 import torch
 import torch.nn as nn
@@ -22,7 +23,9 @@ class FlatParameters:
     pass ``grad`` holds every parameter's gradient."""
 
     def __init__(self, params: Iterable[nn.Parameter]) -> None:
-        self.params = [p for p in params if p.requires_grad]
+        every = list(params)
+        self._trainable = [p.requires_grad for p in every]
+        self.params = [p for p in every if p.requires_grad]
         if not self.params:
             raise ValueError("the policy has no trainable parameters")
         kinds = {(p.dtype, p.device) for p in self.params}
@@ -61,3 +64,26 @@ class FlatParameters:
             if p.grad is None or p.grad.data_ptr() != self.grad[offset:].data_ptr():
                 p.grad = self.grad[offset : offset + n].view_as(p)
             offset += n
+
+    def optimizer_state(self, state: dict[str, Any]) -> dict[str, Any]:
+        """An optimizer state dict over ``[value]``: ``state`` itself, or one saved over the module's parameters one
+        by one (checkpoints written before the flat vector, whose Adam held every parameter in order, frozen ones
+        without moments), with the trainable parameters' moments concatenated in order."""
+        groups = state["param_groups"]
+        ids = groups[0]["params"] if len(groups) == 1 else None
+        if ids is not None and len(ids) <= 1:
+            return state
+        if ids is None or len(ids) != len(self._trainable):
+            raise ValueError(f"the optimizer state holds {[len(g['params']) for g in groups]} parameter tensors; "
+                             f"this policy has {len(self._trainable)} (one group expected)")
+        per_param = [state["state"].get(i, {}) for i, trainable in zip(ids, self._trainable, strict=True) if trainable]
+        flat: dict[Any, Any] = {}
+        if any(per_param):
+            if not all(per_param):
+                raise ValueError("the optimizer state has moments for some trainable parameters but not others")
+            step = per_param[0]["step"]
+            flat[0] = {"step": step.clone() if isinstance(step, torch.Tensor) else step}
+            for key in per_param[0]:
+                if key != "step":
+                    flat[0][key] = torch.cat([s[key].reshape(-1) for s in per_param])
+        return {"state": flat, "param_groups": [{**groups[0], "params": [0]}]}

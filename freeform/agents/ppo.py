@@ -206,7 +206,7 @@ def discounted_cumsum(
         return discounted_cumsum(x.flip(0), discount, starts.flip(0), initial).flip(0)
     steps, rest = x.shape[0], x.shape[1:]
     width = max(1, x[0].numel())
-    block = max(1, min(64, steps, 4096 // width))
+    block = max(1, min(64, steps, 4096 // width, 2**22 // (steps * width)))  # L: ≤ 4M numbers
     pad = (-steps) % block
     flat_x, flat_starts = x.reshape(steps, width), starts.reshape(steps, width)
     if pad:
@@ -217,14 +217,16 @@ def discounted_cumsum(
     segment = flat_starts.reshape(blocks, block, width).cumsum(1)  # starts in the block up to and including step i
     i = torch.arange(block, device=x.device)
     lag = (i[:, None] - i[None, :]).to(x.dtype)
-    powers = torch.where(lag >= 0, torch.full_like(lag, discount).pow(lag.clamp_min(0)), 0.0)  # discount^(i − j), i ≥ j
-    same_run = segment[:, :, None, :] == segment[:, None, :, :]  # [blocks, i, j, width]: no start in (j, i]
-    local = (same_run * powers[None, :, :, None] * xb[:, None, :, :]).sum(2)  # each block from a zero carry
-    carry = (segment == 0) * (discount * torch.full_like(lag[0], discount).pow(i.to(x.dtype)))[None, :, None]
+    powers = torch.full_like(lag, discount).pow(lag.clamp_min(0))  # discount^(i − j)
+    # [blocks, i, j, width]: j ≤ i and no start in (j, i]. Masks select (where), never multiply: a non-finite x
+    # must stay in its own run, as in the loop.
+    linked = (segment[:, :, None, :] == segment[:, None, :, :]) & (lag >= 0)[None, :, :, None]
+    local = torch.where(linked, powers[None, :, :, None] * xb[:, None, :, :], 0.0).sum(2)  # from a zero carry
+    carry = torch.where(segment == 0, (discount * torch.full_like(lag[0], discount).pow(i.to(x.dtype)))[None, :, None], 0.0)
     previous = x.new_zeros(width) if initial is None else initial.reshape(width).to(x.dtype)
     out = []
     for b in range(blocks):  # a loop over blocks only: the carry of one block's last step into the next
-        y = torch.addcmul(local[b], carry[b], previous)
+        y = local[b] + torch.where(carry[b] != 0, carry[b] * previous, 0.0)
         out.append(y)
         previous = y[-1]
     return torch.cat(out)[:steps].reshape(steps, *rest)
@@ -251,6 +253,7 @@ def compute_advantages(
     bootstrapped with ``final_values[t]`` = V(its last observation), while a terminated one is not. The recursion
     stops at every done either way. None (the design env: episodes never truncate) = no step is truncated.
     """
+    dones = dones.to(torch.bool)
     next_values = torch.cat([values[1:], last_value.to(values.dtype)[None]])
     bootstrap = torch.where(dones, 0.0, next_values)  # V(s_t+1), or 0 where the episode ended at t …
     if truncated is not None and final_values is not None:
@@ -314,7 +317,8 @@ class Rollout:
     (V of such an episode's last observation, its bootstrap); ``valid [T, N]`` bool (False where the env only reset,
     ``info["autoreset"]``: such samples never enter the loss). ``obs`` holds what the policy saw (normalised, with
     ``obs_norm``) and ``rewards`` what it trained on (scaled, with ``reward_norm``).
-    PPO reuses these buffers every epoch: clone what must outlive the next ``train_epoch()``.
+    PPO refills these tensors every epoch (``logprobs``, ``values``, ``rewards`` and the advantages may be replaced
+    by new ones): clone what must outlive the next ``train_epoch()``.
     """
 
     obs: torch.Tensor
@@ -422,7 +426,9 @@ class PPO:
         obs_shape = tuple(env.observation_shape)
         self.obs_rms = RunningMeanStd(obs_shape, self.device) if config.obs_norm else None
         self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
-        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64, device=self.device)
+        # float64 as the statistics (Gymnasium's too); only with reward_norm, as no float64 may exist (MPS)
+        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64 if config.reward_norm else torch.float32,
+                                             device=self.device)
         """Each env's discounted return of raw rewards, whose running std scales the rewards (``reward_norm``)."""
 
         self.obs = env.reset(seed=config.seed).to(self.device)
@@ -448,6 +454,13 @@ class PPO:
             raise ValueError(
                 f"policy must return (mean [{n}, {a}], log_std [{n}, {a}], value [{n}]) for this env, got {shapes}"
             )
+        if self.critic_apart:  # the rollout calls the halves: they must be forward's
+            halves = (*self.policy.action_params(self.normalize_obs(self.obs)), self.policy.value(self.normalize_obs(self.obs)))
+            if [tuple(x.shape) for x in halves] != shapes or not all(
+                torch.allclose(h, o) for h, o in zip(halves, outputs, strict=True)
+            ):
+                raise ValueError("policy.action_params(obs) and policy.value(obs) must give what forward(obs) gives "
+                                 f"((mean, log_std) and value, shapes {shapes})")
 
     # -- acting ----------------------------------------------------------------------------------------------------
 
@@ -528,6 +541,9 @@ class PPO:
             time_env += time.perf_counter() - t0
             reward, done = reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             next_obs = next_obs.to(self.device)
+            if next_obs.data_ptr() == self.obs.data_ptr():
+                raise ValueError("env.step returned the observation tensor of the previous step, written in place: a "
+                                 "VecEnv must return new tensors (PPO keeps every step's until the rollout ends)")
             self._update_obs_rms(next_obs)
             rewards.append(reward)
             dones.append(done)
@@ -554,9 +570,9 @@ class PPO:
         starts = torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])  # an episode begins after a done
 
         # Episode figures from the raw rewards (an episode may span rollouts: the sums carry over).
-        episode_returns = discounted_cumsum(buf.rewards.double(), 1.0, starts, self.episode_return)
-        episode_lengths = discounted_cumsum(buf.valid.double(), 1.0, starts, self.episode_length)
-        returns, lengths = episode_returns[buf.dones].float(), episode_lengths[buf.dones].round().long()
+        episode_returns = discounted_cumsum(buf.rewards, 1.0, starts, self.episode_return)
+        episode_lengths = discounted_cumsum(buf.valid.float(), 1.0, starts, self.episode_length)  # exact < 2²⁴
+        returns, lengths = episode_returns[buf.dones], episode_lengths[buf.dones].round().long()
         last_done = buf.dones[-1]
         self.episode_return = torch.where(last_done, 0.0, episode_returns[-1]).to(self.episode_return.dtype)
         self.episode_length = torch.where(last_done, 0.0, episode_lengths[-1]).round().to(self.episode_length.dtype)
@@ -820,7 +836,7 @@ class PPO:
             raise ValueError(f"the state holds {saved_envs} envs but this run has {self.num_envs}")
         state = self.dp.shard_state(state)
         self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(flat_optimizer_state(state["optimizer"], self.flat.params))
+        self.optimizer.load_state_dict(self.flat.optimizer_state(state["optimizer"]))
         self.kl_coeff = float(state["kl_coeff"])
         self.epoch = int(state["epoch"])
         self.global_step = int(state["global_step"])
@@ -920,26 +936,6 @@ class PPO:
         except (KeyError, RuntimeError, ValueError) as e:
             raise CheckpointError(f"{path}: incompatible training state ({type(e).__name__}: {e})") from e
         return ppo
-
-
-def flat_optimizer_state(state: dict[str, Any], params: Sequence[torch.Tensor]) -> dict[str, Any]:
-    """An Adam state dict over the flat parameter vector: ``state`` itself, or one saved over the policy's parameter
-    tensors one by one (checkpoints written before ``FlatParameters``), with its moments concatenated in order."""
-    groups = state["param_groups"]
-    if len(groups) != 1 or len(groups[0]["params"]) in (0, 1):
-        return state
-    ids = groups[0]["params"]
-    if len(ids) != len(params):
-        raise ValueError(f"the optimizer state holds {len(ids)} parameter tensors, the policy has {len(params)}")
-    per_param = [state["state"].get(i, {}) for i in ids]
-    flat_state: dict[Any, Any] = {}
-    if all(per_param):
-        step = per_param[0]["step"]
-        flat_state[0] = {"step": step.clone() if isinstance(step, torch.Tensor) else step}
-        for key in ("exp_avg", "exp_avg_sq", "max_exp_avg_sq"):
-            if key in per_param[0]:
-                flat_state[0][key] = torch.cat([s[key].reshape(-1) for s in per_param])
-    return {"state": flat_state, "param_groups": [{**groups[0], "params": [0]}]}
 
 
 def policy_class_name(cls: type) -> str:

@@ -15,7 +15,8 @@ class VecEnv(Protocol):
 
     ``reset(seed)`` returns the first observations ``[num_envs, *observation_shape]``.
     ``step(actions [num_envs, action_dim])`` returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``,
-    new tensors each step: PPO keeps them until its rollout ends, so an env must not write into one it returned.
+    new tensors each step: PPO keeps them, and the ``actions`` it passed, until its rollout ends, so an env must
+    not write into a tensor it returned nor into ``actions``.
     When ``done[i]`` the environment resets itself: ``obs[i]`` is the first observation of the next episode, and
     whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
     ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).
