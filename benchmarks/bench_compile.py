@@ -3,8 +3,9 @@ pays within a demo-sized run").
 
 Times, eager and compiled, the two per-sample pieces of PPO on CleanRL's MuJoCo network (``MLPActorCritic(17, 6)``,
 HalfCheetah's sizes): the **acting step** of a one-env rollout (observation normalisation with its running-statistics
-update, the policy, sampling, the log-probability) and the **minibatch update** (64 samples: forward, the clipped
-losses, backward, gradient clipping, fused Adam), both built from ``freeform.agents.ppo``'s own loss functions.
+update, the actor, sampling; the critic and the log-probabilities run once per rollout) and the **minibatch update**
+(64 samples: forward, the clipped losses, backward, gradient clipping, fused Adam over the flat parameter vector),
+both built from ``freeform.agents``' own pieces.
 Prints µs per call, the compile seconds (the first compile includes Dynamo/Inductor's one-time start-up), and the
 steps of a CleanRL-sized run (2,048 steps an epoch, 10 × 32 minibatches) after which the compile is paid back. One torch thread; ``FREEFORM_BENCH_QUICK=1`` shortens it.
 """
@@ -19,6 +20,7 @@ import time
 import torch
 
 from freeform.agents import MLPActorCritic
+from freeform.agents.flat_params import FlatParameters
 from freeform.agents.ppo import clipped_surrogate, gaussian_log_prob, ppo2_value_loss
 
 OBS, ACT, MINIBATCH, BATCH = 17, 6, 64, 2048
@@ -52,9 +54,8 @@ def act_step(policy: MLPActorCritic):
         var = var * (count / total) + delta * delta * (count / (total * total))
         mean = mean + delta / total
         normed = ((x - mean) / torch.sqrt(var + 1e-8)).clamp(-10, 10).to(torch.float32)
-        mu, log_std, value = policy(normed)
-        action = mu + torch.exp(log_std) * noise
-        return action, gaussian_log_prob(action, mu, log_std), value, mean, var, total
+        mu, log_std = policy.action_params(normed)  # the critic and log-probabilities run once per rollout
+        return torch.addcmul(mu, torch.exp(log_std), noise), mean, var, total
 
     return step
 
@@ -88,7 +89,8 @@ def _run(quick: bool) -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
     policy = MLPActorCritic(OBS, ACT)
-    optimizer = torch.optim.Adam(policy.parameters(), lr=3e-4, eps=1e-5, fused=True)
+    flat = FlatParameters(policy.parameters())  # as PPO trains it
+    optimizer = torch.optim.Adam([flat.value], lr=3e-4, eps=1e-5, fused=True)
     g = torch.Generator().manual_seed(0)
     batch = [torch.randn(BATCH, OBS, generator=g), torch.randn(BATCH, ACT, generator=g)] + [
         torch.randn(BATCH, generator=g) for _ in range(4)]
@@ -104,9 +106,9 @@ def _run(quick: bool) -> None:
     def updating(fn):
         def call():
             idx = torch.randint(0, BATCH, (MINIBATCH,), generator=g)
-            optimizer.zero_grad(set_to_none=True)
+            flat.zero_grad()
             fn(*(x.index_select(0, idx) for x in batch)).backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5, foreach=True)
+            flat.clip_grad_norm_(0.5)
             optimizer.step()
         return call
 
