@@ -20,6 +20,11 @@ episodes) and the **wall time** of the whole run (start-up included):
     python -m benchmarks.bench_gym --tasks HalfCheetah-v5 Hopper-v5 --steps 500000 --seeds 0 1   # the issue's table
     python -m benchmarks.bench_gym --tasks InvertedPendulum-v5 --steps 5000 --seeds 0            # end-to-end check
     python -m benchmarks gym        # (make bench) a short InvertedPendulum-v5 comparison, 3 × 50k steps
+    python -m benchmarks.bench_gym --split --tasks HalfCheetah-v5   # where a step goes: freeform vs SB3
+
+``--split`` times, in this one process and alternated, freeform's and SB3's rollout and update separately (process
+time per environment step over ``--split-epochs`` updates of 2,048 steps, ``--repeats`` times), the Gymnasium step
+inside freeform's rollout apart: the figures behind "where a step goes" in ``docs/ppo.md``.
 
 Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, tyro).
 """
@@ -111,6 +116,86 @@ def _SB3Episodes(returns: list[float]):  # noqa: N802 - a factory for SB3's call
     return Episodes()
 
 
+def split_freeform(task: str, epochs: int, seed: int) -> dict[str, float]:
+    """µs of process time per env step: freeform's rollout (of which inside ``env.step``) and update."""
+    import gymnasium as gym
+    import torch
+
+    from freeform.agents import PPO, MLPActorCritic, PPOConfig
+    from freeform.envs import from_gymnasium
+
+    vec = gym.wrappers.vector.RecordEpisodeStatistics(gym.make_vec(
+        task, num_envs=1, vectorization_mode="sync", vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}))
+    env = from_gymnasium(vec)
+    torch.manual_seed(seed)
+    ppo = PPO(env, MLPActorCritic(env.observation_shape[0], env.action_dim), PPOConfig.cleanrl(seed=seed))
+    step, time_env = env.step, 0.0
+
+    def timed_step(actions):  # process time, as the rest (the rollout's own figure is wall time)
+        nonlocal time_env
+        t0 = time.process_time()
+        out = step(actions)
+        time_env += time.process_time() - t0
+        return out
+
+    env.step = timed_step
+    rollout = update = 0.0
+    for _ in range(epochs):
+        t0 = time.process_time()
+        ppo.collect()
+        t1 = time.process_time()
+        ppo.update()
+        rollout, update = rollout + t1 - t0, update + time.process_time() - t1
+    n = epochs * BATCH / 1e6
+    return {"rollout": rollout / n, "env": time_env / n, "update": update / n}
+
+
+def split_sb3(task: str, epochs: int, seed: int) -> dict[str, float]:
+    """µs of process time per env step: SB3's ``collect_rollouts`` and ``train`` (the run of ``run_sb3``)."""
+    import torch.nn as nn
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
+    model = PPO(
+        "MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=BATCH, batch_size=64, n_epochs=10,
+        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.25, max_grad_norm=0.5,
+        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), device="cpu",
+        seed=seed, verbose=0,
+    )
+    spent = {"rollout": 0.0, "update": 0.0}
+
+    def timed(name, fn):
+        def call(*args, **kwargs):
+            t0 = time.process_time()
+            result = fn(*args, **kwargs)
+            spent[name] += time.process_time() - t0
+            return result
+        return call
+
+    model.collect_rollouts = timed("rollout", model.collect_rollouts)
+    model.train = timed("update", model.train)
+    model.learn(total_timesteps=epochs * BATCH)
+    n = epochs * BATCH / 1e6
+    return {"rollout": spent["rollout"] / n, "env": math.nan, "update": spent["update"] / n}
+
+
+def split(task: str, epochs: int, repeats: int, seed: int = 0) -> str:
+    """Markdown: per repeat and framework, µs per env step in the rollout (env), the update and both."""
+    import torch
+
+    torch.set_num_threads(1)
+    lines = [f"{task}, {epochs} updates of {BATCH} steps, process time, µs per environment step:",
+             "| repeat | framework | rollout | of which env.step | update | total |", "|---|---|---|---|---|---|"]
+    for r in range(repeats):
+        for name, fn in (("freeform", split_freeform), ("sb3", split_sb3)):
+            t = fn(task, epochs, seed)
+            lines.append(f"| {r} | {name} | {t['rollout']:.0f} | {t['env']:.0f} | {t['update']:.0f} | "
+                         f"{t['rollout'] + t['update']:.0f} |")
+    return "\n".join(lines)
+
+
 def cleanrl_script(path: str | None) -> Path:
     """CleanRL's ``ppo_continuous_action.py``: ``path``, else the pinned commit's file, fetched once and cached."""
     if path:
@@ -192,6 +277,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
                    help="path of CleanRL's ppo_continuous_action.py (default: fetch the pinned commit's)")
     p.add_argument("--workdir", default="runs/bench_gym", help="where CleanRL's runs/ and the JSON results go")
     p.add_argument("--show", action="store_true", help="print the table of WORKDIR/results.json; run nothing")
+    p.add_argument("--split", action="store_true", help="time freeform's and SB3's rollout and update apart instead")
+    p.add_argument("--split-epochs", type=int, default=3, help="--split: updates of 2,048 steps per measurement")
+    p.add_argument("--repeats", type=int, default=2, help="--split: alternations of the two frameworks")
     p.add_argument("--child", choices=("freeform", "sb3"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
@@ -209,6 +297,10 @@ def run(argv: list[str] | None = None) -> list[dict]:
     if args.child:  # inside one run's own process
         returns = (run_freeform if args.child == "freeform" else run_sb3)(args.tasks[0], args.steps, args.seeds[0])
         print(json.dumps({"returns": returns}))
+        return []
+    if args.split:
+        for task in args.tasks:
+            print(split(task, args.split_epochs, args.repeats), flush=True)
         return []
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
