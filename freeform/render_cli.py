@@ -146,16 +146,12 @@ def random_designs(n: int, materials: int, resolution: int, seed: int) -> tuple[
     rewards (the volume task's reward: the body's voxel count)."""
     from freeform.body import largest_component
     from freeform.envs.design import DesignEnv
+    from freeform.evolve import design_grids
 
     env = DesignEnv(n, resolution=resolution, materials=materials, compute_metrics=False)
-    env.reset(seed)
     gen = torch.Generator().manual_seed(seed)
-    info: dict[str, Any] = {}
-    for _ in range(env.steps):
-        _, _, done, info = env.step(torch.randn(n, env.action_dim, generator=gen))
-        if bool(done.all()):
-            break
-    grids = info["final_grids"]
+    actions = torch.stack([torch.randn(n, env.action_dim, generator=gen) for _ in range(env.steps)], dim=1)  # [n, T, A]
+    grids = design_grids(env, actions)
     volumes = (largest_component(grids) > 0).flatten(1).sum(dim=1)
     return grids.numpy(), volumes.numpy().astype(np.float64)
 
