@@ -671,3 +671,25 @@ def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam(frozen: bool)
     saved["state"].pop(3)
     with pytest.raises(ValueError, match="some trainable parameters but not others"):
         flat.optimizer_state(saved)
+
+
+def test_an_env_that_writes_its_last_observation_in_place_is_refused() -> None:
+    """PPO keeps each step's observation until its rollout ends: an env that hands back the same tensor, updated
+    in place, would silently make every stored observation the last one."""
+
+    class InPlace(PointMassEnv):
+        def reset(self, seed: int | None = None) -> torch.Tensor:
+            self.buffer = super().reset(seed)
+            return self.buffer
+
+        def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+            obs, reward, done, info = super().step(actions)
+            self.buffer.copy_(obs)
+            return self.buffer, reward, done, info
+
+    torch.manual_seed(0)
+    ppo = PPO(InPlace(num_envs=4), MLPActorCritic(4, 2, hidden=(8,)), PPOConfig(rollout_steps=4, num_sgd_iter=1))
+    with pytest.raises(ValueError, match="written in place"):
+        ppo.collect()
+    torch.manual_seed(0)
+    PPO(PointMassEnv(num_envs=4), MLPActorCritic(4, 2, hidden=(8,)), PPOConfig(rollout_steps=4, num_sgd_iter=1)).collect()
