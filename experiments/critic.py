@@ -68,13 +68,13 @@ def evaluate(runs: Sequence[Path], device: torch.device, batch_size: int = 1024,
     """``(epochs [E], {domain: {quantity: [n_critics, E]}})``; NaN where undefined (a missing epoch, or the
     out-of-domain set of a single trial)."""
     from freeform.checkpoint import CHECKPOINT_DIR, LAST
-    from freeform.records import list_records, read_record
+    from freeform.records import list_records, read_record, record_epoch
 
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     trained = [load_critic(Path(r) / CHECKPOINT_DIR / LAST, device) for r in runs]
     untrained = [untrained_critic(r, device) for r in runs]
-    files = [{read_epoch(p): p for p in list_records(r)} for r in runs]
+    files = [{record_epoch(p): p for p in list_records(r)} for r in runs]
     epochs = np.array(sorted(set().union(*files))[::every])
     n = len(runs)
     result = {d: {q: np.full((n, len(epochs)), np.nan) for q in QUANTITIES} for d in DOMAINS}
@@ -99,11 +99,6 @@ def evaluate(runs: Sequence[Path], device: torch.device, batch_size: int = 1024,
                 q["err_trained"][i, k] = np.abs(vt - r).mean()
                 q["err_untrained"][i, k] = np.abs(vu - r).mean()
     return epochs, result
-
-
-def read_epoch(path: Path) -> int:
-    """Epoch of a record file name ``epoch_<e>.npz``."""
-    return int(Path(path).stem.split("_")[1])
 
 
 STYLE = {"reward": ("true reward", "0.35"), "v_trained": ("trained critic V(s_T)", "tab:blue"),

@@ -48,7 +48,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     if args.designs < 2:
         raise ValueError(f"--designs must be >= 2 (a band needs two), got {args.designs}")
     from experiments.robustness import run_train_config
-    from freeform.records import list_records, read_record, record_path
+    from freeform.records import list_records, read_record, record_epoch, record_path
     from freeform.train import build_task
 
     device = torch.device(args.device)
@@ -56,7 +56,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Path]:
     rows: dict[str, list] = {k: [] for k in ("run", "epoch", "n", "recorded", "as_trained", "as_trained_band",
                                              "rescored", "rescored_band")}
     for run in runs:
-        epochs = [int(path.stem.split("_")[1]) for path in list_records(run)]
+        epochs = [record_epoch(path) for path in list_records(run)]
         if not epochs:
             raise ValueError(f"paths: run {run} has no design records (records/epoch_*.npz)")
         tasks = [build_task(run_train_config(run, o), device) for o in ((), args.overrides)]

@@ -74,6 +74,14 @@ def record_path(run_dir: str | os.PathLike[str], epoch: int) -> Path:
     return Path(run_dir) / RECORDS_DIR / f"epoch_{epoch:06d}.npz"
 
 
+def record_epoch(path: str | os.PathLike[str]) -> int:
+    """The epoch a record file is named for: the inverse of ``record_path`` (``ValueError`` for another name)."""
+    match = _NAME.match(Path(path).name)
+    if match is None:
+        raise ValueError(f"{path} is not a record file (epoch_<epoch>.npz)")
+    return int(match.group(1))
+
+
 def write_record(run_dir: str | os.PathLike[str], record: EpochRecord) -> Path:
     """Write ``record`` compressed and atomically (``freeform.files.write_atomically``); returns its path."""
     path = record_path(run_dir, record.epoch)
@@ -117,8 +125,7 @@ def list_records(run_dir: str | os.PathLike[str]) -> list[Path]:
     directory = Path(run_dir) / RECORDS_DIR
     if not directory.is_dir():
         return []
-    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := _NAME.match(p.name))]
-    return [p for _, p in sorted(found)]
+    return sorted((p for p in directory.iterdir() if _NAME.match(p.name)), key=record_epoch)
 
 
 def iter_records(run_dir: str | os.PathLike[str]) -> Iterator[EpochRecord]:

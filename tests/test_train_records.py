@@ -14,6 +14,7 @@ from freeform.records import (
     iter_records,
     list_records,
     read_record,
+    record_epoch,
     record_path,
     write_record,
 )
@@ -60,6 +61,14 @@ def test_listing_orders_by_epoch(tmp_path: Path) -> None:
     assert [p.name for p in list_records(tmp_path)] == [f"epoch_{e:06d}.npz" for e in (0, 1, 2, 10)]
     assert [r.epoch for r in iter_records(tmp_path)] == [0, 1, 2, 10]
     assert list_records(tmp_path / "nothing") == []
+
+
+def test_record_epoch_inverts_record_path() -> None:
+    for epoch in (0, 7, 123456, 1234567):  # past six digits the name just grows
+        assert record_epoch(record_path("run", epoch)) == epoch
+    for name in ("epoch_12.npz.tmp", "notes.txt", "epoch_.npz", "epoch_-1.npz"):
+        with pytest.raises(ValueError, match="not a record file"):
+            record_epoch(Path("run/records") / name)
 
 
 def test_bad_shapes_and_files_raise(tmp_path: Path) -> None:
