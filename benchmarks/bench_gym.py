@@ -60,7 +60,8 @@ def final_return(returns: list[float]) -> float:
 # ----------------------------------------------------------------------------------------------- the three runners
 
 
-def run_freeform(task: str, steps: int, seed: int) -> list[float]:
+def freeform_ppo(task: str, steps: int, seed: int):
+    """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env with episode statistics."""
     import gymnasium as gym
     import torch
 
@@ -74,7 +75,11 @@ def run_freeform(task: str, steps: int, seed: int) -> list[float]:
     env = from_gymnasium(vec)
     torch.manual_seed(seed)
     policy = MLPActorCritic(env.observation_shape[0], env.action_dim)
-    ppo = PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH)))
+    return PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH)))
+
+
+def run_freeform(task: str, steps: int, seed: int) -> list[float]:
+    ppo = freeform_ppo(task, steps, seed)
     returns: list[float] = []
     for _ in range(steps // BATCH):
         ppo.train_epoch()
@@ -85,19 +90,24 @@ def run_freeform(task: str, steps: int, seed: int) -> list[float]:
     return returns
 
 
-def run_sb3(task: str, steps: int, seed: int) -> list[float]:
+def sb3_model(task: str, seed: int):
+    """SB3's run: ``PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with CleanRL's values."""
     import torch.nn as nn
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
     env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
-    model = PPO(
+    return PPO(
         "MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=BATCH, batch_size=64, n_epochs=10,
         gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.25, max_grad_norm=0.5,
         policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), device="cpu",
         seed=seed, stats_window_size=LAST_EPISODES, verbose=0,
     )
+
+
+def run_sb3(task: str, steps: int, seed: int) -> list[float]:
+    model = sb3_model(task, seed)
     returns: list[float] = []
     model.learn(total_timesteps=(steps // BATCH) * BATCH, callback=_SB3Episodes(returns))
     return returns
@@ -118,17 +128,8 @@ def _SB3Episodes(returns: list[float]):  # noqa: N802 - a factory for SB3's call
 
 def split_freeform(task: str, epochs: int, seed: int) -> dict[str, float]:
     """µs of process time per env step: freeform's rollout (of which inside ``env.step``) and update."""
-    import gymnasium as gym
-    import torch
-
-    from freeform.agents import PPO, MLPActorCritic, PPOConfig
-    from freeform.envs import from_gymnasium
-
-    vec = gym.wrappers.vector.RecordEpisodeStatistics(gym.make_vec(
-        task, num_envs=1, vectorization_mode="sync", vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}))
-    env = from_gymnasium(vec)
-    torch.manual_seed(seed)
-    ppo = PPO(env, MLPActorCritic(env.observation_shape[0], env.action_dim), PPOConfig.cleanrl(seed=seed))
+    ppo = freeform_ppo(task, 1_000_000, seed)  # CleanRL's 1M-step lr schedule: the first epochs of a full run
+    env = ppo.env
     step, time_env = env.step, 0.0
 
     def timed_step(actions):  # process time, as the rest (the rollout's own figure is wall time)
@@ -152,18 +153,7 @@ def split_freeform(task: str, epochs: int, seed: int) -> dict[str, float]:
 
 def split_sb3(task: str, epochs: int, seed: int) -> dict[str, float]:
     """µs of process time per env step: SB3's ``collect_rollouts`` and ``train`` (the run of ``run_sb3``)."""
-    import torch.nn as nn
-    from stable_baselines3 import PPO
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import VecNormalize
-
-    env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
-    model = PPO(
-        "MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=BATCH, batch_size=64, n_epochs=10,
-        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.25, max_grad_norm=0.5,
-        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), device="cpu",
-        seed=seed, verbose=0,
-    )
+    model = sb3_model(task, seed)
     spent = {"rollout": 0.0, "update": 0.0}
 
     def timed(name, fn):

@@ -10,7 +10,8 @@ slice on its own device; what the update needs from the other slices is exchange
 - **Minibatches** are the single process's: one global permutation of the ``T·N`` samples per pass, cut into
   minibatches of ``sgd_minibatch_size`` M (the tail dropped). Each rank computes the samples of a minibatch that
   it holds (:meth:`DataParallel.local_indices`: about M·n_r/N of them, a random number) and divides its loss
-  *sums* by M; the gradients, summed over ranks in one flat buffer (:meth:`DataParallel.all_reduce_grads`), are
+  *sums* by M; the gradients, summed over ranks as one flat buffer (PPO's ``FlatParameters.grad``,
+  :meth:`DataParallel.all_reduce_grad_`), are
   then the gradient of the global minibatch's mean loss. M never needs to divide by R; a rank holding none of a
   minibatch contributes zeros.
 - **Statistics over the global batch**: advantages, returns, values and σ are all-gathered once per epoch (a few
@@ -37,7 +38,7 @@ from __future__ import annotations
 import atexit
 import datetime
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -272,8 +273,8 @@ class Collectives:
         """This process's part of the mean of a per-sample quantity over a global minibatch of ``size`` samples."""
         return x.mean()
 
-    def all_reduce_grads_(self, params: Sequence[nn.Parameter]) -> None:
-        """Sum the gradients over ranks (after each backward)."""
+    def all_reduce_grad_(self, grad: torch.Tensor) -> None:
+        """Sum the (flat, ``FlatParameters.grad``) gradient over ranks in place, after each backward."""
 
     def sum_(self, x: torch.Tensor) -> torch.Tensor:
         """In-place sum over ranks; returns ``x``."""
@@ -340,7 +341,6 @@ class DataParallel(Collectives):
 
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     """Where this rank's collectives run (its PPO device)."""
-    _grad_buffer: torch.Tensor | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_local(cls, local_envs: int, device: torch.device) -> DataParallel:
@@ -378,35 +378,11 @@ class DataParallel(Collectives):
 
     def minibatch_mean(self, x: torch.Tensor, size: int) -> torch.Tensor:
         # A rank's share of the global minibatch mean: the sum over its samples / the global minibatch size. Summed
-        # over ranks (the gradients by all_reduce_grads_, the logged sums by sum_) it is the global mean.
+        # over ranks (the gradient by all_reduce_grad_, the logged sums by sum_) it is the global mean.
         return x.sum() / size
 
-    def all_reduce_grads_(self, params: Sequence[nn.Parameter]) -> None:
-        """One flat buffer, one collective per SGD step; a missing gradient counts as zeros."""
-        if len(params) == 1 and params[0].grad is not None and params[0].grad.is_contiguous():
-            dist.all_reduce(params[0].grad, op=dist.ReduceOp.SUM)  # PPO's flat gradient: already one buffer
-            return
-        total = sum(p.numel() for p in params)
-        buffer = self._grad_buffer
-        if buffer is None or buffer.numel() != total:
-            buffer = self._grad_buffer = torch.empty(total, dtype=params[0].dtype, device=params[0].device)
-        offset = 0
-        for p in params:
-            part = buffer[offset : offset + p.numel()]
-            if p.grad is None:
-                part.zero_()
-            else:
-                part.copy_(p.grad.reshape(-1))
-            offset += p.numel()
-        dist.all_reduce(buffer, op=dist.ReduceOp.SUM)
-        offset = 0
-        for p in params:
-            part = buffer[offset : offset + p.numel()].view_as(p)
-            if p.grad is None:
-                p.grad = part.clone()
-            else:
-                p.grad.copy_(part)
-            offset += p.numel()
+    def all_reduce_grad_(self, grad: torch.Tensor) -> None:
+        dist.all_reduce(grad, op=dist.ReduceOp.SUM)  # the policy's whole gradient is one buffer: one collective
 
     def sum_(self, x: torch.Tensor) -> torch.Tensor:
         dist.all_reduce(x, op=dist.ReduceOp.SUM)

@@ -455,7 +455,8 @@ class PPO:
                 f"policy must return (mean [{n}, {a}], log_std [{n}, {a}], value [{n}]) for this env, got {shapes}"
             )
         if self.critic_apart:  # the rollout calls the halves: they must be forward's
-            halves = (*self.policy.action_params(self.normalize_obs(self.obs)), self.policy.value(self.normalize_obs(self.obs)))
+            seen = self.normalize_obs(self.obs)
+            halves = (*self.policy.action_params(seen), self.policy.value(seen))
             if [tuple(x.shape) for x in halves] != shapes or not all(
                 torch.allclose(h, o) for h, o in zip(halves, outputs, strict=True)
             ):
@@ -614,7 +615,7 @@ class PPO:
         Minibatches are drawn from the global batch (``B = T·N`` over all ranks). Data-parallel, every rank draws the
         same permutation, computes the samples of each minibatch it holds (``dp.local_share``) with loss *sums*
         divided by the global minibatch size (``dp.minibatch_mean``), and the gradients are summed over ranks
-        (``dp.all_reduce_grads_``): the global minibatch's mean-loss gradient. In one process all three are plain.
+        (``dp.all_reduce_grad_``): the global minibatch's mean-loss gradient. In one process all three are plain.
         """
         cfg, buf, dp = self.config, self.rollout, self.dp
         batch = buf.rewards.numel()  # this rank's samples
@@ -680,7 +681,7 @@ class PPO:
                     with torch.no_grad():
                         clip_fraction = reduce(((ratio - 1.0).abs() > cfg.clip_param).float())
                         totals += torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss]).detach()
-                dp.all_reduce_grads_([flat.value])
+                dp.all_reduce_grad_(flat.grad)
                 if cfg.grad_clip is not None:
                     flat.clip_grad_norm_(cfg.grad_clip)
                 self.optimizer.step()
