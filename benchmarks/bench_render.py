@@ -19,7 +19,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from freeform.render import (
     RenderConfig,
@@ -47,14 +46,9 @@ def _designs(n: int, resolution: int, steps: int, seed: int = 0) -> tuple[np.nda
     """Final grids and bodies of an untrained (a ~ N(0, I)) policy, k = 4."""
     from freeform.body import largest_component
     from freeform.envs.design import DesignEnv
+    from freeform.evolve import untrained_design_grids
 
-    env = DesignEnv(n, resolution=resolution, materials=4, steps=steps, compute_metrics=False)
-    env.reset(seed)
-    gen = torch.Generator().manual_seed(seed)
-    info: dict = {}
-    for _ in range(steps):
-        _, _, _, info = env.step(torch.randn(n, env.action_dim, generator=gen))
-    grids = info["final_grids"]
+    grids = untrained_design_grids(DesignEnv(n, resolution=resolution, materials=4, steps=steps, compute_metrics=False), seed)
     return grids.numpy(), largest_component(grids).numpy()
 
 

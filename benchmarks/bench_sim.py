@@ -34,7 +34,7 @@ import torch
 
 from freeform.body import largest_component
 from freeform.envs.design import DesignEnv
-from freeform.evolve import design_grids
+from freeform.evolve import untrained_design_grids
 from freeform.sim import SimConfig, Simulator, Terrain
 
 RHO, K, T_ACTIONS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
@@ -48,9 +48,7 @@ def random_design_bodies(n: int, seed: int = 0) -> torch.Tensor:
     ``DesignEnv`` builds from T actions drawn from N(0, I) (no fallback: if the environment breaks, this does)."""
     env = DesignEnv(n, resolution=RHO, materials=K, steps=T_ACTIONS, bundle_size=BUNDLE, seed=seed,
                     compute_metrics=False)
-    gen = torch.Generator().manual_seed(seed)
-    actions = torch.stack([torch.randn(n, env.action_dim, generator=gen) for _ in range(T_ACTIONS)], dim=1)
-    return largest_component(design_grids(env, actions))
+    return largest_component(untrained_design_grids(env, seed))
 
 
 def cubes(batch: int, edge: int, material: int) -> torch.Tensor:

@@ -146,12 +146,9 @@ def random_designs(n: int, materials: int, resolution: int, seed: int) -> tuple[
     rewards (the volume task's reward: the body's voxel count)."""
     from freeform.body import largest_component
     from freeform.envs.design import DesignEnv
-    from freeform.evolve import design_grids
+    from freeform.evolve import untrained_design_grids
 
-    env = DesignEnv(n, resolution=resolution, materials=materials, compute_metrics=False)
-    gen = torch.Generator().manual_seed(seed)
-    actions = torch.stack([torch.randn(n, env.action_dim, generator=gen) for _ in range(env.steps)], dim=1)  # [n, T, A]
-    grids = design_grids(env, actions)
+    grids = untrained_design_grids(DesignEnv(n, resolution=resolution, materials=materials, compute_metrics=False), seed)
     volumes = (largest_component(grids) > 0).flatten(1).sum(dim=1)
     return grids.numpy(), volumes.numpy().astype(np.float64)
 

@@ -48,6 +48,14 @@ def design_grids(env: Any, actions: torch.Tensor) -> torch.Tensor:
     return grids
 
 
+def untrained_design_grids(env: Any, seed: int) -> torch.Tensor:
+    """The final grids ``[N, ρ, ρ, ρ] uint8`` of an untrained policy in ``env``: a ~ N(0, I) at each of its steps,
+    drawn step by step (``[N, A]`` at a time) from a generator seeded ``seed``."""
+    generator = torch.Generator().manual_seed(seed)
+    actions = [torch.randn(env.num_envs, env.action_dim, generator=generator) for _ in range(env.steps)]
+    return design_grids(env, torch.stack(actions, dim=1))
+
+
 def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().to("cpu").numpy()
 
