@@ -364,9 +364,9 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
                 if ti.static(terrain == 0):
                     if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
-                else:
+                elif static:  # (the distance only matters for a static voxel: skip the terrain lookup else)
                     dist_new, _n = ground(gp, hf, pos, terrain)
-                    if static and 0.5 * size - dist_new >= 0.0:
+                    if 0.5 * size - dist_new >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)
             flags = (flags & ~(STATIC | CONTACT)) | (STATIC if static else 0) | (CONTACT if touching else 0)
 
