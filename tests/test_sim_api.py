@@ -272,6 +272,44 @@ def test_robot_whose_dynamic_dt_collapses_is_stalled_and_others_finish(schedule)
     np.testing.assert_array_equal(r.max_voxel_displacement[0].numpy(), solo.max_voxel_displacement[0].numpy())
 
 
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+def test_trace_of_a_robot_that_stops_first_is_its_solo_trace_then_its_end(schedule):
+    """The kernels write each robot's trace samples as it steps (the batch is not stopped for them). With robot 1
+    held up by the planted stiffness above (it runs 3× the steps), robot 0's trace in the batch is its trace alone
+    up to its end, then its end repeated; robot 1 is sampled every k steps to its own end, where it is stalled."""
+    cfg = short(semantics="rl4design", burn_in=0.02, duration=0.03)
+    sim = Simulator(cfg, arch="cpu", schedule=schedule)
+    g = three_robots()[:2]
+    solo = sim.simulate(g[:1], trace_every=0.002).trace
+    eng = sim.engine(sim.layout(g))
+    lt = eng._table("lt")
+    lt[LT.EHAT, 2 * (len(cfg.materials) + 1) + 2] *= 30
+    eng._upload("lt", lt)
+    r = sim.finish(eng, trace_every=0.002)
+    tr, k = r.trace, r.trace.every
+    assert k == solo.every and k > 1
+    f0 = solo.time.shape[1]
+    assert f0 == 1 + -(-int(r.steps[0]) // k) and tr.time.shape[1] == 1 + -(-int(r.steps[1]) // k) > 2 * f0
+    for name in ("time", "com", "bbox_min", "bbox_max", "contacts", "orientation", "valid"):
+        ours, alone = getattr(tr, name)[0], getattr(solo, name)[0]
+        assert torch.equal(ours[:f0], alone), name
+        assert torch.equal(ours[f0:], alone[-1:].expand_as(ours[f0:])), name
+    assert (tr.time[1].diff() > 0).all() and bool(r.stalled[1])
+    assert tr.valid[1, :-1].all() and not tr.valid[1, -1]  # stalled at its last step
+
+
+def test_start_trace_refuses_bad_intervals_and_a_started_engine():
+    sim = Simulator(short(), arch="cpu")
+    eng = sim.engine(sim.layout(three_robots()[:1]))
+    with pytest.raises(ValueError, match="every"):
+        eng.start_trace(0)
+    with pytest.raises(RuntimeError, match="no trace"):
+        eng.trace_frames()
+    eng.advance(3)
+    with pytest.raises(RuntimeError, match="before the first advance"):
+        eng.start_trace(5)
+
+
 def test_device_arrays_are_reused_across_batches():
     """A Simulator keeps one set of device arrays: a smaller batch reuses them (the same ndarray objects, nothing
     allocated: a 2,500-epoch run allocates nothing after its largest batch), results on reused arrays equal those

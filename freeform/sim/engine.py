@@ -43,6 +43,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     VR,
     Table,
 )
+from freeform.sim.summaries import SUMMARY, make_summaries
 from freeform.sim.terrain import placement
 
 __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
@@ -119,6 +120,18 @@ class DeviceArrays:
             self._arrays[key] = (runtime.ndarray(np.dtype(dtype), (length,)), length)
             self.allocations += 1
         return self._arrays[key][0]
+
+    def grid(self, name: str, shape: tuple[int, ...]):
+        """A float64 ndarray of at least ``shape`` in every dimension (made or grown as needed; kernels index it
+        within the batch's own extent), e.g. the trace ``[frames, SUMMARY.width, robots]``."""
+        key = (name, "f64", "grid")
+        arr, have = self._arrays.get(key, (None, ()))
+        if arr is None or len(have) != len(shape) or any(n > h for n, h in zip(shape, have, strict=True)):
+            have = tuple(max(n, h) for n, h in zip(shape, have or (0,) * len(shape), strict=True))
+            arr = runtime.ndarray(np.dtype(np.float64), have)
+            self.allocations += 1
+            self._arrays[key] = (arr, have)
+        return arr
 
     def arrays(self) -> dict[tuple[str, str, str], object]:
         """The ndarrays held now, by (name, precision, order) (tests check reuse through object identity)."""
@@ -248,6 +261,9 @@ class Engine:
         self._queue = self._arrays.vector("queue", np.int32, 1)
         self._workers = max(1, min(R, runtime.num_threads()))
         self.steps_done = 0
+        # the trace (start_trace): off until asked for; the kernels then take the trace array unread (any size)
+        self.trace_steps = 0
+        self._trace = self._arrays.grid("trace", (1, SUMMARY.width, 1))
 
     # ------------------------------------------------------------------ host <-> device, in the kernels' order
     def _check_owner(self) -> None:
@@ -282,7 +298,8 @@ class Engine:
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
         k, d = self.kernels, self._dev
-        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp, self.hf)
+        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp, self.hf,
+                self._trace, self.trace_steps)
         flags = (int(self.config.floor), int(self.terrain.mode), self.ifx, self.dyn)
         n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
         if self.schedule == "robots":
@@ -336,6 +353,46 @@ class Engine:
     def static_friction(self) -> np.ndarray:
         """Floor static-friction state per voxel, bool ``[n]``."""
         return (self._table("vi")[VI.FLAGS] & STATIC) != 0
+
+    # ------------------------------------------------------------------ the trace (summaries.py)
+    def start_trace(self, every: int) -> None:
+        """From now on, robot r's voxels are summarised (``summaries.SUMMARY``) into frame f of the trace when it
+        has run f × ``every`` steps (since it was built; frame 0, its state now, is written here). Read with
+        ``trace_frames``. Call before the first ``advance``."""
+        self._check_owner()
+        if not isinstance(every, int) or every < 1:
+            raise ValueError(f"every must be a positive int (steps), got {every!r}")
+        if self.steps_done:
+            raise RuntimeError("start_trace must come before the first advance (frames count steps from 0)")
+        R = self.counts["robots"]
+        frames = 1 + -(-int(self.max_steps.max()) // every) if R else 1  # no robot runs past its step cap
+        self._trace = self._arrays.grid("trace", (frames, SUMMARY.width, max(R, 1)))
+        self.trace_steps = every
+        self._summarise(0)
+
+    def _summarise(self, frame: int) -> None:
+        d = self._dev
+        make_summaries(self.precision, self.order).summarise(d["vr"], d["vi"], d["rt"], d["ri"], d["mt"],
+                                                             self.counts["robots"], self._trace, frame)
+
+    def trace_frames(self) -> np.ndarray:
+        """float64 ``[F, SUMMARY.width, R]``: frame f summarises every robot after f × ``every`` steps, or as it
+        stopped if it stopped before (F = 1 + ⌈most steps any robot ran / every⌉)."""
+        self._check_owner()
+        if not self.trace_steps:
+            raise RuntimeError("no trace: call start_trace(every) before advancing")
+        R, k = self.counts["robots"], self.trace_steps
+        if R == 0:
+            return np.zeros((1, SUMMARY.width, 0))
+        steps = self.robot_steps()
+        frames = 1 + -(-int(steps.max()) // k)
+        # The last frame, taken now, is every robot as it stopped (one that ran to it wrote the same state there);
+        # a robot's frames after its last trace step hold nothing it wrote: they repeat that state (status
+        # included: a diverged robot's later frames say so).
+        self._summarise(frames - 1)
+        out = runtime.to_numpy(self._trace)[:frames, :, :R]
+        stopped = np.arange(frames)[:, None] > (steps // k)[None, :]
+        return np.where(stopped[:, None, :], out[-1:], out)
 
     def robot_status(self) -> np.ndarray:
         """int32 ``[R]``: RUNNING, DONE, DIVERGED or STALLED (stopped at its step cap)."""

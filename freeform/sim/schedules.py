@@ -1,7 +1,8 @@
 """The two schedules that drive one physics: which thread runs which link, voxel and robot, and when.
 
 One step = every link's ``link_update`` (links.py), then every voxel's ``voxel_update`` (voxels.py), then every
-robot's ``robot_advance`` (clock.py). Both schedules call these same functions:
+robot's ``robot_advance`` (clock.py) and, when its step count reaches a trace sample, ``summarise_robot``
+(summaries.py). Both schedules call these same functions:
 
 * ``flat`` (the CUDA default, "soa" arrays): one thread per link, then per voxel, then per robot, ``UNROLL``
   steps per launch.
@@ -25,6 +26,7 @@ from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
 from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR
+from freeform.sim.summaries import TraceArr, make_summaries
 from freeform.sim.voxels import make_voxels
 
 SCHEDULES = ("auto", "robots", "flat")
@@ -62,16 +64,27 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     link_update = make_links(precision, order).link_update
     voxel_update = make_voxels(precision, order).voxel_update
     robot_advance = make_clock(precision, order).robot_advance
+    summarise_robot = make_summaries(precision, order).summarise_robot
     VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
     RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
     GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
     HfArr = ti.types.ndarray(dtype=make_numbers(precision).real, ndim=1)  # the terrain's height grid
 
     @ti.func
+    def trace_sample(r, vr: ti.template(), vi: ti.template(), rt: ti.template(), ri: ti.template(),
+                     mt: ti.template(), tr: ti.template(), trace_steps):
+        """After robot r's step: frame s / k of the trace once it has run s steps, s a multiple of k = trace_steps
+        (0: no trace). Only a step that ran calls it, so a robot that stopped leaves its later frames alone."""
+        if trace_steps > 0:
+            s = ld(ri, RI.STEP, r)
+            if s % trace_steps == 0:
+                summarise_robot(r, vr, vi, rt, ri, mt, tr, s // trace_steps)
+
+    @ti.func
     def robot_step(r, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(), gp: ti.template(),
-                   hf: ti.template(), floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
-                   dyn: ti.template()):
+                   hf: ti.template(), tr: ti.template(), trace_steps, floor: ti.template(), terrain: ti.template(),
+                   ifx: ti.template(), dyn: ti.template()):
         """One step of robot r by the calling thread alone."""
         if ld(ri, RI.STATUS, r) == RUNNING:
             for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
@@ -81,12 +94,13 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                     voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx)
             if ld(ri, RI.STATUS, r) == RUNNING:
                 robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+                trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
 
     @ti.kernel
     def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                   lt: LtArr, gp: GpArr, hf: HfArr, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(),
-                   terrain: ti.template(), ifx: ti.template(), dyn: ti.template(),
-                   queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
+                   lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_robots: ti.i32,
+                   n_steps: ti.i32, floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
+                   dyn: ti.template(), queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
         """``workers`` threads each take the next unclaimed robot (of ``n_robots``) from ``queue`` and run it
         ``n_steps`` steps, until none is left.
 
@@ -101,14 +115,15 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                 r = ti.atomic_add(queue[0], 1)
                 while r < n_robots:
                     for _ in range(n_steps):
-                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx, dyn)
+                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, tr, trace_steps, floor, terrain, ifx,
+                                   dyn)
                     r = ti.atomic_add(queue[0], 1)
 
     @ti.kernel
     def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                 lt: LtArr, gp: GpArr, hf: HfArr, n_voxels: ti.i32, n_links: ti.i32, n_robots: ti.i32,
-                 n_steps: ti.i32, floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
-                 dyn: ti.template()):
+                 lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_voxels: ti.i32,
+                 n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(), terrain: ti.template(),
+                 ifx: ti.template(), dyn: ti.template()):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
             for lk in range(n_links):
@@ -120,6 +135,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
             for r in range(n_robots):
                 if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
                     robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+                    trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
 
     return SimpleNamespace(run_robots=run_robots, run_flat=run_flat,
                            probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order)

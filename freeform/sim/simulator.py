@@ -8,7 +8,6 @@ without stopping the others; no NaN leaves the simulator.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +18,8 @@ from freeform.sim.config import SimConfig, material_table
 from freeform.sim.engine import DeviceArrays, Engine
 from freeform.sim.layout import Layout, build_layout
 from freeform.sim.schedules import SCHEDULES, resolve_schedule
-from freeform.sim.state import CONTACT, DIVERGED, MT, RUNNING, STALLED, VI, VR
+from freeform.sim.state import DIVERGED, MT, RUNNING, STALLED, VR
+from freeform.sim.summaries import SUMMARY
 from freeform.sim.terrain import FLAT, HeightField
 
 
@@ -174,85 +174,55 @@ class Simulator:
 
     def finish(self, engine: Engine, record_every: int | None = None,
                trace_every: float | None = None) -> SimResult:
-        """Run ``engine`` (from ``self.engine``, possibly advanced or edited already) until every robot has
-        stopped, and give its results."""
+        """Run ``engine`` (from ``self.engine``, possibly edited already; advanced already only without a trace)
+        until every robot has stopped, and give its results."""
         layout = engine.layout
         frames: list[tuple[float, np.ndarray]] = []
-        samples: list[dict[str, torch.Tensor]] = []
 
-        def snapshot(vs: np.ndarray) -> None:
+        def snapshot() -> None:
             t = float(engine.robot_time()[0]) if layout.num_robots else 0.0
-            frames.append((t, vs[VR.POS:VR.ORI + 4].T.astype(np.float32).copy()))
+            frames.append((t, engine.voxel_state()[VR.POS:VR.ORI + 4].T.astype(np.float32).copy()))
 
         trace_steps = None
         if trace_every is not None and layout.num_robots:
+            # the kernels write each robot's samples as it steps: the batch never stops for one
             trace_steps = max(1, int(round(trace_every / float(np.median(engine.dt0)))))
-        masses = self._robot_masses(engine) if trace_steps is not None else None  # constant over the run
-        every = [k for k in (record_every, trace_steps) if k is not None]
-        chunk = math.gcd(*every) if every else self.config.chunk_steps
-        start = engine.steps_done
-
-        def observe() -> None:
-            done = engine.steps_done - start
-            want_frame = record_every is not None and done % record_every == 0
-            want_sample = trace_steps is not None and done % trace_steps == 0
-            if want_frame or want_sample:
-                vs = engine.voxel_state()
-                if want_frame:
-                    snapshot(vs)
-                if want_sample:
-                    samples.append(self._sample(engine, vs, masses))
-
-        observe()
+            engine.start_trace(trace_steps)
+        chunk = record_every if record_every is not None else self.config.chunk_steps
+        if record_every is not None:
+            snapshot()
         while layout.num_robots and (engine.robot_status() == RUNNING).any():
             engine.advance(chunk)
-            observe()
-        trace = self._trace(engine, samples, trace_steps) if trace_every is not None else None
+            if record_every is not None:
+                snapshot()
+        trace = self._trace(engine, trace_steps) if trace_every is not None else None
         return self._result(engine, frames if record_every is not None else None, trace)
 
     # ------------------------------------------------------------------ traces
-    def _robot_masses(self, engine: Engine) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """What every trace sample reduces with: each voxel's robot ``[V]`` int64, its mass ``[V]`` and each robot's
-        total mass ``[R]`` (float64)."""
-        layout = engine.layout
-        voxel_robot = torch.from_numpy(layout.voxel_robot.astype(np.int64))
-        mass = torch.from_numpy(material_table(self.config)[MT.MASS][layout.material])
-        total = torch.zeros(layout.num_robots, dtype=torch.float64).index_add_(0, voxel_robot, mass)
-        return voxel_robot, mass, total
-
-    def _sample(self, engine: Engine, vs: np.ndarray,
-                masses: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """One trace sample of every robot (torch float64 ``[R, ...]``), reduced from the voxels with scatters."""
-        R = engine.layout.num_robots
-        vr_, mass, msum = masses
-        pos = torch.from_numpy(np.ascontiguousarray(vs[VR.span("POS")].T.astype(np.float64)))
-        ori = torch.from_numpy(np.ascontiguousarray(vs[VR.span("ORI")].T.astype(np.float64)))
-        com = torch.zeros(R, 3, dtype=torch.float64).index_add_(0, vr_, pos * mass[:, None]) / msum[:, None]
-        idx3 = vr_[:, None].expand(-1, 3)
-        lo = torch.full((R, 3), math.inf, dtype=torch.float64).scatter_reduce(0, idx3, pos, "amin")
-        hi = torch.full((R, 3), -math.inf, dtype=torch.float64).scatter_reduce(0, idx3, pos, "amax")
-        flags = torch.from_numpy(engine._table("vi")[VI.FLAGS].astype(np.int64))
-        contacts = torch.zeros(R, dtype=torch.float64).index_add_(0, vr_, ((flags & CONTACT) != 0).double())
-        ori = torch.where(ori[:, :1] < 0, -ori, ori)
-        q = torch.zeros(R, 4, dtype=torch.float64).index_add_(0, vr_, ori)
-        q = q / q.norm(dim=1, keepdim=True).clamp_min(1e-300)
-        status = torch.from_numpy(engine.robot_status().astype(np.int64))
-        return {"time": torch.from_numpy(engine.robot_time().astype(np.float64)), "com": com, "lo": lo, "hi": hi,
-                "contacts": contacts, "orientation": q, "ok": (status != DIVERGED) & (status != STALLED)}
-
-    def _trace(self, engine: Engine, samples: list[dict[str, torch.Tensor]], every: int | None) -> Trace:
+    def _trace(self, engine: Engine, every: int | None) -> Trace:
+        """The engine's trace frames (``Engine.trace_frames``) finished per body (``[B, F, ...]``, float64)."""
         layout, cfg = engine.layout, self.config
         B = layout.num_bodies
-        F = len(samples)
         rob = torch.from_numpy(layout.robot_of_body)
         has = rob >= 0
         idx = rob.clamp_min(0)
+        sample: dict[str, torch.Tensor] = {}
+        F = 0
+        if every is not None:  # (robots exist)
+            s = torch.from_numpy(engine.trace_frames()).permute(2, 0, 1)  # [R, F, SUMMARY.width]
+            F = s.shape[1]
+            q = s[..., SUMMARY.span("Q")]
+            status = s[..., SUMMARY.STATUS].long()
+            sample = {"time": s[..., SUMMARY.T], "com": s[..., SUMMARY.span("MX")] / s[..., SUMMARY.M, None],
+                      "lo": s[..., SUMMARY.span("LO")], "hi": s[..., SUMMARY.span("HI")],
+                      "contacts": s[..., SUMMARY.CONTACTS],
+                      "orientation": q / q.norm(dim=-1, keepdim=True).clamp_min(1e-300),
+                      "ok": ((status != DIVERGED) & (status != STALLED)).double()}
 
         def stack(key: str, width: tuple[int, ...] = ()) -> torch.Tensor:
             out = torch.zeros((B, F, *width), dtype=torch.float64)
-            if F and layout.num_robots:
-                x = torch.stack([s[key].to(torch.float64) for s in samples], dim=1)[idx]
-                out = torch.where(has.view(B, 1, *([1] * len(width))), x, out)
+            if F:
+                out = torch.where(has.view(B, 1, *([1] * len(width))), sample[key][idx], out)
             return out
 
         valid = stack("ok") > 0.5 if F else torch.zeros((B, 0), dtype=torch.bool)
