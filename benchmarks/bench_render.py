@@ -54,16 +54,11 @@ def _designs(n: int, resolution: int, steps: int, seed: int = 0) -> tuple[np.nda
 
 def _demo_epoch_seconds(epochs: int = 4) -> tuple[float, Path]:
     """Median seconds per epoch (after the first, which compiles kernels) of the locomotion CPU demo."""
-    from hydra import compose, initialize_config_dir
+    from freeform.config import compose
+    from freeform.train import train
 
-    from freeform.config import register_configs, to_dataclass
-    from freeform.train import CONF_DIR, train
-
-    register_configs()
-    overrides = ["experiment=locomotion_cpu", f"trainer.epochs={epochs}", "trainer.checkpoint_every=0",
-                 "trainer.progress=false", "trainer.print_every=0", "trainer.render_every=0"]
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = to_dataclass(compose(config_name="config", overrides=overrides))
+    cfg = compose("experiment=locomotion_cpu", f"trainer.epochs={epochs}", "trainer.checkpoint_every=0",
+                  "trainer.progress=false", "trainer.print_every=0", "trainer.render_every=0")
     run_dir = Path(tempfile.mkdtemp(prefix="bench_render_demo_"))
     stamps: list[float] = []
     train(cfg, run_dir, callbacks=[lambda ctx: stamps.append(time.perf_counter())])

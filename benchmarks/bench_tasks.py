@@ -1,7 +1,8 @@
-"""What a CPU demo epoch's scoring costs per task: the 64 untrained designs of one epoch (8³, T = 20, k = 4),
-simulated for the demos' 2 s burn-in + 0.5 s evaluation, scored by ``locomotion`` (no trace), the ``rough`` reward on
-flat and on rough ground (20 ms trace), and ``jump`` with its 5 ms trace and with a 20 ms one. Two repeats each,
-interleaved (a shared machine drifts); seconds per call. ``FREEFORM_BENCH_QUICK=1``: 16 designs, one repeat.
+"""What a CPU demo epoch's scoring costs per task: one epoch's 64 untrained designs (the demos' 8³ grid, T = 20,
+k = 4) scored by the task of each demo preset, composed from ``conf/experiment/<task>_cpu.yaml`` (the presets'
+2 s burn-in + 0.5 s evaluation, ground and trace interval: nothing restated here), and the ``rough`` preset once
+more on flat ground, which isolates what the rough ground costs. Two repeats each, interleaved (a shared machine
+drifts); seconds per call. ``FREEFORM_BENCH_QUICK=1``: 16 designs, one repeat.
 """
 
 from __future__ import annotations
@@ -11,26 +12,33 @@ import time
 
 import torch
 
-from freeform.envs import DesignEnv, LocomotionTask
-from freeform.envs.trajectory import TrajectoryTask
-from freeform.evolve import design_grids
-from freeform.sim import SimConfig, Terrain
+from freeform.config import compose
+from freeform.envs import DesignEnv
+from freeform.evolve import untrained_design_grids
+from freeform.train import build_task
+
+PRESETS = {
+    "locomotion_cpu (no trace)": ("experiment=locomotion_cpu",),
+    "rough_cpu (rough ground, 20 ms trace)": ("experiment=rough_cpu",),
+    "rough_cpu on flat ground": ("experiment=rough_cpu", "sim.terrain.kind=flat"),
+    "jump_cpu (5 ms trace)": ("experiment=jump_cpu",),
+    "climb_cpu (slope)": ("experiment=climb_cpu",),
+    "stairs_cpu": ("experiment=stairs_cpu",),
+    "tallest_cpu": ("experiment=tallest_cpu",),
+    "directional_cpu": ("experiment=directional_cpu",),
+}
 
 
 def main() -> None:
     quick = os.environ.get("FREEFORM_BENCH_QUICK") == "1"
     n, repeats = (16, 1) if quick else (64, 2)
-    env = DesignEnv(n, resolution=8, materials=4, steps=20, compute_metrics=False)
-    grids = design_grids(env, torch.randn((n, env.steps, env.action_dim), generator=torch.Generator().manual_seed(0)))
-    flat = SimConfig(burn_in=2.0, duration=0.5)
-    rough = SimConfig(burn_in=2.0, duration=0.5, terrain=Terrain.rough(0.003, 0.04))
-    tasks = {
-        "locomotion (no trace)": LocomotionTask(sim=flat, arch="cpu"),
-        "rough reward, flat ground, 20 ms trace": TrajectoryTask("rough", sim=flat, trace_every=0.02, arch="cpu"),
-        "rough reward, rough ground, 20 ms trace": TrajectoryTask("rough", sim=rough, trace_every=0.02, arch="cpu"),
-        "jump, 20 ms trace": TrajectoryTask("jump", sim=flat, trace_every=0.02, arch="cpu"),
-        "jump, 5 ms trace (its config)": TrajectoryTask("jump", sim=flat, trace_every=0.005, arch="cpu"),
-    }
+    cpu = torch.device("cpu")
+    configs = {name: compose(*overrides, "trainer.device=cpu") for name, overrides in PRESETS.items()}
+    demo = configs["locomotion_cpu (no trace)"]
+    env = DesignEnv(n, resolution=demo.env.resolution, materials=demo.task.materials, steps=demo.env.steps,
+                    compute_metrics=False)
+    grids = untrained_design_grids(env, seed=0)
+    tasks = {name: build_task(cfg, cpu) for name, cfg in configs.items()}
     for task in tasks.values():
         task.reward(grids[:2])  # Taichi compiles its kernels on the first call
     seconds: dict[str, list[float]] = {name: [] for name in tasks}
@@ -39,7 +47,7 @@ def main() -> None:
             t0 = time.perf_counter()
             task.reward(grids)
             seconds[name].append(time.perf_counter() - t0)
-    print(f"| task, {n} untrained designs, 2 s + 0.5 s | seconds per scoring ({repeats} repeats) |")
+    print(f"| demo preset's task, {n} untrained designs | seconds per scoring ({repeats} repeats) |")
     print("|---|---|")
     for name, s in seconds.items():
         print(f"| {name} | {', '.join(f'{x:.2f}' for x in s)} |")

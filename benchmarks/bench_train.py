@@ -15,22 +15,14 @@ import statistics
 import tempfile
 import time
 
-from hydra import compose, initialize_config_dir
-
 from freeform import train as train_mod
-from freeform.config import to_dataclass
+from freeform.config import compose
 
 
 def main() -> None:
     epochs = 3 if os.environ.get("FREEFORM_BENCH_QUICK") else 8
-    with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
-        cfg = to_dataclass(
-            compose(
-                "config",
-                overrides=["experiment=volume_cpu", f"trainer.epochs={epochs}", "trainer.progress=false",
-                           "trainer.print_every=0", "trainer.checkpoint_every=1"],
-            )
-        )
+    cfg = compose("experiment=volume_cpu", f"trainer.epochs={epochs}", "trainer.progress=false",
+                  "trainer.print_every=0", "trainer.checkpoint_every=1")
     stamps: list[float] = []  # when each epoch's callbacks run: consecutive gaps = one whole loop iteration
     with tempfile.TemporaryDirectory() as run_dir:
         t0 = time.perf_counter()

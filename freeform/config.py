@@ -226,6 +226,21 @@ def flatten(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def compose(*overrides: str) -> TrainConfig:
+    """The validated :class:`TrainConfig` that ``freeform-train *overrides`` runs, composed from the installed
+    ``conf/`` (``compose("experiment=rough_cpu", "trainer.epochs=3")``): for scripts, benchmarks and tests that
+    start from a preset instead of restating its numbers. Not inside a running Hydra app (Hydra is initialised
+    here)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    from freeform._conf_dir import conf_dir
+
+    register_configs()
+    with initialize_config_dir(version_base="1.3", config_dir=str(conf_dir()), job_name="train"):
+        return to_dataclass(hydra_compose("config", overrides=list(overrides)))
+
+
 def register_configs() -> None:
     """Register :class:`TrainConfig` with Hydra's ConfigStore as ``train_schema`` (``conf/config.yaml``'s base)."""
     from hydra.core.config_store import ConfigStore
@@ -241,6 +256,7 @@ __all__ = [
     "TaskConfig",
     "TrainConfig",
     "TrainerConfig",
+    "compose",
     "flatten",
     "from_container",
     "ppo_config",

@@ -7,7 +7,6 @@ import re
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf.errors import ConfigKeyError, ValidationError
 
@@ -15,30 +14,25 @@ from freeform.agents import PPOConfig
 from freeform.config import (
     AgentConfig,
     TrainConfig,
+    compose,
     flatten,
     from_container,
     ppo_config,
     to_container,
-    to_dataclass,
     validate,
 )
 from freeform.train import CONF_DIR, _resolver_hydra_subdir, _resolver_run_dir
 
 
-def composed(*overrides: str) -> TrainConfig:
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        return to_dataclass(compose("config", overrides=list(overrides)))
-
-
 def test_default_is_the_cpu_demo() -> None:
-    cfg = composed()
+    cfg = compose()
     assert cfg.name == "volume_cpu"
     assert cfg.task.name == "volume" and cfg.task.materials == 2
     assert cfg.trainer.device == "cpu"
 
 
 def test_paper_volume_preset_is_table_one() -> None:
-    cfg = composed("experiment=paper_volume")
+    cfg = compose("experiment=paper_volume")
     assert (cfg.env.num_envs, cfg.env.steps, cfg.env.resolution, cfg.env.bundle_size) == (256, 100, 20, 2)
     assert cfg.env.num_envs * cfg.env.steps == 25_600  # the train batch of Table I
     assert (cfg.task.name, cfg.task.materials, cfg.agent.hidden) == ("volume", 2, 128)
@@ -53,7 +47,7 @@ def test_paper_volume_preset_is_table_one() -> None:
 
 
 def test_paper_locomotion_preset_is_table_one() -> None:
-    cfg = composed("experiment=paper_locomotion")
+    cfg = compose("experiment=paper_locomotion")
     assert (cfg.env.num_envs, cfg.env.steps) == (128, 100)
     assert cfg.env.num_envs * cfg.env.steps == 12_800
     assert (cfg.task.name, cfg.task.materials, cfg.agent.hidden) == ("locomotion", 4, 256)
@@ -62,7 +56,7 @@ def test_paper_locomotion_preset_is_table_one() -> None:
 
 
 def test_command_line_overrides_win_over_the_preset() -> None:
-    cfg = composed("experiment=paper_volume", "env.num_envs=8", "agent.lr=3e-4", "seed=7")
+    cfg = compose("experiment=paper_volume", "env.num_envs=8", "agent.lr=3e-4", "seed=7")
     assert (cfg.env.num_envs, cfg.agent.lr, cfg.seed) == (8, 3e-4, 7)
 
 
@@ -78,21 +72,21 @@ def test_agent_section_is_ppo_config() -> None:
 
 def test_agent_errors_name_the_dotted_key_in_one_style() -> None:
     with pytest.raises(ValueError, match=r"^agent\.lr must be > 0, got -1\.0$"):
-        composed("agent.lr=-1")
+        compose("agent.lr=-1")
     with pytest.raises(ValueError, match=r"^PPOConfig\.lr must be > 0, got -1$"):
         PPOConfig(lr=-1)
     with pytest.raises(ValueError, match=r"^agent\.hidden must be an int >= 1, got 0$"):
-        composed("agent.hidden=0")
+        compose("agent.hidden=0")
 
 
 def test_agent_seed_and_device_default_to_the_runs() -> None:
-    cfg = composed("seed=5", "agent.seed=9")
+    cfg = compose("seed=5", "agent.seed=9")
     assert ppo_config(cfg, device="cpu").seed == 9
-    assert ppo_config(composed("seed=5"), device="cpu").seed == 5
+    assert ppo_config(compose("seed=5"), device="cpu").seed == 5
 
 
 def test_ppo_config_takes_seed_device_and_default_rollout() -> None:
-    cfg = composed("seed=11", "env.steps=7")
+    cfg = compose("seed=11", "env.steps=7")
     p = ppo_config(cfg, device="cpu")
     assert (p.seed, p.device, p.rollout_steps) == (11, "cpu", 7)
     assert p.num_sgd_iter == cfg.agent.num_sgd_iter and p.lr == cfg.agent.lr
@@ -103,14 +97,14 @@ def test_ppo_config_takes_seed_device_and_default_rollout() -> None:
 @pytest.mark.parametrize("override", ["agent.lrr=1", "env.nope=3", "trainer.epoch=3"])
 def test_unknown_key_fails_naming_it(override: str) -> None:
     with pytest.raises((ConfigCompositionException, ConfigKeyError)) as info:
-        composed(override)
+        compose(override)
     key = override.split("=")[0]
     assert key.split(".")[1] in str(info.value) or key in str(info.value.__cause__)
 
 
 def test_wrong_type_fails_naming_the_key() -> None:
     with pytest.raises((ConfigCompositionException, ValidationError)) as info:
-        composed("env.num_envs=abc")
+        compose("env.num_envs=abc")
     assert "env.num_envs" in str(info.value) + str(info.value.__cause__)
 
 
@@ -138,16 +132,16 @@ def test_wrong_type_fails_naming_the_key() -> None:
 )
 def test_invalid_value_fails_naming_the_key(override: str, key: str) -> None:
     with pytest.raises(ValueError, match="^" + re.escape(key) + " must"):
-        composed(override)
+        compose(override)
 
 
 def test_valid_edge_values_pass() -> None:
-    cfg = composed("env.resolution=2", "env.bundle_size=2", "trainer.device=cuda:1", "trainer.epochs=0")
+    cfg = compose("env.resolution=2", "env.bundle_size=2", "trainer.device=cuda:1", "trainer.epochs=0")
     assert cfg.env.resolution == 2 and cfg.trainer.device == "cuda:1"
 
 
 def test_container_round_trip() -> None:
-    cfg = composed("experiment=paper_locomotion", "seed=3")
+    cfg = compose("experiment=paper_locomotion", "seed=3")
     data = to_container(cfg)
     assert from_container(data) == cfg
     flat = flatten(data)

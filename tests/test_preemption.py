@@ -281,17 +281,15 @@ def test_failed_checkpoint_write_keeps_the_previous_one_and_says_what_failed(
 def _rank_worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
     """One rank of a 2-rank tiny run; rank 0 alone is sent SIGTERM (from its callback, after epoch 0's record)."""
     import torch.distributed as dist
-    from hydra import compose, initialize_config_dir
 
-    from freeform.config import to_dataclass
+    from freeform.config import compose
 
     torch.set_num_threads(1)
     # A short timeout: a rank left alone in a collective (the bug this test guards) fails in a minute, not 30.
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world,
                             timeout=datetime.timedelta(seconds=60))
     try:
-        with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
-            cfg = to_dataclass(compose("config", overrides=tiny(f"trainer.epochs={EPOCHS}")))
+        cfg = compose(*tiny(f"trainer.epochs={EPOCHS}"))
 
         def signal_rank0(ctx: train_mod.EpochContext) -> None:
             if ctx.epoch == 0:

@@ -99,12 +99,9 @@ def test_resume_after_a_kill_continues_the_curves_exactly(
 
 
 def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
+    from freeform.config import compose
 
-    from freeform.config import to_dataclass
-
-    with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
-        cfg = to_dataclass(compose("config", overrides=[*TINY, "trainer.epochs=2", "seed=5"]))
+    cfg = compose(*TINY, "trainer.epochs=2", "seed=5")
     train_mod.train(cfg, tmp_path / "straight")
     cfg.trainer.epochs = 1
     train_mod.train(cfg, tmp_path / "split")
@@ -176,12 +173,9 @@ def test_console_script_is_installed() -> None:
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given where no CUDA device exists")
 def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
+    from freeform.config import compose
 
-    from freeform.config import to_dataclass
-
-    with initialize_config_dir(config_dir=str(train_mod.CONF_DIR), version_base="1.3"):
-        cfg = to_dataclass(compose(config_name="config", overrides=["experiment=paper_locomotion"]))
+    cfg = compose("experiment=paper_locomotion")
     assert cfg.trainer.device == "cuda"
     with pytest.raises(ValueError, match=r"experiment=paper_locomotion is meant for a GPU.*add trainer\.device=cpu"):
         train_mod.train(cfg, tmp_path / "run")
