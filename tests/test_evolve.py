@@ -165,12 +165,9 @@ def test_every_baseline_runs_through_the_training_app(algo: str, tmp_path: Path,
 
 @pytest.mark.parametrize("algo", EVOLUTION)
 def test_two_generations_equal_one_plus_resume_one_bit_for_bit(algo: str, tmp_path: Path) -> None:
-    from hydra import compose, initialize_config_dir
+    from freeform.config import compose
 
-    from freeform.config import to_dataclass
-
-    with initialize_config_dir(version_base="1.3", config_dir=str(train_mod.CONF_DIR)):
-        cfg = to_dataclass(compose("config", overrides=[*TINY, f"algo={algo}", "trainer.epochs=3", "seed=5"]))
+    cfg = compose(*TINY, f"algo={algo}", "trainer.epochs=3", "seed=5")
     train_mod.train(cfg, tmp_path / "straight")
     cfg.trainer.epochs = 2
     train_mod.train(cfg, tmp_path / "split")

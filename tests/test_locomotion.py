@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from freeform.body import largest_component
+from freeform.config import compose
 from freeform.envs import DesignEnv, LocomotionTask
 from freeform.sim import SimConfig, Simulator
 
@@ -174,29 +175,19 @@ def test_training_app_runs_the_locomotion_task_and_logs_simulation_speed(tmp_pat
     torch.testing.assert_close(again, torch.as_tensor(rec.rewards), rtol=1e-5, atol=1e-6)
 
 
-def _composed(*overrides: str):
-    from hydra import compose, initialize_config_dir
-
-    from freeform.config import to_dataclass
-    from freeform.train import CONF_DIR
-
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        return to_dataclass(compose("config", overrides=list(overrides)))
-
-
 def test_paper_locomotion_preset_is_table_one_with_the_paper_simulator():
-    cfg = _composed("experiment=paper_locomotion")
+    cfg = compose("experiment=paper_locomotion")
     assert (cfg.task.name, cfg.task.materials) == ("locomotion", 4)
     assert (cfg.env.num_envs, cfg.env.steps, cfg.env.resolution, cfg.agent.hidden) == (128, 100, 20, 256)
     assert (cfg.agent.num_sgd_iter, cfg.agent.sgd_minibatch_size, cfg.trainer.epochs) == (10, 128, 2500)
     assert (cfg.sim.semantics, cfg.sim.reward, cfg.sim.burn_in, cfg.sim.duration) == ("rl4design", "max_voxel", 5, 5)
     # The library's default stays Voxelyze's; sim.* overrides reach the SimConfig.
-    assert _composed("task=locomotion").sim.semantics == "voxelyze"
-    assert _composed("experiment=paper_locomotion", "sim.reward=com").sim.reward == "com"
+    assert compose("task=locomotion").sim.semantics == "voxelyze"
+    assert compose("experiment=paper_locomotion", "sim.reward=com").sim.reward == "com"
 
 
 def test_cpu_demo_preset_is_small():
-    cfg = _composed("experiment=locomotion_cpu")
+    cfg = compose("experiment=locomotion_cpu")
     assert cfg.task.name == "locomotion" and cfg.trainer.device == "cpu"
     assert cfg.env.resolution <= 8 and cfg.env.steps <= 20 and cfg.sim.burn_in + cfg.sim.duration <= 2.5
 
@@ -204,8 +195,8 @@ def test_cpu_demo_preset_is_small():
 def test_rl_vs_evolution_preset_keeps_the_protocol_its_documented_table_was_measured_with():
     """docs/experiments.md's locomotion comparison ran 80 epochs with a 0.25 s burn-in, before the demo settled for
     2 s and shortened to 60 epochs: the preset pins both, whatever locomotion_cpu becomes."""
-    cfg = _composed("experiment=rl_vs_evolution_locomotion")
-    demo = _composed("experiment=locomotion_cpu")
+    cfg = compose("experiment=rl_vs_evolution_locomotion")
+    demo = compose("experiment=locomotion_cpu")
     assert (cfg.sim.burn_in, cfg.sim.duration, cfg.trainer.epochs, cfg.env.num_envs) == (0.25, 0.5, 80, 64)
     assert (cfg.env, cfg.agent) == (demo.env, demo.agent)
 
@@ -219,7 +210,7 @@ def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over()
     from freeform.evolve import design_grids
     from freeform.train import build_task
 
-    cfg = _composed("experiment=locomotion_cpu")
+    cfg = compose("experiment=locomotion_cpu")
     env = DesignEnv(32, resolution=cfg.env.resolution, materials=4, steps=cfg.env.steps, compute_metrics=False)
     noise = torch.randn((env.steps, 32, env.action_dim), generator=torch.Generator().manual_seed(0))  # step-major
     passive = (design_grids(env, noise.transpose(0, 1)) != 0).to(torch.uint8)  # untrained shapes, all passive tissue

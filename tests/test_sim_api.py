@@ -298,6 +298,23 @@ def test_trace_of_a_robot_that_stops_first_is_its_solo_trace_then_its_end(schedu
     assert tr.valid[1, :-1].all() and not tr.valid[1, -1]  # stalled at its last step
 
 
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+def test_trace_of_a_diverging_robot_keeps_its_last_good_step_then_its_failed_one(schedule):
+    """A trace sample every step (k = 1): the unstable cube's trace has every step it completed, valid, then one
+    frame for the step that failed, invalid — what a batch stopped at every sample saw. (Its last good step is a
+    frame, so the end-of-run summary must not overwrite it.)"""
+    g = np.zeros((1, 4, 4, 4), np.uint8)
+    g[0] = 1
+    r = Simulator(SimConfig(dt=1e-3, burn_in=0.05, duration=0.1), arch="cpu", schedule=schedule).simulate(
+        g, trace_every=1e-3)
+    s, tr = int(r.steps[0]), r.trace
+    assert bool(r.diverged[0]) and tr.every == 1 and 0 < s < 50
+    assert tr.time.shape[1] == s + 2
+    assert tr.valid[0, : s + 1].all() and not tr.valid[0, s + 1]
+    np.testing.assert_allclose(tr.time[0, : s + 1].numpy(), np.arange(s + 1) * 1e-3, rtol=1e-12, atol=1e-15)
+    assert torch.isfinite(tr.com[0, : s + 1]).all()
+
+
 def test_start_trace_refuses_bad_intervals_and_a_started_engine():
     sim = Simulator(short(), arch="cpu")
     eng = sim.engine(sim.layout(three_robots()[:1]))
@@ -308,6 +325,11 @@ def test_start_trace_refuses_bad_intervals_and_a_started_engine():
     eng.advance(3)
     with pytest.raises(RuntimeError, match="before the first advance"):
         eng.start_trace(5)
+    fresh = sim.engine(sim.layout(three_robots()[:1]))
+    fresh.start_trace(5)
+    fresh.advance(3)
+    with pytest.raises(RuntimeError, match="still running"):
+        fresh.trace_frames()
 
 
 def test_device_arrays_are_reused_across_batches():

@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
-from freeform.config import to_dataclass
+from freeform.config import compose
 from freeform.envs.trajectory import TRAJECTORY_REWARDS, TrajectoryTask, trajectory_reward
 from freeform.sim import SimConfig, Simulator, Terrain, Trace
-from freeform.train import CONF_DIR, build_task
+from freeform.train import build_task
 
 L = 0.01
 ROOT = Path(__file__).resolve().parents[1]
@@ -107,9 +106,7 @@ def test_climb_of_a_walker_is_less_than_its_flat_progress():
 @pytest.mark.parametrize("name, kind", [("directional", "flat"), ("rough", "rough"), ("climb", "slope"),
                                         ("stairs", "steps"), ("jump", "flat"), ("tallest", "flat")])
 def test_task_configs_and_demo_presets_compose_and_build(name, kind):
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        cfg = to_dataclass(compose("config", overrides=[f"experiment={name}_cpu"]))
-        plain = to_dataclass(compose("config", overrides=[f"task={name}"]))
+    cfg, plain = compose(f"experiment={name}_cpu"), compose(f"task={name}")
     assert cfg.sim.terrain.kind == kind and plain.sim.terrain == cfg.sim.terrain
     assert cfg.task.name == name and cfg.name == f"{name}_cpu" and cfg.sim.duration == 0.5
     task = build_task(cfg, torch.device("cpu"))
@@ -117,8 +114,7 @@ def test_task_configs_and_demo_presets_compose_and_build(name, kind):
 
 
 def test_cli_sets_the_terrain():
-    with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
-        cfg = to_dataclass(compose("config", overrides=["task=climb", "sim.terrain.degrees=10"]))
+    cfg = compose("task=climb", "sim.terrain.degrees=10")
     assert cfg.sim.terrain == Terrain.slope(10)
 
 

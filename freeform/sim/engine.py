@@ -38,12 +38,13 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     SMALL,
     STALLED,
     STATIC,
+    SUMMARY,
     TABLES,
     VI,
     VR,
     Table,
 )
-from freeform.sim.summaries import SUMMARY, make_summaries
+from freeform.sim.summaries import make_summaries
 from freeform.sim.terrain import placement
 
 __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
@@ -52,6 +53,10 @@ __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
 # reallocates a logarithmic number of times, not every epoch.
 CAPACITY_HEADROOM = 1.25
 INT32_MAX = np.iinfo(np.int32).max
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
 
 
 def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
@@ -365,7 +370,7 @@ class Engine:
         if self.steps_done:
             raise RuntimeError("start_trace must come before the first advance (frames count steps from 0)")
         R = self.counts["robots"]
-        frames = 1 + -(-int(self.max_steps.max()) // every) if R else 1  # no robot runs past its step cap
+        frames = 1 + _ceil_div(int(self.max_steps.max()), every) if R else 1  # no robot runs past its cap
         self._trace = self._arrays.grid("trace", (frames, SUMMARY.width, max(R, 1)))
         self.trace_steps = every
         self._summarise(0)
@@ -376,19 +381,23 @@ class Engine:
                                                              self.counts["robots"], self._trace, frame)
 
     def trace_frames(self) -> np.ndarray:
-        """float64 ``[F, SUMMARY.width, R]``: frame f summarises every robot after f × ``every`` steps, or as it
-        stopped if it stopped before (F = 1 + ⌈most steps any robot ran / every⌉)."""
+        """float64 ``[F, SUMMARY.width, R]``, once every robot has stopped: frame f summarises every robot after
+        f × ``every`` steps, or as it stopped if it stopped before. F = 1 + ⌈the most steps any robot took / every⌉,
+        where a diverged robot's last, failed step counts (the batch ran it: its frame says diverged)."""
         self._check_owner()
         if not self.trace_steps:
             raise RuntimeError("no trace: call start_trace(every) before advancing")
         R, k = self.counts["robots"], self.trace_steps
         if R == 0:
             return np.zeros((1, SUMMARY.width, 0))
+        status = self.robot_status()
+        if (status == RUNNING).any():
+            raise RuntimeError("trace_frames: robots are still running; read the trace once every robot has stopped")
         steps = self.robot_steps()
-        frames = 1 + -(-int(steps.max()) // k)
-        # The last frame, taken now, is every robot as it stopped (one that ran to it wrote the same state there);
-        # a robot's frames after its last trace step hold nothing it wrote: they repeat that state (status
-        # included: a diverged robot's later frames say so).
+        frames = 1 + _ceil_div(int((steps + (status == DIVERGED)).max()), k)
+        # The last frame, taken now, is every robot as it stopped: a robot whose last step landed on it wrote the
+        # same state there, and no robot that diverged did (its failed step does not count in its steps). A robot's
+        # frames after its last trace step hold nothing it wrote: they repeat that state (status included).
         self._summarise(frames - 1)
         out = runtime.to_numpy(self._trace)[:frames, :, :R]
         stopped = np.arange(frames)[:, None] > (steps // k)[None, :]

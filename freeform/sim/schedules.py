@@ -26,7 +26,7 @@ from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
 from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR
-from freeform.sim.summaries import TraceArr, make_summaries
+from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
 SCHEDULES = ("auto", "robots", "flat")
@@ -64,7 +64,8 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     link_update = make_links(precision, order).link_update
     voxel_update = make_voxels(precision, order).voxel_update
     robot_advance = make_clock(precision, order).robot_advance
-    summarise_robot = make_summaries(precision, order).summarise_robot
+    summaries = make_summaries(precision, order)
+    summarise_robot, TraceArr = summaries.summarise_robot, summaries.TraceArr
     VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
     RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
     GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
@@ -77,7 +78,7 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
         (0: no trace). Only a step that ran calls it, so a robot that stopped leaves its later frames alone."""
         if trace_steps > 0:
             s = ld(ri, RI.STEP, r)
-            if s % trace_steps == 0:
+            if s % trace_steps == 0 and s // trace_steps < tr.shape[0]:  # (sized for the step cap: a guard only)
                 summarise_robot(r, vr, vi, rt, ri, mt, tr, s // trace_steps)
 
     @ti.func

@@ -18,8 +18,7 @@ from freeform.sim.config import SimConfig, material_table
 from freeform.sim.engine import DeviceArrays, Engine
 from freeform.sim.layout import Layout, build_layout
 from freeform.sim.schedules import SCHEDULES, resolve_schedule
-from freeform.sim.state import DIVERGED, MT, RUNNING, STALLED, VR
-from freeform.sim.summaries import SUMMARY
+from freeform.sim.state import DIVERGED, MT, RUNNING, STALLED, SUMMARY, VR
 from freeform.sim.terrain import FLAT, HeightField
 
 

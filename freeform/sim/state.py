@@ -106,6 +106,12 @@ LT = Table("link_material", REAL, "material_pairs", tuple((c, 1) for c in LINK_C
 # the arrays an Engine owns, by the argument names the kernels take
 TABLES = {"vr": VR, "vi": VI, "lr": LR, "li": LI, "rt": RT, "ri": RI, "mt": MT, "lt": LT}
 
+# A trace sample of one robot (summaries.py; f64, frames of ``[SUMMARY.width, robots]``): its clock and status,
+# Σ m·x and Σ m over its voxels, the voxels' lowest and highest coordinates, how many voxels touched the ground,
+# Σ q over the voxel orientations (each taken with w ≥ 0)
+SUMMARY = Table("robot_summary", F64, "robots", (
+    ("T", 1), ("STATUS", 1), ("MX", 3), ("M", 1), ("LO", 3), ("HI", 3), ("CONTACTS", 1), ("Q", 4)))
+
 # global parameters (a plain f64 vector)
 # TER_*: the terrain's height field S(x, y) = BASE + GX·x + GY·y + grid (terrain.HeightField; the grid itself is the
 # real-typed vector ``hf``, NX·NY values, row-major)

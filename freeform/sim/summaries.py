@@ -17,19 +17,16 @@ from types import SimpleNamespace
 
 from freeform.sim.access import make_access
 from freeform.sim.runtime import ti
-from freeform.sim.state import CONTACT, MT, RI, RT, VI, VR, Table
-
-# per robot (f64): its clock and status, Σ m·x and Σ m over its voxels, the voxels' lowest and highest
-# coordinates, how many voxels touched the ground, Σ q over the voxel orientations (each taken with w ≥ 0)
-SUMMARY = Table("robot_summary", "f64", "robots", (
-    ("T", 1), ("STATUS", 1), ("MX", 3), ("M", 1), ("LO", 3), ("HI", 3), ("CONTACTS", 1), ("Q", 4)))
-TraceArr = ti.types.ndarray(dtype=ti.f64, ndim=3)  # [frames, SUMMARY.width, robots]
+from freeform.sim.state import CONTACT, MT, RI, RT, SUMMARY, VI, VR
 
 
 @functools.cache
 def make_summaries(precision: str, order: str) -> SimpleNamespace:
-    """``summarise_robot`` (a func: robot r's voxels as they are now into frame f of a trace array) and the kernel
-    ``summarise(vr, vi, rt, ri, mt, n_robots, out, frame)`` that writes every robot's."""
+    """``summarise_robot`` (a func: robot r's voxels as they are now into frame f of a trace array), the kernel
+    ``summarise(vr, vi, rt, ri, mt, n_robots, out, frame)`` that writes every robot's, and ``TraceArr``, the trace
+    array's argument type (f64 ``[frames, SUMMARY.width, robots]``). (Built here, not at import: importing
+    freeform.sim chooses no backend.)"""
+    TraceArr = ti.types.ndarray(dtype=ti.f64, ndim=3)
     acc = make_access(precision, order)
     ld, get3, get4 = acc.ld, acc.get3, acc.get4
 
@@ -37,8 +34,9 @@ def make_summaries(precision: str, order: str) -> SimpleNamespace:
     def summarise_robot(r, vr: ti.template(), vi: ti.template(), rt: ti.template(), ri: ti.template(),
                         mt: ti.template(), out: ti.template(), f):
         mx = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-        lo = ti.Vector([ti.math.inf, ti.math.inf, ti.math.inf], dt=ti.f64)
-        hi = -lo
+        # the box starts at the first voxel (a robot has one), not at ±inf: fast-math assumes no infinities
+        lo = ti.cast(get3(vr, VR.POS, ld(ri, RI.VSTART, r)), ti.f64)
+        hi = lo
         q = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f64)
         m = ti.cast(0.0, ti.f64)
         contacts = 0
@@ -69,4 +67,4 @@ def make_summaries(precision: str, order: str) -> SimpleNamespace:
         for r in range(n_robots):
             summarise_robot(r, vr, vi, rt, ri, mt, out, frame)
 
-    return SimpleNamespace(summarise_robot=summarise_robot, summarise=summarise)
+    return SimpleNamespace(summarise_robot=summarise_robot, summarise=summarise, TraceArr=TraceArr)
