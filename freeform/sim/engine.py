@@ -368,7 +368,9 @@ class Engine:
         if not isinstance(every, int) or every < 1:
             raise ValueError(f"every must be a positive int (steps), got {every!r}")
         if self.steps_done:
-            raise RuntimeError("start_trace must come before the first advance (frames count steps from 0)")
+            raise RuntimeError("start_trace must come before the first advance (frames count steps from 0): trace a "
+                               "fresh engine (sim.engine(layout)); Simulator.finish(engine, trace_every=...) needs "
+                               "one not yet advanced")
         R = self.counts["robots"]
         frames = 1 + _ceil_div(int(self.max_steps.max()), every) if R else 1  # no robot runs past its cap
         self._trace = self._arrays.grid("trace", (frames, SUMMARY.width, max(R, 1)))
@@ -390,10 +392,11 @@ class Engine:
         R, k = self.counts["robots"], self.trace_steps
         if R == 0:
             return np.zeros((1, SUMMARY.width, 0))
-        status = self.robot_status()
+        ri = self._table("ri")  # one copy for both: status and steps
+        status, steps = ri[RI.STATUS], ri[RI.STEP].astype(np.int64)
         if (status == RUNNING).any():
-            raise RuntimeError("trace_frames: robots are still running; read the trace once every robot has stopped")
-        steps = self.robot_steps()
+            raise RuntimeError("trace_frames: robots are still running; advance until every robot has stopped "
+                               "(Simulator.finish does), then read the trace")
         frames = 1 + _ceil_div(int((steps + (status == DIVERGED)).max()), k)
         # The last frame, taken now, is every robot as it stopped: a robot whose last step landed on it wrote the
         # same state there, and no robot that diverged did (its failed step does not count in its steps). A robot's
