@@ -255,7 +255,8 @@ class Collectives:
     # -- acting ----------------------------------------------------------------------------------------------------
 
     def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """N(0, 1) noise for this process's environments, shaped like ``like [n_local, A]``, from ``generator``."""
+        """N(0, 1) noise for this process's environments, shaped like ``like [..., n_local, A]`` (one step's ``[n_local,
+        A]``, or a rollout's ``[T, n_local, A]``), from ``generator``."""
         return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
 
     def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
@@ -352,12 +353,14 @@ class DataParallel(Collectives):
         return cls(rank=dist.get_rank(), world_size=size, counts=tuple(int(c.item()) for c in counts), device=device)
 
     def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """The global batch's noise ``[N, A]`` drawn on every rank, this rank's rows kept: env n gets the same draw
+        """The global batch's noise ``[..., N, A]`` drawn on every rank, this rank's envs kept: env n gets the same draw
         whatever the rank count, and every rank's generator stays where a single process's would be."""
-        if like.shape[0] != self.local_envs:
-            raise ValueError(f"in a data-parallel run, obs must hold this rank's {self.local_envs} envs, got {like.shape[0]}")
-        noise = torch.randn((self.num_envs, *like.shape[1:]), generator=generator, device=like.device, dtype=like.dtype)
-        return noise[self.lo : self.hi]
+        if like.dim() < 2 or like.shape[-2] != self.local_envs:
+            raise ValueError(f"in a data-parallel run, obs must hold this rank's {self.local_envs} envs, got "
+                             f"{list(like.shape)} (envs: dimension -2)")
+        shape = (*like.shape[:-2], self.num_envs, like.shape[-1])
+        noise = torch.randn(shape, generator=generator, device=like.device, dtype=like.dtype)
+        return noise[..., self.lo : self.hi, :]
 
     def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
         with torch.no_grad():

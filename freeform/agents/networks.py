@@ -151,14 +151,20 @@ class MLPActorCritic(nn.Module):
             x = torch.tanh(F.linear(x, layer.weight, layer.bias))
         return F.linear(x, linears[-1].weight, linears[-1].bias)
 
+    def _flat(self, obs: torch.Tensor) -> torch.Tensor:
+        # Reshaped and cast only where needed: with one env (acting every step) a no-op op still costs its dispatch.
+        if obs.dim() != 2:
+            obs = obs.reshape(obs.shape[0], -1)
+        return obs if obs.dtype == self.log_std.dtype else obs.to(self.log_std.dtype)
+
     def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``)."""
-        mean = self._mlp(self._actor_linears, obs.reshape(obs.shape[0], -1).to(self.log_std.dtype))
+        mean = self._mlp(self._actor_linears, self._flat(obs))
         return mean, self.log_std.expand_as(mean)
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """float ``[N, obs_dim]`` → V(obs) ``[N]``."""
-        return self._mlp(self._critic_linears, obs.reshape(obs.shape[0], -1).to(self.log_std.dtype)).squeeze(-1)
+        return self._mlp(self._critic_linears, self._flat(obs)).squeeze(-1)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``, value ``[N]``)."""

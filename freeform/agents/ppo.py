@@ -465,16 +465,20 @@ class PPO:
 
     # -- acting ----------------------------------------------------------------------------------------------------
 
-    def _sample(self, obs: torch.Tensor, deterministic: bool = False) -> tuple[torch.Tensor, ...]:
-        """obs ``[N, ...]`` → (action, value, mean, log_std); noise from ``self.generator``. ``value`` is None when
-        the critic runs apart (``critic_apart``)."""
+    def _sample(
+        self, obs: torch.Tensor, deterministic: bool = False, noise: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, ...]:
+        """obs ``[N, ...]`` → (action, value, mean, log_std); ``noise [N, A]`` ~ N(0, 1), else drawn from
+        ``self.generator``. ``value`` is None when the critic runs apart (``critic_apart``)."""
         if self.critic_apart:
             (mean, log_std), value = self.policy.action_params(obs), None
         else:
             mean, log_std, value = self.policy(obs)
         if deterministic:
             return mean, value, mean, log_std
-        return torch.addcmul(mean, torch.exp(log_std), self.dp.env_noise(mean, self.generator)), value, mean, log_std
+        if noise is None:
+            noise = self.dp.env_noise(mean, self.generator)
+        return torch.addcmul(mean, torch.exp(log_std), noise), value, mean, log_std
 
     def _value(self, obs: torch.Tensor) -> torch.Tensor:
         """V(obs) ``[N]`` for observations as the policy sees them."""
@@ -498,7 +502,8 @@ class PPO:
 
     def _update_obs_rms(self, obs: torch.Tensor) -> None:
         if self.obs_rms is not None:
-            self.obs_rms.update(self.dp.gather_envs(obs).reshape(-1, *self.obs_rms.mean.shape))  # every rank's envs
+            obs = self.dp.gather_envs(obs)  # every rank's envs
+            self.obs_rms.update(obs if obs.shape[1:] == self.obs_rms.mean.shape else obs.reshape(-1, *self.obs_rms.mean.shape))
 
     def _scale_rewards(self, rewards: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
         """``reward_norm``: the rollout's rewards ``[T, N]`` divided by √(Var[discounted return] + 1e-8), clipped.
@@ -532,16 +537,23 @@ class PPO:
         # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
         # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
         seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
+        noise = self.dp.env_noise(buf.actions, self.generator)  # the whole rollout's, in one draw
+        # The env's tensors are moved or cast only where they need it: even a no-op .to() is an operation.
+        env_device, here = self.env.device, torch.device(self.env.device) == self.device
         for t in range(cfg.rollout_steps):
             x = self.normalize_obs(self.obs)
-            action, value, mean, log_std = self._sample(x)
+            action, value, mean, log_std = self._sample(x, noise=noise[t])
             for store, item in ((seen, x), (actions, action), (values, value), (means, mean), (log_stds, log_std)):
                 store.append(item)  # (values: None when the critic runs apart, after the loop)
             t0 = time.perf_counter()
-            next_obs, reward, done, info = self.env.step(action.to(self.env.device))
+            next_obs, reward, done, info = self.env.step(action if here else action.to(env_device))
             time_env += time.perf_counter() - t0
-            reward, done = reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
-            next_obs = next_obs.to(self.device)
+            if not here or reward.dtype != torch.float32:
+                reward = reward.to(self.device, torch.float32)
+            if not here or done.dtype != torch.bool:
+                done = done.to(self.device, torch.bool)
+            if not here:
+                next_obs = next_obs.to(self.device)
             if next_obs.data_ptr() == self.obs.data_ptr():
                 raise ValueError("env.step returned the observation tensor of the previous step, written in place: a "
                                  "VecEnv must return new tensors (PPO keeps every step's until the rollout ends)")

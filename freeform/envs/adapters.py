@@ -88,8 +88,12 @@ class GymnasiumVecEnv:
         return self._tensor(obs, self.num_envs, *self.observation_shape)
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        wide = actions.dtype if actions.dtype in (torch.float32, torch.float64) else torch.float32  # numpy has no bf16
-        raw = actions.detach().to("cpu", wide).numpy().reshape(self.num_envs, self.action_dim)
+        if actions.dtype in (torch.float32, torch.float64) and actions.device.type == "cpu" and not actions.requires_grad:
+            raw = actions.numpy()  # PPO's case: .detach().to() would be two more operations, each a dispatch
+        else:
+            wide = actions.dtype if actions.dtype in (torch.float32, torch.float64) else torch.float32  # no bf16 in numpy
+            raw = actions.detach().to("cpu", wide).numpy()
+        raw = raw.reshape(self.num_envs, self.action_dim)
         # np.minimum/np.maximum: np.clip's checks cost more than the clip at these sizes.
         clipped = np.minimum(np.maximum(raw, self.action_low), self.action_high).astype(self._action_dtype, copy=False)
         obs, reward, terminated, truncated, gym_info = self.vector_env.step(
