@@ -181,6 +181,25 @@ def test_actions_are_clipped_for_the_env_and_stored_unclipped() -> None:
     torch.testing.assert_close(logprob, gaussian_log_prob(stored, ppo.rollout.means, ppo.rollout.log_stds))
 
 
+@pytest.mark.parametrize("make", [
+    lambda a: a, lambda a: a.double(), lambda a: a.t().contiguous().t(), lambda a: a.clone().requires_grad_(True),
+    lambda a: a.to(torch.bfloat16),
+], ids=["float32", "float64", "transposed", "requires_grad", "bfloat16"])
+def test_the_env_gets_the_clipped_actions_whatever_the_tensor_and_the_tensor_is_untouched(make) -> None:
+    """float32 CPU actions go to numpy directly (PPO's case), the others through a cast: the same clipped float32
+    values reach the env, and the caller's tensor (PPO stores it) is never written."""
+    inner = ToyVectorEnv([0, 0, 0], [0, 0, 0])
+    env = from_gymnasium(inner)
+    env.reset(seed=0)
+    actions = make(torch.tensor([[-2.0], [0.25], [0.75]]))
+    before = actions.detach().clone()
+    env.step(actions)
+    sent = inner.received[-1]
+    assert sent.dtype == np.float32
+    np.testing.assert_array_equal(sent, np.array([[-0.5], [0.25], [0.5]], dtype=np.float32))
+    assert torch.equal(actions.detach(), before)
+
+
 def test_running_statistics_match_gymnasiums_reference_for_single_samples_and_batches() -> None:
     """freeform's torch RunningMeanStd (in-place, a one-sample fast path) against Gymnasium's numpy original."""
     from gymnasium.wrappers.utils import RunningMeanStd as Reference

@@ -81,6 +81,14 @@ class PointMassEnv:
         self.pos, self.goal, self.t = state["pos"].clone(), state["goal"].clone(), state["t"].clone()
 
 
+class LooseDtypeEnv(PointMassEnv):
+    """PointMassEnv whose rewards are float64 and whose done flags are uint8 (the protocol's loosest)."""
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        obs, reward, done, info = super().step(actions)
+        return obs, reward.double(), done.to(torch.uint8), info
+
+
 class PaintEnv:
     """A miniature of the design environment: a uint8 grid [N, ρ, ρ, ρ] with k materials, starting empty; each action
     [x, y, z, w_0 … w_{k−1}] sets the voxel at f(a) = ½ + clip(a, −2, 2)/4 of each axis to argmax(w); after ``horizon``
@@ -693,3 +701,32 @@ def test_an_env_that_writes_its_last_observation_in_place_is_refused() -> None:
         ppo.collect()
     torch.manual_seed(0)
     PPO(PointMassEnv(num_envs=4), MLPActorCritic(4, 2, hidden=(8,)), PPOConfig(rollout_steps=4, num_sgd_iter=1)).collect()
+
+
+@pytest.mark.parametrize("num_envs", [8, 3])
+def test_collect_draws_the_rollouts_noise_in_one_call(num_envs: int) -> None:
+    """action = μ + σ·ε with ε the rollout's [T, N, A] drawn in one call from PPO's generator; for N·A = 16 that equals
+    T per-step draws of [N, A] on the CPU (the design env's rollouts kept their stream), for N·A = 6 it does not."""
+    T = 5
+    ppo = PPO(PointMassEnv(num_envs=num_envs), MLPActorCritic(4, 2, hidden=(8,)),
+              PPOConfig(rollout_steps=T, num_sgd_iter=1, seed=3))
+    g = torch.Generator().manual_seed(0)
+    g.set_state(ppo.generator.get_state())
+    ppo.collect()
+    ro = ppo.rollout
+    noise = torch.randn((T, num_envs, 2), generator=g)
+    torch.testing.assert_close(ro.actions, ro.means + ro.log_stds.exp() * noise)
+    assert torch.equal(g.get_state(), ppo.generator.get_state())  # nothing else drew during the rollout
+    g.set_state(torch.Generator().manual_seed(0).get_state())
+    per_step = torch.stack([torch.randn((num_envs, 2), generator=g) for _ in range(T)])
+    g.manual_seed(0)
+    assert torch.equal(per_step, torch.randn((T, num_envs, 2), generator=g)) == (num_envs * 2 % 16 == 0)
+
+
+def test_collect_casts_an_envs_float64_rewards_and_uint8_dones() -> None:
+    ppo = PPO(LooseDtypeEnv(num_envs=4, horizon=3), MLPActorCritic(4, 2, hidden=(8,)),
+              PPOConfig(rollout_steps=6, num_sgd_iter=1))
+    ppo.collect()
+    assert ppo.rollout.rewards.dtype == torch.float32 and ppo.rollout.dones.dtype == torch.bool
+    assert ppo.rollout.dones[:, 0].tolist() == [False, False, True, False, False, True]
+    assert (ppo.rollout.rewards < 0).all()  # −distance, every step

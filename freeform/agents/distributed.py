@@ -356,8 +356,8 @@ class DataParallel(Collectives):
         """The global batch's noise ``[..., N, A]`` drawn on every rank, this rank's envs kept: env n gets the same draw
         whatever the rank count, and every rank's generator stays where a single process's would be."""
         if like.dim() < 2 or like.shape[-2] != self.local_envs:
-            raise ValueError(f"in a data-parallel run, obs must hold this rank's {self.local_envs} envs, got "
-                             f"{list(like.shape)} (envs: dimension -2)")
+            raise ValueError(f"in a data-parallel run, the noise's envs (dimension -2) must be this rank's "
+                             f"{self.local_envs}, got shape {list(like.shape)}")
         shape = (*like.shape[:-2], self.num_envs, like.shape[-1])
         noise = torch.randn(shape, generator=generator, device=like.device, dtype=like.dtype)
         return noise[..., self.lo : self.hi, :]

@@ -537,9 +537,12 @@ class PPO:
         # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
         # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
         seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
-        noise = self.dp.env_noise(buf.actions, self.generator)  # the whole rollout's, in one draw
+        # The whole rollout's noise in one draw, in the rollout's dtype (float32). On the CPU T draws of N·A values
+        # equal one of T·N·A where N·A is a multiple of 16 (the design env's sizes); otherwise the stream differs.
+        noise = self.dp.env_noise(buf.actions, self.generator)
         # The env's tensors are moved or cast only where they need it: even a no-op .to() is an operation.
-        env_device, here = self.env.device, torch.device(self.env.device) == self.device
+        env_device = self.env.device
+        here = env_device is not None and torch.device(env_device) == self.device
         for t in range(cfg.rollout_steps):
             x = self.normalize_obs(self.obs)
             action, value, mean, log_std = self._sample(x, noise=noise[t])
