@@ -502,8 +502,8 @@ class PPO:
 
     def _update_obs_rms(self, obs: torch.Tensor) -> None:
         if self.obs_rms is not None:
-            obs = self.dp.gather_envs(obs)  # every rank's envs
-            self.obs_rms.update(obs if obs.shape[1:] == self.obs_rms.mean.shape else obs.reshape(-1, *self.obs_rms.mean.shape))
+            obs, shape = self.dp.gather_envs(obs), self.obs_rms.mean.shape  # every rank's envs
+            self.obs_rms.update(obs if obs.shape[1:] == shape else obs.reshape(-1, *shape))
 
     def _scale_rewards(self, rewards: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
         """``reward_norm``: the rollout's rewards ``[T, N]`` divided by √(Var[discounted return] + 1e-8), clipped.
