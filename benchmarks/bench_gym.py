@@ -8,6 +8,8 @@ one torch thread, one run at a time, and reports the **final return** (mean raw 
 episodes) and the **wall time** of the whole run (start-up included):
 
 - ``freeform``: ``PPO`` with ``PPOConfig.cleanrl()`` on ``from_gymnasium(gym.make_vec(task, 1, SAME_STEP))``.
+- ``freeform-compile``: the same with ``PPOConfig.compile`` (``torch.compile``'s minibatch loss; a cold Inductor
+  cache unless the machine has compiled it before — ``TORCHINDUCTOR_CACHE_DIR`` decides).
 - ``sb3``: ``stable_baselines3.PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with the same values.
   SB3's value loss has no PPO2 max-clipping: ``vf_coef = 0.25`` gives the squared error CleanRL's weight
   (0.5 · ½), unclipped.
@@ -46,7 +48,7 @@ from freeform.files import write_atomically
 
 CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
 CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/ppo_continuous_action.py"
-FRAMEWORKS = ("freeform", "sb3", "cleanrl")
+FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl")
 LAST_EPISODES = 20
 BATCH = 2048
 
@@ -60,8 +62,9 @@ def final_return(returns: list[float]) -> float:
 # ----------------------------------------------------------------------------------------------- the three runners
 
 
-def freeform_ppo(task: str, steps: int, seed: int):
-    """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env with episode statistics."""
+def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False):
+    """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env with episode statistics
+    (``compile``: with ``torch.compile``'s minibatch loss, the ``freeform-compile`` rows)."""
     import gymnasium as gym
     import torch
 
@@ -75,11 +78,11 @@ def freeform_ppo(task: str, steps: int, seed: int):
     env = from_gymnasium(vec)
     torch.manual_seed(seed)
     policy = MLPActorCritic(env.observation_shape[0], env.action_dim)
-    return PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH)))
+    return PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH), compile=compile))
 
 
-def run_freeform(task: str, steps: int, seed: int) -> list[float]:
-    ppo = freeform_ppo(task, steps, seed)
+def run_freeform(task: str, steps: int, seed: int, compile: bool = False) -> list[float]:
+    ppo = freeform_ppo(task, steps, seed, compile)
     returns: list[float] = []
     for _ in range(steps // BATCH):
         ppo.train_epoch()
@@ -270,7 +273,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--split", action="store_true", help="time freeform's and SB3's rollout and update apart instead")
     p.add_argument("--split-epochs", type=int, default=3, help="--split: updates of 2,048 steps per measurement")
     p.add_argument("--repeats", type=int, default=2, help="--split: alternations of the two frameworks")
-    p.add_argument("--child", choices=("freeform", "sb3"), help=argparse.SUPPRESS)
+    p.add_argument("--child", choices=("freeform", "freeform-compile", "sb3"), help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
@@ -285,7 +288,11 @@ def _read(store: Path) -> list[dict]:
 def run(argv: list[str] | None = None) -> list[dict]:
     args = parse(argv)
     if args.child:  # inside one run's own process
-        returns = (run_freeform if args.child == "freeform" else run_sb3)(args.tasks[0], args.steps, args.seeds[0])
+        task, steps, seed = args.tasks[0], args.steps, args.seeds[0]
+        if args.child == "sb3":
+            returns = run_sb3(task, steps, seed)
+        else:
+            returns = run_freeform(task, steps, seed, compile=args.child == "freeform-compile")
         print(json.dumps({"returns": returns}))
         return []
     if args.split:
