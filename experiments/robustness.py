@@ -44,7 +44,8 @@ def replay(cfg: Any, actions: np.ndarray, device: torch.device) -> torch.Tensor:
     e, steps, _ = actions.shape
     env = DesignEnv(num_envs=e, resolution=cfg.env.resolution, materials=cfg.task.materials, steps=steps,
                     bundle_size=cfg.env.bundle_size, device=device,
-                    action_bound=getattr(cfg.env, "action_bound", 2.0), compute_metrics=False)
+                    action_bound=getattr(cfg.env, "action_bound", 2.0), compute_metrics=False,
+                    mirror_y=getattr(cfg.env, "mirror_y", False))
     grids = env.reset()
     acts = torch.as_tensor(actions, dtype=torch.float32, device=device)
     out = []

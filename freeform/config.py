@@ -60,6 +60,10 @@ class EnvConfig:
     """k > 0: dense design rewards — the partial body is scored by the task every k design steps and the
     improvement is the reward (``freeform.envs.DenseDesignReward``; an episode's rewards still sum to the terminal
     reward); 0 = the paper's sparse terminal reward."""
+    mirror_y: bool = False
+    """Bilateral symmetry: every bundle is placed with its mirror image across the grid's x–z mid-plane, so designs
+    are left-right symmetric and travel along ±x on y-symmetric ground (``DesignEnv(mirror_y=...)``); off in the
+    paper."""
 
 
 @dataclass

@@ -201,6 +201,7 @@ def build(
         device=device,
         seed=cfg.seed,
         action_bound=cfg.env.action_bound,
+        mirror_y=cfg.env.mirror_y,
     )
     if cfg.algo.name != "ppo":  # evolution: the same env, task and simulator; one process
         from freeform.evolve import build_evolution
@@ -217,7 +218,8 @@ def build(
     if cfg.agent.eval_every:  # deterministic evaluation episodes on an env of their own (charts/eval_return)
         eval_env = DesignEnv(num_envs=hi - lo, resolution=cfg.env.resolution, materials=cfg.task.materials,
                              steps=cfg.env.steps, bundle_size=cfg.env.bundle_size, task=build_task(cfg, device), device=device,
-                             seed=cfg.seed + 1, action_bound=cfg.env.action_bound)
+                             seed=cfg.seed + 1, action_bound=cfg.env.action_bound,
+                             mirror_y=cfg.env.mirror_y)
     ppo = PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
     return env, policy, ppo
 

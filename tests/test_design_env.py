@@ -22,7 +22,7 @@ def covered(grid: torch.Tensor) -> list[list[int]]:
     return [sorted(set(idx[:, d].tolist())) for d in range(3)]
 
 
-def literal_reference(actions: np.ndarray, rho: int, k: int, b: int) -> np.ndarray:
+def literal_reference(actions: np.ndarray, rho: int, k: int, b: int, mirror_y: bool = False) -> np.ndarray:
     """The spec's rule read literally, in float64 and the centred frame: voxel centres are the integers
     -ρ/2 … ρ/2-1, the bundle centre is p = ρ f(a) - ρ/2, a voxel is covered iff p - b/2 <= c < p + b/2."""
     n, steps, _ = actions.shape
@@ -34,6 +34,8 @@ def literal_reference(actions: np.ndarray, rho: int, k: int, b: int) -> np.ndarr
         for i in range(n):
             masks = [(p[i, d] - b / 2 <= centres) & (centres < p[i, d] + b / 2) for d in range(3)]
             cube = masks[0][:, None, None] & masks[1][None, :, None] & masks[2][None, None, :]
+            if mirror_y:  # the bundle and its reflection in the plane between the two middle y-layers
+                cube = cube | cube[:, ::-1, :]
             weights = f[i, 3:]
             grids[i][cube] = int(np.flatnonzero(weights == weights.max())[0])
     return grids
@@ -84,6 +86,28 @@ def test_placement_matches_literal_spec(rho, k, b):
         obs, _, done, info = env.step(torch.from_numpy(actions[:, t]))
     assert done.all()
     np.testing.assert_array_equal(info["final_grids"].numpy(), literal_reference(actions, rho, k, b))
+
+
+@pytest.mark.parametrize(("rho", "k", "b"), [(8, 4, 2), (20, 4, 2), (6, 3, 2)])
+def test_mirrored_designs_are_the_literal_rule_with_each_bundle_reflected_in_y(rho, k, b):
+    """``mirror_y``: every step writes the bundle and its y-reflection (later bundles overwrite both), so the final
+    grids are left-right symmetric and equal the literal rule applied to cube ∪ reflected cube."""
+    rng = np.random.default_rng(7 + rho)
+    n, steps = 16, 12
+    actions = (rng.standard_normal((n, steps, 3 + k)) * 1.5).astype(np.float32)
+    env = DesignEnv(n, resolution=rho, materials=k, steps=steps, bundle_size=b, compute_metrics=False, mirror_y=True)
+    env.reset()
+    for t in range(steps):
+        _, _, done, info = env.step(torch.from_numpy(actions[:, t]))
+    grids = info["final_grids"]
+    assert done.all() and torch.equal(grids, grids.flip(2))
+    np.testing.assert_array_equal(grids.numpy(), literal_reference(actions, rho, k, b, mirror_y=True))
+    assert not np.array_equal(grids.numpy(), literal_reference(actions, rho, k, b))  # the reflection mattered
+    assert env.state_dict()["config"]["mirror_y"] is True
+    with pytest.raises(ValueError, match="does not match"):  # a mirrored state does not load into a plain env
+        DesignEnv(n, resolution=rho, materials=k, steps=steps, bundle_size=b).load_state_dict(env.state_dict())
+    with pytest.raises(ValueError, match="mirror_y must be true or false"):
+        DesignEnv(n, resolution=rho, materials=k, mirror_y="yes")
 
 
 def test_material_argmax_and_ties_to_lowest_index():

@@ -54,6 +54,7 @@ class DesignEnv:
         seed: int | None = None,
         action_bound: float = 2.0,
         compute_metrics: bool = True,
+        mirror_y: bool = False,
     ) -> None:
         """
         Args:
@@ -67,6 +68,10 @@ class DesignEnv:
             seed: unused by the (deterministic) design process; kept for the protocol and the state.
             action_bound: B of the clip mapping (spec: 2, so ~95 % of N(0, 1) centres fall inside the grid).
             compute_metrics: put the body metrics in ``info`` at the end of each episode.
+            mirror_y: bilateral symmetry — every bundle is also placed at its mirror image across the grid's
+                x–z mid-plane (y ↦ ρ − 1 − y), so every design is left-right symmetric. Such a body cannot turn
+                or drift sideways on ground that is itself symmetric in y (flat, an x-slope, x-stairs): it
+                travels along ±x. Off in the paper.
         """
         _check_int("num_envs", num_envs, "a positive integer")
         _check_int("resolution", resolution, "a positive even integer")
@@ -90,6 +95,9 @@ class DesignEnv:
         self.bundle_size = bundle_size
         self.action_bound = float(action_bound)
         self.compute_metrics = compute_metrics
+        if not isinstance(mirror_y, bool):
+            raise ValueError(f"mirror_y must be true or false, got {mirror_y!r}")
+        self.mirror_y = mirror_y
         self.task: Task = task if task is not None else VolumeTask()
         self.device = torch.device(device)
         self.seed = seed
@@ -185,6 +193,9 @@ class DesignEnv:
         )  # [N, b, b, b]
         material = torch.argmax(f[:, 3:], dim=1).to(torch.uint8)  # first maximum wins ties
         out = grids.clone()
+        if self.mirror_y:  # the bundle and its mirror image (y -> ρ-1-y) in the same scatter, of the same material
+            mirrored = flat + ((rho - 1) - 2 * cells[:, 1, None, :, None]) * rho
+            flat, material = torch.cat([flat, mirrored], dim=1), material.repeat_interleave(2)
         out.view(-1)[flat.reshape(-1)] = material.repeat_interleave(b**3)
         return out
 
@@ -240,6 +251,7 @@ class DesignEnv:
             "steps": self.steps,
             "bundle_size": self.bundle_size,
             "action_bound": self.action_bound,
+            **({"mirror_y": True} if self.mirror_y else {}),  # absent when off: older states still load
         }
 
     def __repr__(self) -> str:
