@@ -21,6 +21,8 @@ from freeform.agents.ppo import (
     gaussian_entropy,
     gaussian_kl,
     gaussian_log_prob,
+    minibatch_loss,
+    minibatch_samples,
     ppo2_value_loss,
     standardize,
     update_kl_coeff,
@@ -734,9 +736,10 @@ def test_collect_casts_an_envs_float64_rewards_and_uint8_dones() -> None:
 
 @pytest.mark.parametrize("overrides", [{}, {"kl_coeff": 0.0, "advantage_norm": "minibatch", "value_clip": "ppo2"}])
 def test_compiled_minibatch_loss_trains_as_the_eager_one(overrides: dict[str, Any]) -> None:
-    """``compile=True`` runs the same loss through ``torch.compile`` (the KL penalty's β a tensor input, the gradient
-    written through views of the flat parameters): after two epochs the weights, β and the statistics equal eager's
-    up to float rounding, and the weights moved as far as eager's did."""
+    """``compile=True`` runs the same loss through ``torch.compile`` (the KL penalty's β a tensor input): one
+    minibatch's gradient equals eager's (Adam's step is nearly scale-free, so the trained weights alone would not
+    catch a gradient counted twice), and after two epochs the weights, β and the statistics equal eager's up to float
+    rounding, the weights having moved."""
     runs = []
     for compile_ in (False, True):
         env = PointMassEnv(num_envs=16, horizon=7)
@@ -747,6 +750,18 @@ def test_compiled_minibatch_loss_trains_as_the_eager_one(overrides: dict[str, An
         start = ppo.flat.value.detach().clone()
         stats = [ppo.train_epoch() for _ in range(2)]
         runs.append((start, ppo.flat.value.detach().clone(), ppo.kl_coeff, stats))
+        if compile_:  # the first minibatch of the last rollout, at the trained weights, through both paths
+            buf, grads = ppo.rollout, []
+            samples = minibatch_samples(buf.actions.flatten(0, 1), buf.means.flatten(0, 1), buf.log_stds.flatten(0, 1),
+                                        buf.logprobs.flatten(), buf.values.flatten(), buf.returns.flatten())[:40]
+            for loss_fn in (minibatch_loss, ppo._minibatch_loss):
+                ppo.flat.zero_grad()
+                kl = torch.tensor(ppo.kl_coeff) if ppo.kl_coeff > 0 else None
+                loss_fn(ppo.policy, cfg, buf.obs.flatten(0, 1)[:40], samples, buf.advantages.flatten()[:40], kl,
+                        torch.mean)[0].backward()
+                grads.append(ppo.flat.grad.clone())
+            assert grads[0].abs().max() > 0
+            torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-6)
     (start, eager, beta, eager_stats), (start_c, compiled, beta_c, compiled_stats) = runs
     assert torch.equal(start, start_c)
     assert (eager - start).abs().max() > 1e-3  # the updates did something to compare

@@ -42,12 +42,6 @@ class FlatParameters:
             p.grad = self.grad[offset : offset + n].view_as(p)
             offset += n
 
-    def unflatten(self, value: torch.Tensor) -> list[torch.Tensor]:
-        """``value [P]`` cut into tensors shaped as the parameters, in order (views): with
-        ``torch.func.functional_call`` a forward pass that is differentiable in the flat tensor itself, so backward
-        accumulates one gradient instead of one per parameter."""
-        return [v.view_as(p) for v, p in zip(value.split([p.numel() for p in self.params]), self.params, strict=True)]
-
     def zero_grad(self) -> None:
         self.grad.zero_()
 

@@ -90,9 +90,9 @@ class PPOConfig:
     compile: bool = False
     """Hand the minibatch loss (:func:`minibatch_loss`: the policy's forward pass, the losses and, through autograd,
     their backward) to ``torch.compile``. For long runs of small networks on the CPU, where each of a minibatch's
-    ≈ 100 operations costs more than its arithmetic: ≈ 8 s of compiling, then a 64-sample CleanRL minibatch 1.09 →
-    0.67 ms, a 500k-step HalfCheetah run 263 → 253 s (``docs/ppo.md``). Other rounding than eager; needs a C++
-    compiler. Off by default."""
+    ≈ 100 operations costs more than its arithmetic: a few seconds of compiling at the first update, then a 500k-step
+    CleanRL-preset HalfCheetah run 4–13 % shorter (``docs/ppo.md``). Other rounding than eager; needs a C++ compiler.
+    Off by default."""
     obs_norm: bool = False
     """Normalise observations by their running mean/variance (over all envs, updated every step), clipped to
     ±``obs_clip``; the statistics are saved in checkpoints and applied by ``act``. Off for the paper."""
@@ -307,6 +307,21 @@ def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
     return float("nan") if var.item() == 0 else (1.0 - (target - predicted).var(correction=0) / var).item()
 
 
+def minibatch_samples(
+    actions: torch.Tensor,
+    old_means: torch.Tensor,
+    old_log_stds: torch.Tensor,
+    old_logprobs: torch.Tensor,
+    old_values: torch.Tensor,
+    returns: torch.Tensor,
+) -> torch.Tensor:
+    """The rollout's per-sample floats side by side, ``[B, 3A + 3]``: actions, π_old's means and log σ (``[B, A]``
+    each), the old log-probability, the old value and the return (``[B]`` each) — the layout ``minibatch_loss``
+    reads. One tensor, so a minibatch is one gather instead of six (≈ 10 µs each at 64 samples on the CPU)."""
+    return torch.cat([actions, old_means, old_log_stds, old_logprobs[:, None], old_values[:, None], returns[:, None]],
+                     dim=1)
+
+
 def minibatch_loss(
     policy: nn.Module,
     cfg: PPOConfig,
@@ -315,22 +330,19 @@ def minibatch_loss(
     advantages: torch.Tensor,
     kl_coeff: torch.Tensor | None,
     reduce: Callable[[torch.Tensor], torch.Tensor],
-    params: dict[str, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """PPO's loss on one minibatch of M samples, and its statistics.
 
-    ``obs [M, ...]`` as the policy saw them; ``samples [M, 3A + 3]`` the rollout's per-sample floats side by side:
-    actions, π_old's means and log σ (A columns each), then the old log-probability, the old value and the return;
-    ``advantages [M]`` (standardised as ``cfg.advantage_norm`` says); ``kl_coeff`` β as a 0-d tensor, None without
-    the KL penalty; ``reduce`` the minibatch mean (``Collectives.minibatch_mean``); ``params`` the policy's trainable
-    parameters by name to evaluate it at (``torch.func.functional_call``), None = its own.
+    ``obs [M, ...]`` as the policy saw them; ``samples [M, 3A + 3]`` those samples' rows of
+    :func:`minibatch_samples`; ``advantages [M]`` (standardised as ``cfg.advantage_norm`` says); ``kl_coeff`` β as a
+    0-d tensor, None without the KL penalty; ``reduce`` the minibatch mean (``Collectives.minibatch_mean``).
     Returns ``(loss, stats [6])``: stats are the policy loss, value loss, KL(π_old ‖ π), entropy, clip fraction and
     loss, detached. A pure function of its inputs, so that ``PPOConfig.compile`` can hand it to ``torch.compile``.
     """
     a = (samples.shape[1] - 3) // 3
-    actions, old_means, old_log_stds = samples[:, :a], samples[:, a : 2 * a], samples[:, 2 * a : 3 * a]
-    old_logprobs, old_values, returns = samples[:, 3 * a], samples[:, 3 * a + 1], samples[:, 3 * a + 2]
-    mean, log_std, value = policy(obs) if params is None else torch.func.functional_call(policy, params, (obs,))
+    actions, old_means, old_log_stds, old_logprobs, old_values, returns = samples.split([a, a, a, 1, 1, 1], dim=1)
+    old_logprobs, old_values, returns = old_logprobs.squeeze(1), old_values.squeeze(1), returns.squeeze(1)
+    mean, log_std, value = policy(obs)
     ratio = torch.exp(gaussian_log_prob(actions, mean, log_std) - old_logprobs)
     policy_loss = -reduce(clipped_surrogate(ratio, advantages, cfg.clip_param))
     if cfg.value_clip == "squared":
@@ -461,7 +473,7 @@ class PPO:
         clipping and zeroing are one operation each (``flat_params.py``)."""
         impl = {"fused": True} if config.fused_adam else {"foreach": True}
         self.optimizer = torch.optim.Adam([self.flat.value], lr=config.lr, eps=config.adam_eps, **impl)
-        self._minibatch_loss = self._compiled_loss() if config.compile else minibatch_loss
+        self._minibatch_loss = torch.compile(minibatch_loss, dynamic=False) if config.compile else minibatch_loss
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.kl_coeff = float(config.kl_coeff)
@@ -489,18 +501,6 @@ class PPO:
         # Running return and length of each env's current episode (they span epochs when episodes are cut).
         self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
         self.episode_length = torch.zeros(env.num_envs, dtype=torch.int64, device=self.device)
-
-    def _compiled_loss(self) -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
-        """``minibatch_loss`` through ``torch.compile``, evaluated at views of the flat parameter tensor taken inside
-        the compiled graph: its backward then writes the flat gradient in one piece (autograd would otherwise add
-        each parameter's gradient apart, one operation each)."""
-        names = [name for name, p in self.policy.named_parameters() if p.requires_grad]
-        flat = self.flat
-
-        def loss_at_flat(*args: Any) -> tuple[torch.Tensor, torch.Tensor]:
-            return minibatch_loss(*args, params=dict(zip(names, flat.unflatten(flat.value), strict=True)))
-
-        return torch.compile(loss_at_flat, dynamic=False)
 
     @torch.no_grad()
     def _check_policy(self) -> None:
@@ -725,10 +725,7 @@ class PPO:
         def reduce(x: torch.Tensor) -> torch.Tensor:
             return dp.minibatch_mean(x, minibatch)
 
-        # The per-sample floats in one [B, 3A + 3] tensor: a minibatch is then one gather, not six (each index op
-        # costs ≈ 10 µs at a 64-sample minibatch, as much as a layer of the MLP).
-        samples = torch.cat([actions, old_means, old_log_stds, old_logprobs[:, None], old_values[:, None],
-                             returns[:, None]], dim=1)
+        samples = minibatch_samples(actions, old_means, old_log_stds, old_logprobs, old_values, returns)
         kl_weight = torch.tensor(kl_coeff, device=self.device) if kl_coeff > 0.0 else None
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
         totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss

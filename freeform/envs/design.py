@@ -195,8 +195,8 @@ class DesignEnv:
         out = grids.clone()
         if self.mirror_y:  # the bundle and its mirror image (y -> ρ-1-y) in the same scatter, of the same material
             mirrored = flat + ((rho - 1) - 2 * cells[:, 1, None, :, None]) * rho
-            flat, material = torch.cat([flat, mirrored], dim=1), material.repeat_interleave(2)
-        out.view(-1)[flat.reshape(-1)] = material.repeat_interleave(b**3)
+            flat = torch.cat([flat, mirrored], dim=1)
+        out.view(-1)[flat.reshape(-1)] = material.repeat_interleave(flat[0].numel())
         return out
 
     def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
