@@ -150,18 +150,23 @@ class EpisodeCollector:
     """
 
     def __init__(self) -> None:
-        self._carry: dict[str, torch.Tensor] = {}  # "actions" [t, N, A], "values" [t, N], "rewards" [t, N]
+        self._carry: dict[str, torch.Tensor] = {}  # "actions" [t, N, A], "values" [t, N]
 
     def collect(self, rollout: Any, episode_infos: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
-        """Episodes finished in ``rollout`` (``actions [T, N, A]``, ``values [T, N]``, ``rewards [T, N]``,
+        """Episodes finished in ``rollout`` (``actions [T, N, A]``, ``values [T, N]``, ``episode_returns [T, N]``,
         ``dones [T, N]``; mapping or attributes) with ``episode_infos`` (one info per step where they finished,
         holding ``final_grids [N, ρ, ρ, ρ]`` and ``metrics`` {name: [N]}).
+
+        An episode's reward is ``episode_returns`` at its last step: the learner's one computation of the raw
+        return (``PPO.collect``), never a sum of the rollout's rewards, which are what PPO trained on (scaled with
+        ``reward_norm``, shaped with ``dense_every``).
 
         Returns ``None`` when no episode finished, else numpy arrays: ``actions [E, T, A]``, ``values [E, T]``,
         ``rewards [E]`` (returns), ``final_grids [E, ρ, ρ, ρ] uint8``, ``metrics`` {name: [E]}, E = N · finishes.
         """
-        steps = {k: _field(rollout, k).detach() for k in ("actions", "values", "rewards")}
-        steps["values"] = steps["values"].reshape(steps["rewards"].shape)  # [T, N, 1] critics squeeze to [T, N]
+        steps = {k: _field(rollout, k).detach() for k in ("actions", "values")}
+        returns = _field(rollout, "episode_returns").detach()  # [T, N]
+        steps["values"] = steps["values"].reshape(returns.shape)  # [T, N, 1] critics squeeze to [T, N]
         dones = _field(rollout, "dones").detach().bool()  # [T, N]
         ended = dones.any(dim=1)
         if not torch.equal(ended, dones.all(dim=1)):
@@ -181,7 +186,7 @@ class EpisodeCollector:
             stop = row + offset + 1
             episodes["actions"].append(_np(steps["actions"][start:stop].transpose(0, 1)))  # [N, T, A]
             episodes["values"].append(_np(steps["values"][start:stop].transpose(0, 1)))  # [N, T]
-            episodes["rewards"].append(_np(steps["rewards"][start:stop].sum(dim=0)))  # [N]
+            episodes["rewards"].append(_np(returns[row]))  # [N]
             episodes["final_grids"].append(_np(info["final_grids"]).astype(np.uint8))
             for name, value in (info.get("metrics") or {}).items():
                 metrics.setdefault(name, []).append(_np(torch.as_tensor(value)).astype(np.float32))
@@ -197,7 +202,8 @@ class EpisodeCollector:
         return {k: v.cpu() for k, v in self._carry.items()}
 
     def load_state_dict(self, state: Mapping[str, torch.Tensor]) -> None:
-        self._carry = {k: v.clone() for k, v in state.items()}
+        # (checkpoints before the returns were read from the learner also carried "rewards": no longer needed)
+        self._carry = {k: v.clone() for k, v in state.items() if k in ("actions", "values")}
 
 
 __all__ = [

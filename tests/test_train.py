@@ -182,6 +182,22 @@ def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path:
     assert not (tmp_path / "run").exists()  # nothing was written
 
 
+def test_records_hold_raw_returns_with_reward_norm(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """agent.reward_norm scales what PPO learns from, never what the robots scored: two runs that differ only in
+    reward_norm collect the same first epoch (the rewards enter no decision before the first update), so their
+    first records hold the same returns — the volume task's, each body's voxel count — and TensorBoard's mean."""
+    runs = {flag: tmp_path / f"norm_{flag}" for flag in ("false", "true")}
+    for flag, run in runs.items():
+        cli(monkeypatch, *TINY, "trainer.epochs=1", f"agent.reward_norm={flag}", f"hydra.run.dir={run}")
+    plain, normed = (read_record(run / "records" / "epoch_000000.npz") for run in runs.values())
+    np.testing.assert_array_equal(normed.final_grids, plain.final_grids)
+    np.testing.assert_array_equal(normed.rewards, plain.rewards)
+    np.testing.assert_array_equal(normed.rewards, normed.metrics["volume"])
+    assert plain.rewards.max() > 10  # (normalised and clipped returns would be small numbers)
+    for run in runs.values():
+        assert scalars(run)["charts/episode_reward_mean"][0][1] == pytest.approx(float(plain.rewards.mean()))
+
+
 def test_dense_rewards_from_the_command_line_keep_the_terminal_return(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """env.dense_every=k wraps the design env in DenseDesignReward: the episode's rewards (what PPO learns from)
     differ from the sparse run's, but they sum to the same terminal reward, so the records and the logged return —
@@ -191,8 +207,10 @@ def test_dense_rewards_from_the_command_line_keep_the_terminal_return(tmp_path: 
     cli(monkeypatch, *TINY, "trainer.epochs=1", "env.dense_every=2", f"hydra.run.dir={dense}")
     a, b = read_record(sparse / "records" / "epoch_000000.npz"), read_record(dense / "records" / "epoch_000000.npz")
     np.testing.assert_array_equal(a.final_grids, b.final_grids)
-    np.testing.assert_allclose(b.rewards, a.rewards, rtol=1e-6)
+    # What the task scored (info["task_reward"]), not the dense rewards' float32 sum: equal to the bit.
+    np.testing.assert_array_equal(b.rewards, a.rewards)
     assert a.rewards.max() > 0
+    assert scalars(dense)["charts/episode_reward_mean"][0][1] == pytest.approx(float(a.rewards.mean()), rel=1e-6)
     # The dense run's env is the wrapper (its per-environment scoring state is checkpointed); the sparse one is not.
     assert "dense_last" in load_checkpoint(dense / "checkpoints" / "last.pt")["ppo"]["env"]["per_env"]
     assert "dense_last" not in load_checkpoint(sparse / "checkpoints" / "last.pt")["ppo"]["env"]["per_env"]

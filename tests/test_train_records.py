@@ -95,7 +95,7 @@ def _rollout(t: int, n: int, done_rows: list[int], start: float) -> dict[str, to
     return {
         "actions": ident[..., None].repeat(1, 1, 3),
         "values": -ident,
-        "rewards": torch.where(dones, ident, torch.zeros(())),  # sparse terminal reward
+        "episode_returns": torch.where(dones, ident, torch.zeros(())),  # a sparse terminal reward's returns
         "dones": dones,
     }
 

@@ -308,10 +308,10 @@ class Collectives:
         return _map_per_env(state, self._shard_named)
 
     def gather_rollout(self, rollout: Any, episode_infos: list[dict[str, Any]]) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
-        """The global view of an epoch's rollout for records: ``actions [T, N, A]``, ``values``, ``rewards``,
-        ``dones [T, N]``, and ``episode_infos`` whose tensors (per environment, by the ``VecEnv`` protocol) are
+        """The global view of an epoch's rollout for records: ``actions [T, N, A]``, ``values``,
+        ``episode_returns``, ``dones [T, N]``, and ``episode_infos`` whose tensors (per environment, by the ``VecEnv`` protocol) are
         gathered. Environments must finish in lock-step across ranks (the design env's episodes all end at T)."""
-        view = {name: getattr(rollout, name) for name in ("actions", "values", "rewards", "dones")}
+        view = {name: getattr(rollout, name) for name in ("actions", "values", "episode_returns", "dones")}
         return view, episode_infos
 
     def reduce_stats(self, stats: Mapping[str, float]) -> dict[str, float]:
@@ -428,7 +428,7 @@ class DataParallel(Collectives):
         return self.shard_envs(x).clone()
 
     def gather_rollout(self, rollout: Any, episode_infos: list[dict[str, Any]]) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]]:
-        count = torch.tensor([len(episode_infos)], dtype=torch.int64, device=rollout.rewards.device)
+        count = torch.tensor([len(episode_infos)], dtype=torch.int64, device=rollout.dones.device)
         low, high = count.clone(), count.clone()
         dist.all_reduce(low, op=dist.ReduceOp.MIN)
         dist.all_reduce(high, op=dist.ReduceOp.MAX)
@@ -437,7 +437,7 @@ class DataParallel(Collectives):
                 "distributed records need environments that finish in lock-step on every rank; "
                 f"ranks finished episodes at {int(low.item())}..{int(high.item())} steps of this rollout"
             )
-        view = {name: self.gather_envs(getattr(rollout, name), dim=1) for name in ("actions", "values", "rewards", "dones")}
+        view = {name: self.gather_envs(getattr(rollout, name), dim=1) for name in ("actions", "values", "episode_returns", "dones")}
         # By the VecEnv protocol every tensor of an info is per environment: the whole info is gathered.
         return view, [self.gather_state({PER_ENV: info})[PER_ENV] for info in episode_infos]
 

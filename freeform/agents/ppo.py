@@ -376,7 +376,9 @@ class Rollout:
     ``truncated [T, N]`` bool (the env's ``info["truncated"]``: ended by a time limit) and ``final_values [T, N]``
     (V of such an episode's last observation, its bootstrap); ``valid [T, N]`` bool (False where the env only reset,
     ``info["autoreset"]``: such samples never enter the loss). ``obs`` holds what the policy saw (normalised, with
-    ``obs_norm``) and ``rewards`` what it trained on (scaled, with ``reward_norm``).
+    ``obs_norm``) and ``rewards`` what it trained on (scaled, with ``reward_norm``). ``episode_returns [T, N]``: each
+    env's raw episode return so far (carried across rollouts); at a done step it is the finished episode's return,
+    the one figure that TensorBoard, the console, the design records and the renders all read.
     PPO refills these tensors every epoch (``logprobs``, ``values``, ``rewards`` and the advantages may be replaced
     by new ones): clone what must outlive the next ``train_epoch()``.
     """
@@ -395,6 +397,7 @@ class Rollout:
     truncated: torch.Tensor
     final_values: torch.Tensor
     valid: torch.Tensor
+    episode_returns: torch.Tensor
 
     def __getitem__(self, name: str) -> torch.Tensor:
         """Dict-style access, ``rollout["obs"]``."""
@@ -420,6 +423,7 @@ class Rollout:
             truncated=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
             final_values=torch.zeros((steps, num_envs), **f32),
             valid=torch.ones((steps, num_envs), dtype=torch.bool, device=device),
+            episode_returns=torch.zeros((steps, num_envs), **f32),
         )
 
 
@@ -598,6 +602,7 @@ class PPO:
         # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
         # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
         seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
+        scored: list[tuple[int, torch.Tensor]] = []  # (step, the task's own score of the episodes ending there)
         # The whole rollout's noise in one draw, in the rollout's dtype (float32). On the CPU T draws of N·A values
         # equal one of T·N·A where N·A is a multiple of 16 (the design env's sizes); otherwise the stream differs.
         noise = self.dp.env_noise(buf.actions, self.generator)
@@ -628,6 +633,8 @@ class PPO:
                 buf.valid[t] = ~info["autoreset"].to(self.device, torch.bool)
             if done.any():
                 self.episode_infos.append(info)
+                if "task_reward" in info:  # shaped rewards (dense_every): the return is what the task scored
+                    scored.append((t, info["task_reward"]))
                 if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
                     truncated = info["truncated"].to(self.device, torch.bool)
                     if truncated.any():
@@ -646,8 +653,11 @@ class PPO:
         buf.logprobs = gaussian_log_prob(buf.actions, buf.means, buf.log_stds)
         starts = torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])  # an episode begins after a done
 
-        # Episode figures from the raw rewards (an episode may span rollouts: the sums carry over).
+        # Episode figures from the raw rewards (an episode may span rollouts: the sums carry over), computed here only.
         episode_returns = discounted_cumsum(buf.rewards, 1.0, starts, self.episode_return)
+        for t, score in scored:
+            episode_returns[t] = torch.where(buf.dones[t], score.to(self.device, torch.float32), episode_returns[t])
+        buf.episode_returns = episode_returns
         episode_lengths = discounted_cumsum(buf.valid.float(), 1.0, starts, self.episode_length)  # exact < 2²⁴
         returns, lengths = episode_returns[buf.dones], episode_lengths[buf.dones].round().long()
         last_done = buf.dones[-1]
