@@ -274,18 +274,29 @@ def default_callbacks(cfg: TrainConfig) -> list[EpochCallback]:
 # ------------------------------------------------------------------------------------------------ run metadata
 
 
-def _git_commit() -> tuple[str | None, bool | None]:
-    repo = Path(freeform.__file__).resolve().parent.parent
-    try:
-        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo, capture_output=True, text=True, timeout=10
-        )
-    except (OSError, subprocess.SubprocessError):
+def _git_commit(package: Path | None = None) -> tuple[str | None, bool | None]:
+    """The commit (and whether the work tree differs from it) of the freeform checkout that ``package`` (the
+    imported ``freeform`` directory) lies in; ``(None, None)`` when it is not a checkout's own tracked source — a
+    wheel installed inside another repository (a venv in a user's project) would otherwise report that project's
+    commit. ``run_info.json`` then has the installed version alone (``freeform``)."""
+    package = (package or Path(freeform.__file__).resolve().parent).resolve()
+    repo = package.parent
+
+    def git(*args: str) -> subprocess.CompletedProcess[str] | None:
+        try:
+            return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+
+    top = git("rev-parse", "--show-toplevel")
+    if top is None or top.returncode or Path(top.stdout.strip()).resolve() != repo:
         return None, None
-    if sha.returncode:
+    tracked = git("ls-files", "--error-unmatch", str(package / "__init__.py"))
+    sha = git("rev-parse", "HEAD")
+    if tracked is None or tracked.returncode or sha is None or sha.returncode:
         return None, None
-    return sha.stdout.strip(), bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
+    dirty = git("status", "--porcelain", "--untracked-files=no")
+    return sha.stdout.strip(), bool(dirty.stdout.strip()) if dirty is not None and dirty.returncode == 0 else None
 
 
 def _version(package: str) -> str | None:

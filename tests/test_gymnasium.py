@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -526,3 +527,16 @@ def test_bench_gym_results_accumulate_across_invocations_and_a_rerun_replaces_it
     assert [r["framework"] for r in shown] == ["freeform", "sb3", "cleanrl"]
     table = capsys.readouterr().out
     assert "| Hopper-v5 | sb3 | 1.0 | 1.0 | 100 | 100 | 2.00 |" in table  # 100 s against freeform's 50 s
+
+
+def test_resuming_an_env_that_cannot_save_its_state_warns() -> None:
+    """Gymnasium's own vector envs have no state_dict: a resume says that they start afresh (README)."""
+    env = from_gymnasium(gym.vector.SyncVectorEnv([lambda: gym.make("Pendulum-v1")]), seed=0)
+    state = env.state_dict()
+    assert "vector_env" not in state
+    with pytest.warns(RuntimeWarning, match="cannot save its state.*fresh reset"):
+        env.load_state_dict(state)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        from_gymnasium(ToyVectorEnv([3, 0], [0, 4]), seed=0).load_state_dict(
+            from_gymnasium(ToyVectorEnv([3, 0], [0, 4]), seed=0).state_dict())

@@ -770,3 +770,20 @@ def test_compiled_minibatch_loss_trains_as_the_eager_one(overrides: dict[str, An
     for e, c in zip(eager_stats, compiled_stats, strict=True):
         for key in ("policy_loss", "value_loss", "approx_kl", "entropy", "clip_fraction", "total_loss"):
             assert c[key] == pytest.approx(e[key], rel=1e-3, abs=1e-6), key
+
+
+def test_compiled_instances_do_not_recompile_one_another() -> None:
+    """Every PPO with ``compile=True`` keeps its own compiled loss: with torch's recompile limit at 1, a second
+    instance (another policy, so other guards) still compiles instead of falling back to eager unannounced (a
+    shared code object's cache would be full after the first)."""
+    import torch._dynamo
+    from torch._dynamo.utils import counters
+
+    with torch._dynamo.config.patch(recompile_limit=1):
+        for _ in range(2):
+            before = counters["stats"]["unique_graphs"]
+            torch.manual_seed(0)
+            ppo = PPO(PointMassEnv(num_envs=4, horizon=3), MLPActorCritic(4, 2, hidden=(8,)),
+                      PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=16, compile=True))
+            ppo.train_epoch()
+            assert counters["stats"]["unique_graphs"] > before  # this instance's loss was compiled

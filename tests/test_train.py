@@ -216,3 +216,21 @@ def test_dense_rewards_from_the_command_line_keep_the_terminal_return(tmp_path: 
     assert "dense_last" not in load_checkpoint(sparse / "checkpoints" / "last.pt")["ppo"]["env"]["per_env"]
     with pytest.raises(SystemExit, match=r"env\.dense_every must be an integer in \[0, env\.steps=5\]"):
         cli(monkeypatch, *TINY, "env.dense_every=9", f"hydra.run.dir={tmp_path / 'bad'}")
+
+
+def test_git_commit_is_the_checkouts_own_never_an_enclosing_repositorys(tmp_path: Path) -> None:
+    """A wheel installed in a venv inside another repository is not that repository's source: no commit is
+    recorded for it; the checkout this suite runs from records its own HEAD."""
+    sha, _ = train_mod._git_commit()
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(train_mod.__file__).parent, capture_output=True,
+                          text=True)
+    assert head.returncode == 0 and sha == head.stdout.strip()
+    user_repo = tmp_path / "project"
+    installed = user_repo / ".venv" / "lib" / "python3.11" / "site-packages" / "freeform"
+    installed.mkdir(parents=True)
+    (installed / "__init__.py").write_text("")
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], cwd=user_repo, check=True)
+    subprocess.run([*git, "add", "-A"], cwd=user_repo, check=True)  # even a committed venv is not freeform's source
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=user_repo, check=True)
+    assert train_mod._git_commit(installed) == (None, None)

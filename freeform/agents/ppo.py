@@ -19,6 +19,7 @@ import dataclasses
 import math
 import os
 import time
+import types
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -363,6 +364,16 @@ def minibatch_loss(
 
 # ---------------------------------------------------------------------------------------------------------------
 # Rollout storage.
+def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with a code object of its own. torch.compile keeps its compiled graphs per code object, and each PPO's
+    graph guards on its own policy, so PPO instances sharing ``minibatch_loss``'s code would recompile one another
+    and, past ``torch._dynamo.config.recompile_limit`` (8) in one process (a sweep, a test suite), silently run
+    eager; with its own code each instance compiles once."""
+    copy = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    copy.__kwdefaults__, copy.__doc__ = fn.__kwdefaults__, fn.__doc__
+    return copy
+
+
 # ---------------------------------------------------------------------------------------------------------------
 
 
@@ -477,7 +488,7 @@ class PPO:
         clipping and zeroing are one operation each (``flat_params.py``)."""
         impl = {"fused": True} if config.fused_adam else {"foreach": True}
         self.optimizer = torch.optim.Adam([self.flat.value], lr=config.lr, eps=config.adam_eps, **impl)
-        self._minibatch_loss = torch.compile(minibatch_loss, dynamic=False) if config.compile else minibatch_loss
+        self._minibatch_loss = torch.compile(_own_code(minibatch_loss), dynamic=False) if config.compile else minibatch_loss
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.kl_coeff = float(config.kl_coeff)

@@ -21,6 +21,7 @@ V(``final_obs``)) and ``final_obs`` (the episode's last observation). How the ve
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import gymnasium as gym
@@ -136,9 +137,17 @@ class GymnasiumVecEnv:
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore the adapter's state; the vector env's own only where it saves one. Gymnasium's envs (MuJoCo's
+        among them) do not: they go on from a fresh reset, so a resumed run equals an uninterrupted one in every
+        weight and statistic PPO saved, but not in its episodes (the ones in progress at the checkpoint are lost)."""
         self._resetting = state["per_env"]["resetting"].cpu().numpy().astype(bool).copy()
         if "vector_env" in state and hasattr(self.vector_env, "load_state_dict"):
             self.vector_env.load_state_dict(state["vector_env"])
+        else:
+            warnings.warn(
+                f"resuming on {type(self.vector_env).__name__}, which cannot save its state (Gymnasium's envs, "
+                "MuJoCo's among them): its environments start from a fresh reset, the episodes in progress at the "
+                "checkpoint are lost, and the run will not equal an uninterrupted one", RuntimeWarning, stacklevel=2)
 
     def close(self) -> None:
         self.vector_env.close()
