@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from freeform.sim import Material, SimConfig, Simulator, runtime
+from freeform.sim import Material, SimConfig, Simulator
 
 L = 0.01
 REC = 1.240490e-4  # VX recommendedTimeStep, ν = 0.35
@@ -34,6 +34,7 @@ def f64(**kw) -> SimConfig:
 
 
 # ---------------------------------------------------------------- spec section 15 reference traces
+@pytest.mark.reference
 def test_single_voxel_settles_like_voxelyze():
     eng = engine(f64(dt=REC_NU0), body((1, 1, 1)))
     z = []
@@ -48,6 +49,7 @@ def test_single_voxel_settles_like_voxelyze():
     np.testing.assert_allclose(eng.positions()[0, 2], -7.357501e-06, rtol=1e-6)
 
 
+@pytest.mark.reference
 def test_heated_pair_matches_voxelyze_trace():
     cfg = f64(dt=REC, gravity=0.0, floor=False, materials=[Material(cte=0.01)])
     temp = np.array([0.0, 10.0])
@@ -65,6 +67,7 @@ def test_heated_pair_matches_voxelyze_trace():
     np.testing.assert_allclose(p[1, 0] - p[0, 0], 1.05e-2, rtol=1e-6)
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize(
     "nb, nu, dt, tip_z, tip_dx, angle",
     [
@@ -87,6 +90,7 @@ def test_cantilever_matches_voxelyze(nb, nu, dt, tip_z, tip_dx, angle):
     np.testing.assert_array_equal(eng.positions()[0], [0.0, 0.0, 0.0])
 
 
+@pytest.mark.reference
 @pytest.mark.parametrize(
     "n, dt, com_dz, lowest",
     [
@@ -224,21 +228,17 @@ def test_f32_agrees_with_f64():
     np.testing.assert_allclose(res["f32"].com_end.numpy(), res["f64"].com_end.numpy(), atol=1e-4)
 
 
+@pytest.mark.reference
 def test_schedules_agree_exactly_in_f64():
-    """Bit for bit on Taichi (and on either backend with FREEFORM_FAST_MATH=0). quadrants' fast-math (LLVM 22)
-    reassociates the two schedules' kernels differently: the passive slab's max displacement (3.9e-7 voxel lengths,
-    a difference of nearly equal positions) then differs by 2e-10 voxel lengths (2e-12 m)."""
+    """The two schedules are two compiled kernels of the same functions: on the strict path, the same bits. (With
+    fast-math each compiler may reassociate each kernel its own way: quadrants' LLVM 22 then moved the passive
+    slab's max displacement, a difference of nearly equal positions, by 2e-10 voxel lengths.)"""
     cfg = SimConfig(precision="f64", burn_in=0.05, duration=0.1)
     g = actuated_batch()
     a = Simulator(cfg, arch="cpu", schedule="robots").simulate(g)
     b = Simulator(cfg, arch="cpu", schedule="flat").simulate(g)
-    if runtime.backend() == "taichi" or not runtime.fast_math():
-        np.testing.assert_array_equal(a.com_end.numpy(), b.com_end.numpy())
-        np.testing.assert_array_equal(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy())
-    else:
-        np.testing.assert_allclose(a.com_end.numpy(), b.com_end.numpy(), rtol=0, atol=1e-15)
-        np.testing.assert_allclose(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy(), rtol=0,
-                                   atol=1e-9)
+    np.testing.assert_array_equal(a.com_end.numpy(), b.com_end.numpy())
+    np.testing.assert_array_equal(a.max_voxel_displacement.numpy(), b.max_voxel_displacement.numpy())
 
 
 def test_rl4design_rest_length_uses_negative_voxel():
