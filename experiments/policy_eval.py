@@ -14,7 +14,6 @@ landed? Writes ``policy_eval.csv``.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,10 +30,9 @@ def design(cfg: Any, checkpoint: Path, episodes: int, seed: int, deterministic: 
     """Roll the checkpoint's policy out for one episode in ``episodes`` environments: ``rewards [E]`` and the body
     metrics ``{name: [E]}`` of the final designs."""
     from experiments.critic import load_critic
-    from freeform.train import build
+    from freeform.run.build import design_env
 
-    cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, num_envs=episodes))
-    env, _, _ = build(cfg, device)
+    env = design_env(cfg, device, episodes, cfg.seed)
     policy = load_critic(checkpoint, device)
     generator = torch.Generator(device=device).manual_seed(seed)
     obs = env.reset()

@@ -12,8 +12,8 @@ containers (RNG states are converted to tensors), so loading a file cannot run c
 
 This is the one checkpoint path: ``PPO.save``/``PPO.load`` and the trainer's run checkpoints both go through
 :func:`save_checkpoint`/:func:`load_checkpoint`. A PPO checkpoint holds ``policy_class``, ``policy_kwargs``,
-``ppo_config``, ``epoch``, ``global_step`` and ``ppo`` (``PPO.state_dict()``); a run checkpoint adds the run's
-``config``, ``collector`` and ``rng``. Files of earlier versions are upgraded on load (:func:`_upgrade`).
+``ppo_config``, ``epoch``, ``global_step`` and ``ppo`` (``PPO.state_dict()``); a run checkpoint is a learner's
+``checkpoint()`` (``freeform.learner``: PPO's, or ``algo`` and ``evolution``) plus the run's ``config`` and ``rng``. Files of earlier versions are upgraded on load (:func:`_upgrade`).
 """
 
 from __future__ import annotations
@@ -31,8 +31,10 @@ from freeform.files import write_atomically
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 FORMAT = "freeform-checkpoint"
-VERSION = 2
-"""2: per-environment state named under ``per_env`` keys; PPO files in the common format (1: shapes decided)."""
+VERSION = 3
+"""3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
+``episode_carry``; 2: per-environment state named under ``per_env`` keys, PPO files in the common format (1:
+shapes decided)."""
 _PPO_FORMAT_V1 = "freeform.ppo/1"  # PPO.save's own format before version 2
 
 
@@ -132,8 +134,13 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
 def _upgrade(state: dict[str, Any]) -> dict[str, Any]:
     """A run checkpoint of any earlier version in today's layout."""
     if state["version"] == 1 and isinstance(state.get("ppo"), dict):
-        state = {**state, "version": VERSION, "ppo": _name_per_env_v1(state["ppo"])}
+        state = {**state, "version": 2, "ppo": _name_per_env_v1(state["ppo"])}
         state.setdefault("policy_class", "freeform.agents.networks:VoxelActorCritic")  # the trainer's only network
+    if state["version"] == 2:  # the run's episode collector moved into the learner (evolution's carried nothing)
+        carry = state.get("collector") or {}
+        state = {**{k: v for k, v in state.items() if k != "collector"}, "version": VERSION}
+        if isinstance(state.get("ppo"), dict):
+            state["ppo"] = {**state["ppo"], "episode_carry": dict(carry)}
     return state
 
 

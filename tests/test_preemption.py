@@ -32,6 +32,7 @@ from freeform import train as train_mod
 from freeform.checkpoint import load_checkpoint
 from freeform.envs import DesignEnv
 from freeform.records import list_records, read_record
+from freeform.run import trainer as trainer_mod
 
 pytestmark = pytest.mark.usefixtures("keep_global_rng")  # tests/conftest.py
 
@@ -69,7 +70,7 @@ def signal_at_step(monkeypatch: pytest.MonkeyPatch, call: int, signum: int) -> N
 def with_callback(monkeypatch: pytest.MonkeyPatch, callback: Callable[[train_mod.EpochContext], None]) -> None:
     """Give the CLI's runs this per-epoch callback (it runs after an epoch's record and scalars, before its
     checkpoint)."""
-    monkeypatch.setattr(train_mod, "default_callbacks", lambda cfg: [callback])
+    monkeypatch.setattr(trainer_mod, "default_callbacks", lambda cfg: [callback])
 
 
 def _tensors_equal(a: Any, b: Any, where: str = "") -> None:

@@ -33,9 +33,9 @@ INTERRUPT_ONCE = """
 import os
 if os.environ.get("SUBMITIT_LOCAL_JOB_ID"):  # a submitit_local job's task (not its controller)
     import signal
-    from freeform import train
+    from freeform.run import trainer
 
-    _default_callbacks = train.default_callbacks
+    _default_callbacks = trainer.default_callbacks
 
     def _interrupt_once(cfg):
         def callback(ctx):
@@ -45,7 +45,7 @@ if os.environ.get("SUBMITIT_LOCAL_JOB_ID"):  # a submitit_local job's task (not 
                 signal.raise_signal(signal.SIGUSR2)
         return [*_default_callbacks(cfg), callback]
 
-    train.default_callbacks = _interrupt_once
+    trainer.default_callbacks = _interrupt_once
 """
 
 

@@ -24,6 +24,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from freeform import train as train_mod
 from freeform.checkpoint import load_checkpoint
 from freeform.records import iter_records, read_record
+from freeform.run import rundir as rundir_mod
 
 TINY = tiny()
 STEPS_PER_EPOCH = 4 * 5
@@ -69,7 +70,7 @@ def test_run_writes_events_checkpoints_records(base_run: Path) -> None:
     ckpt = load_checkpoint(base_run / "checkpoints" / "last.pt")
     assert (ckpt["epoch"], ckpt["global_step"]) == (3, 3 * STEPS_PER_EPOCH)
     assert ckpt["config"]["env"]["resolution"] == 6
-    assert {"ppo", "rng", "collector", "policy_kwargs"} <= ckpt.keys()
+    assert {"ppo", "rng", "policy_kwargs"} <= ckpt.keys() and "episode_carry" in ckpt["ppo"]  # (format 3)
     assert sorted(p.name for p in (base_run / "checkpoints").iterdir()) == [
         "epoch_000000.pt", "epoch_000001.pt", "epoch_000002.pt", "epoch_000003.pt", "last.pt"]
     info = json.loads((base_run / "run_info.json").read_text())
@@ -221,7 +222,7 @@ def test_dense_rewards_from_the_command_line_keep_the_terminal_return(tmp_path: 
 def test_git_commit_is_the_checkouts_own_never_an_enclosing_repositorys(tmp_path: Path) -> None:
     """A wheel installed in a venv inside another repository is not that repository's source: no commit is
     recorded for it; the checkout this suite runs from records its own HEAD."""
-    sha, _ = train_mod._git_commit()
+    sha, _ = rundir_mod._git_commit()
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(train_mod.__file__).parent, capture_output=True,
                           text=True)
     assert head.returncode == 0 and sha == head.stdout.strip()
@@ -233,4 +234,4 @@ def test_git_commit_is_the_checkouts_own_never_an_enclosing_repositorys(tmp_path
     subprocess.run([*git, "init", "-q"], cwd=user_repo, check=True)
     subprocess.run([*git, "add", "-A"], cwd=user_repo, check=True)  # even a committed venv is not freeform's source
     subprocess.run([*git, "commit", "-qm", "x"], cwd=user_repo, check=True)
-    assert train_mod._git_commit(installed) == (None, None)
+    assert rundir_mod._git_commit(installed) == (None, None)

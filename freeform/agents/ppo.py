@@ -20,7 +20,7 @@ import math
 import os
 import time
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -33,6 +33,8 @@ from freeform.agents.flat_params import FlatParameters
 from freeform.agents.normalization import RunningMeanStd
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
+from freeform.learner import Episodes
+from freeform.records import EpisodeCollector
 from freeform.validation import is_int, is_number, require
 
 ADVANTAGE_NORMS = ("batch", "minibatch", "none")
@@ -513,6 +515,8 @@ class PPO:
         obs_dtype = torch.float32 if self.obs_rms is not None else self.obs.dtype
         self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, obs_shape, obs_dtype, env.action_dim, self.device)
         self.episode_infos: list[dict[str, Any]] = []
+        self._collector = EpisodeCollector()  # episodes() cuts the rollouts; its carry is part of the state
+        self._collected = 0  # the epoch count at the last episodes() call
         # Running return and length of each env's current episode (they span epochs when episodes are cut).
         self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
         self.episode_length = torch.zeros(env.num_envs, dtype=torch.int64, device=self.device)
@@ -889,6 +893,21 @@ class PPO:
                 break
         return history
 
+    def episodes(self) -> Episodes | None:
+        """The episodes the last rollout finished, over every rank, in the design records' layout
+        (``freeform.learner``; ``None`` if none finished): for envs whose episodes end in lock-step and report
+        ``final_grids`` (the design envs). An episode cut by the rollout's end is carried to the next call, so call
+        it after every epoch (the trainer does); a collective when data-parallel."""
+        if self._collected != self.epoch - 1 and self._collector.state_dict():
+            raise ValueError(f"episodes() was not called after epochs {self._collected + 1}..{self.epoch - 1}, and an "
+                             "episode spans rollouts: its first steps are gone")
+        self._collected = self.epoch
+        rollout, infos = self.dp.gather_rollout(self.rollout, self.episode_infos)
+        episodes = self._collector.collect(rollout, infos)
+        if episodes is not None:
+            episodes["infos"] = infos
+        return episodes
+
     # -- state and checkpoints -------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
@@ -906,6 +925,7 @@ class PPO:
             "global_step": self.global_step,
             "generator": self.generator.get_state(),
             PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
+            "episode_carry": self._collector.state_dict(),  # global: cut from the gathered rollout
         }
         if self.obs_rms is not None:
             state["obs_rms"] = self.obs_rms.state_dict()
@@ -928,6 +948,8 @@ class PPO:
         self.kl_coeff = float(state["kl_coeff"])
         self.epoch = int(state["epoch"])
         self.global_step = int(state["global_step"])
+        self._collected = self.epoch
+        self._collector.load_state_dict(state.get("episode_carry", {}))
         self.generator.set_state(state["generator"].cpu())
         per_env = state[PER_ENV]
         self.obs = per_env["obs"].to(self.device)
@@ -957,6 +979,11 @@ class PPO:
             "global_step": self.global_step,
             "ppo": self.state_dict(),
         }
+
+    def restore(self, checkpoint: Mapping[str, Any]) -> None:
+        """Continue from a checkpoint :meth:`checkpoint` wrote (the ``Learner`` protocol): ``load_state_dict`` of
+        its ``ppo`` part."""
+        self.load_state_dict(checkpoint["ppo"])
 
     def save(self, path: str | os.PathLike) -> None:
         """Write :meth:`checkpoint` atomically (``freeform.checkpoint.save_checkpoint``).

@@ -1,5 +1,5 @@
-"""Evolution behind the trainer's one loop: :class:`Evolution` has PPO's surface (``train_epoch()``, ``epoch``,
-``global_step``, ``state_dict()``/``load_state_dict()``, ``checkpoint()``, ``dp``), so ``freeform-train algo=ga``
+"""Evolution behind the trainer's one loop: :class:`Evolution` is a ``freeform.learner.Learner`` (``train_epoch()``,
+``episodes()``, ``epoch``, ``global_step``, ``checkpoint()``/``restore()``), as PPO is, so ``freeform-train algo=ga``
 gets the same run directory, TensorBoard tags, design records, checkpoints, resume and preemption as PPO.
 
 An epoch is one generation: the optimiser's ``N = env.num_envs`` genomes are scored in one batch by
@@ -12,13 +12,14 @@ so TensorBoard curves of both line up at equal designs.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import numpy as np
 import torch
 
-from freeform.agents.distributed import Collectives
 from freeform.body import serial_on_cpu
+from freeform.learner import Episodes
 
 
 class Optimizer(Protocol):
@@ -61,22 +62,20 @@ def _np(x: torch.Tensor) -> np.ndarray:
 
 
 class Evolution:
-    """One evolutionary optimiser on a design env, with the trainer's surface (module docstring).
+    """One evolutionary optimiser on a design env, a ``freeform.learner.Learner`` (module docstring); one process.
 
-    After ``train_epoch()``: :meth:`episodes` is the generation as the trainer's episode collector would give it
-    (``actions [N, T, A]`` — the genomes; ``[N, 0, A]`` for grid genomes —, ``values [N, T]`` NaN (no critic),
-    ``rewards [N]``, ``final_grids``, ``metrics``), and ``episode_infos`` holds the env's info of the generation.
+    After ``train_epoch()``: :meth:`episodes` is the generation as finished episodes (``actions [N, T, A]`` — the
+    genomes; ``[N, 0, A]`` for grid genomes —, ``values [N, T]`` NaN (no critic), ``rewards [N]``, ``final_grids``,
+    ``metrics``, ``infos``: the env's info of the generation).
     """
 
     def __init__(self, env: Any, optimizer: Optimizer, name: str) -> None:
         self.env, self.optimizer, self.name = env, optimizer, name
         self.num_envs = env.num_envs
-        self.dp = Collectives.single(env.num_envs)  # one process: every collective is the identity
         self.epoch = 0
         self.best = float("-inf")
         """The best reward scored so far."""
-        self.episode_infos: list[dict[str, Any]] = []
-        self._episodes: dict[str, Any] | None = None
+        self._episodes: Episodes | None = None
 
     def train_epoch(self) -> dict[str, float]:
         """Score one generation and breed the next; return its statistics (PPO's names where they mean the same)."""
@@ -93,13 +92,13 @@ class Evolution:
         n, steps = self.num_envs, self.env.steps
         self.epoch += 1
         self.best = max(self.best, float(rewards.max()))
-        self.episode_infos = [info]
         self._episodes = {
             "actions": _np(actions.to(torch.float32)),
             "values": np.full(actions.shape[:2], np.nan, dtype=np.float32),
             "rewards": _np(rewards.to(torch.float32)),
             "final_grids": _np(info["final_grids"]).astype(np.uint8),
             "metrics": {k: _np(torch.as_tensor(v)).astype(np.float32) for k, v in (info.get("metrics") or {}).items()},
+            "infos": [info],
         }
         return {
             "episode_reward_mean": float(rewards.mean()),
@@ -126,7 +125,7 @@ class Evolution:
         """Design steps so far, N·T per generation, as a PPO epoch of ``rollout_steps = T`` counts them."""
         return self.epoch * self.num_envs * self.env.steps
 
-    def episodes(self) -> dict[str, Any] | None:
+    def episodes(self) -> Episodes | None:
         """The last generation as finished episodes (class docstring); None before the first."""
         return self._episodes
 
@@ -141,8 +140,14 @@ class Evolution:
         self.epoch, self.best = int(state["epoch"]), float(state["best"])
 
     def checkpoint(self) -> dict[str, Any]:
-        """A run checkpoint's content (as ``PPO.checkpoint()``'s): the algorithm, counters and ``evolution`` state."""
+        """A run checkpoint's learner part: the algorithm, counters and ``evolution`` state."""
         return {"algo": self.name, "epoch": self.epoch, "global_step": self.global_step, "evolution": self.state_dict()}
+
+    def restore(self, checkpoint: Mapping[str, Any]) -> None:
+        """Continue from a run checkpoint :meth:`checkpoint` wrote."""
+        if "evolution" not in checkpoint:
+            raise ValueError(f"the checkpoint holds no evolution state (it is of algo {checkpoint.get('algo', 'ppo')!r})")
+        self.load_state_dict(checkpoint["evolution"])
 
 
 __all__ = ["Evolution", "Optimizer", "design_grids"]

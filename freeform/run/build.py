@@ -1,0 +1,181 @@
+"""A run's objects from its config: the task and the learner from one registry each, the design env from one function.
+
+    register_task("mine")(builder)        # task.name=mine: builder(cfg, device) -> a freeform.envs.Task
+    register_learner("mine")(builder)     # algo.name=mine: builder(cfg, env, device, envs) -> a freeform.learner.Learner
+
+Every trajectory reward registered with ``freeform.envs.trajectory.trajectory_reward`` is a task of its name too.
+"""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from freeform.config import TrainConfig, ppo_config
+from freeform.envs.base import Task, VecEnv
+from freeform.learner import Learner
+
+TaskBuilder = Callable[[TrainConfig, torch.device], Task]
+TASKS: dict[str, TaskBuilder] = {}
+"""``task.name`` -> builder ``(cfg, device) -> Task``. Add one with :func:`register_task`."""
+
+LearnerBuilder = Callable[[TrainConfig, Any, torch.device, tuple[int, int]], Learner]
+LEARNERS: dict[str, LearnerBuilder] = {}
+"""``algo.name`` -> builder ``(cfg, env, device, envs) -> Learner``. Add one with :func:`register_learner`."""
+
+
+def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
+    """Decorator: make ``task.name=<name>`` build its task with the decorated function."""
+
+    def decorate(builder: TaskBuilder) -> TaskBuilder:
+        TASKS[name] = builder
+        return builder
+
+    return decorate
+
+
+def register_learner(*names: str) -> Callable[[LearnerBuilder], LearnerBuilder]:
+    """Decorator: make ``algo.name=<name>`` (each of ``names``) build its learner with the decorated function."""
+
+    def decorate(builder: LearnerBuilder) -> LearnerBuilder:
+        for name in names:
+            LEARNERS[name] = builder
+        return builder
+
+    return decorate
+
+
+# ------------------------------------------------------------------------------------------------ tasks
+
+
+def _simulator_options(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
+    """A simulated task's constructor arguments: the run's ``sim`` and device, and the simulator's arch taken from
+    the run's device (no silent CPU fallback under a GPU run: resolve_device checked CUDA); ``task.options`` win."""
+    return {"sim": cfg.sim, "device": device, "arch": "cuda" if device.type == "cuda" else "cpu", **cfg.task.options}
+
+
+@register_task("volume")
+def _volume_task(cfg: TrainConfig, device: torch.device) -> Task:
+    from freeform.envs import VolumeTask
+
+    return VolumeTask(**cfg.task.options)
+
+
+@register_task("locomotion")
+def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
+    from freeform.envs import LocomotionTask
+
+    return LocomotionTask(**_simulator_options(cfg, device))
+
+
+def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
+    """A ``TrajectoryTask`` of the reward registered as ``task.name`` (freeform/envs/trajectory.py)."""
+    from freeform.envs import TrajectoryTask
+
+    return TrajectoryTask(cfg.task.name, **_simulator_options(cfg, device))
+
+
+def task_builders() -> dict[str, TaskBuilder]:
+    """Every task name a run may give: the registered builders and every trajectory reward (the built-ins and a
+    user's own, registered with ``trajectory_reward``), looked up when asked so that late registrations count."""
+    from freeform.envs.trajectory import TRAJECTORY_REWARDS
+
+    return {**dict.fromkeys(TRAJECTORY_REWARDS, _trajectory_task), **TASKS}
+
+
+def build_task(cfg: TrainConfig, device: torch.device) -> Task:
+    """The run's task from the registry, checked against the :class:`freeform.envs.Task` protocol."""
+    builders = task_builders()
+    if cfg.task.name not in builders:
+        raise ValueError(f"task.name must be one of {sorted(builders)}, got {cfg.task.name!r}")
+    task = builders[cfg.task.name](cfg, device)
+    if not isinstance(task, Task):
+        raise ValueError(f"task.name={cfg.task.name!r} built a {type(task).__name__}, which has no reward(final_grids)")
+    return task
+
+
+# ------------------------------------------------------------------------------------------------ env and learner
+
+
+def resolve_device(name: str, experiment: str | None = None) -> torch.device:
+    """``trainer.device`` -> a torch device (``auto``: CUDA when available, else CPU; ``cuda``: this process's
+    current GPU, which is the rank's own under torchrun, see ``distributed.pin_local_gpu``).
+
+    A run that asks for CUDA where there is none stops here with one line naming the override that runs it on the
+    CPU anyway (the paper's GPU presets set ``trainer.device: cuda``)."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        what = f"experiment={experiment} is meant for a GPU (trainer.device={name})" if experiment else f"trainer.device={name}"
+        raise ValueError(f"{what} but no CUDA device is available here; add trainer.device=cpu to run it on the CPU anyway")
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    """Seed python, numpy and torch's global RNGs (the network's initialisation draws from torch's)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def design_env(cfg: TrainConfig, device: torch.device, num_envs: int, seed: int) -> Any:
+    """The run's ``DesignEnv`` of ``num_envs`` environments seeded ``seed``, scoring with a task of its own."""
+    from freeform.envs import DesignEnv
+
+    return DesignEnv(num_envs=num_envs, resolution=cfg.env.resolution, materials=cfg.task.materials,
+                     steps=cfg.env.steps, bundle_size=cfg.env.bundle_size, task=build_task(cfg, device),
+                     device=device, seed=seed, action_bound=cfg.env.action_bound, mirror_y=cfg.env.mirror_y)
+
+
+def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None = None) -> tuple[VecEnv, Learner]:
+    """The run's design env (the one scoring with the task; a learner may wrap it) and learner, seeded by
+    ``cfg.seed`` (the same cfg builds the same objects).
+
+    ``envs = (lo, hi)``: build only environments ``lo … hi−1`` of ``env.num_envs`` (this rank's slice in a
+    data-parallel run, :func:`freeform.agents.distributed.env_slice`); default all of them.
+    """
+    if cfg.algo.name not in LEARNERS:
+        raise ValueError(f"algo.name must be one of {sorted(LEARNERS)}, got {cfg.algo.name!r}")
+    seed_everything(cfg.seed)
+    envs = envs if envs is not None else (0, cfg.env.num_envs)
+    env = design_env(cfg, device, envs[1] - envs[0], cfg.seed)
+    learner = LEARNERS[cfg.algo.name](cfg, env, device, envs)
+    if not isinstance(learner, Learner):
+        raise ValueError(f"algo.name={cfg.algo.name!r} built a {type(learner).__name__}, which is no freeform.learner.Learner")
+    return env, learner
+
+
+@register_learner("ppo")
+def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
+    """PPO with the paper's actor-critic; ``env.dense_every`` wraps the env in dense rewards, ``agent.eval_every``
+    adds a deterministic evaluation env of its own (seed + 1)."""
+    from freeform.agents import PPO, VoxelActorCritic
+
+    if cfg.env.dense_every:  # the partial body scored every k steps; records and returns keep the terminal reward
+        from freeform.envs import DenseDesignReward
+
+        env = DenseDesignReward(env, cfg.env.dense_every)
+    policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
+    eval_env = design_env(cfg, device, envs[1] - envs[0], cfg.seed + 1) if cfg.agent.eval_every else None
+    return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
+
+
+@register_learner("ga", "cmaes", "grid_ga")
+def _evolution(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
+    """An evolutionary optimiser over the same env, task and simulator; one process."""
+    from freeform.evolve import build_evolution
+
+    if envs != (0, cfg.env.num_envs):
+        raise ValueError(f"algo.name={cfg.algo.name} runs in one process; launch it without torchrun")
+    return build_evolution(cfg.algo, env, cfg.seed)
+
+
+__all__ = ["LEARNERS", "TASKS", "build", "build_task", "design_env", "register_learner", "register_task",
+           "resolve_device", "seed_everything", "task_builders"]

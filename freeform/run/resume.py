@@ -1,0 +1,83 @@
+"""Continuing a run: which checkpoint (``trainer.resume``), read before anything in the run directory is opened, and
+the config it continues with (the checkpoint's own; only ``trainer.*`` may differ)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from freeform.agents import distributed
+from freeform.checkpoint import (
+    AUTO,
+    CHECKPOINT_DIR,
+    LAST,
+    CheckpointError,
+    auto_checkpoint,
+    load_checkpoint,
+    resolve_checkpoint,
+)
+from freeform.config import TrainConfig, flatten, from_container, to_container, validate
+
+log = logging.getLogger("freeform.train")
+
+
+def find_checkpoint(cfg: TrainConfig, run_dir: Path) -> Path | None:
+    """The checkpoint ``trainer.resume`` names: ``auto`` -> this run directory's ``last.pt`` if there is one (rank
+    0 looks; every rank gets its answer), a run directory or file -> that one, None -> none."""
+    if cfg.trainer.resume == AUTO:
+        found = auto_checkpoint(run_dir) if distributed.is_main_process() else None
+        found = distributed.broadcast_object(str(found) if found is not None else None)
+        if found is None:
+            log.info("trainer.resume=auto: no %s/%s in %s, starting a new run", CHECKPOINT_DIR, LAST, run_dir)
+        return Path(found) if found is not None else None
+    return resolve_checkpoint(cfg.trainer.resume) if cfg.trainer.resume else None
+
+
+def read_checkpoint(path: Path, cfg: TrainConfig, overrides: Sequence[str] | None) -> tuple[dict[str, Any], TrainConfig]:
+    """The run checkpoint at ``path`` and the config the run continues with (:func:`resume_config`); a bad file is
+    a ``CheckpointError`` naming it, and nothing is lost."""
+    state = load_checkpoint(path)
+    try:
+        saved = from_container(state["config"])
+    except (ValueError, KeyError) as exc:
+        raise CheckpointError(f"checkpoint {path}: its config is unusable: {exc}") from exc
+    return state, resume_config(saved, cfg, overrides)
+
+
+def override_key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("~+")
+
+
+def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[str] | None) -> TrainConfig:
+    """The config of a resumed run: the checkpoint's own, with the ``trainer`` fields given on the command line.
+
+    ``overrides`` (Hydra's command-line overrides) name what the user set; ``None`` (Python use) takes the whole
+    ``trainer`` section of ``current``. Any other explicitly set key must equal the checkpoint's value: changing
+    what the run trains mid-way would break the promise that a resumed run equals an uninterrupted one.
+    """
+    trainer = dataclasses.replace(saved.trainer, resume=current.trainer.resume)
+    if overrides is None:
+        return validate(dataclasses.replace(saved, trainer=dataclasses.replace(current.trainer)))
+    saved_flat, current_flat = flatten(to_container(saved)), flatten(to_container(current))
+    for override in overrides:
+        key = override_key(override)
+        if key.startswith("hydra.") or key == "trainer.resume":
+            continue
+        if key.startswith("trainer."):
+            field = key.split(".", 1)[1]
+            trainer = dataclasses.replace(trainer, **{field: getattr(current.trainer, field)})
+        elif key == "experiment":
+            if current.name != saved.name:
+                raise ValueError(f"experiment: the run being resumed is {saved.name!r}, not {current.name!r}")
+        else:
+            changed = [k for k in current_flat if (k == key or k.startswith(key + ".")) and current_flat[k] != saved_flat.get(k)]
+            if changed:
+                raise ValueError(f"{key}: cannot change {changed[0]} when resuming ({saved_flat.get(changed[0])!r} in "
+                                 f"the checkpoint); only trainer.* may differ")
+    return validate(dataclasses.replace(saved, trainer=trainer))
+
+
+__all__ = ["find_checkpoint", "override_key", "read_checkpoint", "resume_config"]
