@@ -33,9 +33,8 @@ LAST = "last.pt"
 FORMAT = "freeform-checkpoint"
 VERSION = 3
 """3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
-``episode_carry``; 2: per-environment state named under ``per_env`` keys, PPO files in the common format (1:
-shapes decided)."""
-_PPO_FORMAT_V1 = "freeform.ppo/1"  # PPO.save's own format before version 2
+``episode_carry``; 2: per-environment state named under ``per_env`` keys. Version 2 files load (one upgrade
+step); version 1 was never released and is refused."""
 
 
 class CheckpointError(ValueError):
@@ -122,54 +121,22 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         raise CheckpointError(
             f"checkpoint {path} is unreadable (truncated or corrupt?): {type(exc).__name__}: {cause}{_siblings(path)}"
         ) from exc
-    if isinstance(state, dict) and state.get("format") == _PPO_FORMAT_V1:
-        return _upgrade_ppo_v1(state)
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path} is not a freeform checkpoint (no format={FORMAT!r} key)")
-    if state.get("version") not in range(1, VERSION + 1):
-        raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads 1 to {VERSION}")
+    if state.get("version") not in range(2, VERSION + 1):
+        raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads 2 to {VERSION}")
     return _upgrade(state)
 
 
 def _upgrade(state: dict[str, Any]) -> dict[str, Any]:
-    """A run checkpoint of any earlier version in today's layout."""
-    if state["version"] == 1 and isinstance(state.get("ppo"), dict):
-        state = {**state, "version": 2, "ppo": _name_per_env_v1(state["ppo"])}
-        state.setdefault("policy_class", "freeform.agents.networks:VoxelActorCritic")  # the trainer's only network
-    if state["version"] == 2:  # the run's episode collector moved into the learner (evolution's carried nothing)
+    """A version-2 run checkpoint in today's layout: the run's episode collector moved into the learner's state
+    (evolution's carried nothing)."""
+    if state["version"] == 2:
         carry = state.get("collector") or {}
         state = {**{k: v for k, v in state.items() if k != "collector"}, "version": VERSION}
         if isinstance(state.get("ppo"), dict):
             state["ppo"] = {**state["ppo"], "episode_carry": dict(carry)}
     return state
-
-
-def _upgrade_ppo_v1(old: dict[str, Any]) -> dict[str, Any]:
-    """``PPO.save``'s version-1 file (its own format) in the common layout."""
-    ppo = _name_per_env_v1(old["state"])
-    return {
-        "format": FORMAT,
-        "version": VERSION,
-        "policy_class": old["policy_class"],
-        "policy_kwargs": old["policy_kwargs"],
-        "ppo_config": old["config"],
-        "epoch": ppo["epoch"],
-        "global_step": ppo["global_step"],
-        "ppo": ppo,
-    }
-
-
-def _name_per_env_v1(ppo: dict[str, Any]) -> dict[str, Any]:
-    """Version 1 kept PPO's per-environment tensors at the top of its state (and the design env's grids at the top
-    of the env's state, with ``config.num_envs``); version 2 names them under ``per_env``."""
-    names = ("obs", "episode_return", "episode_length")
-    out = {k: v for k, v in ppo.items() if k not in names}
-    out["per_env"] = {k: ppo[k] for k in names}
-    env = ppo.get("env")
-    if isinstance(env, dict) and "grids" in env:
-        config = {k: v for k, v in env.get("config", {}).items() if k != "num_envs"}
-        out["env"] = {**{k: v for k, v in env.items() if k != "grids"}, "config": config, "per_env": {"grids": env["grids"]}}
-    return out
 
 
 def resolve_checkpoint(path: str | os.PathLike[str]) -> Path:

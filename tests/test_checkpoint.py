@@ -219,24 +219,33 @@ def test_ppo_files_and_run_checkpoints_share_one_writer_and_a_class_is_built_onl
         assert torch.equal(loaded.policy.state_dict()[name], tensor)
 
 
-def test_version_1_files_are_upgraded_on_load(tmp_path: Path) -> None:
-    """Files written before per-environment state was named still load: PPO.save's old format and old run
-    checkpoints (the design env's grids and config.num_envs at the top of its state)."""
-    obs, grids = torch.arange(8.0).reshape(4, 2), torch.zeros(4, 2, 2, 2, dtype=torch.uint8)
-    old_state = {"policy": {}, "optimizer": {}, "kl_coeff": 0.2, "epoch": 3, "global_step": 12,
-                 "generator": torch.zeros(5, dtype=torch.uint8), "obs": obs, "episode_return": torch.zeros(4),
-                 "episode_length": torch.zeros(4, dtype=torch.int64),
-                 "env": {"grids": grids, "t": 1, "seed": 0, "config": {"num_envs": 4, "resolution": 2}}}
-    torch.save({"format": "freeform.ppo/1", "policy_class": "freeform.agents.networks:MLPActorCritic",
-                "policy_kwargs": {}, "config": {"lr": 1e-3}, "state": old_state}, tmp_path / "ppo_v1.pt")
-    ppo_file = load_checkpoint(tmp_path / "ppo_v1.pt")
-    assert ppo_file["ppo_config"] == {"lr": 1e-3} and ppo_file["epoch"] == 3
-    assert torch.equal(ppo_file["ppo"]["per_env"]["obs"], obs) and "obs" not in ppo_file["ppo"]
-    env = ppo_file["ppo"]["env"]
-    assert torch.equal(env["per_env"]["grids"], grids) and env["config"] == {"resolution": 2} and env["t"] == 1
-    torch.save({"format": ck.FORMAT, "version": 1, "epoch": 3, "ppo": old_state, "config": {}}, tmp_path / "run_v1.pt")
-    run = load_checkpoint(tmp_path / "run_v1.pt")
-    assert run["version"] == ck.VERSION and torch.equal(run["ppo"]["per_env"]["episode_length"], old_state["episode_length"])
+def test_version_2_run_checkpoints_resume_exactly(tmp_path: Path) -> None:
+    """A run checkpoint of the previous format (the episode collector's carry at its top level, as main wrote it
+    before the learner owned it) resumes exactly: rollouts of 7 steps cut episodes of T = 5, so the carry matters,
+    and the resumed run's second record equals the uninterrupted run's. Version 1 (never released) is refused."""
+    from helpers import tiny
+
+    from freeform.config import compose
+    from freeform.records import read_record
+    from freeform.run.trainer import train
+
+    cfg = compose(*tiny("trainer.epochs=2", "agent.rollout_steps=7", "trainer.checkpoint_every=0"))
+    train(cfg, tmp_path / "straight")
+    cfg.trainer.epochs = 1
+    train(cfg, tmp_path / "split")
+    last = tmp_path / "split" / "checkpoints" / "last.pt"
+    state = torch.load(last, weights_only=True)
+    carry = state["ppo"].pop("episode_carry")
+    assert carry and all(len(v) == 2 for v in carry.values())  # 7 steps = one episode of 5 + 2 carried
+    torch.save({**state, "version": 2, "collector": carry}, last)
+    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
+    train(cfg, tmp_path / "split")
+    a, b = (read_record(tmp_path / run / "records" / "epoch_000001.npz") for run in ("straight", "split"))
+    np.testing.assert_array_equal(a.actions, b.actions)
+    np.testing.assert_array_equal(a.rewards, b.rewards)
+    torch.save({**state, "version": 1}, tmp_path / "v1.pt")
+    with pytest.raises(CheckpointError, match="version 1; this freeform reads 2 to"):
+        load_checkpoint(tmp_path / "v1.pt")
 
 
 def test_run_files_get_the_umask_permissions_not_mkstemps_0600(tmp_path: Path) -> None:
