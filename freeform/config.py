@@ -171,7 +171,9 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     """Check value ranges the types cannot express; raise ``ValueError`` naming the dotted key. Returns ``cfg``."""
     _validate_env(cfg.env)
     require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
-    cfg.algo.validate("algo", cfg.env.num_envs)
+    from freeform.run.build import LEARNERS  # (the registry a user's learner joins; imported when validating)
+
+    cfg.algo.validate("algo", cfg.env.num_envs, names=list(LEARNERS))
     require(cfg.algo.name == "ppo" or not cfg.env.dense_every, "env.dense_every",
             f"0 with algo.name={cfg.algo.name} (evolution scores whole designs; dense rewards are for PPO)",
             cfg.env.dense_every)

@@ -9,12 +9,13 @@ what one PPO epoch costs in scored designs (one per environment).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from freeform.validation import is_int, is_number, require
 
 ALGORITHMS = ("ppo", "ga", "cmaes", "grid_ga")
-"""The values of ``algo.name``."""
+"""The built-in values of ``algo.name``."""
 
 CMA_VARIANTS = ("sep", "full")
 
@@ -41,9 +42,10 @@ class AlgoConfig:
     variant: str = "sep"
     """cmaes: ``sep`` (diagonal covariance, linear in T·(3+k): 500 dims at the paper's volume size) or ``full``."""
 
-    def validate(self, key: str = "algo", num_envs: int | None = None) -> None:
-        """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range."""
-        require(self.name in ALGORITHMS, f"{key}.name", f"one of {list(ALGORITHMS)}", self.name)
+    def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
+        """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
+        build (the trainer's registry, ``freeform.run.build.LEARNERS``, which a user's learner joins)."""
+        require(self.name in names, f"{key}.name", f"one of {list(names)}", self.name)
         if num_envs is not None:
             require(is_int(self.elite, 0) and self.elite < num_envs, f"{key}.elite",
                     f"an integer in [0, env.num_envs - 1 = {num_envs - 1}]", self.elite)
