@@ -17,7 +17,7 @@ import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
-import freeform.agents.ppo as ppo_module
+import freeform.agents.ppo.losses as ppo_module
 from freeform import train as train_mod
 from freeform.agents import PPO, MLPActorCritic, PPOConfig
 from freeform.agents.ppo import gaussian_kl, gaussian_log_prob

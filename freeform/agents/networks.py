@@ -1,9 +1,10 @@
-"""Actor-critic networks: the paper's voxel network and a small MLP for flat observations.
+"""Actor-critic networks: the contracts PPO relies on, declared (:class:`ActorCritic`, :class:`SplitActorCritic`,
+:class:`SelfDescribing`), and the paper's voxel network and a small MLP for flat observations.
 
 A policy is an ``nn.Module`` whose ``forward(obs)`` returns ``(mean [N, A], log_std [N, A], value [N])``: the
-Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). Every policy keeps its
-constructor arguments in ``init_kwargs`` so that a checkpoint can rebuild it from the file alone, and names groups of
-action dimensions in ``action_groups`` (PPO logs the mean σ of each group).
+Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). A policy that keeps its
+constructor arguments in ``init_kwargs`` can be rebuilt by a checkpoint from the file alone, and one that names
+groups of action dimensions in ``action_groups`` gets the mean σ of each group logged.
 
 A policy whose actor and critic share no layers may also define ``action_params(obs) -> (mean, log_std)`` and
 ``value(obs) -> [N]`` (the two halves of ``forward``): PPO then runs only the actor at each rollout step and the
@@ -13,6 +14,7 @@ critic once over the whole rollout, which with one env is most of the acting cos
 from __future__ import annotations
 
 import math
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 import torch.nn as nn
@@ -21,6 +23,32 @@ import torch.nn.functional as F
 from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
 
 TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
+
+
+@runtime_checkable
+class ActorCritic(Protocol):
+    """``policy(obs [N, ...]) -> (mean [N, A], log_std [N, A], value [N])`` (PPO checks the shapes on its env)."""
+
+    def __call__(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+
+
+@runtime_checkable
+class SplitActorCritic(ActorCritic, Protocol):
+    """An actor-critic whose halves run apart: ``action_params(obs) -> (mean, log_std)`` and ``value(obs) -> [N]``,
+    equal to ``forward``'s (PPO checks it)."""
+
+    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor: ...
+
+
+@runtime_checkable
+class SelfDescribing(Protocol):
+    """A network a checkpoint can rebuild (``init_kwargs``: its constructor's arguments) and whose action groups
+    PPO logs (``action_groups``: name -> the action dimensions, a slice)."""
+
+    init_kwargs: dict[str, Any]
+    action_groups: dict[str, slice]
 
 
 def _xavier_zero(layer: nn.Linear) -> nn.Linear:

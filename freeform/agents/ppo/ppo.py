@@ -16,13 +16,11 @@ uses the statistics of the global batch; the rules are in ``distributed.py`` (``
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import time
 import types
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import torch
 import torch.nn as nn
@@ -30,342 +28,40 @@ import torch.nn as nn
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
 from freeform.agents.flat_params import FlatParameters
+from freeform.agents.networks import SelfDescribing, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
+from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.losses import (
+    compute_advantages,
+    discounted_cumsum,
+    explained_variance,
+    gaussian_log_prob,
+    minibatch_loss,
+    standardize,
+    update_kl_coeff,
+)
+from freeform.agents.ppo.rollout import Rollout, minibatch_samples
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
 from freeform.records import EpisodeCollector
-from freeform.validation import is_int, is_number, require
-
-ADVANTAGE_NORMS = ("batch", "minibatch", "none")
-VALUE_CLIP_MODES = ("squared", "ppo2")
-LR_SCHEDULES = ("constant", "linear")
-
-
-@dataclass
-class PPOConfig:
-    """PPO hyper-parameters. The defaults are RLlib 2.0.1's PPO with the paper's overrides (Table I)."""
-
-    lr: float = 1e-4
-    """Adam learning rate (paper: 1e-4)."""
-    gamma: float = 0.99
-    """Discount factor γ."""
-    gae_lambda: float = 1.0
-    """GAE λ; 1 = plain discounted return minus V (the paper: "GAE disabled")."""
-    clip_param: float = 0.3
-    """Surrogate clip ε: the ratio π/π_old is clipped to [1 − ε, 1 + ε]."""
-    kl_coeff: float = 0.2
-    """Initial coefficient β of the KL(π_old ‖ π) penalty; 0 disables the penalty (β then stays 0)."""
-    kl_target: float = 0.01
-    """Target KL for the adaptive β: β ×= 1.5 above 2·target, β ×= 0.5 below target/2."""
-    vf_loss_coeff: float = 1.0
-    """Weight c_v of the value loss."""
-    vf_clip_param: float = 1e5
-    """``value_clip="squared"``: clamp of the squared value error (paper: 1e5, i.e. off). ``"ppo2"``: clip range of V
-    around the rollout's V."""
-    entropy_coeff: float = 0.0
-    """Weight c_e of the entropy bonus."""
-    num_sgd_iter: int = 30
-    """SGD passes over the train batch per epoch (RLlib default 30; paper: volume 50, locomotion 10)."""
-    sgd_minibatch_size: int = 128
-    """Samples per minibatch; each pass reshuffles and uses ⌊B / size⌋ minibatches (the tail is dropped)."""
-    rollout_steps: int = 100
-    """Steps T collected from every environment per epoch (train batch = T·N)."""
-    grad_clip: float | None = None
-    """Max global gradient norm; None = no clipping (paper)."""
-    seed: int = 0
-    """Seeds the policy-sampling/shuffling generator and ``env.reset``."""
-    device: str | None = None
-    """Device of the policy and the rollout storage; None = the env's device."""
-    advantage_norm: str = "batch"
-    """"batch": standardise advantages once over the train batch (paper); "minibatch": per minibatch; "none"."""
-    value_clip: str = "squared"
-    """"squared": min((V − G)², vf_clip_param) (RLlib); "ppo2": max of the plain and the clipped-V squared error."""
-    lr_schedule: str = "constant"
-    """"constant", or "linear": lr · max(0, 1 − epoch / lr_anneal_epochs)."""
-    lr_anneal_epochs: int = 500
-    """Epochs over which the "linear" schedule anneals the lr to 0."""
-    adam_eps: float = 1e-8
-    """Adam's ε (torch's default 1e-8; CleanRL 1e-5)."""
-    fused_adam: bool = False
-    """Adam as one fused kernel (CPU or GPU): ≈ 30 % faster steps of small networks, the same update up to float
-    rounding (not bit-identical to the default multi-tensor Adam, which is). Off for the paper."""
-    compile: bool = False
-    """Hand the minibatch loss (:func:`minibatch_loss`: the policy's forward pass, the losses and, through autograd,
-    their backward) to ``torch.compile``. For long runs of small networks on the CPU, where each of a minibatch's
-    ≈ 100 operations costs more than its arithmetic: a few seconds of compiling at the first update, then a 500k-step
-    CleanRL-preset HalfCheetah run 4–13 % shorter (``docs/ppo.md``). Other rounding than eager; needs a C++ compiler.
-    Off by default."""
-    obs_norm: bool = False
-    """Normalise observations by their running mean/variance (over all envs, updated every step), clipped to
-    ±``obs_clip``; the statistics are saved in checkpoints and applied by ``act``. Off for the paper."""
-    obs_clip: float = 10.0
-    """Clip of the normalised observations (``obs_norm``)."""
-    reward_norm: bool = False
-    """Divide the rewards PPO trains on by the running std of each env's discounted return, clipped to
-    ±``reward_clip`` (Gymnasium's ``NormalizeReward``, SB3's ``VecNormalize``); episode statistics stay raw. Off for
-    the paper."""
-    reward_clip: float = 10.0
-    """Clip of the scaled rewards (``reward_norm``)."""
-    eval_every: int = 0
-    """Every this many epochs run ``eval_episodes`` deterministic episodes on the ``eval_env`` given to PPO and
-    report ``eval_return`` (logged as ``charts/eval_return``); 0 = off."""
-    eval_episodes: int = 10
-    """Episodes per evaluation, spread over the eval env's environments."""
-
-    def __post_init__(self) -> None:
-        self.validate("PPOConfig")
-
-    @classmethod
-    def cleanrl(cls, **overrides: Any) -> PPOConfig:
-        """CleanRL's ``ppo_continuous_action`` defaults (:data:`CLEANRL_PRESET`) with ``overrides`` on top."""
-        return cls(**{**CLEANRL_PRESET, **overrides})
-
-    def validate(self, key: str) -> None:
-        """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its range."""
-        for name in ("lr", "clip_param", "vf_clip_param", "kl_target", "adam_eps", "obs_clip", "reward_clip"):
-            value = getattr(self, name)
-            require(is_number(value) and value > 0, f"{key}.{name}", "> 0", value)
-        for name in ("gamma", "gae_lambda"):
-            value = getattr(self, name)
-            require(is_number(value) and 0.0 <= value <= 1.0, f"{key}.{name}", "in [0, 1]", value)
-        for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
-            value = getattr(self, name)
-            require(is_number(value) and value >= 0.0, f"{key}.{name}", ">= 0", value)
-        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes"):
-            require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
-        require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
-        for name in ("obs_norm", "reward_norm", "fused_adam", "compile"):
-            require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
-        require(self.grad_clip is None or (is_number(self.grad_clip) and self.grad_clip > 0), f"{key}.grad_clip",
-                "None or > 0", self.grad_clip)
-        require(is_int(self.seed, -(2**63)), f"{key}.seed", "an int", self.seed)
-        require(self.advantage_norm in ADVANTAGE_NORMS, f"{key}.advantage_norm", f"one of {ADVANTAGE_NORMS}", self.advantage_norm)
-        require(self.value_clip in VALUE_CLIP_MODES, f"{key}.value_clip", f"one of {VALUE_CLIP_MODES}", self.value_clip)
-        require(self.lr_schedule in LR_SCHEDULES, f"{key}.lr_schedule", f"one of {LR_SCHEDULES}", self.lr_schedule)
-        if self.device is not None:
-            try:
-                torch.device(self.device)
-            except (RuntimeError, TypeError) as e:
-                raise ValueError(f"{key}.device must be None or a torch device string, got {self.device!r}") from e
-
-
-CLEANRL_PRESET: dict[str, Any] = dict(
-    lr=3e-4, adam_eps=1e-5, lr_schedule="linear", lr_anneal_epochs=488,  # anneal over 1M steps / 2048 per epoch
-    gamma=0.99, gae_lambda=0.95, rollout_steps=2048, sgd_minibatch_size=64, num_sgd_iter=10,  # 32 minibatches of 2048
-    clip_param=0.2, kl_coeff=0.0, value_clip="ppo2", vf_clip_param=0.2, vf_loss_coeff=0.25,  # 0.5 · ½(V − G)²
-    entropy_coeff=0.0, grad_clip=0.5, advantage_norm="minibatch", obs_norm=True, obs_clip=10.0, reward_norm=True,
-    reward_clip=10.0, seed=1, fused_adam=True,
-)
-"""CleanRL's ``ppo_continuous_action.py`` defaults in PPOConfig's terms (one env × 2048 steps per epoch; with N envs
-set ``rollout_steps`` = 2048 / N and ``lr_anneal_epochs`` = total steps / 2048 to keep its batch and schedule).
-Its value loss ``vf_coef · ½ · max((V − G)², (V_clip − G)²)`` is ``vf_loss_coeff = 0.25`` with the PPO2 clip at
-ε = 0.2. One difference is left: CleanRL divides minibatch advantages by the sample std + 1e-8, freeform by the
-population std (a factor √(63/64) at 64 samples). Use it with ``MLPActorCritic`` (orthogonal init, state-independent
-log σ) and actions clipped by the env (``freeform.envs.from_gymnasium`` clips)."""
 
 
 class Logger(Protocol):
     def log(self, stats: dict[str, float], step: int) -> None: ...
 
 
-# ---------------------------------------------------------------------------------------------------------------
-# The algorithm's pieces, as small pure functions.
-# ---------------------------------------------------------------------------------------------------------------
+class _TrainBatch(NamedTuple):
+    """An update's view of the rollout: ``obs [B, ...]`` and ``samples [B, 3A + 3]`` (this rank's), ``advantages``
+    of the global batch, ``kept`` (the global indices of real transitions, None: all) and the global sample count."""
 
-LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
-
-
-def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    """log N(actions; mean, exp(log_std)) summed over the last dim: ``[..., A]`` → ``[...]``."""
-    z = (actions - mean) * torch.exp(-log_std)
-    return (-0.5 * z.square() - log_std - LOG_SQRT_2PI).sum(-1)
+    obs: torch.Tensor
+    samples: torch.Tensor
+    advantages: torch.Tensor
+    kept: torch.Tensor | None
+    size: int
 
 
-def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    """Entropy of a diagonal Gaussian, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    return (log_std + 0.5 + LOG_SQRT_2PI).sum(-1)
-
-
-def gaussian_kl(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor, log_std1: torch.Tensor) -> torch.Tensor:
-    """KL(N(mean0, σ0) ‖ N(mean1, σ1)) of diagonal Gaussians, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
-    mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
-    return (log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5).sum(-1)
-
-
-def discounted_cumsum(
-    x: torch.Tensor,
-    discount: float,
-    starts: torch.Tensor,
-    initial: torch.Tensor | None = None,
-    reverse: bool = False,
-) -> torch.Tensor:
-    """``y_t = x_t + discount · y_{t−1}``, restarted where ``starts[t]`` (there ``y_t = x_t``); ``y_{−1} = initial``
-    (default 0). ``reverse=True`` runs backwards in time: ``y_t = x_t + discount · y_{t+1}`` unless ``starts[t]``.
-
-    ``x [T, ...]``, ``starts [T, ...]`` bool; ``initial [...]``; returns ``[T, ...]`` in ``x``'s dtype. One
-    recurrence for the returns, GAE and the episode sums. Why not a loop over t: with few envs and long rollouts
-    (a Gymnasium env, T = 2,048, N = 1) the loop's per-step tensor operations cost more than the rollout's own
-    arithmetic. So time is cut into blocks of K steps, each solved at once as ``y = L x`` with
-    ``L[i, j] = discount^(i − j)`` where no start lies in ``(j, i]`` (else 0), and only the T / K block ends are
-    carried in a loop. K shrinks as the batch grows (``L`` holds T·K·N numbers); at K = 1 it is the plain loop.
-    """
-    if reverse:
-        return discounted_cumsum(x.flip(0), discount, starts.flip(0), initial).flip(0)
-    steps, rest = x.shape[0], x.shape[1:]
-    width = max(1, x[0].numel())
-    block = max(1, min(64, steps, 4096 // width, 2**22 // (steps * width)))  # L: ≤ 4M numbers
-    pad = (-steps) % block
-    flat_x, flat_starts = x.reshape(steps, width), starts.reshape(steps, width)
-    if pad:
-        flat_x = torch.cat([flat_x, flat_x.new_zeros(pad, width)])
-        flat_starts = torch.cat([flat_starts, flat_starts.new_ones(pad, width)])
-    blocks = (steps + pad) // block
-    xb = flat_x.reshape(blocks, block, width)
-    segment = flat_starts.reshape(blocks, block, width).cumsum(1)  # starts in the block up to and including step i
-    i = torch.arange(block, device=x.device)
-    lag = (i[:, None] - i[None, :]).to(x.dtype)
-    powers = torch.full_like(lag, discount).pow(lag.clamp_min(0))  # discount^(i − j)
-    # [blocks, i, j, width]: j ≤ i and no start in (j, i]. Masks select (where), never multiply: a non-finite x
-    # must stay in its own run, as in the loop.
-    linked = (segment[:, :, None, :] == segment[:, None, :, :]) & (lag >= 0)[None, :, :, None]
-    local = torch.where(linked, powers[None, :, :, None] * xb[:, None, :, :], 0.0).sum(2)  # from a zero carry
-    carry = torch.where(segment == 0, (discount * torch.full_like(lag[0], discount).pow(i.to(x.dtype)))[None, :, None], 0.0)
-    previous = x.new_zeros(width) if initial is None else initial.reshape(width).to(x.dtype)
-    out = []
-    for b in range(blocks):  # a loop over blocks only: the carry of one block's last step into the next
-        y = local[b] + torch.where(carry[b] != 0, carry[b] * previous, 0.0)
-        out.append(y)
-        previous = y[-1]
-    return torch.cat(out)[:steps].reshape(steps, *rest)
-
-
-def compute_advantages(
-    rewards: torch.Tensor,
-    values: torch.Tensor,
-    dones: torch.Tensor,
-    last_value: torch.Tensor,
-    gamma: float,
-    gae_lambda: float,
-    truncated: torch.Tensor | None = None,
-    final_values: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """GAE(γ, λ) advantages and value targets of a rollout.
-
-    ``rewards, values, dones``: ``[T, N]`` (``dones[t]`` = the step t ended its episode); ``last_value [N]`` = V of the
-    observation after the last step, which bootstraps an episode that the rollout cut. Returns ``(advantages,
-    returns)``, both ``[T, N]``, with ``returns = advantages + values``; for λ = 1 the return is the discounted
-    return G_t = Σ_i γ^i r_{t+i} (+ γ^(T−t) V(s_T) for a cut episode).
-
-    ``truncated [T, N]`` bool (⊆ ``dones``): the episode was cut by a time limit at step t, not terminated; it is
-    bootstrapped with ``final_values[t]`` = V(its last observation), while a terminated one is not. The recursion
-    stops at every done either way. None (the design env: episodes never truncate) = no step is truncated.
-    """
-    dones = dones.to(torch.bool)
-    next_values = torch.cat([values[1:], last_value.to(values.dtype)[None]])
-    bootstrap = torch.where(dones, 0.0, next_values)  # V(s_t+1), or 0 where the episode ended at t …
-    if truncated is not None and final_values is not None:
-        bootstrap = bootstrap + truncated.to(rewards.dtype) * final_values  # … unless a time limit cut it: V(s_final)
-    deltas = rewards + gamma * bootstrap - values
-    advantages = discounted_cumsum(deltas, gamma * gae_lambda, dones, reverse=True)
-    return advantages, advantages + values
-
-
-def standardize(x: torch.Tensor, min_std: float = 1e-4) -> torch.Tensor:
-    """(x − mean) / max(std, min_std) with the population std, as RLlib's ``standardize_fields``."""
-    return (x - x.mean()) / x.std(correction=0).clamp_min(min_std)
-
-
-def clipped_surrogate(ratio: torch.Tensor, advantages: torch.Tensor, clip_param: float) -> torch.Tensor:
-    """PPO's per-sample objective (to maximise): min(A·ρ, A·clip(ρ, 1 − ε, 1 + ε))."""
-    return torch.minimum(advantages * ratio, advantages * ratio.clamp(1.0 - clip_param, 1.0 + clip_param))
-
-
-def clamped_value_loss(values: torch.Tensor, returns: torch.Tensor, vf_clip_param: float) -> torch.Tensor:
-    """RLlib's per-sample value loss: min((V − G)², vf_clip_param)."""
-    return (values - returns).square().clamp(max=vf_clip_param)
-
-
-def ppo2_value_loss(
-    values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor, vf_clip_param: float
-) -> torch.Tensor:
-    """PPO2's per-sample value loss: max((V − G)², (V_old + clip(V − V_old, ±c) − G)²)."""
-    clipped = old_values + (values - old_values).clamp(-vf_clip_param, vf_clip_param)
-    return torch.maximum((values - returns).square(), (clipped - returns).square())
-
-
-def update_kl_coeff(kl_coeff: float, mean_kl: float, kl_target: float) -> float:
-    """RLlib's adaptive KL rule: β ×= 1.5 if KL > 2·target, β ×= 0.5 if KL < target / 2, else unchanged."""
-    if mean_kl > 2.0 * kl_target:
-        return kl_coeff * 1.5
-    if mean_kl < 0.5 * kl_target:
-        return kl_coeff * 0.5
-    return kl_coeff
-
-
-def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
-    """1 − Var(target − predicted) / Var(target); NaN when the target is constant."""
-    var = target.var(correction=0)
-    return float("nan") if var.item() == 0 else (1.0 - (target - predicted).var(correction=0) / var).item()
-
-
-def minibatch_samples(
-    actions: torch.Tensor,
-    old_means: torch.Tensor,
-    old_log_stds: torch.Tensor,
-    old_logprobs: torch.Tensor,
-    old_values: torch.Tensor,
-    returns: torch.Tensor,
-) -> torch.Tensor:
-    """The rollout's per-sample floats side by side, ``[B, 3A + 3]``: actions, π_old's means and log σ (``[B, A]``
-    each), the old log-probability, the old value and the return (``[B]`` each) — the layout ``minibatch_loss``
-    reads. One tensor, so a minibatch is one gather instead of six (≈ 10 µs each at 64 samples on the CPU)."""
-    return torch.cat([actions, old_means, old_log_stds, old_logprobs[:, None], old_values[:, None], returns[:, None]],
-                     dim=1)
-
-
-def minibatch_loss(
-    policy: nn.Module,
-    cfg: PPOConfig,
-    obs: torch.Tensor,
-    samples: torch.Tensor,
-    advantages: torch.Tensor,
-    kl_coeff: torch.Tensor | None,
-    reduce: Callable[[torch.Tensor], torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """PPO's loss on one minibatch of M samples, and its statistics.
-
-    ``obs [M, ...]`` as the policy saw them; ``samples [M, 3A + 3]`` those samples' rows of
-    :func:`minibatch_samples`; ``advantages [M]`` (standardised as ``cfg.advantage_norm`` says); ``kl_coeff`` β as a
-    0-d tensor, None without the KL penalty; ``reduce`` the minibatch mean (``Collectives.minibatch_mean``).
-    Returns ``(loss, stats [6])``: stats are the policy loss, value loss, KL(π_old ‖ π), entropy, clip fraction and
-    loss, detached. A pure function of its inputs, so that ``PPOConfig.compile`` can hand it to ``torch.compile``.
-    """
-    a = (samples.shape[1] - 3) // 3
-    actions, old_means, old_log_stds, old_logprobs, old_values, returns = samples.split([a, a, a, 1, 1, 1], dim=1)
-    old_logprobs, old_values, returns = old_logprobs.squeeze(1), old_values.squeeze(1), returns.squeeze(1)
-    mean, log_std, value = policy(obs)
-    ratio = torch.exp(gaussian_log_prob(actions, mean, log_std) - old_logprobs)
-    policy_loss = -reduce(clipped_surrogate(ratio, advantages, cfg.clip_param))
-    if cfg.value_clip == "squared":
-        value_loss = reduce(clamped_value_loss(value, returns, cfg.vf_clip_param))
-    else:
-        value_loss = reduce(ppo2_value_loss(value, old_values, returns, cfg.vf_clip_param))
-    entropy = reduce(gaussian_entropy(log_std))
-    loss = policy_loss + cfg.vf_loss_coeff * value_loss - cfg.entropy_coeff * entropy
-    with torch.set_grad_enabled(kl_coeff is not None):  # without the penalty the KL is only a statistic
-        kl = reduce(gaussian_kl(old_means, old_log_stds, mean, log_std))
-    if kl_coeff is not None:
-        loss = loss + kl_coeff * kl
-    with torch.no_grad():
-        clip_fraction = reduce(((ratio - 1.0).abs() > cfg.clip_param).float())
-        stats = torch.stack([policy_loss, value_loss, kl, entropy, clip_fraction, loss])
-    return loss, stats
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Rollout storage.
 def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``fn`` with a code object of its own. torch.compile keeps its compiled graphs per code object, and each PPO's
     graph guards on its own policy, so PPO instances sharing ``minibatch_loss``'s code would recompile one another
@@ -374,75 +70,6 @@ def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     copy = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
     copy.__kwdefaults__, copy.__doc__ = fn.__kwdefaults__, fn.__doc__
     return copy
-
-
-# ---------------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Rollout:
-    """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
-
-    ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
-    bool, ``values [T, N]``, ``means``/``log_stds [T, N, A]`` (π_old, for the KL term), ``advantages``/``returns
-    [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
-    ``truncated [T, N]`` bool (the env's ``info["truncated"]``: ended by a time limit) and ``final_values [T, N]``
-    (V of such an episode's last observation, its bootstrap); ``valid [T, N]`` bool (False where the env only reset,
-    ``info["autoreset"]``: such samples never enter the loss). ``obs`` holds what the policy saw (normalised, with
-    ``obs_norm``) and ``rewards`` what it trained on (scaled, with ``reward_norm``). ``episode_returns [T, N]``: each
-    env's raw episode return so far (carried across rollouts); at a done step it is the finished episode's return,
-    the one figure that TensorBoard, the console, the design records and the renders all read.
-    PPO refills these tensors every epoch (``logprobs``, ``values``, ``rewards`` and the advantages may be replaced
-    by new ones): clone what must outlive the next ``train_epoch()``.
-    """
-
-    obs: torch.Tensor
-    actions: torch.Tensor
-    logprobs: torch.Tensor
-    rewards: torch.Tensor
-    dones: torch.Tensor
-    values: torch.Tensor
-    means: torch.Tensor
-    log_stds: torch.Tensor
-    advantages: torch.Tensor
-    returns: torch.Tensor
-    last_value: torch.Tensor
-    truncated: torch.Tensor
-    final_values: torch.Tensor
-    valid: torch.Tensor
-    episode_returns: torch.Tensor
-
-    def __getitem__(self, name: str) -> torch.Tensor:
-        """Dict-style access, ``rollout["obs"]``."""
-        return getattr(self, name)
-
-    @classmethod
-    def allocate(
-        cls, steps: int, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: torch.dtype, action_dim: int, device: torch.device
-    ) -> Rollout:
-        f32 = dict(dtype=torch.float32, device=device)
-        return cls(
-            obs=torch.zeros((steps, num_envs, *obs_shape), dtype=obs_dtype, device=device),
-            actions=torch.zeros((steps, num_envs, action_dim), **f32),
-            logprobs=torch.zeros((steps, num_envs), **f32),
-            rewards=torch.zeros((steps, num_envs), **f32),
-            dones=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
-            values=torch.zeros((steps, num_envs), **f32),
-            means=torch.zeros((steps, num_envs, action_dim), **f32),
-            log_stds=torch.zeros((steps, num_envs, action_dim), **f32),
-            advantages=torch.zeros((steps, num_envs), **f32),
-            returns=torch.zeros((steps, num_envs), **f32),
-            last_value=torch.zeros((num_envs,), **f32),
-            truncated=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
-            final_values=torch.zeros((steps, num_envs), **f32),
-            valid=torch.ones((steps, num_envs), dtype=torch.bool, device=device),
-            episode_returns=torch.zeros((steps, num_envs), **f32),
-        )
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# PPO.
-# ---------------------------------------------------------------------------------------------------------------
 
 
 class PPO:
@@ -482,7 +109,7 @@ class PPO:
         self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
         self.num_envs = self.dp.num_envs
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
-        self.critic_apart = all(callable(getattr(policy, name, None)) for name in ("action_params", "value"))
+        self.critic_apart = isinstance(policy, SplitActorCritic)
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
         self.flat = FlatParameters(self.policy.parameters())
@@ -605,19 +232,38 @@ class PPO:
     @torch.no_grad()
     def collect(self) -> dict[str, float]:
         """Step every env ``rollout_steps`` times with the current policy into ``self.rollout``; fill advantages."""
+        self.policy.eval()
+        time_env, scored, any_truncated = self._step_envs()
+        starts = self._complete_rollout()
+        returns, lengths = self._episode_figures(starts, scored)
+        self._learning_targets(starts, any_truncated)
+        self.global_step += self.config.rollout_steps * self.num_envs
+        returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)  # every rank's episodes
+        nan = float("nan")
+        return {
+            "episode_reward_mean": returns.mean().item() if len(returns) else nan,
+            "episode_reward_max": returns.max().item() if len(returns) else nan,
+            "episode_reward_min": returns.min().item() if len(returns) else nan,
+            "episode_length_mean": lengths.float().mean().item() if len(lengths) else nan,
+            "episodes": float(len(returns)),
+            "time_env": time_env,
+        }
+
+    def _step_envs(self) -> tuple[float, list[tuple[int, torch.Tensor]], bool]:
+        """The rollout's one loop over time: act, step the envs, keep what each step gives; then stack the steps
+        into the rollout. Returns the seconds spent in ``env.step``, the steps where the env reported its task's
+        own score of the episodes ending there (``info["task_reward"]``), and whether any episode was truncated."""
         cfg, buf = self.config, self.rollout
         self.episode_infos = []
-        time_env = 0.0
-        any_truncated = False
+        time_env, any_truncated = 0.0, False
         buf.truncated.zero_()
         buf.final_values.zero_()
         buf.valid.fill_(True)
-        self.policy.eval()
         # Each step's tensors are listed and stacked into the buffers once, after the loop; what needs no policy
         # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
         # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
         seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
-        scored: list[tuple[int, torch.Tensor]] = []  # (step, the task's own score of the episodes ending there)
+        scored: list[tuple[int, torch.Tensor]] = []
         # The whole rollout's noise in one draw, in the rollout's dtype (float32). On the CPU T draws of N·A values
         # equal one of T·N·A where N·A is a multiple of 16 (the design env's sizes); otherwise the stream differs.
         noise = self.dp.env_noise(buf.actions, self.generator)
@@ -661,14 +307,25 @@ class PPO:
         for name, steps in (("obs", seen), ("actions", actions), ("means", means), ("log_stds", log_stds),
                             ("rewards", rewards), ("dones", dones)):
             torch.stack(steps, out=buf[name])
+        if not self.critic_apart:
+            torch.stack(values, out=buf.values)
+        return time_env, scored, any_truncated
+
+    def _complete_rollout(self) -> torch.Tensor:
+        """What the rollout needs no per-step policy for, at once: the critic's values (when it runs apart) and the
+        log-probabilities. Returns ``starts [T, N]``: where an episode began (after a done)."""
+        buf = self.rollout
         if self.critic_apart:
             buf.values = self._value(buf.obs.reshape(-1, *buf.obs.shape[2:])).reshape(buf.values.shape)
-        else:
-            torch.stack(values, out=buf.values)
         buf.logprobs = gaussian_log_prob(buf.actions, buf.means, buf.log_stds)
-        starts = torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])  # an episode begins after a done
+        return torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])
 
-        # Episode figures from the raw rewards (an episode may span rollouts: the sums carry over), computed here only.
+    def _episode_figures(self, starts: torch.Tensor, scored: list[tuple[int, torch.Tensor]]
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each episode's raw return and length, computed here only (``rollout.episode_returns``: TensorBoard, the
+        console and the design records all read it): sums of the raw rewards carried across rollouts, or the task's
+        own score where the env reported one. Returns the finished episodes' returns and lengths (this rank's)."""
+        buf = self.rollout
         episode_returns = discounted_cumsum(buf.rewards, 1.0, starts, self.episode_return)
         for t, score in scored:
             episode_returns[t] = torch.where(buf.dones[t], score.to(self.device, torch.float32), episode_returns[t])
@@ -678,28 +335,20 @@ class PPO:
         last_done = buf.dones[-1]
         self.episode_return = torch.where(last_done, 0.0, episode_returns[-1]).to(self.episode_return.dtype)
         self.episode_length = torch.where(last_done, 0.0, episode_lengths[-1]).round().to(self.episode_length.dtype)
+        return returns, lengths
 
+    def _learning_targets(self, starts: torch.Tensor, any_truncated: bool) -> None:
+        """The rewards PPO learns from (scaled with ``reward_norm``) and GAE's advantages and value targets; an
+        episode that the rollout cut is bootstrapped with V of its last observation."""
+        cfg, buf = self.config, self.rollout
         buf.rewards = self._scale_rewards(buf.rewards, starts)
         if self.return_rms is not None:
-            self.discounted_return = torch.where(last_done, 0.0, self.discounted_return)
-        # An episode that the rollout cut is bootstrapped with V of its last observation.
+            self.discounted_return = torch.where(buf.dones[-1], 0.0, self.discounted_return)
         buf.last_value = self._value(self.normalize_obs(self.obs))
         buf.advantages, buf.returns = compute_advantages(
             buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda,
             *((buf.truncated, buf.final_values) if any_truncated else ()),
         )
-        self.global_step += cfg.rollout_steps * self.num_envs
-
-        returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)  # every rank's episodes
-        nan = float("nan")
-        return {
-            "episode_reward_mean": returns.mean().item() if len(returns) else nan,
-            "episode_reward_max": returns.max().item() if len(returns) else nan,
-            "episode_reward_min": returns.min().item() if len(returns) else nan,
-            "episode_length_mean": lengths.float().mean().item() if len(lengths) else nan,
-            "episodes": float(len(returns)),
-            "time_env": time_env,
-        }
 
     # -- update ----------------------------------------------------------------------------------------------------
 
@@ -718,70 +367,80 @@ class PPO:
         divided by the global minibatch size (``dp.minibatch_mean``), and the gradients are summed over ranks
         (``dp.all_reduce_grad_``): the global minibatch's mean-loss gradient. In one process all three are plain.
         """
-        cfg, buf, dp = self.config, self.rollout, self.dp
-        batch = buf.rewards.numel()  # this rank's samples
-        obs = buf.obs.reshape(batch, *buf.obs.shape[2:])
-        actions, old_means, old_log_stds = (x.reshape(batch, -1) for x in (buf.actions, buf.means, buf.log_stds))
-        old_logprobs, old_values, returns = buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1)
-        # The global batch's advantages (a float per sample) on every rank: standardising over the batch or a
-        # minibatch is then the single process's formula on the same numbers.
+        cfg = self.config
+        batch = self._train_batch()
+        lr, kl_coeff = self.current_lr(), self.kl_coeff
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        means = self._sgd(batch, kl_coeff)
+        # RLlib's rule, on the mean KL over every minibatch update of the epoch (the same number on every rank).
+        self.kl_coeff = update_kl_coeff(kl_coeff, means[2], cfg.kl_target)
+        return self._update_stats(batch, means, kl_coeff, lr)
+
+    def _train_batch(self) -> _TrainBatch:
+        """The rollout flattened to this rank's ``B`` samples, and the global batch's advantages (standardised over
+        the batch with ``advantage_norm="batch"``), on every rank: standardising over the batch or a minibatch is
+        then the single process's formula on the same numbers."""
+        buf, dp = self.rollout, self.dp
+        size = buf.rewards.numel()  # this rank's samples
+        obs = buf.obs.reshape(size, *buf.obs.shape[2:])
+        actions, old_means, old_log_stds = (x.reshape(size, -1) for x in (buf.actions, buf.means, buf.log_stds))
+        samples = minibatch_samples(actions, old_means, old_log_stds, buf.logprobs.reshape(-1),
+                                    buf.values.reshape(-1), buf.returns.reshape(-1))
         advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
         # Samples where an env only reset (Gymnasium's next-step autoreset) are no transitions: they are left out of
         # the minibatches and the batch statistics. ``kept`` = the global indices of the others (None: all of them).
         valid = dp.gather_envs(buf.valid, dim=1).reshape(-1)
         kept = None if bool(valid.all()) else valid.nonzero().squeeze(1)
-        global_batch = advantages.numel() if kept is None else kept.numel()
-        if cfg.advantage_norm == "batch":
+        if self.config.advantage_norm == "batch":
             if kept is None:
                 advantages = standardize(advantages)
             else:
                 advantages = advantages.clone()
                 advantages[kept] = standardize(advantages[kept])
+        return _TrainBatch(obs, samples, advantages, kept, advantages.numel() if kept is None else kept.numel())
 
-        lr = self.current_lr()
-        for group in self.optimizer.param_groups:
-            group["lr"] = lr
-        kl_coeff = self.kl_coeff
-        minibatch = min(cfg.sgd_minibatch_size, global_batch)
-        num_minibatches = global_batch // minibatch
-        flat = self.flat
+    def _sgd(self, batch: _TrainBatch, kl_coeff: float) -> list[float]:
+        """``num_sgd_iter`` shuffled passes of minibatch Adam steps; the means over every minibatch of the policy
+        loss, value loss, KL, entropy, clip fraction and total loss (over every rank)."""
+        cfg, dp, flat = self.config, self.dp, self.flat
+        minibatch = min(cfg.sgd_minibatch_size, batch.size)
+        num_minibatches = batch.size // minibatch
         flat.check()
 
         def reduce(x: torch.Tensor) -> torch.Tensor:
             return dp.minibatch_mean(x, minibatch)
 
-        samples = minibatch_samples(actions, old_means, old_log_stds, old_logprobs, old_values, returns)
         kl_weight = torch.tensor(kl_coeff, device=self.device) if kl_coeff > 0.0 else None
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
         totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss
         self.policy.train()
         for _ in range(cfg.num_sgd_iter):
-            order = torch.randperm(global_batch, generator=self.generator, device=self.device)
-            if kept is not None:
-                order = kept[order]
+            order = torch.randperm(batch.size, generator=self.generator, device=self.device)
+            if batch.kept is not None:
+                order = batch.kept[order]
             for i in range(num_minibatches):
                 idx = order[i * minibatch : (i + 1) * minibatch]
-                adv = advantages[idx]
+                adv = batch.advantages[idx]
                 if cfg.advantage_norm == "minibatch":
                     adv = standardize(adv)
                 idx, adv = dp.local_share(idx, adv)
                 flat.zero_grad()
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
-                    loss, stats = self._minibatch_loss(
-                        self.policy, cfg, obs.index_select(0, idx), samples.index_select(0, idx), adv, kl_weight, reduce
-                    )
+                    loss, stats = self._minibatch_loss(self.policy, cfg, batch.obs.index_select(0, idx),
+                                                       batch.samples.index_select(0, idx), adv, kl_weight, reduce)
                     loss.backward()
                     totals += stats
                 dp.all_reduce_grad_(flat.grad)
                 if cfg.grad_clip is not None:
                     flat.clip_grad_norm_(cfg.grad_clip)
                 self.optimizer.step()
-
         dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
-        means = (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
-        mean_kl = means[2]
-        # RLlib's rule, on the mean KL over every minibatch update of the epoch (the same number on every rank).
-        self.kl_coeff = update_kl_coeff(kl_coeff, mean_kl, cfg.kl_target)
+        return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
+
+    def _update_stats(self, batch: _TrainBatch, means: list[float], kl_coeff: float, lr: float) -> dict[str, float]:
+        """The update's statistics over the global batch (the values, returns and σ gathered from every rank)."""
+        buf, dp, kept = self.rollout, self.dp, batch.kept
         values, log_stds = dp.gather_envs(buf.values, dim=1), dp.gather_envs(buf.log_stds, dim=1)
         returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
         values = values.reshape(-1)
@@ -791,7 +450,7 @@ class PPO:
         stats = {
             "policy_loss": means[0],
             "value_loss": means[1],
-            "approx_kl": mean_kl,
+            "approx_kl": means[2],
             "entropy": means[3],
             "clip_fraction": means[4],
             "total_loss": means[5],
@@ -801,7 +460,7 @@ class PPO:
             "value_mean": values.mean().item(),
             "action_std": stds.mean().item(),
         }
-        for name, dims in getattr(self.policy, "action_groups", {}).items():
+        for name, dims in (self.policy.action_groups if isinstance(self.policy, SelfDescribing) else {}).items():
             stats[f"action_std_{name}"] = stds[..., dims].mean().item()
         return stats
 
@@ -973,7 +632,7 @@ class PPO:
         this plus the run's own parts, so :meth:`load` reads both."""
         return {
             "policy_class": policy_class_name(type(self.policy)),
-            "policy_kwargs": dict(getattr(self.policy, "init_kwargs", {})),
+            "policy_kwargs": dict(self.policy.init_kwargs if isinstance(self.policy, SelfDescribing) else {}),
             "ppo_config": dataclasses.asdict(self.config),
             "epoch": self.epoch,
             "global_step": self.global_step,
@@ -1063,3 +722,6 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
     from freeform.agents.networks import MLPActorCritic, VoxelActorCritic
 
     return (VoxelActorCritic, MLPActorCritic)
+
+
+__all__ = ["PPO", "builtin_policies", "policy_class_name"]

@@ -1,0 +1,33 @@
+"""PPO in four files, following the data: ``config`` (PPOConfig, presets) → ``rollout`` (storage, the minibatch's
+named sample columns) → ``losses`` (the pure functions) → ``ppo`` (the class: ``collect`` and ``update`` as named
+steps). ``from freeform.agents.ppo import ...`` gives every public name of the four."""
+
+from freeform.agents.ppo.config import (
+    ADVANTAGE_NORMS,
+    CLEANRL_PRESET,
+    LR_SCHEDULES,
+    VALUE_CLIP_MODES,
+    PPOConfig,
+)
+from freeform.agents.ppo.losses import (
+    clamped_value_loss,
+    clipped_surrogate,
+    compute_advantages,
+    discounted_cumsum,
+    explained_variance,
+    gaussian_entropy,
+    gaussian_kl,
+    gaussian_log_prob,
+    minibatch_loss,
+    ppo2_value_loss,
+    standardize,
+    update_kl_coeff,
+)
+from freeform.agents.ppo.ppo import PPO, builtin_policies, policy_class_name
+from freeform.agents.ppo.rollout import Rollout, Samples, minibatch_samples, sample_columns
+
+__all__ = ["ADVANTAGE_NORMS", "CLEANRL_PRESET", "LR_SCHEDULES", "PPO", "VALUE_CLIP_MODES", "PPOConfig", "Rollout",
+           "Samples", "builtin_policies", "clamped_value_loss", "clipped_surrogate", "compute_advantages",
+           "discounted_cumsum", "explained_variance", "gaussian_entropy", "gaussian_kl", "gaussian_log_prob",
+           "minibatch_loss", "minibatch_samples", "policy_class_name", "ppo2_value_loss", "sample_columns",
+           "standardize", "update_kl_coeff"]
