@@ -43,8 +43,8 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
 
     @ti.func
     def robot_advance(r, lr: ti.template(), rt: ti.template(), ri: ti.template(), gp: ti.template(),
-                      dyn: ti.template(), ifx: ti.template()):
-        """End of a step for robot r. dyn: rl4design's dt refresh on; ifx: rl4design semantics."""
+                      sw: ti.template()):
+        """End of a step for robot r. ``sw`` (``state.Switches``): rl4design semantics, its dynamic dt refresh."""
         st(rt, RT.DTPREV, r, ld(rt, RT.DT, r))
         st(rt, RT.T, r, ld(rt, RT.T, r) + ld(rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
         step = ld(ri, RI.STEP, r) + 1
@@ -53,14 +53,14 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
             st(ri, RI.STATUS, r, DONE)
         if step >= ld(ri, RI.MAXSTEP, r) and ld(ri, RI.STATUS, r) == RUNNING:
             st(ri, RI.STATUS, r, STALLED)  # its dt collapsed: stop it rather than hold up the batch
-        if ti.static(dyn != 0):
+        if ti.static(sw.dynamic_dt != 0):
             if step % DT_REFRESH_STEPS == 0:
                 omega2 = max_link_omega2(r, lr, ri)
                 if omega2 > 0.0:
                     st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(omega2)))
         # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
         tau = ld(rt, RT.T, r) + ld(rt, RT.DT, r)
-        if ti.static(ifx != 0):
+        if ti.static(sw.rl4design != 0):
             tau = ld(rt, RT.T, r)
         set_phase(r, rt, gp, tau)
         # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0

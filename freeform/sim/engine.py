@@ -42,6 +42,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     TABLES,
     VI,
     VR,
+    Switches,
     Table,
 )
 from freeform.sim.summaries import make_summaries
@@ -164,10 +165,8 @@ class Engine:
         # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
         self.order = ORDER_OF[self.schedule]
         self.precision = config.precision
-        self.kernels = make_kernels(config.precision, self.order)
         self.np_real = np.float64 if config.precision == "f64" else np.float32
-        self.ifx = int(config.semantics == "rl4design")
-        self.dyn = int(self.ifx == 1 and config.dt is None)  # rl4design refreshes dt every few steps
+        self.rl4design = int(config.semantics == "rl4design")
         n, m, R = layout.num_voxels, layout.num_links, layout.num_robots
         self.counts = {"voxels": n, "links": m, "robots": R, "materials": len(config.materials) + 1,
                        "material_pairs": (len(config.materials) + 1) ** 2}
@@ -188,6 +187,10 @@ class Engine:
         pos = layout.lattice.astype(np.float64) * L
         # the terrain: each robot rests on it under its footprint (flat ground: no offset at all)
         self.terrain = config.terrain.field(L)
+        # rl4design refreshes dt every few steps unless dt is fixed
+        self.switches = Switches(floor=int(config.floor), terrain=int(self.terrain.mode), rl4design=self.rl4design,
+                                 dynamic_dt=int(self.rl4design == 1 and config.dt is None))
+        self.kernels = make_kernels(config.precision, self.order, self.switches)
         self.offset = placement(config.terrain, self.terrain, layout.lattice, layout.voxel_robot, R, L)
         if self.terrain.mode != 0 and n:
             pos = pos + self.offset[layout.voxel_robot]
@@ -197,7 +200,7 @@ class Engine:
         vr[VR.span("MOM")] = (layout.velocity * mass[:, None]).T
         vr[VR.ORI] = 1.0
         vr[VR.TBASE] = layout.temp_base
-        if self.ifx:
+        if self.rl4design:
             temp = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
         else:
             phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
@@ -212,7 +215,7 @@ class Engine:
         vi[VI.MAT] = layout.material
         vi[VI.ROBOT] = layout.voxel_robot
         # VX starts every voxel in static friction; the paper simulator starts none there
-        vi[VI.FLAGS] = np.where(layout.fixed, FIXED, 0) | (0 if self.ifx else STATIC)
+        vi[VI.FLAGS] = np.where(layout.fixed, FIXED, 0) | (0 if self.rl4design else STATIC)
         vi[VI.span("SLOT")] = layout.slots.T
 
         li[LI.NEG], li[LI.POS], li[LI.AXIS] = layout.link_neg, layout.link_pos, layout.link_axis
@@ -222,7 +225,7 @@ class Engine:
 
         rt[RT.DT] = dt0
         # actuation phase of the temperature written during step 0: T(dt) for VX, T(0) for rl4design
-        tau = np.zeros(R) if self.ifx else dt0
+        tau = np.zeros(R) if self.rl4design else dt0
         rt[RT.SIN] = np.sin(2 * math.pi * tau / config.temp_period)
         rt[RT.COS] = np.cos(2 * math.pi * tau / config.temp_period)
         ri[RI.STATUS] = RUNNING
@@ -305,14 +308,13 @@ class Engine:
         k, d = self.kernels, self._dev
         args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp, self.hf,
                 self._trace, self.trace_steps)
-        flags = (int(self.config.floor), int(self.terrain.mode), self.ifx, self.dyn)
         n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
         if self.schedule == "robots":
-            k.run_robots(*args, R, n_steps, *flags, self._queue, self._workers)
+            k.run_robots(*args, R, n_steps, self._queue, self._workers)
         else:
             left = n_steps
             while left > 0:
-                k.run_flat(*args, n, m, R, min(left, UNROLL), *flags)
+                k.run_flat(*args, n, m, R, min(left, UNROLL))
                 left -= UNROLL
         self.steps_done += n_steps
 

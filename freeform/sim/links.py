@@ -37,9 +37,10 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
     @ti.func
     def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                    gp: ti.template(), ifx: ti.template(), dyn: ti.template()):
+                    gp: ti.template(), sw: ti.template()):
         """Forces and moments of link ``lk`` from its voxels' poses; marks the robot DIVERGED on a strain above
-        ``max_strain`` or a non-finite one. ifx: rl4design semantics; dyn: store ω² for the dt refresh."""
+        ``max_strain`` or a non-finite one. ``sw`` (``state.Switches``): rl4design semantics; dynamic_dt: store ω²
+        for the dt refresh."""
         n, p, axis, k = ld(li, LI.NEG, lk), ld(li, LI.POS, lk), ld(li, LI.AXIS, lk), ld(li, LI.LMAT, lk)
         r = ld(vi, VI.ROBOT, n)
         mat_n, mat_p = ld(vi, VI.MAT, n), ld(vi, VI.MAT, p)
@@ -47,7 +48,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         valid = (flags & VALID) != 0
         size_n = ld(vr, VR.SIZE, n)
         L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
-        if ti.static(ifx == 0):
+        if ti.static(sw.rl4design == 0):
             L0 = 0.5 * (size_n + ld(vr, VR.SIZE, p))
 
         # orientLink (VX_Link.cpp): into the link frame, x along the link, relative to the negative voxel
@@ -62,7 +63,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         extend = ti.abs(1.0 - pos2[0] / L0)
         leave = small and (small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD
                            or extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC)
-        if ti.static(ifx != 0):
+        if ti.static(sw.rl4design != 0):
             # the paper simulator's precedence slip: `small && a || b`
             leave = (small and small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD) or \
                 extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC
@@ -83,7 +84,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
             a1v = to_rotation_vector(q1)
         a2v = to_rotation_vector(q2)
         strain = pos2[0] / L0
-        if ti.static(ifx != 0):
+        if ti.static(sw.rl4design != 0):
             pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
 
         # half the change since the last step: the displacement of the link's centre relative to each end
@@ -146,7 +147,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
 
         if strain > gp[GP.MAX_STRAIN] or nonfinite(strain):
             st(ri, RI.STATUS, r, DIVERGED)
-        if ti.static(dyn != 0):
+        if ti.static(sw.dynamic_dt != 0):
             if (ld(ri, RI.STEP, r) + 1) % DT_REFRESH_STEPS == 0:
                 # rl4design's dt refresh: this link's ω² from its current axial stiffness (VX_Link::axialStiffness);
                 # the robot phase takes the max over the robot's links (clock.py)

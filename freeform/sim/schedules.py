@@ -25,7 +25,7 @@ from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
-from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR
+from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR, Switches
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
@@ -54,11 +54,16 @@ def resolve_schedule(schedule: str, arch: str) -> str:
     return schedule
 
 
+VOXELYZE_FLAT_FLOOR = Switches(floor=1, terrain=0, rl4design=0, dynamic_dt=0)  # the default simulation
+
+
 @functools.cache
-def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
-    """Compile-once kernels for "f32" | "f64" and memory order "soa" | "aos": ``run_robots``, ``run_flat`` and the
-    test hook ``probe_rotations``. The floor, terrain mode, rl4design and dynamic-dt switches are compile-time arguments
-    (``ti.template``): each combination used compiles once."""
+def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELYZE_FLAT_FLOOR) -> SimpleNamespace:
+    """Compile-once kernels for "f32" | "f64", memory order "soa" | "aos" and the compile-time ``switches``
+    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat`` and the test hook
+    ``probe_rotations``. The switches are baked into the kernels rather than passed as ``ti.template`` arguments,
+    so every kernel argument is an array or a number (what a compute graph can bind: ``FlatLauncher``)."""
+    sw = switches
     acc = make_access(precision, order)
     ld = acc.ld
     link_update = make_links(precision, order).link_update
@@ -84,24 +89,22 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
     @ti.func
     def robot_step(r, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(), gp: ti.template(),
-                   hf: ti.template(), tr: ti.template(), trace_steps, floor: ti.template(), terrain: ti.template(),
-                   ifx: ti.template(), dyn: ti.template()):
+                   hf: ti.template(), tr: ti.template(), trace_steps):
         """One step of robot r by the calling thread alone."""
         if ld(ri, RI.STATUS, r) == RUNNING:
             for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
-                link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, sw)
             if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
                 for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx)
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, sw)
             if ld(ri, RI.STATUS, r) == RUNNING:
-                robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+                robot_advance(r, lr, rt, ri, gp, sw)
                 trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
 
     @ti.kernel
     def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
                    lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_robots: ti.i32,
-                   n_steps: ti.i32, floor: ti.template(), terrain: ti.template(), ifx: ti.template(),
-                   dyn: ti.template(), queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
+                   n_steps: ti.i32, queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
         """``workers`` threads each take the next unclaimed robot (of ``n_robots``) from ``queue`` and run it
         ``n_steps`` steps, until none is left.
 
@@ -116,27 +119,26 @@ def make_kernels(precision: str, order: str = "soa") -> SimpleNamespace:
                 r = ti.atomic_add(queue[0], 1)
                 while r < n_robots:
                     for _ in range(n_steps):
-                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, tr, trace_steps, floor, terrain, ifx,
-                                   dyn)
+                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, tr, trace_steps)
                     r = ti.atomic_add(queue[0], 1)
 
     @ti.kernel
     def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
                  lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_voxels: ti.i32,
-                 n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32, floor: ti.template(), terrain: ti.template(),
-                 ifx: ti.template(), dyn: ti.template()):
+                 n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32):
         """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
         for s in ti.static(range(UNROLL)):
             for lk in range(n_links):
                 if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, ld(li, LI.NEG, lk))) == RUNNING:
-                    link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, ifx, dyn)
+                    link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, sw)
             for v in range(n_voxels):
                 if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, v)) == RUNNING:
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, floor, terrain, ifx)
+                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, sw)
             for r in range(n_robots):
                 if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
-                    robot_advance(r, lr, rt, ri, gp, dyn, ifx)
+                    robot_advance(r, lr, rt, ri, gp, sw)
                     trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
 
     return SimpleNamespace(run_robots=run_robots, run_flat=run_flat,
-                           probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order)
+                           probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order,
+                           switches=switches)

@@ -25,6 +25,7 @@ A table holds one dtype and is sized by one kind of item:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -128,3 +129,17 @@ SMALL, VALID = 1, 2
 RUNNING, DONE, DIVERGED, STALLED = 0, 1, 2, 3
 # robot step events: take a COM sample; the step crosses the evaluation start; it crosses the evaluation end
 EV_SAMPLE, EV_START, EV_END = 1, 2, 4
+
+
+class Switches(NamedTuple):
+    """The kernels' compile-time switches, in one order everywhere (each combination used compiles once; the
+    ``ti.func``s read them through ``ti.static``)."""
+
+    floor: int
+    """1: contact with the ground on (``SimConfig.floor``)."""
+    terrain: int
+    """``terrain.FLAT`` (Voxelyze's own floor code) | ``SMOOTH`` | ``COLUMNS``: how the ground is read."""
+    rl4design: int
+    """1: the paper simulator's semantics (``SimConfig.semantics="rl4design"``), 0: Voxelyze's."""
+    dynamic_dt: int
+    """1: rl4design's per-robot dt refresh from the links' ω² (rl4design with ``dt=None``)."""

@@ -31,7 +31,7 @@ from freeform.sim.state import (
     VI,
     VR,
 )
-from freeform.sim.terrain import SMOOTH
+from freeform.sim.terrain import FLAT, SMOOTH
 
 RENORM_NEWTON = 1e-4  # f32 renormalisation: |1 − |q|²| below this uses one Newton step (error < 1e-8)
 POISSON_SERIES_X = 0.1  # |Σ tension strains| below which f32 uses the binomial series (config.POISSON_SERIES_TERMS)
@@ -275,11 +275,10 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
     @ti.func
     def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
                      rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                     gp: ti.template(), hf: ti.template(), floor: ti.template(), terrain: ti.template(),
-                     ifx: ti.template()):
+                     gp: ti.template(), hf: ti.template(), sw: ti.template()):
         """One step of voxel ``v``; marks its robot DIVERGED if its pose becomes non-finite.
-        floor: floor contact on; terrain: terrain.FLAT (Voxelyze's own floor code) | SMOOTH | COLUMNS (the height
-        field in ``gp``/``hf``); ifx: rl4design semantics (all compile-time)."""
+        ``sw`` (``state.Switches``, compile-time): floor contact on; terrain: FLAT (Voxelyze's own floor code) |
+        SMOOTH | COLUMNS (the height field in ``gp``/``hf``); rl4design semantics."""
         r = ld(vi, VI.ROBOT, v)
         mat = ld(vi, VI.MAT, v)
         flags = ld(vi, VI.FLAGS, v)
@@ -308,15 +307,15 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
 
             static = (flags & STATIC) != 0
             touching = False
-            if ti.static(terrain == 0):
+            if ti.static(sw.terrain == FLAT):
                 # Voxelyze's flat floor, its own code (results bit for bit those of the simulator before terrain)
                 pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
                 fric = vec3(0.0, 0.0, 0.0)
-                if ti.static(floor != 0):
+                if ti.static(sw.floor != 0):
                     force, fric, static = floor_force(mt, mat, force, vel, pen, static)
                 mom += force * dt
                 delta = mom * (dt * minv)
-                if ti.static(floor != 0):
+                if ti.static(sw.floor != 0):
                     touching = pen >= 0.0
                 if touching:
                     # work-energy stop test: friction would reverse the horizontal motion within this step
@@ -334,14 +333,14 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
                 pos += delta
             else:
                 # the same model along the local surface normal n: "horizontal" becomes tangential
-                dist, n = ground(gp, hf, pos, terrain)
+                dist, n = ground(gp, hf, pos, sw.terrain)
                 pen = 0.5 * size - dist
                 fric = vec3(0.0, 0.0, 0.0)
-                if ti.static(floor != 0):
+                if ti.static(sw.floor != 0):
                     force, fric, static = terrain_contact(mt, mat, force, vel, pen, n, static)
                 mom += force * dt
                 delta = mom * (dt * minv)
-                if ti.static(floor != 0):
+                if ti.static(sw.floor != 0):
                     touching = pen >= 0.0
                 if touching:
                     work = fric.dot(delta)
@@ -360,12 +359,12 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
                 q = renormalise(q)
-            if ti.static(ifx != 0 and floor != 0):
-                if ti.static(terrain == 0):
+            if ti.static(sw.rl4design != 0 and sw.floor != 0):
+                if ti.static(sw.terrain == FLAT):
                     if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
                 elif static:  # (the distance only matters for a static voxel: skip the terrain lookup else)
-                    dist_new, _n = ground(gp, hf, pos, terrain)
+                    dist_new, _n = ground(gp, hf, pos, sw.terrain)
                     if 0.5 * size - dist_new >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)
             flags = (flags & ~(STATIC | CONTACT)) | (STATIC if static else 0) | (CONTACT if touching else 0)
