@@ -332,6 +332,23 @@ def test_start_trace_refuses_bad_intervals_and_a_started_engine():
         fresh.trace_frames()
 
 
+@pytest.mark.parametrize("precision", ["f32", "f64"])
+def test_flat_schedule_through_a_compute_graph_equals_launches_from_python(precision):
+    """The compute graph issues the same launches in the same order: the same bits, traces included, whether the
+    steps fill whole graphs (and a remainder) or not."""
+    g = np.zeros((3, 3, 2, 2), np.uint8)
+    g[0, :, :, 0], g[0, :2, :, 1] = 2, 3
+    g[1, :2, :2, :2] = 1
+    g[2, :, 0, 0] = 3
+    runs = [Simulator(short(precision=precision, graph_launches=k), arch="cpu", schedule="flat").simulate(
+        g, trace_every=0.01) for k in (0, 3, 64)]
+    for other in runs[1:]:
+        for name in ("com_end", "displacement", "max_voxel_displacement", "steps"):
+            np.testing.assert_array_equal(getattr(other, name).numpy(), getattr(runs[0], name).numpy(), err_msg=name)
+        assert torch.equal(other.trace.com, runs[0].trace.com)
+    assert (runs[0].trace.com[0, -1] - runs[0].trace.com[0, 0]).norm() > 1e-4  # it moved
+
+
 def test_device_arrays_are_reused_across_batches():
     """A Simulator keeps one set of device arrays: a smaller batch reuses them (the same ndarray objects, nothing
     allocated: a 2,500-epoch run allocates nothing after its largest batch), results on reused arrays equal those

@@ -69,6 +69,13 @@ def make_access(precision: str, order: str) -> SimpleNamespace:
             return ti.types.ndarray(dtype=ti.types.vector(table.width, dtype), ndim=1)
         return ti.types.ndarray(dtype=dtype, ndim=2)
 
+    def graph_arg(table, name: str):
+        """The compute-graph placeholder (``ti.graph.Arg``) of an :func:`arg` of ``table`` named ``name``."""
+        dtype = element_type(table.dtype, precision)
+        if aos:
+            return ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=dtype, ndim=1, element_shape=(table.width,))
+        return ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=dtype, ndim=2)
+
     @ti.func
     def ld(a: ti.template(), c, i):
         if ti.static(aos):
@@ -104,4 +111,4 @@ def make_access(precision: str, order: str) -> SimpleNamespace:
         st(a, c + 2, i, x[2])
         st(a, c + 3, i, x[3])
 
-    return SimpleNamespace(order=order, arg=arg, ld=ld, st=st, get3=get3, set3=set3, get4=get4, set4=set4)
+    return SimpleNamespace(order=order, arg=arg, graph_arg=graph_arg, ld=ld, st=st, get3=get3, set3=set3, get4=get4, set4=set4)

@@ -62,6 +62,9 @@ class SimConfig:
     terrain: the ground's shape (``freeform.sim.Terrain``; flat by default, Voxelyze's floor bit for bit).
     max_strain: a link strain above this marks the robot diverged (VX's check; non-finite states too).
     chunk_steps: steps per kernel launch between host-side checks (per-robot schedule).
+    graph_launches: the flat schedule's launches (``UNROLL`` steps each) issued as one compute graph from C++
+        (Taichi's ``ti.graph``; quadrants has none and launches from Python); 0 = every launch from Python. Not
+        physics: the same launches in the same order, the same bits.
     step_cap: a robot still running after ``step_cap`` × the steps its burn_in + duration take at its initial dt
         is stopped and flagged stalled (reward 0): under rl4design's dynamic dt a robot whose step collapses
         would otherwise hold up the whole batch. Healthy robots stay within a few % of their initial dt.
@@ -89,6 +92,7 @@ class SimConfig:
     terrain: Terrain = field(default_factory=Terrain)
     max_strain: float = 100.0
     chunk_steps: int = 2000
+    graph_launches: int = 64
     step_cap: float = 3.0
     backend: str | None = None
 
@@ -110,6 +114,8 @@ class SimConfig:
         require(self.duration > 0, f"{key}.duration", "> 0", self.duration)
         require(self.temp_period > 0, f"{key}.temp_period", "> 0", self.temp_period)
         require(self.chunk_steps >= 1, f"{key}.chunk_steps", ">= 1", self.chunk_steps)
+        require(isinstance(self.graph_launches, int) and self.graph_launches >= 0, f"{key}.graph_launches",
+                "an integer >= 0 (0: every launch from Python)", self.graph_launches)
         # Times the protocol's steps; less could stop healthy robots whose dt dips for a while.
         require(self.step_cap >= MIN_STEP_CAP, f"{key}.step_cap", f">= {MIN_STEP_CAP}", self.step_cap)
         require(self.backend in (None, *BACKENDS), f"{key}.backend", f"None or one of {BACKENDS}", self.backend)

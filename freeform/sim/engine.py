@@ -313,6 +313,14 @@ class Engine:
             k.run_robots(*args, R, n_steps, self._queue, self._workers)
         else:
             left = n_steps
+            launches = self.config.graph_launches
+            if left >= launches * UNROLL and (graph := k.flat_graph(launches)) is not None:
+                names = ("vr", "vi", "lr", "li", "rt", "ri", "mt", "lt", "gp", "hf", "tr", "trace_steps")
+                bound = {**dict(zip(names, args, strict=True)), "n_voxels": n, "n_links": m, "n_robots": R,
+                         "n_steps": UNROLL}
+                while left >= launches * UNROLL:
+                    graph.run(bound)
+                    left -= launches * UNROLL
             while left > 0:
                 k.run_flat(*args, n, m, R, min(left, UNROLL))
                 left -= UNROLL

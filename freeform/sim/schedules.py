@@ -18,6 +18,7 @@ sized for the largest batch seen, whose tail holds stale items.
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
 
 import functools
+import warnings
 from types import SimpleNamespace
 
 from freeform.sim.access import make_access, make_numbers
@@ -33,6 +34,8 @@ SCHEDULES = ("auto", "robots", "flat")
 # the memory order each schedule reads best (access.py)
 ORDER_OF = {"robots": "aos", "flat": "soa"}
 UNROLL = 2  # steps per launch of the flat schedule
+# The flat schedule's host cost is per launch (Python, argument marshalling): runs of this many launches go through
+# one compute graph (Taichi's ti.graph, dispatched from C++) where the backend has one; SimConfig.graph_launches.
 # Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
 # many iterations (see run_robots); only the CPU schedule's thread count depends on it, never the results.
 CPU_MIN_TASK_ITEMS = 512
@@ -65,6 +68,7 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
     so every kernel argument is an array or a number (what a compute graph can bind: ``FlatLauncher``)."""
     sw = switches
     acc = make_access(precision, order)
+    num = make_numbers(precision)
     ld = acc.ld
     link_update = make_links(precision, order).link_update
     voxel_update = make_voxels(precision, order).voxel_update
@@ -74,7 +78,7 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
     VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
     RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
     GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
-    HfArr = ti.types.ndarray(dtype=make_numbers(precision).real, ndim=1)  # the terrain's height grid
+    HfArr = ti.types.ndarray(dtype=num.real, ndim=1)  # the terrain's height grid
 
     @ti.func
     def trace_sample(r, vr: ti.template(), vi: ti.template(), rt: ti.template(), ri: ti.template(),
@@ -139,6 +143,36 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
                     robot_advance(r, lr, rt, ri, gp, sw)
                     trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
 
-    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat,
+    def flat_graph(launches: int):
+        """A compute graph of ``launches`` ``run_flat`` launches of ``UNROLL`` steps each, its arrays and counts
+        bound when it runs (``graph.run({name: value})``, the names of ``run_flat``'s arguments): the launches are
+        issued from C++, without Python's per-launch cost. None where the backend has no compute graphs
+        (quadrants) or ``launches`` is 0; built once per kernel variant and length."""
+        key = ("flat", launches)
+        if key not in graphs:
+            graphs[key] = None
+            if launches and hasattr(ti.graph, "GraphBuilder"):
+                try:
+                    graphs[key] = _build_flat_graph(launches)
+                except Exception as exc:  # a backend or arch whose graphs fail: launch from Python, say so once
+                    warnings.warn(f"freeform.sim: no compute graph for the flat schedule ({type(exc).__name__}: "
+                                  f"{exc}); launching from Python", RuntimeWarning, stacklevel=3)
+        return graphs[key]
+
+    def _build_flat_graph(launches: int):
+        names = (("vr", VR), ("vi", VI), ("lr", LR), ("li", LI), ("rt", RT), ("ri", RI), ("mt", MT), ("lt", LT))
+        nd = ti.graph.ArgKind.NDARRAY
+        args = [acc.graph_arg(table, name) for name, table in names]
+        args += [ti.graph.Arg(nd, "gp", dtype=ti.f64, ndim=1), ti.graph.Arg(nd, "hf", dtype=num.real, ndim=1),
+                 ti.graph.Arg(nd, "tr", dtype=ti.f64, ndim=3)]
+        args += [ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=ti.i32)
+                 for name in ("trace_steps", "n_voxels", "n_links", "n_robots", "n_steps")]
+        builder = ti.graph.GraphBuilder()
+        for _ in range(launches):
+            builder.dispatch(run_flat, *args)
+        return builder.compile()
+
+    graphs: dict = {}
+    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, flat_graph=flat_graph,
                            probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order,
                            switches=switches)
