@@ -90,9 +90,10 @@ def use(backend: str | None = None) -> types.ModuleType:
 
 
 def fast_math() -> bool:
-    """Whether kernels compile with fast-math (both backends' default, on): ``FREEFORM_FAST_MATH=0`` turns it off,
-    for reproducibility checks — LLVM then keeps the source's order of operations, so the two schedules, and the
-    two backends, give the same bits (docs/physics.md), at ~7 % of speed."""
+    """Whether kernels compile with fast-math (both backends' default, on). ``FREEFORM_FAST_MATH=0`` is the strict
+    path: LLVM keeps the source's IEEE arithmetic (no fused multiply-adds, no reassociation), so the result does not
+    depend on which x86-64 CPU compiles it, the two schedules and the two backends give the same bits, and the
+    reference tests hold (the suite's default; docs/physics.md, "Host independence"), at ~7 % of speed."""
     flag = os.environ.get(FAST_MATH_ENV_VAR, "1")
     if flag not in ("0", "1"):
         raise ValueError(f"{FAST_MATH_ENV_VAR} must be 0 or 1, got {flag!r}")
