@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# The GPU check in one call: the CUDA tests (the device against the CPU on fixed bodies, f32/f64, both semantics;
+# a planted NaN; compute graph = Python launches; many batches of random size), the host floor, and the GPU
+# benchmark (compile times, µs per step at batch 1/32/128/512, the epoch's simulation, the update's ms per
+# minibatch, one paper_locomotion epoch split into env/simulation/update). Every log goes under OUTDIR; a summary
+# (< 12,000 characters) goes to stdout and OUTDIR/summary.txt. Budget: under 8 minutes on one H100.
+#
+#   scripts/gpu_check.sh OUTDIR          # on a CUDA machine (Python 3.12 and torch there; taichi, hydra & co. from
+#                                        # .whl/, gathered by ../shared/device/gather-wheels.sh and carried along)
+#   scripts/gpu_check.sh OUTDIR --cpu    # the rehearsal on a CPU machine: every step at small sizes (< 10 min)
+#
+# PYTHON picks the interpreter (default python3; `PYTHON=.venv/bin/python` here).
+set -uo pipefail
+out=${1:?usage: scripts/gpu_check.sh OUTDIR [--cpu]}
+mode=${2:-}
+mkdir -p "$out"
+out=$(cd "$out" && pwd)
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+arch=cuda
+[ "$mode" = "--cpu" ] && arch=cpu
+export FREEFORM_CHECK_ARCH=$arch FREEFORM_BENCH_ARCH=$arch PYTHONUNBUFFERED=1
+
+# The carried wheels, into a private directory (no registry on the GPU machine; nothing of the system touched).
+if [ -d .whl ] && ! $PY -c "import taichi, hydra, omegaconf" 2>/dev/null; then
+  $PY -m pip install -q --no-index --no-deps --no-compile --target /tmp/freeform-site .whl/*.whl \
+    > "$out/install.log" 2>&1 || echo "wheel install failed: see install.log" >> "$out/steps.txt"
+  export PYTHONPATH=/tmp/freeform-site${PYTHONPATH:+:$PYTHONPATH}
+fi
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}  # freeform from this checkout
+
+: > "$out/steps.txt"
+step() {  # step NAME SECONDS COMMAND...: run it with a time limit, its output to NAME.log, its status to steps.txt
+  local name=$1 limit=$2 start rc
+  shift 2
+  start=$(date +%s)
+  timeout "$limit" "$@" > "$out/$name.log" 2>&1
+  rc=$?
+  echo "$name: exit $rc ($([ $rc = 124 ] && echo "timed out after ")$(( $(date +%s) - start )) s)" >> "$out/steps.txt"
+}
+
+step environment 60 bash -c "nvidia-smi 2>&1 | head -15; $PY -c 'import sys, torch, numpy; print(sys.version); \
+print(\"torch\", torch.__version__, \"cuda\", torch.version.cuda, torch.cuda.is_available()); print(\"numpy\", numpy.__version__)'; \
+$PY -c 'from freeform.sim import runtime; print(runtime.describe()); import freeform; print(\"freeform\", freeform.__version__)'; \
+git log -1 --format='commit %H %s' 2>/dev/null | cut -c1-120"
+step cuda_tests 210 $PY -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider -p no:warnings
+step floor 90 $PY -m benchmarks floor
+step gpu 240 $PY -m benchmarks gpu
+
+{
+  echo "=== freeform GPU check ($arch) ==="
+  cat "$out/steps.txt"
+  echo "--- environment"
+  head -c 2500 "$out/environment.log"
+  echo "--- CUDA tests (device against the CPU)"
+  grep -E "vs cpu|passed|failed|Error|error" "$out/cuda_tests.log" | head -40 | cut -c1-300
+  echo "--- host floor"
+  grep -vE "^\[|Warning|warn|^ *$|importlib" "$out/floor.log" | tail -12 | cut -c1-300
+  echo "--- GPU benchmark"
+  grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/gpu.log" | tail -25 | cut -c1-300
+  for log in cuda_tests floor gpu; do  # a failure's last lines
+    if ! grep -q "^$log: exit 0 " "$out/steps.txt"; then
+      echo "--- last lines of $log.log"
+      tail -n 25 "$out/$log.log" | cut -c1-300
+    fi
+  done
+} | head -c 11500 | tee "$out/summary.txt"
