@@ -24,7 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from freeform.agents.ppo import PPOConfig
+from freeform.agents.ppo import CLEANRL_PRESET, PPOConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.sim import SimConfig
 from freeform.validation import require
@@ -247,11 +247,20 @@ def compose(*overrides: str) -> TrainConfig:
         return to_dataclass(hydra_compose("config", overrides=list(overrides)))
 
 
+def cleanrl_agent() -> AgentConfig:
+    """``agent=cleanrl``: CleanRL's ``ppo_continuous_action.py`` (``freeform.agents.ppo.CLEANRL_PRESET``), with the
+    run filling ``rollout_steps`` (= env.steps) and ``seed`` (the run's)."""
+    return AgentConfig(**{**CLEANRL_PRESET, "rollout_steps": None, "seed": None})
+
+
 def register_configs() -> None:
-    """Register :class:`TrainConfig` with Hydra's ConfigStore as ``train_schema`` (``conf/config.yaml``'s base)."""
+    """Register :class:`TrainConfig` with Hydra's ConfigStore as ``train_schema`` (``conf/config.yaml``'s base), and
+    the presets written in Python (``agent=cleanrl``): built from their one source, not restated in YAML."""
     from hydra.core.config_store import ConfigStore
 
-    ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+    store = ConfigStore.instance()
+    store.store(name="train_schema", node=TrainConfig)
+    store.store(group="agent", name="cleanrl", node=cleanrl_agent())
 
 
 __all__ = [

@@ -458,24 +458,20 @@ def test_cleanrl_preset_is_cleanrls_defaults() -> None:
     assert set(CLEANRL_PRESET) <= {f for f in PPOConfig.__dataclass_fields__}
 
 
-def test_cleanrl_agent_yaml_is_the_preset() -> None:
-    """``agent=cleanrl`` (conf/agent/cleanrl.yaml) names every agent field and equals PPOConfig.cleanrl() but for
-    the run-filled ones (rollout_steps, seed: the run's)."""
+def test_agent_cleanrl_on_the_command_line_is_the_preset() -> None:
+    """``agent=cleanrl`` is built from PPOConfig.cleanrl()'s source (no YAML copy): equal to it in every field but
+    the run-filled ones (rollout_steps = env.steps, seed = the run's, device = the trainer's)."""
     import dataclasses
 
-    from omegaconf import OmegaConf
+    from freeform.config import compose, ppo_config
 
-    from freeform._conf_dir import conf_dir
-    from freeform.config import AgentConfig
-
-    path = conf_dir() / "agent" / "cleanrl.yaml"
-    values = OmegaConf.to_container(OmegaConf.load(path))
-    assert set(values) == {f.name for f in dataclasses.fields(AgentConfig)}
-    agent = AgentConfig(**values)
-    preset = PPOConfig.cleanrl()
+    cfg = compose("~experiment", "agent=cleanrl", "env.steps=7", "seed=3")  # (no preset over it)
+    run, preset = ppo_config(cfg, device="cpu"), PPOConfig.cleanrl()
     for field in dataclasses.fields(PPOConfig):
         if field.name not in ("rollout_steps", "seed", "device"):
-            assert getattr(agent, field.name) == getattr(preset, field.name), field.name
+            assert getattr(run, field.name) == getattr(preset, field.name), field.name
+    assert (run.rollout_steps, run.seed) == (7, 3)
+    assert compose("~experiment", "agent=cleanrl", "agent.lr=0.01").agent.lr == 0.01  # overridable field by field
 
 
 def test_cleanrl_preset_solves_inverted_pendulum() -> None:

@@ -1,5 +1,5 @@
 """Actor-critic networks: the contracts PPO relies on, declared (:class:`ActorCritic`, :class:`SplitActorCritic`,
-:class:`SelfDescribing`), and the paper's voxel network and a small MLP for flat observations.
+:class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network and a small MLP for flat observations.
 
 A policy is an ``nn.Module`` whose ``forward(obs)`` returns ``(mean [N, A], log_std [N, A], value [N])``: the
 Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). A policy that keeps its
@@ -43,11 +43,16 @@ class SplitActorCritic(ActorCritic, Protocol):
 
 
 @runtime_checkable
-class SelfDescribing(Protocol):
-    """A network a checkpoint can rebuild (``init_kwargs``: its constructor's arguments) and whose action groups
-    PPO logs (``action_groups``: name -> the action dimensions, a slice)."""
+class Rebuildable(Protocol):
+    """A network a checkpoint can rebuild from the file alone: ``init_kwargs``, its constructor's arguments."""
 
     init_kwargs: dict[str, Any]
+
+
+@runtime_checkable
+class GroupedActions(Protocol):
+    """A network whose groups of action dimensions PPO logs the mean σ of: ``action_groups``, name -> a slice."""
+
     action_groups: dict[str, slice]
 
 

@@ -28,7 +28,7 @@ import torch.nn as nn
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
 from freeform.agents.flat_params import FlatParameters
-from freeform.agents.networks import SelfDescribing, SplitActorCritic
+from freeform.agents.networks import GroupedActions, Rebuildable, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.losses import (
@@ -460,7 +460,7 @@ class PPO:
             "value_mean": values.mean().item(),
             "action_std": stds.mean().item(),
         }
-        for name, dims in (self.policy.action_groups if isinstance(self.policy, SelfDescribing) else {}).items():
+        for name, dims in (self.policy.action_groups if isinstance(self.policy, GroupedActions) else {}).items():
             stats[f"action_std_{name}"] = stds[..., dims].mean().item()
         return stats
 
@@ -632,7 +632,7 @@ class PPO:
         this plus the run's own parts, so :meth:`load` reads both."""
         return {
             "policy_class": policy_class_name(type(self.policy)),
-            "policy_kwargs": dict(self.policy.init_kwargs if isinstance(self.policy, SelfDescribing) else {}),
+            "policy_kwargs": dict(self.policy.init_kwargs if isinstance(self.policy, Rebuildable) else {}),
             "ppo_config": dataclasses.asdict(self.config),
             "epoch": self.epoch,
             "global_step": self.global_step,
