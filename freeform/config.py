@@ -171,6 +171,10 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     """Check value ranges the types cannot express; raise ``ValueError`` naming the dotted key. Returns ``cfg``."""
     _validate_env(cfg.env)
     require(cfg.task.materials >= 2, "task.materials", "an integer >= 2 (index 0 is empty)", cfg.task.materials)
+    if cfg.task.name != "volume":  # a simulated task: every material the designs use must be one the physics knows
+        require(cfg.task.materials <= len(cfg.sim.materials) + 1, "task.materials",
+                f"<= len(sim.materials) + 1 = {len(cfg.sim.materials) + 1} (materials 1..k-1 are simulated as "
+                f"sim.materials[0..k-2])", cfg.task.materials)
     from freeform.run.build import LEARNERS  # (the registry a user's learner joins; imported when validating)
 
     cfg.algo.validate("algo", cfg.env.num_envs, names=list(LEARNERS))

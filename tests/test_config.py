@@ -64,10 +64,41 @@ def test_agent_section_is_ppo_config() -> None:
     """One config: the agent section is PPOConfig itself (a subclass adding the network's width), not a copy."""
     assert issubclass(AgentConfig, PPOConfig)
     assert [f.name for f in dataclasses.fields(AgentConfig)] == [f.name for f in dataclasses.fields(PPOConfig)] + ["hidden"]
-    # The agent YAML names every field the section has (no field hides behind a dataclass default).
-    yaml_keys = {line.split(":")[0] for line in (Path(CONF_DIR) / "agent" / "ppo.yaml").read_text().splitlines()
-                 if line and not line.startswith("#")}
-    assert yaml_keys == {f.name for f in dataclasses.fields(AgentConfig)}
+
+
+
+def test_group_yaml_holds_only_what_differs_from_the_typed_defaults() -> None:
+    """One source per value: a group file under conf/ sets a field only to something other than its dataclass
+    default (a group's own ``name`` excepted), so a default is changed in one place. Files of the ``_global_``
+    package are checked section by section against TrainConfig's."""
+    import yaml
+
+    from freeform.config import EnvConfig, TaskConfig, TrainerConfig
+    from freeform.evolve.config import AlgoConfig
+
+    restated: list[str] = []
+
+    def check(values: dict, default: object, where: str) -> int:
+        count = 0
+        for key, value in values.items():
+            own = getattr(default, key)
+            if isinstance(value, dict) and dataclasses.is_dataclass(own):
+                count += check(value, own, f"{where}.{key}")
+            elif key != "name" and not isinstance(own, dict) and own == value:
+                restated.append(f"{where}.{key}: {value!r}")
+            count += 1
+        return count
+
+    schemas = {"agent": AgentConfig, "env": EnvConfig, "trainer": TrainerConfig, "algo": AlgoConfig, "task": TaskConfig}
+    checked = 0
+    for group, schema in schemas.items():
+        for path in sorted((Path(CONF_DIR) / group).glob("*.yaml")):
+            text = path.read_text()
+            values = yaml.safe_load(text) or {}
+            glob = "@package _global_" in text
+            checked += check(values, TrainConfig() if glob else schema(), path.name)
+    assert not restated, f"defaults restated in conf/: {restated}"
+    assert checked >= 30
 
 
 def test_agent_errors_name_the_dotted_key_in_one_style() -> None:
@@ -133,6 +164,15 @@ def test_wrong_type_fails_naming_the_key() -> None:
 def test_invalid_value_fails_naming_the_key(override: str, key: str) -> None:
     with pytest.raises(ValueError, match="^" + re.escape(key) + " must"):
         compose(override)
+
+
+def test_designed_materials_must_all_be_simulated() -> None:
+    """task.materials against sim.materials: a simulated task's designs may only use materials the physics has
+    (k - 1 of them); the volume task simulates nothing, so any k goes there."""
+    with pytest.raises(ValueError, match=r"^task\.materials must be <= len\(sim\.materials\) \+ 1 = 4 .*got 5$"):
+        compose("experiment=locomotion_cpu", "task.materials=5")
+    assert compose("experiment=locomotion_cpu", "task.materials=3").task.materials == 3
+    assert compose("experiment=volume_cpu", "task.materials=5").task.materials == 5
 
 
 def test_valid_edge_values_pass() -> None:

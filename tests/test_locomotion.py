@@ -69,13 +69,21 @@ def test_reward_of_a_known_robot_is_the_engines_displacement(simulator):
     assert task.stats["stats/sim_bodies"] == 2
 
 
-def test_the_reward_follows_the_configured_displacement():
+def test_the_task_chooses_its_displacement_and_sim_reward_is_a_deprecated_alias(simulator):
+    """The physics returns both measures; LocomotionTask(measure=...) (task.options.measure) picks one. The old
+    sim.reward=com still picks the centre of mass, and says it is deprecated."""
     grids = walker()[None]
-    com_sim = Simulator(short_sim(reward="com"), arch="cpu")
-    result = com_sim.simulate(largest_component(grids))
-    reward = LocomotionTask(simulator=com_sim).reward(grids)
-    assert reward[0].item() == pytest.approx(result.com_displacement[0].item(), rel=1e-5, abs=1e-6)
+    result = simulator.simulate(largest_component(grids))
     assert result.com_displacement[0] != result.max_voxel_displacement[0]
+    com = LocomotionTask(simulator=simulator, measure="com").reward(grids)
+    assert com[0].item() == pytest.approx(result.com_displacement[0].item(), rel=1e-5, abs=1e-6)
+    default = LocomotionTask(simulator=simulator).reward(grids)
+    assert default[0].item() == pytest.approx(result.max_voxel_displacement[0].item(), rel=1e-5, abs=1e-6)
+    with pytest.warns(DeprecationWarning, match=r"sim\.reward='com' is deprecated.*task\.options\.measure=com"):
+        alias = LocomotionTask(simulator=Simulator(short_sim(reward="com"), arch="cpu"))
+    assert alias.reward(grids)[0].item() == pytest.approx(com[0].item(), rel=1e-5, abs=1e-6)
+    with pytest.raises(ValueError, match="measure must be one of"):
+        LocomotionTask(simulator=simulator, measure="fastest")
 
 
 def test_passive_body_earns_nothing(simulator):
@@ -107,12 +115,13 @@ class FakeSimulator:
     config = SimConfig()
 
     def __init__(self, displacement: list[float], diverged: list[bool]) -> None:
-        self.result = SimpleNamespace(displacement=torch.tensor(displacement), diverged=torch.tensor(diverged),
+        self.result = SimpleNamespace(max_voxel_displacement=torch.tensor(displacement),
+                                      com_displacement=torch.tensor(displacement), diverged=torch.tensor(diverged),
                                       stalled=torch.zeros(len(displacement), dtype=torch.bool),
                                       steps=torch.full((len(displacement),), 10))
 
     def simulate(self, grids: torch.Tensor):
-        assert grids.shape[0] == len(self.result.displacement)
+        assert grids.shape[0] == len(self.result.max_voxel_displacement)
         return self.result
 
 

@@ -9,6 +9,7 @@ mapping (:class:`freeform.envs.base.ReportsStats`, as ``LocomotionTask``) has it
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -111,24 +112,38 @@ class SimulatedTask:
         return reward
 
 
+MEASURES = ("max_voxel", "com")
+"""What :class:`LocomotionTask` rewards: the largest voxel displacement (the paper's) or the centre of mass's."""
+
+
 class LocomotionTask(SimulatedTask):
     """The paper's locomotion task: the reward is how far the body moves in simulation (voxel lengths).
 
     The bodies are simulated with ``sim``'s protocol (paper: 5 s burn-in with actuation running, then a 5 s
-    evaluation window; :class:`SimulatedTask` for what all simulated tasks share). The reward is
-    ``SimResult.displacement``: by default the maximum over voxels of the horizontal displacement across the window
-    (``sim.reward = "max_voxel"``), or the centre of mass's (``"com"``); rewards below ``min_reward`` become 0
-    (spec design.md, "Rewards"). A body without muscle earns ≈ 0.
+    evaluation window; :class:`SimulatedTask` for what all simulated tasks share). The reward is the horizontal
+    displacement across the window that ``measure`` names: ``"max_voxel"``, the maximum over voxels (the paper's),
+    or ``"com"``, the centre of mass's; rewards below ``min_reward`` become 0 (spec design.md, "Rewards"). A body
+    without muscle earns ≈ 0.
     """
 
     def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
-                 min_reward: float = 1e-3, simulator: Any = None) -> None:
-        """``min_reward``: rewards below it become 0 (spec: 1e-3 voxel lengths); the rest as :class:`SimulatedTask`."""
+                 min_reward: float = 1e-3, simulator: Any = None, measure: str | None = None) -> None:
+        """``min_reward``: rewards below it become 0 (spec: 1e-3 voxel lengths); ``measure``: ``"max_voxel"`` |
+        ``"com"`` (None: the deprecated ``sim.reward``, whose default is the paper's max_voxel); the rest as
+        :class:`SimulatedTask`."""
         if not min_reward >= 0:
             raise ValueError(f"min_reward must be >= 0, got {min_reward}")
+        if measure is not None and measure not in MEASURES:
+            raise ValueError(f"measure must be one of {MEASURES}, got {measure!r}")
         super().__init__(sim=sim, device=device, arch=arch, simulator=simulator)
         self.min_reward = float(min_reward)
+        if measure is None and self.sim_config.reward != "max_voxel":
+            warnings.warn(f"sim.reward={self.sim_config.reward!r} is deprecated: the task chooses its measure "
+                          f"(task.options.measure={self.sim_config.reward}, LocomotionTask(measure=...))",
+                          DeprecationWarning, stacklevel=2)
+        self.measure = measure if measure is not None else self.sim_config.reward
 
     def score(self, result: Any) -> torch.Tensor:
-        displacement = result.displacement.to(torch.float32)
+        chosen = result.max_voxel_displacement if self.measure == "max_voxel" else result.com_displacement
+        displacement = chosen.to(torch.float32)
         return torch.where(displacement < self.min_reward, 0.0, displacement)  # NaN stays NaN: counted as failed

@@ -55,7 +55,9 @@ class SimConfig:
     temp_amplitude / temp_period: actuation T(t) = A·sin(2π(t/period + phase)) (degrees, s).
     dt: fixed time step (s); None = dt_frac × the recommended step of each robot (spec section 10).
     burn_in / duration: evaluation window (s) that the reward measures.
-    reward: "max_voxel" (paper: max over voxels of the horizontal distance) or "com" (centre of mass).
+    reward: deprecated — which displacement ``SimResult.displacement`` repeats; the result carries both
+        (``max_voxel_displacement``, ``com_displacement``) and the task chooses (``LocomotionTask(measure=...)``,
+        ``task.options.measure``). ``sim.reward=com`` still selects the centre of mass there, with a warning.
     semantics: "voxelyze" (VX) or "rl4design" (the paper simulator's deviations, spec section 13).
     precision: "f32" (fast; normalised quaternions, atan2 rotation vectors) or "f64" (VX arithmetic).
     floor: floor contact and friction on/off.
