@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from freeform.body import crop as crop_to_bounding_box
-from freeform.voxels import (
+from freeform.surface import (
     FACE_CORNERS,
     FACE_NORMALS,
     PAPER_COLORS,

@@ -22,7 +22,7 @@ import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 from torch.utils.tensorboard import SummaryWriter
@@ -64,6 +64,25 @@ def tag_for(name: str) -> str:
     if "std" in name or "sigma" in name:
         return f"policy/{name}"
     return f"stats/{name}"
+
+
+class ScalarSink(Protocol):
+    """Where a learner's per-epoch statistics may go (``PPO(..., logger=...)``): :class:`Logger` is one, and so is
+    any object with this method (a dict-appender in a notebook, a wandb bridge)."""
+
+    def log(self, stats: Mapping[str, Any], step: int) -> None: ...
+
+
+def _scalars(stats: Mapping[str, Any]) -> dict[str, float]:
+    """The finite numbers of ``stats`` under their TensorBoard tags (``tag_for``); the x-axis keys left out."""
+    written: dict[str, float] = {}
+    for name, value in stats.items():
+        if name in SKIP:
+            continue
+        number = _number(value)
+        if number is not None and math.isfinite(number):
+            written[tag_for(name)] = number
+    return written
 
 
 def _number(value: Any) -> float | None:
@@ -163,13 +182,7 @@ class Logger:
 
         ``epoch`` is the 0-based index of the epoch just trained. Returns the scalars written (tag -> value).
         """
-        written: dict[str, float] = {}
-        for name, value in stats.items():
-            if name in SKIP:
-                continue
-            number = _number(value)
-            if number is not None and math.isfinite(number):
-                written[tag_for(name)] = number
+        written = _scalars(stats)
         for name, value in body.items():
             written[f"body/{name}"] = float(value)
         for tag, number in written.items():
@@ -188,6 +201,11 @@ class Logger:
             log.info(" | ".join(parts))
         return written
 
+    def log(self, stats: Mapping[str, Any], step: int) -> None:
+        """A :class:`ScalarSink`: ``stats``' numbers to TensorBoard at ``step`` (no bar, no console line)."""
+        for tag, number in _scalars(stats).items():
+            self.writer.add_scalar(tag, number, step)
+
     def flush(self) -> None:
         self.writer.flush()
 
@@ -196,4 +214,4 @@ class Logger:
         self.writer.close()
 
 
-__all__ = ["Logger", "tag_for"]
+__all__ = ["Logger", "ScalarSink", "tag_for"]

@@ -22,7 +22,7 @@ Modules, by concern (this package re-exports their public names):
 - ``tensorboard`` — :func:`add_gif` (an animated GIF into an event file, no moviepy needed) and
   :func:`log_epoch_renders`, what the training loop calls every ``trainer.render_every`` epochs;
   :func:`log_bodies` is the same behind the trainer's ``(writer, final_grids, rewards, step, cfg)`` hook.
-The face geometry and the material colours are shared with ``freeform.io`` through ``freeform.voxels``.
+The face geometry and the material colours are shared with ``freeform.io`` through ``freeform.surface``.
 """
 
 from freeform.render.designs import contact_sheet, render_grid, render_grids
@@ -40,7 +40,7 @@ from freeform.render.gait import (
 from freeform.render.raster import RenderConfig
 from freeform.render.tensorboard import add_gif, log_bodies, log_epoch_renders, pick_bodies
 from freeform.render.video import encode_gif, write_png, write_video
-from freeform.voxels import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, RGB
+from freeform.surface import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, RGB
 
 __all__ = [
     "FACE_CORNERS",

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from freeform.render.raster import Camera, Canvas, RenderConfig, shade
-from freeform.voxels import FACE_CORNERS, FACE_NORMALS, as_grid, exposed, material_rgb
+from freeform.surface import FACE_CORNERS, FACE_NORMALS, as_grid, exposed, material_rgb
 
 
 def _grid_quads(

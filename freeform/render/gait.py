@@ -17,7 +17,7 @@ import numpy as np
 
 from freeform.render.raster import Camera, Canvas, RenderConfig, lambert, shade
 from freeform.sim.terrain import COLUMNS, SMOOTH, Terrain
-from freeform.voxels import FACE_CORNERS, FACE_NORMALS, as_grid, check_recording, material_rgb
+from freeform.surface import FACE_CORNERS, FACE_NORMALS, as_grid, check_recording, material_rgb
 
 if TYPE_CHECKING:  # the type hints only: drawing a recording never needs Taichi
     from freeform.sim import Recording, Simulator

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from freeform.voxels import PAPER_COLORS, RGB
+from freeform.surface import PAPER_COLORS, RGB
 
 
 @dataclass

@@ -13,7 +13,7 @@ from freeform.render.designs import render_grid
 from freeform.render.gait import VideoConfig, gait_simulator, render_recording, simulate_gait
 from freeform.render.raster import RenderConfig
 from freeform.render.video import check_frames, encode_gif
-from freeform.voxels import as_grid
+from freeform.surface import as_grid
 
 if TYPE_CHECKING:  # the type hints only: rendering never needs Taichi or TensorBoard to import
     from torch.utils.tensorboard import SummaryWriter

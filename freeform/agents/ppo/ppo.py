@@ -20,7 +20,7 @@ import os
 import time
 import types
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import torch
 import torch.nn as nn
@@ -46,9 +46,8 @@ from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
 from freeform.records import EpisodeCollector
 
-
-class Logger(Protocol):
-    def log(self, stats: dict[str, float], step: int) -> None: ...
+if TYPE_CHECKING:  # (the TensorBoard writer is not imported with PPO)
+    from freeform.logger import ScalarSink
 
 
 class _TrainBatch(NamedTuple):
@@ -92,7 +91,7 @@ class PPO:
         env: VecEnv,
         policy: nn.Module,
         config: PPOConfig | None = None,
-        logger: Logger | None = None,
+        logger: ScalarSink | None = None,
         eval_env: VecEnv | None = None,
     ):
         self.config = config = config if config is not None else PPOConfig()
@@ -658,7 +657,7 @@ class PPO:
         cls,
         path: str | os.PathLike,
         env: VecEnv,
-        logger: Logger | None = None,
+        logger: ScalarSink | None = None,
         device: str | None = None,
         policy_classes: Sequence[type[nn.Module]] = (),
     ) -> PPO:
