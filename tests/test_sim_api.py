@@ -17,6 +17,42 @@ def short(**kw) -> SimConfig:
     return SimConfig(**kw)
 
 
+# ---------------------------------------------------------------- initial state (pure numpy)
+def test_initial_state_is_numpy_alone_with_hand_worked_values():
+    """A muscle pair along x, at t = 0: positions on the lattice, rest sizes, the static-friction start of VX (not of
+    rl4design), the link's material pair, the clock, and step 0's events — built without importing any backend."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np\n"
+            "from freeform.sim import SimConfig, build_layout\n"
+            "from freeform.sim.initial import initial_state\n"
+            "g = np.zeros((1, 2, 1, 1), np.uint8); g[0, 0, 0, 0], g[0, 1, 0, 0] = 2, 3\n"
+            "s = initial_state(build_layout(g, 4), SimConfig(dt=1e-4, burn_in=0.0, temp_amplitude=0.0))\n"
+            "assert not {'taichi', 'quadrants'} & set(sys.modules), sorted(m for m in sys.modules if 'taichi' in m)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+    from freeform.sim.initial import initial_state
+    from freeform.sim.state import EV_SAMPLE, EV_START, LI, RI, RT, STATIC, VI
+
+    g = np.zeros((1, 2, 1, 1), np.uint8)
+    g[0, 0, 0, 0], g[0, 1, 0, 0] = 2, 3
+    cfg = SimConfig(dt=1e-4, burn_in=0.0, temp_amplitude=0.0, precision="f64")
+    s = initial_state(build_layout(g, 4), cfg)
+    vr, vi, li, rt, ri = (s.tables[k] for k in ("vr", "vi", "li", "rt", "ri"))
+    np.testing.assert_array_equal(vr[VR.span("POS")].T, [[0, 0, 0], [cfg.voxel_size, 0, 0]])
+    np.testing.assert_array_equal(vr[VR.SIZE], [cfg.voxel_size] * 2)  # T = 0: the rest size is L
+    assert (vi[VI.FLAGS] & STATIC).all() and list(vi[VI.MAT]) == [2, 3]
+    assert li[LI.LMAT, 0] == 2 * 4 + 3  # (negative end, positive end) of 4 materials
+    assert rt[RT.DT, 0] == 1e-4 and ri[RI.VSTART, 0] == 0 and ri[RI.VEND, 0] == 2
+    assert ri[RI.EVENTS, 0] & EV_START  # burn-in 0: the window opens with step 0
+    assert ri[RI.PERIOD, 0] == int(cfg.temp_period / 1e-4) and not ri[RI.EVENTS, 0] & EV_SAMPLE
+    rl = initial_state(build_layout(g, 4), SimConfig(dt=1e-4, semantics="rl4design"))
+    assert not (rl.tables["vi"][VI.FLAGS] & STATIC).any() and rl.switches.rl4design == 1
+    assert rl.switches.dynamic_dt == 0  # dt fixed
+
+
 # ---------------------------------------------------------------- layout
 def test_layout_crops_places_on_floor_and_links_faces():
     g = np.zeros((3, 5, 5, 5), dtype=np.uint8)

@@ -17,7 +17,8 @@ import math
 import numpy as np
 
 from freeform.sim import runtime
-from freeform.sim.config import SimConfig, e_hat, link_table, material_table
+from freeform.sim.config import SimConfig, material_table
+from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
 from freeform.sim.schedules import ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
@@ -46,7 +47,6 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     Table,
 )
 from freeform.sim.summaries import make_summaries
-from freeform.sim.terrain import placement
 
 __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
 
@@ -58,35 +58,6 @@ INT32_MAX = np.iinfo(np.int32).max
 
 def _ceil_div(a: int, b: int) -> int:
     return -(-a // b)
-
-
-def recommended_dt(layout: Layout, cfg: SimConfig) -> np.ndarray:
-    """Voxelyze's recommendedTimeStep per robot at rest (spec section 10): float64 ``[R]``.
-
-    1/(2π·sqrt(max over links of k_ax/min(m₁, m₂))) with k_ax = E·L (ν = 0) or Ê·A/L0 (ν ≠ 0, at zero strain);
-    a robot without links uses E·L/m of its voxels.
-    """
-    mt = material_table(cfg)
-    n_mat = len(cfg.materials) + 1
-    L = cfg.voxel_size
-    E = np.array([0.0] + [m.E for m in cfg.materials])
-    mass = mt[MT.MASS]
-    omega2 = np.zeros(layout.num_robots)
-    # voxels alone: E·L/m (VX uses this when there are no links)
-    np.maximum.at(omega2, layout.voxel_robot, E[layout.material] * L / mass[layout.material])
-    if layout.num_links:
-        lt = link_table(cfg)
-        mn, mp = layout.material[layout.link_neg], layout.material[layout.link_pos]
-        k = mn * n_mat + mp
-        nul, El = lt[LT.NU, k], lt[LT.E, k]
-        kax = np.where(nul == 0, El * L, e_hat(El, nul) * L * L / L)
-        per_link = kax / np.minimum(mass[mn], mass[mp])
-        has_links = np.zeros(layout.num_robots, dtype=bool)
-        has_links[layout.link_robot] = True
-        link_omega = np.zeros(layout.num_robots)
-        np.maximum.at(link_omega, layout.link_robot, per_link)
-        omega2 = np.where(has_links, link_omega, omega2)
-    return 1.0 / (2 * math.pi * np.sqrt(omega2))
 
 
 class DeviceArrays:
@@ -166,93 +137,14 @@ class Engine:
         self.order = ORDER_OF[self.schedule]
         self.precision = config.precision
         self.np_real = np.float64 if config.precision == "f64" else np.float32
-        self.rl4design = int(config.semantics == "rl4design")
-        n, m, R = layout.num_voxels, layout.num_links, layout.num_robots
-        self.counts = {"voxels": n, "links": m, "robots": R, "materials": len(config.materials) + 1,
-                       "material_pairs": (len(config.materials) + 1) ** 2}
-        L = config.voxel_size
-        mt = material_table(config)
-
-        if config.dt is not None:
-            dt0 = np.full(R, float(config.dt))
-        else:
-            dt0 = config.dt_frac * recommended_dt(layout, config)
-        self.dt0 = dt0
-        t_end = config.burn_in + config.duration
-        # the step cap: step_cap × the protocol's steps at the initial dt (+1: the first step past t_end)
-        self.max_steps = np.minimum(np.ceil(config.step_cap * t_end / dt0) + 1, INT32_MAX).astype(np.int64)
-
-        host = {name: t.zeros(self.counts[t.items], self.precision) for name, t in TABLES.items()}
-        vr, vi, li, rt, ri = host["vr"], host["vi"], host["li"], host["rt"], host["ri"]
-        pos = layout.lattice.astype(np.float64) * L
-        # the terrain: each robot rests on it under its footprint (flat ground: no offset at all)
-        self.terrain = config.terrain.field(L)
-        # rl4design refreshes dt every few steps unless dt is fixed
-        self.switches = Switches(floor=int(config.floor), terrain=int(self.terrain.mode), rl4design=self.rl4design,
-                                 dynamic_dt=int(self.rl4design == 1 and config.dt is None))
+        initial = initial_state(layout, config)
+        self.rl4design = initial.switches.rl4design
+        self.counts = initial.counts
+        self.dt0, self.max_steps = initial.dt0, initial.max_steps
+        self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
         self.kernels = make_kernels(config.precision, self.order, self.switches)
-        self.offset = placement(config.terrain, self.terrain, layout.lattice, layout.voxel_robot, R, L)
-        if self.terrain.mode != 0 and n:
-            pos = pos + self.offset[layout.voxel_robot]
-        mass = mt[MT.MASS][layout.material]
-        for c in ("POS", "POS0", "PSTART", "PEND", "PSAMP", "PCS", "PCE"):
-            vr[VR.span(c)] = pos.T
-        vr[VR.span("MOM")] = (layout.velocity * mass[:, None]).T
-        vr[VR.ORI] = 1.0
-        vr[VR.TBASE] = layout.temp_base
-        if self.rl4design:
-            temp = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
-        else:
-            phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
-            temp = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)
-        # rest size L·(1 + T·CTE) in the kernels' precision and order of operations (voxels.base_size)
-        real = self.np_real
-        L_v = mt[MT.L][layout.material].astype(real)
-        vr[VR.SIZE] = L_v * (real(1.0) + temp.astype(real) * mt[MT.CTE][layout.material].astype(real))
-        # transverse areas before any strain: L² (voxels.transverse); strain sums start at 0
-        vr[VR.span("TAREA")] = (L_v * L_v)[None, :]
-
-        vi[VI.MAT] = layout.material
-        vi[VI.ROBOT] = layout.voxel_robot
-        # VX starts every voxel in static friction; the paper simulator starts none there
-        vi[VI.FLAGS] = np.where(layout.fixed, FIXED, 0) | (0 if self.rl4design else STATIC)
-        vi[VI.span("SLOT")] = layout.slots.T
-
-        li[LI.NEG], li[LI.POS], li[LI.AXIS] = layout.link_neg, layout.link_pos, layout.link_axis
-        n_mat = len(config.materials) + 1
-        li[LI.LMAT] = layout.material[layout.link_neg] * n_mat + layout.material[layout.link_pos]
-        li[LI.FLAGS] = SMALL
-
-        rt[RT.DT] = dt0
-        # actuation phase of the temperature written during step 0: T(dt) for VX, T(0) for rl4design
-        tau = np.zeros(R) if self.rl4design else dt0
-        rt[RT.SIN] = np.sin(2 * math.pi * tau / config.temp_period)
-        rt[RT.COS] = np.cos(2 * math.pi * tau / config.temp_period)
-        ri[RI.STATUS] = RUNNING
-        ri[RI.VSTART], ri[RI.VEND] = layout.voxel_start[:-1], layout.voxel_start[1:]
-        ri[RI.LSTART], ri[RI.LEND] = layout.link_start[:-1], layout.link_start[1:]
-        ri[RI.PERIOD] = np.maximum(1, np.floor(config.temp_period / dt0)).astype(np.int32)
-        ri[RI.MAXSTEP] = self.max_steps
-        # step 0's snapshots (clock.robot_advance decides them for every later step, with the same arithmetic)
-        t_after = 0.0 + dt0
-        ri[RI.EVENTS] = (np.where(1 % ri[RI.PERIOD] == 0, EV_SAMPLE, 0)
-                         | np.where((0.0 <= config.burn_in) & (t_after > config.burn_in), EV_START, 0)
-                         | np.where((0.0 <= t_end) & (t_after > t_end), EV_END, 0))
-        host["mt"] = mt.astype(real)
-        host["lt"] = link_table(config).astype(real)
-
-        gp = np.zeros(GP.width)
-        gp[GP.BURN_IN] = config.burn_in
-        gp[GP.T_END] = t_end
-        gp[GP.GRAVITY] = config.gravity
-        gp[GP.TEMP_AMP] = config.temp_amplitude
-        gp[GP.TEMP_PERIOD] = config.temp_period
-        gp[GP.DT_FRAC] = config.dt_frac
-        gp[GP.MAX_STRAIN] = config.max_strain
-        ter_params, ter_grid = self.terrain.arrays()
-        for c, value in ter_params.items():
-            gp[getattr(GP, c)] = value
-
+        host = initial.tables
+        R = layout.num_robots
         self._arrays = arrays if arrays is not None else DeviceArrays()
         self._arrays.owner = self
         self._dev = {}
@@ -262,9 +154,10 @@ class Engine:
                                                                   self.order)
             self._upload(name, host[name])
         self.gp = self._arrays.vector("gp", np.float64, GP.width)
-        runtime.upload(self.gp, gp)
-        self.hf = self._arrays.vector("hf", np.dtype(self.np_real), ter_grid.size)  # one per terrain size
-        runtime.upload(self.hf, ter_grid.astype(self.np_real))
+        runtime.upload(self.gp, initial.globals)
+        grid = initial.height_grid
+        self.hf = self._arrays.vector("hf", np.dtype(self.np_real), grid.size)  # one per terrain size
+        runtime.upload(self.hf, grid.astype(self.np_real))
         # robots schedule: a work counter, and one worker per CPU thread
         self._queue = self._arrays.vector("queue", np.int32, 1)
         self._workers = max(1, min(R, runtime.num_threads()))
