@@ -68,10 +68,8 @@ def serial_on_cpu(device: torch.device | str) -> Iterator[None]:
 
     Why: the design env and the body functions issue many small, memory-bound ops (10⁴–10⁶ elements) where
     torch's intra-op threads gain little, and on a shared CPU they cost a lot — an OpenMP region waits for its
-    slowest thread, and a descheduled one stalls it. Measured on the shared 2-core machine (load ≈ 8): cloning one
-    [256, 20, 20, 20] uint8 grid took 20 ms with 2 threads and 0.17 ms with 1; ``bodies_and_metrics`` on 256 grids
-    1.4 s vs 0.3 s. The thread count is process-wide, so other Python threads running torch ops meanwhile also run
-    serially.
+    slowest thread, and a descheduled one stalls it (measured: docs/design_env.md). The thread count is
+    process-wide, so other Python threads running torch ops meanwhile also run serially.
     """
     if torch.device(device).type != "cpu" or torch.get_num_threads() == 1:
         yield

@@ -71,7 +71,8 @@ class VoxelActorCritic(nn.Module):
     state-dependent and unclamped. Critic: Linear(h→h) → ReLU → Linear(h→1).
 
     ``trunk="fast"`` computes the two convolutions as sparse-matrix products without building the one-hot tensor
-    (``freeform.agents.fast_trunk``; ≈ 6× faster training steps on a CPU); ``trunk="conv"`` runs the plain
+    (``freeform.agents.fast_trunk``; its speed against ``nn.Conv3d``: ``python -m benchmarks ppo``, docs/ppo.md);
+    ``trunk="conv"`` runs the plain
     ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere, where the
     sparse path's speed was not measured. All read the same parameters (``conv1``, ``conv2``), so state dicts are
     interchangeable, and a test pins the two computations equal (outputs and gradients).

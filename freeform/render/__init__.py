@@ -4,8 +4,8 @@ Everything here is a small orthographic rasteriser on top of Pillow (already ins
 TensorBoard): the visible faces of the voxels are built as one numpy array of quads, sorted back to front
 (painter's algorithm — exact enough for unit cubes on a grid, and for the slightly rotated cubes of a gait), shaded
 with one directional light, and filled with Pillow's C polygon filler at twice the size, then box-filtered down
-(anti-aliasing). A 20³ design renders in about 10 ms, so logging a few images every few epochs costs nothing
-measurable (``benchmarks/bench_render.py``).
+(anti-aliasing): cheap enough to log a few images every few epochs (``python -m benchmarks render``,
+docs/rendering.md).
 
 Colours are the paper's (its figures 1-2): passive tissue blue, muscle A green, muscle B red; the voxels of the
 final grid that are *not* in the body (the largest connected component) are drawn translucent grey, as in the

@@ -232,8 +232,8 @@ class VideoConfig:
 
     seconds: float = 1.5
     """Simulated seconds shown (from t = 0: settling, then the gait; 6 actuation periods at 4 Hz). Short because
-    training simulates it every ``render_every`` epochs: 2 s cost 5.6 % of a locomotion CPU-demo epoch at
-    ``render_every=10``, over the 5 % budget (``python -m benchmarks render``)."""
+    training simulates it every ``render_every`` epochs, within the 5 % of an epoch renders may cost
+    (``python -m benchmarks render``, docs/rendering.md)."""
     fps: float = 20.0
     """Frames per simulated second, and the playback rate (real time)."""
     size: int = 192

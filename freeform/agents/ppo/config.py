@@ -64,14 +64,14 @@ class PPOConfig:
     adam_eps: float = 1e-8
     """Adam's ε (torch's default 1e-8; CleanRL 1e-5)."""
     fused_adam: bool = False
-    """Adam as one fused kernel (CPU or GPU): ≈ 30 % faster steps of small networks, the same update up to float
-    rounding (not bit-identical to the default multi-tensor Adam, which is). Off for the paper."""
+    """Adam as one fused kernel (CPU or GPU): fewer operations per step of a small network (the speed: docs/ppo.md),
+    the same update up to float rounding (not bit-identical to the default multi-tensor Adam). Off for the paper."""
     compile: bool = False
     """Hand the minibatch loss (:func:`minibatch_loss`: the policy's forward pass, the losses and, through autograd,
     their backward) to ``torch.compile``. For long runs of small networks on the CPU, where each of a minibatch's
-    ≈ 100 operations costs more than its arithmetic: a few seconds of compiling at the first update, then a 500k-step
-    CleanRL-preset HalfCheetah run 4–13 % shorter (``docs/ppo.md``). Other rounding than eager; needs a C++ compiler.
-    Off by default."""
+    ≈ 100 operations costs more than its arithmetic: a few seconds of compiling at the first update, then shorter
+    steps (measured: ``python -m benchmarks gym``, docs/ppo.md). Other rounding than eager; needs a C++ compiler. Off
+    by default."""
     obs_norm: bool = False
     """Normalise observations by their running mean/variance (over all envs, updated every step), clipped to
     ±``obs_clip``; the statistics are saved in checkpoints and applied by ``act``. Off for the paper."""
