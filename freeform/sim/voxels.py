@@ -271,6 +271,66 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
                 set3(vr, VR.PEND, v, pos)
                 set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
 
+    # ------------------------------------------------------------ contact: the step's translation with the ground
+    @ti.func
+    def flat_floor_step(mt: ti.template(), mat, size, pos, mom, force, vel, dt, minv, static, sw: ti.template()):
+        """Voxelyze's flat floor, its own code (results bit for bit those of the simulator before terrain): the floor
+        force and friction, the momentum and position update, and the stop test. -> (pos, mom, static, touching)."""
+        touching = False
+        pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
+        fric = vec3(0.0, 0.0, 0.0)
+        if ti.static(sw.floor != 0):
+            force, fric, static = floor_force(mt, mat, force, vel, pen, static)
+        mom += force * dt
+        delta = mom * (dt * minv)
+        if ti.static(sw.floor != 0):
+            touching = pen >= 0.0
+        if touching:
+            # work-energy stop test: friction would reverse the horizontal motion within this step
+            work = fric[0] * delta[0] + fric[1] * delta[1]
+            hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
+            if hke + work <= 0.0:
+                static = True
+            if static:
+                mom[0] = 0.0
+                mom[1] = 0.0
+                delta[0] = 0.0
+                delta[1] = 0.0
+        else:
+            static = False
+        pos += delta
+        return pos, mom, static, touching
+
+    @ti.func
+    def terrain_step(mt: ti.template(), gp: ti.template(), hf: ti.template(), mat, size, pos, mom, force, vel, dt,
+                     minv, static, sw: ti.template()):
+        """The same model along the terrain's local surface normal n ("horizontal" becomes tangential).
+        -> (pos, mom, static, touching)."""
+        touching = False
+        dist, n = ground(gp, hf, pos, sw.terrain)
+        pen = 0.5 * size - dist
+        fric = vec3(0.0, 0.0, 0.0)
+        if ti.static(sw.floor != 0):
+            force, fric, static = terrain_contact(mt, mat, force, vel, pen, n, static)
+        mom += force * dt
+        delta = mom * (dt * minv)
+        if ti.static(sw.floor != 0):
+            touching = pen >= 0.0
+        if touching:
+            work = fric.dot(delta)
+            mn = mom.dot(n)
+            mt_ = mom - mn * n
+            hke = 0.5 * mt_.dot(mt_) * minv
+            if hke + work <= 0.0:
+                static = True
+            if static:
+                mom = mn * n
+                delta = delta.dot(n) * n
+        else:
+            static = False
+        pos += delta
+        return pos, mom, static, touching
+
     # ------------------------------------------------------------ the voxel update (spec section 9)
     @ti.func
     def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
@@ -308,53 +368,11 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             static = (flags & STATIC) != 0
             touching = False
             if ti.static(sw.terrain == FLAT):
-                # Voxelyze's flat floor, its own code (results bit for bit those of the simulator before terrain)
-                pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
-                fric = vec3(0.0, 0.0, 0.0)
-                if ti.static(sw.floor != 0):
-                    force, fric, static = floor_force(mt, mat, force, vel, pen, static)
-                mom += force * dt
-                delta = mom * (dt * minv)
-                if ti.static(sw.floor != 0):
-                    touching = pen >= 0.0
-                if touching:
-                    # work-energy stop test: friction would reverse the horizontal motion within this step
-                    work = fric[0] * delta[0] + fric[1] * delta[1]
-                    hke = 0.5 * (mom[0] * mom[0] + mom[1] * mom[1]) * minv
-                    if hke + work <= 0.0:
-                        static = True
-                    if static:
-                        mom[0] = 0.0
-                        mom[1] = 0.0
-                        delta[0] = 0.0
-                        delta[1] = 0.0
-                else:
-                    static = False
-                pos += delta
+                pos, mom, static, touching = flat_floor_step(mt, mat, size, pos, mom, force, vel, dt, minv, static,
+                                                             sw)
             else:
-                # the same model along the local surface normal n: "horizontal" becomes tangential
-                dist, n = ground(gp, hf, pos, sw.terrain)
-                pen = 0.5 * size - dist
-                fric = vec3(0.0, 0.0, 0.0)
-                if ti.static(sw.floor != 0):
-                    force, fric, static = terrain_contact(mt, mat, force, vel, pen, n, static)
-                mom += force * dt
-                delta = mom * (dt * minv)
-                if ti.static(sw.floor != 0):
-                    touching = pen >= 0.0
-                if touching:
-                    work = fric.dot(delta)
-                    mn = mom.dot(n)
-                    mt_ = mom - mn * n
-                    hke = 0.5 * mt_.dot(mt_) * minv
-                    if hke + work <= 0.0:
-                        static = True
-                    if static:
-                        mom = mn * n
-                        delta = delta.dot(n) * n
-                else:
-                    static = False
-                pos += delta
+                pos, mom, static, touching = terrain_step(mt, gp, hf, mat, size, pos, mom, force, vel, dt, minv,
+                                                          static, sw)
             amom += moment * dt
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
