@@ -9,7 +9,8 @@
 #                                        # .whl/, gathered by ../shared/device/gather-wheels.sh and carried along)
 #   scripts/gpu_check.sh OUTDIR --cpu    # the rehearsal on a CPU machine: every step at small sizes (< 10 min)
 #
-# PYTHON picks the interpreter (default python3; `PYTHON=.venv/bin/python` here).
+# PYTHON picks the interpreter (default python3; `PYTHON=.venv/bin/python` here). FREEFORM_BACKEND=quadrants measures
+# the other backend (carry quadrants' wheel instead of taichi's: the two do not fit the 64 MiB carry together).
 set -uo pipefail
 out=${1:?usage: scripts/gpu_check.sh OUTDIR [--cpu]}
 mode=${2:-}
