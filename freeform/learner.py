@@ -15,6 +15,7 @@ episodes an epoch finished are handed over in the design records' layout (``free
     rewards      [E]       float32   the episode's return: what the task scored, never a scaled or shaped reward
     final_grids  [E, ρ, ρ, ρ] uint8  the designs
     metrics      {name: [E] float32} body metrics (``freeform.body``)
+    yaw          [E]       int8      the placement the task scored, quarter turns (0: as designed; optional)
     infos        [dict]              the environment's own info dicts of the finishing steps (``bodies`` ...)
 """
 

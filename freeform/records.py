@@ -16,6 +16,9 @@ key                 shape / dtype               meaning
 ``rewards``         ``[E] float32``             episode return (the terminal reward with the paper's task)
 ``values``          ``[E, T] float32``          critic's V(s_t), t = 0 … T−1, as computed in the rollout
 ``metric_<name>``   ``[E] float32``             body metrics (``freeform.body``), e.g. ``metric_volume``
+``yaw``             ``[E] int8``                the placement the task scored, quarter turns counterclockwise
+                                                seen from above (``task.options.placements``; 0 = as designed;
+                                                records without it read as 0)
 ``epoch``           ``[] int64``                epoch index e
 ``global_step``     ``[] int64``                environment steps (all environments) after the epoch
 ==================  ==========================  ======================================================
@@ -51,9 +54,14 @@ class EpochRecord:
     rewards: np.ndarray
     values: np.ndarray
     metrics: dict[str, np.ndarray] = field(default_factory=dict)
+    yaw: np.ndarray | None = None
+    """``[E]`` quarter turns of each body's scored placement; None = all 0 (as designed)."""
 
     def __post_init__(self) -> None:
         e = len(self.rewards)
+        self.yaw = np.zeros(e, np.int8) if self.yaw is None else np.asarray(self.yaw).astype(np.int8)
+        if self.yaw.shape != (e,):
+            raise ValueError(f"yaw must be [E={e}], got shape {self.yaw.shape}")
         if self.actions.ndim != 3 or len(self.actions) != e:
             raise ValueError(f"actions must be [E={e}, T, A], got shape {self.actions.shape}")
         if self.final_grids.ndim != 4 or len(self.final_grids) != e:
@@ -92,6 +100,7 @@ def write_record(run_dir: str | os.PathLike[str], record: EpochRecord) -> Path:
         "values": record.values.astype(np.float32, copy=False),
         "epoch": np.asarray(record.epoch, dtype=np.int64),
         "global_step": np.asarray(record.global_step, dtype=np.int64),
+        "yaw": np.asarray(record.yaw, dtype=np.int8),
     }
     for name, m in record.metrics.items():
         arrays[_METRIC_PREFIX + name] = m.astype(np.float32, copy=False)
@@ -117,6 +126,7 @@ def read_record(path: str | os.PathLike[str]) -> EpochRecord:
         rewards=arrays["rewards"],
         values=arrays["values"],
         metrics={k[len(_METRIC_PREFIX) :]: v for k, v in arrays.items() if k.startswith(_METRIC_PREFIX)},
+        yaw=arrays.get("yaw"),  # (records written before placements have none: as designed)
     )
 
 
@@ -162,7 +172,8 @@ class EpisodeCollector:
         ``reward_norm``, shaped with ``dense_every``).
 
         Returns ``None`` when no episode finished, else numpy arrays: ``actions [E, T, A]``, ``values [E, T]``,
-        ``rewards [E]`` (returns), ``final_grids [E, ρ, ρ, ρ] uint8``, ``metrics`` {name: [E]}, E = N · finishes.
+        ``rewards [E]`` (returns), ``final_grids [E, ρ, ρ, ρ] uint8``, ``yaw [E] int8`` (``info["yaw"]``, else 0),
+        ``metrics`` {name: [E]}, E = N · finishes.
         """
         steps = {k: _field(rollout, k).detach() for k in ("actions", "values")}
         returns = _field(rollout, "episode_returns").detach()  # [T, N]
@@ -179,7 +190,8 @@ class EpisodeCollector:
             offset = len(self._carry["actions"])
         else:
             offset = 0
-        episodes: dict[str, list[np.ndarray]] = {"actions": [], "values": [], "rewards": [], "final_grids": []}
+        episodes: dict[str, list[np.ndarray]] = {"actions": [], "values": [], "rewards": [], "final_grids": [],
+                                                 "yaw": []}
         metrics: dict[str, list[np.ndarray]] = {}
         start = 0
         for row, info in zip(rows, episode_infos, strict=True):
@@ -188,6 +200,8 @@ class EpisodeCollector:
             episodes["values"].append(_np(steps["values"][start:stop].transpose(0, 1)))  # [N, T]
             episodes["rewards"].append(_np(returns[row]))  # [N]
             episodes["final_grids"].append(_np(info["final_grids"]).astype(np.uint8))
+            yaw = info.get("yaw")
+            episodes["yaw"].append(np.zeros(len(returns[row]), np.int8) if yaw is None else _np(yaw).astype(np.int8))
             for name, value in (info.get("metrics") or {}).items():
                 metrics.setdefault(name, []).append(_np(torch.as_tensor(value)).astype(np.float32))
             start = stop

@@ -6,14 +6,14 @@ on first use, so the core install never imports Gymnasium.
 
 from typing import Any
 
-from freeform.envs.base import ReportsStats, StatefulVecEnv, Task, VecEnv
+from freeform.envs.base import ReportsPlacement, ReportsStats, StatefulVecEnv, Task, VecEnv
 from freeform.envs.dense import DenseDesignReward
 from freeform.envs.design import DesignEnv
 from freeform.envs.tasks import LocomotionTask, VolumeTask
 from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
-    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "DesignEnv", "VolumeTask", "LocomotionTask",
+    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask",
     "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "from_gymnasium", "to_gymnasium",
 ]
 

@@ -75,3 +75,12 @@ class ReportsStats(Protocol):
     ``perf/sim_seconds``); the trainer logs them every epoch (summed over ranks; times by max)."""
 
     stats: Mapping[str, float]
+
+
+@runtime_checkable
+class ReportsPlacement(Protocol):
+    """A task that may place a body other than as designed (``placements`` yaw rotations,
+    ``freeform.envs.tasks.SimulatedTask``): ``yaw [N]`` int, each body's placement in quarter turns after the last
+    ``reward`` call. The design env passes it on as ``info["yaw"]``; records and renders keep it."""
+
+    yaw: torch.Tensor

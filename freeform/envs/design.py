@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from freeform.body import bodies_and_metrics, check_grids, largest_component, serial_on_cpu
-from freeform.envs.base import Task
+from freeform.envs.base import ReportsPlacement, Task
 from freeform.envs.tasks import VolumeTask
 
 __all__ = ["DesignEnv"]
@@ -167,6 +167,8 @@ class DesignEnv:
         else:
             reward = self.task.reward(final_grids)
         reward = torch.as_tensor(reward, dtype=torch.float32).to(self.device)
+        if isinstance(self.task, ReportsPlacement):  # each body as the task placed it (quarter turns)
+            info["yaw"] = self.task.yaw.to(self.device)
         if tuple(reward.shape) != (m,):
             raise ValueError(
                 f"task.reward must return one reward per grid, shape [{m}], got {list(reward.shape)}"

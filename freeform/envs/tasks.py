@@ -46,6 +46,12 @@ class SimulatedTask:
     A subclass says what it asks of the simulator (:meth:`simulate_options`) and how a result becomes rewards
     (:meth:`score`).
 
+    ``placements`` k places each body at k yaw rotations about the vertical axis (1: as designed; 2: and turned
+    half-way; 4: every quarter turn, counterclockwise seen from above), all simulated in the same batch (a batch
+    gives every robot its solo result), and scores it at its best: placement is part of the experiment, as for a
+    physical robot. It costs k simulated robots per body. After each call :attr:`yaw` holds each body's chosen
+    placement in quarter turns ``[N]`` (0 for an empty body; the first best on ties).
+
     After each :meth:`reward` call, :attr:`stats` holds the call's figures as TensorBoard tags:
     ``perf/sim_seconds`` (wall time of the simulate call), ``perf/voxel_steps_per_second`` (simulated voxels ×
     steps / that time), ``stats/sim_diverged`` (robots that scored 0 by failing: diverged or stalled),
@@ -53,16 +59,21 @@ class SimulatedTask:
     """
 
     def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
-                 simulator: Any = None) -> None:
+                 simulator: Any = None, placements: int = 1) -> None:
         """
         Args:
             sim: a ``freeform.sim.SimConfig`` (default: the paper's materials and protocol, Voxelyze semantics).
             device: where the rewards are returned (default: the final grids' device).
             arch: backend of the simulator: "auto" (CUDA when present), "cpu" or "cuda".
             simulator: a ready ``freeform.sim.Simulator`` (overrides ``sim`` and ``arch``; tests use it).
+            placements: yaw rotations each body is tried at, 1 | 2 | 4 (class docstring).
         """
         from freeform.sim import SimConfig, Simulator
 
+        if placements not in PLACEMENTS:
+            raise ValueError(f"placements must be one of {PLACEMENTS} (yaw rotations tried per body), got {placements!r}")
+        self.placements = int(placements)
+        self.yaw = torch.zeros(0, dtype=torch.int64)
         if simulator is None:
             if arch not in ARCHS:
                 raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
@@ -93,24 +104,36 @@ class SimulatedTask:
         device = self.device if self.device is not None else final_grids.device
         volume = (bodies != 0).reshape(bodies.shape[0], -1).sum(dim=1)
         reward = torch.zeros(bodies.shape[0], dtype=torch.float32, device=device)
+        self.yaw = torch.zeros(bodies.shape[0], dtype=torch.int64, device=device)
         live = torch.nonzero(volume > 0).flatten()
+        k = self.placements
         self.stats = {"perf/sim_seconds": 0.0, "perf/voxel_steps_per_second": 0.0, "stats/sim_diverged": 0.0,
-                      "stats/sim_stalled": 0.0, "stats/sim_bodies": float(live.numel())}
+                      "stats/sim_stalled": 0.0, "stats/sim_bodies": float(k * live.numel())}
         if live.numel() == 0:  # nothing to simulate: every body is empty
             return reward
+        turns = [q * (4 // k) for q in range(k)]  # quarter turns of each placement
+        candidates = torch.cat([torch.rot90(bodies[live], q, dims=(1, 2)) for q in turns])  # [k·L, ...] placement-major
         t0 = time.perf_counter()
-        result = self.simulator.simulate(bodies[live], **self.simulate_options())
+        result = self.simulator.simulate(candidates, **self.simulate_options())
         seconds = time.perf_counter() - t0
         score = self.score(result).to(device, torch.float32)
         failed = (result.diverged | result.stalled).to(device) | ~torch.isfinite(score)
-        reward[live.to(device)] = torch.where(failed, 0.0, score)
-        voxel_steps = float((volume[live].cpu().to(torch.float64) * result.steps.to(torch.float64)).sum())
+        scores = torch.where(failed, 0.0, score).reshape(k, live.numel())
+        best = scores.argmax(dim=0)  # the first best placement on ties (the design's own when all equal)
+        reward[live.to(device)] = scores.gather(0, best[None]).squeeze(0)
+        self.yaw[live.to(device)] = torch.tensor(turns, device=device)[best]
+        volume_k = volume[live].cpu().to(torch.float64).repeat(k)
+        voxel_steps = float((volume_k * result.steps.to(torch.float64)).sum())
         self.stats.update({"perf/sim_seconds": seconds,
                            "perf/voxel_steps_per_second": voxel_steps / max(seconds, 1e-12),
                            "stats/sim_diverged": float(failed.sum()),
                            "stats/sim_stalled": float(result.stalled.sum())})
         return reward
 
+
+PLACEMENTS = (1, 2, 4)
+"""The yaw placements a simulated task may try per body (``placements``): as designed, also turned half-way, or
+every quarter turn."""
 
 MEASURES = ("max_voxel", "com")
 """What :class:`LocomotionTask` rewards: the largest voxel displacement (the paper's) or the centre of mass's."""
@@ -127,7 +150,8 @@ class LocomotionTask(SimulatedTask):
     """
 
     def __init__(self, sim: Any = None, device: str | torch.device | None = None, arch: str = "auto",
-                 min_reward: float = 1e-3, simulator: Any = None, measure: str | None = None) -> None:
+                 min_reward: float = 1e-3, simulator: Any = None, measure: str | None = None,
+                 placements: int = 1) -> None:
         """``min_reward``: rewards below it become 0 (spec: 1e-3 voxel lengths); ``measure``: ``"max_voxel"`` |
         ``"com"`` (None: the deprecated ``sim.reward``, whose default is the paper's max_voxel); the rest as
         :class:`SimulatedTask`."""
@@ -135,7 +159,7 @@ class LocomotionTask(SimulatedTask):
             raise ValueError(f"min_reward must be >= 0, got {min_reward}")
         if measure is not None and measure not in MEASURES:
             raise ValueError(f"measure must be one of {MEASURES}, got {measure!r}")
-        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator)
+        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator, placements=placements)
         self.min_reward = float(min_reward)
         if measure is None and self.sim_config.reward != "max_voxel":
             warnings.warn(f"sim.reward={self.sim_config.reward!r} is deprecated: the task chooses its measure "

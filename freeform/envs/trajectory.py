@@ -121,13 +121,14 @@ class TrajectoryTask(SimulatedTask):
     """
 
     def __init__(self, reward_fn: RewardFn | str, sim: Any = None, trace_every: float = 0.02,
-                 device: str | torch.device | None = None, arch: str = "auto", simulator: Any = None) -> None:
+                 device: str | torch.device | None = None, arch: str = "auto", simulator: Any = None,
+                 placements: int = 1) -> None:
         """
         Args:
             reward_fn: ``(trace) -> [B]`` rewards (torch), or a name in ``TRAJECTORY_REWARDS``.
             sim: a ``freeform.sim.SimConfig`` (its ``terrain`` is the ground; default: flat, the paper's protocol).
             trace_every: seconds between trace samples.
-            device, arch, simulator: as :class:`freeform.envs.tasks.SimulatedTask`.
+            device, arch, simulator, placements: as :class:`freeform.envs.tasks.SimulatedTask`.
         """
         if isinstance(reward_fn, str):
             if reward_fn not in TRAJECTORY_REWARDS:
@@ -135,7 +136,7 @@ class TrajectoryTask(SimulatedTask):
             reward_fn = TRAJECTORY_REWARDS[reward_fn]
         if not trace_every > 0:
             raise ValueError(f"trace_every must be > 0 seconds, got {trace_every}")
-        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator)
+        super().__init__(sim=sim, device=device, arch=arch, simulator=simulator, placements=placements)
         self.reward_fn = reward_fn
         self.trace_every = float(trace_every)
         self.last_trace: Any = None

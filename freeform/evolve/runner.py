@@ -98,6 +98,7 @@ class Evolution:
             "rewards": _np(rewards.to(torch.float32)),
             "final_grids": _np(info["final_grids"]).astype(np.uint8),
             "metrics": {k: _np(torch.as_tensor(v)).astype(np.float32) for k, v in (info.get("metrics") or {}).items()},
+            "yaw": _np(info["yaw"]).astype(np.int8) if "yaw" in info else np.zeros(n, np.int8),
             "infos": [info],
         }
         return {

@@ -224,7 +224,8 @@ class Trainer:
         if episodes is not None and self.cfg.trainer.record_designs:
             self.dir.write_record(EpochRecord(epoch=epoch, global_step=learner.global_step, actions=episodes["actions"],
                                               final_grids=episodes["final_grids"], rewards=episodes["rewards"],
-                                              values=episodes["values"], metrics=episodes["metrics"]))
+                                              values=episodes["values"], metrics=episodes["metrics"],
+                                              yaw=episodes.get("yaw")))
             if self.dir.failure is not None:
                 return
         body = {k: float(v.mean()) for k, v in episodes["metrics"].items()} if episodes else {}
