@@ -76,6 +76,19 @@ class EpochRecord:
     def num_episodes(self) -> int:
         return len(self.rewards)
 
+    def placed_grids(self) -> np.ndarray:
+        """``final_grids`` turned to the placement each body was scored at (:func:`placed`)."""
+        return placed(self.final_grids, self.yaw)
+
+
+def placed(grids: np.ndarray, yaw: np.ndarray | None) -> np.ndarray:
+    """Grids ``[E, X, Y, Z]`` turned by ``yaw [E]`` quarter turns about the vertical axis (counterclockwise seen from
+    above, as the task placed them: ``torch.rot90(..., dims=(1, 2))``); ``yaw`` None or all 0: the grids as they
+    are. What renders and exports draw, so a picture shows the robot as it was scored."""
+    if yaw is None or not np.any(yaw):
+        return grids
+    return np.stack([np.rot90(g, int(q), axes=(0, 1)) for g, q in zip(grids, yaw, strict=True)])
+
 
 def record_path(run_dir: str | os.PathLike[str], epoch: int) -> Path:
     """``<run_dir>/records/epoch_<epoch:06d>.npz``."""
@@ -222,6 +235,7 @@ class EpisodeCollector:
 
 __all__ = [
     "RECORDS_DIR",
+    "placed",
     "EpisodeCollector",
     "EpochRecord",
     "iter_records",

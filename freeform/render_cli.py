@@ -91,7 +91,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def read_designs(source: str | Path, epoch: int | None = None) -> tuple[np.ndarray, np.ndarray, int, Path]:
     """``(final_grids [E, ρ, ρ, ρ] uint8, rewards [E], epoch, run_dir)`` of a run directory's record of ``epoch``
-    (default: the last) or of one record file."""
+    (default: the last) or of one record file; each body turned to the placement it was scored at
+    (``EpochRecord.placed_grids``)."""
     from freeform.records import list_records, read_record, record_path
 
     source = Path(source)
@@ -114,7 +115,7 @@ def read_designs(source: str | Path, epoch: int | None = None) -> tuple[np.ndarr
         run_dir = source
     else:
         raise ValueError(f"run must be a run directory or a record file, got {str(source)!r} (not found)")
-    return record.final_grids, record.rewards.astype(np.float64), record.epoch, run_dir
+    return record.placed_grids(), record.rewards.astype(np.float64), record.epoch, run_dir
 
 
 def run_sim_config(run_dir: Path) -> Any:

@@ -184,8 +184,13 @@ def test_placements_are_checked_and_reach_the_records(tmp_path: Path) -> None:
     train(cfg, tmp_path / "run")
     record = read_record(tmp_path / "run" / "records" / "epoch_000000.npz")
     assert record.yaw.dtype == np.int8 and record.yaw.shape == (4,) and set(record.yaw.tolist()) <= {0, 1, 2, 3}
+    assert record.yaw.any()  # (seed 0: some body is scored turned, so the checks below see a turn)
     # the recorded reward is the body's at its recorded placement
     task = build_task(cfg, torch.device("cpu"))
     again = task.reward(torch.as_tensor(record.final_grids))
     assert task.yaw.tolist() == record.yaw.tolist()
     np.testing.assert_allclose(again.numpy(), record.rewards, rtol=1e-5, atol=1e-6)
+    # what renders and exports draw (the bodies as placed) scores the same with no placement search at all
+    cfg.task.options["placements"] = 1
+    as_placed = build_task(cfg, torch.device("cpu")).reward(torch.as_tensor(record.placed_grids()))
+    np.testing.assert_allclose(as_placed.numpy(), record.rewards, rtol=1e-5, atol=1e-6)

@@ -39,7 +39,7 @@ from freeform.config import TrainConfig, flatten, to_container, validate
 from freeform.envs.base import ReportsStats
 from freeform.learner import Episodes, Learner
 from freeform.logger import Logger
-from freeform.records import EpochRecord
+from freeform.records import EpochRecord, placed
 from freeform.run.build import build, resolve_device
 from freeform.run.resume import find_checkpoint, read_checkpoint
 from freeform.run.rundir import RunDir
@@ -81,7 +81,8 @@ def render_callback(every: int) -> EpochCallback:
             from freeform.render import log_bodies
         except ImportError as exc:
             raise ValueError("trainer.render_every > 0 needs freeform.render.log_bodies, not available") from exc
-        log_bodies(ctx.logger.writer, ctx.episodes["final_grids"], ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
+        grids = placed(ctx.episodes["final_grids"], ctx.episodes.get("yaw"))  # as each body was scored
+        log_bodies(ctx.logger.writer, grids, ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
 
     return callback
 
