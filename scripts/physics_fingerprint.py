@@ -25,15 +25,6 @@ ROOT = Path(__file__).resolve().parents[1]
 REC = 1.240490e-4  # VX recommendedTimeStep for ν = 0.35 (spec physics.md 15)
 
 
-def cpu_features() -> str:
-    """The vector features the CPU reports (CPUID, through numpy: an emulator's CPU, not the host's /proc)."""
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__ as features
-    except ImportError:  # numpy < 2
-        from numpy.core._multiarray_umath import __cpu_features__ as features
-    return " ".join(f for f in ("SSE42", "AVX", "FMA3", "AVX2", "AVX512F") if features.get(f))
-
-
 def simulate() -> dict[str, np.ndarray]:
     sys.path.insert(0, str(ROOT))
     from benchmarks.bench_sim import random_design_bodies
@@ -85,7 +76,7 @@ def main() -> None:
 
     results = simulate()
     path = f"{runtime.describe()}, fast-math {'on' if runtime.fast_math() else 'off'}"
-    host = f"CPU features: {cpu_features()}"
+    host = f"CPU features: {runtime.cpu_features()}"
     print(f"{host} | {path}")
     for key, value in results.items():
         print(f"  {key:44s} {digest(value)}")

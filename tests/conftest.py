@@ -23,21 +23,13 @@ def physics_path() -> str:
     reference = ("reference tests run (strict IEEE: host-independent)" if strict else
                  "reference tests skipped (they hold on the strict path, FREEFORM_FAST_MATH=0)")
     return (f"physics: {runtime.describe()} on the CPU, f32 and f64 (references: f64), fast-math "
-            f"{'off' if strict else 'on'} ({runtime.FAST_MATH_ENV_VAR}); {reference}; CPU {_cpu_features()}")
+            f"{'off' if strict else 'on'} ({runtime.FAST_MATH_ENV_VAR}); {reference}; CPU {runtime.cpu_features()}")
 
 
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     """Once per run, beside the results (also under -q): which physics path ran, so a failure on someone's
     machine reads at a glance."""
     terminalreporter.write_line(physics_path())
-
-
-def _cpu_features() -> str:
-    try:
-        from numpy._core._multiarray_umath import __cpu_features__ as features
-    except ImportError:  # numpy < 2
-        from numpy.core._multiarray_umath import __cpu_features__ as features
-    return "+".join(f for f in ("AVX", "FMA3", "AVX2", "AVX512F") if features.get(f)) or "without AVX"
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -20,7 +20,7 @@ from freeform.sim import runtime
 from freeform.sim.config import SimConfig, material_table
 from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
-from freeform.sim.schedules import ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
+from freeform.sim.schedules import FLAT_ARGS, ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     DIVERGED,
     DONE,
@@ -199,8 +199,7 @@ class Engine:
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
         k, d = self.kernels, self._dev
-        args = (d["vr"], d["vi"], d["lr"], d["li"], d["rt"], d["ri"], d["mt"], d["lt"], self.gp, self.hf,
-                self._trace, self.trace_steps)
+        args = (*(d[name] for name in TABLES), self.gp, self.hf, self._trace, self.trace_steps)
         n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
         if self.schedule == "robots":
             k.run_robots(*args, R, n_steps, self._queue, self._workers)
@@ -208,9 +207,7 @@ class Engine:
             left = n_steps
             launches = self.config.graph_launches
             if left >= launches * UNROLL and (graph := k.flat_graph(launches)) is not None:
-                names = ("vr", "vi", "lr", "li", "rt", "ri", "mt", "lt", "gp", "hf", "tr", "trace_steps")
-                bound = {**dict(zip(names, args, strict=True)), "n_voxels": n, "n_links": m, "n_robots": R,
-                         "n_steps": UNROLL}
+                bound = dict(zip(FLAT_ARGS, (*args, n, m, R, UNROLL), strict=True))
                 while left >= launches * UNROLL:
                     graph.run(bound)
                     left -= launches * UNROLL

@@ -100,6 +100,16 @@ def fast_math() -> bool:
     return flag == "1"
 
 
+def cpu_features() -> str:
+    """The host CPU's vector features that decide what the JIT emits under fast-math ("AVX+FMA3+AVX2+AVX512F"),
+    read through CPUID by numpy — an emulator's CPU, not the host's /proc (docs/physics.md, "Host independence")."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:  # numpy < 2
+        from numpy.core._multiarray_umath import __cpu_features__ as features
+    return "+".join(f for f in ("SSE42", "AVX", "FMA3", "AVX2", "AVX512F") if features.get(f)) or "without SSE4.2"
+
+
 class _Backend(types.ModuleType):
     """``ti``: forwards every attribute to the backend module (fixing it on first use). A module subclass, so that
     Taichi's and quadrants' AST front-ends resolve ``ti.func``, ``ti.static``... through it as through the module."""

@@ -26,7 +26,7 @@ from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
-from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, VI, VR, Switches
+from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, TABLES, VI, VR, Switches
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
@@ -34,6 +34,8 @@ SCHEDULES = ("auto", "robots", "flat")
 # the memory order each schedule reads best (access.py)
 ORDER_OF = {"robots": "aos", "flat": "soa"}
 UNROLL = 2  # steps per launch of the flat schedule
+# run_flat's arguments by name, in order: what a compute graph binds (flat_graph; Engine.advance)
+FLAT_ARGS = (*TABLES, "gp", "hf", "tr", "trace_steps", "n_voxels", "n_links", "n_robots", "n_steps")
 # The flat schedule's host cost is per launch (Python, argument marshalling): runs of this many launches go through
 # one compute graph (Taichi's ti.graph, dispatched from C++) where the backend has one; SimConfig.graph_launches.
 # Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
@@ -160,13 +162,11 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         return graphs[key]
 
     def _build_flat_graph(launches: int):
-        names = (("vr", VR), ("vi", VI), ("lr", LR), ("li", LI), ("rt", RT), ("ri", RI), ("mt", MT), ("lt", LT))
-        nd = ti.graph.ArgKind.NDARRAY
-        args = [acc.graph_arg(table, name) for name, table in names]
-        args += [ti.graph.Arg(nd, "gp", dtype=ti.f64, ndim=1), ti.graph.Arg(nd, "hf", dtype=num.real, ndim=1),
-                 ti.graph.Arg(nd, "tr", dtype=ti.f64, ndim=3)]
-        args += [ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=ti.i32)
-                 for name in ("trace_steps", "n_voxels", "n_links", "n_robots", "n_steps")]
+        nd, scalar = ti.graph.ArgKind.NDARRAY, ti.graph.ArgKind.SCALAR
+        other = {"gp": ti.graph.Arg(nd, "gp", dtype=ti.f64, ndim=1), "hf": ti.graph.Arg(nd, "hf", dtype=num.real, ndim=1),
+                 "tr": ti.graph.Arg(nd, "tr", dtype=ti.f64, ndim=3)}
+        args = [acc.graph_arg(TABLES[name], name) if name in TABLES else
+                other.get(name) or ti.graph.Arg(scalar, name, dtype=ti.i32) for name in FLAT_ARGS]
         builder = ti.graph.GraphBuilder()
         for _ in range(launches):
             builder.dispatch(run_flat, *args)

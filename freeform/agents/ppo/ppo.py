@@ -558,7 +558,8 @@ class PPO:
         it after every epoch (the trainer does); a collective when data-parallel."""
         if self._collected != self.epoch - 1 and self._collector.state_dict():
             raise ValueError(f"episodes() was not called after epochs {self._collected + 1}..{self.epoch - 1}, and an "
-                             "episode spans rollouts: its first steps are gone")
+                             "episode spans rollouts: its first steps are gone; call episodes() after every "
+                             "train_epoch() (or set rollout_steps to a multiple of the episode length)")
         self._collected = self.epoch
         rollout, infos = self.dp.gather_rollout(self.rollout, self.episode_infos)
         episodes = self._collector.collect(rollout, infos)
