@@ -8,7 +8,7 @@ import torch
 
 from freeform.sim import Material, SimConfig, Simulator, build_layout, recommended_dt
 from freeform.sim.schedules import resolve_schedule
-from freeform.sim.state import DIVERGED, LT, RUNNING, VR
+from freeform.sim.state import BUFFERS, DIVERGED, LT, RUNNING, VR
 
 
 def short(**kw) -> SimConfig:
@@ -402,12 +402,12 @@ def test_device_arrays_are_reused_across_batches():
             np.testing.assert_array_equal(getattr(reused, name).numpy(), getattr(fresh, name).numpy())
     now = sim.arrays.arrays()
     assert sim.arrays.allocations == allocated and all(now[k] is a for k, a in first.items())
-    sim.simulate(np.concatenate([g, g, g]))  # 3× the voxels, links and robots: outgrows every per-item table
+    sim.simulate(np.concatenate([g, g, g]))  # 3× the voxels, links and robots: outgrows every buffer
     grown = sim.arrays.arrays()
     assert sim.arrays.allocations > allocated
-    for key, a in first.items():
-        per_item = key[0] in ("vr", "vi", "lr", "li", "rt", "ri")  # material tables and parameters keep theirs
-        assert (grown[key] is not a) == per_item, key
+    for name in BUFFERS:  # each buffer holds per-item tables
+        key = next(k for k in first if k[0] == name)
+        assert grown[key] is not first[key], key
 
 
 def test_engine_on_arrays_taken_over_refuses_to_run():

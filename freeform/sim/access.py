@@ -1,22 +1,23 @@
 """How kernels reach the state: the precision's types and the memory order, both compile-time parameters.
 
 ``make_numbers(precision)``: the real type, 3- and 4-vectors of it, whether the arithmetic follows Voxelyze
-exactly (f64), and ``nonfinite(x)``. ``make_access(order)``: the kernel-argument type of a ``state.Table`` and
-``ld/st/get3/set3/get4/set4`` — the one place that knows the order:
+exactly (f64), and ``nonfinite(x)``. ``make_access(order)``: the kernels' buffer arguments (``state.BUFFERS``, regions placed by ``packing.py``), the
+``State`` bundle the physics funcs take, and ``ld/st/get3/set3/get4/set4`` — the one place that knows the order:
 
-* "soa": ``[columns, items]``; item i of column c at ``c·items + i``, so neighbouring threads read neighbouring
+* "soa": ``[columns, items]``; item i of column c at ``c·stride + i``, so neighbouring threads read neighbouring
   addresses (the GPU's flat schedule);
-* "aos": a 1-D ndarray of ``columns``-vectors, one item's columns together; the row length is a compile-time
-  constant, so an item's address is computed once rather than per access (the CPU's per-robot schedule).
+* "aos": one item's columns together; the row length is a compile-time constant, so an item's address is
+  computed once rather than per access (the CPU's per-robot schedule).
 """
 
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
 
 import functools
+import warnings
 from types import SimpleNamespace
 
 from freeform.sim.runtime import ti
-from freeform.sim.state import F64, I32
+from freeform.sim.state import BUFFERS, F64, GP, HDR, I32, TABLES
 
 ORDERS = ("soa", "aos")
 PRECISIONS = ("f32", "f64")
@@ -53,62 +54,116 @@ def element_type(dtype: str, precision: str):
     return ti.f64 if dtype == F64 else make_numbers(precision).real
 
 
+class View:
+    """One region of a buffer as the kernels see it (built while a kernel compiles; a template argument of the
+    ``ti.func``s): the buffer, the header vector ``h`` loaded from it, and the static indices of this region's
+    start and stride in ``h``. ``width`` and ``aos`` are compile-time constants."""
+
+    def __init__(self, buf, h, name: str, width: int, aos: bool):
+        self.buf, self.h, self.width, self.aos = buf, h, width, aos
+        self.at, self.stride = getattr(HDR, f"{name.upper()}_AT"), getattr(HDR, f"{name.upper()}_STRIDE")
+
+
+class State:
+    """The whole simulation state by name, as one template argument: ``s.vr`` … ``s.lt`` (``state.TABLES``),
+    ``s.gp`` (GP, item 0), ``s.hf`` (height grid, column 0), ``s.tr`` (the trace), ``s.h`` (the header) and
+    ``s.sw`` (``state.Switches``, compile-time)."""
+
+    def __init__(self, buffers: dict, h, sw, aos: bool):
+        self.h, self.sw = h, sw
+        for buffer, names in BUFFERS.items():
+            for name in names:
+                if name == "hdr":
+                    continue
+                table = TABLES.get(name)
+                width = table.width if table is not None else (GP.width if name == "gp" else 1)
+                setattr(self, name, View(buffers[buffer], h, name, width, aos and table is not None))
+
+
 @functools.cache
 def make_access(precision: str, order: str) -> SimpleNamespace:
-    """Array argument types and accessors for memory ``order`` ("soa" | "aos")."""
+    """The buffers' argument types and the accessors for memory ``order`` ("soa" | "aos"): ``header(ints)`` (a
+    func: the header as a vector, loaded once per thread and item), ``bind(reals, ints, f64s, h, sw)`` (the
+    ``State`` the physics funcs take) and ``ld/st/get3/set3/get4/set4`` on a ``View``."""
     if order not in ORDERS:
         raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
     aos = order == "aos"
     num = make_numbers(precision)
+    dtypes = {"reals": num.real, "ints": ti.i32, "f64s": ti.f64}
+    Buffer = {name: ti.types.ndarray(dtype=dtype, ndim=1) for name, dtype in dtypes.items()}
 
-    def arg(table):
-        """Kernel argument type of ``table``'s array: ``[columns, items]`` (soa), or ``[items]`` of
-        ``columns``-vectors (aos)."""
-        dtype = element_type(table.dtype, precision)
-        if aos:
-            return ti.types.ndarray(dtype=ti.types.vector(table.width, dtype), ndim=1)
-        return ti.types.ndarray(dtype=dtype, ndim=2)
-
-    def graph_arg(table, name: str):
-        """The compute-graph placeholder (``ti.graph.Arg``) of an :func:`arg` of ``table`` named ``name``."""
-        dtype = element_type(table.dtype, precision)
-        if aos:
-            return ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=dtype, ndim=1, element_shape=(table.width,))
-        return ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=dtype, ndim=2)
+    def graph_arg(buffer: str):
+        """The compute-graph placeholder (``ti.graph.Arg``) of buffer argument ``buffer``."""
+        return ti.graph.Arg(ti.graph.ArgKind.NDARRAY, buffer, dtype=dtypes[buffer], ndim=1)
 
     @ti.func
-    def ld(a: ti.template(), c, i):
-        if ti.static(aos):
-            return a[i][c]
+    def header(ints: ti.template()):
+        return ti.Vector([ints[k] for k in ti.static(range(HDR.width))], dt=ti.i32)
+
+    def bind(reals, ints, f64s, h, sw) -> State:
+        """The ``State`` of these buffers; a plain Python call while the kernel compiles (it builds views and emits
+        no code), which Taichi would warn about as a call it does not transform: that warning is silenced below."""
+        return State({"reals": reals, "ints": ints, "f64s": f64s}, h, sw, aos)
+
+    warnings.filterwarnings("ignore", message=r'.*Calling non-(taichi|quadrants) function "bind"',
+                            category=SyntaxWarning)
+
+    @ti.func
+    def index(t: ti.template(), c, i):
+        """Element of column ``c`` of item ``i`` in region ``t``."""
+        at = 0
+        if ti.static(t.aos):
+            at = (t.h[t.at] + i * t.width) + c  # (the item's start is shared by all its columns' accesses)
         else:
-            return a[c, i]
+            at = (t.h[t.at] + i) + c * t.h[t.stride]
+        return at
 
     @ti.func
-    def st(a: ti.template(), c: ti.template(), i, x):
-        if ti.static(aos):
-            a[i][c] = x
-        else:
-            a[c, i] = x
+    def ld(t: ti.template(), c, i):
+        return t.buf[index(t, c, i)]
 
     @ti.func
-    def get3(a: ti.template(), c: ti.template(), i):
-        return num.vec3(ld(a, c, i), ld(a, c + 1, i), ld(a, c + 2, i))
+    def st(t: ti.template(), c, i, x):
+        t.buf[index(t, c, i)] = x
 
     @ti.func
-    def set3(a: ti.template(), c: ti.template(), i, x):
-        st(a, c, i, x[0])
-        st(a, c + 1, i, x[1])
-        st(a, c + 2, i, x[2])
+    def get3(t: ti.template(), c: ti.template(), i):
+        return num.vec3(ld(t, c, i), ld(t, c + 1, i), ld(t, c + 2, i))
 
     @ti.func
-    def get4(a: ti.template(), c: ti.template(), i):
-        return num.vec4(ld(a, c, i), ld(a, c + 1, i), ld(a, c + 2, i), ld(a, c + 3, i))
+    def set3(t: ti.template(), c: ti.template(), i, x):
+        st(t, c, i, x[0])
+        st(t, c + 1, i, x[1])
+        st(t, c + 2, i, x[2])
 
     @ti.func
-    def set4(a: ti.template(), c: ti.template(), i, x):
-        st(a, c, i, x[0])
-        st(a, c + 1, i, x[1])
-        st(a, c + 2, i, x[2])
-        st(a, c + 3, i, x[3])
+    def get4(t: ti.template(), c: ti.template(), i):
+        return num.vec4(ld(t, c, i), ld(t, c + 1, i), ld(t, c + 2, i), ld(t, c + 3, i))
 
-    return SimpleNamespace(order=order, arg=arg, graph_arg=graph_arg, ld=ld, st=st, get3=get3, set3=set3, get4=get4, set4=set4)
+    @ti.func
+    def set4(t: ti.template(), c: ti.template(), i, x):
+        st(t, c, i, x[0])
+        st(t, c + 1, i, x[1])
+        st(t, c + 2, i, x[2])
+        st(t, c + 3, i, x[3])
+
+    return SimpleNamespace(order=order, Buffer=Buffer, graph_arg=graph_arg, header=header, bind=bind, ld=ld, st=st,
+                           get3=get3, set3=set3, get4=get4, set4=set4)
+
+
+@functools.cache
+def make_transfers() -> SimpleNamespace:
+    """``read(buf, at, n, out)`` and ``write(buf, at, n, src)``: copy ``n`` elements between a buffer (from element
+    ``at``) and a staging array, so the host moves one region, not a whole buffer (compiled per dtype)."""
+
+    @ti.kernel
+    def read(buf: ti.types.ndarray(ndim=1), at: ti.i32, n: ti.i32, out: ti.types.ndarray(ndim=1)):
+        for i in range(n):
+            out[i] = buf[at + i]
+
+    @ti.kernel
+    def write(buf: ti.types.ndarray(ndim=1), at: ti.i32, n: ti.i32, src: ti.types.ndarray(ndim=1)):
+        for i in range(n):
+            buf[at + i] = src[i]
+
+    return SimpleNamespace(read=read, write=write)

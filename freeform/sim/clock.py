@@ -26,53 +26,52 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
     ld, st = acc.ld, acc.st
 
     @ti.func
-    def set_phase(r, rt: ti.template(), gp: ti.template(), tau):
+    def set_phase(r, s: ti.template(), tau):
         """sin and cos of 2π·τ/period: the actuation phase every voxel of robot r combines with its own φ."""
-        a = TWO_PI * tau / gp[GP.TEMP_PERIOD]
-        st(rt, RT.SIN, r, ti.sin(a))
-        st(rt, RT.COS, r, ti.cos(a))
+        a = TWO_PI * tau / ld(s.gp, GP.TEMP_PERIOD, 0)
+        st(s.rt, RT.SIN, r, ti.sin(a))
+        st(s.rt, RT.COS, r, ti.cos(a))
 
     @ti.func
-    def max_link_omega2(r, lr: ti.template(), ri: ti.template()):
+    def max_link_omega2(r, s: ti.template()):
         """The largest ω² the robot's links stored this step (f64; 0 without links). A serial max in the robot
         phase: rl4design's dt refresh needs no float64 atomic (a compare-and-swap loop on CUDA)."""
         w = ti.cast(0.0, ti.f64)
-        for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
-            w = ti.max(w, ti.cast(ld(lr, LR.OMEGA2, lk), ti.f64))
+        for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
+            w = ti.max(w, ti.cast(ld(s.lr, LR.OMEGA2, lk), ti.f64))
         return w
 
     @ti.func
-    def robot_advance(r, lr: ti.template(), rt: ti.template(), ri: ti.template(), gp: ti.template(),
-                      sw: ti.template()):
-        """End of a step for robot r. ``sw`` (``state.Switches``): rl4design semantics, its dynamic dt refresh."""
-        st(rt, RT.DTPREV, r, ld(rt, RT.DT, r))
-        st(rt, RT.T, r, ld(rt, RT.T, r) + ld(rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
-        step = ld(ri, RI.STEP, r) + 1
-        st(ri, RI.STEP, r, step)
-        if ld(rt, RT.T, r) > gp[GP.T_END] and ld(ri, RI.STATUS, r) == RUNNING:
-            st(ri, RI.STATUS, r, DONE)
-        if step >= ld(ri, RI.MAXSTEP, r) and ld(ri, RI.STATUS, r) == RUNNING:
-            st(ri, RI.STATUS, r, STALLED)  # its dt collapsed: stop it rather than hold up the batch
-        if ti.static(sw.dynamic_dt != 0):
+    def robot_advance(r, s: ti.template()):
+        """End of a step for robot r. ``s.sw`` (``state.Switches``): rl4design semantics, its dynamic dt refresh."""
+        st(s.rt, RT.DTPREV, r, ld(s.rt, RT.DT, r))
+        st(s.rt, RT.T, r, ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r))  # (not `+=`: on global data that is an atomic add)
+        step = ld(s.ri, RI.STEP, r) + 1
+        st(s.ri, RI.STEP, r, step)
+        if ld(s.rt, RT.T, r) > ld(s.gp, GP.T_END, 0) and ld(s.ri, RI.STATUS, r) == RUNNING:
+            st(s.ri, RI.STATUS, r, DONE)
+        if step >= ld(s.ri, RI.MAXSTEP, r) and ld(s.ri, RI.STATUS, r) == RUNNING:
+            st(s.ri, RI.STATUS, r, STALLED)  # its dt collapsed: stop it rather than hold up the batch
+        if ti.static(s.sw.dynamic_dt != 0):
             if step % DT_REFRESH_STEPS == 0:
-                omega2 = max_link_omega2(r, lr, ri)
+                omega2 = max_link_omega2(r, s)
                 if omega2 > 0.0:
-                    st(rt, RT.DT, r, gp[GP.DT_FRAC] / (TWO_PI * ti.sqrt(omega2)))
+                    st(s.rt, RT.DT, r, ld(s.gp, GP.DT_FRAC, 0) / (TWO_PI * ti.sqrt(omega2)))
         # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
-        tau = ld(rt, RT.T, r) + ld(rt, RT.DT, r)
-        if ti.static(sw.rl4design != 0):
-            tau = ld(rt, RT.T, r)
-        set_phase(r, rt, gp, tau)
+        tau = ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r)
+        if ti.static(s.sw.rl4design != 0):
+            tau = ld(s.rt, RT.T, r)
+        set_phase(r, s, tau)
         # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
-        t_before = ld(rt, RT.T, r)
-        t_after = t_before + ld(rt, RT.DT, r)
+        t_before = ld(s.rt, RT.T, r)
+        t_after = t_before + ld(s.rt, RT.DT, r)
         events = 0
-        if (step + 1) % ld(ri, RI.PERIOD, r) == 0:
+        if (step + 1) % ld(s.ri, RI.PERIOD, r) == 0:
             events |= EV_SAMPLE
-        if t_before <= gp[GP.BURN_IN] and t_after > gp[GP.BURN_IN]:
+        if t_before <= ld(s.gp, GP.BURN_IN, 0) and t_after > ld(s.gp, GP.BURN_IN, 0):
             events |= EV_START
-        if t_before <= gp[GP.T_END] and t_after > gp[GP.T_END]:
+        if t_before <= ld(s.gp, GP.T_END, 0) and t_after > ld(s.gp, GP.T_END, 0):
             events |= EV_END
-        st(ri, RI.EVENTS, r, events)
+        st(s.ri, RI.EVENTS, r, events)
 
     return SimpleNamespace(robot_advance=robot_advance, set_phase=set_phase)

@@ -17,11 +17,14 @@ import math
 import numpy as np
 
 from freeform.sim import runtime
+from freeform.sim.access import make_transfers
 from freeform.sim.config import SimConfig, material_table
 from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
+from freeform.sim.packing import Packing, buffer_dtype
 from freeform.sim.schedules import FLAT_ARGS, ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
+    BUFFERS,
     DIVERGED,
     DONE,
     EV_END,
@@ -61,57 +64,50 @@ def _ceil_div(a: int, b: int) -> int:
 
 
 class DeviceArrays:
-    """Device arrays kept across Engines: one per state table, precision and memory order, each grown to the
-    largest batch seen (plus ``CAPACITY_HEADROOM``) and never shrunk; items past a batch's own are stale and
-    never read (the kernels' loops are bounded by the batch's counts).
+    """The kernels' buffers (``state.BUFFERS``), kept across Engines: each sized for the largest batch seen (item
+    capacities grow with ``CAPACITY_HEADROOM`` and never shrink); items past a batch's own are stale and never read
+    (the kernels' loops are bounded by the header's counts). Plus staging arrays (powers of two) through which the
+    host reads and writes one region at a time.
 
     One Engine uses them at a time: building an Engine claims them, and an older Engine on the same arrays refuses
     to run or read (its state has been overwritten). ``allocations`` counts the device arrays made.
     """
 
     def __init__(self) -> None:
-        self._arrays: dict[tuple[str, str, str], tuple[object, int]] = {}  # key -> (ndarray, capacity)
+        self._arrays: dict[tuple[str, str], tuple[object, int]] = {}  # (name, dtype) -> (ndarray, length)
+        self._capacity: dict[str, int] = {}
         self.allocations = 0
         self.owner: object | None = None
 
-    def table(self, name: str, table: Table, items: int, precision: str, order: str):
-        """The ndarray of ``table`` (stored as ``name``) with room for at least ``items`` items in ``order``, made or
-        grown as needed: (ndarray, capacity in items)."""
-        key = (name, precision, order)
-        arr, cap = self._arrays.get(key, (None, 0))
-        if arr is None or items > cap:
-            cap = max(1, math.ceil(CAPACITY_HEADROOM * items))
-            dtype = table.np_dtype(precision)
-            if order == "aos":
-                arr = runtime.ndarray(dtype, (cap, table.width), rows_as_vectors=True)
-            else:
-                arr = runtime.ndarray(dtype, (table.width, cap))
-            self.allocations += 1
-            self._arrays[key] = (arr, cap)
-        return arr, cap
+    def capacity(self, items: dict[str, int]) -> dict[str, int]:
+        """Room in items for each kind in ``items`` (voxels, links, ...): what it was, or more where ``items``
+        needs more."""
+        for kind, n in items.items():
+            if kind not in self._capacity or n > self._capacity[kind]:
+                self._capacity[kind] = max(1, math.ceil(CAPACITY_HEADROOM * n))
+        return {kind: self._capacity[kind] for kind in items}
 
-    def vector(self, name: str, dtype: np.dtype, length: int):
-        """A plain 1-D ndarray of ``length`` values (parameters, counters), made once."""
-        key = (name, np.dtype(dtype).name, str(length))
-        if key not in self._arrays:
-            self._arrays[key] = (runtime.ndarray(np.dtype(dtype), (length,)), length)
-            self.allocations += 1
-        return self._arrays[key][0]
-
-    def grid(self, name: str, shape: tuple[int, ...]):
-        """A float64 ndarray of at least ``shape`` in every dimension (made or grown as needed; kernels index it
-        within the batch's own extent), e.g. the trace ``[frames, SUMMARY.width, robots]``."""
-        key = (name, "f64", "grid")
-        arr, have = self._arrays.get(key, (None, ()))
-        if arr is None or len(have) != len(shape) or any(n > h for n, h in zip(shape, have, strict=True)):
-            have = tuple(max(n, h) for n, h in zip(shape, have or (0,) * len(shape), strict=True))
-            arr = runtime.ndarray(np.dtype(np.float64), have)
+    def buffer(self, name: str, dtype: np.dtype, length: int, keep: bool = False):
+        """The 1-D ndarray ``name`` of ``dtype`` with at least ``length`` elements, made or grown as needed (keep:
+        a grown one starts with the old one's contents): (ndarray, its length)."""
+        key = (name, np.dtype(dtype).name)
+        arr, have = self._arrays.get(key, (None, 0))
+        if arr is None or length > have:
+            old = runtime.to_numpy(arr) if (keep and arr is not None) else None
+            have = max(length, math.ceil(CAPACITY_HEADROOM * have), 1)
+            arr = runtime.ndarray(np.dtype(dtype), (have,))
+            if old is not None:
+                runtime.upload(arr, np.concatenate([old, np.zeros(have - old.size, dtype=old.dtype)]))
             self.allocations += 1
             self._arrays[key] = (arr, have)
-        return arr
+        return arr, have
 
-    def arrays(self) -> dict[tuple[str, str, str], object]:
-        """The ndarrays held now, by (name, precision, order) (tests check reuse through object identity)."""
+    def staging(self, dtype: np.dtype, n: int):
+        """A staging ndarray of ``dtype`` with room for ``n`` elements (a power of two: few sizes over a run)."""
+        return self.buffer("staging", dtype, 1 << max(6, (n - 1).bit_length()))
+
+    def arrays(self) -> dict[tuple[str, str], object]:
+        """The ndarrays held now, by (name, dtype) (tests check reuse through object identity)."""
         return {k: a for k, (a, _) in self._arrays.items()}
 
 
@@ -143,30 +139,26 @@ class Engine:
         self.dt0, self.max_steps = initial.dt0, initial.max_steps
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
         self.kernels = make_kernels(config.precision, self.order, self.switches)
-        host = initial.tables
+        self._transfers = make_transfers()
         R = layout.num_robots
         self._arrays = arrays if arrays is not None else DeviceArrays()
         self._arrays.owner = self
-        self._dev = {}
-        self._cap = {}
-        for name, t in TABLES.items():
-            self._dev[name], self._cap[name] = self._arrays.table(name, t, self.counts[t.items], self.precision,
-                                                                  self.order)
-            self._upload(name, host[name])
-        self.gp = self._arrays.vector("gp", np.float64, GP.width)
-        runtime.upload(self.gp, initial.globals)
         grid = initial.height_grid
-        self.hf = self._arrays.vector("hf", np.dtype(self.np_real), grid.size)  # one per terrain size
-        runtime.upload(self.hf, grid.astype(self.np_real))
-        # robots schedule: a work counter, and one worker per CPU thread
-        self._queue = self._arrays.vector("queue", np.int32, 1)
+        self.packing = Packing(self._arrays.capacity({**self.counts, "cells": grid.size}), self.order)
+        host = {**initial.tables, "gp": initial.globals[:, None], "hf": grid[None, :],
+                "hdr": self.packing.header(self.counts)}
+        self._buffers: dict[str, object] = {}
+        for buffer, names in BUFFERS.items():
+            dtype = buffer_dtype(buffer, self.precision)
+            arr, length = self._arrays.buffer(buffer, dtype, self.packing.lengths[buffer])
+            runtime.upload(arr, self.packing.image(buffer, {n: host[n] for n in names if n in host}, dtype, length))
+            self._buffers[buffer] = arr
+        # robots schedule: one worker per CPU thread
         self._workers = max(1, min(R, runtime.num_threads()))
         self.steps_done = 0
-        # the trace (start_trace): off until asked for; the kernels then take the trace array unread (any size)
-        self.trace_steps = 0
-        self._trace = self._arrays.grid("trace", (1, SUMMARY.width, 1))
+        self.trace_steps = 0  # the trace (start_trace): off until asked for
 
-    # ------------------------------------------------------------------ host <-> device, in the kernels' order
+    # ------------------------------------------------------------------ host <-> device, one region at a time
     def _check_owner(self) -> None:
         if self._arrays.owner is not self:
             raise RuntimeError(
@@ -175,18 +167,23 @@ class Engine:
                 "or give each live Engine its own Simulator (or Engine(..., arrays=None))")
 
     def _upload(self, name: str, a: np.ndarray) -> None:
-        """Copy host ``a`` (``[columns, items]`` of table ``name``, items ≤ capacity) into its device array."""
+        """Write host ``a`` (``[columns, items]``, items ≤ the region's capacity) into region ``name``."""
         self._check_owner()
-        cap = self._cap[name]
-        if a.shape[1] < cap:  # the tail is stale on the device anyway; zeros keep uploads a fixed size
-            a = np.concatenate([a, np.zeros((a.shape[0], cap - a.shape[1]), dtype=a.dtype)], axis=1)
-        runtime.upload(self._dev[name], a.T if self.order == "aos" else a)
+        region = self.packing.regions[name]
+        dtype = buffer_dtype(region.buffer, self.precision)
+        stage, length = self._arrays.staging(dtype, region.size)
+        values = np.zeros(length, dtype=dtype)
+        values[: region.size] = region.flat(np.asarray(a, dtype=dtype))
+        runtime.upload(stage, values)
+        self._transfers.write(self._buffers[region.buffer], region.at, region.size, stage)
 
     def _download(self, name: str) -> np.ndarray:
-        """Host copy ``[columns, capacity]`` of table ``name`` (items past the batch's own are stale)."""
+        """Host copy ``[columns, capacity]`` of region ``name`` (items past the batch's own are stale)."""
         self._check_owner()
-        a = runtime.to_numpy(self._dev[name])
-        return a.T if self.order == "aos" else a
+        region = self.packing.regions[name]
+        stage, _ = self._arrays.staging(buffer_dtype(region.buffer, self.precision), region.size)
+        self._transfers.read(self._buffers[region.buffer], region.at, region.size, stage)
+        return region.unflat(runtime.to_numpy(stage), region.stride)
 
     def _table(self, name: str) -> np.ndarray:
         """Host copy ``[columns, items]`` of table ``name``, this batch's items only."""
@@ -198,21 +195,19 @@ class Engine:
         self._check_owner()
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
-        k, d = self.kernels, self._dev
-        args = (*(d[name] for name in TABLES), self.gp, self.hf, self._trace, self.trace_steps)
-        n, m, R = self.counts["voxels"], self.counts["links"], self.counts["robots"]
+        k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
         if self.schedule == "robots":
-            k.run_robots(*args, R, n_steps, self._queue, self._workers)
+            k.run_robots(*buffers, n_steps, self._workers)
         else:
             left = n_steps
             launches = self.config.graph_launches
             if left >= launches * UNROLL and (graph := k.flat_graph(launches)) is not None:
-                bound = dict(zip(FLAT_ARGS, (*args, n, m, R, UNROLL), strict=True))
+                bound = dict(zip(FLAT_ARGS, (*buffers, UNROLL), strict=True))
                 while left >= launches * UNROLL:
                     graph.run(bound)
                     left -= launches * UNROLL
             while left > 0:
-                k.run_flat(*args, n, m, R, min(left, UNROLL))
+                k.run_flat(*buffers, min(left, UNROLL))
                 left -= UNROLL
         self.steps_done += n_steps
 
@@ -273,14 +268,16 @@ class Engine:
                                "one not yet advanced")
         R = self.counts["robots"]
         frames = 1 + _ceil_div(int(self.max_steps.max()), every) if R else 1  # no robot runs past its cap
-        self._trace = self._arrays.grid("trace", (frames, SUMMARY.width, max(R, 1)))
+        # the trace is the last region of "f64s": room for it moves nothing else, so the clocks stay where they are
+        self.packing = self.packing.with_trace(frames, max(R, 1))
+        dtype = buffer_dtype("f64s", self.precision)
+        self._buffers["f64s"], _ = self._arrays.buffer("f64s", dtype, self.packing.lengths["f64s"], keep=True)
         self.trace_steps = every
+        self._upload("hdr", self.packing.header(self.counts, every))
         self._summarise(0)
 
     def _summarise(self, frame: int) -> None:
-        d = self._dev
-        make_summaries(self.precision, self.order).summarise(d["vr"], d["vi"], d["rt"], d["ri"], d["mt"],
-                                                             self.counts["robots"], self._trace, frame)
+        make_summaries(self.precision, self.order).summarise(*(self._buffers[name] for name in BUFFERS), frame)
 
     def trace_frames(self) -> np.ndarray:
         """float64 ``[F, SUMMARY.width, R]``, once every robot has stopped: frame f summarises every robot after
@@ -302,7 +299,8 @@ class Engine:
         # same state there, and no robot that diverged did (its failed step does not count in its steps). A robot's
         # frames after its last trace step hold nothing it wrote: they repeat that state (status included).
         self._summarise(frames - 1)
-        out = runtime.to_numpy(self._trace)[:frames, :, :R]
+        tr = self._download("tr")  # [frames × SUMMARY.width, robots]
+        out = tr.reshape(self.packing.trace_frames, SUMMARY.width, -1)[:frames, :, :R]
         stopped = np.arange(frames)[:, None] > (steps // k)[None, :]
         return np.where(stopped[:, None, :], out[-1:], out)
 

@@ -35,35 +35,33 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
     to_rotation_vector, from_angle_to_pos_x = q.to_rotation_vector, q.from_angle_to_pos_x
 
     @ti.func
-    def link_update(lk, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
-                    rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                    gp: ti.template(), sw: ti.template()):
+    def link_update(lk, s: ti.template()):
         """Forces and moments of link ``lk`` from its voxels' poses; marks the robot DIVERGED on a strain above
-        ``max_strain`` or a non-finite one. ``sw`` (``state.Switches``): rl4design semantics; dynamic_dt: store ω²
+        ``max_strain`` or a non-finite one. ``s.sw`` (``state.Switches``): rl4design semantics; dynamic_dt: store ω²
         for the dt refresh."""
-        n, p, axis, k = ld(li, LI.NEG, lk), ld(li, LI.POS, lk), ld(li, LI.AXIS, lk), ld(li, LI.LMAT, lk)
-        r = ld(vi, VI.ROBOT, n)
-        mat_n, mat_p = ld(vi, VI.MAT, n), ld(vi, VI.MAT, p)
-        flags = ld(li, LI.FLAGS, lk)
+        n, p, axis, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.AXIS, lk), ld(s.li, LI.LMAT, lk)
+        r = ld(s.vi, VI.ROBOT, n)
+        mat_n, mat_p = ld(s.vi, VI.MAT, n), ld(s.vi, VI.MAT, p)
+        flags = ld(s.li, LI.FLAGS, lk)
         valid = (flags & VALID) != 0
-        size_n = ld(vr, VR.SIZE, n)
+        size_n = ld(s.vr, VR.SIZE, n)
         L0 = size_n  # rl4design: the negative voxel's size only (the paper simulator's bug, kept on purpose)
-        if ti.static(sw.rl4design == 0):
-            L0 = 0.5 * (size_n + ld(vr, VR.SIZE, p))
+        if ti.static(s.sw.rl4design == 0):
+            L0 = 0.5 * (size_n + ld(s.vr, VR.SIZE, p))
 
         # orientLink (VX_Link.cpp): into the link frame, x along the link, relative to the negative voxel
         small = (flags & SMALL) != 0
-        q1 = q_to_axis_x(get4(vr, VR.ORI, n), axis)
-        q2 = q_to_axis_x(get4(vr, VR.ORI, p), axis)
+        q1 = q_to_axis_x(get4(s.vr, VR.ORI, n), axis)
+        q2 = q_to_axis_x(get4(s.vr, VR.ORI, p), axis)
         R = conj(q1)
-        pos2 = rotate(R, to_axis_x(get3(vr, VR.POS, p) - get3(vr, VR.POS, n), axis))
+        pos2 = rotate(R, to_axis_x(get3(s.vr, VR.POS, p) - get3(s.vr, VR.POS, n), axis))
         q2 = qmul(R, q2)
         q1 = vec4(1.0, 0.0, 0.0, 0.0)
         small_turn = (ti.abs(pos2[2]) + ti.abs(pos2[1])) / pos2[0]
         extend = ti.abs(1.0 - pos2[0] / L0)
         leave = small and (small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD
                            or extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC)
-        if ti.static(sw.rl4design != 0):
+        if ti.static(s.sw.rl4design != 0):
             # the paper simulator's precedence slip: `small && a || b`
             leave = (small and small_turn > HYSTERESIS_FACTOR * SA_BOND_BEND_RAD) or \
                 extend > HYSTERESIS_FACTOR * SA_BOND_EXT_PERC
@@ -84,24 +82,24 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
             a1v = to_rotation_vector(q1)
         a2v = to_rotation_vector(q2)
         strain = pos2[0] / L0
-        if ti.static(sw.rl4design != 0):
+        if ti.static(s.sw.rl4design != 0):
             pos2[0] += L0  # rl4design keeps the raw separation, so its damping sees d, not d − L0
 
         # half the change since the last step: the displacement of the link's centre relative to each end
-        dP = 0.5 * (pos2 - get3(lr, LR.P2, lk))
-        dA1 = 0.5 * (a1v - get3(lr, LR.A1, lk))
-        dA2 = 0.5 * (a2v - get3(lr, LR.A2, lk))
+        dP = 0.5 * (pos2 - get3(s.lr, LR.P2, lk))
+        dA1 = 0.5 * (a1v - get3(s.lr, LR.A1, lk))
+        dA2 = 0.5 * (a2v - get3(s.lr, LR.A2, lk))
 
         # volume effects: transverse area and strain sum from both voxels' cached Poisson strains
-        nu = ld(lt, LT.NU, k)
-        area = 0.5 * (ld(vr, VR.TAREA + axis, n) + ld(vr, VR.TAREA + axis, p))
-        ssum = 0.5 * (ld(vr, VR.TSUM + axis, n) + ld(vr, VR.TSUM + axis, p))
-        stress = ld(lt, LT.E, k) * strain
+        nu = ld(s.lt, LT.NU, k)
+        area = 0.5 * (ld(s.vr, VR.TAREA + axis, n) + ld(s.vr, VR.TAREA + axis, p))
+        ssum = 0.5 * (ld(s.vr, VR.TSUM + axis, n) + ld(s.vr, VR.TSUM + axis, p))
+        stress = ld(s.lt, LT.E, k) * strain
         if nu != 0.0:
-            stress = ld(lt, LT.EHAT, k) * ((1.0 - nu) * strain + nu * ssum)
+            stress = ld(s.lt, LT.EHAT, k) * ((1.0 - nu) * strain + nu * ssum)
 
         # elastic beam: axial stress, shear and bending (b1, b2, b3) and torsion (a2)
-        b1, b2, b3, a2 = ld(lt, LT.B1, k), ld(lt, LT.B2, k), ld(lt, LT.B3, k), ld(lt, LT.A2, k)
+        b1, b2, b3, a2 = ld(s.lt, LT.B1, k), ld(s.lt, LT.B2, k), ld(s.lt, LT.B3, k), ld(s.lt, LT.A2, k)
         fN = vec3(stress * area, b1 * pos2[1] - b2 * (a1v[2] + a2v[2]), b1 * pos2[2] + b2 * (a1v[1] + a2v[1]))
         fP = -fN
         mN = vec3(a2 * (a2v[0] - a1v[0]), -b2 * pos2[2] - b3 * (2.0 * a1v[1] + a2v[1]),
@@ -111,11 +109,11 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
 
         if valid:
             # internal damping: D = 2·√m·ζ/previousDt of each end's voxel; posCalc are half-link displacements
-            prev_dt = ti.cast(ld(rt, RT.DTPREV, r), real)
-            dN = ld(mt, MT.DAMP, mat_n) / prev_dt
-            dPp = ld(mt, MT.DAMP, mat_p) / prev_dt
-            sqA1, sqA2xIp, sqB1 = ld(lt, LT.SQA1, k), ld(lt, LT.SQA2XIP, k), ld(lt, LT.SQB1, k)
-            sqB2xFMp, sqB3xIp = ld(lt, LT.SQB2XFMP, k), ld(lt, LT.SQB3XIP, k)
+            prev_dt = ti.cast(ld(s.rt, RT.DTPREV, r), real)
+            dN = ld(s.mt, MT.DAMP, mat_n) / prev_dt
+            dPp = ld(s.mt, MT.DAMP, mat_p) / prev_dt
+            sqA1, sqA2xIp, sqB1 = ld(s.lt, LT.SQA1, k), ld(s.lt, LT.SQA2XIP, k), ld(s.lt, LT.SQB1, k)
+            sqB2xFMp, sqB3xIp = ld(s.lt, LT.SQB2XFMP, k), ld(s.lt, LT.SQB3XIP, k)
             c = vec3(sqA1 * dP[0], sqB1 * dP[1] - sqB2xFMp * (dA1[2] + dA2[2]),
                      sqB1 * dP[2] + sqB2xFMp * (dA1[1] + dA2[1]))
             fN += dN * c
@@ -135,25 +133,25 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         q2c = conj(q2)
         fP = rotate(q2c, fP)
         mP = rotate(q2c, mP)
-        set3(lr, LR.FN, lk, to_axis_original(fN, axis))
-        set3(lr, LR.FP, lk, to_axis_original(fP, axis))
-        set3(lr, LR.MN, lk, to_axis_original(mN, axis))
-        set3(lr, LR.MP, lk, to_axis_original(mP, axis))
-        set3(lr, LR.P2, lk, pos2)
-        set3(lr, LR.A1, lk, a1v)
-        set3(lr, LR.A2, lk, a2v)
-        st(lr, LR.STRAIN, lk, strain)
-        st(li, LI.FLAGS, lk, (SMALL if small else 0) | (VALID if valid else 0))
+        set3(s.lr, LR.FN, lk, to_axis_original(fN, axis))
+        set3(s.lr, LR.FP, lk, to_axis_original(fP, axis))
+        set3(s.lr, LR.MN, lk, to_axis_original(mN, axis))
+        set3(s.lr, LR.MP, lk, to_axis_original(mP, axis))
+        set3(s.lr, LR.P2, lk, pos2)
+        set3(s.lr, LR.A1, lk, a1v)
+        set3(s.lr, LR.A2, lk, a2v)
+        st(s.lr, LR.STRAIN, lk, strain)
+        st(s.li, LI.FLAGS, lk, (SMALL if small else 0) | (VALID if valid else 0))
 
-        if strain > gp[GP.MAX_STRAIN] or nonfinite(strain):
-            st(ri, RI.STATUS, r, DIVERGED)
-        if ti.static(sw.dynamic_dt != 0):
-            if (ld(ri, RI.STEP, r) + 1) % DT_REFRESH_STEPS == 0:
+        if strain > ld(s.gp, GP.MAX_STRAIN, 0) or nonfinite(strain):
+            st(s.ri, RI.STATUS, r, DIVERGED)
+        if ti.static(s.sw.dynamic_dt != 0):
+            if (ld(s.ri, RI.STEP, r) + 1) % DT_REFRESH_STEPS == 0:
                 # rl4design's dt refresh: this link's ω² from its current axial stiffness (VX_Link::axialStiffness);
                 # the robot phase takes the max over the robot's links (clock.py)
-                kax = ld(lt, LT.A1, k)
+                kax = ld(s.lt, LT.A1, k)
                 if nu != 0.0:
-                    kax = ld(lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
-                st(lr, LR.OMEGA2, lk, kax / ti.min(ld(mt, MT.MASS, mat_n), ld(mt, MT.MASS, mat_p)))
+                    kax = ld(s.lt, LT.EHAT, k) * area / ((strain + 1.0) * L0)
+                st(s.lr, LR.OMEGA2, lk, kax / ti.min(ld(s.mt, MT.MASS, mat_n), ld(s.mt, MT.MASS, mat_p)))
 
     return SimpleNamespace(link_update=link_update)

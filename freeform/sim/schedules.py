@@ -11,8 +11,9 @@ robot's ``robot_advance`` (clock.py) and, when its step count reaches a trace sa
   of a small robot; the robot's data stays in cache; robots of any size balance dynamically). On a GPU it would
   run one thread per robot, so it is refused there (``resolve_schedule``).
 
-Loops are bounded by the batch's counts, passed as arguments, not by the arrays' shapes: the Engine reuses arrays
-sized for the largest batch seen, whose tail holds stale items.
+Every kernel takes the three buffers of ``state.BUFFERS`` and a step count; loops are bounded by the batch's counts
+in the buffers' header, not by the buffers' sizes: the Engine reuses buffers sized for the largest batch seen, whose
+tails hold stale items.
 """
 
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
@@ -21,12 +22,12 @@ import functools
 import warnings
 from types import SimpleNamespace
 
-from freeform.sim.access import make_access, make_numbers
+from freeform.sim.access import make_access
 from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
-from freeform.sim.state import LI, LR, LT, MT, RI, RT, RUNNING, TABLES, VI, VR, Switches
+from freeform.sim.state import BUFFERS, HDR, LI, RI, RUNNING, VI, Switches
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
@@ -35,7 +36,7 @@ SCHEDULES = ("auto", "robots", "flat")
 ORDER_OF = {"robots": "aos", "flat": "soa"}
 UNROLL = 2  # steps per launch of the flat schedule
 # run_flat's arguments by name, in order: what a compute graph binds (flat_graph; Engine.advance)
-FLAT_ARGS = (*TABLES, "gp", "hf", "tr", "trace_steps", "n_voxels", "n_links", "n_robots", "n_steps")
+FLAT_ARGS = (*BUFFERS, "n_steps")
 # The flat schedule's host cost is per launch (Python, argument marshalling): runs of this many launches go through
 # one compute graph (Taichi's ti.graph, dispatched from C++) where the backend has one; SimConfig.graph_launches.
 # Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
@@ -65,85 +66,94 @@ VOXELYZE_FLAT_FLOOR = Switches(floor=1, terrain=0, rl4design=0, dynamic_dt=0)  #
 @functools.cache
 def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELYZE_FLAT_FLOOR) -> SimpleNamespace:
     """Compile-once kernels for "f32" | "f64", memory order "soa" | "aos" and the compile-time ``switches``
-    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat`` and the test hook
-    ``probe_rotations``. The switches are baked into the kernels rather than passed as ``ti.template`` arguments,
-    so every kernel argument is an array or a number (what a compute graph can bind: ``FlatLauncher``)."""
-    sw = switches
+    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat``, ``flat_graph`` and
+    the test hook ``probe_rotations``. Every kernel takes the three buffers (``state.BUFFERS``) and a step count;
+    the switches are baked in rather than passed as ``ti.template`` arguments, so every argument is an array or a
+    number (what a compute graph can bind)."""
     acc = make_access(precision, order)
-    num = make_numbers(precision)
-    ld = acc.ld
+    ld, header, bind, Buffer = acc.ld, acc.header, acc.bind, acc.Buffer
     link_update = make_links(precision, order).link_update
     voxel_update = make_voxels(precision, order).voxel_update
     robot_advance = make_clock(precision, order).robot_advance
-    summaries = make_summaries(precision, order)
-    summarise_robot, TraceArr = summaries.summarise_robot, summaries.TraceArr
-    VrArr, ViArr, LrArr, LiArr = acc.arg(VR), acc.arg(VI), acc.arg(LR), acc.arg(LI)
-    RtArr, RiArr, MtArr, LtArr = acc.arg(RT), acc.arg(RI), acc.arg(MT), acc.arg(LT)
-    GpArr = ti.types.ndarray(dtype=ti.f64, ndim=1)  # the GP vector
-    HfArr = ti.types.ndarray(dtype=num.real, ndim=1)  # the terrain's height grid
+    summarise_robot = make_summaries(precision, order).summarise_robot
+    Reals, Ints, F64s = Buffer["reals"], Buffer["ints"], Buffer["f64s"]
 
     @ti.func
-    def trace_sample(r, vr: ti.template(), vi: ti.template(), rt: ti.template(), ri: ti.template(),
-                     mt: ti.template(), tr: ti.template(), trace_steps):
-        """After robot r's step: frame s / k of the trace once it has run s steps, s a multiple of k = trace_steps
-        (0: no trace). Only a step that ran calls it, so a robot that stopped leaves its later frames alone."""
-        if trace_steps > 0:
-            s = ld(ri, RI.STEP, r)
-            if s % trace_steps == 0 and s // trace_steps < tr.shape[0]:  # (sized for the step cap: a guard only)
-                summarise_robot(r, vr, vi, rt, ri, mt, tr, s // trace_steps)
+    def trace_sample(r, s: ti.template()):
+        """After robot r's step: frame n / k of the trace once it has run n steps, n a multiple of k (the header's
+        TRACE_STEPS; 0: no trace). Only a step that ran calls it, so a robot that stopped leaves its later frames
+        alone."""
+        every = s.h[HDR.TRACE_STEPS]
+        if every > 0:
+            n = ld(s.ri, RI.STEP, r)
+            if n % every == 0 and n // every < s.h[HDR.TRACE_FRAMES]:  # (sized for the step cap: a guard only)
+                summarise_robot(r, s, n // every)
 
     @ti.func
-    def robot_step(r, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
-                   rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(), gp: ti.template(),
-                   hf: ti.template(), tr: ti.template(), trace_steps):
+    def robot_step(r, s: ti.template()):
         """One step of robot r by the calling thread alone."""
-        if ld(ri, RI.STATUS, r) == RUNNING:
-            for lk in range(ld(ri, RI.LSTART, r), ld(ri, RI.LEND, r)):
-                link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, sw)
-            if ld(ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
-                for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, sw)
-            if ld(ri, RI.STATUS, r) == RUNNING:
-                robot_advance(r, lr, rt, ri, gp, sw)
-                trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
+        if ld(s.ri, RI.STATUS, r) == RUNNING:
+            for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
+                link_update(lk, s)
+            if ld(s.ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
+                for v in range(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r)):
+                    voxel_update(v, s)
+            if ld(s.ri, RI.STATUS, r) == RUNNING:
+                robot_advance(r, s)
+                trace_sample(r, s)
 
     @ti.kernel
-    def run_robots(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                   lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_robots: ti.i32,
-                   n_steps: ti.i32, queue: ti.types.ndarray(dtype=ti.i32, ndim=1), workers: ti.i32):
-        """``workers`` threads each take the next unclaimed robot (of ``n_robots``) from ``queue`` and run it
-        ``n_steps`` steps, until none is left.
+    def run_robots(reals: Reals, ints: Ints, f64s: F64s, n_steps: ti.i32, workers: ti.i32):
+        """``workers`` threads each take the next unclaimed robot from the header's work counter and run it
+        ``n_steps`` steps.
 
-        Why not ``for r in range(R)``: Taichi's CPU backend gives each thread a block of at least
-        ``CPU_MIN_TASK_ITEMS`` iterations of a range-for with a runtime bound (``loop_config(block_dim)`` is not
-        honoured there), so a batch of fewer robots than that would run on one thread. Each worker therefore owns
-        one such block of a virtual range, and the robots are handed out through an atomic counter.
+        Taichi's CPU backend splits a range-for into blocks of at least ``CPU_MIN_TASK_ITEMS`` iterations, one
+        per thread: the loop runs ``workers`` such blocks, only the first iteration of each does anything, so
+        each thread runs one block of a virtual range, and the robots are handed out through an atomic counter.
         """
-        queue[0] = 0  # (a top-level statement: runs before the parallel loop, as a serial task)
+        ints[HDR.QUEUE] = 0  # (a top-level statement: runs before the parallel loop, as a serial task)
         for t in range(workers * CPU_MIN_TASK_ITEMS):
             if t % CPU_MIN_TASK_ITEMS == 0:
-                r = ti.atomic_add(queue[0], 1)
-                while r < n_robots:
+                h = header(ints)
+                r = ti.atomic_add(ints[HDR.QUEUE], 1)
+                while r < h[HDR.N_ROBOTS]:
                     for _ in range(n_steps):
-                        robot_step(r, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, tr, trace_steps)
-                    r = ti.atomic_add(queue[0], 1)
+                        robot_step(r, bind(reals, ints, f64s, h, switches))
+                    r = ti.atomic_add(ints[HDR.QUEUE], 1)
+
+    @ti.func
+    def link_phase(lk, s: ti.template()):
+        if ld(s.ri, RI.STATUS, ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk))) == RUNNING:
+            link_update(lk, s)
+
+    @ti.func
+    def voxel_phase(v, s: ti.template()):
+        if ld(s.ri, RI.STATUS, ld(s.vi, VI.ROBOT, v)) == RUNNING:
+            voxel_update(v, s)
+
+    @ti.func
+    def robot_phase(r, s: ti.template()):
+        if ld(s.ri, RI.STATUS, r) == RUNNING:
+            robot_advance(r, s)
+            trace_sample(r, s)
 
     @ti.kernel
-    def run_flat(vr: VrArr, vi: ViArr, lr: LrArr, li: LiArr, rt: RtArr, ri: RiArr, mt: MtArr,
-                 lt: LtArr, gp: GpArr, hf: HfArr, tr: TraceArr, trace_steps: ti.i32, n_voxels: ti.i32,
-                 n_links: ti.i32, n_robots: ti.i32, n_steps: ti.i32):
-        """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch."""
-        for s in ti.static(range(UNROLL)):
-            for lk in range(n_links):
-                if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, ld(li, LI.NEG, lk))) == RUNNING:
-                    link_update(lk, vr, vi, lr, li, rt, ri, mt, lt, gp, sw)
-            for v in range(n_voxels):
-                if s < n_steps and ld(ri, RI.STATUS, ld(vi, VI.ROBOT, v)) == RUNNING:
-                    voxel_update(v, vr, vi, lr, li, rt, ri, mt, lt, gp, hf, sw)
-            for r in range(n_robots):
-                if s < n_steps and ld(ri, RI.STATUS, r) == RUNNING:
-                    robot_advance(r, lr, rt, ri, gp, sw)
-                    trace_sample(r, vr, vi, rt, ri, mt, tr, trace_steps)
+    def run_flat(reals: Reals, ints: Ints, f64s: F64s, n_steps: ti.i32):
+        """One thread per link, then per voxel, then per robot; ``min(n_steps, UNROLL)`` steps per launch. Each
+        thread loads the header (a few cached words) rather than the host passing every region's place."""
+        for k in ti.static(range(UNROLL)):
+            for lk in range(ints[HDR.N_LINKS]):
+                h = header(ints)  # (a variable: passed as an expression it would be loaded again at every use)
+                if k < n_steps:
+                    link_phase(lk, bind(reals, ints, f64s, h, switches))
+            for v in range(ints[HDR.N_VOXELS]):
+                h = header(ints)  # (a variable: passed as an expression it would be loaded again at every use)
+                if k < n_steps:
+                    voxel_phase(v, bind(reals, ints, f64s, h, switches))
+            for r in range(ints[HDR.N_ROBOTS]):
+                h = header(ints)  # (a variable: passed as an expression it would be loaded again at every use)
+                if k < n_steps:
+                    robot_phase(r, bind(reals, ints, f64s, h, switches))
 
     def flat_graph(launches: int):
         """A compute graph of ``launches`` ``run_flat`` launches of ``UNROLL`` steps each, its arrays and counts
@@ -162,11 +172,8 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         return graphs[key]
 
     def _build_flat_graph(launches: int):
-        nd, scalar = ti.graph.ArgKind.NDARRAY, ti.graph.ArgKind.SCALAR
-        other = {"gp": ti.graph.Arg(nd, "gp", dtype=ti.f64, ndim=1), "hf": ti.graph.Arg(nd, "hf", dtype=num.real, ndim=1),
-                 "tr": ti.graph.Arg(nd, "tr", dtype=ti.f64, ndim=3)}
-        args = [acc.graph_arg(TABLES[name], name) if name in TABLES else
-                other.get(name) or ti.graph.Arg(scalar, name, dtype=ti.i32) for name in FLAT_ARGS]
+        args = [acc.graph_arg(name) if name in BUFFERS else ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=ti.i32)
+                for name in FLAT_ARGS]
         builder = ti.graph.GraphBuilder()
         for _ in range(launches):
             builder.dispatch(run_flat, *args)

@@ -104,7 +104,7 @@ RI = Table("robot_int", I32, "robots", (
     ("EVENTS", 1), ("MAXSTEP", 1)))
 MT = Table("material", REAL, "materials", tuple((c, 1) for c in MAT_COLUMNS))
 LT = Table("link_material", REAL, "material_pairs", tuple((c, 1) for c in LINK_COLUMNS))
-# the arrays an Engine owns, by the argument names the kernels take
+# the state tables by the names the kernels read them under (``s.vr``, ``s.ri``, ...: ``access.State``)
 TABLES = {"vr": VR, "vi": VI, "lr": LR, "li": LI, "rt": RT, "ri": RI, "mt": MT, "lt": LT}
 
 # A trace sample of one robot (summaries.py; f64, frames of ``[SUMMARY.width, robots]``): its clock and status,
@@ -120,6 +120,19 @@ GP = Table("params", F64, None, (("BURN_IN", 1), ("T_END", 1), ("GRAVITY", 1), (
                                      ("TEMP_PERIOD", 1), ("DT_FRAC", 1), ("MAX_STRAIN", 1), ("TER_BASE", 1),
                                      ("TER_GX", 1), ("TER_GY", 1), ("TER_X0", 1), ("TER_Y0", 1), ("TER_CELL", 1),
                                      ("TER_NX", 1), ("TER_NY", 1)))
+
+# The kernels take three buffers, one per element type, each holding several regions (packing.py says where):
+# a launch marshals 3 arrays and a step count instead of 11 arrays and 5 counts (the host cost of a launch grows
+# with its array arguments: docs/physics.md). Each region is a table (items in memory order), "gp" (GP, one item),
+# "hf" (the terrain's height grid, one column of cells), "tr" (the trace, frames × SUMMARY.width rows of robots)
+# or "hdr" (HDR, at the start of "ints": where every region starts, and the batch's counts).
+BUFFERS = {"reals": ("vr", "lr", "mt", "lt", "hf"), "ints": ("hdr", "vi", "li", "ri"), "f64s": ("rt", "gp", "tr")}
+REGIONS = tuple(name for names in BUFFERS.values() for name in names)
+# HDR: each region's first element (*_AT) and item stride (*_STRIDE: its capacity in items), the batch's counts,
+# the trace's interval in steps (0: off) and frames, and the robots schedule's work counter.
+HDR = Table("header", I32, None, (
+    *((f"{name.upper()}_{what}", 1) for name in REGIONS for what in ("AT", "STRIDE")),
+    ("N_VOXELS", 1), ("N_LINKS", 1), ("N_ROBOTS", 1), ("TRACE_STEPS", 1), ("TRACE_FRAMES", 1), ("QUEUE", 1)))
 
 # voxel flags: STATIC = in static friction; CONTACT = touched the ground at the start of its last step (traces)
 STATIC, FIXED, CONTACT = 1, 2, 4

@@ -2,7 +2,7 @@
 
 A trace sample summarises each robot's voxels — mass-weighted sums for the centre of mass, the bounding box, how
 many voxels touch the ground, the summed orientation — into one column of ``SUMMARY`` numbers. The schedules write
-robot r's column of frame f into the trace array ``[frames, SUMMARY.width, robots]`` when the robot has run f × k
+robot r's column of frame f into the trace region ``[frames, SUMMARY.width, robots]`` when the robot has run f × k
 steps (k = the trace interval in steps), inside the stepping kernel: the host neither stops the batch at every
 sample (each stop waits for the slowest robot) nor copies the voxel table (on a GPU, megabytes a sample).
 
@@ -17,54 +17,57 @@ from types import SimpleNamespace
 
 from freeform.sim.access import make_access
 from freeform.sim.runtime import ti
-from freeform.sim.state import CONTACT, MT, RI, RT, SUMMARY, VI, VR
+from freeform.sim.state import CONTACT, HDR, MT, RI, RT, SUMMARY, VI, VR
 
 
 @functools.cache
 def make_summaries(precision: str, order: str) -> SimpleNamespace:
-    """``summarise_robot`` (a func: robot r's voxels as they are now into frame f of a trace array), the kernel
-    ``summarise(vr, vi, rt, ri, mt, n_robots, out, frame)`` that writes every robot's, and ``TraceArr``, the trace
-    array's argument type (f64 ``[frames, SUMMARY.width, robots]``). (Built here, not at import: importing
-    freeform.sim chooses no backend.)"""
-    TraceArr = ti.types.ndarray(dtype=ti.f64, ndim=3)
+    """``summarise_robot`` (a func: robot r's voxels as they are now into frame f of the trace region ``s.tr``) and
+    the kernel ``summarise(reals, ints, f64s, frame)`` that writes every robot's. (Built here, not at import:
+    importing freeform.sim chooses no backend.)"""
     acc = make_access(precision, order)
-    ld, get3, get4 = acc.ld, acc.get3, acc.get4
+    ld, get3, get4, header, bind = acc.ld, acc.get3, acc.get4, acc.header, acc.bind
+    Reals, Ints, F64s = acc.Buffer["reals"], acc.Buffer["ints"], acc.Buffer["f64s"]
 
     @ti.func
-    def summarise_robot(r, vr: ti.template(), vi: ti.template(), rt: ti.template(), ri: ti.template(),
-                        mt: ti.template(), out: ti.template(), f):
+    def put(s: ti.template(), f, c: ti.template(), r, x):
+        """Trace element ``[f, c, r]`` (the region is ``[frames, SUMMARY.width, robots]``, row-major)."""
+        s.tr.buf[s.h[s.tr.at] + (f * SUMMARY.width + c) * s.h[s.tr.stride] + r] = x
+
+    @ti.func
+    def summarise_robot(r, s: ti.template(), f):
         mx = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
         # the box starts at the first voxel (a robot has one), not at ±inf: fast-math assumes no infinities
-        lo = ti.cast(get3(vr, VR.POS, ld(ri, RI.VSTART, r)), ti.f64)
+        lo = ti.cast(get3(s.vr, VR.POS, ld(s.ri, RI.VSTART, r)), ti.f64)
         hi = lo
         q = ti.Vector([0.0, 0.0, 0.0, 0.0], dt=ti.f64)
         m = ti.cast(0.0, ti.f64)
         contacts = 0
-        for v in range(ld(ri, RI.VSTART, r), ld(ri, RI.VEND, r)):
-            mass = ti.cast(ld(mt, MT.MASS, ld(vi, VI.MAT, v)), ti.f64)
-            p = ti.cast(get3(vr, VR.POS, v), ti.f64)
+        for v in range(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r)):
+            mass = ti.cast(ld(s.mt, MT.MASS, ld(s.vi, VI.MAT, v)), ti.f64)
+            p = ti.cast(get3(s.vr, VR.POS, v), ti.f64)
             mx += mass * p
             m += mass
             lo, hi = ti.min(lo, p), ti.max(hi, p)
-            if (ld(vi, VI.FLAGS, v) & CONTACT) != 0:
+            if (ld(s.vi, VI.FLAGS, v) & CONTACT) != 0:
                 contacts += 1
-            o = ti.cast(get4(vr, VR.ORI, v), ti.f64)
+            o = ti.cast(get4(s.vr, VR.ORI, v), ti.f64)
             q += -o if o[0] < 0.0 else o  # q and −q are one rotation: sum the ones with w ≥ 0
-        out[f, SUMMARY.T, r] = ld(rt, RT.T, r)
-        out[f, SUMMARY.STATUS, r] = ti.cast(ld(ri, RI.STATUS, r), ti.f64)
-        out[f, SUMMARY.M, r] = m
-        out[f, SUMMARY.CONTACTS, r] = ti.cast(contacts, ti.f64)
+        put(s, f, SUMMARY.T, r, ld(s.rt, RT.T, r))
+        put(s, f, SUMMARY.STATUS, r, ti.cast(ld(s.ri, RI.STATUS, r), ti.f64))
+        put(s, f, SUMMARY.M, r, m)
+        put(s, f, SUMMARY.CONTACTS, r, ti.cast(contacts, ti.f64))
         for k in ti.static(range(3)):
-            out[f, SUMMARY.MX + k, r] = mx[k]
-            out[f, SUMMARY.LO + k, r] = lo[k]
-            out[f, SUMMARY.HI + k, r] = hi[k]
+            put(s, f, SUMMARY.MX + k, r, mx[k])
+            put(s, f, SUMMARY.LO + k, r, lo[k])
+            put(s, f, SUMMARY.HI + k, r, hi[k])
         for k in ti.static(range(4)):
-            out[f, SUMMARY.Q + k, r] = q[k]
+            put(s, f, SUMMARY.Q + k, r, q[k])
 
     @ti.kernel
-    def summarise(vr: acc.arg(VR), vi: acc.arg(VI), rt: acc.arg(RT), ri: acc.arg(RI), mt: acc.arg(MT),
-                  n_robots: ti.i32, out: TraceArr, frame: ti.i32):
-        for r in range(n_robots):
-            summarise_robot(r, vr, vi, rt, ri, mt, out, frame)
+    def summarise(reals: Reals, ints: Ints, f64s: F64s, frame: ti.i32):
+        for r in range(ints[HDR.N_ROBOTS]):
+            h = header(ints)
+            summarise_robot(r, bind(reals, ints, f64s, h, None), frame)
 
-    return SimpleNamespace(summarise_robot=summarise_robot, summarise=summarise, TraceArr=TraceArr)
+    return SimpleNamespace(summarise_robot=summarise_robot, summarise=summarise)

@@ -49,48 +49,47 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
 
     # ------------------------------------------------------------ actuation (spec section 4)
     @ti.func
-    def base_size(mt: ti.template(), mat, temp):
+    def base_size(s: ti.template(), mat, temp):
         """Rest size of a voxel along any axis: L·(1 + T·CTE) (extScale = 1)."""
-        return ld(mt, MT.L, mat) * (1.0 + temp * ld(mt, MT.CTE, mat))
+        return ld(s.mt, MT.L, mat) * (1.0 + temp * ld(s.mt, MT.CTE, mat))
 
     @ti.func
-    def temperature(mt: ti.template(), rt: ti.template(), gp: ti.template(), mat, tbase, r):
+    def temperature(s: ti.template(), mat, tbase, r):
         """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
-        s = ti.cast(ld(rt, RT.SIN, r), real) * ld(mt, MT.COSPHI, mat) + \
-            ti.cast(ld(rt, RT.COS, r), real) * ld(mt, MT.SINPHI, mat)
-        return tbase + ti.cast(gp[GP.TEMP_AMP], real) * s
+        wave = ti.cast(ld(s.rt, RT.SIN, r), real) * ld(s.mt, MT.COSPHI, mat) + \
+            ti.cast(ld(s.rt, RT.COS, r), real) * ld(s.mt, MT.SINPHI, mat)
+        return tbase + ti.cast(ld(s.gp, GP.TEMP_AMP, 0), real) * wave
 
     # ------------------------------------------------------------ Poisson effects (spec section 6)
     @ti.func
-    def poisson_strain(v, vi: ti.template(), lr: ti.template(), li: ti.template(), mt: ti.template(),
-                       lt: ti.template(), mat, nu):
+    def poisson_strain(v, s: ti.template(), mat, nu):
         """This voxel's strain along each axis from its links' strains of this step (VX ``strain(true)``).
 
         An axis with links on both sides is in tension and keeps its mean link strain; a free axis takes
         (1 + Σ tension strains)^(−ν) − 1. Cached for the next link update: VX computes it lazily at the next
         step's first link, and nothing has changed by then (a Jacobi update)."""
-        s = vec3(0.0, 0.0, 0.0)
+        strain = vec3(0.0, 0.0, 0.0)
         if nu != 0.0:
             tension = ti.Vector([0, 0, 0])
             for a in ti.static(range(3)):
                 cnt = 0
                 for side in ti.static(range(2)):
-                    lk = ld(vi, VI.SLOT + 2 * a + side, v)
+                    lk = ld(s.vi, VI.SLOT + 2 * a + side, v)
                     if lk >= 0:
-                        eps = ld(lr, LR.STRAIN, lk)
+                        eps = ld(s.lr, LR.STRAIN, lk)
                         if ti.static(side == 1):  # a NEG slot: this voxel is the link's positive end
-                            s[a] += eps * ld(lt, LT.PSPOS, ld(li, LI.LMAT, lk))
+                            strain[a] += eps * ld(s.lt, LT.PSPOS, ld(s.li, LI.LMAT, lk))
                         else:
-                            s[a] += eps * ld(lt, LT.PSNEG, ld(li, LI.LMAT, lk))
+                            strain[a] += eps * ld(s.lt, LT.PSNEG, ld(s.li, LI.LMAT, lk))
                         cnt += 1
                 if cnt == 2:
-                    s[a] *= 0.5
+                    strain[a] *= 0.5
                     tension[a] = 1
             if not (tension[0] == 1 and tension[1] == 1 and tension[2] == 1):
                 add = ti.cast(0.0, real)
                 for a in ti.static(range(3)):
                     if tension[a] == 1:
-                        add += s[a]
+                        add += strain[a]
                 val = ti.cast(0.0, real)
                 if ti.static(exact_vx):
                     val = ti.pow(1.0 + add, -nu) - 1.0
@@ -99,26 +98,26 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
                     # below f32 rounding), else powf. Cheaper than the libm call (~10 % of a CPU step on design
                     # bodies, mostly surface voxels) and no 1 − 1 cancellation.
                     if ti.abs(add) < POISSON_SERIES_X:
-                        c = ld(mt, MT.PB1 + POISSON_SERIES_TERMS - 1, mat)
+                        c = ld(s.mt, MT.PB1 + POISSON_SERIES_TERMS - 1, mat)
                         for k in ti.static(range(POISSON_SERIES_TERMS - 1, 0, -1)):
-                            c = ld(mt, MT.PB1 + k - 1, mat) + add * c
+                            c = ld(s.mt, MT.PB1 + k - 1, mat) + add * c
                         val = add * c
                     else:
                         val = ti.pow(1.0 + add, -nu) - 1.0
                 for a in ti.static(range(3)):
                     if tension[a] == 0:
-                        s[a] = val
-        return s
+                        strain[a] = val
+        return strain
 
 
     @ti.func
-    def transverse(mt: ti.template(), mat, ps):
+    def transverse(s: ti.template(), mat, ps):
         """Transverse areas and strain sums (VX_Voxel.cpp) for a link along x, y, z from the voxel's Poisson
         strains ``ps``: two vec3, computed once per voxel per step rather than by each of its ≤ 6 links."""
-        L = ld(mt, MT.L, mat)
+        L = ld(s.mt, MT.L, mat)
         area = vec3(L * L, L * L, L * L)
         ssum = vec3(0.0, 0.0, 0.0)
-        if ld(mt, MT.NU, mat) != 0.0:
+        if ld(s.mt, MT.NU, mat) != 0.0:
             area = vec3(L * L * (1.0 + ps[1]) * (1.0 + ps[2]), L * L * (1.0 + ps[0]) * (1.0 + ps[2]),
                         L * L * (1.0 + ps[0]) * (1.0 + ps[1]))
             ssum = vec3(ps[1] + ps[2], ps[0] + ps[2], ps[0] + ps[1])
@@ -126,37 +125,37 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
 
     # ------------------------------------------------------------ forces (spec sections 7 and 8)
     @ti.func
-    def link_loads(v, vi: ti.template(), lr: ti.template()):
+    def link_loads(v, s: ti.template()):
         """Sum of the force and moment of the voxel's links, in its local frame (VX_Voxel::force/moment)."""
         force = vec3(0.0, 0.0, 0.0)
         moment = vec3(0.0, 0.0, 0.0)
         for d in ti.static(range(6)):
-            lk = ld(vi, VI.SLOT + d, v)
+            lk = ld(s.vi, VI.SLOT + d, v)
             if lk >= 0:
                 if ti.static(d % 2 == 1):  # NEG slot: this voxel is the link's positive end
-                    force += get3(lr, LR.FP, lk)
-                    moment += get3(lr, LR.MP, lk)
+                    force += get3(s.lr, LR.FP, lk)
+                    moment += get3(s.lr, LR.MP, lk)
                 else:
-                    force += get3(lr, LR.FN, lk)
-                    moment += get3(lr, LR.MN, lk)
+                    force += get3(s.lr, LR.FN, lk)
+                    moment += get3(s.lr, LR.MN, lk)
         return force, moment
 
     @ti.func
-    def floor_force(mt: ti.template(), mat, force, vel, pen, static):
+    def floor_force(s: ti.template(), mat, force, vel, pen, static):
         """Floor contact at penetration ``pen`` (the start of the step) and Coulomb friction with the static/kinetic
         states (VX_Voxel::floorForce). Returns (force with contact, the kinetic friction part, static)."""
         fric = vec3(0.0, 0.0, 0.0)
         if pen >= 0.0:
-            normal = ld(mt, MT.KPEN, mat) * pen
-            force[2] += normal - ld(mt, MT.CC, mat) * vel[2]  # collision damping only while in contact
+            normal = ld(s.mt, MT.KPEN, mat) * pen
+            force[2] += normal - ld(s.mt, MT.CC, mat) * vel[2]  # collision damping only while in contact
             if static:
-                mus = ld(mt, MT.MUS, mat) * normal
+                mus = ld(s.mt, MT.MUS, mat) * normal
                 if force[0] * force[0] + force[1] * force[1] > mus * mus:
                     static = False  # breaks loose; the full force acts this step
             else:
                 vh = ti.sqrt(vel[0] * vel[0] + vel[1] * vel[1])
                 if vh > 0.0:
-                    f = ld(mt, MT.MUK, mat) * normal / vh
+                    f = ld(s.mt, MT.MUK, mat) * normal / vh
                     fric = vec3(-f * vel[0], -f * vel[1], 0.0)
                     force += fric
         else:
@@ -165,50 +164,50 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
 
     # ------------------------------------------------------------ terrain (terrain.py): distance and normal
     @ti.func
-    def ground(gp: ti.template(), hf: ti.template(), p, mode: ti.template()):
+    def ground(s: ti.template(), p, mode: ti.template()):
         """Signed distance from point ``p`` to the terrain's surface (positive above) and the unit normal there.
 
         SMOOTH: S = base + gx·x + gy·y + the bilinear grid; distance (z − S)·n_z (exact for a plane).
         COLUMNS: flat-topped cells; the nearest of the own cell's top and the three nearest neighbours that rise
         above it (their top, edge or side: a voxel meets a riser on its face). Cells are at least a voxel wide,
         so no farther cell is within a voxel's half size."""
-        c = ti.cast(gp[GP.TER_CELL], real)
-        nx, ny = ti.cast(gp[GP.TER_NX], ti.i32), ti.cast(gp[GP.TER_NY], ti.i32)
-        x0, y0 = ti.cast(gp[GP.TER_X0], real), ti.cast(gp[GP.TER_Y0], real)
-        base = ti.cast(gp[GP.TER_BASE], real)
+        c = ti.cast(ld(s.gp, GP.TER_CELL, 0), real)
+        nx, ny = ti.cast(ld(s.gp, GP.TER_NX, 0), ti.i32), ti.cast(ld(s.gp, GP.TER_NY, 0), ti.i32)
+        x0, y0 = ti.cast(ld(s.gp, GP.TER_X0, 0), real), ti.cast(ld(s.gp, GP.TER_Y0, 0), real)
+        base = ti.cast(ld(s.gp, GP.TER_BASE, 0), real)
         # bounded before the integer conversion (a diverging robot's position must not overflow it)
         u = ti.min(ti.max((p[0] - x0) / c, -2.0), ti.cast(nx, real) + 2.0)
         v = ti.min(ti.max((p[1] - y0) / c, -2.0), ti.cast(ny, real) + 2.0)
         dist = ti.cast(0.0, real)
         n = vec3(0.0, 0.0, 1.0)
         if ti.static(mode == SMOOTH):
-            gx, gy = ti.cast(gp[GP.TER_GX], real), ti.cast(gp[GP.TER_GY], real)
+            gx, gy = ti.cast(ld(s.gp, GP.TER_GX, 0), real), ti.cast(ld(s.gp, GP.TER_GY, 0), real)
             i = ti.min(ti.max(ti.cast(ti.floor(u), ti.i32), 0), nx - 2)
             j = ti.min(ti.max(ti.cast(ti.floor(v), ti.i32), 0), ny - 2)
             fu, fv = u - ti.cast(i, real), v - ti.cast(j, real)
             inu = ti.cast(0.0 <= fu <= 1.0, real)  # beyond the grid the edge values go on: no grid slope there
             inv = ti.cast(0.0 <= fv <= 1.0, real)
             fu, fv = ti.min(ti.max(fu, 0.0), 1.0), ti.min(ti.max(fv, 0.0), 1.0)
-            h00, h10 = hf[i * ny + j], hf[(i + 1) * ny + j]
-            h01, h11 = hf[i * ny + j + 1], hf[(i + 1) * ny + j + 1]
-            s = base + gx * p[0] + gy * p[1] + (h00 * (1.0 - fu) + h10 * fu) * (1.0 - fv) + \
+            h00, h10 = ld(s.hf, 0, i * ny + j), ld(s.hf, 0, (i + 1) * ny + j)
+            h01, h11 = ld(s.hf, 0, i * ny + j + 1), ld(s.hf, 0, (i + 1) * ny + j + 1)
+            surface = base + gx * p[0] + gy * p[1] + (h00 * (1.0 - fu) + h10 * fu) * (1.0 - fv) + \
                 (h01 * (1.0 - fu) + h11 * fu) * fv
             sx = gx + inu * ((h10 - h00) * (1.0 - fv) + (h11 - h01) * fv) / c
             sy = gy + inv * ((h01 - h00) * (1.0 - fu) + (h11 - h10) * fu) / c
             nz = 1.0 / ti.sqrt(1.0 + sx * sx + sy * sy)
             n = vec3(-sx * nz, -sy * nz, nz)
-            dist = (p[2] - s) * nz
+            dist = (p[2] - surface) * nz
         else:
             fi, fj = ti.floor(u), ti.floor(v)
             i, j = ti.cast(fi, ti.i32), ti.cast(fj, ti.i32)
-            top0 = base + hf[ti.min(ti.max(i, 0), nx - 1) * ny + ti.min(ti.max(j, 0), ny - 1)]
+            top0 = base + ld(s.hf, 0, ti.min(ti.max(i, 0), nx - 1) * ny + ti.min(ti.max(j, 0), ny - 1))
             dist = p[2] - top0
             si = 1 if u - fi >= 0.5 else -1
             sj = 1 if v - fj >= 0.5 else -1
             for k in ti.static(range(3)):
                 a = i + (si if k != 1 else 0)
                 b = j + (sj if k != 0 else 0)
-                top = base + hf[ti.min(ti.max(a, 0), nx - 1) * ny + ti.min(ti.max(b, 0), ny - 1)]
+                top = base + ld(s.hf, 0, ti.min(ti.max(a, 0), nx - 1) * ny + ti.min(ti.max(b, 0), ny - 1))
                 if top > top0:
                     lox, loy = x0 + ti.cast(a, real) * c, y0 + ti.cast(b, real) * c
                     d = p - vec3(ti.min(ti.max(p[0], lox), lox + c), ti.min(ti.max(p[1], loy), loy + c),
@@ -221,15 +220,15 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         return dist, n
 
     @ti.func
-    def terrain_contact(mt: ti.template(), mat, force, vel, pen, n, static):
+    def terrain_contact(s: ti.template(), mat, force, vel, pen, n, static):
         """``floor_force`` along the surface normal ``n``: penalty force and collision damping along n, Coulomb
         friction on the tangential force (static test) and velocity (kinetic). Returns (force, friction, static)."""
         fric = vec3(0.0, 0.0, 0.0)
         if pen >= 0.0:
-            normal = ld(mt, MT.KPEN, mat) * pen
-            force += (normal - ld(mt, MT.CC, mat) * vel.dot(n)) * n
+            normal = ld(s.mt, MT.KPEN, mat) * pen
+            force += (normal - ld(s.mt, MT.CC, mat) * vel.dot(n)) * n
             if static:
-                mus = ld(mt, MT.MUS, mat) * normal
+                mus = ld(s.mt, MT.MUS, mat) * normal
                 fn = force.dot(n)
                 if force.dot(force) - fn * fn > mus * mus:
                     static = False  # breaks loose; the full force acts this step
@@ -237,7 +236,7 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
                 vt = vel - vel.dot(n) * n
                 vh = ti.sqrt(vt.dot(vt))
                 if vh > 0.0:
-                    fric = -(ld(mt, MT.MUK, mat) * normal / vh) * vt
+                    fric = -(ld(s.mt, MT.MUK, mat) * normal / vh) * vt
                     force += fric
         else:
             static = False
@@ -257,33 +256,33 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         return r
 
     @ti.func
-    def snapshots(v, vr: ti.template(), ri: ti.template(), r, pos):
+    def snapshots(v, s: ti.template(), r, pos):
         """COM samples every PERIOD steps; the evaluation start/end at the first step past each time (which of
         these this step takes was decided once for the robot, by the clock or the Engine)."""
-        events = ld(ri, RI.EVENTS, r)
+        events = ld(s.ri, RI.EVENTS, r)
         if events != 0:
             if (events & EV_SAMPLE) != 0:
-                set3(vr, VR.PSAMP, v, pos)
+                set3(s.vr, VR.PSAMP, v, pos)
             if (events & EV_START) != 0:
-                set3(vr, VR.PSTART, v, pos)
-                set3(vr, VR.PCS, v, get3(vr, VR.PSAMP, v))
+                set3(s.vr, VR.PSTART, v, pos)
+                set3(s.vr, VR.PCS, v, get3(s.vr, VR.PSAMP, v))
             if (events & EV_END) != 0:
-                set3(vr, VR.PEND, v, pos)
-                set3(vr, VR.PCE, v, get3(vr, VR.PSAMP, v))
+                set3(s.vr, VR.PEND, v, pos)
+                set3(s.vr, VR.PCE, v, get3(s.vr, VR.PSAMP, v))
 
     # ------------------------------------------------------------ contact: the step's translation with the ground
     @ti.func
-    def flat_floor_step(mt: ti.template(), mat, size, pos, mom, force, vel, dt, minv, static, sw: ti.template()):
+    def flat_floor_step(s: ti.template(), mat, size, pos, mom, force, vel, dt, minv, static):
         """Voxelyze's flat floor, its own code (results bit for bit those of the simulator before terrain): the floor
         force and friction, the momentum and position update, and the stop test. -> (pos, mom, static, touching)."""
         touching = False
-        pen = 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2]
+        pen = 0.5 * size - 0.5 * ld(s.mt, MT.L, mat) - pos[2]
         fric = vec3(0.0, 0.0, 0.0)
-        if ti.static(sw.floor != 0):
-            force, fric, static = floor_force(mt, mat, force, vel, pen, static)
+        if ti.static(s.sw.floor != 0):
+            force, fric, static = floor_force(s, mat, force, vel, pen, static)
         mom += force * dt
         delta = mom * (dt * minv)
-        if ti.static(sw.floor != 0):
+        if ti.static(s.sw.floor != 0):
             touching = pen >= 0.0
         if touching:
             # work-energy stop test: friction would reverse the horizontal motion within this step
@@ -302,19 +301,18 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         return pos, mom, static, touching
 
     @ti.func
-    def terrain_step(mt: ti.template(), gp: ti.template(), hf: ti.template(), mat, size, pos, mom, force, vel, dt,
-                     minv, static, sw: ti.template()):
+    def terrain_step(s: ti.template(), mat, size, pos, mom, force, vel, dt, minv, static):
         """The same model along the terrain's local surface normal n ("horizontal" becomes tangential).
         -> (pos, mom, static, touching)."""
         touching = False
-        dist, n = ground(gp, hf, pos, sw.terrain)
+        dist, n = ground(s, pos, s.sw.terrain)
         pen = 0.5 * size - dist
         fric = vec3(0.0, 0.0, 0.0)
-        if ti.static(sw.floor != 0):
-            force, fric, static = terrain_contact(mt, mat, force, vel, pen, n, static)
+        if ti.static(s.sw.floor != 0):
+            force, fric, static = terrain_contact(s, mat, force, vel, pen, n, static)
         mom += force * dt
         delta = mom * (dt * minv)
-        if ti.static(sw.floor != 0):
+        if ti.static(s.sw.floor != 0):
             touching = pen >= 0.0
         if touching:
             work = fric.dot(delta)
@@ -333,56 +331,52 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
 
     # ------------------------------------------------------------ the voxel update (spec section 9)
     @ti.func
-    def voxel_update(v, vr: ti.template(), vi: ti.template(), lr: ti.template(), li: ti.template(),
-                     rt: ti.template(), ri: ti.template(), mt: ti.template(), lt: ti.template(),
-                     gp: ti.template(), hf: ti.template(), sw: ti.template()):
+    def voxel_update(v, s: ti.template()):
         """One step of voxel ``v``; marks its robot DIVERGED if its pose becomes non-finite.
-        ``sw`` (``state.Switches``, compile-time): floor contact on; terrain: FLAT (Voxelyze's own floor code) |
-        SMOOTH | COLUMNS (the height field in ``gp``/``hf``); rl4design semantics."""
-        r = ld(vi, VI.ROBOT, v)
-        mat = ld(vi, VI.MAT, v)
-        flags = ld(vi, VI.FLAGS, v)
-        dt = ti.cast(ld(rt, RT.DT, r), real)
-        minv, iinv = ld(mt, MT.MINV, mat), ld(mt, MT.IINV, mat)
-        pos = get3(vr, VR.POS, v)
-        mom = get3(vr, VR.MOM, v)
-        q = get4(vr, VR.ORI, v)
-        amom = get3(vr, VR.AMOM, v)
-        size = ld(vr, VR.SIZE, v)  # the rest size at the start of the step
-        s = poisson_strain(v, vi, lr, li, mt, lt, mat, ld(mt, MT.NU, mat))
+        ``s.sw`` (``state.Switches``, compile-time): floor contact on; terrain: FLAT (Voxelyze's own floor code) |
+        SMOOTH | COLUMNS (the height field in ``s.gp``/``s.hf``); rl4design semantics."""
+        r = ld(s.vi, VI.ROBOT, v)
+        mat = ld(s.vi, VI.MAT, v)
+        flags = ld(s.vi, VI.FLAGS, v)
+        dt = ti.cast(ld(s.rt, RT.DT, r), real)
+        minv, iinv = ld(s.mt, MT.MINV, mat), ld(s.mt, MT.IINV, mat)
+        pos = get3(s.vr, VR.POS, v)
+        mom = get3(s.vr, VR.MOM, v)
+        q = get4(s.vr, VR.ORI, v)
+        amom = get3(s.vr, VR.AMOM, v)
+        size = ld(s.vr, VR.SIZE, v)  # the rest size at the start of the step
+        ps = poisson_strain(v, s, mat, ld(s.mt, MT.NU, mat))
 
         if (flags & FIXED) != 0:
             # held in all 6 DOF (VX isFixedAll): back to the original pose, no motion
-            pos = get3(vr, VR.POS0, v)
+            pos = get3(s.vr, VR.POS0, v)
             mom = vec3(0.0, 0.0, 0.0)
             amom = vec3(0.0, 0.0, 0.0)
             q = vec4(1.0, 0.0, 0.0, 0.0)
         else:
-            force, moment = link_loads(v, vi, lr)
+            force, moment = link_loads(v, s)
             vel = mom * minv
             # global damping acts on the absolute velocity (VX's "slow" damping)
-            force = rotate(q, force) - ld(mt, MT.CG, mat) * vel
-            force[2] += ld(mt, MT.MG, mat)
-            moment = rotate(q, moment) - ld(mt, MT.CGR, mat) * (amom * iinv)
+            force = rotate(q, force) - ld(s.mt, MT.CG, mat) * vel
+            force[2] += ld(s.mt, MT.MG, mat)
+            moment = rotate(q, moment) - ld(s.mt, MT.CGR, mat) * (amom * iinv)
 
             static = (flags & STATIC) != 0
             touching = False
-            if ti.static(sw.terrain == FLAT):
-                pos, mom, static, touching = flat_floor_step(mt, mat, size, pos, mom, force, vel, dt, minv, static,
-                                                             sw)
+            if ti.static(s.sw.terrain == FLAT):
+                pos, mom, static, touching = flat_floor_step(s, mat, size, pos, mom, force, vel, dt, minv, static)
             else:
-                pos, mom, static, touching = terrain_step(mt, gp, hf, mat, size, pos, mom, force, vel, dt, minv,
-                                                          static, sw)
+                pos, mom, static, touching = terrain_step(s, mat, size, pos, mom, force, vel, dt, minv, static)
             amom += moment * dt
             q = qmul(from_rotation_vector(amom * (dt * iinv)), q)
             if ti.static(not exact_vx):
                 q = renormalise(q)
-            if ti.static(sw.rl4design != 0 and sw.floor != 0):
-                if ti.static(sw.terrain == FLAT):
-                    if static and 0.5 * size - 0.5 * ld(mt, MT.L, mat) - pos[2] >= 0.0:
+            if ti.static(s.sw.rl4design != 0 and s.sw.floor != 0):
+                if ti.static(s.sw.terrain == FLAT):
+                    if static and 0.5 * size - 0.5 * ld(s.mt, MT.L, mat) - pos[2] >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
                 elif static:  # (the distance only matters for a static voxel: skip the terrain lookup else)
-                    dist_new, _n = ground(gp, hf, pos, sw.terrain)
+                    dist_new, _n = ground(s, pos, s.sw.terrain)
                     if 0.5 * size - dist_new >= 0.0:
                         amom = vec3(0.0, 0.0, 0.0)
             flags = (flags & ~(STATIC | CONTACT)) | (STATIC if static else 0) | (CONTACT if touching else 0)
@@ -390,19 +384,19 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         # NaN or inf anywhere makes the L1 norm non-finite, and so does a finite state beyond the float range
         if nonfinite(ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
                      + ti.abs(amom[2])):
-            st(ri, RI.STATUS, r, DIVERGED)
+            st(s.ri, RI.STATUS, r, DIVERGED)
 
-        set3(vr, VR.POS, v, pos)
-        set3(vr, VR.MOM, v, mom)
-        set4(vr, VR.ORI, v, q)
-        set3(vr, VR.AMOM, v, amom)
-        area, ssum = transverse(mt, mat, s)
-        set3(vr, VR.TAREA, v, area)
-        set3(vr, VR.TSUM, v, ssum)
-        st(vi, VI.FLAGS, v, flags)
+        set3(s.vr, VR.POS, v, pos)
+        set3(s.vr, VR.MOM, v, mom)
+        set4(s.vr, VR.ORI, v, q)
+        set3(s.vr, VR.AMOM, v, amom)
+        area, ssum = transverse(s, mat, ps)
+        set3(s.vr, VR.TAREA, v, area)
+        set3(s.vr, VR.TSUM, v, ssum)
+        st(s.vi, VI.FLAGS, v, flags)
         # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
         # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
-        st(vr, VR.SIZE, v, base_size(mt, mat, temperature(mt, rt, gp, mat, ld(vr, VR.TBASE, v), r)))
-        snapshots(v, vr, ri, r, pos)
+        st(s.vr, VR.SIZE, v, base_size(s, mat, temperature(s, mat, ld(s.vr, VR.TBASE, v), r)))
+        snapshots(v, s, r, pos)
 
     return SimpleNamespace(voxel_update=voxel_update, base_size=base_size, temperature=temperature)
