@@ -153,17 +153,18 @@ def make_access(precision: str, order: str) -> SimpleNamespace:
 
 @functools.cache
 def make_transfers() -> SimpleNamespace:
-    """``read(buf, at, n, out)`` and ``write(buf, at, n, src)``: copy ``n`` elements between a buffer (from element
-    ``at``) and a staging array, so the host moves one region, not a whole buffer (compiled per dtype)."""
+    """``read(buf, at, step, n, out)`` and ``write(buf, at, step, n, src)``: copy ``n`` elements
+    ``buf[at + i·step]`` to or from a staging array, so the host moves one region (step 1) or one column of a
+    table (a column is strided in "aos"), not a whole buffer (compiled per dtype)."""
 
     @ti.kernel
-    def read(buf: ti.types.ndarray(ndim=1), at: ti.i32, n: ti.i32, out: ti.types.ndarray(ndim=1)):
+    def read(buf: ti.types.ndarray(ndim=1), at: ti.i32, step: ti.i32, n: ti.i32, out: ti.types.ndarray(ndim=1)):
         for i in range(n):
-            out[i] = buf[at + i]
+            out[i] = buf[at + i * step]
 
     @ti.kernel
-    def write(buf: ti.types.ndarray(ndim=1), at: ti.i32, n: ti.i32, src: ti.types.ndarray(ndim=1)):
+    def write(buf: ti.types.ndarray(ndim=1), at: ti.i32, step: ti.i32, n: ti.i32, src: ti.types.ndarray(ndim=1)):
         for i in range(n):
-            buf[at + i] = src[i]
+            buf[at + i * step] = src[i]
 
     return SimpleNamespace(read=read, write=write)

@@ -18,6 +18,7 @@ from freeform.validation import require
 
 REWARDS = ("max_voxel", "com")
 SEMANTICS = ("voxelyze", "rl4design")
+ACTUATIONS = ("sine", "command")
 PRECISIONS = ("f32", "f64")
 # the least step cap accepted: a fixed-dt robot needs floor(T/dt) + 1 steps, and the clock's rounding may add one
 MIN_STEP_CAP = 1.5
@@ -53,6 +54,9 @@ class SimConfig:
     bond_damping / global_damping / collision_damping: damping ratios ζ (internal, global, floor).
     gravity: vertical acceleration (m/s^2, negative = down; 0 switches gravity off).
     temp_amplitude / temp_period: actuation T(t) = A·sin(2π(t/period + phase)) (degrees, s).
+    actuation: "sine" (open loop: each voxel's temperature follows the robot's clock and its material's phase) or
+        "command" (closed loop: T = T_base + A·c with c each voxel's command, written by a controller between
+        calls: ``Engine.set_commands``; c in [−1, 1] spans the sine's range; the clock still runs).
     dt: fixed time step (s); None = dt_frac × the recommended step of each robot (spec section 10).
     burn_in / duration: evaluation window (s) that the reward measures.
     reward: deprecated — which displacement ``SimResult.displacement`` repeats; the result carries both
@@ -89,6 +93,7 @@ class SimConfig:
     duration: float = 5.0
     reward: str = "max_voxel"
     semantics: str = "voxelyze"
+    actuation: str = "sine"
     precision: str = "f32"
     floor: bool = True
     terrain: Terrain = field(default_factory=Terrain)
@@ -103,6 +108,7 @@ class SimConfig:
         (``key="sim"`` from the command line)."""
         require(self.reward in REWARDS, f"{key}.reward", f"one of {REWARDS}", self.reward)
         require(self.semantics in SEMANTICS, f"{key}.semantics", f"one of {SEMANTICS}", self.semantics)
+        require(self.actuation in ACTUATIONS, f"{key}.actuation", f"one of {ACTUATIONS}", self.actuation)
         require(self.precision in PRECISIONS, f"{key}.precision", f"one of {PRECISIONS}", self.precision)
         require(self.voxel_size > 0, f"{key}.voxel_size", "> 0", self.voxel_size)
         require(1 <= len(self.materials) <= 254, f"{key}.materials", "1..254 materials", len(self.materials))

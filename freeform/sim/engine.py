@@ -175,15 +175,34 @@ class Engine:
         values = np.zeros(length, dtype=dtype)
         values[: region.size] = region.flat(np.asarray(a, dtype=dtype))
         runtime.upload(stage, values)
-        self._transfers.write(self._buffers[region.buffer], region.at, region.size, stage)
+        self._transfers.write(self._buffers[region.buffer], region.at, 1, region.size, stage)
 
     def _download(self, name: str) -> np.ndarray:
         """Host copy ``[columns, capacity]`` of region ``name`` (items past the batch's own are stale)."""
         self._check_owner()
         region = self.packing.regions[name]
         stage, _ = self._arrays.staging(buffer_dtype(region.buffer, self.precision), region.size)
-        self._transfers.read(self._buffers[region.buffer], region.at, region.size, stage)
+        self._transfers.read(self._buffers[region.buffer], region.at, 1, region.size, stage)
         return region.unflat(runtime.to_numpy(stage), region.stride)
+
+    def _column_place(self, name: str, column: int) -> tuple[object, int, int]:
+        """(buffer, first element, step between items) of ``column`` of table ``name``."""
+        region = self.packing.regions[name]
+        if region.aos:
+            return self._buffers[region.buffer], region.at + column, region.width
+        return self._buffers[region.buffer], region.at + column * region.stride, 1
+
+    def _write_column(self, name: str, column: int, values: np.ndarray) -> None:
+        """Write one column of table ``name`` for this batch's items (``values`` ``[items]``): one copy kernel,
+        whatever the memory order — what a controller does every control period."""
+        self._check_owner()
+        dtype = buffer_dtype(self.packing.regions[name].buffer, self.precision)
+        stage, length = self._arrays.staging(dtype, values.size)
+        padded = np.zeros(length, dtype=dtype)
+        padded[: values.size] = values
+        runtime.upload(stage, padded)
+        buf, at, step = self._column_place(name, column)
+        self._transfers.write(buf, at, step, values.size, stage)
 
     def _table(self, name: str) -> np.ndarray:
         """Host copy ``[columns, items]`` of table ``name``, this batch's items only."""
@@ -210,6 +229,20 @@ class Engine:
                 k.run_flat(*buffers, min(left, UNROLL))
                 left -= UNROLL
         self.steps_done += n_steps
+
+    def set_commands(self, commands) -> None:
+        """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the
+        next step on, its temperature is T_base + A·c (``SimConfig.actuation="command"``; c in [−1, 1] spans the
+        sine's range, a passive voxel's CTE of 0 ignores it). Commands hold until set again; they start at 0."""
+        if not self.switches.command:
+            raise RuntimeError("set_commands needs an engine built with SimConfig(actuation='command'); this one "
+                               "runs the open-loop sine (actuation='sine')")
+        c = np.asarray(commands, dtype=np.float64)
+        if c.shape != (self.layout.num_voxels,):
+            raise ValueError(f"commands must have shape ({self.layout.num_voxels},) (one per voxel), got {c.shape}")
+        if not np.isfinite(c).all():
+            raise ValueError("commands must be finite (a NaN or inf command would diverge its robot)")
+        self._write_column("vr", VR.CMD, c.astype(self.np_real))
 
     def set_velocity(self, velocity: np.ndarray, release_static: bool = True) -> None:
         """Overwrite every voxel's linear velocity (float ``[n, 3]``, m/s), e.g. to launch a settled block.

@@ -102,7 +102,8 @@ def initial_state(layout: Layout, config: SimConfig) -> InitialState:
     offset = placement(config.terrain, terrain, layout.lattice, layout.voxel_robot, layout.num_robots, L)
     # rl4design refreshes dt every few steps unless dt is fixed
     switches = Switches(floor=int(config.floor), terrain=int(terrain.mode), rl4design=int(rl4design),
-                        dynamic_dt=int(rl4design and config.dt is None))
+                        dynamic_dt=int(rl4design and config.dt is None),
+                        command=int(config.actuation == "command"))
     precision = config.precision
     tables = {name: t.zeros(counts[t.items], precision) for name, t in TABLES.items()}
     _voxels(tables["vr"], tables["vi"], layout, config, terrain, offset)
@@ -130,8 +131,8 @@ def _voxels(vr: np.ndarray, vi: np.ndarray, layout: Layout, config: SimConfig, t
     vr[VR.span("MOM")] = (layout.velocity * mass[:, None]).T
     vr[VR.ORI] = 1.0
     vr[VR.TBASE] = layout.temp_base
-    if rl4design:
-        temp = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset)
+    if rl4design or config.actuation == "command":
+        temp = layout.temp_base  # rl4design starts at T = 0 (plus any constant offset); commands start at 0
     else:
         phase = np.array([0.0] + [mm.phase for mm in config.materials])[layout.material]
         temp = layout.temp_base + config.temp_amplitude * np.sin(2 * math.pi * phase)

@@ -81,10 +81,11 @@ class Table:
 # Voxel: position, linear momentum, orientation (w, x, y, z), angular momentum, original position (where a fixed
 # voxel is held); transverse area and strain sum for a link along each axis (from the voxel's Poisson strains,
 # cached for the next link update); rest size L·(1 + T·CTE) at the temperature in effect, constant temperature;
-# positions at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end.
+# positions at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end; the
+# actuation command (Switches.command: T = TBASE + A·CMD in place of the clock's sine).
 VR = Table("voxel_real", REAL, "voxels", (
     ("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("TAREA", 3), ("TSUM", 3), ("SIZE", 1),
-    ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3)))
+    ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3), ("CMD", 1)))
 # SLOT: the link in each direction (X_POS, X_NEG, Y_POS, Y_NEG, Z_POS, Z_NEG), -1 = none
 VI = Table("voxel_int", I32, "voxels", (("MAT", 1), ("ROBOT", 1), ("FLAGS", 1), ("SLOT", 6)))
 # Link: pos2 / angle1v / angle2v of the last step (VX's *_old, for the damping rates), axial strain, force and
@@ -156,3 +157,5 @@ class Switches(NamedTuple):
     """1: the paper simulator's semantics (``SimConfig.semantics="rl4design"``), 0: Voxelyze's."""
     dynamic_dt: int
     """1: rl4design's per-robot dt refresh from the links' ω² (rl4design with ``dt=None``)."""
+    command: int = 0
+    """1: each voxel's temperature is T_base + A·``VR.CMD`` (``SimConfig.actuation="command"``), 0: the sine."""

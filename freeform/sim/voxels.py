@@ -54,11 +54,16 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         return ld(s.mt, MT.L, mat) * (1.0 + temp * ld(s.mt, MT.CTE, mat))
 
     @ti.func
-    def temperature(s: ti.template(), mat, tbase, r):
-        """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot."""
-        wave = ti.cast(ld(s.rt, RT.SIN, r), real) * ld(s.mt, MT.COSPHI, mat) + \
-            ti.cast(ld(s.rt, RT.COS, r), real) * ld(s.mt, MT.SINPHI, mat)
-        return tbase + ti.cast(ld(s.gp, GP.TEMP_AMP, 0), real) * wave
+    def temperature(s: ti.template(), v, mat, r):
+        """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot. Under
+        commanded actuation (``s.sw.command``) the voxel's command takes the sine's place."""
+        wave = ti.cast(0.0, real)
+        if ti.static(s.sw.command != 0):
+            wave = ld(s.vr, VR.CMD, v)
+        else:
+            wave = ti.cast(ld(s.rt, RT.SIN, r), real) * ld(s.mt, MT.COSPHI, mat) + \
+                ti.cast(ld(s.rt, RT.COS, r), real) * ld(s.mt, MT.SINPHI, mat)
+        return ld(s.vr, VR.TBASE, v) + ti.cast(ld(s.gp, GP.TEMP_AMP, 0), real) * wave
 
     # ------------------------------------------------------------ Poisson effects (spec section 6)
     @ti.func
@@ -396,7 +401,7 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         st(s.vi, VI.FLAGS, v, flags)
         # temperature for the next step: VX sets T(t) before each step; rl4design writes T(t) after the
         # voxel update, so its links lag one step behind (the robot's SIN/COS hold the right τ for each)
-        st(s.vr, VR.SIZE, v, base_size(s, mat, temperature(s, mat, ld(s.vr, VR.TBASE, v), r)))
+        st(s.vr, VR.SIZE, v, base_size(s, mat, temperature(s, v, mat, r)))
         snapshots(v, s, r, pos)
 
     return SimpleNamespace(voxel_update=voxel_update, base_size=base_size, temperature=temperature)

@@ -1,0 +1,91 @@
+"""Commanded actuation (``SimConfig(actuation="command")``, ``Engine.set_commands``): closed-loop control's way into
+the simulator. The physics must be the open-loop physics with the sine replaced by the command, nothing else."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from freeform.sim import SimConfig, Simulator
+from freeform.sim.config import material_table
+from freeform.sim.state import MT, RT, RUNNING, VR
+
+
+def bodies() -> np.ndarray:
+    """Two small bodies with muscles of both phases (materials 2, 3) and passive voxels (1)."""
+    g = np.zeros((2, 3, 3, 2), np.uint8)
+    g[0, :, :, 0] = 1
+    g[0, 0, :, 1], g[0, 2, :, 1] = 2, 3
+    g[1, :2, :, :] = 3
+    g[1, 2, :, 0] = 2
+    return g
+
+
+@pytest.mark.reference
+@pytest.mark.parametrize("semantics", ["voxelyze", "rl4design"])
+def test_commands_equal_to_the_clock_term_reproduce_the_open_loop_gait_bit_for_bit(semantics):
+    """Each step's command = the kernels' own clock term (the robot's sin/cos of the coming temperature's time, in
+    the same angle-addition form as ``voxels.temperature``), from the same initial rest sizes: after 1 s the poses
+    equal an open-loop engine's to the bit (f64, strict path)."""
+    cfg = SimConfig(precision="f64", semantics=semantics, burn_in=0.0, duration=1.0)
+    sim_o, sim_c = Simulator(cfg, arch="cpu"), Simulator(replace(cfg, actuation="command"), arch="cpu")
+    open_loop, commanded = sim_o.engine(sim_o.layout(bodies())), sim_c.engine(sim_c.layout(bodies()))
+    vr = commanded._table("vr")
+    vr[VR.SIZE] = open_loop._table("vr")[VR.SIZE]  # the sine's rest size at t = 0 (commands start at 0)
+    commanded._upload("vr", vr)
+    layout = commanded.layout
+    mt = material_table(cfg)
+    cos_phi, sin_phi = mt[MT.COSPHI][layout.material], mt[MT.SINPHI][layout.material]
+    robot = layout.voxel_robot
+    steps = 0
+    while (commanded.robot_status() == RUNNING).any():  # every robot stops once past t = 1 s (its own dt)
+        rt = commanded._table("rt")
+        commanded.set_commands(rt[RT.SIN][robot] * cos_phi + rt[RT.COS][robot] * sin_phi)
+        commanded.advance(1)
+        steps += 1
+    open_loop.advance(steps)
+    assert (commanded.robot_time() >= 1.0).all()  # a second of gait, a few hundred strokes of actuation
+    np.testing.assert_array_equal(commanded.positions(), open_loop.positions())
+    np.testing.assert_array_equal(commanded.orientations(), open_loop.orientations())
+    assert np.abs(open_loop.positions() - sim_o.layout(bodies()).lattice * cfg.voxel_size).max() > 1e-4  # it moved
+
+
+def test_zero_commands_are_a_passive_body():
+    """Commands start at 0: T = T_base, the rest size L, as the same body with no actuation amplitude."""
+    cfg = SimConfig(precision="f64", burn_in=0.0, duration=0.2)
+    still = Simulator(replace(cfg, temp_amplitude=0.0), arch="cpu").simulate(bodies())
+    commanded = Simulator(replace(cfg, actuation="command"), arch="cpu").simulate(bodies())
+    np.testing.assert_array_equal(commanded.com_end.numpy(), still.com_end.numpy())
+    np.testing.assert_array_equal(commanded.max_voxel_displacement.numpy(), still.max_voxel_displacement.numpy())
+
+
+def test_a_command_sets_the_rest_size_of_spec_section_4():
+    """A constant command c: each muscle's rest size after a step is L·(1 + (T_base + A·c)·CTE), a passive
+    voxel's stays L."""
+    cfg = SimConfig(precision="f64", actuation="command", burn_in=0.0, duration=0.1)
+    sim = Simulator(cfg, arch="cpu")
+    engine = sim.engine(sim.layout(bodies()))
+    c = np.linspace(-1.0, 1.0, engine.layout.num_voxels)
+    engine.set_commands(c)
+    engine.advance(1)
+    mt = material_table(cfg)
+    mat = engine.layout.material
+    expected = mt[MT.L][mat] * (1.0 + (0.0 + cfg.temp_amplitude * c) * mt[MT.CTE][mat])
+    np.testing.assert_allclose(engine.voxel_state()[VR.SIZE], expected, rtol=1e-15)
+    assert (mt[MT.CTE][mat] == 0).any() and (mt[MT.CTE][mat] != 0).any()  # both kinds are in the bodies
+
+
+def test_bad_commands_are_refused_with_the_reason():
+    sim = Simulator(SimConfig(duration=0.1), arch="cpu")
+    with pytest.raises(RuntimeError, match="actuation='command'"):
+        sim.engine(sim.layout(bodies())).set_commands(np.zeros(1))
+    sim = Simulator(SimConfig(duration=0.1, actuation="command"), arch="cpu")
+    engine = sim.engine(sim.layout(bodies()))
+    with pytest.raises(ValueError, match="one per voxel"):
+        engine.set_commands(np.zeros(engine.layout.num_voxels + 1))
+    with pytest.raises(ValueError, match="finite"):
+        engine.set_commands(np.full(engine.layout.num_voxels, np.nan))
+    with pytest.raises(ValueError, match="sim.actuation"):
+        SimConfig(actuation="clock").validate("sim")
