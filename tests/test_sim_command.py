@@ -89,3 +89,34 @@ def test_bad_commands_are_refused_with_the_reason():
         engine.set_commands(np.full(engine.layout.num_voxels, np.nan))
     with pytest.raises(ValueError, match="sim.actuation"):
         SimConfig(actuation="clock").validate("sim")
+
+
+def test_advance_time_runs_each_robot_past_its_own_control_times_and_changes_no_bit():
+    """Under rl4design's dynamic dt every robot has its own step: advance_time(p) k times leaves each robot's
+    clock past k·p by less than its last step, and each robot's state equals its solo run of the same steps with
+    the same commands, to the bit (stopping and going does not touch the physics)."""
+    cfg = SimConfig(precision="f64", semantics="rl4design", burn_in=0.0, duration=1.0, actuation="command")
+    sim = Simulator(cfg, arch="cpu")
+    engine = sim.engine(sim.layout(bodies()))
+    period, square = 0.0125, [0.3 * (-1) ** k for k in range(4)]  # a square wave of commands
+    counts = []
+    for k, c in enumerate(square):
+        engine.set_commands(np.full(engine.layout.num_voxels, c))
+        engine.advance_time(period)
+        counts.append(engine.robot_steps().copy())
+        rt = engine._table("rt")
+        limit = period * (k + 1)
+        assert (rt[RT.T] >= limit - 1e-12).all() and (rt[RT.T] - rt[RT.DTPREV] < limit).all()
+    assert counts[-1][0] != counts[-1][1]
+    for r in range(2):
+        solo_sim = Simulator(cfg, arch="cpu")
+        solo = solo_sim.engine(solo_sim.layout(bodies()[r:r + 1]))
+        done = 0
+        for k, c in enumerate(square):
+            solo.set_commands(np.full(solo.layout.num_voxels, c))
+            solo.advance(int(counts[k][r]) - done)
+            done = int(counts[k][r])
+        lo, hi = engine.layout.voxel_start[r], engine.layout.voxel_start[r + 1]
+        np.testing.assert_array_equal(solo.positions(), engine.positions()[lo:hi])
+    with pytest.raises(ValueError, match="> 0"):
+        engine.advance_time(0.0)

@@ -36,6 +36,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     LR,
     LT,
     MT,
+    NO_LIMIT,
     RI,
     RT,
     RUNNING,
@@ -157,6 +158,7 @@ class Engine:
         self._workers = max(1, min(R, runtime.num_threads()))
         self.steps_done = 0
         self.trace_steps = 0  # the trace (start_trace): off until asked for
+        self._limit: np.ndarray | None = None  # each robot's clock limit while advance_time steps it
 
     # ------------------------------------------------------------------ host <-> device, one region at a time
     def _check_owner(self) -> None:
@@ -214,6 +216,14 @@ class Engine:
         self._check_owner()
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
+        if self._limit is not None:  # after advance_time: no limit again
+            rt = self._table("rt")
+            rt[RT.UNTIL] = NO_LIMIT
+            self._upload("rt", rt)
+            self._limit = None
+        self._advance(n_steps)
+
+    def _advance(self, n_steps: int) -> None:
         k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
         if self.schedule == "robots":
             k.run_robots(*buffers, n_steps, self._workers)
@@ -229,6 +239,37 @@ class Engine:
                 k.run_flat(*buffers, min(left, UNROLL))
                 left -= UNROLL
         self.steps_done += n_steps
+
+    def advance_time(self, seconds) -> int:
+        """Advance each robot until its own clock passes its next limit, ``seconds`` (a float, or float ``[R]`` per
+        robot) after its previous one (the first: its clock now): a control period in simulated time, whatever each
+        robot's dt (rl4design's differs per robot and over time). Limits accumulate from the last limit, not from
+        the clock, so control times do not drift by each period's overshoot (< one dt). Finished, diverged or
+        stalled robots stay frozen. Returns the steps the slowest robot took; ``advance(n)`` afterwards runs
+        without a limit again."""
+        self._check_owner()
+        R = self.layout.num_robots
+        period = np.broadcast_to(np.asarray(seconds, dtype=np.float64), (R,))
+        if not (np.isfinite(period).all() and (period > 0).all()):
+            raise ValueError(f"seconds must be finite and > 0 (one value, or one per robot: {R}), got {seconds!r}")
+        if R == 0:
+            return 0
+        rt = self._table("rt")
+        start = rt[RT.T] if self._limit is None else self._limit
+        self._limit = start + period
+        rt[RT.UNTIL] = self._limit
+        self._upload("rt", rt)
+        steps = 0
+        while True:
+            rt, status = self._table("rt"), self.robot_status()
+            behind = (status == RUNNING) & (rt[RT.T] < rt[RT.UNTIL])
+            if not behind.any():
+                return steps
+            # the steps the furthest-behind robot needs at its current dt (+1: it must pass the limit); a dt that
+            # shrinks meanwhile (rl4design) only means another round
+            n = int(np.ceil(((rt[RT.UNTIL] - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
+            self._advance(n)
+            steps += n
 
     def set_commands(self, commands) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the

@@ -23,6 +23,7 @@ from freeform.sim.state import (
     LI,
     LT,
     MT,
+    NO_LIMIT,
     RI,
     RT,
     RUNNING,
@@ -163,6 +164,7 @@ def _robots(rt: np.ndarray, ri: np.ndarray, layout: Layout, config: SimConfig, d
     rl4design = config.semantics == "rl4design"
     t_end = config.burn_in + config.duration
     rt[RT.DT] = dt0
+    rt[RT.UNTIL] = NO_LIMIT
     # actuation phase of the temperature written during step 0: T(dt) for VX, T(0) for rl4design
     tau = np.zeros(layout.num_robots) if rl4design else dt0
     rt[RT.SIN] = np.sin(2 * math.pi * tau / config.temp_period)

@@ -27,7 +27,7 @@ from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
-from freeform.sim.state import BUFFERS, HDR, LI, RI, RUNNING, VI, Switches
+from freeform.sim.state import BUFFERS, HDR, LI, RI, RT, RUNNING, VI, Switches
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
@@ -90,9 +90,14 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
                 summarise_robot(r, s, n // every)
 
     @ti.func
+    def stepping(r, s: ti.template()):
+        """Robot r takes the coming step: it is running and its clock has not passed its limit (``RT.UNTIL``)."""
+        return ld(s.ri, RI.STATUS, r) == RUNNING and ld(s.rt, RT.T, r) < ld(s.rt, RT.UNTIL, r)
+
+    @ti.func
     def robot_step(r, s: ti.template()):
         """One step of robot r by the calling thread alone."""
-        if ld(s.ri, RI.STATUS, r) == RUNNING:
+        if stepping(r, s):
             for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
                 link_update(lk, s)
             if ld(s.ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
@@ -123,17 +128,17 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
 
     @ti.func
     def link_phase(lk, s: ti.template()):
-        if ld(s.ri, RI.STATUS, ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk))) == RUNNING:
+        if stepping(ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk)), s):
             link_update(lk, s)
 
     @ti.func
     def voxel_phase(v, s: ti.template()):
-        if ld(s.ri, RI.STATUS, ld(s.vi, VI.ROBOT, v)) == RUNNING:
+        if stepping(ld(s.vi, VI.ROBOT, v), s):
             voxel_update(v, s)
 
     @ti.func
     def robot_phase(r, s: ti.template()):
-        if ld(s.ri, RI.STATUS, r) == RUNNING:
+        if stepping(r, s):
             robot_advance(r, s)
             trace_sample(r, s)
 

@@ -97,7 +97,10 @@ LR = Table("link_real", REAL, "links", (
 LI = Table("link_int", I32, "links", (("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMAT", 1), ("FLAGS", 1)))
 # SIN/COS: sin and cos of 2π·τ/period for the temperature the voxels write this step (τ = the time it is for), so
 # each voxel evaluates T = T_base + A·(sin·cos φ + cos·sin φ) without a transcendental call of its own.
-RT = Table("robot_real", F64, "robots", (("T", 1), ("DT", 1), ("DTPREV", 1), ("SIN", 1), ("COS", 1)))
+# UNTIL: a robot steps only while T < UNTIL (Engine.advance_time: each robot runs until its own clock passes the
+# next control time; NO_LIMIT otherwise).
+RT = Table("robot_real", F64, "robots", (("T", 1), ("DT", 1), ("DTPREV", 1), ("SIN", 1), ("COS", 1), ("UNTIL", 1)))
+NO_LIMIT = 1e300  # (finite: fast-math assumes no infinities)
 # EVENTS: what the coming step's voxel update snapshots (EV_* bits), decided once per robot per step.
 # MAXSTEP: the step at which a robot still running is stopped as STALLED (SimConfig.step_cap).
 RI = Table("robot_int", I32, "robots", (
