@@ -22,12 +22,12 @@ $(STAMP): pyproject.toml
 # The suite runs the physics on the strict path (fast-math off: the same bits on any x86-64 CPU; the reference tests
 # hold there). The simulator's tests run again with fast-math on (the production path; reference tests skip) and
 # on the quadrants backend (Taichi's fork; one backend per process). docs/physics.md, "Host independence".
-SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py tests/test_packing.py tests/test_sim_command.py
+SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py tests/test_packing.py
 
 test: install
 	$(BIN)/python -m pytest -q tests
 	FREEFORM_FAST_MATH=1 $(BIN)/python -m pytest -q $(SIM_TESTS)
-	FREEFORM_BACKEND=quadrants $(BIN)/python -m pytest -q $(SIM_TESTS)
+	FREEFORM_BACKEND=quadrants $(BIN)/python -m pytest -q $(SIM_TESTS) tests/test_sim_command.py
 
 train: install
 	$(BIN)/freeform-train

@@ -1,4 +1,5 @@
-"""Batched environments: the VecEnv and Task protocols, the design environment and its tasks.
+"""Batched environments: the VecEnv and Task protocols, the design environment and its tasks, and the closed-loop
+control environment (a controller sets every voxel's actuation each control period).
 
 ``from_gymnasium`` / ``to_gymnasium`` (``freeform.envs.adapters``) need the optional ``gym`` extra; they are imported
 on first use, so the core install never imports Gymnasium.
@@ -7,6 +8,7 @@ on first use, so the core install never imports Gymnasium.
 from typing import Any
 
 from freeform.envs.base import ReportsPlacement, ReportsStats, StatefulVecEnv, Task, VecEnv
+from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.dense import DenseDesignReward
 from freeform.envs.design import DesignEnv
 from freeform.envs.tasks import LocomotionTask, VolumeTask
@@ -14,7 +16,8 @@ from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
     "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask",
-    "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "from_gymnasium", "to_gymnasium",
+    "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "from_gymnasium",
+    "to_gymnasium",
 ]
 
 _ADAPTERS = ("from_gymnasium", "to_gymnasium")

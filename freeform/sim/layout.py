@@ -28,6 +28,9 @@ class Layout:
     link_neg / link_pos: int32 [m] voxel indices. link_axis: int32 [m] (0 = x, 1 = y, 2 = z).
     link_robot: int32 [m]. voxel_start / link_start: int64 [R + 1] offsets of each robot's range.
     fixed: bool [n]. temp_base: float64 [n]. velocity: float64 [n, 3] (m/s).
+    origin: int32 [R, 3], each robot's crop origin in its body's grid: voxel v sits in cell
+    ``lattice[v] + origin[voxel_robot[v]]`` of body ``body_of_robot[voxel_robot[v]]`` (what maps a controller's
+    per-cell actions and observations back and forth).
     """
 
     robot_of_body: np.ndarray
@@ -45,6 +48,7 @@ class Layout:
     fixed: np.ndarray
     temp_base: np.ndarray
     velocity: np.ndarray
+    origin: np.ndarray
 
     @property
     def num_voxels(self) -> int:
@@ -151,4 +155,5 @@ def build_layout(grids: torch.Tensor | np.ndarray, num_materials: int) -> Layout
         fixed=np.zeros(n, dtype=bool),
         temp_base=np.zeros(n),
         velocity=np.zeros((n, 3)),
+        origin=lo[:R].to(torch.int32).numpy(),
     )

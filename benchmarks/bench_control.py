@@ -1,0 +1,53 @@
+"""Closed-loop control speed (freeform/envs/control.py): control steps per second of ``ControlEnv`` with N = 128
+design bodies (≈ 76 voxels each, ρ = 20) for a control period of 1, 10 and 100 simulator steps (fixed dt), and
+the time outside the simulator (writing the commands, sensing, the reward) as a share of the simulator's own time
+(``Engine.advance_time`` alone, measured on the same bodies just before). Issue 29's goal: ≤ 20 % at the default
+period (0.0125 s ≈ 100 steps at the default dt).
+
+``python -m benchmarks control``; ``FREEFORM_BENCH_QUICK=1`` uses 32 bodies.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import torch
+
+from benchmarks.bench_sim import random_design_bodies
+from freeform.envs.control import ControlConfig, ControlEnv
+from freeform.sim import SimConfig
+
+DT = 1e-4  # fixed, so that a period is a whole number of steps
+EVERY = (1, 10, 100)
+ROUNDS = {1: 40, 10: 20, 100: 6}
+
+
+def main() -> None:
+    n = 32 if os.environ.get("FREEFORM_BENCH_QUICK") else 128
+    grids = random_design_bodies(n)
+    print(f"{n} design bodies, {int((grids > 0).sum()) / n:.0f} voxels each on average, ρ = {grids.shape[1]}; "
+          f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads)")
+    print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}")
+    for every in EVERY:
+        control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
+        env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control)
+        env.reset()
+        actions = torch.zeros((n, env.action_dim))
+        env.step(actions)  # compile (or load the kernel cache)
+        rounds = ROUNDS[every]
+        t0 = time.perf_counter()
+        for _ in range(rounds):
+            env.engine.advance_time(control.period)
+        sim = (time.perf_counter() - t0) / rounds
+        t0 = time.perf_counter()
+        for _ in range(rounds):
+            env.step(actions)
+        total = (time.perf_counter() - t0) / rounds
+        outside = max(total - sim, 0.0)
+        print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {1 / total:16.1f} {sim * 1e3:12.2f} "
+              f"{outside * 1e3:16.2f} {outside / sim:11.0%}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

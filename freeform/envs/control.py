@@ -1,0 +1,198 @@
+"""Closed-loop control of voxel bodies: a batched environment in which a controller sets every voxel's actuation
+each control period, sensing the body on its own grid (issue 29's first environment; ``docs/physics.md``,
+"Commanded actuation").
+
+One episode: the bodies are placed and settle for ``burn_in`` seconds with zero commands (the controller does not
+act then: every episode starts from a body at rest on the ground), then ``steps`` control steps of ``period``
+simulated seconds each. A step writes the actions as commands (``Engine.set_commands``: T = T_base + A·a, so
+a ∈ [−1, 1] spans the open-loop sine's range; a passive voxel's or an empty cell's entry has no effect) and runs
+each robot until its own clock passes the next control time (``Engine.advance_time``: rl4design's dt differs
+per robot). Every episode ends together, by its time limit (``truncated``), and the env resets itself. A robot
+that diverges or stalls stays in the batch, frozen, with reward 0 until the episode ends.
+
+Reward: the centre of mass's displacement along the robot's heading during the step, in voxel lengths; the
+heading is +x (``headings="fixed"``, locomotion) or drawn uniformly per robot and episode (``"random"``, steering),
+and is in the observation.
+
+Observations ``[N, C, ρ, ρ, ρ]`` float32 on the body's own grid (``OBS_CHANNELS``; zero in empty cells): the
+cell is filled, its material / k, its position relative to the centre of mass and its velocity (voxel lengths and
+voxel lengths per actuation period), its mean link strain, ground contact; then task features broadcast to every
+filled cell: the heading's cos and sin, and the episode's progress in [0, 1].
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+
+from freeform.sim import SimConfig, Simulator
+from freeform.sim.config import material_table
+from freeform.sim.engine import Engine
+from freeform.sim.state import CONTACT, MT, RUNNING, VI, VR
+
+OBS_CHANNELS = ("filled", "material", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
+                "heading_cos", "heading_sin", "progress")
+HEADINGS = ("fixed", "random")
+
+
+@dataclass
+class ControlConfig:
+    """An episode's timing and the task.
+
+    period: simulated seconds per control step. 0.0125 s = 1/20 of the default actuation period (0.25 s): 20
+        decisions per stroke of the open-loop gait it replaces, ≈ 100 simulator steps at the default dt (1.2e-4 s).
+    duration: simulated seconds of control per episode (``round(duration / period)`` steps).
+    burn_in: seconds of settling before the controller acts (commands 0).
+    headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering).
+    """
+
+    period: float = 0.0125
+    duration: float = 2.0
+    burn_in: float = 0.25
+    headings: str = "fixed"
+
+    @property
+    def steps(self) -> int:
+        return max(1, round(self.duration / self.period))
+
+    def validate(self, key: str = "control") -> None:
+        for name in ("period", "duration"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{key}.{name} must be > 0 (seconds), got {getattr(self, name)!r}")
+        if not self.burn_in >= 0:
+            raise ValueError(f"{key}.burn_in must be >= 0 (seconds), got {self.burn_in!r}")
+        if self.headings not in HEADINGS:
+            raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
+
+
+class ControlEnv:
+    """``num_envs`` bodies (uint8 grids ``[N, ρ, ρ, ρ]``, every one non-empty) under closed-loop control: a
+    :class:`freeform.envs.VecEnv` whose action is one command per grid cell (``action_dim`` = ρ³, C order) and whose
+    observation is ``[N, len(OBS_CHANNELS), ρ, ρ, ρ]``. ``action_mask`` ``[N, ρ³]`` marks the cells whose command
+    acts (actuated voxels).
+
+    sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``).
+    """
+
+    def __init__(self, grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
+                 control: ControlConfig | None = None, arch: str = "cpu", seed: int = 0,
+                 device: str | torch.device = "cpu"):
+        grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
+        if grids.dim() != 4 or not (grids.shape[1] == grids.shape[2] == grids.shape[3]):
+            raise ValueError(f"grids must be uint8 [N, ρ, ρ, ρ], got shape {tuple(grids.shape)}")
+        if grids.shape[0] == 0 or not grids.flatten(1).any(dim=1).all():
+            raise ValueError("every body must have at least one voxel (an empty grid has nothing to control)")
+        self.control = control or ControlConfig()
+        self.control.validate()
+        base = sim or SimConfig()
+        # the episode's own clock: the simulator never stops a robot before the episode ends
+        self.sim_config = replace(base, actuation="command", burn_in=0.0,
+                                  duration=self.control.burn_in + self.control.steps * self.control.period + 1.0)
+        self.sim_config.validate("sim")
+        self.grids = grids.cpu()
+        self.num_envs, self.rho = int(grids.shape[0]), int(grids.shape[1])
+        self.observation_shape = (len(OBS_CHANNELS), self.rho, self.rho, self.rho)
+        self.action_dim = self.rho ** 3
+        self.device = torch.device(device)
+        self.simulator = Simulator(self.sim_config, arch=arch)
+        self.layout = self.simulator.layout(self.grids)
+        lay = self.layout
+        mt = material_table(self.sim_config)
+        robot = lay.voxel_robot.astype(np.int64)
+        self._robot = robot
+        cells = lay.lattice.astype(np.int64) + lay.origin[robot].astype(np.int64)
+        body = lay.body_of_robot[robot]
+        self._cell = (cells[:, 0] * self.rho + cells[:, 1]) * self.rho + cells[:, 2]  # C order within a body
+        self._flat = body * self.action_dim + self._cell  # into [N·ρ³]
+        self._flat_t, self._body_t = torch.from_numpy(self._flat), torch.from_numpy(body)
+        self._cell_t = torch.from_numpy(self._cell)
+        self._mass = mt[MT.MASS][lay.material]
+        self._mass_sum = np.bincount(robot, weights=self._mass, minlength=self.num_envs)
+        self.action_mask = torch.zeros(self.num_envs * self.action_dim, dtype=torch.bool)
+        self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(mt[MT.CTE][lay.material] != 0)
+        self.action_mask = self.action_mask.view(self.num_envs, self.action_dim).to(self.device)
+        self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
+        self._slots = lay.slots.astype(np.int64)
+        L = self.sim_config.voxel_size
+        self._length, self._speed = L, L / self.sim_config.temp_period
+        self._rng = np.random.default_rng(seed)
+        self.engine: Engine | None = None
+        self.t = 0
+        self.heading = np.zeros(self.num_envs)
+        self._com = np.zeros((self.num_envs, 3))
+
+    # ------------------------------------------------------------------ the VecEnv
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Place the bodies, settle them for ``control.burn_in`` seconds (zero commands), draw the headings."""
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self.engine = self.simulator.engine(self.layout)
+        if self.control.burn_in > 0:
+            self.engine.advance_time(self.control.burn_in)
+        self.heading = (self._rng.uniform(0.0, 2 * math.pi, self.num_envs) if self.control.headings == "random"
+                        else np.zeros(self.num_envs))
+        self.t = 0
+        obs, self._com = self._observe()
+        return obs
+
+    def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """``actions`` ``[N, ρ³]`` (or ``[N, ρ, ρ, ρ]``), clipped to [−1, 1]: one control period."""
+        if self.engine is None:
+            raise RuntimeError("call reset() before step()")
+        a = torch.as_tensor(actions).detach()
+        if a.numel() != self.num_envs * self.action_dim or a.shape[0] != self.num_envs:
+            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}] (one per grid cell), "
+                             f"got {tuple(a.shape)}")
+        # only the cells that hold a voxel are read (the rest are ignored, NaN included)
+        commands = a.reshape(-1)[self._flat_t.to(a.device)].to("cpu", torch.float64)
+        if not torch.isfinite(commands).all():
+            raise ValueError("actions must be finite in the cells that hold a voxel")
+        self.engine.set_commands(commands.clamp(-1.0, 1.0).numpy())
+        self.engine.advance_time(self.control.period)
+        self.t += 1
+        obs, com = self._observe()
+        ok = self.engine.robot_status() == RUNNING
+        move = ((com - self._com)[:, 0] * np.cos(self.heading) + (com - self._com)[:, 1] * np.sin(self.heading))
+        reward = np.where(ok, move / self._length, 0.0)
+        self._com = com
+        done = self.t >= self.control.steps
+        info: dict[str, Any] = {"heading": torch.from_numpy(self.heading).float().to(self.device),
+                                "failed": torch.from_numpy(~ok).to(self.device)}
+        if done:
+            info["truncated"] = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
+            info["final_obs"] = obs
+            obs = self.reset()
+        dones = torch.full((self.num_envs,), done, dtype=torch.bool, device=self.device)
+        return obs, torch.from_numpy(reward).float().to(self.device), dones, info
+
+    # ------------------------------------------------------------------ sensing
+    def _observe(self) -> tuple[torch.Tensor, np.ndarray]:
+        """The observation ``[N, C, ρ, ρ, ρ]`` and each robot's centre of mass ``[N, 3]`` (m)."""
+        eng, R = self.engine, self.num_envs
+        vr = eng.voxel_state()  # one read of the voxel table for positions and momenta
+        pos = vr[VR.span("POS")].T.astype(np.float64)
+        vel = vr[VR.span("MOM")].T.astype(np.float64) / self._mass[:, None]
+        com = np.stack([np.bincount(self._robot, weights=self._mass * pos[:, k], minlength=R) for k in range(3)], 1)
+        com /= self._mass_sum[:, None]
+        strain = np.abs(eng.link_strain())
+        have = self._slots >= 0
+        per_voxel = np.where(have, strain[np.where(have, self._slots, 0)], 0.0).sum(1) / np.maximum(have.sum(1), 1)
+        contact = (eng._table("vi")[VI.FLAGS] & CONTACT) != 0
+        progress = self.t / self.control.steps
+        r = self._robot
+        features = np.stack([
+            np.ones(len(r)), self._material,
+            *((pos - com[r]) / self._length).T, *(vel / self._speed).T,
+            per_voxel, contact.astype(np.float64),
+            np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress),
+        ], 1)
+        obs = torch.zeros((R, len(OBS_CHANNELS), self.action_dim), dtype=torch.float32)
+        obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float()  # channel-first, no transpose
+        return obs.view(R, *self.observation_shape).to(self.device), com
+
+
+__all__ = ["HEADINGS", "OBS_CHANNELS", "ControlConfig", "ControlEnv"]

@@ -1,0 +1,88 @@
+"""The closed-loop control environment (freeform/envs/control.py): observations against hand-computed values,
+the action mask, episodes, rewards against the simulated centre of mass, and refusals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from freeform.envs import VecEnv
+from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
+from freeform.sim import SimConfig
+from freeform.sim.config import material_table
+from freeform.sim.state import MT
+
+C = {name: i for i, name in enumerate(OBS_CHANNELS)}
+
+
+def pair() -> np.ndarray:
+    """One body: a muscle (material 2) at cell (1, 2, 0) and a passive voxel (1) at (2, 2, 0) of a 3³ grid."""
+    g = np.zeros((1, 3, 3, 3), np.uint8)
+    g[0, 1, 2, 0], g[0, 2, 2, 0] = 2, 1
+    return g
+
+
+def test_first_observation_of_a_two_voxel_body_by_hand():
+    cfg = SimConfig(precision="f64")
+    env = ControlEnv(pair(), sim=cfg, control=ControlConfig(burn_in=0.0, duration=0.05))
+    assert isinstance(env, VecEnv)
+    obs = env.reset()
+    assert obs.shape == (1, len(OBS_CHANNELS), 3, 3, 3) and obs.dtype == torch.float32
+    L, k = cfg.voxel_size, len(cfg.materials)
+    m = material_table(cfg)[MT.MASS]
+    com_x = (m[2] * 0.0 + m[1] * L) / (m[2] + m[1])  # the cropped body: the muscle at x = 0, the passive at x = L
+    for cell, mat, x in (((1, 2, 0), 2, 0.0), ((2, 2, 0), 1, L)):
+        o = obs[0, :, cell[0], cell[1], cell[2]].double()
+        assert o[C["filled"]] == 1 and o[C["material"]] == pytest.approx(mat / k)
+        assert o[C["rel_x"]] == pytest.approx((x - com_x) / L, abs=1e-6)
+        assert o[C["rel_y"]] == 0 and o[C["rel_z"]] == 0
+        assert o[C["vel_x"]] == 0 and o[C["strain"]] == 0 and o[C["contact"]] == 0
+        assert o[C["heading_cos"]] == 1 and o[C["heading_sin"]] == 0 and o[C["progress"]] == 0
+    assert obs[0].abs().sum() == obs[0, :, 1:, 2, 0].abs().sum()  # empty cells are zero
+    mask = env.action_mask.view(3, 3, 3)
+    assert mask[1, 2, 0] and mask.sum() == 1  # only the muscle's command acts
+
+
+def test_rewards_sum_to_the_displacement_along_the_heading_and_episodes_end_together():
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    control = ControlConfig(burn_in=0.01, duration=0.05, headings="random")
+    env = ControlEnv(g, sim=SimConfig(precision="f64"), control=control, seed=3)
+    env.reset()
+    heading, start = env.heading.copy(), env._com.copy()
+    rng = torch.Generator().manual_seed(0)
+    total = torch.zeros(2, dtype=torch.float64)
+    for t in range(control.steps):
+        obs, reward, done, info = env.step(torch.rand((2, 27), generator=rng) * 2 - 1)
+        total += reward.double()
+        assert done.all() == (t == control.steps - 1)
+        if t < control.steps - 1:
+            end = env._com.copy()
+    assert info["truncated"].all() and info["final_obs"].shape == obs.shape
+    assert (obs[:, C["progress"]] == 0).all()  # reset: the next episode's first observation
+    # the rewards telescope: all but the last step's sum to the centre of mass's move along the heading until then
+    expected = ((end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)) / 0.01
+    assert np.abs(expected).max() > 1e-4  # the random commands moved the bodies
+    np.testing.assert_allclose(total.numpy() - reward.double().numpy(), expected, rtol=1e-5, atol=1e-9)
+
+
+def test_refusals_name_the_problem():
+    with pytest.raises(ValueError, match="at least one voxel"):
+        ControlEnv(np.zeros((1, 3, 3, 3), np.uint8))
+    with pytest.raises(ValueError, match="ρ"):
+        ControlEnv(np.ones((1, 3, 3, 2), np.uint8))
+    with pytest.raises(ValueError, match="control.period"):
+        ControlEnv(pair(), control=ControlConfig(period=0.0))
+    with pytest.raises(ValueError, match="headings"):
+        ControlEnv(pair(), control=ControlConfig(headings="north"))
+    env = ControlEnv(pair(), control=ControlConfig(burn_in=0.0, duration=0.02))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(torch.zeros(1, 27))
+    env.reset()
+    with pytest.raises(ValueError, match="one per grid cell"):
+        env.step(torch.zeros(1, 26))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(torch.full((1, 27), math.nan))
+    env.step(torch.where(torch.from_numpy(pair().reshape(1, -1) > 0), 0.0, math.nan))  # NaN in empty cells: ignored
