@@ -10,7 +10,7 @@ import pytest
 
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
-from freeform.sim.state import MT, RT, RUNNING, VR
+from freeform.sim.state import CONTACT, MT, RT, RUNNING, SENSE, VI, VR
 
 
 def bodies() -> np.ndarray:
@@ -120,3 +120,31 @@ def test_advance_time_runs_each_robot_past_its_own_control_times_and_changes_no_
         np.testing.assert_array_equal(solo.positions(), engine.positions()[lo:hi])
     with pytest.raises(ValueError, match="> 0"):
         engine.advance_time(0.0)
+
+
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+def test_sensing_on_the_device_equals_the_tables_read_back(schedule):
+    """Engine.sense (one kernel) against the same quantities computed on the host from the engine's tables:
+    centres of mass, positions relative to them, velocities, mean |strain| over each voxel's links, contact."""
+    cfg = SimConfig(precision="f64", actuation="command", burn_in=0.0, duration=0.5)
+    sim = Simulator(cfg, arch="cpu", schedule=schedule)
+    engine = sim.engine(sim.layout(bodies()))
+    engine.set_commands(np.random.default_rng(2).uniform(-1, 1, engine.layout.num_voxels))
+    engine.advance(300)
+    sensed, com = engine.sense()
+    lay = engine.layout
+    mass = material_table(cfg)[MT.MASS][lay.material]
+    pos, vel = engine.positions(), engine.velocities()
+    expect_com = np.stack([np.bincount(lay.voxel_robot, weights=mass * pos[:, k]) for k in range(3)], 1)
+    expect_com /= np.bincount(lay.voxel_robot, weights=mass)[:, None]
+    np.testing.assert_allclose(com, expect_com, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(sensed[:, SENSE.span("REL")], pos - expect_com[lay.voxel_robot], atol=1e-14)
+    np.testing.assert_allclose(sensed[:, SENSE.span("VEL")], vel, rtol=1e-12, atol=1e-15)
+    strain = np.abs(engine.link_strain())
+    slots = lay.slots
+    mean = np.array([strain[s[s >= 0]].mean() if (s >= 0).any() else 0.0 for s in slots])
+    np.testing.assert_allclose(sensed[:, SENSE.STRAIN], mean, rtol=1e-12, atol=1e-15)
+    assert mean.max() > 0
+    contact = (engine._table("vi")[VI.FLAGS] & CONTACT) != 0
+    np.testing.assert_array_equal(sensed[:, SENSE.CONTACT], contact.astype(float))
+    assert contact.any() and not contact.all()

@@ -32,7 +32,7 @@ import torch
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.engine import Engine
-from freeform.sim.state import CONTACT, MT, RUNNING, VI, VR
+from freeform.sim.state import MT, RUNNING, SENSE
 
 OBS_CHANNELS = ("filled", "material", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
                 "heading_cos", "heading_sin", "progress")
@@ -110,13 +110,10 @@ class ControlEnv:
         self._flat = body * self.action_dim + self._cell  # into [N·ρ³]
         self._flat_t, self._body_t = torch.from_numpy(self._flat), torch.from_numpy(body)
         self._cell_t = torch.from_numpy(self._cell)
-        self._mass = mt[MT.MASS][lay.material]
-        self._mass_sum = np.bincount(robot, weights=self._mass, minlength=self.num_envs)
         self.action_mask = torch.zeros(self.num_envs * self.action_dim, dtype=torch.bool)
         self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(mt[MT.CTE][lay.material] != 0)
         self.action_mask = self.action_mask.view(self.num_envs, self.action_dim).to(self.device)
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
-        self._slots = lay.slots.astype(np.int64)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
         self._rng = np.random.default_rng(seed)
@@ -171,24 +168,17 @@ class ControlEnv:
 
     # ------------------------------------------------------------------ sensing
     def _observe(self) -> tuple[torch.Tensor, np.ndarray]:
-        """The observation ``[N, C, ρ, ρ, ρ]`` and each robot's centre of mass ``[N, 3]`` (m)."""
-        eng, R = self.engine, self.num_envs
-        vr = eng.voxel_state()  # one read of the voxel table for positions and momenta
-        pos = vr[VR.span("POS")].T.astype(np.float64)
-        vel = vr[VR.span("MOM")].T.astype(np.float64) / self._mass[:, None]
-        com = np.stack([np.bincount(self._robot, weights=self._mass * pos[:, k], minlength=R) for k in range(3)], 1)
-        com /= self._mass_sum[:, None]
-        strain = np.abs(eng.link_strain())
-        have = self._slots >= 0
-        per_voxel = np.where(have, strain[np.where(have, self._slots, 0)], 0.0).sum(1) / np.maximum(have.sum(1), 1)
-        contact = (eng._table("vi")[VI.FLAGS] & CONTACT) != 0
+        """The observation ``[N, C, ρ, ρ, ρ]`` and each robot's centre of mass ``[N, 3]`` (m): the engine senses
+        on the device (``Engine.sense``); the host adds the per-body constants and scatters onto the grid."""
+        R = self.num_envs
+        sensed, com = self.engine.sense()  # one kernel on the device, one copy back
         progress = self.t / self.control.steps
         r = self._robot
-        features = np.stack([
-            np.ones(len(r)), self._material,
-            *((pos - com[r]) / self._length).T, *(vel / self._speed).T,
-            per_voxel, contact.astype(np.float64),
-            np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress),
+        features = np.concatenate([
+            np.ones((len(r), 1)), self._material[:, None],
+            sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,
+            sensed[:, SENSE.STRAIN:SENSE.STRAIN + 1], sensed[:, SENSE.CONTACT:SENSE.CONTACT + 1],
+            np.stack([np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress)], 1),
         ], 1)
         obs = torch.zeros((R, len(OBS_CHANNELS), self.action_dim), dtype=torch.float32)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float()  # channel-first, no transpose

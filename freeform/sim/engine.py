@@ -23,6 +23,7 @@ from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
 from freeform.sim.packing import Packing, buffer_dtype
 from freeform.sim.schedules import FLAT_ARGS, ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
+from freeform.sim.sensing import make_sensing
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     BUFFERS,
     DIVERGED,
@@ -40,6 +41,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     RI,
     RT,
     RUNNING,
+    SENSE,
     SMALL,
     STALLED,
     STATIC,
@@ -270,6 +272,19 @@ class Engine:
             n = int(np.ceil(((rt[RT.UNTIL] - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
             self._advance(n)
             steps += n
+
+    def sense(self) -> tuple[np.ndarray, np.ndarray]:
+        """What a controller senses, gathered on the device in one kernel (``sensing.py``): float64
+        ``[n, SENSE.width]`` per voxel (position relative to its robot's centre of mass in m, velocity in m/s, mean
+        |strain| of its links, ground contact 0/1) and every robot's centre of mass ``[R, 3]`` (m)."""
+        self._check_owner()
+        n, R = self.layout.num_voxels, self.layout.num_robots
+        size = n * SENSE.width + 3 * R
+        out, _ = self._arrays.staging(np.dtype(np.float64), size)
+        if R:
+            make_sensing(self.precision, self.order).sense(*(self._buffers[name] for name in BUFFERS), out)
+        values = runtime.to_numpy(out)[:size]
+        return values[: n * SENSE.width].reshape(n, SENSE.width), values[n * SENSE.width:].reshape(R, 3)
 
     def set_commands(self, commands) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the

@@ -117,6 +117,11 @@ TABLES = {"vr": VR, "vi": VI, "lr": LR, "li": LI, "rt": RT, "ri": RI, "mt": MT, 
 SUMMARY = Table("robot_summary", F64, "robots", (
     ("T", 1), ("STATUS", 1), ("MX", 3), ("M", 1), ("LO", 3), ("HI", 3), ("CONTACTS", 1), ("Q", 4)))
 
+# What a controller senses of one voxel (sensing.py; f64 rows of the sensing array, after which come the robots'
+# centres of mass, 3 values each): its position relative to its robot's centre of mass (m), its velocity (m/s), the
+# mean |axial strain| of its links, ground contact (0/1)
+SENSE = Table("voxel_sense", F64, "voxels", (("REL", 3), ("VEL", 3), ("STRAIN", 1), ("CONTACT", 1)))
+
 # global parameters (a plain f64 vector)
 # TER_*: the terrain's height field S(x, y) = BASE + GX·x + GY·y + grid (terrain.HeightField; the grid itself is the
 # real-typed vector ``hf``, NX·NY values, row-major)
