@@ -23,6 +23,28 @@ EVERY = (1, 10, 100)
 ROUNDS = {1: 40, 10: 20, 100: 6}
 
 
+def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
+            device: str = "cpu") -> tuple[float, float, float]:
+    """(control steps per second, simulator seconds per control step, seconds outside it) of ``ControlEnv`` on
+    ``grids`` with a period of ``every`` simulator steps (fixed dt), zero actions, after one step that compiles."""
+    n = grids.shape[0]
+    control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
+    env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control, arch=arch, device=device)
+    env.reset()
+    actions = torch.zeros((n, env.action_dim), device=device)
+    env.step(actions)  # compile (or load the kernel cache)
+    # (no explicit synchronisation: every call below ends by reading the robots' state back to the host)
+    t0 = time.perf_counter()
+    for _ in range(rounds):
+        env.engine.advance_time(control.period)
+    sim = (time.perf_counter() - t0) / rounds
+    t0 = time.perf_counter()
+    for _ in range(rounds):
+        env.step(actions)
+    total = (time.perf_counter() - t0) / rounds
+    return 1 / total, sim, max(total - sim, 0.0)
+
+
 def main() -> None:
     n = 32 if os.environ.get("FREEFORM_BENCH_QUICK") else 128
     grids = random_design_bodies(n)
@@ -30,22 +52,8 @@ def main() -> None:
           f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads)")
     print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}")
     for every in EVERY:
-        control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
-        env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control)
-        env.reset()
-        actions = torch.zeros((n, env.action_dim))
-        env.step(actions)  # compile (or load the kernel cache)
-        rounds = ROUNDS[every]
-        t0 = time.perf_counter()
-        for _ in range(rounds):
-            env.engine.advance_time(control.period)
-        sim = (time.perf_counter() - t0) / rounds
-        t0 = time.perf_counter()
-        for _ in range(rounds):
-            env.step(actions)
-        total = (time.perf_counter() - t0) / rounds
-        outside = max(total - sim, 0.0)
-        print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {1 / total:16.1f} {sim * 1e3:12.2f} "
+        rate, sim, outside = measure(grids, every, ROUNDS[every])
+        print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {rate:16.1f} {sim * 1e3:12.2f} "
               f"{outside * 1e3:16.2f} {outside / sim:11.0%}", flush=True)
 
 

@@ -1,6 +1,6 @@
 """The paper's epoch on a GPU, in parts: compile times, the simulator's µs per step by batch size, the epoch's
-simulation, the update's ms per minibatch, and one ``paper_locomotion`` epoch split into environment, simulation and
-update (what ``scripts/gpu_check.sh`` runs; the goal: an epoch ≤ 2 s on one H100, ``docs/physics.md``).
+simulation, the update's ms per minibatch, closed-loop control steps per second (N = 128 and 1,024), and one
+``paper_locomotion`` epoch split into environment, simulation and update (what ``scripts/gpu_check.sh`` runs; the goal: an epoch ≤ 2 s on one H100, ``docs/physics.md``).
 
 ``python -m benchmarks gpu`` on a CUDA machine; ``FREEFORM_BENCH_ARCH=cpu`` rehearses every figure on the CPU at a
 small size (a few minutes on 2 cores; the sizes are printed with each figure).
@@ -118,6 +118,17 @@ def epoch_section(device: str, rehearsal: bool) -> None:
     _line("  both epochs, compilation included", f"{wall:7.1f} s")
 
 
+def control_section(arch: str, device: str, rehearsal: bool) -> None:
+    """Closed-loop control (issue 29): control steps per second of ControlEnv, a period of 100 simulator steps."""
+    from benchmarks.bench_control import measure
+
+    print("closed-loop control (ControlEnv, design bodies, f32, fixed dt 1e-4 s, a period of 100 steps):")
+    for n in ((8, 16) if rehearsal else (128, 1024)):
+        rate, sim, outside = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
+        _line(f"{n} bodies: control steps/s | simulator ms | outside ms a step",
+              f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f}")
+
+
 def main() -> None:
     arch = runtime.ensure(os.environ.get("FREEFORM_BENCH_ARCH", "auto"))
     rehearsal = arch == "cpu"
@@ -126,6 +137,7 @@ def main() -> None:
           + (f" on {torch.cuda.get_device_name()}" if arch == "cuda" else " (CPU rehearsal: small sizes)"))
     sim_section(arch, rehearsal)
     update_section(device, rehearsal)
+    control_section(arch, device, rehearsal)
     epoch_section(device, rehearsal)
 
 

@@ -2,7 +2,8 @@
 # The GPU check in one call: the CUDA tests (the device against the CPU on fixed bodies, f32/f64, both semantics;
 # a planted NaN; compute graph = Python launches; many batches of random size), the host floor, and the GPU
 # benchmark (compile times, µs per step at batch 1/32/128/512, the epoch's simulation, the update's ms per
-# minibatch, one paper_locomotion epoch split into env/simulation/update). Every log goes under OUTDIR; a summary
+# minibatch, closed-loop control steps per second at N = 128 and 1,024, one paper_locomotion epoch split into
+# env/simulation/update). Every log goes under OUTDIR; a summary
 # (< 12,000 characters) goes to stdout and OUTDIR/summary.txt. Budget: under 8 minutes on one H100.
 #
 #   scripts/gpu_check.sh OUTDIR          # on a CUDA machine (Python 3.12 and torch there; taichi, hydra & co. from
