@@ -63,7 +63,7 @@ def test_rewards_sum_to_the_displacement_along_the_heading_and_episodes_end_toge
     assert info["truncated"].all() and info["final_obs"].shape == obs.shape
     assert (obs[:, C["progress"]] == 0).all()  # reset: the next episode's first observation
     # the rewards telescope: all but the last step's sum to the centre of mass's move along the heading until then
-    expected = ((end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)) / 0.01
+    expected = ((end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)) / env.sim_config.voxel_size
     assert np.abs(expected).max() > 1e-4  # the random commands moved the bodies
     np.testing.assert_allclose(total.numpy() - reward.double().numpy(), expected, rtol=1e-5, atol=1e-9)
 

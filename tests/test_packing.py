@@ -8,7 +8,7 @@ import pytest
 
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.packing import Packing, buffer_dtype
-from freeform.sim.state import BUFFERS, HDR, ITEM_KINDS, SUMMARY, TABLES, VR
+from freeform.sim.state import BUFFERS, HDR, SUMMARY, TABLES, VR
 
 CAPACITY = {"voxels": 37, "links": 90, "robots": 5, "materials": 4, "material_pairs": 16, "cells": 12}
 
@@ -80,7 +80,6 @@ def test_bad_region_shapes_are_refused():
 def test_buffer_dtypes_follow_the_precision_for_reals_only():
     assert buffer_dtype("reals", "f32") == np.float32 and buffer_dtype("reals", "f64") == np.float64
     assert buffer_dtype("f64s", "f32") == np.float64 and buffer_dtype("ints", "f32") == np.int32
-    assert set(ITEM_KINDS) <= set(CAPACITY)
 
 
 @pytest.mark.parametrize("schedule", ["robots", "flat"])

@@ -175,11 +175,16 @@ class Engine:
         self._check_owner()
         region = self.packing.regions[name]
         dtype = buffer_dtype(region.buffer, self.precision)
-        stage, length = self._arrays.staging(dtype, region.size)
-        values = np.zeros(length, dtype=dtype)
-        values[: region.size] = region.flat(np.asarray(a, dtype=dtype))
-        runtime.upload(stage, values)
+        stage = self._stage(region.flat(np.asarray(a, dtype=dtype)))
         self._transfers.write(self._buffers[region.buffer], region.at, 1, region.size, stage)
+
+    def _stage(self, values: np.ndarray):
+        """A staging ndarray holding ``values`` (1-D) at its start, for a copy kernel to write into a buffer."""
+        stage, length = self._arrays.staging(values.dtype, values.size)
+        padded = np.zeros(length, dtype=values.dtype)
+        padded[: values.size] = values
+        runtime.upload(stage, padded)
+        return stage
 
     def _download(self, name: str) -> np.ndarray:
         """Host copy ``[columns, capacity]`` of region ``name`` (items past the batch's own are stale)."""
@@ -201,10 +206,7 @@ class Engine:
         whatever the memory order — what a controller does every control period."""
         self._check_owner()
         dtype = buffer_dtype(self.packing.regions[name].buffer, self.precision)
-        stage, length = self._arrays.staging(dtype, values.size)
-        padded = np.zeros(length, dtype=dtype)
-        padded[: values.size] = values
-        runtime.upload(stage, padded)
+        stage = self._stage(np.asarray(values, dtype=dtype))
         buf, at, step = self._column_place(name, column)
         self._transfers.write(buf, at, step, values.size, stage)
 
@@ -219,9 +221,7 @@ class Engine:
         if n_steps <= 0 or self.layout.num_robots == 0:
             return
         if self._limit is not None:  # after advance_time: no limit again
-            rt = self._table("rt")
-            rt[RT.UNTIL] = NO_LIMIT
-            self._upload("rt", rt)
+            self._write_column("rt", RT.UNTIL, np.full(self.layout.num_robots, NO_LIMIT))
             self._limit = None
         self._advance(n_steps)
 
@@ -247,8 +247,8 @@ class Engine:
         robot) after its previous one (the first: its clock now): a control period in simulated time, whatever each
         robot's dt (rl4design's differs per robot and over time). Limits accumulate from the last limit, not from
         the clock, so control times do not drift by each period's overshoot (< one dt). Finished, diverged or
-        stalled robots stay frozen. Returns the steps the slowest robot took; ``advance(n)`` afterwards runs
-        without a limit again."""
+        stalled robots stay frozen. Returns the steps issued (robots already past their limit idle through
+        them); ``advance(n)`` afterwards runs without a limit again."""
         self._check_owner()
         R = self.layout.num_robots
         period = np.broadcast_to(np.asarray(seconds, dtype=np.float64), (R,))
@@ -256,20 +256,18 @@ class Engine:
             raise ValueError(f"seconds must be finite and > 0 (one value, or one per robot: {R}), got {seconds!r}")
         if R == 0:
             return 0
-        rt = self._table("rt")
-        start = rt[RT.T] if self._limit is None else self._limit
-        self._limit = start + period
-        rt[RT.UNTIL] = self._limit
-        self._upload("rt", rt)
+        start = self.robot_time() if self._limit is None else self._limit
+        self._limit = start + period  # the host's copy of RT.UNTIL, written once per call
+        self._write_column("rt", RT.UNTIL, self._limit)
         steps = 0
         while True:
             rt, status = self._table("rt"), self.robot_status()
-            behind = (status == RUNNING) & (rt[RT.T] < rt[RT.UNTIL])
+            behind = (status == RUNNING) & (rt[RT.T] < self._limit)
             if not behind.any():
                 return steps
             # the steps the furthest-behind robot needs at its current dt (+1: it must pass the limit); a dt that
             # shrinks meanwhile (rl4design) only means another round
-            n = int(np.ceil(((rt[RT.UNTIL] - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
+            n = int(np.ceil(((self._limit - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
             self._advance(n)
             steps += n
 
