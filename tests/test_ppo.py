@@ -406,10 +406,21 @@ def test_logger_and_callback() -> None:
 
 def test_policy_that_does_not_fit_the_env_is_rejected() -> None:
     env = PaintEnv(num_envs=4, resolution=4, materials=2)
-    with pytest.raises(ValueError, match="policy must return"):
+    with pytest.raises(ValueError, match="gives 6 numbers per action but the env takes 5"):
         PPO(env, VoxelActorCritic(resolution=4, materials=3, hidden=8))  # 3 + 3 action dims, env has 3 + 2
     with pytest.raises(ValueError, match="policy cannot read"):
         PPO(env, VoxelActorCritic(resolution=6, materials=2, hidden=8))
+
+    class MeanOnly(torch.nn.Module):  # declares nothing: PPO takes a Gaussian over the env's 5 numbers
+        def __init__(self) -> None:
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(5))
+
+        def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            return self.w.expand(obs.shape[0], 5), obs.new_zeros(obs.shape[0], dtype=torch.float32)
+
+    with pytest.raises(ValueError, match=r"policy must return its DiagGaussian\(dim=5\) parameters \(\[4, 5\], \[4, 5\]\)"):
+        PPO(env, MeanOnly())
 
 
 def test_act_shapes_and_determinism() -> None:
@@ -752,12 +763,12 @@ def test_compiled_minibatch_loss_trains_as_the_eager_one(overrides: dict[str, An
         runs.append((start, ppo.flat.value.detach().clone(), ppo.kl_coeff, stats))
         if compile_:  # the first minibatch of the last rollout, at the trained weights, through both paths
             buf, grads = ppo.rollout, []
-            samples = minibatch_samples(buf.actions.flatten(0, 1), buf.means.flatten(0, 1), buf.log_stds.flatten(0, 1),
+            samples = minibatch_samples(buf.actions.flatten(0, 1), [p.flatten(0, 1) for p in buf.params],
                                         buf.logprobs.flatten(), buf.values.flatten(), buf.returns.flatten())[:40]
             for loss_fn in (minibatch_loss, ppo._minibatch_loss):
                 ppo.flat.zero_grad()
                 kl = torch.tensor(ppo.kl_coeff) if ppo.kl_coeff > 0 else None
-                loss_fn(ppo.policy, cfg, buf.obs.flatten(0, 1)[:40], samples, buf.advantages.flatten()[:40], kl,
+                loss_fn(ppo.policy, ppo.distribution, cfg, buf.obs.flatten(0, 1)[:40], samples, buf.advantages.flatten()[:40], kl,
                         torch.mean)[0].backward()
                 grads.append(ppo.flat.grad.clone())
             assert grads[0].abs().max() > 0

@@ -38,7 +38,7 @@ from __future__ import annotations
 import atexit
 import datetime
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -254,10 +254,11 @@ class Collectives:
 
     # -- acting ----------------------------------------------------------------------------------------------------
 
-    def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """N(0, 1) noise for this process's environments, shaped like ``like [..., n_local, A]`` (one step's ``[n_local,
-        A]``, or a rollout's ``[T, n_local, A]``), from ``generator``."""
-        return torch.randn(like.shape, generator=generator, device=like.device, dtype=like.dtype)
+    def env_noise(self, like: torch.Tensor, generator: torch.Generator, kind: str = "normal") -> torch.Tensor:
+        """Noise for this process's environments, shaped like ``like [..., n_local, A]`` (one step's ``[n_local, A]``,
+        or a rollout's ``[T, n_local, A]``), from ``generator``: N(0, 1) (``kind="normal"``) or U[0, 1)
+        (``"uniform"``), as the action distribution's ``noise_kind`` says."""
+        return _draw(like.shape, generator, like, kind)
 
     def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
         """Give every rank rank ``src``'s parameters and buffers (identical starting weights)."""
@@ -352,15 +353,14 @@ class DataParallel(Collectives):
         dist.all_gather(counts, mine)
         return cls(rank=dist.get_rank(), world_size=size, counts=tuple(int(c.item()) for c in counts), device=device)
 
-    def env_noise(self, like: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    def env_noise(self, like: torch.Tensor, generator: torch.Generator, kind: str = "normal") -> torch.Tensor:
         """The global batch's noise ``[..., N, A]`` drawn on every rank, this rank's envs kept: env n gets the same draw
         whatever the rank count, and every rank's generator stays where a single process's would be."""
         if like.dim() < 2 or like.shape[-2] != self.local_envs:
             raise ValueError(f"in a data-parallel run, the noise's envs (dimension -2) must be this rank's "
                              f"{self.local_envs}, got shape {list(like.shape)}")
         shape = (*like.shape[:-2], self.num_envs, like.shape[-1])
-        noise = torch.randn(shape, generator=generator, device=like.device, dtype=like.dtype)
-        return noise[..., self.lo : self.hi, :]
+        return _draw(shape, generator, like, kind)[..., self.lo : self.hi, :]
 
     def broadcast_module_(self, module: nn.Module, src: int = 0) -> None:
         with torch.no_grad():
@@ -452,6 +452,14 @@ class DataParallel(Collectives):
         dist.all_reduce(summed, op=dist.ReduceOp.SUM)
         dist.all_reduce(maxed, op=dist.ReduceOp.MAX)
         return {k: float(v) for k, v in zip(keys, torch.where(is_time, maxed, summed).tolist(), strict=True)}
+
+
+def _draw(shape: Sequence[int], generator: torch.Generator, like: torch.Tensor, kind: str) -> torch.Tensor:
+    """``shape`` numbers from ``generator`` in ``like``'s dtype and device: N(0, 1) or U[0, 1)."""
+    if kind not in ("normal", "uniform"):
+        raise ValueError(f"noise kind must be 'normal' or 'uniform', got {kind!r}")
+    draw = torch.randn if kind == "normal" else torch.rand
+    return draw(tuple(shape), generator=generator, device=like.device, dtype=like.dtype)
 
 
 def collectives(local_envs: int, device: torch.device) -> Collectives:

@@ -1,8 +1,11 @@
 """Actor-critic networks: the contracts PPO relies on, declared (:class:`ActorCritic`, :class:`SplitActorCritic`,
-:class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network and a small MLP for flat observations.
+:class:`DeclaresDistribution`, :class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network and a
+small MLP for flat observations.
 
-A policy is an ``nn.Module`` whose ``forward(obs)`` returns ``(mean [N, A], log_std [N, A], value [N])``: the
-Gaussian policy π = Normal(mean, exp(log_std)) over raw actions and the critic's V(obs). A policy that keeps its
+A policy is an ``nn.Module`` whose ``forward(obs)`` returns its action distribution's parameters, then the critic's
+V(obs) ``[N]``: for Box actions ``(mean [N, A], log_std [N, A], value [N])``, the Gaussian policy
+π = Normal(mean, exp(log_std)) over raw actions; for discrete ones ``(logits, value)``
+(``freeform.agents.distributions`` lists them). A policy that keeps its
 constructor arguments in ``init_kwargs`` can be rebuilt by a checkpoint from the file alone, and one that names
 groups of action dimensions in ``action_groups`` gets the mean σ of each group logged.
 
@@ -20,6 +23,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from freeform.agents.distributions import ActionDistribution, DiagGaussian, from_spec
 from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
 
 TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
@@ -27,19 +31,29 @@ TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
 
 @runtime_checkable
 class ActorCritic(Protocol):
-    """``policy(obs [N, ...]) -> (mean [N, A], log_std [N, A], value [N])`` (PPO checks the shapes on its env)."""
+    """``policy(obs [N, ...]) -> (*params, value [N])``: the action distribution's parameters (a Gaussian's
+    ``mean [N, A], log_std [N, A]``; a categorical's ``logits [N, n]``), then V (PPO checks the shapes on its env)."""
 
-    def __call__(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]: ...
+    def __call__(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
 
 
 @runtime_checkable
 class SplitActorCritic(ActorCritic, Protocol):
-    """An actor-critic whose halves run apart: ``action_params(obs) -> (mean, log_std)`` and ``value(obs) -> [N]``,
+    """An actor-critic whose halves run apart: ``action_params(obs) -> params`` (a tuple) and ``value(obs) -> [N]``,
     equal to ``forward``'s (PPO checks it)."""
 
-    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]: ...
 
     def value(self, obs: torch.Tensor) -> torch.Tensor: ...
+
+
+@runtime_checkable
+class DeclaresDistribution(Protocol):
+    """A network that says which action distribution its outputs parameterise (``distribution``, an
+    ``ActionDistribution``); PPO uses it, and refuses an env whose actions need another. Without it PPO takes the
+    env's (``action_distribution``) or a Gaussian."""
+
+    distribution: ActionDistribution
 
 
 @runtime_checkable
@@ -95,6 +109,7 @@ class VoxelActorCritic(nn.Module):
         self.hidden = hidden
         self.trunk = trunk
         self.action_dim = 3 + materials
+        self.distribution = DiagGaussian(self.action_dim)
         # The action layout is [x, y, z, w_0 … w_{k-1}] (spec design.md, "Action → bundle").
         self.action_groups = {"position": slice(0, 3), "material": slice(3, 3 + materials)}
 
@@ -136,25 +151,45 @@ class VoxelActorCritic(nn.Module):
 
 
 class MLPActorCritic(nn.Module):
-    """Separate tanh MLPs for actor and critic over flat float observations, a state-independent log σ.
+    """Separate tanh MLPs for actor and critic over flat observations, with the head the action distribution needs.
 
-    CleanRL's continuous-control network: orthogonal init (√2 hidden, 0.01 policy output, 1 value output), so the
-    untrained policy is ≈ N(0, I).
+    CleanRL's networks (``ppo_continuous_action.py`` for Box actions, ``ppo.py`` for discrete ones): orthogonal init
+    (√2 hidden, 0.01 policy output, 1 value output), so the untrained policy is ≈ N(0, I) or ≈ uniform. The actor
+    outputs a Gaussian's mean with a state-independent log σ (``distribution`` a ``DiagGaussian``, the default over
+    ``action_dim`` floats), or the logits of a ``Categorical``, ``MultiCategorical`` or ``Bernoulli``.
+    Observations may be any dtype (uint8 images stay uint8 until here) and shape (flattened).
     """
 
-    def __init__(self, obs_dim: int, action_dim: int, hidden: tuple[int, ...] | list[int] = (64, 64)) -> None:
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int | None = None,
+        hidden: tuple[int, ...] | list[int] = (64, 64),
+        distribution: ActionDistribution | dict[str, Any] | None = None,
+    ) -> None:
+        """``distribution``: an ``ActionDistribution`` or its ``spec()`` (None: a Gaussian over ``action_dim``);
+        ``action_dim`` may then be left out (it must agree when given)."""
         super().__init__()
         if not isinstance(obs_dim, int) or obs_dim < 1:
             raise ValueError(f"obs_dim must be a positive int, got {obs_dim!r}")
-        if not isinstance(action_dim, int) or action_dim < 1:
-            raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
+        if distribution is None:
+            if not isinstance(action_dim, int) or action_dim < 1:
+                raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
+            distribution = DiagGaussian(action_dim)
+        dist = from_spec(distribution)
+        if action_dim is not None and action_dim != dist.action_dim:
+            raise ValueError(f"action_dim {action_dim!r} disagrees with the {dist} ({dist.action_dim} numbers per action)")
         hidden = tuple(hidden)
         if not hidden or not all(isinstance(h, int) and h > 0 for h in hidden):
             raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden!r}")
-        self.init_kwargs = dict(obs_dim=obs_dim, action_dim=action_dim, hidden=hidden)
+        self.init_kwargs: dict[str, Any] = dict(obs_dim=obs_dim, action_dim=dist.action_dim, hidden=hidden)
+        if not isinstance(dist, DiagGaussian):  # (a Gaussian's checkpoint reads as it always did)
+            self.init_kwargs["distribution"] = dist.spec()
         self.obs_dim = obs_dim
-        self.action_dim = action_dim
+        self.action_dim = dist.action_dim
+        self.distribution = dist
         self.action_groups: dict[str, slice] = {}
+        self.gaussian = isinstance(dist, DiagGaussian)
 
         def mlp(out_dim: int, out_gain: float) -> nn.Sequential:
             layers: list[nn.Module] = []
@@ -165,12 +200,20 @@ class MLPActorCritic(nn.Module):
             layers.append(self._orthogonal(nn.Linear(width, out_dim), out_gain))
             return nn.Sequential(*layers)
 
-        self.actor = mlp(action_dim, 0.01)
+        self.actor = mlp(dist.param_dims[0], 0.01)  # the mean, or the logits
         self.critic = mlp(1, 1.0)
-        self.log_std = nn.Parameter(torch.zeros(action_dim))
+        if self.gaussian:
+            self.log_std = nn.Parameter(torch.zeros(dist.action_dim))
         # The Linear layers in order (plain tuples: not registered twice), for a forward without module calls.
         self._actor_linears = tuple(self.actor[::2])
         self._critic_linears = tuple(self.critic[::2])
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> MLPActorCritic:
+        """The network for a ``VecEnv``: its flattened observation size and its ``action_distribution`` (a
+        Gaussian over ``action_dim`` where it declares none)."""
+        return cls(int(math.prod(env.observation_shape)), int(env.action_dim), hidden,
+                   getattr(env, "action_distribution", None))
 
     @staticmethod
     def _orthogonal(layer: nn.Linear, gain: float) -> nn.Linear:
@@ -189,17 +232,18 @@ class MLPActorCritic(nn.Module):
         # Reshaped and cast only where needed: with one env (acting every step) a no-op op still costs its dispatch.
         if obs.dim() != 2:
             obs = obs.reshape(obs.shape[0], -1)
-        return obs if obs.dtype == self.log_std.dtype else obs.to(self.log_std.dtype)
+        dtype = self._critic_linears[0].weight.dtype
+        return obs if obs.dtype == dtype else obs.to(dtype)
 
-    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``)."""
-        mean = self._mlp(self._actor_linears, self._flat(obs))
-        return mean, self.log_std.expand_as(mean)
+    def action_params(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, obs_dim]`` → the distribution's parameters: (mean ``[N, A]``, log_std ``[N, A]``) or (logits,)."""
+        out = self._mlp(self._actor_linears, self._flat(obs))
+        return (out, self.log_std.expand_as(out)) if self.gaussian else (out,)
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
-        """float ``[N, obs_dim]`` → V(obs) ``[N]``."""
+        """``[N, obs_dim]`` → V(obs) ``[N]``."""
         return self._mlp(self._critic_linears, self._flat(obs)).squeeze(-1)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """float ``[N, obs_dim]`` → (mean ``[N, A]``, log_std ``[N, A]``, value ``[N]``)."""
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, obs_dim]`` → (*the distribution's parameters, value ``[N]``)."""
         return (*self.action_params(obs), self.value(obs))

@@ -1,42 +1,24 @@
 """PPO's mathematics as small pure functions of tensors, each tested against hand-worked values or a reference
-(``tests/test_ppo.py``): the diagonal Gaussian, discounted sums, GAE, the clipped surrogate, the value losses, the
-adaptive KL rule, and the whole minibatch loss (:func:`minibatch_loss`, which ``PPOConfig.compile`` hands to
+(``tests/test_ppo.py``): discounted sums, GAE, the clipped surrogate, the value losses, the adaptive KL rule, and
+the whole minibatch loss (:func:`minibatch_loss`, which ``PPOConfig.compile`` hands to
 ``torch.compile``).
+
+The action distributions' log-probabilities, entropies and KLs live in ``freeform.agents.distributions`` (the
+Gaussian's are re-exported here, where they were first).
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = environments, ``A`` = action size, ``M`` = a minibatch's samples.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
 import torch.nn as nn
 
+from freeform.agents.distributions import ActionDistribution, gaussian_entropy, gaussian_kl, gaussian_log_prob
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.rollout import sample_columns
-
-LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
-
-
-def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
-    """log N(actions; mean, exp(log_std)) summed over the last dim: ``[..., A]`` → ``[...]``."""
-    z = (actions - mean) * torch.exp(-log_std)
-    return (-0.5 * z.square() - log_std - LOG_SQRT_2PI).sum(-1)
-
-
-def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    """Entropy of a diagonal Gaussian, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    return (log_std + 0.5 + LOG_SQRT_2PI).sum(-1)
-
-
-def gaussian_kl(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor, log_std1: torch.Tensor) -> torch.Tensor:
-    """KL(N(mean0, σ0) ‖ N(mean1, σ1)) of diagonal Gaussians, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
-    mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
-    return (log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5).sum(-1)
-
 
 def discounted_cumsum(
     x: torch.Tensor,
@@ -156,6 +138,7 @@ def explained_variance(predicted: torch.Tensor, target: torch.Tensor) -> float:
 
 def minibatch_loss(
     policy: nn.Module,
+    dist: ActionDistribution,
     cfg: PPOConfig,
     obs: torch.Tensor,
     samples: torch.Tensor,
@@ -165,24 +148,25 @@ def minibatch_loss(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """PPO's loss on one minibatch of M samples, and its statistics.
 
-    ``obs [M, ...]`` as the policy saw them; ``samples [M, 3A + 3]`` those samples' rows of ``minibatch_samples``
-    (their columns named by ``rollout.Samples``); ``advantages [M]`` (standardised as ``cfg.advantage_norm``
-    says); ``kl_coeff`` β as a 0-d tensor, None without the KL penalty; ``reduce`` the minibatch mean (``Collectives.minibatch_mean``).
+    ``dist`` the action distribution (``policy(obs)`` returns its parameters, then V); ``obs [M, ...]`` as the
+    policy saw them; ``samples [M, A + P + 3]`` those samples' rows of ``minibatch_samples`` (their columns named by
+    ``rollout.Samples``); ``advantages [M]`` (standardised as ``cfg.advantage_norm`` says); ``kl_coeff`` β as a 0-d
+    tensor, None without the KL penalty; ``reduce`` the minibatch mean (``Collectives.minibatch_mean``).
     Returns ``(loss, stats [6])``: stats are the policy loss, value loss, KL(π_old ‖ π), entropy, clip fraction and
     loss, detached. A pure function of its inputs, so that ``PPOConfig.compile`` can hand it to ``torch.compile``.
     """
-    s = sample_columns(samples)
-    mean, log_std, value = policy(obs)
-    ratio = torch.exp(gaussian_log_prob(s.actions, mean, log_std) - s.old_logprobs)
+    s = sample_columns(samples, dist.action_dim)
+    *params, value = policy(obs)
+    ratio = torch.exp(dist.log_prob(params, s.actions) - s.old_logprobs)
     policy_loss = -reduce(clipped_surrogate(ratio, advantages, cfg.clip_param))
     if cfg.value_clip == "squared":
         value_loss = reduce(clamped_value_loss(value, s.returns, cfg.vf_clip_param))
     else:
         value_loss = reduce(ppo2_value_loss(value, s.old_values, s.returns, cfg.vf_clip_param))
-    entropy = reduce(gaussian_entropy(log_std))
+    entropy = reduce(dist.entropy(params))
     loss = policy_loss + cfg.vf_loss_coeff * value_loss - cfg.entropy_coeff * entropy
     with torch.set_grad_enabled(kl_coeff is not None):  # without the penalty the KL is only a statistic
-        kl = reduce(gaussian_kl(s.old_means, s.old_log_stds, mean, log_std))
+        kl = reduce(dist.kl(dist.split(s.old_params), params))
     if kl_coeff is not None:
         loss = loss + kl_coeff * kl
     with torch.no_grad():

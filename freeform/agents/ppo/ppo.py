@@ -7,6 +7,10 @@ adapts after every epoch, Adam without gradient clipping. Common variants are sw
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``.
 
+The action distribution (``freeform.agents.distributions``: a Gaussian for Box actions, categoricals or bits for
+discrete ones) is decided once, at construction, from the policy or the env (:func:`choose_distribution`); below,
+``self.distribution`` samples, scores and compares actions and nothing asks which one it is.
+
 Every collective sits behind ``self.dp`` (``freeform.agents.distributed.Collectives``), the identity in one process:
 the code below is the single-process algorithm. Under ``torch.distributed`` (a process group of R > 1 ranks, e.g.
 ``torchrun``) each rank's env holds its slice of the environments, ``self.dp`` is a ``DataParallel`` and the update
@@ -27,15 +31,15 @@ import torch.nn as nn
 
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
+from freeform.agents.distributions import ActionDistribution, DiagGaussian
 from freeform.agents.flat_params import FlatParameters
-from freeform.agents.networks import GroupedActions, Rebuildable, SplitActorCritic
+from freeform.agents.networks import DeclaresDistribution, GroupedActions, Rebuildable, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.losses import (
     compute_advantages,
     discounted_cumsum,
     explained_variance,
-    gaussian_log_prob,
     minibatch_loss,
     standardize,
     update_kl_coeff,
@@ -108,6 +112,8 @@ class PPO:
         self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
         self.num_envs = self.dp.num_envs
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
+        self.distribution = choose_distribution(policy, env)
+        """The action distribution π(·|obs): the policy outputs its parameters (``param_dims``), then V."""
         self.critic_apart = isinstance(policy, SplitActorCritic)
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
@@ -139,7 +145,8 @@ class PPO:
         self._update_obs_rms(self.obs)
         self._check_policy()
         obs_dtype = torch.float32 if self.obs_rms is not None else self.obs.dtype
-        self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, obs_shape, obs_dtype, env.action_dim, self.device)
+        self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, obs_shape, obs_dtype, env.action_dim,
+                                        self.distribution.param_dims, self.device)
         self.episode_infos: list[dict[str, Any]] = []
         self._collector = EpisodeCollector()  # episodes() cuts the rollouts; its carry is part of the state
         self._collected = 0  # the epoch count at the last episodes() call
@@ -150,16 +157,17 @@ class PPO:
     @torch.no_grad()
     def _check_policy(self) -> None:
         """Fail early, naming the mismatch, when the policy's outputs do not fit the env."""
-        n, a = self.env.num_envs, self.env.action_dim
+        n, dist = self.env.num_envs, self.distribution
         try:
             outputs = self.policy(self.normalize_obs(self.obs))
         except Exception as e:
             raise ValueError(f"policy cannot read the env's observations {tuple(self.obs.shape)} ({e})") from e
-        shapes = [tuple(x.shape) for x in outputs] if isinstance(outputs, tuple) and len(outputs) == 3 else None
-        if shapes != [(n, a), (n, a), (n,)]:
-            raise ValueError(
-                f"policy must return (mean [{n}, {a}], log_std [{n}, {a}], value [{n}]) for this env, got {shapes}"
-            )
+        wanted = [(n, p) for p in dist.param_dims] + [(n,)]
+        shapes = [tuple(x.shape) for x in outputs] if isinstance(outputs, tuple) else None
+        if shapes != wanted:
+            names = ", ".join(f"[{n}, {p}]" for p in dist.param_dims)
+            raise ValueError(f"policy must return its {dist} parameters ({names}) and value [{n}] for this env, "
+                             f"got {shapes if shapes is not None else type(outputs).__name__}")
         if self.critic_apart:  # the rollout calls the halves: they must be forward's
             seen = self.normalize_obs(self.obs)
             halves = (*self.policy.action_params(seen), self.policy.value(seen))
@@ -167,38 +175,42 @@ class PPO:
                 torch.allclose(h, o) for h, o in zip(halves, outputs, strict=True)
             ):
                 raise ValueError("policy.action_params(obs) and policy.value(obs) must give what forward(obs) gives "
-                                 f"((mean, log_std) and value, shapes {shapes})")
+                                 f"(the distribution's parameters and the value, shapes {shapes})")
 
     # -- acting ----------------------------------------------------------------------------------------------------
 
     def _sample(
         self, obs: torch.Tensor, deterministic: bool = False, noise: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, ...]:
-        """obs ``[N, ...]`` → (action, value, mean, log_std); ``noise [N, A]`` ~ N(0, 1), else drawn from
-        ``self.generator``. ``value`` is None when the critic runs apart (``critic_apart``)."""
+    ) -> tuple[torch.Tensor, torch.Tensor | None, tuple[torch.Tensor, ...]]:
+        """obs ``[N, ...]`` → (action ``[N, A]``, value ``[N]``, the distribution's parameters); ``noise [N, A]`` of
+        the distribution's ``noise_kind``, else drawn from ``self.generator``. ``value`` is None when the critic runs
+        apart (``critic_apart``)."""
         if self.critic_apart:
-            (mean, log_std), value = self.policy.action_params(obs), None
+            params, value = tuple(self.policy.action_params(obs)), None
         else:
-            mean, log_std, value = self.policy(obs)
+            *params, value = self.policy(obs)
+            params = tuple(params)
         if deterministic:
-            return mean, value, mean, log_std
+            return self.distribution.mode(params), value, params
         if noise is None:
-            noise = self.dp.env_noise(mean, self.generator)
-        return torch.addcmul(mean, torch.exp(log_std), noise), value, mean, log_std
+            noise = self.dp.env_noise(params[0].new_empty(obs.shape[0], self.env.action_dim), self.generator,
+                                      self.distribution.noise_kind)
+        return self.distribution.sample(params, noise), value, params
 
     def _value(self, obs: torch.Tensor) -> torch.Tensor:
         """V(obs) ``[N]`` for observations as the policy sees them."""
-        return self.policy.value(obs) if self.critic_apart else self.policy(obs)[2]
+        return self.policy.value(obs) if self.critic_apart else self.policy(obs)[-1]
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
-        """Actions ``[N, A]`` for raw observations ``[N, ...]`` (the mean if ``deterministic``), on the env's device.
+        """Actions ``[N, A]`` for raw observations ``[N, ...]`` (the distribution's mode if ``deterministic``: a
+        Gaussian's mean), on the env's device, as the env takes them (int64 for a discrete distribution).
 
         With ``obs_norm`` the observations are normalised by the saved statistics (not updated). Sampling draws from
         the training generator, so calls between epochs shift the training's random stream.
         """
         x = self.normalize_obs(obs.to(self.device))
-        return self._sample(x, deterministic)[0].to(self.env.device)
+        return self.distribution.env_actions(self._sample(x, deterministic)[0]).to(self.env.device)
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
         """What the policy sees: ``obs`` itself, or with ``obs_norm`` ``clip((obs − μ) / √(σ² + 1e-8), ±obs_clip)``."""
@@ -261,21 +273,24 @@ class PPO:
         # Each step's tensors are listed and stacked into the buffers once, after the loop; what needs no policy
         # (log-probabilities, reward scaling, episode sums) is computed there for the whole rollout. With one env
         # (a Gymnasium task) every tensor operation in this loop costs more than its arithmetic.
-        seen, actions, values, means, log_stds, rewards, dones = [], [], [], [], [], [], []
+        seen, actions, values, rewards, dones = [], [], [], [], []
+        params: list[tuple[torch.Tensor, ...]] = []
         scored: list[tuple[int, torch.Tensor]] = []
         # The whole rollout's noise in one draw, in the rollout's dtype (float32). On the CPU T draws of N·A values
         # equal one of T·N·A where N·A is a multiple of 16 (the design env's sizes); otherwise the stream differs.
-        noise = self.dp.env_noise(buf.actions, self.generator)
+        dist = self.distribution
+        noise = self.dp.env_noise(buf.actions, self.generator, dist.noise_kind)
         # The env's tensors are moved or cast only where they need it: even a no-op .to() is an operation.
         env_device = self.env.device
         here = env_device is not None and torch.device(env_device) == self.device
         for t in range(cfg.rollout_steps):
             x = self.normalize_obs(self.obs)
-            action, value, mean, log_std = self._sample(x, noise=noise[t])
-            for store, item in ((seen, x), (actions, action), (values, value), (means, mean), (log_stds, log_std)):
+            action, value, step_params = self._sample(x, noise=noise[t])
+            for store, item in ((seen, x), (actions, action), (values, value), (params, step_params)):
                 store.append(item)  # (values: None when the critic runs apart, after the loop)
+            to_env = dist.env_actions(action)  # (a Gaussian's: the same tensor)
             t0 = time.perf_counter()
-            next_obs, reward, done, info = self.env.step(action if here else action.to(env_device))
+            next_obs, reward, done, info = self.env.step(to_env if here else to_env.to(env_device))
             time_env += time.perf_counter() - t0
             if not here or reward.dtype != torch.float32:
                 reward = reward.to(self.device, torch.float32)
@@ -303,9 +318,10 @@ class PPO:
                         final_value = self._value(self.normalize_obs(info["final_obs"].to(self.device)))
                         buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             self.obs = next_obs
-        for name, steps in (("obs", seen), ("actions", actions), ("means", means), ("log_stds", log_stds),
-                            ("rewards", rewards), ("dones", dones)):
+        for name, steps in (("obs", seen), ("actions", actions), ("rewards", rewards), ("dones", dones)):
             torch.stack(steps, out=buf[name])
+        for i, stored in enumerate(buf.params):
+            torch.stack([p[i] for p in params], out=stored)
         if not self.critic_apart:
             torch.stack(values, out=buf.values)
         return time_env, scored, any_truncated
@@ -316,7 +332,7 @@ class PPO:
         buf = self.rollout
         if self.critic_apart:
             buf.values = self._value(buf.obs.reshape(-1, *buf.obs.shape[2:])).reshape(buf.values.shape)
-        buf.logprobs = gaussian_log_prob(buf.actions, buf.means, buf.log_stds)
+        buf.logprobs = self.distribution.log_prob(buf.params, buf.actions)
         return torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])
 
     def _episode_figures(self, starts: torch.Tensor, scored: list[tuple[int, torch.Tensor]]
@@ -383,9 +399,8 @@ class PPO:
         buf, dp = self.rollout, self.dp
         size = buf.rewards.numel()  # this rank's samples
         obs = buf.obs.reshape(size, *buf.obs.shape[2:])
-        actions, old_means, old_log_stds = (x.reshape(size, -1) for x in (buf.actions, buf.means, buf.log_stds))
-        samples = minibatch_samples(actions, old_means, old_log_stds, buf.logprobs.reshape(-1),
-                                    buf.values.reshape(-1), buf.returns.reshape(-1))
+        samples = minibatch_samples(buf.actions.reshape(size, -1), [p.reshape(size, -1) for p in buf.params],
+                                    buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1))
         advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
         # Samples where an env only reset (Gymnasium's next-step autoreset) are no transitions: they are left out of
         # the minibatches and the batch statistics. ``kept`` = the global indices of the others (None: all of them).
@@ -426,7 +441,7 @@ class PPO:
                 idx, adv = dp.local_share(idx, adv)
                 flat.zero_grad()
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
-                    loss, stats = self._minibatch_loss(self.policy, cfg, batch.obs.index_select(0, idx),
+                    loss, stats = self._minibatch_loss(self.policy, self.distribution, cfg, batch.obs.index_select(0, idx),
                                                        batch.samples.index_select(0, idx), adv, kl_weight, reduce)
                     loss.backward()
                     totals += stats
@@ -440,12 +455,10 @@ class PPO:
     def _update_stats(self, batch: _TrainBatch, means: list[float], kl_coeff: float, lr: float) -> dict[str, float]:
         """The update's statistics over the global batch (the values, returns and σ gathered from every rank)."""
         buf, dp, kept = self.rollout, self.dp, batch.kept
-        values, log_stds = dp.gather_envs(buf.values, dim=1), dp.gather_envs(buf.log_stds, dim=1)
+        values = dp.gather_envs(buf.values, dim=1).reshape(-1)
         returns = dp.gather_envs(buf.returns, dim=1).reshape(-1)
-        values = values.reshape(-1)
-        stds = log_stds.exp()
         if kept is not None:
-            values, returns, stds = values[kept], returns[kept], stds.reshape(-1, stds.shape[-1])[kept]
+            values, returns = values[kept], returns[kept]
         stats = {
             "policy_loss": means[0],
             "value_loss": means[1],
@@ -457,10 +470,14 @@ class PPO:
             "lr": lr,
             "explained_variance": explained_variance(values, returns),
             "value_mean": values.mean().item(),
-            "action_std": stds.mean().item(),
         }
-        for name, dims in (self.policy.action_groups if isinstance(self.policy, GroupedActions) else {}).items():
-            stats[f"action_std_{name}"] = stds[..., dims].mean().item()
+        if isinstance(self.distribution, DiagGaussian):  # σ is the Gaussian's own figure (the others': entropy)
+            stds = dp.gather_envs(buf.log_stds, dim=1).exp()
+            if kept is not None:
+                stds = stds.reshape(-1, stds.shape[-1])[kept]
+            stats["action_std"] = stds.mean().item()
+            for name, dims in (self.policy.action_groups if isinstance(self.policy, GroupedActions) else {}).items():
+                stats[f"action_std_{name}"] = stds[..., dims].mean().item()
         return stats
 
     # -- the loop --------------------------------------------------------------------------------------------------
@@ -495,7 +512,7 @@ class PPO:
 
     @torch.no_grad()
     def evaluate(self, env: VecEnv | None = None, episodes: int | None = None) -> dict[str, float]:
-        """Deterministic episodes (the policy's mean action) on ``env`` (default ``self.eval_env``), never the
+        """Deterministic episodes (the distribution's mode: a Gaussian's mean) on ``env`` (default ``self.eval_env``), never the
         training env: ``eval_return`` (mean raw return), ``eval_return_std``, ``eval_length_mean``.
 
         ``episodes`` (default ``config.eval_episodes``) are spread over the env's environments as evenly as possible
@@ -519,8 +536,8 @@ class PPO:
         ep_length = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.policy.eval()
         while bool((counts < targets).any()):
-            mean = self._sample(self.normalize_obs(obs), deterministic=True)[0]
-            obs, reward, done, info = env.step(mean.to(env.device))
+            mode = self.distribution.env_actions(self._sample(self.normalize_obs(obs), deterministic=True)[0])
+            obs, reward, done, info = env.step(mode.to(env.device))
             obs, reward, done = obs.to(self.device), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             moving = ~info["autoreset"].to(self.device, torch.bool) if "autoreset" in info else torch.ones_like(done)
             ep_return += reward
@@ -712,6 +729,23 @@ class PPO:
         return ppo
 
 
+def choose_distribution(policy: nn.Module, env: VecEnv) -> ActionDistribution:
+    """The action distribution PPO trains, decided once: the one the policy declares (``distribution``, e.g.
+    ``MLPActorCritic``'s), else the env's (``action_distribution``: ``from_gymnasium`` sets it from the action space),
+    else a diagonal Gaussian over ``env.action_dim`` floats (the design env). Both declared and different, or an
+    action size other than the env's, is an error naming the two."""
+    declared = policy.distribution if isinstance(policy, DeclaresDistribution) else None
+    offered = getattr(env, "action_distribution", None)
+    if declared is not None and offered is not None and declared != offered:
+        raise ValueError(f"the policy outputs a {declared} but the env's actions need a {offered}")
+    dist = declared or offered or DiagGaussian(int(env.action_dim))
+    if not isinstance(dist, ActionDistribution):
+        raise ValueError(f"an action distribution must be a freeform.agents.distributions.ActionDistribution, got {dist!r}")
+    if dist.action_dim != env.action_dim:
+        raise ValueError(f"the {dist} gives {dist.action_dim} numbers per action but the env takes {env.action_dim}")
+    return dist
+
+
 def policy_class_name(cls: type) -> str:
     """How a checkpoint names a policy class: ``module:qualname``."""
     return f"{cls.__module__}:{cls.__qualname__}"
@@ -724,4 +758,4 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
     return (VoxelActorCritic, MLPActorCritic)
 
 
-__all__ = ["PPO", "builtin_policies", "policy_class_name"]
+__all__ = ["PPO", "builtin_policies", "choose_distribution", "policy_class_name"]

@@ -1,11 +1,12 @@
 """A rollout's storage, and the layout of a minibatch's samples as named columns.
 
-Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``, ``M`` a
-minibatch's samples.
+Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = the action size, ``P_i`` the sizes of the action
+distribution's parameters (``param_dims``), ``B`` = ``T·N``, ``M`` a minibatch's samples.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -17,11 +18,10 @@ class Samples(NamedTuple):
     :func:`sample_columns` reads, declared once here (the order of the fields is the order of the columns)."""
 
     actions: torch.Tensor
-    """``[M, A]`` the actions taken (raw, unclipped)."""
-    old_means: torch.Tensor
-    """``[M, A]`` π_old's mean (for the KL term)."""
-    old_log_stds: torch.Tensor
-    """``[M, A]`` π_old's log σ."""
+    """``[M, A]`` the actions taken (raw, unclipped; indices as floats for a discrete distribution)."""
+    old_params: torch.Tensor
+    """``[M, P]`` π_old's distribution parameters side by side (``P = Σ param_dims``; a Gaussian's mean, then log σ),
+    for the KL term: ``distribution.split`` names them."""
     old_logprobs: torch.Tensor
     """``[M]`` log π_old(action)."""
     old_values: torch.Tensor
@@ -30,18 +30,22 @@ class Samples(NamedTuple):
     """``[M]`` the value targets."""
 
 
-def minibatch_samples(*columns: torch.Tensor) -> torch.Tensor:
-    """The rollout's per-sample floats side by side, ``[B, 3A + 3]``, in :class:`Samples`' order (``[B, A]`` or
-    ``[B]`` each). One tensor, so a minibatch is one gather instead of six (≈ 10 µs each at 64 samples on the CPU)."""
-    named = Samples(*columns)
-    return torch.cat([c if c.dim() == 2 else c[:, None] for c in named], dim=1)
+def minibatch_samples(
+    actions: torch.Tensor, old_params: Sequence[torch.Tensor], old_logprobs: torch.Tensor, old_values: torch.Tensor,
+    returns: torch.Tensor,
+) -> torch.Tensor:
+    """The rollout's per-sample floats side by side, ``[B, A + P + 3]``, in :class:`Samples`' order: ``actions [B,
+    A]``, each parameter ``[B, P_i]``, then ``[B]`` each. One tensor, so a minibatch is one gather instead of six
+    (≈ 10 µs each at 64 samples on the CPU)."""
+    columns = (actions, *old_params, old_logprobs, old_values, returns)
+    return torch.cat([c if c.dim() == 2 else c[:, None] for c in columns], dim=1)
 
 
-def sample_columns(samples: torch.Tensor) -> Samples:
-    """:func:`minibatch_samples`' rows ``[M, 3A + 3]`` -> their named columns (views)."""
-    a = (samples.shape[1] - 3) // 3
-    actions, old_means, old_log_stds, old_logprobs, old_values, returns = samples.split([a, a, a, 1, 1, 1], dim=1)
-    return Samples(actions, old_means, old_log_stds, old_logprobs.squeeze(1), old_values.squeeze(1), returns.squeeze(1))
+def sample_columns(samples: torch.Tensor, action_dim: int) -> Samples:
+    """:func:`minibatch_samples`' rows ``[M, A + P + 3]`` -> their named columns (views)."""
+    params = samples.shape[1] - action_dim - 3
+    actions, old_params, old_logprobs, old_values, returns = samples.split([action_dim, params, 1, 1, 1], dim=1)
+    return Samples(actions, old_params, old_logprobs.squeeze(1), old_values.squeeze(1), returns.squeeze(1))
 
 
 @dataclass
@@ -49,7 +53,8 @@ class Rollout:
     """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
 
     ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
-    bool, ``values [T, N]``, ``means``/``log_stds [T, N, A]`` (π_old, for the KL term), ``advantages``/``returns
+    bool, ``values [T, N]``, ``params`` (π_old's distribution parameters, one ``[T, N, P_i]`` each; a Gaussian's
+    ``means``/``log_stds``), ``advantages``/``returns
     [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
     ``truncated [T, N]`` bool (the env's ``info["truncated"]``: ended by a time limit) and ``final_values [T, N]``
     (V of such an episode's last observation, its bootstrap); ``valid [T, N]`` bool (False where the env only reset,
@@ -67,8 +72,7 @@ class Rollout:
     rewards: torch.Tensor
     dones: torch.Tensor
     values: torch.Tensor
-    means: torch.Tensor
-    log_stds: torch.Tensor
+    params: tuple[torch.Tensor, ...]
     advantages: torch.Tensor
     returns: torch.Tensor
     last_value: torch.Tensor
@@ -81,9 +85,28 @@ class Rollout:
         """Dict-style access, ``rollout["obs"]``."""
         return getattr(self, name)
 
+    @property
+    def means(self) -> torch.Tensor:
+        """A Gaussian policy's means ``[T, N, A]`` (``params[0]``)."""
+        return self.params[0]
+
+    @means.setter
+    def means(self, value: torch.Tensor) -> None:
+        self.params = (value, *self.params[1:])
+
+    @property
+    def log_stds(self) -> torch.Tensor:
+        """A Gaussian policy's log σ ``[T, N, A]`` (``params[1]``)."""
+        return self.params[1]
+
+    @log_stds.setter
+    def log_stds(self, value: torch.Tensor) -> None:
+        self.params = (self.params[0], value, *self.params[2:])
+
     @classmethod
     def allocate(
-        cls, steps: int, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: torch.dtype, action_dim: int, device: torch.device
+        cls, steps: int, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: torch.dtype, action_dim: int,
+        param_dims: Sequence[int], device: torch.device,
     ) -> Rollout:
         f32 = dict(dtype=torch.float32, device=device)
         return cls(
@@ -93,8 +116,7 @@ class Rollout:
             rewards=torch.zeros((steps, num_envs), **f32),
             dones=torch.zeros((steps, num_envs), dtype=torch.bool, device=device),
             values=torch.zeros((steps, num_envs), **f32),
-            means=torch.zeros((steps, num_envs, action_dim), **f32),
-            log_stds=torch.zeros((steps, num_envs, action_dim), **f32),
+            params=tuple(torch.zeros((steps, num_envs, p), **f32) for p in param_dims),
             advantages=torch.zeros((steps, num_envs), **f32),
             returns=torch.zeros((steps, num_envs), **f32),
             last_value=torch.zeros((num_envs,), **f32),
