@@ -96,8 +96,21 @@ def test_adapter_follows_the_vecenv_protocol() -> None:
     assert isinstance(env, VecEnv) and env.num_envs == 2 and env.observation_shape == (3,) and env.action_dim == 1
     obs = env.reset(seed=0)
     assert obs.dtype == torch.float32 and obs.shape == (2, 3)
-    with pytest.raises(ValueError, match="Box"):
-        from_gymnasium(gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")]))
+    with pytest.raises(ValueError, match="cannot encode the Text space at observation"):
+        from_gymnasium(gym.vector.SyncVectorEnv([TextEnv]))
+
+
+class TextEnv(gym.Env):
+    """Text observations: a space of no fixed size, which from_gymnasium refuses by name."""
+
+    observation_space = gym.spaces.Text(8)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None):  # type: ignore[override]
+        return "a", {}
+
+    def step(self, action: Any):  # type: ignore[override]
+        return "a", 0.0, True, False, {}
 
 
 def test_truncation_bootstraps_and_termination_does_not_by_hand() -> None:

@@ -20,7 +20,6 @@ V(``final_obs``)) and ``final_obs`` (the episode's last observation). How the ve
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Any
 
@@ -29,13 +28,117 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-__all__ = ["GymnasiumVecEnv", "FreeformVectorEnv", "from_gymnasium", "to_gymnasium"]
+__all__ = ["ActionDecoder", "FreeformVectorEnv", "GymnasiumVecEnv", "ObservationEncoder", "from_gymnasium", "to_gymnasium"]
 
 
-def _box(space: Any, what: str) -> gym.spaces.Box:
-    if not isinstance(space, gym.spaces.Box):
-        raise ValueError(f"from_gymnasium needs Box {what} spaces, got {type(space).__name__} ({space})")
-    return space
+_LEAVES = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
+
+
+class ObservationEncoder:
+    """A Gymnasium observation space's batched observations as one tensor's rows, as the policy reads them.
+
+    A ``Box`` stays as it is (``uint8`` images stay ``uint8`` until the network; any other dtype becomes float32);
+    every other space is flattened into float32 ``[N, D]``: ``Discrete`` and each entry of ``MultiDiscrete`` one-hot,
+    ``MultiBinary`` as 0/1, ``Dict`` and ``Tuple`` their parts side by side in the space's order — row for row what
+    ``gymnasium.spaces.flatten`` gives, batched. Spaces of no fixed size (``Text``, ``Graph``, ``Sequence``,
+    ``OneOf``) are refused, by name.
+    """
+
+    def __init__(self, space: gym.spaces.Space) -> None:
+        self.space = space
+        self._check(space, "observation")
+        self.box = isinstance(space, gym.spaces.Box)
+        if self.box:
+            self.dtype = np.uint8 if space.dtype == np.uint8 else np.float32
+            self.shape: tuple[int, ...] = tuple(space.shape)
+        else:
+            self.dtype = np.float32
+            self.shape = (int(gym.spaces.flatdim(space)),)
+
+    @staticmethod
+    def _check(space: gym.spaces.Space, path: str) -> None:
+        if isinstance(space, gym.spaces.Dict):
+            for key, part in space.spaces.items():
+                ObservationEncoder._check(part, f"{path}[{key!r}]")
+        elif isinstance(space, gym.spaces.Tuple):
+            for i, part in enumerate(space.spaces):
+                ObservationEncoder._check(part, f"{path}[{i}]")
+        elif not isinstance(space, _LEAVES):
+            raise ValueError(f"from_gymnasium cannot encode the {type(space).__name__} space at {path} ({space}): "
+                             "observations must be Box, Discrete, MultiDiscrete, MultiBinary, or Dict/Tuple of them")
+
+    def batch(self, x: Any, n: int) -> np.ndarray:
+        """A vector env's observations of ``n`` envs → ``[n, *shape]`` in ``dtype``, always a new array (a vector env
+        built with ``copy=False`` reuses its buffers, and PPO keeps each step's observations for the rollout)."""
+        if self.box:
+            return np.array(x, dtype=self.dtype).reshape(n, *self.shape)
+        return np.concatenate(list(self._parts(self.space, x, n)), axis=1)
+
+    def row(self, x: Any) -> np.ndarray:
+        """One env's observation (Gymnasium's ``final_obs`` entries) → ``[*shape]``."""
+        if self.box:
+            return np.asarray(x, dtype=self.dtype).reshape(self.shape)
+        return np.asarray(gym.spaces.flatten(self.space, x), dtype=np.float32)
+
+    @classmethod
+    def _parts(cls, space: gym.spaces.Space, x: Any, n: int) -> Any:
+        if isinstance(space, gym.spaces.Dict):
+            for key, part in space.spaces.items():
+                yield from cls._parts(part, x[key], n)
+        elif isinstance(space, gym.spaces.Tuple):
+            for i, part in enumerate(space.spaces):
+                yield from cls._parts(part, x[i], n)
+        elif isinstance(space, gym.spaces.Discrete):
+            yield _one_hot(np.asarray(x).reshape(n, 1) - int(space.start), [int(space.n)])
+        elif isinstance(space, gym.spaces.MultiDiscrete):
+            entries = (np.asarray(x) - space.start).reshape(n, -1)
+            yield _one_hot(entries, [int(k) for k in space.nvec.reshape(-1)])
+        else:  # Box, MultiBinary
+            yield np.asarray(x, dtype=np.float32).reshape(n, -1)
+
+
+def _one_hot(indices: np.ndarray, sizes: list[int]) -> np.ndarray:
+    """``indices [n, K]`` (entry k in 0 … sizes[k] − 1) → float32 ``[n, Σ sizes]``, each entry one-hot in its block."""
+    out = np.zeros((indices.shape[0], sum(sizes)), dtype=np.float32)
+    offsets = np.cumsum([0, *sizes[:-1]])
+    out[np.arange(indices.shape[0])[:, None], offsets[None, :] + indices] = 1.0
+    return out
+
+
+class ActionDecoder:
+    """PPO's actions ``[N, A]`` → what a Gymnasium vector env takes, in its action space's shape and dtype: a
+    ``Box`` clipped to its bounds (PPO stores what it sampled, unclipped); ``Discrete``/``MultiDiscrete`` indices
+    shifted by the space's ``start``; ``MultiBinary`` bits. ``distribution``: the one PPO trains for the space."""
+
+    def __init__(self, space: gym.spaces.Space) -> None:
+        from freeform.agents.distributions import for_space  # (agents do not import envs; this direction is free)
+
+        self.distribution = for_space(space)  # refuses any other space, by name
+        self.space = space
+        self.shape = tuple(space.shape) if space.shape is not None else ()
+        self.dim = self.distribution.action_dim
+        self.dtype = space.dtype
+        self.box = isinstance(space, gym.spaces.Box)
+        if self.box:
+            self.low = np.broadcast_to(space.low, self.shape).reshape(-1).astype(self.dtype)
+            self.high = np.broadcast_to(space.high, self.shape).reshape(-1).astype(self.dtype)
+        start = getattr(space, "start", 0)
+        self.start = np.asarray(start, dtype=np.int64).reshape(-1)
+
+    def __call__(self, actions: torch.Tensor, n: int) -> np.ndarray:
+        if self.box:
+            if actions.dtype in (torch.float32, torch.float64) and actions.device.type == "cpu" and not actions.requires_grad:
+                raw = actions.numpy()  # PPO's case: .detach().to() would be two more operations, each a dispatch
+            else:
+                wide = actions.dtype if actions.dtype in (torch.float32, torch.float64) else torch.float32  # no bf16 in numpy
+                raw = actions.detach().to("cpu", wide).numpy()
+            raw = raw.reshape(n, self.dim)
+            # np.minimum/np.maximum: np.clip's checks cost more than the clip at these sizes.
+            clipped = np.minimum(np.maximum(raw, self.low), self.high).astype(self.dtype, copy=False)
+            return clipped.reshape(n, *self.shape)
+        raw = actions.detach().to("cpu").numpy().reshape(n, self.dim)
+        indices = np.rint(raw).astype(np.int64) + self.start
+        return indices.astype(self.dtype).reshape(n, *self.shape)
 
 
 def _mode(vector_env: gym.vector.VectorEnv) -> AutoresetMode:
@@ -44,11 +147,14 @@ def _mode(vector_env: gym.vector.VectorEnv) -> AutoresetMode:
 
 
 class GymnasiumVecEnv:
-    """A ``gymnasium.vector.VectorEnv`` with Box observations and actions as a freeform ``VecEnv`` (build it with
-    :func:`from_gymnasium`).
+    """A ``gymnasium.vector.VectorEnv`` as a freeform ``VecEnv`` (build it with :func:`from_gymnasium`).
 
-    ``step(actions [N, A])``: the actions are clipped to the action space's bounds for the env (PPO stores what it
-    sampled, unclipped); returns float32 tensors on ``device``: ``obs [N, *obs_shape]``, ``reward [N]``, ``done [N]``
+    Actions: ``Box`` (a Gaussian policy; clipped to the bounds for the env, PPO stores what it sampled, unclipped),
+    ``Discrete``, ``MultiDiscrete``, ``MultiBinary`` (``action_distribution`` says which distribution PPO trains;
+    :class:`ActionDecoder`). Observations: a ``Box`` as it is (float32, or ``uint8`` images kept ``uint8``), any
+    other space flattened to float32 with one-hot discrete parts (:class:`ObservationEncoder`).
+
+    ``step(actions [N, A])`` returns tensors on ``device``: ``obs [N, *obs_shape]``, ``reward [N]``, ``done [N]``
     (terminated or truncated) and ``info`` with ``truncated [N]`` (truncated and not terminated), ``terminated [N]``,
     ``final_obs [N, *obs_shape]`` when an episode ended (rows of the other envs are their current observation), and in
     ``NEXT_STEP`` mode ``autoreset [N]`` (this step only reset the env). The vector env's own info is kept under
@@ -56,25 +162,22 @@ class GymnasiumVecEnv:
     """
 
     def __init__(self, vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"):
-        obs_space = _box(vector_env.single_observation_space, "observation")
-        act_space = _box(vector_env.single_action_space, "action")
+        self.encoder = ObservationEncoder(vector_env.single_observation_space)
+        self.decoder = ActionDecoder(vector_env.single_action_space)
         self.vector_env = vector_env
         self.num_envs = int(vector_env.num_envs)
-        self.observation_shape = tuple(obs_space.shape)
-        self.action_shape = tuple(act_space.shape)
-        self.action_dim = int(math.prod(self.action_shape))
+        self.observation_shape = self.encoder.shape
+        self.action_distribution = self.decoder.distribution
+        """What PPO trains for the action space (``freeform.agents.distributions``)."""
+        self.action_dim = self.decoder.dim
         self.device = torch.device(device)
         self.seed = seed
         self.autoreset_mode = _mode(vector_env)
-        self._action_dtype = act_space.dtype
-        self.action_low = np.broadcast_to(act_space.low, self.action_shape).reshape(-1).astype(self._action_dtype)
-        self.action_high = np.broadcast_to(act_space.high, self.action_shape).reshape(-1).astype(self._action_dtype)
         self._resetting = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: these envs' next step only resets them
 
-    def _tensor(self, x: Any, *shape: int) -> torch.Tensor:
-        # Cast and reshape in numpy (with one env a torch op costs several times a numpy one), always into a new array:
-        # a vector env built with copy=False reuses its buffers, and PPO keeps each step's tensors for the rollout.
-        x = torch.from_numpy(np.array(x, dtype=np.float32).reshape(shape))
+    def _tensor(self, x: np.ndarray) -> torch.Tensor:
+        # Cast and reshape in numpy (with one env a torch op costs several times a numpy one).
+        x = torch.from_numpy(x)
         return x if self.device.type == "cpu" else x.to(self.device)
 
     def _flags(self, x: np.ndarray) -> torch.Tensor:
@@ -86,47 +189,38 @@ class GymnasiumVecEnv:
         seed = seed if seed is not None else self.seed
         obs, _ = self.vector_env.reset(seed=seed)
         self._resetting[:] = False
-        return self._tensor(obs, self.num_envs, *self.observation_shape)
+        return self._tensor(self.encoder.batch(obs, self.num_envs))
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        if actions.dtype in (torch.float32, torch.float64) and actions.device.type == "cpu" and not actions.requires_grad:
-            raw = actions.numpy()  # PPO's case: .detach().to() would be two more operations, each a dispatch
-        else:
-            wide = actions.dtype if actions.dtype in (torch.float32, torch.float64) else torch.float32  # no bf16 in numpy
-            raw = actions.detach().to("cpu", wide).numpy()
-        raw = raw.reshape(self.num_envs, self.action_dim)
-        # np.minimum/np.maximum: np.clip's checks cost more than the clip at these sizes.
-        clipped = np.minimum(np.maximum(raw, self.action_low), self.action_high).astype(self._action_dtype, copy=False)
-        obs, reward, terminated, truncated, gym_info = self.vector_env.step(
-            clipped.reshape(self.num_envs, *self.action_shape)
-        )
+        obs, reward, terminated, truncated, gym_info = self.vector_env.step(self.decoder(actions, self.num_envs))
         terminated, truncated = np.asarray(terminated, dtype=bool), np.asarray(truncated, dtype=bool)
         done = terminated | truncated
-        obs = np.asarray(obs)
+        n, encode = self.num_envs, self.encoder
+        encoded = encode.batch(obs, n)
         info: dict[str, Any] = {"gym_info": gym_info}
         final_obs = None
         if self.autoreset_mode == AutoresetMode.NEXT_STEP:
             info["autoreset"] = self._flags(self._resetting.copy())
             self._resetting = done.copy()
             if done.any():
-                final_obs = obs  # the episode's last observation; the reset comes with the next step
+                final_obs = encoded  # the episode's last observation; the reset comes with the next step
         elif self.autoreset_mode == AutoresetMode.SAME_STEP:
             if done.any():
-                final_obs = obs.copy()
+                final_obs = encoded.copy()
                 mask = np.asarray(gym_info.get("_final_obs", done), dtype=bool)
                 for i in np.flatnonzero(mask):
-                    final_obs[i] = gym_info["final_obs"][i]
+                    final_obs[i] = encode.row(gym_info["final_obs"][i])
         else:  # DISABLED: reset the finished envs here
             if done.any():
-                final_obs = obs.copy()
+                final_obs = encoded
                 obs, _ = self.vector_env.reset(options={"reset_mask": done})
-                obs = np.asarray(obs)
-        shape = (self.num_envs, *self.observation_shape)
+                encoded = encode.batch(obs, n)
         info["terminated"] = self._flags(terminated)
         info["truncated"] = self._flags(truncated & ~terminated)
         if final_obs is not None:
-            info["final_obs"] = self._tensor(final_obs, *shape)
-        return self._tensor(obs, *shape), self._tensor(reward, self.num_envs), self._flags(done), info
+            info["final_obs"] = self._tensor(final_obs)
+        reward = np.array(reward, dtype=np.float32).reshape(n)
+        return self._tensor(encoded), self._tensor(reward), self._flags(done), info
 
     def state_dict(self) -> dict[str, Any]:
         """The adapter's own state (which envs reset next step) and the vector env's ``state_dict()`` if it has one.
@@ -156,8 +250,9 @@ class GymnasiumVecEnv:
 def from_gymnasium(
     vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"
 ) -> GymnasiumVecEnv:
-    """Wrap a ``gymnasium.vector.VectorEnv`` (sync or async; Box observations and actions) as a freeform ``VecEnv``
-    for ``freeform.agents.PPO`` (see :class:`GymnasiumVecEnv` and the module docstring for the episode ends).
+    """Wrap a ``gymnasium.vector.VectorEnv`` (sync or async; the spaces :class:`GymnasiumVecEnv` lists) as a
+    freeform ``VecEnv`` for ``freeform.agents.PPO`` (see :class:`GymnasiumVecEnv` and the module docstring for the
+    episode ends). A space it cannot train on is refused here, by name.
 
     ``seed`` seeds the first ``reset`` when the caller passes none (PPO passes ``config.seed``).
     """
@@ -185,7 +280,7 @@ class FreeformVectorEnv(gym.vector.VectorEnv):
         self,
         env: Any,
         observation_space: gym.spaces.Box | None = None,
-        action_space: gym.spaces.Box | None = None,
+        action_space: gym.spaces.Space | None = None,
     ) -> None:
         self.env = env
         self.num_envs = int(env.num_envs)
@@ -205,7 +300,8 @@ class FreeformVectorEnv(gym.vector.VectorEnv):
         return self._obs(self.env.reset(seed=seed if isinstance(seed, int) or seed is None else seed[0])), {}
 
     def step(self, actions: Any):  # type: ignore[override]
-        action = torch.as_tensor(np.asarray(actions, dtype=np.float32)).reshape(self.num_envs, -1)
+        discrete = not isinstance(self.single_action_space, gym.spaces.Box)
+        action = torch.as_tensor(np.asarray(actions, dtype=np.int64 if discrete else np.float32)).reshape(self.num_envs, -1)
         obs, reward, done, info = self.env.step(action.to(self.env.device))
         done = done.detach().cpu().numpy().astype(bool)
         truncated = info.get("truncated")
@@ -238,7 +334,16 @@ def _default_observation_space(env: Any) -> gym.spaces.Box:
     return gym.spaces.Box(-np.inf, np.inf, shape, dtype=np.float32)
 
 
-def _default_action_space(env: Any) -> gym.spaces.Box:
+def _default_action_space(env: Any) -> gym.spaces.Space:
+    from freeform.agents.distributions import Bernoulli, Categorical, MultiCategorical
+
+    dist = getattr(env, "action_distribution", None)  # an env with discrete actions says so
+    if isinstance(dist, Categorical):
+        return gym.spaces.Discrete(dist.n)
+    if isinstance(dist, MultiCategorical):
+        return gym.spaces.MultiDiscrete(list(dist.nvec))
+    if isinstance(dist, Bernoulli):
+        return gym.spaces.MultiBinary(dist.n)
     bound = float(getattr(env, "action_bound", np.inf))  # the design env clips actions to ±action_bound
     return gym.spaces.Box(-bound, bound, (int(env.action_dim),), dtype=np.float32)
 
@@ -249,7 +354,8 @@ def to_gymnasium(
     """Expose a freeform ``VecEnv`` (e.g. ``DesignEnv`` with any task) as a ``gymnasium.vector.VectorEnv``.
 
     Spaces default to: observations ``Box(0, k − 1, uint8)`` for an env with ``materials`` (the design env), else
-    ``Box(−∞, ∞, float32)``; actions ``Box(−action_bound, action_bound, float32)`` (the design env's clip), else
-    unbounded.
+    ``Box(−∞, ∞, float32)``; actions ``Discrete``/``MultiDiscrete``/``MultiBinary`` for an env whose
+    ``action_distribution`` is discrete, else ``Box(−action_bound, action_bound, float32)`` (the design env's clip),
+    or unbounded.
     """
     return FreeformVectorEnv(env, observation_space, action_space)

@@ -4,6 +4,7 @@ steps). ``from freeform.agents.ppo import ...`` gives every public name of the f
 
 from freeform.agents.ppo.config import (
     ADVANTAGE_NORMS,
+    CLEANRL_DISCRETE_PRESET,
     CLEANRL_PRESET,
     LR_SCHEDULES,
     VALUE_CLIP_MODES,
@@ -26,7 +27,7 @@ from freeform.agents.ppo.losses import (
 from freeform.agents.ppo.ppo import PPO, builtin_policies, policy_class_name
 from freeform.agents.ppo.rollout import Rollout, Samples, minibatch_samples, sample_columns
 
-__all__ = ["ADVANTAGE_NORMS", "CLEANRL_PRESET", "LR_SCHEDULES", "PPO", "VALUE_CLIP_MODES", "PPOConfig", "Rollout",
+__all__ = ["ADVANTAGE_NORMS", "CLEANRL_DISCRETE_PRESET", "CLEANRL_PRESET", "LR_SCHEDULES", "PPO", "VALUE_CLIP_MODES", "PPOConfig", "Rollout",
            "Samples", "builtin_policies", "clamped_value_loss", "clipped_surrogate", "compute_advantages",
            "discounted_cumsum", "explained_variance", "gaussian_entropy", "gaussian_kl", "gaussian_log_prob",
            "minibatch_loss", "minibatch_samples", "policy_class_name", "ppo2_value_loss", "sample_columns",

@@ -97,6 +97,11 @@ class PPOConfig:
         """CleanRL's ``ppo_continuous_action`` defaults (:data:`CLEANRL_PRESET`) with ``overrides`` on top."""
         return cls(**{**CLEANRL_PRESET, **overrides})
 
+    @classmethod
+    def cleanrl_discrete(cls, **overrides: Any) -> PPOConfig:
+        """CleanRL's ``ppo.py`` defaults (:data:`CLEANRL_DISCRETE_PRESET`, for 4 envs) with ``overrides`` on top."""
+        return cls(**{**CLEANRL_DISCRETE_PRESET, **overrides})
+
     def validate(self, key: str) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its range."""
         for name in ("lr", "clip_param", "vf_clip_param", "kl_target", "adam_eps", "obs_clip", "reward_clip"):
@@ -141,4 +146,17 @@ population std (a factor √(63/64) at 64 samples). Use it with ``MLPActorCritic
 log σ) and actions clipped by the env (``freeform.envs.from_gymnasium`` clips)."""
 
 
-__all__ = ["ADVANTAGE_NORMS", "CLEANRL_PRESET", "LR_SCHEDULES", "PPOConfig", "VALUE_CLIP_MODES"]
+CLEANRL_DISCRETE_PRESET: dict[str, Any] = dict(
+    lr=2.5e-4, adam_eps=1e-5, lr_schedule="linear", lr_anneal_epochs=976,  # anneal over 500k steps / 512 per epoch
+    gamma=0.99, gae_lambda=0.95, rollout_steps=128, sgd_minibatch_size=128, num_sgd_iter=4,  # 4 envs: 4 minibatches
+    clip_param=0.2, kl_coeff=0.0, value_clip="ppo2", vf_clip_param=0.2, vf_loss_coeff=0.25,  # 0.5 · ½(V − G)²
+    entropy_coeff=0.01, grad_clip=0.5, advantage_norm="minibatch", obs_norm=False, reward_norm=False, seed=1,
+    fused_adam=True,
+)
+"""CleanRL's ``ppo.py`` defaults (the discrete-action script: CartPole-v1, 4 envs × 128 steps per epoch, 4 minibatches,
+4 passes, entropy bonus 0.01, no normalisation of observations or rewards) in PPOConfig's terms; with N envs set
+``rollout_steps`` = 512 / N and ``lr_anneal_epochs`` = total steps / 512. The value loss and advantage standardisation
+as in :data:`CLEANRL_PRESET`. Use it with ``MLPActorCritic.for_env`` (its categorical head is ``ppo.py``'s network)."""
+
+
+__all__ = ["ADVANTAGE_NORMS", "CLEANRL_DISCRETE_PRESET", "CLEANRL_PRESET", "LR_SCHEDULES", "PPOConfig", "VALUE_CLIP_MODES"]
