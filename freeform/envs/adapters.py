@@ -111,7 +111,9 @@ class ActionDecoder:
     shifted by the space's ``start``; ``MultiBinary`` bits. ``distribution``: the one PPO trains for the space."""
 
     def __init__(self, space: gym.spaces.Space) -> None:
-        from freeform.agents.distributions import for_space  # (agents do not import envs; this direction is free)
+        from freeform.agents.distributions import (
+            for_space,  # (agents do not import envs; this direction is free)
+        )
 
         self.distribution = for_space(space)  # refuses any other space, by name
         self.space = space

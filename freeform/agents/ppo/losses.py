@@ -20,6 +20,7 @@ from freeform.agents.distributions import ActionDistribution, gaussian_entropy, 
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.rollout import sample_columns
 
+
 def discounted_cumsum(
     x: torch.Tensor,
     discount: float,
