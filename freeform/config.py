@@ -24,7 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from freeform.agents.ppo import CLEANRL_PRESET, PPOConfig
+from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.sim import SimConfig
 from freeform.validation import require
@@ -251,20 +251,22 @@ def compose(*overrides: str) -> TrainConfig:
         return to_dataclass(hydra_compose("config", overrides=list(overrides)))
 
 
-def cleanrl_agent() -> AgentConfig:
+def cleanrl_agent(preset: dict[str, Any] = CLEANRL_PRESET) -> AgentConfig:
     """``agent=cleanrl``: CleanRL's ``ppo_continuous_action.py`` (``freeform.agents.ppo.CLEANRL_PRESET``), with the
-    run filling ``rollout_steps`` (= env.steps) and ``seed`` (the run's)."""
-    return AgentConfig(**{**CLEANRL_PRESET, "rollout_steps": None, "seed": None})
+    run filling ``rollout_steps`` (= env.steps) and ``seed`` (the run's); ``agent=cleanrl_discrete`` the same from
+    ``ppo.py``'s values (``CLEANRL_DISCRETE_PRESET``: its entropy bonus, 4 passes, no normalisation)."""
+    return AgentConfig(**{**preset, "rollout_steps": None, "seed": None})
 
 
 def register_configs() -> None:
     """Register :class:`TrainConfig` with Hydra's ConfigStore as ``train_schema`` (``conf/config.yaml``'s base), and
-    the presets written in Python (``agent=cleanrl``): built from their one source, not restated in YAML."""
+    the presets written in Python (``agent=cleanrl``, ``agent=cleanrl_discrete``): built from their one source, not restated in YAML."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
     store.store(name="train_schema", node=TrainConfig)
     store.store(group="agent", name="cleanrl", node=cleanrl_agent())
+    store.store(group="agent", name="cleanrl_discrete", node=cleanrl_agent(CLEANRL_DISCRETE_PRESET))
 
 
 __all__ = [

@@ -471,20 +471,23 @@ def test_cleanrl_preset_is_cleanrls_defaults() -> None:
     assert set(CLEANRL_PRESET) <= {f for f in PPOConfig.__dataclass_fields__}
 
 
-def test_agent_cleanrl_on_the_command_line_is_the_preset() -> None:
-    """``agent=cleanrl`` is built from PPOConfig.cleanrl()'s source (no YAML copy): equal to it in every field but
-    the run-filled ones (rollout_steps = env.steps, seed = the run's, device = the trainer's)."""
+@pytest.mark.parametrize("name", ["cleanrl", "cleanrl_discrete"])
+def test_agent_cleanrl_on_the_command_line_is_the_preset(name: str) -> None:
+    """``agent=cleanrl`` (``agent=cleanrl_discrete``) is built from PPOConfig.cleanrl()'s (``cleanrl_discrete()``'s)
+    source (no YAML copy): equal to it in every field but the run-filled ones (rollout_steps = env.steps, seed =
+    the run's, device = the trainer's)."""
     import dataclasses
 
     from freeform.config import compose, ppo_config
 
-    cfg = compose("~experiment", "agent=cleanrl", "env.steps=7", "seed=3")  # (no preset over it)
-    run, preset = ppo_config(cfg, device="cpu"), PPOConfig.cleanrl()
+    cfg = compose("~experiment", f"agent={name}", "env.steps=7", "seed=3")  # (no preset over it)
+    run, preset = ppo_config(cfg, device="cpu"), getattr(PPOConfig, name)()
     for field in dataclasses.fields(PPOConfig):
         if field.name not in ("rollout_steps", "seed", "device"):
             assert getattr(run, field.name) == getattr(preset, field.name), field.name
     assert (run.rollout_steps, run.seed) == (7, 3)
-    assert compose("~experiment", "agent=cleanrl", "agent.lr=0.01").agent.lr == 0.01  # overridable field by field
+    assert compose("~experiment", f"agent={name}", "agent.lr=0.01").agent.lr == 0.01  # overridable field by field
+    assert (preset.entropy_coeff, preset.num_sgd_iter) == ((0.01, 4) if name == "cleanrl_discrete" else (0.0, 10))
 
 
 def test_cleanrl_preset_solves_inverted_pendulum() -> None:
