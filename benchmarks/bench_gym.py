@@ -1,25 +1,34 @@
-"""freeform vs Stable-Baselines3 vs CleanRL's own ``ppo_continuous_action.py`` on Gymnasium MuJoCo tasks.
+"""freeform vs Stable-Baselines3 vs CleanRL's own scripts on Gymnasium tasks: ``ppo_continuous_action.py`` for Box
+actions (MuJoCo), ``ppo.py`` for discrete ones (CartPole-v1, Acrobot-v1, …).
 
-Every run trains one framework on one task and seed for the same number of environment steps with CleanRL's
-``ppo_continuous_action`` hyper-parameters (1 env × 2048 steps per update, 32 minibatches of 64, 10 passes, lr 3e-4
-annealed linearly to 0, γ 0.99, λ 0.95, clip 0.2, grad-norm 0.5, Adam ε 1e-5, observations and rewards normalised
-and clipped at 10, 64-64 tanh actor and critic, orthogonal init, state-independent log σ), in its own process with
-one torch thread, one run at a time, and reports the **final return** (mean raw return of its last 20 training
-episodes) and the **wall time** of the whole run (start-up included):
+Every run trains one framework on one task and seed for the same number of environment steps with the CleanRL
+script's hyper-parameters (the task's action space picks the recipe, :data:`RECIPES`), in its own process with one
+torch thread, one run at a time, and reports the **final return** (mean raw return of its last 20 training
+episodes) and the **wall time** of the whole run (start-up included).
 
-- ``freeform``: ``PPO`` with ``PPOConfig.cleanrl()`` on ``from_gymnasium(gym.make_vec(task, 1, SAME_STEP))``.
+- Box actions, ``ppo_continuous_action``: 1 env × 2048 steps per update, 32 minibatches of 64, 10 passes, lr 3e-4
+  annealed linearly to 0, γ 0.99, λ 0.95, clip 0.2, grad-norm 0.5, Adam ε 1e-5, observations and rewards
+  normalised and clipped at 10, 64-64 tanh actor and critic, orthogonal init, state-independent log σ.
+- Discrete actions, ``ppo.py``: 4 envs × 128 steps per update, 4 minibatches of 128, 4 passes, lr 2.5e-4 annealed
+  linearly to 0, γ 0.99, λ 0.95, clip 0.2, entropy 0.01, grad-norm 0.5, Adam ε 1e-5, no normalisation, 64-64 tanh
+  actor (logits) and critic, orthogonal init.
+
+- ``freeform``: ``PPO`` with ``PPOConfig.cleanrl()`` (``cleanrl_discrete()``) on
+  ``from_gymnasium(gym.make_vec(task, n, SAME_STEP))``.
 - ``freeform-compile``: the same with ``PPOConfig.compile`` (``torch.compile``'s minibatch loss; a cold Inductor
   cache unless the machine has compiled it before — ``TORCHINDUCTOR_CACHE_DIR`` decides).
-- ``sb3``: ``stable_baselines3.PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with the same values.
-  SB3's value loss has no PPO2 max-clipping: ``vf_coef = 0.25`` gives the squared error CleanRL's weight
-  (0.5 · ½), unclipped.
-- ``cleanrl``: CleanRL's script itself (``--cleanrl-script``, default: the file of CleanRL's repository at the
+- ``sb3``: ``stable_baselines3.PPO("MlpPolicy")`` on ``make_vec_env(task, n)`` (wrapped in ``VecNormalize`` for the
+  Box recipe) with the same values. SB3's value loss has no PPO2 max-clipping: ``vf_coef = 0.25`` gives the squared
+  error CleanRL's weight (0.5 · ½), unclipped.
+- ``cleanrl``: CleanRL's script itself (``--cleanrl-dir``, a directory holding ``ppo.py`` and
+  ``ppo_continuous_action.py``, e.g. a checkout's ``cleanrl/``; default: the files of CleanRL's repository at the
   pinned commit below, fetched from GitHub into ``~/.cache/freeform``), run unmodified through
-  ``benchmarks/cleanrl_compat.py``: the script was written for Gymnasium 0.29, which has no ``-v5`` tasks; the shim
-  gives it 0.29's API on Gymnasium 1.x (``TransformObservation`` without an explicit space; vector envs that reset in
-  the same step and report ``final_info`` per env), nothing else.
+  ``benchmarks/cleanrl_compat.py``: the scripts were written for Gymnasium 0.29, which has no ``-v5`` tasks; the shim
+  gives them 0.29's API on Gymnasium 1.x (``TransformObservation`` without an explicit space; vector envs that reset
+  in the same step and report ``final_info`` per env), nothing else.
 
-    python -m benchmarks.bench_gym --tasks HalfCheetah-v5 Hopper-v5 --steps 500000 --seeds 0 1   # the issue's table
+    python -m benchmarks.bench_gym --tasks HalfCheetah-v5 Hopper-v5 --steps 500000 --seeds 0 1   # the MuJoCo table
+    python -m benchmarks.bench_gym --tasks CartPole-v1 Acrobot-v1 --steps 100000 --seeds 0 1     # the discrete one
     python -m benchmarks.bench_gym --tasks InvertedPendulum-v5 --steps 5000 --seeds 0            # end-to-end check
     python -m benchmarks gym        # (make bench) a short InvertedPendulum-v5 comparison, 3 × 50k steps
     python -m benchmarks.bench_gym --split --tasks HalfCheetah-v5   # where a step goes: freeform vs SB3
@@ -34,6 +43,7 @@ Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, tyro).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -42,15 +52,39 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import dataclass
 from pathlib import Path
 
 from freeform.files import write_atomically
 
 CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
-CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/ppo_continuous_action.py"
+CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/{{script}}"
 FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl")
 LAST_EPISODES = 20
-BATCH = 2048
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """One CleanRL script's setting: its file, envs per run and steps per update (the batch)."""
+
+    script: str
+    envs: int
+    batch: int
+
+
+RECIPES = {"box": Recipe("ppo_continuous_action.py", envs=1, batch=2048), "discrete": Recipe("ppo.py", envs=4, batch=512)}
+
+
+@functools.cache
+def recipe(task: str) -> Recipe:
+    """The task's recipe, from its action space: Box → ``ppo_continuous_action``, else ``ppo.py``."""
+    import gymnasium as gym
+
+    env = gym.make(task)
+    try:
+        return RECIPES["box" if isinstance(env.action_space, gym.spaces.Box) else "discrete"]
+    finally:
+        env.close()
 
 
 def final_return(returns: list[float]) -> float:
@@ -63,28 +97,31 @@ def final_return(returns: list[float]) -> float:
 
 
 def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False):
-    """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env with episode statistics
-    (``compile``: with ``torch.compile``'s minibatch loss, the ``freeform-compile`` rows)."""
+    """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env (``cleanrl_discrete()`` on 4
+    for a discrete task) with episode statistics (``compile``: with ``torch.compile``'s minibatch loss, the
+    ``freeform-compile`` rows)."""
     import gymnasium as gym
     import torch
 
     from freeform.agents import PPO, MLPActorCritic, PPOConfig
     from freeform.envs import from_gymnasium
 
+    r = recipe(task)
     vec = gym.wrappers.vector.RecordEpisodeStatistics(
-        gym.make_vec(task, num_envs=1, vectorization_mode="sync",
+        gym.make_vec(task, num_envs=r.envs, vectorization_mode="sync",
                      vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
     )
     env = from_gymnasium(vec)
     torch.manual_seed(seed)
-    policy = MLPActorCritic(env.observation_shape[0], env.action_dim)
-    return PPO(env, policy, PPOConfig.cleanrl(seed=seed, lr_anneal_epochs=max(1, steps // BATCH), compile=compile))
+    preset = PPOConfig.cleanrl if r.script == "ppo_continuous_action.py" else PPOConfig.cleanrl_discrete
+    config = preset(seed=seed, rollout_steps=r.batch // r.envs, lr_anneal_epochs=max(1, steps // r.batch), compile=compile)
+    return PPO(env, MLPActorCritic.for_env(env), config)
 
 
 def run_freeform(task: str, steps: int, seed: int, compile: bool = False) -> list[float]:
     ppo = freeform_ppo(task, steps, seed, compile)
     returns: list[float] = []
-    for _ in range(steps // BATCH):
+    for _ in range(steps // recipe(task).batch):
         ppo.train_epoch()
         for info in ppo.episode_infos:
             gym_info = info["gym_info"]
@@ -94,25 +131,31 @@ def run_freeform(task: str, steps: int, seed: int, compile: bool = False) -> lis
 
 
 def sb3_model(task: str, seed: int):
-    """SB3's run: ``PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with CleanRL's values."""
+    """SB3's run: ``PPO("MlpPolicy")`` on ``VecNormalize(make_vec_env(task, 1))`` with CleanRL's values (on
+    ``make_vec_env(task, 4)`` with ``ppo.py``'s for a discrete task)."""
     import torch.nn as nn
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import VecNormalize
 
+    r = recipe(task)
+    common = dict(gamma=0.99, gae_lambda=0.95, clip_range=0.2, vf_coef=0.25, max_grad_norm=0.5, device="cpu",
+                  policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), seed=seed,
+                  stats_window_size=LAST_EPISODES, verbose=0)
+    if r.script == "ppo.py":
+        env = make_vec_env(task, n_envs=r.envs, seed=seed)
+        return PPO("MlpPolicy", env, learning_rate=lambda progress: 2.5e-4 * progress, n_steps=r.batch // r.envs,
+                   batch_size=128, n_epochs=4, ent_coef=0.01, **common)
     env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
-    return PPO(
-        "MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=BATCH, batch_size=64, n_epochs=10,
-        gamma=0.99, gae_lambda=0.95, clip_range=0.2, ent_coef=0.0, vf_coef=0.25, max_grad_norm=0.5,
-        policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]), activation_fn=nn.Tanh), device="cpu",
-        seed=seed, stats_window_size=LAST_EPISODES, verbose=0,
-    )
+    return PPO("MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=r.batch, batch_size=64,
+               n_epochs=10, ent_coef=0.0, **common)
 
 
 def run_sb3(task: str, steps: int, seed: int) -> list[float]:
     model = sb3_model(task, seed)
     returns: list[float] = []
-    model.learn(total_timesteps=(steps // BATCH) * BATCH, callback=_SB3Episodes(returns))
+    batch = recipe(task).batch
+    model.learn(total_timesteps=(steps // batch) * batch, callback=_SB3Episodes(returns))
     return returns
 
 
@@ -127,6 +170,9 @@ def _SB3Episodes(returns: list[float]):  # noqa: N802 - a factory for SB3's call
             return True
 
     return Episodes()
+
+
+BATCH = RECIPES["box"].batch  # (--split times the Box recipe)
 
 
 def split_freeform(task: str, epochs: int, seed: int) -> dict[str, float]:
@@ -189,26 +235,28 @@ def split(task: str, epochs: int, repeats: int, seed: int = 0) -> str:
     return "\n".join(lines)
 
 
-def cleanrl_script(path: str | None) -> Path:
-    """CleanRL's ``ppo_continuous_action.py``: ``path``, else the pinned commit's file, fetched once and cached."""
-    if path:
-        return Path(path)
-    cached = Path.home() / ".cache" / "freeform" / f"cleanrl-{CLEANRL_COMMIT[:12]}" / "ppo_continuous_action.py"
+def cleanrl_script(name: str, directory: str | None) -> Path:
+    """CleanRL's script ``name``: in ``directory``, else the pinned commit's file, fetched once and cached."""
+    if directory:
+        return Path(directory) / name
+    cached = Path.home() / ".cache" / "freeform" / f"cleanrl-{CLEANRL_COMMIT[:12]}" / name
     if not cached.is_file():
         cached.parent.mkdir(parents=True, exist_ok=True)
+        url = CLEANRL_URL.format(script=name)
         try:
-            with urllib.request.urlopen(CLEANRL_URL, timeout=60) as response:
+            with urllib.request.urlopen(url, timeout=60) as response:
                 cached.write_bytes(response.read())
         except OSError as exc:
-            raise SystemExit(f"cannot fetch {CLEANRL_URL} ({exc}); pass --cleanrl-script <ppo_continuous_action.py>") from exc
+            raise SystemExit(f"cannot fetch {url} ({exc}); pass --cleanrl-dir <a directory holding {name}>") from exc
     return cached
 
 
 def run_cleanrl(task: str, steps: int, seed: int, script: Path, workdir: Path) -> list[float]:
     """CleanRL's script, unmodified, in a child process (through the API shim); its printed episodic returns."""
     workdir.mkdir(parents=True, exist_ok=True)
+    batch = recipe(task).batch
     command = [sys.executable, str(Path(__file__).with_name("cleanrl_compat.py")), str(script),
-               "--env-id", task, "--total-timesteps", str((steps // BATCH) * BATCH), "--seed", str(seed), "--no-cuda"]
+               "--env-id", task, "--total-timesteps", str((steps // batch) * batch), "--seed", str(seed), "--no-cuda"]
     done = subprocess.run(command, cwd=workdir, capture_output=True, text=True, env=_child_env())
     if done.returncode != 0:
         raise RuntimeError(f"CleanRL's script failed ({done.returncode}):\n{done.stderr[-3000:]}")
@@ -224,11 +272,12 @@ def _child_env() -> dict[str, str]:
     return env
 
 
-def one_run(framework: str, task: str, steps: int, seed: int, script: str | None, workdir: Path) -> dict:
+def one_run(framework: str, task: str, steps: int, seed: int, cleanrl_dir: str | None, workdir: Path) -> dict:
     """One framework × task × seed in a fresh process: final return, episodes, wall seconds."""
     start = time.perf_counter()
     if framework == "cleanrl":
-        returns = run_cleanrl(task, steps, seed, cleanrl_script(script), workdir / f"cleanrl-{task}-{seed}")
+        script = cleanrl_script(recipe(task).script, cleanrl_dir)
+        returns = run_cleanrl(task, steps, seed, script, workdir / f"cleanrl-{task}-{seed}")
     else:
         command = [sys.executable, "-m", "benchmarks.bench_gym", "--child", framework, "--tasks", task,
                    "--steps", str(steps), "--seeds", str(seed)]
@@ -238,7 +287,8 @@ def one_run(framework: str, task: str, steps: int, seed: int, script: str | None
             raise RuntimeError(f"{framework} failed ({done.returncode}):\n{done.stderr[-3000:]}")
         returns = json.loads(done.stdout.strip().splitlines()[-1])["returns"]
     wall = time.perf_counter() - start
-    return {"framework": framework, "task": task, "seed": seed, "steps": (steps // BATCH) * BATCH,
+    batch = recipe(task).batch
+    return {"framework": framework, "task": task, "seed": seed, "steps": (steps // batch) * batch,
             "final_return": final_return(returns), "episodes": len(returns), "wall_s": wall}
 
 
@@ -263,11 +313,13 @@ def table(results: list[dict]) -> str:
 def parse(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_gym", description=__doc__.split("\n\n")[0])
     p.add_argument("--tasks", nargs="+", default=["HalfCheetah-v5", "Hopper-v5"])
-    p.add_argument("--steps", type=int, default=500_000, help="environment steps per run (rounded down to 2048s)")
+    p.add_argument("--steps", type=int, default=500_000,
+                   help="environment steps per run (rounded down to whole updates: 2048 steps, or 512 for discrete tasks)")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
     p.add_argument("--frameworks", nargs="+", choices=FRAMEWORKS, default=list(FRAMEWORKS))
-    p.add_argument("--cleanrl-script", default=os.environ.get("CLEANRL_SCRIPT"),
-                   help="path of CleanRL's ppo_continuous_action.py (default: fetch the pinned commit's)")
+    p.add_argument("--cleanrl-dir", default=os.environ.get("CLEANRL_DIR"),
+                   help="a directory holding CleanRL's ppo.py and ppo_continuous_action.py (default: fetch the pinned "
+                        "commit's)")
     p.add_argument("--workdir", default="runs/bench_gym", help="where CleanRL's runs/ and the JSON results go")
     p.add_argument("--show", action="store_true", help="print the table of WORKDIR/results.json; run nothing")
     p.add_argument("--split", action="store_true", help="time freeform's and SB3's rollout and update apart instead")
@@ -308,14 +360,14 @@ def run(argv: list[str] | None = None) -> list[dict]:
     for task in args.tasks if not args.show else ():
         for seed in args.seeds:
             for fw in args.frameworks:
-                result = one_run(fw, task, args.steps, seed, args.cleanrl_script, workdir)
+                result = one_run(fw, task, args.steps, seed, args.cleanrl_dir, workdir)
                 rows = [r for r in _read(store) if _key(r) != _key(result)] + [result]
                 text = json.dumps(rows, indent=1).encode()
                 write_atomically(store, lambda f, text=text: f.write(text))
                 print(f"{fw:9s} {task} seed {seed}: final return {result['final_return']:.1f} "
                       f"({result['episodes']} episodes), wall {result['wall_s']:.1f} s", flush=True)
-    steps = (args.steps // BATCH) * BATCH
-    shown = [r for r in _read(store) if r["steps"] == steps and r["task"] in args.tasks
+    shown = [r for r in _read(store) if r["task"] in args.tasks
+             and r["steps"] == (args.steps // recipe(r["task"]).batch) * recipe(r["task"]).batch
              and r["seed"] in args.seeds and r["framework"] in args.frameworks]
     shown.sort(key=lambda r: (args.tasks.index(r["task"]), r["seed"], FRAMEWORKS.index(r["framework"])))
     print()
