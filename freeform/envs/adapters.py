@@ -97,6 +97,23 @@ class ObservationEncoder:
             yield np.asarray(x, dtype=np.float32).reshape(n, -1)
 
 
+class DictEncoder:
+    """A ``Dict`` observation space's parts kept apart (``from_gymnasium(..., dict_obs=True)``): a dict of arrays,
+    each part encoded by its own :class:`ObservationEncoder`, for a network that reads them by name."""
+
+    def __init__(self, space: gym.spaces.Space) -> None:
+        if not isinstance(space, gym.spaces.Dict):
+            raise ValueError(f"dict_obs needs a Dict observation space, got {type(space).__name__} ({space})")
+        self.parts = {key: ObservationEncoder(part) for key, part in space.spaces.items()}
+        self.shape = {key: part.shape for key, part in self.parts.items()}
+
+    def batch(self, x: Any, n: int) -> dict[str, np.ndarray]:
+        return {key: part.batch(x[key], n) for key, part in self.parts.items()}
+
+    def row(self, x: Any) -> dict[str, np.ndarray]:
+        return {key: part.row(x[key]) for key, part in self.parts.items()}
+
+
 def _one_hot(indices: np.ndarray, sizes: list[int]) -> np.ndarray:
     """``indices [n, K]`` (entry k in 0 … sizes[k] − 1) → float32 ``[n, Σ sizes]``, each entry one-hot in its block."""
     out = np.zeros((indices.shape[0], sum(sizes)), dtype=np.float32)
@@ -163,8 +180,10 @@ class GymnasiumVecEnv:
     ``gym_info``.
     """
 
-    def __init__(self, vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"):
-        self.encoder = ObservationEncoder(vector_env.single_observation_space)
+    def __init__(self, vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu",
+                 dict_obs: bool = False):
+        space = vector_env.single_observation_space
+        self.encoder = DictEncoder(space) if dict_obs else ObservationEncoder(space)
         self.decoder = ActionDecoder(vector_env.single_action_space)
         self.vector_env = vector_env
         self.num_envs = int(vector_env.num_envs)
@@ -177,8 +196,10 @@ class GymnasiumVecEnv:
         self.autoreset_mode = _mode(vector_env)
         self._resetting = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP: these envs' next step only resets them
 
-    def _tensor(self, x: np.ndarray) -> torch.Tensor:
+    def _tensor(self, x: Any) -> Any:
         # Cast and reshape in numpy (with one env a torch op costs several times a numpy one).
+        if isinstance(x, dict):
+            return {key: self._tensor(part) for key, part in x.items()}
         x = torch.from_numpy(x)
         return x if self.device.type == "cpu" else x.to(self.device)
 
@@ -208,10 +229,10 @@ class GymnasiumVecEnv:
                 final_obs = encoded  # the episode's last observation; the reset comes with the next step
         elif self.autoreset_mode == AutoresetMode.SAME_STEP:
             if done.any():
-                final_obs = encoded.copy()
+                final_obs = _copy(encoded)
                 mask = np.asarray(gym_info.get("_final_obs", done), dtype=bool)
                 for i in np.flatnonzero(mask):
-                    final_obs[i] = encode.row(gym_info["final_obs"][i])
+                    _set_row(final_obs, i, encode.row(gym_info["final_obs"][i]))
         else:  # DISABLED: reset the finished envs here
             if done.any():
                 final_obs = encoded
@@ -249,18 +270,35 @@ class GymnasiumVecEnv:
         self.vector_env.close()
 
 
+def _copy(x: Any) -> Any:
+    return {key: part.copy() for key, part in x.items()} if isinstance(x, dict) else x.copy()
+
+
+def _set_row(x: Any, i: int, row: Any) -> None:
+    if isinstance(x, dict):
+        for key, part in x.items():
+            part[i] = row[key]
+    else:
+        x[i] = row
+
+
 def from_gymnasium(
-    vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu"
+    vector_env: gym.vector.VectorEnv, seed: int | None = None, device: str | torch.device = "cpu",
+    dict_obs: bool = False,
 ) -> GymnasiumVecEnv:
     """Wrap a ``gymnasium.vector.VectorEnv`` (sync or async; the spaces :class:`GymnasiumVecEnv` lists) as a
     freeform ``VecEnv`` for ``freeform.agents.PPO`` (see :class:`GymnasiumVecEnv` and the module docstring for the
     episode ends). A space it cannot train on is refused here, by name.
 
+    ``dict_obs=True`` (a ``Dict`` observation space): observations are a dict of tensors, one per part (each
+    encoded as above), ``observation_shape`` a dict of shapes, for a policy of your own that reads them by name;
+    by default every space is flattened into one tensor, which ``MLPActorCritic`` reads.
+
     ``seed`` seeds the first ``reset`` when the caller passes none (PPO passes ``config.seed``).
     """
     if not isinstance(vector_env, gym.vector.VectorEnv):
         raise ValueError(f"from_gymnasium needs a gymnasium.vector.VectorEnv, got {type(vector_env).__name__}")
-    return GymnasiumVecEnv(vector_env, seed=seed, device=device)
+    return GymnasiumVecEnv(vector_env, seed=seed, device=device, dict_obs=dict_obs)
 
 
 # ---------------------------------------------------------------------------------------------------------------

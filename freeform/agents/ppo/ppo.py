@@ -44,7 +44,14 @@ from freeform.agents.ppo.losses import (
     standardize,
     update_kl_coeff,
 )
-from freeform.agents.ppo.rollout import Rollout, minibatch_samples
+from freeform.agents.ppo.rollout import (
+    Observation,
+    Rollout,
+    minibatch_samples,
+    obs_first,
+    obs_map,
+    obs_shapes,
+)
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
@@ -58,7 +65,7 @@ class _TrainBatch(NamedTuple):
     """An update's view of the rollout: ``obs [B, ...]`` and ``samples [B, 3A + 3]`` (this rank's), ``advantages``
     of the global batch, ``kept`` (the global indices of real transitions, None: all) and the global sample count."""
 
-    obs: torch.Tensor
+    obs: Observation
     samples: torch.Tensor
     advantages: torch.Tensor
     kept: torch.Tensor | None
@@ -133,19 +140,22 @@ class PPO:
         """Where ``evaluate`` runs (every ``config.eval_every`` epochs); None = no evaluation."""
         self._eval_seeded = False
         # Running statistics of the optional normalisations (None when off, the paper's case).
-        obs_shape = tuple(env.observation_shape)
-        self.obs_rms = RunningMeanStd(obs_shape, self.device) if config.obs_norm else None
+        obs_shape = env.observation_shape
+        if config.obs_norm and isinstance(obs_shape, Mapping):
+            raise ValueError("obs_norm normalises one observation tensor, and this env observes a dict of them: "
+                             "normalise inside the policy, or let the env flatten its observations")
+        self.obs_rms = RunningMeanStd(tuple(obs_shape), self.device) if config.obs_norm else None
         self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
         # float64 as the statistics (Gymnasium's too); only with reward_norm, as no float64 may exist (MPS)
         self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64 if config.reward_norm else torch.float32,
                                              device=self.device)
         """Each env's discounted return of raw rewards, whose running std scales the rewards (``reward_norm``)."""
 
-        self.obs = env.reset(seed=config.seed).to(self.device)
+        self.obs = self._here(env.reset(seed=config.seed))
         self._update_obs_rms(self.obs)
         self._check_policy()
-        obs_dtype = torch.float32 if self.obs_rms is not None else self.obs.dtype
-        self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, obs_shape, obs_dtype, env.action_dim,
+        obs_dtype = torch.float32 if self.obs_rms is not None else None
+        self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, self.obs, obs_dtype, env.action_dim,
                                         self.distribution.param_dims, self.device)
         self.episode_infos: list[dict[str, Any]] = []
         self._collector = EpisodeCollector()  # episodes() cuts the rollouts; its carry is part of the state
@@ -161,7 +171,7 @@ class PPO:
         try:
             outputs = self.policy(self.normalize_obs(self.obs))
         except Exception as e:
-            raise ValueError(f"policy cannot read the env's observations {tuple(self.obs.shape)} ({e})") from e
+            raise ValueError(f"policy cannot read the env's observations {obs_shapes(self.obs)} ({e})") from e
         wanted = [(n, p) for p in dist.param_dims] + [(n,)]
         shapes = [tuple(x.shape) for x in outputs] if isinstance(outputs, tuple) else None
         if shapes != wanted:
@@ -193,11 +203,15 @@ class PPO:
         if deterministic:
             return self.distribution.mode(params), value, params
         if noise is None:
-            noise = self.dp.env_noise(params[0].new_empty(obs.shape[0], self.env.action_dim), self.generator,
+            noise = self.dp.env_noise(params[0].new_empty(params[0].shape[0], self.env.action_dim), self.generator,
                                       self.distribution.noise_kind)
         return self.distribution.sample(params, noise), value, params
 
-    def _value(self, obs: torch.Tensor) -> torch.Tensor:
+    def _here(self, obs: Observation) -> Observation:
+        """``obs`` on the PPO device (no operation where it is there already)."""
+        return obs_map(lambda x: x if x.device == self.device else x.to(self.device), obs)
+
+    def _value(self, obs: Observation) -> torch.Tensor:
         """V(obs) ``[N]`` for observations as the policy sees them."""
         return self.policy.value(obs) if self.critic_apart else self.policy(obs)[-1]
 
@@ -209,7 +223,7 @@ class PPO:
         With ``obs_norm`` the observations are normalised by the saved statistics (not updated). Sampling draws from
         the training generator, so calls between epochs shift the training's random stream.
         """
-        x = self.normalize_obs(obs.to(self.device))
+        x = self.normalize_obs(self._here(obs))
         return self.distribution.env_actions(self._sample(x, deterministic)[0]).to(self.env.device)
 
     def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
@@ -297,8 +311,8 @@ class PPO:
             if not here or done.dtype != torch.bool:
                 done = done.to(self.device, torch.bool)
             if not here:
-                next_obs = next_obs.to(self.device)
-            if next_obs.data_ptr() == self.obs.data_ptr():
+                next_obs = self._here(next_obs)
+            if obs_first(next_obs).data_ptr() == obs_first(self.obs).data_ptr():
                 raise ValueError("env.step returned the observation tensor of the previous step, written in place: a "
                                  "VecEnv must return new tensors (PPO keeps every step's until the rollout ends)")
             self._update_obs_rms(next_obs)
@@ -315,11 +329,16 @@ class PPO:
                     if truncated.any():
                         any_truncated = True
                         buf.truncated[t] = truncated
-                        final_value = self._value(self.normalize_obs(info["final_obs"].to(self.device)))
+                        final_value = self._value(self.normalize_obs(self._here(info["final_obs"])))
                         buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             self.obs = next_obs
-        for name, steps in (("obs", seen), ("actions", actions), ("rewards", rewards), ("dones", dones)):
+        for name, steps in (("actions", actions), ("rewards", rewards), ("dones", dones)):
             torch.stack(steps, out=buf[name])
+        if isinstance(buf.obs, torch.Tensor):
+            torch.stack(seen, out=buf.obs)
+        else:
+            for key, stored in buf.obs.items():
+                torch.stack([x[key] for x in seen], out=stored)
         for i, stored in enumerate(buf.params):
             torch.stack([p[i] for p in params], out=stored)
         if not self.critic_apart:
@@ -331,7 +350,7 @@ class PPO:
         log-probabilities. Returns ``starts [T, N]``: where an episode began (after a done)."""
         buf = self.rollout
         if self.critic_apart:
-            buf.values = self._value(buf.obs.reshape(-1, *buf.obs.shape[2:])).reshape(buf.values.shape)
+            buf.values = self._value(obs_map(lambda x: x.reshape(-1, *x.shape[2:]), buf.obs)).reshape(buf.values.shape)
         buf.logprobs = self.distribution.log_prob(buf.params, buf.actions)
         return torch.cat([torch.zeros_like(buf.dones[:1]), buf.dones[:-1]])
 
@@ -398,7 +417,7 @@ class PPO:
         then the single process's formula on the same numbers."""
         buf, dp = self.rollout, self.dp
         size = buf.rewards.numel()  # this rank's samples
-        obs = buf.obs.reshape(size, *buf.obs.shape[2:])
+        obs = obs_map(lambda x: x.reshape(size, *x.shape[2:]), buf.obs)
         samples = minibatch_samples(buf.actions.reshape(size, -1), [p.reshape(size, -1) for p in buf.params],
                                     buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1))
         advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
@@ -441,7 +460,8 @@ class PPO:
                 idx, adv = dp.local_share(idx, adv)
                 flat.zero_grad()
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
-                    loss, stats = self._minibatch_loss(self.policy, self.distribution, cfg, batch.obs.index_select(0, idx),
+                    loss, stats = self._minibatch_loss(self.policy, self.distribution, cfg,
+                                                       obs_map(lambda x, i=idx: x.index_select(0, i), batch.obs),
                                                        batch.samples.index_select(0, idx), adv, kl_weight, reduce)
                     loss.backward()
                     totals += stats
@@ -531,14 +551,14 @@ class PPO:
         returns, lengths = [], []
         seed = None if self._eval_seeded else self.config.seed + 1
         self._eval_seeded = True
-        obs = env.reset(seed=seed).to(self.device)
+        obs = self._here(env.reset(seed=seed))
         ep_return = torch.zeros(n, device=self.device)
         ep_length = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.policy.eval()
         while bool((counts < targets).any()):
             mode = self.distribution.env_actions(self._sample(self.normalize_obs(obs), deterministic=True)[0])
             obs, reward, done, info = env.step(mode.to(env.device))
-            obs, reward, done = obs.to(self.device), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
+            obs, reward, done = self._here(obs), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             moving = ~info["autoreset"].to(self.device, torch.bool) if "autoreset" in info else torch.ones_like(done)
             ep_return += reward
             ep_length += moving.to(ep_length.dtype)
@@ -615,7 +635,7 @@ class PPO:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what ``state_dict()`` returned (the policy and env must be built alike; in a data-parallel run,
         a global state of any rank count: each rank takes its slice of the environments)."""
-        saved_envs = state[PER_ENV]["obs"].shape[0]
+        saved_envs = obs_first(state[PER_ENV]["obs"]).shape[0]
         if saved_envs != self.num_envs:
             raise ValueError(f"the state holds {saved_envs} envs but this run has {self.num_envs}")
         state = self.dp.shard_state(state)
@@ -628,7 +648,7 @@ class PPO:
         self._collector.load_state_dict(state.get("episode_carry", {}))
         self.generator.set_state(state["generator"].cpu())
         per_env = state[PER_ENV]
-        self.obs = per_env["obs"].to(self.device)
+        self.obs = self._here(per_env["obs"])
         self.episode_return = per_env["episode_return"].to(self.device)
         self.episode_length = per_env["episode_length"].to(self.device)
         for name, rms in (("obs_rms", self.obs_rms), ("return_rms", self.return_rms)):
@@ -708,11 +728,17 @@ class PPO:
         state = payload["ppo"]
         saved_obs = state[PER_ENV]["obs"]
 
+        saved_envs = obs_first(saved_obs).shape[0]
+        saved_shape = obs_map(lambda x: x[0], saved_obs)  # one env's observation: its shape is the env's
+        shape = obs_shapes(saved_shape)
+        wanted = env.observation_shape
+        wanted = {k: tuple(v) for k, v in wanted.items()} if isinstance(wanted, Mapping) else tuple(wanted)
+
         def check_envs(num_envs: int) -> None:
-            if saved_obs.shape[0] != num_envs or tuple(saved_obs.shape[1:]) != tuple(env.observation_shape):
+            if saved_envs != num_envs or shape != wanted:
                 raise CheckpointError(
-                    f"{path}: saved for {saved_obs.shape[0]} envs with observations {tuple(saved_obs.shape[1:])}, "
-                    f"but the env has {num_envs} envs with observations {tuple(env.observation_shape)}"
+                    f"{path}: saved for {saved_envs} envs with observations {shape}, "
+                    f"but the env has {num_envs} envs with observations {wanted}"
                 )
 
         if not distributed.is_distributed():

@@ -6,11 +6,30 @@ distribution's parameters (``param_dims``), ``B`` = ``T·N``, ``M`` a minibatch'
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+
+Observation = torch.Tensor | dict[str, torch.Tensor]
+"""What an env observes, batched: one tensor ``[N, ...]``, or a dict of them (an env that hands a ``Dict`` space's
+parts to the policy as they are, ``from_gymnasium(..., dict_obs=True)``)."""
+
+
+def obs_map(fn: Callable[[torch.Tensor], torch.Tensor], obs: Observation) -> Observation:
+    """``fn`` applied to the observation's tensor, or to each of a dict's."""
+    return {k: fn(v) for k, v in obs.items()} if isinstance(obs, Mapping) else fn(obs)
+
+
+def obs_first(obs: Observation) -> torch.Tensor:
+    """The observation's tensor, or a dict's first (for its batch size and storage)."""
+    return next(iter(obs.values())) if isinstance(obs, Mapping) else obs
+
+
+def obs_shapes(obs: Observation) -> object:
+    """Shapes for messages: a tuple, or a dict of tuples."""
+    return {k: tuple(v.shape) for k, v in obs.items()} if isinstance(obs, Mapping) else tuple(obs.shape)
 
 
 class Samples(NamedTuple):
@@ -52,7 +71,7 @@ def sample_columns(samples: torch.Tensor, action_dim: int) -> Samples:
 class Rollout:
     """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
 
-    ``obs [T, N, *obs_shape]``, ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
+    ``obs [T, N, *obs_shape]`` (a dict of such for dict observations), ``actions [T, N, A]``, ``logprobs [T, N]``, ``rewards [T, N]``, ``dones [T, N]``
     bool, ``values [T, N]``, ``params`` (π_old's distribution parameters, one ``[T, N, P_i]`` each; a Gaussian's
     ``means``/``log_stds``), ``advantages``/``returns
     [T, N]`` (filled after collection), ``last_value [N]`` (V of the observation after the last step).
@@ -66,7 +85,7 @@ class Rollout:
     by new ones): clone what must outlive the next ``train_epoch()``.
     """
 
-    obs: torch.Tensor
+    obs: Observation
     actions: torch.Tensor
     logprobs: torch.Tensor
     rewards: torch.Tensor
@@ -105,12 +124,15 @@ class Rollout:
 
     @classmethod
     def allocate(
-        cls, steps: int, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: torch.dtype, action_dim: int,
+        cls, steps: int, num_envs: int, first_obs: Observation, obs_dtype: torch.dtype | None, action_dim: int,
         param_dims: Sequence[int], device: torch.device,
     ) -> Rollout:
+        """Storage for ``steps`` steps of ``num_envs`` envs observing like ``first_obs [N, ...]`` (in ``obs_dtype``,
+        None: as observed), acting with ``action_dim`` numbers from a distribution of ``param_dims``."""
         f32 = dict(dtype=torch.float32, device=device)
         return cls(
-            obs=torch.zeros((steps, num_envs, *obs_shape), dtype=obs_dtype, device=device),
+            obs=obs_map(lambda x: torch.zeros((steps, num_envs, *x.shape[1:]), dtype=obs_dtype or x.dtype,
+                                              device=device), first_obs),
             actions=torch.zeros((steps, num_envs, action_dim), **f32),
             logprobs=torch.zeros((steps, num_envs), **f32),
             rewards=torch.zeros((steps, num_envs), **f32),
@@ -127,4 +149,5 @@ class Rollout:
         )
 
 
-__all__ = ["Rollout", "Samples", "minibatch_samples", "sample_columns"]
+__all__ = ["Observation", "Rollout", "Samples", "minibatch_samples", "obs_first", "obs_map", "obs_shapes",
+           "sample_columns"]
