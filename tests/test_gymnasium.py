@@ -133,6 +133,19 @@ def test_truncation_bootstraps_and_termination_does_not_by_hand() -> None:
     assert torch.equal(a, a2) and torch.equal(r, r2)
 
 
+def test_truncation_ends_the_episode_as_a_termination_when_bootstrap_truncated_is_off() -> None:
+    """``bootstrap_truncated=False`` (CleanRL's scripts): env 1's truncated episode gets no V(s_final), its return
+    at the last step is its reward, as env 0's terminated one; everything else in the rollout is unchanged."""
+    on, off = toy_ppo(AutoresetMode.SAME_STEP), toy_ppo(AutoresetMode.SAME_STEP, bootstrap_truncated=False)
+    on.collect()
+    off.collect()
+    assert on.rollout.truncated[3, 1] and not off.rollout.truncated.any()
+    assert on.rollout.returns[3, 1] != on.rollout.rewards[3, 1]
+    torch.testing.assert_close(off.rollout.returns[3, 1], off.rollout.rewards[3, 1])
+    torch.testing.assert_close(off.rollout.returns[:, 0], on.rollout.returns[:, 0])  # env 0 terminated: the same
+    assert torch.equal(off.rollout.actions, on.rollout.actions)
+
+
 @pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP, AutoresetMode.DISABLED])
 def test_truncated_episode_bootstraps_in_the_loop(mode: AutoresetMode) -> None:
     """Env 0 terminates after 3 steps, env 1 is truncated after 4: the returns at the last step of each episode are

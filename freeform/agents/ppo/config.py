@@ -83,6 +83,10 @@ class PPOConfig:
     the paper."""
     reward_clip: float = 10.0
     """Clip of the scaled rewards (``reward_norm``)."""
+    bootstrap_truncated: bool = True
+    """An episode cut by a time limit (the env's ``info["truncated"]``) is bootstrapped with V of its last
+    observation, as SB3 does; False: it ends as a terminated one does (CleanRL's scripts, which treat a
+    truncation as a termination)."""
     eval_every: int = 0
     """Every this many epochs run ``eval_episodes`` deterministic episodes on the ``eval_env`` given to PPO and
     report ``eval_return`` (logged as ``charts/eval_return``); 0 = off."""
@@ -116,7 +120,7 @@ class PPOConfig:
         for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
-        for name in ("obs_norm", "reward_norm", "fused_adam", "compile"):
+        for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "bootstrap_truncated"):
             require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
         require(self.grad_clip is None or (is_number(self.grad_clip) and self.grad_clip > 0), f"{key}.grad_clip",
                 "None or > 0", self.grad_clip)
@@ -141,8 +145,9 @@ CLEANRL_PRESET: dict[str, Any] = dict(
 """CleanRL's ``ppo_continuous_action.py`` defaults in PPOConfig's terms (one env × 2048 steps per epoch; with N envs
 set ``rollout_steps`` = 2048 / N and ``lr_anneal_epochs`` = total steps / 2048 to keep its batch and schedule).
 Its value loss ``vf_coef · ½ · max((V − G)², (V_clip − G)²)`` is ``vf_loss_coeff = 0.25`` with the PPO2 clip at
-ε = 0.2. One difference is left: CleanRL divides minibatch advantages by the sample std + 1e-8, freeform by the
-population std (a factor √(63/64) at 64 samples). Use it with ``MLPActorCritic`` (orthogonal init, state-independent
+ε = 0.2. Two differences are left: CleanRL divides minibatch advantages by the sample std + 1e-8, freeform by the
+population std (a factor √(63/64) at 64 samples), and an episode cut by a time limit is bootstrapped with V of its
+last observation (the script treats it as terminated: ``bootstrap_truncated=False`` does so). Use it with ``MLPActorCritic`` (orthogonal init, state-independent
 log σ) and actions clipped by the env (``freeform.envs.from_gymnasium`` clips)."""
 
 
@@ -151,10 +156,11 @@ CLEANRL_DISCRETE_PRESET: dict[str, Any] = dict(
     gamma=0.99, gae_lambda=0.95, rollout_steps=128, sgd_minibatch_size=128, num_sgd_iter=4,  # 4 envs: 4 minibatches
     clip_param=0.2, kl_coeff=0.0, value_clip="ppo2", vf_clip_param=0.2, vf_loss_coeff=0.25,  # 0.5 · ½(V − G)²
     entropy_coeff=0.01, grad_clip=0.5, advantage_norm="minibatch", obs_norm=False, reward_norm=False, seed=1,
-    fused_adam=True,
+    fused_adam=True, bootstrap_truncated=False,  # ppo.py: next_done = terminations | truncations
 )
 """CleanRL's ``ppo.py`` defaults (the discrete-action script: CartPole-v1, 4 envs × 128 steps per epoch, 4 minibatches,
-4 passes, entropy bonus 0.01, no normalisation of observations or rewards) in PPOConfig's terms; with N envs set
+4 passes, entropy bonus 0.01, no normalisation of observations or rewards, a time limit ending the episode as a
+termination does) in PPOConfig's terms; with N envs set
 ``rollout_steps`` = 512 / N and ``lr_anneal_epochs`` = total steps / 512. The value loss and advantage standardisation
 as in :data:`CLEANRL_PRESET`. Use it with ``MLPActorCritic.for_env`` (its categorical head is ``ppo.py``'s network)."""
 

@@ -324,7 +324,7 @@ class PPO:
                 self.episode_infos.append(info)
                 if "task_reward" in info:  # shaped rewards (dense_every): the return is what the task scored
                     scored.append((t, info["task_reward"]))
-                if "truncated" in info:  # a time limit, not a terminal state: bootstrap with V(last observation)
+                if "truncated" in info and cfg.bootstrap_truncated:  # a time limit: bootstrap with V(last observation)
                     truncated = info["truncated"].to(self.device, torch.bool)
                     if truncated.any():
                         any_truncated = True
