@@ -30,20 +30,23 @@ def test_first_observation_of_a_two_voxel_body_by_hand():
     env = ControlEnv(pair(), sim=cfg, control=ControlConfig(burn_in=0.0, duration=0.05))
     assert isinstance(env, VecEnv)
     obs = env.reset()
-    assert obs.shape == (1, len(OBS_CHANNELS), 3, 3, 3) and obs.dtype == torch.float32
+    # the box: the body cropped to its bounding box, 2 × 1 × 1 cells, starting at grid cell (1, 2, 0)
+    assert env.box == (2, 1, 1) and env.origin.tolist() == [[1, 2, 0]]
+    assert obs.shape == (1, len(OBS_CHANNELS), 2, 1, 1) and obs.dtype == torch.float32
     L, k = cfg.voxel_size, len(cfg.materials)
     m = material_table(cfg)[MT.MASS]
     com_x = (m[2] * 0.0 + m[1] * L) / (m[2] + m[1])  # the cropped body: the muscle at x = 0, the passive at x = L
-    for cell, mat, x in (((1, 2, 0), 2, 0.0), ((2, 2, 0), 1, L)):
+    for cell, mat, x in (((0, 0, 0), 2, 0.0), ((1, 0, 0), 1, L)):
         o = obs[0, :, cell[0], cell[1], cell[2]].double()
         assert o[C["filled"]] == 1 and o[C["material"]] == pytest.approx(mat / k)
+        assert o[C["actuated"]] == (1 if mat == 2 else 0)
         assert o[C["rel_x"]] == pytest.approx((x - com_x) / L, abs=1e-6)
         assert o[C["rel_y"]] == 0 and o[C["rel_z"]] == 0
         assert o[C["vel_x"]] == 0 and o[C["strain"]] == 0 and o[C["contact"]] == 0
         assert o[C["heading_cos"]] == 1 and o[C["heading_sin"]] == 0 and o[C["progress"]] == 0
-    assert obs[0].abs().sum() == obs[0, :, 1:, 2, 0].abs().sum()  # empty cells are zero
-    mask = env.action_mask.view(3, 3, 3)
-    assert mask[1, 2, 0] and mask.sum() == 1  # only the muscle's command acts
+    assert env.action_mask.tolist() == [[True, False]]  # only the muscle's command acts
+    grid = env.to_grid(torch.tensor([[0.5, -0.25]]))  # back on the body's own 3³ grid
+    assert grid[0, 1, 2, 0] == 0.5 and grid[0, 2, 2, 0] == -0.25 and grid.abs().sum() == 0.75
 
 
 def test_rewards_sum_to_the_displacement_along_the_heading_and_episodes_end_together():
@@ -54,6 +57,7 @@ def test_rewards_sum_to_the_displacement_along_the_heading_and_episodes_end_toge
     heading, start = env.heading.copy(), env._com.copy()
     rng = torch.Generator().manual_seed(0)
     total = torch.zeros(2, dtype=torch.float64)
+    assert env.box == (3, 3, 3)  # the full body's box (the pair's fits in it: empty cells are zero)
     for t in range(control.steps):
         obs, reward, done, info = env.step(torch.rand((2, 27), generator=rng) * 2 - 1)
         total += reward.double()
@@ -79,10 +83,14 @@ def test_refusals_name_the_problem():
         ControlEnv(pair(), control=ControlConfig(headings="north"))
     env = ControlEnv(pair(), control=ControlConfig(burn_in=0.0, duration=0.02))
     with pytest.raises(RuntimeError, match="reset"):
-        env.step(torch.zeros(1, 27))
+        env.step(torch.zeros(1, 2))
     env.reset()
-    with pytest.raises(ValueError, match="one per grid cell"):
-        env.step(torch.zeros(1, 26))
+    with pytest.raises(ValueError, match=r"one per cell of the bodies' box \(2, 1, 1\)"):
+        env.step(torch.zeros(1, 3))
     with pytest.raises(ValueError, match="finite"):
-        env.step(torch.full((1, 27), math.nan))
-    env.step(torch.where(torch.from_numpy(pair().reshape(1, -1) > 0), 0.0, math.nan))  # NaN in empty cells: ignored
+        env.step(torch.full((1, 2), math.nan))
+    g = np.concatenate([pair(), np.zeros((1, 3, 3, 3), np.uint8)])
+    g[1, 0, 0, 0] = 2  # a one-voxel body in a box of 2 × 1 × 1: its second cell is empty
+    env = ControlEnv(g, control=ControlConfig(burn_in=0.0, duration=0.02))
+    env.reset()
+    env.step(torch.tensor([[0.0, 0.0], [0.0, math.nan]]))  # NaN in an empty cell: ignored

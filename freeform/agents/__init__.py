@@ -4,7 +4,7 @@
 over uint8 voxel grids, ``MLPActorCritic`` serves flat observations.
 """
 
-from freeform.agents.networks import MLPActorCritic, VoxelActorCritic
+from freeform.agents.networks import ConvController, MLPActorCritic, MLPController, VoxelActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
 
-__all__ = ["PPO", "PPOConfig", "VoxelActorCritic", "MLPActorCritic"]
+__all__ = ["PPO", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]

@@ -11,6 +11,8 @@ distribution           Gymnasium action space    policy outputs (``params``)    
 :class:`Categorical`   ``Discrete(n)``           ``logits [N, n]``                   ``[N, 1]`` index 0 … n − 1
 :class:`MultiCategorical` ``MultiDiscrete``      ``logits [N, Σ nvec]``              ``[N, K]`` one index each
 :class:`Bernoulli`     ``MultiBinary(n)``        ``logits [N, n]``                   ``[N, n]`` 0 or 1
+:class:`MaskedDiagGaussian` (an env's own)      ``mean, log_std, mask [N, A]``      raw floats; only the masked
+                                                                                     entries count
 =====================  ========================  ==================================  ==========================
 
 Actions are stored as floats (indices are exact below 2²⁴) so that every distribution shares the rollout's layout;
@@ -201,6 +203,43 @@ class DiagGaussian(ActionDistribution):
 
 
 @dataclass(frozen=True)
+class MaskedDiagGaussian(DiagGaussian):
+    """A diagonal Gaussian over ``dim`` floats of which only some exist for each sample: the policy outputs a third
+    parameter, ``mask [..., A]`` (1 where the entry acts, 0 where the env ignores it — an empty cell or a passive
+    voxel of a controlled body, read from the observation), and the log-probability, entropy and KL sum over the
+    masked entries only, so that PPO's ratio, entropy bonus and KL penalty see the actions that act and nothing else.
+    The mask travels with the distribution's parameters (the rollout stores it, the minibatch reads it back)."""
+
+    @property
+    def param_dims(self) -> tuple[int, ...]:
+        return (self.dim, self.dim, self.dim)
+
+    def sample(self, params: Params, noise: torch.Tensor) -> torch.Tensor:
+        mean, log_std, mask = params
+        return torch.addcmul(mean, torch.exp(log_std), noise) * mask  # (the ignored entries: 0, not noise)
+
+    def mode(self, params: Params) -> torch.Tensor:
+        return params[0] * params[2]
+
+    def log_prob(self, params: Params, actions: torch.Tensor) -> torch.Tensor:
+        mean, log_std, mask = params
+        z = (actions - mean) * torch.exp(-log_std)
+        return ((-0.5 * z.square() - log_std - LOG_SQRT_2PI) * mask).sum(-1)
+
+    def entropy(self, params: Params) -> torch.Tensor:
+        return ((params[1] + 0.5 + LOG_SQRT_2PI) * params[2]).sum(-1)
+
+    def kl(self, old: Params, new: Params) -> torch.Tensor:
+        (mean0, log_std0, mask), (mean1, log_std1, _) = old, new
+        var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
+        mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
+        return ((log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5) * mask).sum(-1)
+
+    def spec(self) -> dict[str, Any]:
+        return {"kind": "masked_gaussian", "dim": self.dim}
+
+
+@dataclass(frozen=True)
 class MultiCategorical(ActionDistribution):
     """Independent categoricals, one per entry of ``nvec`` (choices 0 … nvec[k] − 1), their logits side by side."""
 
@@ -298,6 +337,7 @@ def from_spec(spec: dict[str, Any] | ActionDistribution) -> ActionDistribution:
     if isinstance(spec, ActionDistribution):
         return spec
     kinds = {"gaussian": lambda s: DiagGaussian(int(s["dim"])), "categorical": lambda s: Categorical(int(s["n"])),
+             "masked_gaussian": lambda s: MaskedDiagGaussian(int(s["dim"])),
              "multi_categorical": lambda s: MultiCategorical(tuple(s["nvec"])), "bernoulli": lambda s: Bernoulli(int(s["n"]))}
     if not isinstance(spec, dict) or spec.get("kind") not in kinds:
         raise ValueError(f"an action distribution spec is a dict with 'kind' one of {sorted(kinds)}, got {spec!r}")
@@ -326,7 +366,8 @@ def for_space(space: Any) -> ActionDistribution:
                      "Box, Discrete, MultiDiscrete and MultiBinary actions")
 
 
-__all__ = ["ActionDistribution", "Bernoulli", "Categorical", "DiagGaussian", "MultiCategorical", "Params",
+__all__ = ["ActionDistribution", "Bernoulli", "Categorical", "DiagGaussian", "MaskedDiagGaussian", "MultiCategorical",
+           "Params",
            "bernoulli_entropy", "bernoulli_kl", "bernoulli_log_prob", "categorical_entropy", "categorical_kl",
            "categorical_log_prob", "categorical_sample", "for_space", "from_spec", "gaussian_entropy", "gaussian_kl",
            "gaussian_log_prob"]

@@ -14,10 +14,20 @@ Reward: the centre of mass's displacement along the robot's heading during the s
 heading is +x (``headings="fixed"``, locomotion) or drawn uniformly per robot and episode (``"random"``, steering),
 and is in the observation.
 
-Observations ``[N, C, ρ, ρ, ρ]`` float32 on the body's own grid (``OBS_CHANNELS``; zero in empty cells): the
-cell is filled, its material / k, its position relative to the centre of mass and its velocity (voxel lengths and
-voxel lengths per actuation period), its mean link strain, ground contact; then task features broadcast to every
-filled cell: the heading's cos and sin, and the episode's progress in [0, 1].
+The bodies' frame: every body is simulated as its largest component cropped to its bounding box (the layout's
+``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
+the largest box of the batch, ``box = (Bx, By, Bz)``: a 78-voxel design body of a 20³ grid sits in a box of a few
+hundred cells instead of 8,000 (the dense ρ³ grid made a rollout of 128 bodies gigabytes). A cell of the box is
+cell ``box_cell + origin`` of the body's grid (:meth:`ControlEnv.to_grid` maps any per-cell values back).
+
+Observations ``[N, C, Bx, By, Bz]`` float32 (``OBS_CHANNELS``; zero in empty cells): the cell is filled, its
+material / k, whether it is actuated (its command acts), its position relative to the centre of mass and its
+velocity (voxel lengths and voxel lengths per actuation period), its mean link strain, ground contact; then task
+features broadcast to every filled cell: the heading's cos and sin, and the episode's progress in [0, 1].
+
+Actions ``[N, Bx·By·Bz]``, one command per cell; only the actuated voxels' entries act. PPO's distribution is a
+:class:`~freeform.agents.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
+``actuated`` channel (``mask_channel``) as the mask, so log-probabilities, entropy and KL count the entries that act.
 """
 
 from __future__ import annotations
@@ -29,12 +39,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.engine import Engine
 from freeform.sim.state import MT, RUNNING, SENSE
 
-OBS_CHANNELS = ("filled", "material", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
+OBS_CHANNELS = ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
                 "heading_cos", "heading_sin", "progress")
 HEADINGS = ("fixed", "random")
 
@@ -71,9 +82,9 @@ class ControlConfig:
 
 class ControlEnv:
     """``num_envs`` bodies (uint8 grids ``[N, ρ, ρ, ρ]``, every one non-empty) under closed-loop control: a
-    :class:`freeform.envs.VecEnv` whose action is one command per grid cell (``action_dim`` = ρ³, C order) and whose
-    observation is ``[N, len(OBS_CHANNELS), ρ, ρ, ρ]``. ``action_mask`` ``[N, ρ³]`` marks the cells whose command
-    acts (actuated voxels).
+    :class:`freeform.envs.VecEnv` whose action is one command per cell of the bodies' box (``action_dim`` =
+    Bx·By·Bz, C order) and whose observation is ``[N, len(OBS_CHANNELS), Bx, By, Bz]``. ``action_mask [N, Bx·By·Bz]``
+    marks the cells whose command acts (actuated voxels), as the observation's ``actuated`` channel does.
 
     sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``).
     """
@@ -95,8 +106,6 @@ class ControlEnv:
         self.sim_config.validate("sim")
         self.grids = grids.cpu()
         self.num_envs, self.rho = int(grids.shape[0]), int(grids.shape[1])
-        self.observation_shape = (len(OBS_CHANNELS), self.rho, self.rho, self.rho)
-        self.action_dim = self.rho ** 3
         self.device = torch.device(device)
         self.simulator = Simulator(self.sim_config, arch=arch)
         self.layout = self.simulator.layout(self.grids)
@@ -104,16 +113,32 @@ class ControlEnv:
         mt = material_table(self.sim_config)
         robot = lay.voxel_robot.astype(np.int64)
         self._robot = robot
-        cells = lay.lattice.astype(np.int64) + lay.origin[robot].astype(np.int64)
+        lattice = lay.lattice.astype(np.int64)  # each voxel's cell in its robot's box
+        self.box = tuple(int(b) for b in lattice.max(0) + 1)
+        """``(Bx, By, Bz)``: the largest body's box; every body's box sits at its corner (cell 0, 0, 0)."""
+        if not np.array_equal(lay.body_of_robot, np.arange(self.num_envs)):  # (rewards and headings are per robot)
+            raise ValueError("ControlEnv simulates each body as one robot, in the order of the grids")
+        self.origin = torch.from_numpy(lay.origin.astype(np.int64))
+        """``[N, 3]`` where each body's box starts in its grid (the layout's crop origin)."""
+        self.observation_shape = (len(OBS_CHANNELS), *self.box)
+        self.action_dim = math.prod(self.box)
         body = lay.body_of_robot[robot]
-        self._cell = (cells[:, 0] * self.rho + cells[:, 1]) * self.rho + cells[:, 2]  # C order within a body
-        self._flat = body * self.action_dim + self._cell  # into [N·ρ³]
+        self._body = body
+        self._cell = (lattice[:, 0] * self.box[1] + lattice[:, 1]) * self.box[2] + lattice[:, 2]  # C order in the box
+        self._flat = body * self.action_dim + self._cell  # into [N·A]
+        grid = lattice + lay.origin[robot].astype(np.int64)
+        self._grid_cell = (grid[:, 0] * self.rho + grid[:, 1]) * self.rho + grid[:, 2]
         self._flat_t, self._body_t = torch.from_numpy(self._flat), torch.from_numpy(body)
         self._cell_t = torch.from_numpy(self._cell)
+        actuated = mt[MT.CTE][lay.material] != 0
         self.action_mask = torch.zeros(self.num_envs * self.action_dim, dtype=torch.bool)
-        self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(mt[MT.CTE][lay.material] != 0)
+        self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(actuated)
         self.action_mask = self.action_mask.view(self.num_envs, self.action_dim).to(self.device)
+        self.action_distribution = MaskedDiagGaussian(self.action_dim)
+        """What PPO trains: a Gaussian per cell, counted where the ``actuated`` channel (``mask_channel``) is 1."""
+        self.mask_channel = OBS_CHANNELS.index("actuated")
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
+        self._actuated = actuated.astype(np.float64)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
         self._rng = np.random.default_rng(seed)
@@ -136,14 +161,27 @@ class ControlEnv:
         obs, self._com = self._observe()
         return obs
 
+    def to_grid(self, values: torch.Tensor) -> torch.Tensor:
+        """Per-cell values of the box, ``[N, Bx·By·Bz]`` (actions, an observation channel flattened), on the bodies'
+        own grids ``[N, ρ, ρ, ρ]``: each voxel's value in its grid cell, zero elsewhere."""
+        values = torch.as_tensor(values)
+        if values.shape[0] != self.num_envs or values[0].numel() != self.action_dim:
+            raise ValueError(f"values must be [{self.num_envs}, {self.action_dim}] (one per cell of the box "
+                             f"{self.box}), got {tuple(values.shape)}")
+        out = values.new_zeros(self.num_envs, self.rho ** 3)
+        body = self._body_t.to(values.device)
+        out[body, torch.from_numpy(self._grid_cell).to(values.device)] = values.reshape(self.num_envs, -1)[
+            body, self._cell_t.to(values.device)]
+        return out.view(self.num_envs, self.rho, self.rho, self.rho)
+
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        """``actions`` ``[N, ρ³]`` (or ``[N, ρ, ρ, ρ]``), clipped to [−1, 1]: one control period."""
+        """``actions`` ``[N, Bx·By·Bz]`` (or ``[N, Bx, By, Bz]``), clipped to [−1, 1]: one control period."""
         if self.engine is None:
             raise RuntimeError("call reset() before step()")
         a = torch.as_tensor(actions).detach()
         if a.numel() != self.num_envs * self.action_dim or a.shape[0] != self.num_envs:
-            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}] (one per grid cell), "
-                             f"got {tuple(a.shape)}")
+            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}] (one per cell of the bodies' box "
+                             f"{self.box}), got {tuple(a.shape)}")
         # only the cells that hold a voxel are read (the rest are ignored, NaN included)
         commands = a.reshape(-1)[self._flat_t.to(a.device)].to("cpu", torch.float64)
         if not torch.isfinite(commands).all():
@@ -168,14 +206,14 @@ class ControlEnv:
 
     # ------------------------------------------------------------------ sensing
     def _observe(self) -> tuple[torch.Tensor, np.ndarray]:
-        """The observation ``[N, C, ρ, ρ, ρ]`` and each robot's centre of mass ``[N, 3]`` (m): the engine senses
-        on the device (``Engine.sense``); the host adds the per-body constants and scatters onto the grid."""
+        """The observation ``[N, C, Bx, By, Bz]`` and each robot's centre of mass ``[N, 3]`` (m): the engine senses
+        on the device (``Engine.sense``); the host adds the per-body constants and scatters into the box."""
         R = self.num_envs
         sensed, com = self.engine.sense()  # one kernel on the device, one copy back
         progress = self.t / self.control.steps
         r = self._robot
         features = np.concatenate([
-            np.ones((len(r), 1)), self._material[:, None],
+            np.ones((len(r), 1)), self._material[:, None], self._actuated[:, None],
             sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,
             sensed[:, SENSE.STRAIN:SENSE.STRAIN + 1], sensed[:, SENSE.CONTACT:SENSE.CONTACT + 1],
             np.stack([np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress)], 1),

@@ -31,7 +31,7 @@ import torch.nn as nn
 
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV
-from freeform.agents.distributions import ActionDistribution, DiagGaussian
+from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import DeclaresDistribution, GroupedActions, Rebuildable, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
@@ -495,7 +495,12 @@ class PPO:
             stds = dp.gather_envs(buf.log_stds, dim=1).exp()
             if kept is not None:
                 stds = stds.reshape(-1, stds.shape[-1])[kept]
-            stats["action_std"] = stds.mean().item()
+            if isinstance(self.distribution, MaskedDiagGaussian):  # over the entries that act
+                mask = dp.gather_envs(buf.params[2], dim=1)
+                mask = mask.reshape(-1, mask.shape[-1])[kept] if kept is not None else mask
+                stats["action_std"] = ((stds * mask).sum() / mask.sum().clamp_min(1.0)).item()
+            else:
+                stats["action_std"] = stds.mean().item()
             for name, dims in (self.policy.action_groups if isinstance(self.policy, GroupedActions) else {}).items():
                 stats[f"action_std_{name}"] = stds[..., dims].mean().item()
         return stats
@@ -779,9 +784,9 @@ def policy_class_name(cls: type) -> str:
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
     """The networks any checkpoint may name (freeform's own)."""
-    from freeform.agents.networks import MLPActorCritic, VoxelActorCritic
+    from freeform.agents.networks import ConvController, MLPActorCritic, MLPController, VoxelActorCritic
 
-    return (VoxelActorCritic, MLPActorCritic)
+    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController)
 
 
 __all__ = ["PPO", "builtin_policies", "choose_distribution", "policy_class_name"]
