@@ -44,6 +44,7 @@ def test_first_observation_of_a_two_voxel_body_by_hand():
         assert o[C["rel_y"]] == 0 and o[C["rel_z"]] == 0
         assert o[C["vel_x"]] == 0 and o[C["strain"]] == 0 and o[C["contact"]] == 0
         assert o[C["heading_cos"]] == 1 and o[C["heading_sin"]] == 0 and o[C["progress"]] == 0
+        assert o[C["clock_sin"]] == 0 and o[C["clock_cos"]] == 1  # t = 0: the sine's phase 0
     assert env.action_mask.tolist() == [[True, False]]  # only the muscle's command acts
     grid = env.to_grid(torch.tensor([[0.5, -0.25]]))  # back on the body's own 3³ grid
     assert grid[0, 1, 2, 0] == 0.5 and grid[0, 2, 2, 0] == -0.25 and grid.abs().sum() == 0.75

@@ -217,8 +217,8 @@ def test_own_envs_pass_gymnasiums_checker_and_ppo_learns_them(env_class: type[gy
 
 def test_cartpole_is_solved() -> None:
     """CartPole-v1 with CleanRL's ``ppo.py`` settings (4 envs, 128 steps, 4 × 128 minibatches, 4 passes, entropy
-    0.01) at lr 1e-3 for 150k steps (17 s here): the greedy policy balances the whole 500 steps (≥ 475, the task's
-    threshold; seeds 0–4 all reach 500, so the seed is not a lucky one)."""
+    0.01, a time limit ended as a termination) at lr 1e-3 for 150k steps (17 s here): the greedy policy balances the
+    whole 500 steps (≥ 475, the task's threshold; seeds 0–4 all reach 500, so the seed is not a lucky one)."""
     def make(n: int) -> Any:
         return from_gymnasium(gym.make_vec("CartPole-v1", num_envs=n, vectorization_mode="sync",
                                            vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP}))

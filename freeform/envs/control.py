@@ -23,7 +23,9 @@ cell ``box_cell + origin`` of the body's grid (:meth:`ControlEnv.to_grid` maps a
 Observations ``[N, C, Bx, By, Bz]`` float32 (``OBS_CHANNELS``; zero in empty cells): the cell is filled, its
 material / k, whether it is actuated (its command acts), its position relative to the centre of mass and its
 velocity (voxel lengths and voxel lengths per actuation period), its mean link strain, ground contact; then task
-features broadcast to every filled cell: the heading's cos and sin, and the episode's progress in [0, 1].
+features broadcast to every filled cell: the heading's cos and sin, the episode's progress in [0, 1], and the
+actuation clock's phase (sin and cos of 2π·t / ``sim.temp_period``, t the simulated time since placement): the
+rhythm the open-loop sine follows, so that a controller can reproduce that gait and need not invent a rhythm.
 
 Actions ``[N, Bx·By·Bz]``, one command per cell; only the actuated voxels' entries act. PPO's distribution is a
 :class:`~freeform.agents.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
@@ -46,7 +48,7 @@ from freeform.sim.engine import Engine
 from freeform.sim.state import MT, RUNNING, SENSE
 
 OBS_CHANNELS = ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
-                "heading_cos", "heading_sin", "progress")
+                "heading_cos", "heading_sin", "progress", "clock_sin", "clock_cos")
 HEADINGS = ("fixed", "random")
 
 
@@ -211,12 +213,14 @@ class ControlEnv:
         R = self.num_envs
         sensed, com = self.engine.sense()  # one kernel on the device, one copy back
         progress = self.t / self.control.steps
+        clock = 2 * math.pi * (self.control.burn_in + self.t * self.control.period) / self.sim_config.temp_period
         r = self._robot
         features = np.concatenate([
             np.ones((len(r), 1)), self._material[:, None], self._actuated[:, None],
             sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,
             sensed[:, SENSE.STRAIN:SENSE.STRAIN + 1], sensed[:, SENSE.CONTACT:SENSE.CONTACT + 1],
-            np.stack([np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress)], 1),
+            np.stack([np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress),
+                      np.full(len(r), math.sin(clock)), np.full(len(r), math.cos(clock))], 1),
         ], 1)
         obs = torch.zeros((R, len(OBS_CHANNELS), self.action_dim), dtype=torch.float32)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float()  # channel-first, no transpose

@@ -1,0 +1,167 @@
+"""Closed-loop control on the CPU (issue 29's first learning demo): a walker's open-loop sine gait against a
+controller that PPO trains on the same body.
+
+The walker: the best of ``--candidates`` bodies an untrained design policy builds (the locomotion demo's setting:
+ρ = 20, three materials, 100 design steps), scored by its open-loop gait. Its open-loop figure is the centre of
+mass's move along +x over the control window (``control.burn_in`` to ``burn_in + duration``: the gait's sine from
+t = 0, as every open-loop body). The controller: :class:`freeform.agents.ConvController` trained by PPO on
+``--envs`` copies of the walker in a :class:`freeform.envs.control.ControlEnv` (the same window: zero commands
+during the burn-in, then one command per voxel every ``control.period``), reward = the move along +x per control
+step, for ``--minutes`` of wall time. Evaluated before and after training over ≥ 256 episodes of the stochastic
+policy (99 % bands; the copies differ only by the policy's noise) and once with its deterministic mode.
+
+    python -m experiments.control --minutes 28 --out docs/results/control_walker
+
+Writes ``curve.csv`` (per epoch: wall seconds, training return, the update's statistics), ``summary.csv`` and
+``control_walker.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from experiments.common import mean_band
+from freeform.agents import PPO, ConvController, PPOConfig
+from freeform.body import largest_component
+from freeform.envs.control import ControlConfig, ControlEnv
+from freeform.envs.design import DesignEnv
+from freeform.evolve import untrained_design_grids
+from freeform.sim import SimConfig, Simulator
+from freeform.sim.state import RUNNING
+
+RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
+
+
+def open_loop(grids: torch.Tensor, sim: SimConfig, control: ControlConfig) -> np.ndarray:
+    """Each body's open-loop move along +x over the control window, in voxel lengths ``[N]`` (0 if it failed)."""
+    config = SimConfig(**{**sim.__dict__, "actuation": "sine", "burn_in": 0.0,
+                          "duration": control.burn_in + control.duration + 1.0})
+    simulator = Simulator(config)
+    engine = simulator.engine(simulator.layout(grids))
+    engine.advance_time(control.burn_in)
+    start = engine.sense()[1]
+    engine.advance_time(control.duration)
+    end = engine.sense()[1]
+    ok = engine.robot_status() == RUNNING
+    return np.where(ok, (end - start)[:, 0] / sim.voxel_size, 0.0)
+
+
+def walker(candidates: int, sim: SimConfig, control: ControlConfig, seed: int) -> tuple[torch.Tensor, np.ndarray]:
+    """The best open-loop body of ``candidates`` untrained designs ``[1, ρ, ρ, ρ]``, and every candidate's score."""
+    env = DesignEnv(candidates, resolution=RHO, materials=MATERIALS, steps=DESIGN_STEPS, bundle_size=BUNDLE,
+                    seed=seed, compute_metrics=False)
+    grids = largest_component(untrained_design_grids(env, seed))
+    grids = grids[grids.flatten(1).any(1)]
+    scores = open_loop(grids, sim, control)
+    return grids[int(np.argmax(scores))][None], scores
+
+
+@torch.no_grad()
+def episode_returns(ppo: PPO, env: ControlEnv, episodes: int, deterministic: bool) -> np.ndarray:
+    """Returns (displacement along the heading, voxel lengths) of ``episodes`` whole episodes (a multiple of the
+    env count), the policy's mode or its samples (which draw from PPO's generator)."""
+    out = []
+    while len(out) * env.num_envs < episodes:
+        obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
+        while not bool(done.all()):
+            obs, reward, done, _ = env.step(ppo.act(obs, deterministic=deterministic))
+            total += reward
+        out.append(total.numpy())
+    return np.concatenate(out)[:episodes]
+
+
+def summary_row(name: str, values: np.ndarray) -> dict:
+    mean, band = mean_band(values)
+    return {"what": name, "n": len(values), "mean": float(mean), "band99": float(band),
+            "low": float(mean - band), "high": float(mean + band)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m experiments.control", description=__doc__.split("\n\n")[0])
+    p.add_argument("--minutes", type=float, default=28.0, help="wall-time budget of the training")
+    p.add_argument("--envs", type=int, default=64, help="copies of the walker trained at once")
+    p.add_argument("--candidates", type=int, default=256)
+    p.add_argument("--eval-episodes", type=int, default=256)
+    p.add_argument("--hidden", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/control_walker")
+    args = p.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(args.seed)
+    sim, control = SimConfig(), ControlConfig()
+
+    t0 = time.perf_counter()
+    body, scores = walker(args.candidates, sim, control, args.seed)
+    print(f"walker: {int((body > 0).sum())} voxels, open loop {scores.max():.3f} voxel lengths over "
+          f"{control.duration} s (best of {len(scores)}; median {np.median(scores):.3f}) [{time.perf_counter() - t0:.0f} s]")
+    np.save(out / "walker.npy", body.numpy())
+    env = ControlEnv(body.expand(args.envs, -1, -1, -1).clone(), sim=sim, control=control, seed=args.seed)
+    eval_env = ControlEnv(body.expand(args.envs, -1, -1, -1).clone(), sim=sim, control=control, seed=args.seed + 1)
+    cfg = PPOConfig(lr=3e-4, gamma=0.99, gae_lambda=0.95, clip_param=0.2, kl_coeff=0.0, entropy_coeff=0.0,
+                    num_sgd_iter=2, sgd_minibatch_size=512, rollout_steps=control.steps, grad_clip=0.5,
+                    reward_norm=True, seed=args.seed)
+    ppo = PPO(env, ConvController.for_env(env, hidden=args.hidden), cfg)
+    print(f"box {env.box}, {env.action_dim} cells, {int(env.action_mask[0].sum())} actuated; "
+          f"{control.steps} control steps of {control.period} s per episode")
+    rows = [summary_row("open loop (its sine gait, deterministic)", np.array([scores.max()]))]
+    before = episode_returns(ppo, eval_env, args.eval_episodes, deterministic=False)
+    rows.append(summary_row("controller, untrained (stochastic)", before))
+    print(f"untrained: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f} [{time.perf_counter() - t0:.0f} s]", flush=True)
+
+    curve, start = [], time.perf_counter()
+    while time.perf_counter() - start < args.minutes * 60:
+        stats = ppo.train_epoch()
+        curve.append({"epoch": ppo.epoch, "wall_s": time.perf_counter() - start, **{k: stats[k] for k in (
+            "episode_reward_mean", "approx_kl", "entropy", "action_std", "explained_variance", "time_rollout",
+            "time_update")}})
+        print(f"epoch {ppo.epoch}: return {stats['episode_reward_mean']:.3f}, σ {stats['action_std']:.3f}, "
+              f"rollout {stats['time_rollout']:.1f} s, update {stats['time_update']:.1f} s", flush=True)
+    ppo.save(out / "controller.pt")
+    after = episode_returns(ppo, eval_env, args.eval_episodes, deterministic=False)
+    rows.append(summary_row(f"controller, trained {ppo.epoch} epochs (stochastic)", after))
+    rows.append(summary_row("controller, trained (deterministic)",
+                            episode_returns(ppo, eval_env, eval_env.num_envs, deterministic=True)))
+    for row in rows:
+        print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
+    with open(out / "curve.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(curve[0]))
+        writer.writeheader()
+        writer.writerows(curve)
+    with open(out / "summary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (out / "args.json").write_text(json.dumps(vars(args), indent=1))
+    figure(curve, rows, out / "control_walker.png")
+
+
+def figure(curve: list[dict], rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot([r["epoch"] for r in curve], [r["episode_reward_mean"] for r in curve], color="k", lw=1,
+            label="controller, training return (mean of the copies)")
+    ax.axhline(rows[0]["mean"], color="tab:red", ls="--", label="the walker's open-loop gait")
+    for row, colour in ((rows[1], "tab:grey"), (rows[2], "tab:blue")):
+        ax.errorbar([0 if row is rows[1] else curve[-1]["epoch"]], [row["mean"]], yerr=[row["band99"]], fmt="o",
+                    color=colour, capsize=3, label=row["what"] + ", 99 % band")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("move along +x in 2 s (voxel lengths)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+
+
+if __name__ == "__main__":
+    main()
