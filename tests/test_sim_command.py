@@ -148,3 +148,30 @@ def test_sensing_on_the_device_equals_the_tables_read_back(schedule):
     contact = (engine._table("vi")[VI.FLAGS] & CONTACT) != 0
     np.testing.assert_array_equal(sensed[:, SENSE.CONTACT], contact.astype(float))
     assert contact.any() and not contact.all()
+
+
+@pytest.mark.parametrize("schedule", ["robots", "flat"])
+def test_a_snapshot_restored_goes_on_bit_for_bit(schedule):
+    """advance 0.05 s, snapshot, advance with commands → X; restore, the same again → X to the bit (f64), with the
+    control limit (``advance_time``'s host copy) restored too; a snapshot of another size is refused."""
+    cfg = SimConfig(precision="f64", burn_in=0.0, duration=1.0, actuation="command")
+    sim = Simulator(cfg, arch="cpu", schedule=schedule)
+    engine = sim.engine(sim.layout(bodies()))
+    engine.advance_time(0.05)
+    snap, at_snapshot = engine.snapshot(), engine.positions()
+    commands = np.linspace(-1, 1, engine.layout.num_voxels)
+
+    def go_on() -> tuple[np.ndarray, ...]:
+        engine.set_commands(commands)
+        engine.advance_time(0.02)
+        return engine.positions(), engine.orientations(), engine.robot_time(), engine.sense()[1]
+
+    first = go_on()
+    assert np.abs(first[0] - at_snapshot).max() > 1e-6  # the bodies moved after the snapshot
+    engine.restore(snap)
+    for a, b in zip(go_on(), first, strict=True):
+        np.testing.assert_array_equal(a, b)
+    other = Simulator(cfg, arch="cpu", schedule=schedule)
+    big = other.engine(other.layout(np.concatenate([bodies()] * 40)))
+    with pytest.raises(ValueError, match="restore a snapshot of this engine"):
+        big.restore(snap)

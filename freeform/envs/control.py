@@ -145,6 +145,7 @@ class ControlEnv:
         self._length, self._speed = L, L / self.sim_config.temp_period
         self._rng = np.random.default_rng(seed)
         self.engine: Engine | None = None
+        self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
         self.t = 0
         self.heading = np.zeros(self.num_envs)
         self._com = np.zeros((self.num_envs, 3))
@@ -154,9 +155,13 @@ class ControlEnv:
         """Place the bodies, settle them for ``control.burn_in`` seconds (zero commands), draw the headings."""
         if seed is not None:
             self._rng = np.random.default_rng(seed)
-        self.engine = self.simulator.engine(self.layout)
-        if self.control.burn_in > 0:
-            self.engine.advance_time(self.control.burn_in)
+        if self._settled is None:  # the first episode settles the bodies; the others start from that state
+            self.engine = self.simulator.engine(self.layout)
+            if self.control.burn_in > 0:
+                self.engine.advance_time(self.control.burn_in)
+            self._settled = self.engine.snapshot()
+        else:  # (settling with zero commands is deterministic: the same state, bit for bit, without its cost)
+            self.engine.restore(self._settled)
         self.heading = (self._rng.uniform(0.0, 2 * math.pi, self.num_envs) if self.control.headings == "random"
                         else np.zeros(self.num_envs))
         self.t = 0

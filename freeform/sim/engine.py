@@ -13,6 +13,7 @@ batch outgrows it, so a long training run stops allocating device memory once it
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -270,6 +271,29 @@ class Engine:
             n = int(np.ceil(((self._limit - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
             self._advance(n)
             steps += n
+
+    def snapshot(self) -> dict[str, Any]:
+        """The batch's whole state now: a host copy of the three buffers and the host's own bookkeeping, which
+        :meth:`restore` writes back so that the batch goes on as it would have from here, bit for bit (a control
+        env restores its bodies' settled state at every episode instead of settling them again)."""
+        self._check_owner()
+        return {"buffers": {name: runtime.to_numpy(self._buffers[name]).copy() for name in BUFFERS},
+                "packing": self.packing, "steps_done": self.steps_done, "trace_steps": self.trace_steps,
+                "limit": None if self._limit is None else self._limit.copy()}
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        """Return to a :meth:`snapshot` of this engine (taken since it was built, with the same buffers)."""
+        self._check_owner()
+        for name in BUFFERS:
+            saved, have = snapshot["buffers"][name], tuple(self._buffers[name].shape)
+            if saved.shape != have:
+                raise ValueError(f"the snapshot's {name} buffer has {saved.shape[0]} elements, this engine's "
+                                 f"{have[0]}: restore a snapshot of this engine, taken after start_trace if it traces")
+        for name in BUFFERS:
+            runtime.upload(self._buffers[name], snapshot["buffers"][name])
+        self.packing, self.steps_done = snapshot["packing"], snapshot["steps_done"]
+        self.trace_steps = snapshot["trace_steps"]
+        self._limit = None if snapshot["limit"] is None else snapshot["limit"].copy()
 
     def sense(self) -> tuple[np.ndarray, np.ndarray]:
         """What a controller senses, gathered on the device in one kernel (``sensing.py``): float64
