@@ -1,8 +1,8 @@
 """Closed-loop control on the CPU (issue 29's first learning demo): a walker's open-loop sine gait against a
 controller that PPO trains on the same body.
 
-The walker: the best of ``--candidates`` bodies an untrained design policy builds (the locomotion demo's setting:
-ρ = 20, three materials, 100 design steps), scored by its open-loop gait. Its open-loop figure is the centre of
+The walker: the best of ``--candidates`` bodies an untrained design policy builds (the locomotion CPU demo's
+setting, ``experiment=locomotion_cpu``: ρ = 8, three materials, 20 design steps), scored by its open-loop gait. Its open-loop figure is the centre of
 mass's move along +x over the control window (``control.burn_in`` to ``burn_in + duration``: the gait's sine from
 t = 0, as every open-loop body). The controller: :class:`freeform.agents.ConvController` trained by PPO on
 ``--envs`` copies of the walker in a :class:`freeform.envs.control.ControlEnv` (the same window: zero commands
@@ -36,7 +36,7 @@ from freeform.evolve import untrained_design_grids
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.state import RUNNING
 
-RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
+RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
 
 
 def open_loop(grids: torch.Tensor, sim: SimConfig, control: ControlConfig) -> np.ndarray:
@@ -58,7 +58,7 @@ def walker(candidates: int, sim: SimConfig, control: ControlConfig, seed: int) -
     env = DesignEnv(candidates, resolution=RHO, materials=MATERIALS, steps=DESIGN_STEPS, bundle_size=BUNDLE,
                     seed=seed, compute_metrics=False)
     grids = largest_component(untrained_design_grids(env, seed))
-    grids = grids[grids.flatten(1).any(1)]
+    grids = grids[grids.flatten(1).any(dim=1)]
     scores = open_loop(grids, sim, control)
     return grids[int(np.argmax(scores))][None], scores
 
@@ -90,13 +90,17 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--candidates", type=int, default=256)
     p.add_argument("--eval-episodes", type=int, default=256)
     p.add_argument("--hidden", type=int, default=16)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--log-std", type=float, default=-0.5, help="the controller's initial log σ (commands lie in [-1, 1])")
+    p.add_argument("--burn-in", type=float, default=2.0,
+                   help="seconds of settling before the window (2 s, as the locomotion demo: bodies have landed)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/control_walker")
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
-    sim, control = SimConfig(), ControlConfig()
+    sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in)
 
     t0 = time.perf_counter()
     body, scores = walker(args.candidates, sim, control, args.seed)
@@ -105,10 +109,11 @@ def main(argv: list[str] | None = None) -> None:
     np.save(out / "walker.npy", body.numpy())
     env = ControlEnv(body.expand(args.envs, -1, -1, -1).clone(), sim=sim, control=control, seed=args.seed)
     eval_env = ControlEnv(body.expand(args.envs, -1, -1, -1).clone(), sim=sim, control=control, seed=args.seed + 1)
-    cfg = PPOConfig(lr=3e-4, gamma=0.99, gae_lambda=0.95, clip_param=0.2, kl_coeff=0.0, entropy_coeff=0.0,
+    cfg = PPOConfig(lr=args.lr, gamma=0.99, gae_lambda=0.95, clip_param=0.2, kl_coeff=0.0, entropy_coeff=0.0,
                     num_sgd_iter=2, sgd_minibatch_size=512, rollout_steps=control.steps, grad_clip=0.5,
                     reward_norm=True, seed=args.seed)
-    ppo = PPO(env, ConvController.for_env(env, hidden=args.hidden), cfg)
+    policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, 0, args.hidden, args.log_std)
+    ppo = PPO(env, policy, cfg)
     print(f"box {env.box}, {env.action_dim} cells, {int(env.action_mask[0].sum())} actuated; "
           f"{control.steps} control steps of {control.period} s per episode")
     rows = [summary_row("open loop (its sine gait, deterministic)", np.array([scores.max()]))]
