@@ -27,8 +27,12 @@ episodes) and the **wall time** of the whole run (start-up included).
   gives them 0.29's API on Gymnasium 1.x (``TransformObservation`` without an explicit space; vector envs that reset
   in the same step and report ``final_info`` per env), nothing else.
 
+Time limits: SB3 bootstraps an episode cut by a time limit with V(last observation); CleanRL's scripts treat the
+cut as a termination. freeform's Box preset bootstraps (as SB3), its ``ppo.py`` preset does not (as the script):
+``PPOConfig.bootstrap_truncated``, ``docs/ppo.md``.
+
     python -m benchmarks.bench_gym --tasks HalfCheetah-v5 Hopper-v5 --steps 500000 --seeds 0 1   # the MuJoCo table
-    python -m benchmarks.bench_gym --tasks CartPole-v1 Acrobot-v1 --steps 100000 --seeds 0 1     # the discrete one
+    python -m benchmarks.bench_gym --tasks CartPole-v1 Acrobot-v1 --steps 200000 --seeds 0 1 2 3 # the discrete one
     python -m benchmarks.bench_gym --tasks InvertedPendulum-v5 --steps 5000 --seeds 0            # end-to-end check
     python -m benchmarks gym        # (make bench) a short InvertedPendulum-v5 comparison, 3 × 50k steps
     python -m benchmarks.bench_gym --split --tasks HalfCheetah-v5   # where a step goes: freeform vs SB3
@@ -349,6 +353,8 @@ def run(argv: list[str] | None = None) -> list[dict]:
         return []
     if args.split:
         for task in args.tasks:
+            if recipe(task) is not RECIPES["box"]:
+                raise SystemExit(f"--split times the Box recipe (2,048 steps per update); {task} is discrete")
             print(split(task, args.split_epochs, args.repeats), flush=True)
         return []
     workdir = Path(args.workdir)

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -47,3 +50,21 @@ def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
     acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0})
     acc.Reload()
     return {tag: [(e.step, e.value) for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+class SingleView(gym.Env):
+    """A one-environment ``to_gymnasium`` vector env seen as a ``gymnasium.Env``, for Gymnasium's env checker."""
+
+    def __init__(self, vector_env: Any) -> None:
+        self.vector_env = vector_env
+        self.observation_space = vector_env.single_observation_space
+        self.action_space = vector_env.single_action_space
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
+        super().reset(seed=seed)
+        obs, info = self.vector_env.reset(seed=seed)
+        return obs[0], info
+
+    def step(self, action: np.ndarray):  # type: ignore[override]
+        obs, reward, terminated, truncated, info = self.vector_env.step(action[None])
+        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), {}

@@ -9,8 +9,9 @@ import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
-from freeform.agents import PPO, ConvController, MLPController, PPOConfig
+from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.distributions import MaskedDiagGaussian, from_spec
+from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig
 
@@ -55,9 +56,10 @@ def test_controllers_read_the_mask_from_the_actuated_channel() -> None:
     assert env.mask_channel == OBS_CHANNELS.index("actuated")
 
 
-def test_ppo_trains_a_controller_and_passive_cells_never_reach_the_loss() -> None:
-    """One epoch of PPO on the control env: the weights move, σ is logged over the active entries, and the loss's
-    gradient does not depend on the actions stored for cells that do not act (changing them changes nothing)."""
+def test_ppo_trains_a_controller_and_passive_cells_never_reach_the_loss(tmp_path) -> None:
+    """One epoch of PPO on the control env: the weights move and σ is logged over the active entries. The loss's
+    gradient is the same whatever actions are stored for cells that do not act, and whatever the policy's means are
+    there (scrambled); it changes when an actuated cell's action does. A checkpoint rebuilds the controller."""
     env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
     torch.manual_seed(0)
     ppo = PPO(env, ConvController.for_env(env, hidden=4), PPOConfig(rollout_steps=4, num_sgd_iter=1,
@@ -68,10 +70,48 @@ def test_ppo_trains_a_controller_and_passive_cells_never_reach_the_loss() -> Non
     ro = ppo.rollout
     inactive = ~env.action_mask
     assert (ro.actions[:, inactive] == 0).all()  # the masked sample leaves them at 0
-    lp = ppo.distribution.log_prob(ro.params, ro.actions)
-    scrambled = ro.actions.clone()
+
+    def gradient(actions: torch.Tensor, old_means: torch.Tensor) -> torch.Tensor:
+        params = (old_means.flatten(0, 1), ro.log_stds.flatten(0, 1), ro.params[2].flatten(0, 1))
+        samples = minibatch_samples(actions.flatten(0, 1), params, ro.logprobs.flatten(), ro.values.flatten(),
+                                    ro.returns.flatten())
+        ppo.flat.zero_grad()
+        loss, _ = minibatch_loss(ppo.policy, ppo.distribution, ppo.config, ro.obs.flatten(0, 1), samples,
+                                 ro.advantages.flatten(), torch.tensor(0.5), torch.mean)
+        loss.backward()
+        return ppo.flat.grad.clone()
+
+    reference = gradient(ro.actions, ro.means)
+    scrambled, means = ro.actions.clone(), ro.means.clone()
     scrambled[:, inactive] = torch.randn_like(scrambled[:, inactive]) * 5
-    torch.testing.assert_close(ppo.distribution.log_prob(ro.params, scrambled), lp)
+    means[:, inactive] = torch.randn_like(means[:, inactive]) * 5
+    assert reference.abs().max() > 0
+    torch.testing.assert_close(gradient(scrambled, means), reference)
+    moved = ro.actions.clone()
+    moved[:, env.action_mask] += 0.5
+    assert (gradient(moved, ro.means) - reference).abs().max() > 1e-6  # (the check can tell)
+
+    ppo.save(tmp_path / "controller.pt")
+    loaded = PPO.load(tmp_path / "controller.pt", env)
+    assert isinstance(loaded.policy, ConvController) and torch.equal(loaded.flat.value, ppo.flat.value)
+
+
+def test_refusals_for_masked_actions_and_dict_observations() -> None:
+    env = ControlEnv(bodies(), control=ControlConfig(burn_in=0.0, duration=0.05))
+    with pytest.raises(ValueError, match="no head for a MaskedDiagGaussian"):
+        MLPActorCritic.for_env(env)
+    with pytest.raises(ValueError, match="obs_norm would rescale the observation channel"):
+        PPO(env, ConvController.for_env(env), PPOConfig(rollout_steps=4, obs_norm=True))
+
+    class DictEnv:
+        observation_shape = {"a": (2,), "b": (3,)}
+        action_dim = 1
+
+    with pytest.raises(ValueError, match="observes a dict"):
+        MLPActorCritic.for_env(DictEnv())
+    for bad in (0, -2, 2.5, True):
+        with pytest.raises(ValueError, match="positive int"):
+            MaskedDiagGaussian(bad)
 
 
 @pytest.mark.parametrize("bad", [dict(box=(2, 0, 1)), dict(mask_channel=20)])

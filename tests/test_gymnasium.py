@@ -16,6 +16,7 @@ import torch.nn as nn
 
 gym = pytest.importorskip("gymnasium")
 from gymnasium.vector import AutoresetMode  # noqa: E402
+from helpers import SingleView  # noqa: E402  (tests/helpers.py)
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig  # noqa: E402
 from freeform.agents.ppo import CLEANRL_PRESET, compute_advantages  # noqa: E402
@@ -418,24 +419,6 @@ def test_evaluation_runs_deterministic_episodes_on_its_own_env() -> None:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-class _SingleView(gym.Env):
-    """A one-environment ``to_gymnasium`` vector env seen as a ``gymnasium.Env``, for Gymnasium's env checker."""
-
-    def __init__(self, vector_env: Any) -> None:
-        self.vector_env = vector_env
-        self.observation_space = vector_env.single_observation_space
-        self.action_space = vector_env.single_action_space
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
-        super().reset(seed=seed)
-        obs, info = self.vector_env.reset(seed=seed)
-        return obs[0], info
-
-    def step(self, action: np.ndarray):  # type: ignore[override]
-        obs, reward, terminated, truncated, info = self.vector_env.step(action[None])
-        return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), {}
-
-
 @pytest.mark.filterwarnings("ignore:.*symmetric and normalized space")  # the design env's actions are in [−2, 2]
 def test_to_gymnasium_design_env_passes_gymnasiums_checker() -> None:
     from gymnasium.utils.env_checker import check_env
@@ -443,7 +426,7 @@ def test_to_gymnasium_design_env_passes_gymnasiums_checker() -> None:
     vec = to_gymnasium(DesignEnv(num_envs=1, resolution=4, materials=2, steps=3, task=VolumeTask(), compute_metrics=False))
     assert vec.single_observation_space == gym.spaces.Box(0, 1, (4, 4, 4), np.uint8)
     assert vec.single_action_space.shape == (5,) and vec.single_action_space.high[0] == 2.0
-    check_env(_SingleView(vec), skip_render_check=True)
+    check_env(SingleView(vec), skip_render_check=True)
 
 
 def test_to_gymnasium_vector_semantics() -> None:

@@ -1,8 +1,8 @@
 """The action distributions PPO can train, decided once from the action space and outside the algorithm.
 
 A distribution here is a small frozen description (its sizes) with pure functions of tensors: ``sample`` from
-pre-drawn noise, ``mode`` (the deterministic action), ``log_prob``, ``entropy`` and ``kl``. PPO never asks which one
-it holds; the policy's outputs are the distribution's parameters (``param_dims``, in order) followed by the value.
+pre-drawn noise, ``mode`` (the deterministic action), ``log_prob``, ``entropy`` and ``kl``. The policy's outputs are the
+distribution's parameters (``param_dims``, in order) followed by the value.
 
 =====================  ========================  ==================================  ==========================
 distribution           Gymnasium action space    policy outputs (``params``)         actions (stored ``[N, A]``)
@@ -15,7 +15,9 @@ distribution           Gymnasium action space    policy outputs (``params``)    
                                                                                      entries count
 =====================  ========================  ==================================  ==========================
 
-Actions are stored as floats (indices are exact below 2²⁴) so that every distribution shares the rollout's layout;
+The loss, the KL penalty and the sampling read only these functions; the one thing PPO asks of the kind is the
+logged σ (``action_std``), a Gaussian's own figure. Actions are stored as floats (indices are exact below 2²⁴) so
+that every distribution shares the rollout's layout;
 :meth:`ActionDistribution.env_actions` gives the env integers. Sampling reads noise PPO draws for the whole rollout at
 once (``noise_kind``: standard normal for the Gaussian, uniform [0, 1) for the others; one number per action entry):
 a Gaussian action is ``mean + σ·z``, a categorical one the inverse CDF at ``u``, a Bernoulli one ``u < p``.
@@ -42,22 +44,38 @@ Params = tuple[torch.Tensor, ...]
 # ------------------------------------------------------------------------------------------------ the pure functions
 
 
+def gaussian_log_prob_entries(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
+    """log N(actions; mean, exp(log_std)) of each entry: ``[..., A]`` → ``[..., A]``."""
+    z = (actions - mean) * torch.exp(-log_std)
+    return -0.5 * z.square() - log_std - LOG_SQRT_2PI
+
+
+def gaussian_entropy_entries(log_std: torch.Tensor) -> torch.Tensor:
+    """Each entry's entropy of a diagonal Gaussian: ``[..., A]`` → ``[..., A]``."""
+    return log_std + 0.5 + LOG_SQRT_2PI
+
+
+def gaussian_kl_entries(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor,
+                        log_std1: torch.Tensor) -> torch.Tensor:
+    """Each entry's KL(N(mean0, σ0) ‖ N(mean1, σ1)): ``[..., A]`` → ``[..., A]``."""
+    var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
+    mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
+    return log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5
+
+
 def gaussian_log_prob(actions: torch.Tensor, mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
     """log N(actions; mean, exp(log_std)) summed over the last dim: ``[..., A]`` → ``[...]``."""
-    z = (actions - mean) * torch.exp(-log_std)
-    return (-0.5 * z.square() - log_std - LOG_SQRT_2PI).sum(-1)
+    return gaussian_log_prob_entries(actions, mean, log_std).sum(-1)
 
 
 def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
     """Entropy of a diagonal Gaussian, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    return (log_std + 0.5 + LOG_SQRT_2PI).sum(-1)
+    return gaussian_entropy_entries(log_std).sum(-1)
 
 
 def gaussian_kl(mean0: torch.Tensor, log_std0: torch.Tensor, mean1: torch.Tensor, log_std1: torch.Tensor) -> torch.Tensor:
     """KL(N(mean0, σ0) ‖ N(mean1, σ1)) of diagonal Gaussians, summed over the last dim: ``[..., A]`` → ``[...]``."""
-    var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
-    mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
-    return (log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5).sum(-1)
+    return gaussian_kl_entries(mean0, log_std0, mean1, log_std1).sum(-1)
 
 
 def categorical_log_prob(logits: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
@@ -102,6 +120,11 @@ def bernoulli_kl(logits0: torch.Tensor, logits1: torch.Tensor) -> torch.Tensor:
     cross = F.binary_cross_entropy_with_logits(logits1, p0, reduction="none")
     own = F.binary_cross_entropy_with_logits(logits0, p0, reduction="none")
     return (cross - own).sum(-1)
+
+
+def _check_size(value: Any, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"an action distribution's {name} must be a positive int, got {value!r}")
 
 
 def _total(parts: list[torch.Tensor]) -> torch.Tensor:
@@ -162,7 +185,7 @@ class ActionDistribution:
         return tuple(flat.split(list(self.param_dims), dim=-1))
 
     def spec(self) -> dict[str, Any]:
-        """A plain description that :func:`from_spec` rebuilds (checkpoints store it)."""
+        """A plain description that :func:`from_spec` rebuilds (a network's ``init_kwargs`` may hold it)."""
         raise NotImplementedError
 
 
@@ -173,6 +196,9 @@ class DiagGaussian(ActionDistribution):
     dim: int
     noise_kind = "normal"
     discrete = False
+
+    def __post_init__(self) -> None:
+        _check_size(self.dim, "dim")
 
     @property
     def action_dim(self) -> int:
@@ -223,17 +249,14 @@ class MaskedDiagGaussian(DiagGaussian):
 
     def log_prob(self, params: Params, actions: torch.Tensor) -> torch.Tensor:
         mean, log_std, mask = params
-        z = (actions - mean) * torch.exp(-log_std)
-        return ((-0.5 * z.square() - log_std - LOG_SQRT_2PI) * mask).sum(-1)
+        return (gaussian_log_prob_entries(actions, mean, log_std) * mask).sum(-1)
 
     def entropy(self, params: Params) -> torch.Tensor:
-        return ((params[1] + 0.5 + LOG_SQRT_2PI) * params[2]).sum(-1)
+        return (gaussian_entropy_entries(params[1]) * params[2]).sum(-1)
 
     def kl(self, old: Params, new: Params) -> torch.Tensor:
         (mean0, log_std0, mask), (mean1, log_std1, _) = old, new
-        var_ratio = torch.exp(2.0 * (log_std0 - log_std1))
-        mahalanobis = ((mean0 - mean1) * torch.exp(-log_std1)).square()
-        return ((log_std1 - log_std0 + 0.5 * (var_ratio + mahalanobis) - 0.5) * mask).sum(-1)
+        return (gaussian_kl_entries(mean0, log_std0, mean1, log_std1) * mask).sum(-1)
 
     def spec(self) -> dict[str, Any]:
         return {"kind": "masked_gaussian", "dim": self.dim}
@@ -305,6 +328,9 @@ class Bernoulli(ActionDistribution):
 
     n: int
 
+    def __post_init__(self) -> None:
+        _check_size(self.n, "n")
+
     @property
     def action_dim(self) -> int:
         return self.n
@@ -367,7 +393,7 @@ def for_space(space: Any) -> ActionDistribution:
 
 
 __all__ = ["ActionDistribution", "Bernoulli", "Categorical", "DiagGaussian", "MaskedDiagGaussian", "MultiCategorical",
-           "Params",
-           "bernoulli_entropy", "bernoulli_kl", "bernoulli_log_prob", "categorical_entropy", "categorical_kl",
-           "categorical_log_prob", "categorical_sample", "for_space", "from_spec", "gaussian_entropy", "gaussian_kl",
-           "gaussian_log_prob"]
+           "Params", "bernoulli_entropy", "bernoulli_kl", "bernoulli_log_prob", "categorical_entropy", "categorical_kl",
+           "categorical_log_prob", "categorical_sample", "for_space", "from_spec", "gaussian_entropy",
+           "gaussian_entropy_entries", "gaussian_kl", "gaussian_kl_entries", "gaussian_log_prob",
+           "gaussian_log_prob_entries"]

@@ -17,6 +17,7 @@ critic once over the whole rollout, which with one env is most of the acting cos
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
 
 import torch
@@ -90,9 +91,15 @@ class VoxelActorCritic(nn.Module):
     ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere, where the
     sparse path's speed was not measured. All read the same parameters (``conv1``, ``conv2``), so state dicts are
     interchangeable, and a test pins the two computations equal (outputs and gradients).
+
+    ``distribution``: the paper's Gaussian over the design action ``[x, y, z, w_0 … w_{k−1}]`` (None, the default),
+    or another one (an ``ActionDistribution`` or its ``spec()``; not a masked one): the same trunk then ends in that
+    distribution's logits, Linear(h → Σ logits), Xavier like the Gaussian's head — e.g. a categorical over grid cells
+    for a design env of your own with discrete actions.
     """
 
-    def __init__(self, resolution: int = 20, materials: int = 2, hidden: int = 128, trunk: str = "auto") -> None:
+    def __init__(self, resolution: int = 20, materials: int = 2, hidden: int = 128, trunk: str = "auto",
+                 distribution: ActionDistribution | dict[str, Any] | None = None) -> None:
         """``resolution`` ρ: grid edge; ``materials`` k: material count incl. empty (index 0); ``hidden`` h."""
         super().__init__()
         if not isinstance(resolution, int) or resolution < 2:
@@ -103,22 +110,29 @@ class VoxelActorCritic(nn.Module):
             raise ValueError(f"hidden must be a positive int, got {hidden!r}")
         if trunk not in TRUNK_IMPLEMENTATIONS:
             raise ValueError(f"trunk must be one of {TRUNK_IMPLEMENTATIONS}, got {trunk!r}")
-        self.init_kwargs = dict(resolution=resolution, materials=materials, hidden=hidden, trunk=trunk)
+        self.init_kwargs: dict[str, Any] = dict(resolution=resolution, materials=materials, hidden=hidden, trunk=trunk)
         self.resolution = resolution
         self.materials = materials
         self.hidden = hidden
         self.trunk = trunk
-        self.action_dim = 3 + materials
-        self.distribution = DiagGaussian(self.action_dim)
+        dist = DiagGaussian(3 + materials) if distribution is None else from_spec(distribution)
+        if isinstance(dist, MaskedDiagGaussian):
+            raise ValueError("VoxelActorCritic has no head for a MaskedDiagGaussian: use ConvController")
+        self.gaussian = type(dist) is DiagGaussian
+        if distribution is not None:
+            self.init_kwargs["distribution"] = dist.spec()
+        self.action_dim = dist.action_dim
+        self.distribution = dist
         # The action layout is [x, y, z, w_0 … w_{k-1}] (spec design.md, "Action → bundle").
-        self.action_groups = {"position": slice(0, 3), "material": slice(3, 3 + materials)}
+        self.action_groups = ({"position": slice(0, 3), "material": slice(3, 3 + materials)}
+                              if self.gaussian and self.action_dim == 3 + materials else {})
 
         self.conv1 = nn.Conv3d(materials, 1, kernel_size=3, stride=1, padding=1)
         self.conv2 = nn.Conv3d(1, 1, kernel_size=5, stride=2, padding=2)
         half = math.ceil(resolution / 2)  # Conv3d output edge: floor((ρ + 2·2 − 5) / 2) + 1
         self.trunk_fc = nn.Linear(half**3, hidden)
         self.actor_fc = _xavier_zero(nn.Linear(hidden, hidden))
-        self.actor_out = _xavier_zero(nn.Linear(hidden, 2 * self.action_dim))
+        self.actor_out = _xavier_zero(nn.Linear(hidden, 2 * self.action_dim if self.gaussian else dist.param_dims[0]))
         self.critic_fc = _xavier_zero(nn.Linear(hidden, hidden))
         self.critic_out = _xavier_zero(nn.Linear(hidden, 1))
 
@@ -142,12 +156,15 @@ class VoxelActorCritic(nn.Module):
         x = F.relu(self.conv2(x))
         return self.trunk_fc(x.flatten(1))
 
-    def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """uint8 ``[N, ρ, ρ, ρ]`` → (mean ``[N, 3+k]``, log_std ``[N, 3+k]``, value ``[N]``)."""
+    def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """uint8 ``[N, ρ, ρ, ρ]`` → (mean ``[N, 3+k]``, log_std ``[N, 3+k]``, value ``[N]``), or (logits, value)."""
         z = self.features(grids)
-        mean, log_std = self.actor_out(F.relu(self.actor_fc(z))).chunk(2, dim=-1)
+        head = self.actor_out(F.relu(self.actor_fc(z)))
         value = self.critic_out(F.relu(self.critic_fc(z))).squeeze(-1)
-        return mean, log_std, value
+        if self.gaussian:
+            mean, log_std = head.chunk(2, dim=-1)
+            return mean, log_std, value
+        return head, value
 
 
 class MLPActorCritic(nn.Module):
@@ -177,6 +194,9 @@ class MLPActorCritic(nn.Module):
                 raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
             distribution = DiagGaussian(action_dim)
         dist = from_spec(distribution)
+        if isinstance(dist, MaskedDiagGaussian):
+            raise ValueError("MLPActorCritic has no head for a MaskedDiagGaussian (its mask comes from the observation): "
+                             "use MLPController or ConvController for a control env")
         if action_dim is not None and action_dim != dist.action_dim:
             raise ValueError(f"action_dim {action_dim!r} disagrees with the {dist} ({dist.action_dim} numbers per action)")
         hidden = tuple(hidden)
@@ -212,6 +232,10 @@ class MLPActorCritic(nn.Module):
     def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> MLPActorCritic:
         """The network for a ``VecEnv``: its flattened observation size and its ``action_distribution`` (a
         Gaussian over ``action_dim`` where it declares none)."""
+        if isinstance(env.observation_shape, Mapping):
+            raise ValueError(f"MLPActorCritic reads one flat observation, and this env observes a dict of them "
+                             f"{dict(env.observation_shape)}: flatten them (from_gymnasium's default) or write a "
+                             "network that reads the parts by name")
         return cls(int(math.prod(env.observation_shape)), int(env.action_dim), hidden,
                    getattr(env, "action_distribution", None))
 
@@ -249,6 +273,20 @@ class MLPActorCritic(nn.Module):
         return (*self.action_params(obs), self.value(obs))
 
 
+def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
+    """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
+    channel."""
+    if not isinstance(channels, int) or channels < 1:
+        raise ValueError(f"channels must be a positive int, got {channels!r}")
+    box = tuple(int(b) for b in box)
+    if len(box) != 3 or min(box) < 1:
+        raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
+    for name, index in channel_indices.items():
+        if not isinstance(index, int) or not 0 <= index < channels:
+            raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
+    return box  # type: ignore[return-value]
+
+
 class ConvController(nn.Module):
     """A controller that fits any body: a fully convolutional 3-D actor-critic over a body's cells.
 
@@ -264,12 +302,7 @@ class ConvController(nn.Module):
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 16, log_std: float = 0.0) -> None:
         super().__init__()
-        box = tuple(int(b) for b in box)
-        if len(box) != 3 or min(box) < 1:
-            raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
-        for name, index in (("mask_channel", mask_channel), ("filled_channel", filled_channel)):
-            if not isinstance(index, int) or not 0 <= index < channels:
-                raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
+        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
         if not isinstance(hidden, int) or hidden < 1:
             raise ValueError(f"hidden must be a positive int, got {hidden!r}")
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
@@ -288,7 +321,7 @@ class ConvController(nn.Module):
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16) -> ConvController:
         """The controller for a ``ControlEnv`` (its box, channels and mask channel)."""
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, 0, hidden)
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
@@ -310,7 +343,7 @@ class MLPController(nn.Module):
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int,
                  hidden: tuple[int, ...] | list[int] = (64, 64)) -> None:
         super().__init__()
-        box = tuple(int(b) for b in box)
+        box = _check_control_input(channels, box, mask_channel=mask_channel)
         cells = math.prod(box)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden))
         self.box, self.mask_channel = box, mask_channel

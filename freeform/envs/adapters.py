@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-__all__ = ["ActionDecoder", "FreeformVectorEnv", "GymnasiumVecEnv", "ObservationEncoder", "from_gymnasium", "to_gymnasium"]
+__all__ = ["ActionDecoder", "DictEncoder", "FreeformVectorEnv", "GymnasiumVecEnv", "ObservationEncoder", "from_gymnasium",
+           "to_gymnasium"]
 
 
 _LEAVES = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
@@ -171,7 +172,8 @@ class GymnasiumVecEnv:
     Actions: ``Box`` (a Gaussian policy; clipped to the bounds for the env, PPO stores what it sampled, unclipped),
     ``Discrete``, ``MultiDiscrete``, ``MultiBinary`` (``action_distribution`` says which distribution PPO trains;
     :class:`ActionDecoder`). Observations: a ``Box`` as it is (float32, or ``uint8`` images kept ``uint8``), any
-    other space flattened to float32 with one-hot discrete parts (:class:`ObservationEncoder`).
+    other space flattened to float32 with one-hot discrete parts (:class:`ObservationEncoder`); with ``dict_obs`` a
+    ``Dict`` space's parts kept apart, a dict of tensors (:class:`DictEncoder`).
 
     ``step(actions [N, A])`` returns tensors on ``device``: ``obs [N, *obs_shape]``, ``reward [N]``, ``done [N]``
     (terminated or truncated) and ``info`` with ``truncated [N]`` (truncated and not terminated), ``terminated [N]``,
@@ -207,8 +209,9 @@ class GymnasiumVecEnv:
         x = torch.from_numpy(x)
         return x if self.device.type == "cpu" else x.to(self.device)
 
-    def reset(self, seed: int | None = None) -> torch.Tensor:
-        """Reset every env (seeded with ``seed``, else the adapter's ``seed``; Gymnasium gives env i seed + i)."""
+    def reset(self, seed: int | None = None) -> Any:
+        """Reset every env (seeded with ``seed``, else the adapter's ``seed``; Gymnasium gives env i seed + i): the
+        first observations, a tensor (a dict of them with ``dict_obs``)."""
         seed = seed if seed is not None else self.seed
         obs, _ = self.vector_env.reset(seed=seed)
         self._resetting[:] = False
@@ -367,6 +370,9 @@ class FreeformVectorEnv(gym.vector.VectorEnv):
 
 
 def _default_observation_space(env: Any) -> gym.spaces.Box:
+    if isinstance(env.observation_shape, dict):
+        raise ValueError("to_gymnasium needs an observation_space for an env that observes a dict of tensors "
+                         f"{env.observation_shape}: pass a gymnasium.spaces.Dict")
     shape = tuple(env.observation_shape)
     materials = getattr(env, "materials", None)
     if materials is not None:  # the design env: uint8 grids of material indices 0 … k − 1

@@ -13,13 +13,20 @@ import torch
 class VecEnv(Protocol):
     """A batch of ``num_envs`` environments stepped together, on one torch device.
 
-    ``reset(seed)`` returns the first observations ``[num_envs, *observation_shape]``.
-    ``step(actions [num_envs, action_dim])`` returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``,
+    ``reset(seed)`` returns the first observations ``[num_envs, *observation_shape]`` (or a dict of such tensors,
+    with ``observation_shape`` a dict of shapes: an env whose observations have named parts, for a policy that
+    reads them by name).
+    ``step(actions [num_envs, action_dim])`` (float, or int64 indices for an env whose ``action_distribution`` is
+    discrete) returns ``(obs, reward [num_envs] float32, done [num_envs] bool, info)``,
     new tensors each step: PPO keeps them, and the ``actions`` it passed, until its rollout ends, so an env must
     not write into a tensor it returned nor into ``actions``.
     When ``done[i]`` the environment resets itself: ``obs[i]`` is the first observation of the next episode, and
     whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
     ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).
+
+    Optional attribute: ``action_distribution``, the ``freeform.agents.distributions.ActionDistribution`` its actions
+    need (a categorical for discrete actions, a masked Gaussian for a control env; none: a Gaussian over
+    ``action_dim`` floats).
 
     Optional ``info`` keys PPO reads (the design env sets none: its episodes end only by termination, at step T):
 

@@ -139,6 +139,7 @@ class ControlEnv:
         self.action_distribution = MaskedDiagGaussian(self.action_dim)
         """What PPO trains: a Gaussian per cell, counted where the ``actuated`` channel (``mask_channel``) is 1."""
         self.mask_channel = OBS_CHANNELS.index("actuated")
+        self.filled_channel = OBS_CHANNELS.index("filled")
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
         self._actuated = actuated.astype(np.float64)
         L = self.sim_config.voxel_size
@@ -155,6 +156,8 @@ class ControlEnv:
         """Place the bodies, settle them for ``control.burn_in`` seconds (zero commands), draw the headings."""
         if seed is not None:
             self._rng = np.random.default_rng(seed)
+        if self._settled is not None and self.engine is not None and not self.engine.current:
+            self._settled = None  # someone built another engine on this env's simulator: settle afresh
         if self._settled is None:  # the first episode settles the bodies; the others start from that state
             self.engine = self.simulator.engine(self.layout)
             if self.control.burn_in > 0:

@@ -164,6 +164,11 @@ class Engine:
         self._limit: np.ndarray | None = None  # each robot's clock limit while advance_time steps it
 
     # ------------------------------------------------------------------ host <-> device, one region at a time
+    @property
+    def current(self) -> bool:
+        """Whether this engine still owns its device arrays (a later Engine of the same Simulator takes them)."""
+        return self._arrays.owner is self
+
     def _check_owner(self) -> None:
         if self._arrays.owner is not self:
             raise RuntimeError(

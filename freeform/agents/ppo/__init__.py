@@ -24,11 +24,20 @@ from freeform.agents.ppo.losses import (
     standardize,
     update_kl_coeff,
 )
-from freeform.agents.ppo.ppo import PPO, builtin_policies, policy_class_name
-from freeform.agents.ppo.rollout import Rollout, Samples, minibatch_samples, sample_columns
+from freeform.agents.ppo.ppo import PPO, builtin_policies, choose_distribution, policy_class_name
+from freeform.agents.ppo.rollout import (
+    Observation,
+    Rollout,
+    Samples,
+    minibatch_samples,
+    obs_first,
+    obs_map,
+    obs_shapes,
+    sample_columns,
+)
 
 __all__ = ["ADVANTAGE_NORMS", "CLEANRL_DISCRETE_PRESET", "CLEANRL_PRESET", "LR_SCHEDULES", "PPO", "VALUE_CLIP_MODES", "PPOConfig", "Rollout",
-           "Samples", "builtin_policies", "clamped_value_loss", "clipped_surrogate", "compute_advantages",
+           "Samples", "Observation", "builtin_policies", "choose_distribution", "obs_first", "obs_map", "obs_shapes", "clamped_value_loss", "clipped_surrogate", "compute_advantages",
            "discounted_cumsum", "explained_variance", "gaussian_entropy", "gaussian_kl", "gaussian_log_prob",
            "minibatch_loss", "minibatch_samples", "policy_class_name", "ppo2_value_loss", "sample_columns",
            "standardize", "update_kl_coeff"]

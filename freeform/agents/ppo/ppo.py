@@ -9,7 +9,8 @@ Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.actio
 
 The action distribution (``freeform.agents.distributions``: a Gaussian for Box actions, categoricals or bits for
 discrete ones) is decided once, at construction, from the policy or the env (:func:`choose_distribution`); below,
-``self.distribution`` samples, scores and compares actions and nothing asks which one it is.
+``self.distribution`` samples, scores and compares actions, and only the logged σ (a Gaussian's own figure) asks
+which one it is.
 
 Every collective sits behind ``self.dp`` (``freeform.agents.distributed.Collectives``), the identity in one process:
 the code below is the single-process algorithm. Under ``torch.distributed`` (a process group of R > 1 ranks, e.g.
@@ -62,7 +63,7 @@ if TYPE_CHECKING:  # (the TensorBoard writer is not imported with PPO)
 
 
 class _TrainBatch(NamedTuple):
-    """An update's view of the rollout: ``obs [B, ...]`` and ``samples [B, 3A + 3]`` (this rank's), ``advantages``
+    """An update's view of the rollout: ``obs [B, ...]`` and ``samples [B, A + P + 3]`` (this rank's), ``advantages``
     of the global batch, ``kept`` (the global indices of real transitions, None: all) and the global sample count."""
 
     obs: Observation
@@ -121,6 +122,9 @@ class PPO:
         """N, environments over all ranks (= ``env.num_envs`` in one process)."""
         self.distribution = choose_distribution(policy, env)
         """The action distribution π(·|obs): the policy outputs its parameters (``param_dims``), then V."""
+        if config.obs_norm and isinstance(self.distribution, MaskedDiagGaussian):
+            raise ValueError("obs_norm would rescale the observation channel that the policy reads its action mask "
+                             "from (a MaskedDiagGaussian's mask must stay 0/1): leave obs_norm off for a control env")
         self.critic_apart = isinstance(policy, SplitActorCritic)
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
