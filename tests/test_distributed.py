@@ -154,21 +154,27 @@ def test_env_slices_are_contiguous_and_balanced() -> None:
         env_slice(4, 2, 2)
 
 
+@pytest.mark.parametrize("kind", ["normal", "uniform"])
 @pytest.mark.parametrize("like_shape", [(4, None, 5), (None, 5)], ids=["rollout [T, n, A]", "step [n, A]"])
-def test_each_rank_keeps_its_envs_of_the_single_process_noise(like_shape: tuple) -> None:
-    """Ranks holding 3 and 2 of N = 5 envs: their noise, joined along the env dimension, is the single process's
-    draw, and every rank's generator ends where the single process's does."""
+def test_each_rank_keeps_its_envs_of_the_single_process_noise(like_shape: tuple, kind: str) -> None:
+    """Ranks holding 3 and 2 of N = 5 envs: their noise (a Gaussian's normal draws, or the uniform ones of the
+    discrete distributions), joined along the env dimension, is the single process's draw, and every rank's
+    generator ends where the single process's does."""
     def draw(dp: Collectives, local: int) -> tuple[torch.Tensor, torch.Tensor]:
         g = torch.Generator().manual_seed(7)
         shape = tuple(local if d is None else d for d in like_shape)
-        return dp.env_noise(torch.empty(shape), g), g.get_state()
+        return dp.env_noise(torch.empty(shape), g, kind), g.get_state()
 
     single, single_state = draw(Collectives.single(5), 5)
     parts = [draw(DataParallel(rank=r, world_size=2, counts=(3, 2)), n) for r, n in ((0, 3), (1, 2))]
     torch.testing.assert_close(torch.cat([p for p, _ in parts], dim=-2), single, rtol=0, atol=0)
     assert all(torch.equal(state, single_state) for _, state in parts)
+    if kind == "uniform":
+        assert (single >= 0).all() and (single < 1).all()
     with pytest.raises(ValueError, match="dimension -2"):
         DataParallel(rank=0, world_size=2, counts=(3, 2)).env_noise(torch.empty(3, 2, 5), torch.Generator())
+    with pytest.raises(ValueError, match="noise kind"):
+        Collectives.single(5).env_noise(torch.empty(5, 2), torch.Generator(), "poisson")
 
 
 def test_local_indices_pick_this_ranks_samples_in_minibatch_order() -> None:
