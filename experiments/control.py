@@ -92,7 +92,7 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
 
     args = json.loads((directory / "args.json").read_text())
     body = torch.from_numpy(np.load(directory / "walker.npy"))
-    sim, control = SimConfig(), ControlConfig(burn_in=args["burn_in"])
+    sim, control = SimConfig(), ControlConfig(burn_in=args["burn_in"], command_rate=args.get("command_rate"))
     payload = load_checkpoint(directory / "controller.pt")
     policy = ConvController(**payload["policy_kwargs"])
     policy.load_state_dict(payload["ppo"]["policy"])
@@ -152,6 +152,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--log-std", type=float, default=-0.5, help="the controller's initial log σ (commands lie in [-1, 1])")
     p.add_argument("--burn-in", type=float, default=2.0,
                    help="seconds of settling before the window (2 s, as the locomotion demo: bodies have landed)")
+    p.add_argument("--command-rate", type=float, default=None,
+                   help="the most a command may change per second (ControlConfig.command_rate; default: any)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/control_walker")
     p.add_argument("--gait", metavar="DIR", help="only replay DIR's trained controller and write its gait")
@@ -162,7 +164,7 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
-    sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in)
+    sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in, command_rate=args.command_rate)
 
     t0 = time.perf_counter()
     body, scores = walker(args.candidates, sim, control, args.seed)

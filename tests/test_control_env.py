@@ -13,7 +13,7 @@ from freeform.envs import VecEnv
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig
 from freeform.sim.config import material_table
-from freeform.sim.state import MT
+from freeform.sim.state import MT, VR
 
 C = {name: i for i, name in enumerate(OBS_CHANNELS)}
 
@@ -118,3 +118,23 @@ def test_every_episode_starts_from_the_settled_state_of_a_fresh_env():
     expected = episode(fresh, fresh.reset())
     for a, b in zip(second, expected, strict=True):
         assert torch.equal(a, b)
+
+
+def test_a_command_rate_limits_each_steps_change():
+    """``command_rate`` r: each step's command moves towards the action by at most r·period (here 0.25 of the full
+    range per step), so a step from 0 to 1 takes four steps; without it the command is the action at once."""
+    control = ControlConfig(burn_in=0.0, duration=0.0625, command_rate=20.0)  # 20 /s · 0.0125 s = 0.25 per step
+    env = ControlEnv(pair(), sim=SimConfig(precision="f64"), control=control)
+    env.reset()
+    muscle = env.layout.material == 2
+    seen = []
+    for action in (1.0, 1.0, -1.0, 1.0):
+        env.step(torch.full((1, 2), action))
+        seen.append(float(env.engine._table("vr")[VR.CMD][muscle][0]))
+    assert seen == pytest.approx([0.25, 0.5, 0.25, 0.5])
+    free = ControlEnv(pair(), sim=SimConfig(precision="f64"), control=ControlConfig(burn_in=0.0, duration=0.05))
+    free.reset()
+    free.step(torch.full((1, 2), 0.7))
+    assert float(free.engine._table("vr")[VR.CMD][free.layout.material == 2][0]) == pytest.approx(0.7)
+    with pytest.raises(ValueError, match="command_rate"):
+        ControlEnv(pair(), control=ControlConfig(command_rate=0.0))

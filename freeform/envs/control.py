@@ -61,12 +61,17 @@ class ControlConfig:
     duration: simulated seconds of control per episode (``round(duration / period)`` steps).
     burn_in: seconds of settling before the controller acts (commands 0).
     headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering).
+    command_rate: the most a voxel's command may change per simulated second (None: any change, at once — Voxelyze's
+        actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings up to
+        f_max Hz (the open-loop sine's 4 Hz: ≈ 25 /s); each step's command moves towards the action by at most
+        ``command_rate · period``.
     """
 
     period: float = 0.0125
     duration: float = 2.0
     burn_in: float = 0.25
     headings: str = "fixed"
+    command_rate: float | None = None
 
     @property
     def steps(self) -> int:
@@ -80,6 +85,8 @@ class ControlConfig:
             raise ValueError(f"{key}.burn_in must be >= 0 (seconds), got {self.burn_in!r}")
         if self.headings not in HEADINGS:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
+        if self.command_rate is not None and not self.command_rate > 0:
+            raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
 
 
 class ControlEnv:
@@ -168,6 +175,7 @@ class ControlEnv:
         self.heading = (self._rng.uniform(0.0, 2 * math.pi, self.num_envs) if self.control.headings == "random"
                         else np.zeros(self.num_envs))
         self.t = 0
+        self._command = np.zeros(self.layout.num_voxels)  # (the settled state's: commands start at 0)
         obs, self._com = self._observe()
         return obs
 
@@ -196,7 +204,12 @@ class ControlEnv:
         commands = a.reshape(-1)[self._flat_t.to(a.device)].to("cpu", torch.float64)
         if not torch.isfinite(commands).all():
             raise ValueError("actions must be finite in the cells that hold a voxel")
-        self.engine.set_commands(commands.clamp(-1.0, 1.0).numpy())
+        target = commands.clamp(-1.0, 1.0).numpy()
+        if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per step
+            most = self.control.command_rate * self.control.period
+            target = np.clip(target, self._command - most, self._command + most)
+        self._command = target
+        self.engine.set_commands(target)
         self.engine.advance_time(self.control.period)
         self.t += 1
         obs, com = self._observe()
