@@ -32,9 +32,7 @@ from pathlib import Path
 
 import torch
 
-from freeform.body import largest_component
-from freeform.envs.design import DesignEnv
-from freeform.evolve import untrained_design_grids
+from freeform.evolve import untrained_design_bodies
 from freeform.sim import SimConfig, Simulator, Terrain
 
 RHO, K, T_ACTIONS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
@@ -44,11 +42,9 @@ TARGET_VOXEL_STEPS = 3.5e7 * float(os.environ.get("FREEFORM_BENCH_SCALE", "1"))
 
 
 def random_design_bodies(n: int, seed: int = 0) -> torch.Tensor:
-    """Bodies of an untrained policy: uint8 ``[n, ρ, ρ, ρ]``, the largest 6-connected component of each grid that
-    ``DesignEnv`` builds from T actions drawn from N(0, I) (no fallback: if the environment breaks, this does)."""
-    env = DesignEnv(n, resolution=RHO, materials=K, steps=T_ACTIONS, bundle_size=BUNDLE, seed=seed,
-                    compute_metrics=False)
-    return largest_component(untrained_design_grids(env, seed))
+    """Bodies of an untrained policy in the paper's design setting (``untrained_design_bodies``; no fallback: if the
+    environment breaks, this does)."""
+    return untrained_design_bodies(n, RHO, K, T_ACTIONS, BUNDLE, seed)
 
 
 def cubes(batch: int, edge: int, material: int) -> torch.Tensor:

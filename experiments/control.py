@@ -26,6 +26,7 @@ import argparse
 import csv
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +34,8 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.body import largest_component
 from freeform.envs.control import ControlConfig, ControlEnv
-from freeform.envs.design import DesignEnv
-from freeform.evolve import untrained_design_grids
+from freeform.evolve import untrained_design_bodies
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.state import RUNNING
 
@@ -45,8 +44,7 @@ RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's 
 
 def open_loop(grids: torch.Tensor, sim: SimConfig, control: ControlConfig) -> np.ndarray:
     """Each body's open-loop move along +x over the control window, in voxel lengths ``[N]`` (0 if it failed)."""
-    config = SimConfig(**{**sim.__dict__, "actuation": "sine", "burn_in": 0.0,
-                          "duration": control.burn_in + control.duration + 1.0})
+    config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
     simulator = Simulator(config)
     engine = simulator.engine(simulator.layout(grids))
     engine.advance_time(control.burn_in)
@@ -59,9 +57,7 @@ def open_loop(grids: torch.Tensor, sim: SimConfig, control: ControlConfig) -> np
 
 def walker(candidates: int, sim: SimConfig, control: ControlConfig, seed: int) -> tuple[torch.Tensor, np.ndarray]:
     """The best open-loop body of ``candidates`` untrained designs ``[1, ρ, ρ, ρ]``, and every candidate's score."""
-    env = DesignEnv(candidates, resolution=RHO, materials=MATERIALS, steps=DESIGN_STEPS, bundle_size=BUNDLE,
-                    seed=seed, compute_metrics=False)
-    grids = largest_component(untrained_design_grids(env, seed))
+    grids = untrained_design_bodies(candidates, RHO, MATERIALS, DESIGN_STEPS, BUNDLE, seed)
     grids = grids[grids.flatten(1).any(dim=1)]
     scores = open_loop(grids, sim, control)
     return grids[int(np.argmax(scores))][None], scores
@@ -116,7 +112,7 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
                           positions=[np.stack(positions).astype(np.float32)],
                           orientations=[np.stack(orientations).astype(np.float32)])
     write_video(directory / "gait_closed_loop.gif", render_recording(recording), fps=fps / 2)
-    open_loop_sim = Simulator(SimConfig(**{**sim.__dict__, "burn_in": control.burn_in, "duration": control.duration}))
+    open_loop_sim = Simulator(replace(sim, burn_in=control.burn_in, duration=control.duration))
     write_video(directory / "gait_open_loop.gif", render_recording(simulate_gait(open_loop_sim, body.numpy()[0], fps)),
                 fps=fps / 2)
     c = np.stack(commands)  # [steps, actuated voxels]

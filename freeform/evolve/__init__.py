@@ -17,7 +17,7 @@ from freeform.evolve.cma import CMAES
 from freeform.evolve.config import ALGORITHMS, AlgoConfig
 from freeform.evolve.ga import SequenceGA
 from freeform.evolve.grid_ga import GridGA
-from freeform.evolve.runner import Evolution, design_grids, untrained_design_grids
+from freeform.evolve.runner import Evolution, design_grids, untrained_design_bodies, untrained_design_grids
 
 
 def build_evolution(algo: AlgoConfig, env: Any, seed: int) -> Evolution:
@@ -40,4 +40,4 @@ def build_evolution(algo: AlgoConfig, env: Any, seed: int) -> Evolution:
 
 
 __all__ = ["ALGORITHMS", "AlgoConfig", "CMAES", "Evolution", "GridGA", "SequenceGA", "build_evolution",
-           "design_grids", "untrained_design_grids"]
+           "design_grids", "untrained_design_bodies", "untrained_design_grids"]

@@ -57,6 +57,18 @@ def untrained_design_grids(env: Any, seed: int) -> torch.Tensor:
     return design_grids(env, torch.stack(actions, dim=1))
 
 
+def untrained_design_bodies(n: int, resolution: int, materials: int, steps: int, bundle_size: int,
+                            seed: int = 0) -> torch.Tensor:
+    """Bodies of an untrained policy: uint8 ``[n, ρ, ρ, ρ]``, the largest 6-connected component of each grid that a
+    ``DesignEnv`` of these sizes builds from ``steps`` actions drawn from N(0, I) (benchmarks, scripts, demos)."""
+    from freeform.body import largest_component
+    from freeform.envs.design import DesignEnv
+
+    env = DesignEnv(n, resolution=resolution, materials=materials, steps=steps, bundle_size=bundle_size, seed=seed,
+                    compute_metrics=False)
+    return largest_component(untrained_design_grids(env, seed))
+
+
 def _np(x: torch.Tensor) -> np.ndarray:
     return x.detach().to("cpu").numpy()
 
