@@ -34,33 +34,10 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.envs.control import ControlConfig, ControlEnv
-from freeform.evolve import untrained_design_bodies
+from freeform.envs.control import ControlConfig, ControlEnv, untrained_walker
 from freeform.sim import SimConfig, Simulator
-from freeform.sim.state import RUNNING
 
 RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
-
-
-def open_loop(grids: torch.Tensor, sim: SimConfig, control: ControlConfig) -> np.ndarray:
-    """Each body's open-loop move along +x over the control window, in voxel lengths ``[N]`` (0 if it failed)."""
-    config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
-    simulator = Simulator(config)
-    engine = simulator.engine(simulator.layout(grids))
-    engine.advance_time(control.burn_in)
-    start = engine.sense()[1]
-    engine.advance_time(control.duration)
-    end = engine.sense()[1]
-    ok = engine.robot_status() == RUNNING
-    return np.where(ok, (end - start)[:, 0] / sim.voxel_size, 0.0)
-
-
-def walker(candidates: int, sim: SimConfig, control: ControlConfig, seed: int) -> tuple[torch.Tensor, np.ndarray]:
-    """The best open-loop body of ``candidates`` untrained designs ``[1, ρ, ρ, ρ]``, and every candidate's score."""
-    grids = untrained_design_bodies(candidates, RHO, MATERIALS, DESIGN_STEPS, BUNDLE, seed)
-    grids = grids[grids.flatten(1).any(dim=1)]
-    scores = open_loop(grids, sim, control)
-    return grids[int(np.argmax(scores))][None], scores
 
 
 @torch.no_grad()
@@ -84,7 +61,6 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
     from freeform.checkpoint import load_checkpoint
     from freeform.render.gait import render_recording, simulate_gait
     from freeform.render.video import write_video
-    from freeform.sim.simulator import Recording
 
     args = json.loads((directory / "args.json").read_text())
     body = torch.from_numpy(np.load(directory / "walker.npy"))
@@ -93,32 +69,23 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
     policy = ConvController(**payload["policy_kwargs"])
     policy.load_state_dict(payload["ppo"]["policy"])
     env = ControlEnv(body, sim=sim, control=control)
-    obs = env.reset()
-    lay, L = env.layout, sim.voxel_size
-    positions, orientations, commands, com = [env.engine.positions()], [env.engine.orientations()], [], []
-    total = 0.0
-    for _ in range(control.steps):
+    com: list[float] = []
+
+    def act(obs: torch.Tensor) -> torch.Tensor:  # the controller's mode, and the height of the centre of mass
+        com.append(float(env.engine.sense()[1][0, 2]))
         mean, _, mask, _ = policy(obs)
-        action = (mean * mask).clamp(-1, 1)
-        commands.append(action[0][env.action_mask[0]].numpy())
-        obs, reward, done, info = env.step(action)
-        total += float(reward[0])
-        if not bool(done[0]):
-            positions.append(env.engine.positions())
-            orientations.append(env.engine.orientations())
-            com.append(env._com[0].copy())
-    recording = Recording(times=control.burn_in + control.period * np.arange(len(positions)), voxel_size=L,
-                          lattice=[lay.lattice], materials=[lay.material],
-                          positions=[np.stack(positions).astype(np.float32)],
-                          orientations=[np.stack(orientations).astype(np.float32)])
+        return (mean * mask).clamp(-1, 1)
+
+    recording, c, total = env.record(act)
+    L = sim.voxel_size
     write_video(directory / "gait_closed_loop.gif", render_recording(recording), fps=fps / 2)
     open_loop_sim = Simulator(replace(sim, burn_in=control.burn_in, duration=control.duration))
     write_video(directory / "gait_open_loop.gif", render_recording(simulate_gait(open_loop_sim, body.numpy()[0], fps)),
                 fps=fps / 2)
-    c = np.stack(commands)  # [steps, actuated voxels]
+    # c: the commands [steps, actuated voxels]
     spectrum = np.abs(np.fft.rfft(c - c.mean(0), axis=0)).mean(1)
     freqs = np.fft.rfftfreq(len(c), d=control.period)
-    com_z = np.stack(com)[:, 2] / L
+    com_z = np.array(com) / L
     figures = {
         "displacement_x": total, "steps": control.steps, "period_s": control.period,
         "com_rise_max": float(com_z.max() - com_z[0]), "com_z_start": float(com_z[0]),
@@ -163,7 +130,7 @@ def main(argv: list[str] | None = None) -> None:
     sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in, command_rate=args.command_rate)
 
     t0 = time.perf_counter()
-    body, scores = walker(args.candidates, sim, control, args.seed)
+    body, scores = untrained_walker(args.candidates, RHO, MATERIALS, DESIGN_STEPS, BUNDLE, args.seed, sim, control)
     print(f"walker: {int((body > 0).sum())} voxels, open loop {scores.max():.3f} voxel lengths over "
           f"{control.duration} s (best of {len(scores)}; median {np.median(scores):.3f}) [{time.perf_counter() - t0:.0f} s]")
     np.save(out / "walker.npy", body.numpy())

@@ -25,6 +25,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
+from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.sim import SimConfig
 from freeform.validation import require
@@ -72,7 +73,8 @@ class AgentConfig(PPOConfig):
     meaning, same checks) plus the network's. Three PPO fields take their value from the run when left None."""
 
     rollout_steps: int | None = None  # type: ignore[assignment]
-    """Steps per environment per epoch; None = env.steps (one episode per environment per epoch, the paper's)."""
+    """Steps per environment per epoch; None = env.steps (one episode per environment per epoch, the paper's; in a
+    control run the control episode's steps)."""
     seed: int | None = None  # type: ignore[assignment]
     """Seed of PPO's sampling/shuffling generator and ``env.reset``; None = the run's ``seed``."""
     device: str | None = None
@@ -90,6 +92,48 @@ class AgentConfig(PPOConfig):
         filled.seed = 0 if self.seed is None else self.seed
         PPOConfig.validate(filled, key)
         require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
+
+
+BODY_SOURCES = ("walker", "untrained_designs")
+CONTROLLERS = ("conv", "mlp")
+
+
+@dataclass
+class ControlRunConfig(ControlConfig):
+    """A closed-loop control run (``conf/experiment/control_*``; ``docs/control.md``): every field of
+    ``freeform.envs.control.ControlConfig`` (the episode's timing and task) plus the bodies and the controller.
+    A run with a ``control`` section trains a controller on fixed bodies instead of designing them."""
+
+    bodies: str = "walker"
+    """Which bodies are controlled, ``env.num_envs`` of them (given fewer, each is repeated in turn):
+    ``walker`` — the best open-loop gait of ``candidates`` bodies that an untrained design policy builds with the
+    ``env`` and ``task.materials`` sizes (the control demo's body); ``untrained_designs`` — ``env.num_envs``
+    such bodies, all different; a path — a ``.npy`` of uint8 grids ``[ρ, ρ, ρ]`` or ``[M, ρ, ρ, ρ]``, or a design
+    record ``records/epoch_<e>.npz`` of a design run, whose best ``top`` designs are taken."""
+    top: int = 1
+    """From a design record: how many of its best designs (by reward) are controlled."""
+    candidates: int = 256
+    """``bodies=walker``: how many untrained designs the walker is the best of."""
+    body_seed: int = 0
+    """Seed of the untrained designs (``walker``, ``untrained_designs``): apart from the run's ``seed``, so that a
+    sweep over seeds trains controllers of the same bodies."""
+    controller: str = "conv"
+    """``conv``: ``freeform.agents.ConvController`` (one set of weights for every cell, any body); ``mlp``:
+    ``MLPController`` over the flattened box (the baseline). Width: ``agent.hidden``."""
+    init_log_std: float = -0.5
+    """The controller's initial log σ (commands lie in [−1, 1])."""
+
+    def validate(self, key: str = "control") -> None:
+        super().validate(key)
+        require(isinstance(self.bodies, str) and self.bodies != "", f"{key}.bodies",
+                f"one of {list(BODY_SOURCES)} or a path to a .npy of grids or a design record .npz", self.bodies)
+        require(self.top >= 1, f"{key}.top", "an integer >= 1", self.top)
+        require(self.candidates >= 1, f"{key}.candidates", "an integer >= 1", self.candidates)
+        require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
+
+    def episode(self) -> ControlConfig:
+        """The env's part (``ControlEnv(control=...)``)."""
+        return ControlConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(ControlConfig)})
 
 
 @dataclass
@@ -115,6 +159,10 @@ class TrainerConfig:
     once); the run then checkpoints and exits with status 75 (``freeform.preemption``)."""
     record_designs: bool = True
     """Write ``records/epoch_<e>.npz`` (actions, final grids, rewards, critic values, body metrics) every epoch."""
+    record_actions: bool = True
+    """Keep each episode's actions in the records; off, a record's ``actions`` are ``[E, T, 0]`` (a control run's
+    are one command per cell of the box per control step, megabytes an epoch; its controller is in the
+    checkpoints)."""
     render_every: int = 0
     """Every this many epochs run the render callback (body images to TensorBoard); 0 = off."""
     print_every: int = 10
@@ -141,6 +189,9 @@ class TrainConfig:
     agent: AgentConfig = field(default_factory=AgentConfig)
     sim: SimConfig = field(default_factory=SimConfig)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    control: ControlRunConfig | None = None
+    """None: a design run (the paper's). Set (the ``control_*`` presets): closed-loop control of fixed bodies —
+    the env is a ``freeform.envs.control.ControlEnv``, PPO trains a controller (``docs/control.md``)."""
 
 
 _DEVICES = ("auto", "cpu", "cuda", "mps")
@@ -167,6 +218,22 @@ def _validate_trainer(t: TrainerConfig) -> None:
     require(t.stop_grace_s >= 0, "trainer.stop_grace_s", "a number of seconds >= 0", t.stop_grace_s)
 
 
+def _validate_control(cfg: TrainConfig) -> None:
+    control = cfg.control
+    assert control is not None
+    control.validate("control")
+    require(cfg.algo.name == "ppo", "algo.name", "ppo in a control run (a controller is trained by PPO)", cfg.algo.name)
+    require(not cfg.env.dense_every, "env.dense_every", "0 in a control run (design rewards have no design here)",
+            cfg.env.dense_every)
+    steps = control.steps
+    rollout = cfg.agent.rollout_steps
+    require(rollout is None or rollout % steps == 0, "agent.rollout_steps",
+            f"a multiple of the control episode's {steps} steps (control.duration / control.period; every epoch "
+            f"ends between episodes, where a control run checkpoints), or None", rollout)
+    require(not cfg.agent.obs_norm, "agent.obs_norm", "false in a control run (the controller reads its action mask "
+            "from an observation channel, which must stay 0/1)", cfg.agent.obs_norm)
+
+
 def validate(cfg: TrainConfig) -> TrainConfig:
     """Check value ranges the types cannot express; raise ``ValueError`` naming the dotted key. Returns ``cfg``."""
     _validate_env(cfg.env)
@@ -182,6 +249,8 @@ def validate(cfg: TrainConfig) -> TrainConfig:
             f"0 with algo.name={cfg.algo.name} (evolution scores whole designs; dense rewards are for PPO)",
             cfg.env.dense_every)
     cfg.agent.validate("agent")
+    if cfg.control is not None:
+        _validate_control(cfg)
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
     cfg.sim.validate("sim")
     _validate_trainer(cfg.trainer)
@@ -193,7 +262,8 @@ def ppo_config(cfg: TrainConfig, device: str | None) -> PPOConfig:
     ``rollout_steps`` defaulting to ``env.steps``, ``seed`` to the run's and ``device`` to ``device``."""
     agent = cfg.agent
     values = {f.name: getattr(agent, f.name) for f in dataclasses.fields(PPOConfig)}
-    values["rollout_steps"] = agent.rollout_steps if agent.rollout_steps is not None else cfg.env.steps
+    episode = cfg.control.steps if cfg.control is not None else cfg.env.steps
+    values["rollout_steps"] = agent.rollout_steps if agent.rollout_steps is not None else episode
     values["seed"] = agent.seed if agent.seed is not None else cfg.seed
     values["device"] = agent.device if agent.device is not None else device
     try:
@@ -272,6 +342,9 @@ def register_configs() -> None:
 __all__ = [
     "AgentConfig",
     "AlgoConfig",
+    "BODY_SOURCES",
+    "CONTROLLERS",
+    "ControlRunConfig",
     "EnvConfig",
     "SimConfig",
     "TaskConfig",

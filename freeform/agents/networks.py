@@ -341,14 +341,17 @@ class MLPController(nn.Module):
     Unlike the convolutional one it fits one box size and learns each cell apart."""
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int,
-                 hidden: tuple[int, ...] | list[int] = (64, 64)) -> None:
+                 hidden: tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> None:
         super().__init__()
         box = _check_control_input(channels, box, mask_channel=mask_channel)
         cells = math.prod(box)
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden))
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden),
+                                log_std=log_std)
         self.box, self.mask_channel = box, mask_channel
         self.distribution = MaskedDiagGaussian(cells)
         self.net = MLPActorCritic(channels * cells, cells, hidden)
+        with torch.no_grad():
+            self.net.log_std.fill_(float(log_std))
 
     @classmethod
     def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> MLPController:

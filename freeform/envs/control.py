@@ -96,11 +96,20 @@ class ControlEnv:
     marks the cells whose command acts (actuated voxels), as the observation's ``actuated`` channel does.
 
     sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``).
+    box: pad every body's box to this one (default: the largest body's), e.g. to run a controller trained on other
+        bodies whose box it was built for; a body larger than it is refused.
+    seed, first_env: episode e's headings are drawn from ``numpy.random.default_rng([seed, e])``, environment i
+        taking draw ``first_env + i`` — so a data-parallel rank holding environments ``first_env …`` draws what
+        one process would, and the episode count is the env's whole random state (:meth:`state_dict`).
+
+    At the end of every episode ``info`` holds, besides ``truncated`` and ``final_obs``, the episode records'
+    ``final_grids`` (the bodies' grids, as given) and ``metrics`` (their body metrics, ``freeform.body``).
     """
 
     def __init__(self, grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
                  control: ControlConfig | None = None, arch: str = "cpu", seed: int = 0,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", first_env: int = 0,
+                 box: tuple[int, int, int] | None = None):
         grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
         if grids.dim() != 4 or not (grids.shape[1] == grids.shape[2] == grids.shape[3]):
             raise ValueError(f"grids must be uint8 [N, ρ, ρ, ρ], got shape {tuple(grids.shape)}")
@@ -123,8 +132,14 @@ class ControlEnv:
         robot = lay.voxel_robot.astype(np.int64)
         self._robot = robot
         lattice = lay.lattice.astype(np.int64)  # each voxel's cell in its robot's box
-        self.box = tuple(int(b) for b in lattice.max(0) + 1)
-        """``(Bx, By, Bz)``: the largest body's box; every body's box sits at its corner (cell 0, 0, 0)."""
+        need = tuple(int(b) for b in lattice.max(0) + 1)
+        if box is not None:
+            box = tuple(int(b) for b in box)
+            if len(box) != 3 or any(b < n for b, n in zip(box, need, strict=True)):
+                raise ValueError(f"box {box} does not hold these bodies, whose largest box is {need}")
+        self.box = box if box is not None else need
+        """``(Bx, By, Bz)``: the largest body's box (or the one given); every body's box sits at its corner (cell
+        0, 0, 0)."""
         if not np.array_equal(lay.body_of_robot, np.arange(self.num_envs)):  # (rewards and headings are per robot)
             raise ValueError("ControlEnv simulates each body as one robot, in the order of the grids")
         self.origin = torch.from_numpy(lay.origin.astype(np.int64))
@@ -151,7 +166,15 @@ class ControlEnv:
         self._actuated = actuated.astype(np.float64)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
-        self._rng = np.random.default_rng(seed)
+        if not (isinstance(first_env, int) and first_env >= 0):
+            raise ValueError(f"first_env must be an int >= 0, got {first_env!r}")
+        self.seed, self.first_env = int(seed), first_env
+        self.episode = -1
+        """Episodes started so far − 1: the index of the current episode (its headings' draw)."""
+        from freeform.body import bodies_and_metrics  # (the records' body metrics, computed once per env)
+
+        self._metrics = {k: torch.as_tensor(v).float().to(self.device) for k, v in bodies_and_metrics(self.grids)[1].items()}
+        self._final_grids = self.grids.to(self.device)
         self.engine: Engine | None = None
         self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
         self.t = 0
@@ -160,9 +183,14 @@ class ControlEnv:
 
     # ------------------------------------------------------------------ the VecEnv
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        """Place the bodies, settle them for ``control.burn_in`` seconds (zero commands), draw the headings."""
+        """Start the next episode: the bodies placed and settled for ``control.burn_in`` seconds (zero commands),
+        the episode's headings drawn. ``seed``: start over as episode 0 of that seed."""
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
+            self.seed, self.episode = int(seed), -1
+        self.episode += 1
+        return self._start_episode()
+
+    def _start_episode(self) -> torch.Tensor:
         if self._settled is not None and self.engine is not None and not self.engine.current:
             self._settled = None  # someone built another engine on this env's simulator: settle afresh
         if self._settled is None:  # the first episode settles the bodies; the others start from that state
@@ -172,8 +200,11 @@ class ControlEnv:
             self._settled = self.engine.snapshot()
         else:  # (settling with zero commands is deterministic: the same state, bit for bit, without its cost)
             self.engine.restore(self._settled)
-        self.heading = (self._rng.uniform(0.0, 2 * math.pi, self.num_envs) if self.control.headings == "random"
-                        else np.zeros(self.num_envs))
+        if self.control.headings == "random":
+            draw = np.random.default_rng([self.seed, self.episode]).uniform(0.0, 2 * math.pi, self.first_env + self.num_envs)
+            self.heading = draw[self.first_env:]
+        else:
+            self.heading = np.zeros(self.num_envs)
         self.t = 0
         self._command = np.zeros(self.layout.num_voxels)  # (the settled state's: commands start at 0)
         obs, self._com = self._observe()
@@ -223,9 +254,62 @@ class ControlEnv:
         if done:
             info["truncated"] = torch.ones(self.num_envs, dtype=torch.bool, device=self.device)
             info["final_obs"] = obs
+            info["final_grids"], info["metrics"] = self._final_grids, self._metrics
             obs = self.reset()
         dones = torch.full((self.num_envs,), done, dtype=torch.bool, device=self.device)
         return obs, torch.from_numpy(reward).float().to(self.device), dones, info
+
+    # ------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, Any]:
+        """The env's state between episodes (a run's checkpoint: PPO's rollouts are whole episodes, so every epoch
+        ends at an episode boundary): the episode count and, per environment, the bodies, checked on load. The
+        settled state is not saved: settling is deterministic and :meth:`load_state_dict` settles again."""
+        if self.t != 0:
+            raise ValueError(f"a ControlEnv saves its state between episodes, and this one is {self.t} control steps "
+                             f"into episode {self.episode}: make PPO's rollout_steps a multiple of the episode's "
+                             f"{self.control.steps} steps (a run's agent.rollout_steps)")
+        return {"per_env": {"grids": self.grids.clone()}, "episode": self.episode, "seed": self.seed,
+                "config": self._config()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Continue from :meth:`state_dict`: the same bodies and configuration, at the start of the saved episode."""
+        if state.get("config") != self._config():
+            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}")
+        grids = torch.as_tensor(state["per_env"]["grids"]).cpu()
+        if not torch.equal(grids, self.grids):
+            raise ValueError("the state's bodies (per_env.grids) are not this environment's: a control run resumes "
+                             "on the bodies it was trained on")
+        self.seed, self.episode = int(state["seed"]), int(state["episode"])
+        self._start_episode()
+
+    def _config(self) -> dict[str, Any]:
+        return {"control": vars(self.control).copy(), "box": list(self.box)}
+
+    @torch.no_grad()
+    def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:
+        """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
+        ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``), for looking at: a
+        :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every control step,
+        the commands the robot's actuated voxels received ``[steps, voxels]``, and its return. Starts a new episode."""
+        from freeform.sim.simulator import Recording
+
+        obs, lay = self.reset(), self.layout
+        mine = lay.voxel_robot == robot
+        positions, orientations = [self.engine.positions()[mine]], [self.engine.orientations()[mine]]
+        commands, total = [], 0.0
+        for _ in range(self.control.steps):
+            action = torch.as_tensor(act(obs)).reshape(self.num_envs, -1)
+            commands.append(action[robot][self.action_mask[robot]].clamp(-1.0, 1.0).cpu().numpy())
+            obs, reward, done, _ = self.step(action)
+            total += float(reward[robot])
+            if not bool(done[robot]):
+                positions.append(self.engine.positions()[mine])
+                orientations.append(self.engine.orientations()[mine])
+        recording = Recording(times=self.control.burn_in + self.control.period * np.arange(len(positions)),
+                              voxel_size=self.sim_config.voxel_size, lattice=[lay.lattice[mine]],
+                              materials=[lay.material[mine]], positions=[np.stack(positions).astype(np.float32)],
+                              orientations=[np.stack(orientations).astype(np.float32)])
+        return recording, np.stack(commands), total
 
     # ------------------------------------------------------------------ sensing
     def _observe(self) -> tuple[torch.Tensor, np.ndarray]:
@@ -248,4 +332,36 @@ class ControlEnv:
         return obs.view(R, *self.observation_shape).to(self.device), com
 
 
-__all__ = ["HEADINGS", "OBS_CHANNELS", "ControlConfig", "ControlEnv"]
+def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
+                           control: ControlConfig | None = None, arch: str = "cpu") -> np.ndarray:
+    """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move along
+    +x from ``control.burn_in`` to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel
+    lengths ``[N]``, 0 for a robot that failed. The figure a controller is compared with."""
+    sim, control = sim or SimConfig(), control or ControlConfig()
+    config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
+    simulator = Simulator(config, arch=arch)
+    engine = simulator.engine(simulator.layout(torch.as_tensor(np.asarray(grids)).to(torch.uint8)))
+    engine.advance_time(control.burn_in)
+    start = engine.sense()[1]
+    engine.advance_time(control.duration)
+    end = engine.sense()[1]
+    ok = engine.robot_status() == RUNNING
+    return np.where(ok, (end - start)[:, 0] / sim.voxel_size, 0.0)
+
+
+def untrained_walker(candidates: int, resolution: int, materials: int, steps: int, bundle_size: int, seed: int = 0,
+                     sim: SimConfig | None = None, control: ControlConfig | None = None,
+                     arch: str = "cpu") -> tuple[torch.Tensor, np.ndarray]:
+    """The walker: of ``candidates`` bodies an untrained design policy builds (``freeform.evolve.
+    untrained_design_bodies``; the rare empty one dropped), the one whose open-loop gait goes furthest along +x in
+    a control episode's window (:func:`open_loop_displacement`). Returns it ``[1, ρ, ρ, ρ]`` and every kept
+    candidate's score."""
+    from freeform.evolve import untrained_design_bodies
+
+    grids = untrained_design_bodies(candidates, resolution, materials, steps, bundle_size, seed)
+    grids = grids[(grids.flatten(1) > 0).any(dim=1)]
+    scores = open_loop_displacement(grids, sim, control, arch)
+    return grids[int(np.argmax(scores))][None], scores
+
+
+__all__ = ["HEADINGS", "OBS_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "untrained_walker"]

@@ -21,7 +21,8 @@ Modules, by concern (this package re-exports their public names):
   extra), :func:`write_png`.
 - ``tensorboard`` — :func:`add_gif` (an animated GIF into an event file, no moviepy needed) and
   :func:`log_epoch_renders`, what the training loop calls every ``trainer.render_every`` epochs;
-  :func:`log_bodies` is the same behind the trainer's ``(writer, final_grids, rewards, step, cfg)`` hook.
+  :func:`log_bodies` is the same behind the trainer's ``(writer, final_grids, rewards, step, cfg)`` hook;
+  :func:`log_controlled_gait` a control run's GIF of its controller driving the epoch's best body.
 The face geometry and the material colours are shared with ``freeform.io`` through ``freeform.surface``.
 """
 
@@ -38,7 +39,13 @@ from freeform.render.gait import (
     simulate_gait,
 )
 from freeform.render.raster import RenderConfig
-from freeform.render.tensorboard import add_gif, log_bodies, log_epoch_renders, pick_bodies
+from freeform.render.tensorboard import (
+    add_gif,
+    log_bodies,
+    log_controlled_gait,
+    log_epoch_renders,
+    pick_bodies,
+)
 from freeform.render.video import encode_gif, write_png, write_video
 from freeform.surface import FACE_CORNERS, FACE_NORMALS, PAPER_COLORS, RGB
 
@@ -57,6 +64,7 @@ __all__ = [
     "encode_gif",
     "gait_simulator",
     "log_bodies",
+    "log_controlled_gait",
     "log_epoch_renders",
     "pick_bodies",
     "quat_to_matrix",

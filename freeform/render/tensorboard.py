@@ -115,4 +115,26 @@ def log_bodies(writer: SummaryWriter, final_grids: Any, rewards: Any, step: int,
     return log_epoch_renders(writer, final_grids, None, rewards, step, rng, simulator)
 
 
-__all__ = ["add_gif", "log_bodies", "log_epoch_renders", "pick_bodies"]
+def log_controlled_gait(writer: SummaryWriter, act: Any, body: Any, step: int, cfg: Any,
+                        box: tuple[int, int, int] | None = None, arch: str = "cpu",
+                        video: VideoConfig | None = None) -> float:
+    """A control run's render hook: one episode of ``body`` (uint8 ``[ρ, ρ, ρ]``) under the controller ``act``
+    (observations → actions, e.g. ``PPO.act(obs, deterministic=True)``) in a ``ControlEnv`` of the run's
+    ``sim`` and ``control`` (padded to ``box``, the box the controller was built for), logged as the GIF
+    ``bodies/controlled_gait`` at ``video.fps`` frames per simulated second (the burn-in not shown; a random
+    heading is the episode's draw of seed ``step``). Returns the episode's return."""
+    from freeform.envs.control import ControlEnv
+
+    vid = video if video is not None else VideoConfig()
+    env = ControlEnv(torch.as_tensor(np.asarray(body))[None], sim=cfg.sim, control=cfg.control.episode(),
+                     arch=arch, seed=int(step), box=box)
+    recording, _, total = env.record(act)
+    every = max(1, round(1.0 / (vid.fps * env.control.period)))
+    frames = render_recording(recording, 0, replace(RenderConfig(), size=vid.size),
+                              frames=np.arange(0, len(recording.times), every))
+    add_gif(writer, "bodies/controlled_gait", frames, step, vid.fps)
+    writer.flush()
+    return total
+
+
+__all__ = ["add_gif", "log_bodies", "log_controlled_gait", "log_epoch_renders", "pick_bodies"]

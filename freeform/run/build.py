@@ -134,9 +134,67 @@ def design_env(cfg: TrainConfig, device: torch.device, num_envs: int, seed: int)
                      device=device, seed=seed, action_bound=cfg.env.action_bound, mirror_y=cfg.env.mirror_y)
 
 
+def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
+    """A control run's bodies, uint8 ``[env.num_envs, ρ, ρ, ρ]``, from ``control.bodies`` (``ControlRunConfig``);
+    given fewer bodies than environments, each is repeated in turn."""
+    from freeform.body import check_grids
+    from freeform.records import read_record
+
+    control, n = cfg.control, cfg.env.num_envs
+    assert control is not None
+    source = control.bodies
+
+    sizes = (cfg.env.resolution, cfg.task.materials, cfg.env.steps, cfg.env.bundle_size, control.body_seed)
+    if source == "walker":
+        from freeform.envs.control import untrained_walker
+
+        grids, _ = untrained_walker(control.candidates, *sizes, sim=cfg.sim, control=control.episode(), arch=arch)
+    elif source == "untrained_designs":  # (the rare empty body is dropped, and the others repeat in its place)
+        from freeform.evolve import untrained_design_bodies
+
+        grids = untrained_design_bodies(n, *sizes)
+        grids = grids[(grids.flatten(1) > 0).any(dim=1)]
+    else:
+        from pathlib import Path
+
+        path = Path(source)
+        if not path.is_file():
+            raise ValueError(f"control.bodies must be walker, untrained_designs or a file of bodies; no file {source!r}")
+        if path.suffix == ".npz":
+            record = read_record(path)
+            best = np.argsort(-record.rewards, kind="stable")[: control.top]
+            grids = torch.from_numpy(record.placed_grids()[best])
+        elif path.suffix == ".npy":
+            grids = torch.from_numpy(np.load(path, allow_pickle=False))
+            grids = grids[None] if grids.dim() == 3 else grids
+        else:
+            raise ValueError(f"control.bodies: {source!r} is neither a .npy of grids nor a design record .npz")
+        if grids.dtype != torch.uint8 or grids.dim() != 4:
+            raise ValueError(f"control.bodies: {source!r} must hold uint8 grids [ρ, ρ, ρ] or [M, ρ, ρ, ρ], got "
+                             f"{grids.dtype} {list(grids.shape)}")
+        check_grids(grids, len(cfg.sim.materials) + 1, name=f"control.bodies ({source})")
+        empty = (~(grids.flatten(1) > 0).any(dim=1)).nonzero().flatten().tolist()
+        if empty:
+            raise ValueError(f"control.bodies: {source!r} has empty grids (no voxel) at {empty[:5]}")
+    return grids[torch.arange(n) % len(grids)].contiguous()
+
+
+def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], seed: int,
+                grids: torch.Tensor | None = None) -> Any:
+    """The run's ``ControlEnv`` of environments ``envs = (lo, hi)`` (its bodies :func:`control_bodies`, or
+    ``grids`` of all ``env.num_envs``), seeded ``seed``."""
+    from freeform.envs.control import ControlEnv
+
+    assert cfg.control is not None
+    arch = "cuda" if device.type == "cuda" else "cpu"
+    grids = control_bodies(cfg, arch) if grids is None else grids
+    return ControlEnv(grids[envs[0]:envs[1]], sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed,
+                      device=device, first_env=envs[0])
+
+
 def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None = None) -> tuple[VecEnv, Learner]:
-    """The run's design env (the one scoring with the task; a learner may wrap it) and learner, seeded by
-    ``cfg.seed`` (the same cfg builds the same objects).
+    """The run's env — the design env (the one scoring with the task; a learner may wrap it), or in a control run
+    (``cfg.control``) the control env — and learner, seeded by ``cfg.seed`` (the same cfg builds the same objects).
 
     ``envs = (lo, hi)``: build only environments ``lo … hi−1`` of ``env.num_envs`` (this rank's slice in a
     data-parallel run, :func:`freeform.agents.distributed.env_slice`); default all of them.
@@ -145,7 +203,10 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
         raise ValueError(f"algo.name must be one of {sorted(LEARNERS)}, got {cfg.algo.name!r}")
     seed_everything(cfg.seed)
     envs = envs if envs is not None else (0, cfg.env.num_envs)
-    env = design_env(cfg, device, envs[1] - envs[0], cfg.seed)
+    if cfg.control is not None:
+        env = control_env(cfg, device, envs, cfg.seed)
+    else:
+        env = design_env(cfg, device, envs[1] - envs[0], cfg.seed)
     learner = LEARNERS[cfg.algo.name](cfg, env, device, envs)
     if not isinstance(learner, Learner):
         raise ValueError(f"algo.name={cfg.algo.name!r} built a {type(learner).__name__}, which is no freeform.learner.Learner")
@@ -154,9 +215,25 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
 
 @register_learner("ppo")
 def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
-    """PPO with the paper's actor-critic; ``env.dense_every`` wraps the env in dense rewards, ``agent.eval_every``
-    adds a deterministic evaluation env of its own (seed + 1)."""
-    from freeform.agents import PPO, VoxelActorCritic
+    """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
+    in dense rewards, ``agent.eval_every`` adds a deterministic evaluation env of its own (seed + 1)."""
+    from freeform.agents import PPO, ConvController, MLPController, VoxelActorCritic
+
+    if cfg.control is not None:
+        control = cfg.control
+        if control.controller == "conv":
+            policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel,
+                                    cfg.agent.hidden, control.init_log_std)
+        else:
+            policy = MLPController(env.observation_shape[0], env.box, env.mask_channel,
+                                   (cfg.agent.hidden, cfg.agent.hidden), control.init_log_std)
+        eval_env = None
+        if cfg.agent.eval_every:  # the same bodies (this rank's), not searched again
+            from freeform.envs.control import ControlEnv
+
+            eval_env = ControlEnv(env.grids, sim=cfg.sim, control=control.episode(), arch=env.simulator.arch,
+                                  seed=cfg.seed + 1, device=device, first_env=envs[0])
+        return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
     if cfg.env.dense_every:  # the partial body scored every k steps; records and returns keep the terminal reward
         from freeform.envs import DenseDesignReward
@@ -177,5 +254,5 @@ def _evolution(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int
     return build_evolution(cfg.algo, env, cfg.seed)
 
 
-__all__ = ["LEARNERS", "TASKS", "build", "build_task", "design_env", "register_learner", "register_task",
+__all__ = ["LEARNERS", "TASKS", "build", "build_task", "control_bodies", "control_env", "design_env", "register_learner", "register_task",
            "resolve_device", "seed_everything", "task_builders"]

@@ -22,6 +22,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 
@@ -72,7 +73,8 @@ EpochCallback = Callable[[EpochContext], None]
 
 def render_callback(every: int) -> EpochCallback:
     """At epochs 0, ``every``, 2·``every``, ... log renders of the epoch's bodies to TensorBoard
-    (``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``: best, median and a random body)."""
+    (``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``: best, median and a random body; in a
+    control run ``log_controlled_gait``: the controller driving the best body)."""
 
     def callback(ctx: EpochContext) -> None:
         if ctx.episodes is None or ctx.epoch % every:  # epochs 0, every, 2·every, ...
@@ -82,7 +84,19 @@ def render_callback(every: int) -> EpochCallback:
         except ImportError as exc:
             raise ValueError("trainer.render_every > 0 needs freeform.render.log_bodies, not available") from exc
         grids = placed(ctx.episodes["final_grids"], ctx.episodes.get("yaw"))  # as each body was scored
-        log_bodies(ctx.logger.writer, grids, ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
+        if ctx.cfg.control is None:
+            log_bodies(ctx.logger.writer, grids, ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
+            return
+        # a control run: the bodies' images, and the controller (its mode) driving the epoch's best body
+        from freeform.render import log_controlled_gait, log_epoch_renders
+
+        log_epoch_renders(ctx.logger.writer, grids, None, ctx.episodes["rewards"], ctx.global_step,
+                          np.random.default_rng([ctx.cfg.seed, ctx.global_step]))
+        learner = ctx.learner
+        best = grids[int(ctx.episodes["rewards"].argmax())]
+        log_controlled_gait(ctx.logger.writer, lambda obs: learner.act(obs, deterministic=True), best,
+                            ctx.global_step, ctx.cfg, box=learner.env.box,
+                            arch="cuda" if learner.device.type == "cuda" else "cpu")
 
     return callback
 
@@ -203,7 +217,7 @@ class Trainer:
         try:
             with self.stop.epoch():
                 stats = dict(self.learner.train_epoch())
-                if isinstance(self.env.task, ReportsStats):  # the task's own figures (LocomotionTask: sim seconds ...)
+                if isinstance(getattr(self.env, "task", None), ReportsStats):  # the task's own figures (LocomotionTask: sim seconds ...)
                     stats.update(self.collectives.reduce_stats(self.env.task.stats))
                 t0 = time.perf_counter()
                 episodes = self.learner.episodes()  # the global batch's (a collective)
@@ -223,7 +237,8 @@ class Trainer:
         learner, logger = self.learner, self.logger
         assert logger is not None
         if episodes is not None and self.cfg.trainer.record_designs:
-            self.dir.write_record(EpochRecord(epoch=epoch, global_step=learner.global_step, actions=episodes["actions"],
+            actions = episodes["actions"] if self.cfg.trainer.record_actions else episodes["actions"][:, :, :0]
+            self.dir.write_record(EpochRecord(epoch=epoch, global_step=learner.global_step, actions=actions,
                                               final_grids=episodes["final_grids"], rewards=episodes["rewards"],
                                               values=episodes["values"], metrics=episodes["metrics"],
                                               yaw=episodes.get("yaw")))

@@ -1,0 +1,129 @@
+"""A control run in the training app (``control`` section, ``experiment=control_*``): the command line end to end,
+exact resume, the bodies' sources, and the refusals. The control env's physics and the controllers are tested in
+test_control_env.py and test_controllers.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers import run_cli, scalars
+
+from freeform import train as train_mod
+from freeform.checkpoint import load_checkpoint
+from freeform.config import compose
+from freeform.envs.control import ControlConfig, ControlEnv
+from freeform.records import EpochRecord, read_record, write_record
+from freeform.run.build import control_bodies
+
+ROD = np.zeros((3, 3, 3), np.uint8)
+ROD[:, 1, 0] = (1, 2, 3)  # passive, muscle A, muscle B along x: two actuated voxels
+CUBE = np.zeros((3, 3, 3), np.uint8)
+CUBE[:2, :2, :2] = 2
+
+
+def tiny_control(bodies: Path, *overrides: str) -> list[str]:
+    """A control run of a second or two: two bodies repeated over 4 envs, 4 control steps an episode."""
+    values = {"experiment": "control_steering_cpu", "control.bodies": str(bodies), "env.num_envs": 4,
+              "control.burn_in": 0.01, "control.duration": 0.05, "agent.hidden": 4, "agent.sgd_minibatch_size": 8,
+              "trainer.progress": "false", "trainer.print_every": 0, "trainer.threads": 1, "trainer.render_every": 0,
+              "trainer.checkpoint_every": 1, "sim.precision": "f64"}
+    for override in overrides:
+        key, value = override.split("=", 1)
+        values[key] = value
+    return [f"{k}={v}" for k, v in values.items()]
+
+
+@pytest.fixture
+def bodies(tmp_path: Path) -> Path:
+    path = tmp_path / "bodies.npy"
+    np.save(path, np.stack([ROD, CUBE]))
+    return path
+
+
+def test_the_command_line_trains_a_controller_and_records_its_episodes(bodies: Path, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    run = tmp_path / "run"
+    run_cli(monkeypatch, *tiny_control(bodies, "trainer.epochs=2", "trainer.render_every=2"), f"hydra.run.dir={run}")
+    record = read_record(run / "records" / "epoch_000001.npz")
+    # the bodies, repeated in turn; one episode per env an epoch; no actions kept (trainer.record_actions=false)
+    np.testing.assert_array_equal(record.final_grids, np.stack([ROD, CUBE, ROD, CUBE]))
+    assert record.actions.shape == (4, 4, 0) and record.values.shape == (4, 4)
+    assert np.isfinite(record.rewards).all() and record.metrics["volume"].tolist() == [3, 8, 3, 8]
+    curves = scalars(run)
+    assert [s for s, _ in curves["charts/episode_reward_mean"]] == [16, 32]  # 4 envs x 4 steps an epoch
+    ckpt = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert ckpt["config"]["control"]["headings"] == "random" and ckpt["ppo"]["env"]["episode"] == 2
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run), size_guidance={"images": 0})
+    events.Reload()
+    assert "bodies/controlled_gait" in events.Tags()["images"]  # rendered at epoch 0 (render_every=2)
+
+
+def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path: Path) -> None:
+    """Random headings (the episode count is the env's random state) and reward_norm (running statistics)."""
+    cfg = compose(*tiny_control(bodies, "trainer.epochs=2", "seed=3"))
+    train_mod.train(cfg, tmp_path / "straight")
+    cfg.trainer.epochs = 1
+    train_mod.train(cfg, tmp_path / "split")
+    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
+    train_mod.train(cfg, tmp_path / "split")
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")["ppo"]
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")["ppo"]
+    for name, tensor in a["policy"].items():
+        assert torch.equal(tensor, b["policy"][name]), name
+    assert torch.equal(a["return_rms"]["var"], b["return_rms"]["var"])
+    ra, rb = (read_record(tmp_path / d / "records" / "epoch_000001.npz") for d in ("straight", "split"))
+    np.testing.assert_array_equal(ra.rewards, rb.rewards)
+    np.testing.assert_array_equal(ra.values, rb.values)
+
+
+def test_headings_are_drawn_per_episode_and_environment_whatever_the_slice() -> None:
+    """A data-parallel rank holding environments 2, 3 draws what one process draws for them, episode after episode."""
+    grids = np.stack([ROD, CUBE, ROD, CUBE])
+    control = ControlConfig(burn_in=0.0, duration=0.025, headings="random")
+    whole, part = ControlEnv(grids, control=control, seed=7), ControlEnv(grids[2:], control=control, seed=7, first_env=2)
+    for _ in range(3):
+        whole.reset(), part.reset()
+        np.testing.assert_array_equal(whole.heading[2:], part.heading)
+        assert len(set(whole.heading.tolist())) == 4
+    whole.step(torch.zeros(4, whole.action_dim))
+    with pytest.raises(ValueError, match="multiple of the episode's 2 steps"):
+        whole.state_dict()
+
+
+def test_bodies_from_a_design_record_are_its_best(tmp_path: Path) -> None:
+    grids = np.stack([ROD, CUBE, CUBE * 0 + (np.arange(27).reshape(3, 3, 3) == 13).astype(np.uint8)])
+    path = write_record(tmp_path, EpochRecord(
+        epoch=4, global_step=0, actions=np.zeros((3, 1, 7), np.float32), final_grids=grids,
+        rewards=np.array([0.5, 2.0, 1.0], np.float32), values=np.zeros((3, 1), np.float32)))
+    cfg = compose(*tiny_control(path, "control.top=2", "env.num_envs=3"))
+    np.testing.assert_array_equal(control_bodies(cfg).numpy(), grids[[1, 2, 1]])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("algo=ga", r"algo\.name must be ppo in a control run"),
+    ("agent.rollout_steps=6", r"agent\.rollout_steps must be a multiple of the control episode's 4 steps"),
+    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp'\]"),
+    ("agent.obs_norm=true", r"agent\.obs_norm must be false in a control run"),
+])
+def test_a_bad_control_run_is_refused_naming_the_key(bodies: Path, override: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        compose(*tiny_control(bodies, override))
+
+
+def test_bad_bodies_are_refused_naming_the_file(tmp_path: Path) -> None:
+    missing = compose(*tiny_control(tmp_path / "nowhere.npy"))
+    with pytest.raises(ValueError, match="no file"):
+        control_bodies(missing)
+    floats = tmp_path / "floats.npy"
+    np.save(floats, ROD.astype(np.float32))
+    with pytest.raises(ValueError, match=r"must hold uint8 grids"):
+        control_bodies(compose(*tiny_control(floats)))
+    empty = tmp_path / "empty.npy"
+    np.save(empty, np.stack([ROD, ROD * 0]))
+    with pytest.raises(ValueError, match=r"empty grids \(no voxel\) at \[1\]"):
+        control_bodies(compose(*tiny_control(empty)))
