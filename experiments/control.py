@@ -34,7 +34,7 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.envs.control import ControlConfig, ControlEnv, untrained_walker
+from freeform.envs.control import ControlConfig, ControlEnv, open_loop_displacement, untrained_walker
 from freeform.sim import SimConfig, Simulator
 
 RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
@@ -98,6 +98,72 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
     return figures
 
 
+@torch.no_grad()
+def heading_returns(ppo: PPO, env: ControlEnv, episodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """``episodes`` stochastic episodes' returns and their headings (radians), from ``env``'s next episodes."""
+    returns, headings = [], []
+    while len(returns) * env.num_envs < episodes:
+        obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
+        headings.append(env.heading.copy())
+        while not bool(done.all()):
+            obs, reward, done, _ = env.step(ppo.act(obs))
+            total += reward
+        returns.append(total.numpy())
+    return np.concatenate(returns)[:episodes], np.concatenate(headings)[:episodes]
+
+
+def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dict]:
+    """A control run of the app (``freeform-train experiment=control_*``) evaluated: its untrained (checkpoint 0)
+    and its last controller, ``episodes`` stochastic episodes each on fresh headings (seed + 10,000), against the
+    bodies' open-loop gaits along the same headings. Writes ``summary.csv``, ``by_heading.csv`` (mean return per
+    heading sector), ``curve.csv`` (the training return per epoch, from TensorBoard) and ``<run name>.png``."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import from_container
+    from freeform.run.build import build
+
+    out.mkdir(parents=True, exist_ok=True)
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    cfg = from_container(last["config"])
+    env, ppo = build(cfg, torch.device("cpu"))
+    control = cfg.control.episode()
+    eval_env = ControlEnv(env.grids, sim=cfg.sim, control=control, seed=cfg.seed + 10_000, box=env.box)
+    rows, sectors = [], {}
+    for name, path in (("untrained", run / "checkpoints" / "epoch_000000.pt"), ("trained", run / "checkpoints" / "last.pt")):
+        state = load_checkpoint(path)
+        ppo.restore(state)
+        eval_env.reset(seed=cfg.seed + 10_000)  # the same headings for both
+        returns, headings = heading_returns(ppo, eval_env, episodes)
+        rows.append(summary_row(f"controller, {name} ({state['ppo']['epoch']} epochs, stochastic)", returns))
+        sectors[name] = returns
+        print(f"{rows[-1]['what']}: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f}", flush=True)
+    open_loop = open_loop_displacement(eval_env.grids[np.arange(episodes) % eval_env.num_envs], cfg.sim, control,
+                                       headings=headings)
+    rows.insert(0, summary_row("open loop: the bodies' sine gaits along the same headings", open_loop))
+    sectors["open_loop"] = open_loop
+    sector = np.floor(np.mod(headings, 2 * np.pi) / (2 * np.pi / bins)).astype(int)
+    by_heading = [{"sector_deg": f"{360 * k / bins:.0f}-{360 * (k + 1) / bins:.0f}", "n": int((sector == k).sum()),
+                   **{name: float(v[sector == k].mean()) if (sector == k).any() else float("nan")
+                      for name, v in sectors.items()}} for k in range(bins)]
+    events = EventAccumulator(str(run), size_guidance={"scalars": 0})
+    events.Reload()
+    curve = [{"epoch": i + 1, "global_step": e.step, "episode_reward_mean": e.value}
+             for i, e in enumerate(events.Scalars("charts/episode_reward_mean"))]
+    for name, table in (("summary.csv", rows), ("by_heading.csv", by_heading), ("curve.csv", curve)):
+        with open(out / name, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(table[0]))
+            writer.writeheader()
+            writer.writerows(table)
+    (out / "run.json").write_text(json.dumps({"run": str(run), "name": cfg.name, "episodes": episodes,
+                                              "epochs": int(last["ppo"]["epoch"]), "control": vars(cfg.control)}, indent=1))
+    figure([{"epoch": r["epoch"], "episode_reward_mean": r["episode_reward_mean"]} for r in curve],
+           rows, out / f"{cfg.name}.png", ylabel=f"move along the heading in {control.duration:g} s (voxel lengths)")
+    for row in rows:
+        print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
+    return rows
+
+
 def summary_row(name: str, values: np.ndarray) -> dict:
     mean, band = mean_band(values)
     return {"what": name, "n": len(values), "mean": float(mean), "band99": float(band),
@@ -120,7 +186,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/control_walker")
     p.add_argument("--gait", metavar="DIR", help="only replay DIR's trained controller and write its gait")
+    p.add_argument("--evaluate", metavar="RUN", help="only evaluate RUN, a control run of freeform-train, into --out")
     args = p.parse_args(argv)
+    if args.evaluate:
+        evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))
+        return
     if args.gait:
         print(json.dumps(gait(Path(args.gait)), indent=1))
         return
@@ -178,7 +248,8 @@ def main(argv: list[str] | None = None) -> None:
     figure(curve, rows, out / "control_walker.png")
 
 
-def figure(curve: list[dict], rows: list[dict], path: Path) -> None:
+def figure(curve: list[dict], rows: list[dict], path: Path,
+           ylabel: str = "move along +x in 2 s (voxel lengths)") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -187,12 +258,12 @@ def figure(curve: list[dict], rows: list[dict], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot([r["epoch"] for r in curve], [r["episode_reward_mean"] for r in curve], color="k", lw=1,
             label="controller, training return (mean of the copies)")
-    ax.axhline(rows[0]["mean"], color="tab:red", ls="--", label="the walker's open-loop gait")
+    ax.axhline(rows[0]["mean"], color="tab:red", ls="--", label=rows[0]["what"])
     for row, colour in ((rows[1], "tab:grey"), (rows[2], "tab:blue")):
         ax.errorbar([0 if row is rows[1] else curve[-1]["epoch"]], [row["mean"]], yerr=[row["band99"]], fmt="o",
                     color=colour, capsize=3, label=row["what"] + ", 99 % band")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("move along +x in 2 s (voxel lengths)")
+    ax.set_ylabel(ylabel)
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=150)

@@ -127,3 +127,18 @@ def test_bad_bodies_are_refused_naming_the_file(tmp_path: Path) -> None:
     np.save(empty, np.stack([ROD, ROD * 0]))
     with pytest.raises(ValueError, match=r"empty grids \(no voxel\) at \[1\]"):
         control_bodies(compose(*tiny_control(empty)))
+
+
+def test_the_open_loop_figure_along_a_heading_is_the_gait_projected_on_it() -> None:
+    """Three copies of one body (a batch gives each robot its solo result): along 0, π/2 and π its open-loop move is
+    its x, its y and minus its x displacement."""
+    from freeform.envs.control import open_loop_displacement
+    from freeform.sim import SimConfig
+
+    sim, control = SimConfig(precision="f64"), ControlConfig(burn_in=0.05, duration=0.25)
+    three = np.stack([ROD] * 3)
+    along_x = open_loop_displacement(three, sim, control)
+    moved = open_loop_displacement(three, sim, control, headings=np.array([0.0, np.pi / 2, np.pi]))
+    assert along_x[0] == moved[0] and abs(along_x[0]) > 1e-4  # it moves
+    assert moved[2] == pytest.approx(-moved[0], rel=1e-9, abs=1e-12)
+    assert moved[1] != moved[0]

@@ -273,12 +273,12 @@ class ControlEnv:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Continue from :meth:`state_dict`: the same bodies and configuration, at the start of the saved episode."""
-        if state.get("config") != self._config():
-            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}")
         grids = torch.as_tensor(state["per_env"]["grids"]).cpu()
-        if not torch.equal(grids, self.grids):
+        if grids.shape != self.grids.shape or not torch.equal(grids, self.grids):
             raise ValueError("the state's bodies (per_env.grids) are not this environment's: a control run resumes "
                              "on the bodies it was trained on")
+        if state.get("config") != self._config():
+            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}")
         self.seed, self.episode = int(state["seed"]), int(state["episode"])
         self._start_episode()
 
@@ -333,10 +333,12 @@ class ControlEnv:
 
 
 def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
-                           control: ControlConfig | None = None, arch: str = "cpu") -> np.ndarray:
+                           control: ControlConfig | None = None, arch: str = "cpu",
+                           headings: np.ndarray | None = None) -> np.ndarray:
     """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move along
-    +x from ``control.burn_in`` to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel
-    lengths ``[N]``, 0 for a robot that failed. The figure a controller is compared with."""
+    +x (or along ``headings [N]``, radians from +x towards +y: a steering task's figure) from ``control.burn_in``
+    to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel lengths ``[N]``, 0 for a
+    robot that failed. The figure a controller is compared with."""
     sim, control = sim or SimConfig(), control or ControlConfig()
     config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
     simulator = Simulator(config, arch=arch)
@@ -346,7 +348,9 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     engine.advance_time(control.duration)
     end = engine.sense()[1]
     ok = engine.robot_status() == RUNNING
-    return np.where(ok, (end - start)[:, 0] / sim.voxel_size, 0.0)
+    heading = np.zeros(len(ok)) if headings is None else np.asarray(headings, np.float64)
+    move = (end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)
+    return np.where(ok, move / sim.voxel_size, 0.0)
 
 
 def untrained_walker(candidates: int, resolution: int, materials: int, steps: int, bundle_size: int, seed: int = 0,
