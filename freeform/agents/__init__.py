@@ -4,7 +4,13 @@
 over uint8 voxel grids, ``MLPActorCritic`` serves flat observations.
 """
 
-from freeform.agents.networks import ConvController, MLPActorCritic, MLPController, VoxelActorCritic
+from freeform.agents.networks import (
+    CodesignActorCritic,
+    ConvController,
+    MLPActorCritic,
+    MLPController,
+    VoxelActorCritic,
+)
 from freeform.agents.ppo import PPO, PPOConfig
 
-__all__ = ["PPO", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]
+__all__ = ["PPO", "CodesignActorCritic", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]

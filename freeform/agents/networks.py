@@ -335,6 +335,53 @@ class ConvController(nn.Module):
         return mean, self.log_std.expand_as(mean), mask, value
 
 
+class CodesignActorCritic(nn.Module):
+    """One actor-critic for a design-then-control episode (``freeform.envs.CodesignEnv``): the paper's design
+    network (:class:`VoxelActorCritic`) on the grid channel while designing, a :class:`ConvController` on the control
+    channels while controlling; the stage channel chooses, per sample, which head acts and which value counts.
+
+    Observations ``[N, C, ρ, ρ, ρ]`` (channel ``stage_channel`` 0 while designing, 1 while controlling; the grid's
+    material indices in ``grid_channel``; the control env's channels in ``control_channels = (start, stop)``, whose
+    ``mask_channel`` / ``filled_channel`` are counted from ``start``). Outputs a ``MaskedDiagGaussian``'s parameters
+    over ``[3 + k design numbers, ρ³ commands]`` and the value: (mean, log_std, mask, value); the mask is the
+    design part while designing, the actuated cells while controlling.
+    """
+
+    def __init__(self, resolution: int, materials: int, stage_channel: int, grid_channel: int,
+                 control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
+                 hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5) -> None:
+        super().__init__()
+        start, stop = (int(c) for c in control_channels)
+        self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
+                                grid_channel=grid_channel, control_channels=(start, stop), mask_channel=mask_channel,
+                                filled_channel=filled_channel, hidden=hidden, controller_hidden=controller_hidden,
+                                log_std=log_std)
+        self.design = VoxelActorCritic(resolution, materials, hidden)
+        self.controller = ConvController(stop - start, (resolution,) * 3, mask_channel, filled_channel,
+                                         controller_hidden, log_std)
+        self.stage_channel, self.grid_channel, self.control_channels = stage_channel, grid_channel, (start, stop)
+        self.design_dim = 3 + materials
+        self.distribution = MaskedDiagGaussian(self.design_dim + resolution ** 3)
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5) -> CodesignActorCritic:
+        """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels)."""
+        return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
+                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + ρ³]``, value ``[N]``)."""
+        controlling = obs[:, self.stage_channel, 0, 0, 0] > 0.5
+        grids = obs[:, self.grid_channel].round().to(torch.uint8)
+        mean_d, log_std_d, value_d = self.design(grids)
+        start, stop = self.control_channels
+        mean_c, log_std_c, mask_c, value_c = self.controller(obs[:, start:stop])
+        designing = (~controlling).to(mean_d.dtype)[:, None]
+        mask = torch.cat([designing.expand_as(mean_d), mask_c * (1.0 - designing)], dim=1)
+        return (torch.cat([mean_d, mean_c], dim=1), torch.cat([log_std_d, log_std_c], dim=1), mask,
+                torch.where(controlling, value_c, value_d))
+
+
 class MLPController(nn.Module):
     """The baseline controller: tanh MLPs over the whole flattened box (``MLPActorCritic``'s layers), one output per
     cell, a learned log σ per cell; the mask read from channel ``mask_channel`` as in :class:`ConvController`.

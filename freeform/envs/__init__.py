@@ -1,5 +1,6 @@
 """Batched environments: the VecEnv and Task protocols, the design environment and its tasks, and the closed-loop
-control environment (a controller sets every voxel's actuation each control period).
+control environment (a controller sets every voxel's actuation each control period), and the two in one episode
+(co-design: design steps, then control steps on the body just built).
 
 ``from_gymnasium`` / ``to_gymnasium`` (``freeform.envs.adapters``) need the optional ``gym`` extra; they are imported
 on first use, so the core install never imports Gymnasium.
@@ -8,6 +9,7 @@ on first use, so the core install never imports Gymnasium.
 from typing import Any
 
 from freeform.envs.base import ReportsPlacement, ReportsStats, StatefulVecEnv, Task, VecEnv
+from freeform.envs.codesign import CodesignEnv
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.dense import DenseDesignReward
 from freeform.envs.design import DesignEnv
@@ -16,7 +18,8 @@ from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
     "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask",
-    "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "from_gymnasium",
+    "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "CodesignEnv",
+    "from_gymnasium",
     "to_gymnasium",
 ]
 

@@ -100,7 +100,10 @@ class ControlEnv:
         bodies whose box it was built for; a body larger than it is refused.
     seed, first_env: episode e's headings are drawn from ``numpy.random.default_rng([seed, e])``, environment i
         taking draw ``first_env + i`` — so a data-parallel rank holding environments ``first_env …`` draws what
-        one process would, and the episode count is the env's whole random state (:meth:`state_dict`).
+        one process would, and the episode count is the env's whole random state (:meth:`state_dict`). An array
+        ``[N]`` gives each environment's draw (a co-design env's bodies that are not empty).
+    simulator: the ``Simulator`` to run on (its config must be this env's ``sim_config``): a co-design env builds
+        one control env per episode on one simulator.
 
     At the end of every episode ``info`` holds, besides ``truncated`` and ``final_obs``, the episode records'
     ``final_grids`` (the bodies' grids, as given) and ``metrics`` (their body metrics, ``freeform.body``).
@@ -108,8 +111,8 @@ class ControlEnv:
 
     def __init__(self, grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
                  control: ControlConfig | None = None, arch: str = "cpu", seed: int = 0,
-                 device: str | torch.device = "cpu", first_env: int = 0,
-                 box: tuple[int, int, int] | None = None):
+                 device: str | torch.device = "cpu", first_env: int | np.ndarray = 0,
+                 box: tuple[int, int, int] | None = None, simulator: Simulator | None = None):
         grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
         if grids.dim() != 4 or not (grids.shape[1] == grids.shape[2] == grids.shape[3]):
             raise ValueError(f"grids must be uint8 [N, ρ, ρ, ρ], got shape {tuple(grids.shape)}")
@@ -117,15 +120,14 @@ class ControlEnv:
             raise ValueError("every body must have at least one voxel (an empty grid has nothing to control)")
         self.control = control or ControlConfig()
         self.control.validate()
-        base = sim or SimConfig()
-        # the episode's own clock: the simulator never stops a robot before the episode ends
-        self.sim_config = replace(base, actuation="command", burn_in=0.0,
-                                  duration=self.control.burn_in + self.control.steps * self.control.period + 1.0)
-        self.sim_config.validate("sim")
+        self.sim_config = self.simulation(sim or SimConfig(), self.control)
         self.grids = grids.cpu()
         self.num_envs, self.rho = int(grids.shape[0]), int(grids.shape[1])
         self.device = torch.device(device)
-        self.simulator = Simulator(self.sim_config, arch=arch)
+        if simulator is not None and simulator.config != self.sim_config:
+            raise ValueError("simulator: its config is not this control env's (SimConfig with actuation='command', "
+                             "burn_in 0 and the episode's duration: ControlEnv.sim_config)")
+        self.simulator = simulator if simulator is not None else Simulator(self.sim_config, arch=arch)
         self.layout = self.simulator.layout(self.grids)
         lay = self.layout
         mt = material_table(self.sim_config)
@@ -166,9 +168,10 @@ class ControlEnv:
         self._actuated = actuated.astype(np.float64)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
-        if not (isinstance(first_env, int) and first_env >= 0):
-            raise ValueError(f"first_env must be an int >= 0, got {first_env!r}")
-        self.seed, self.first_env = int(seed), first_env
+        draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
+        if draws.shape != (self.num_envs,) or (draws < 0).any():
+            raise ValueError(f"first_env must be an int >= 0 or [{self.num_envs}] ints >= 0, got {first_env!r}")
+        self.seed, self.first_env, self._draws = int(seed), first_env, draws
         self.episode = -1
         """Episodes started so far − 1: the index of the current episode (its headings' draw)."""
         from freeform.body import bodies_and_metrics  # (the records' body metrics, computed once per env)
@@ -181,13 +184,22 @@ class ControlEnv:
         self.heading = np.zeros(self.num_envs)
         self._com = np.zeros((self.num_envs, 3))
 
+    @staticmethod
+    def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
+        """What a control env simulates: ``sim`` with commanded actuation, no burn-in of its own, and a duration past
+        the episode's end (the episode's own clock: the simulator never stops a robot before the episode ends)."""
+        config = replace(sim, actuation="command", burn_in=0.0,
+                         duration=control.burn_in + control.steps * control.period + 1.0)
+        config.validate("sim")
+        return config
+
     # ------------------------------------------------------------------ the VecEnv
-    def reset(self, seed: int | None = None) -> torch.Tensor:
-        """Start the next episode: the bodies placed and settled for ``control.burn_in`` seconds (zero commands),
-        the episode's headings drawn. ``seed``: start over as episode 0 of that seed."""
+    def reset(self, seed: int | None = None, episode: int | None = None) -> torch.Tensor:
+        """Start the next episode (or episode ``episode``): the bodies placed and settled for ``control.burn_in``
+        seconds (zero commands), the episode's headings drawn. ``seed``: start over as episode 0 of that seed."""
         if seed is not None:
             self.seed, self.episode = int(seed), -1
-        self.episode += 1
+        self.episode = self.episode + 1 if episode is None else int(episode)
         return self._start_episode()
 
     def _start_episode(self) -> torch.Tensor:
@@ -201,8 +213,8 @@ class ControlEnv:
         else:  # (settling with zero commands is deterministic: the same state, bit for bit, without its cost)
             self.engine.restore(self._settled)
         if self.control.headings == "random":
-            draw = np.random.default_rng([self.seed, self.episode]).uniform(0.0, 2 * math.pi, self.first_env + self.num_envs)
-            self.heading = draw[self.first_env:]
+            draw = np.random.default_rng([self.seed, self.episode]).uniform(0.0, 2 * math.pi, self._draws.max() + 1)
+            self.heading = draw[self._draws]
         else:
             self.heading = np.zeros(self.num_envs)
         self.t = 0
@@ -211,17 +223,36 @@ class ControlEnv:
         return obs
 
     def to_grid(self, values: torch.Tensor) -> torch.Tensor:
-        """Per-cell values of the box, ``[N, Bx·By·Bz]`` (actions, an observation channel flattened), on the bodies'
-        own grids ``[N, ρ, ρ, ρ]``: each voxel's value in its grid cell, zero elsewhere."""
+        """Per-cell values of the box, ``[N, Bx·By·Bz]`` or ``[N, C, Bx, By, Bz]`` (actions, observations), on the
+        bodies' own grids ``[N, ρ, ρ, ρ]`` / ``[N, C, ρ, ρ, ρ]``: each voxel's value in its grid cell, zero
+        elsewhere."""
         values = torch.as_tensor(values)
-        if values.shape[0] != self.num_envs or values[0].numel() != self.action_dim:
-            raise ValueError(f"values must be [{self.num_envs}, {self.action_dim}] (one per cell of the box "
-                             f"{self.box}), got {tuple(values.shape)}")
-        out = values.new_zeros(self.num_envs, self.rho ** 3)
-        body = self._body_t.to(values.device)
-        out[body, torch.from_numpy(self._grid_cell).to(values.device)] = values.reshape(self.num_envs, -1)[
-            body, self._cell_t.to(values.device)]
-        return out.view(self.num_envs, self.rho, self.rho, self.rho)
+        if values.shape[0] != self.num_envs or values[0].numel() % self.action_dim:
+            raise ValueError(f"values must be [{self.num_envs}, {self.action_dim}] or [{self.num_envs}, C, *{self.box}] "
+                             f"(per cell of the box), got {tuple(values.shape)}")
+        lead = values[0].numel() // self.action_dim
+        flat = values.reshape(self.num_envs, lead, self.action_dim)
+        out = values.new_zeros(self.num_envs, lead, self.rho ** 3)
+        body, grid_cell, cell = self._indices(values.device)
+        out[body, :, grid_cell] = flat[body, :, cell]
+        shape = (self.rho,) * 3
+        return out.view(self.num_envs, *shape) if values.dim() == 2 else out.view(self.num_envs, lead, *shape)
+
+    def from_grid(self, values: torch.Tensor) -> torch.Tensor:
+        """The inverse of :meth:`to_grid` for one value per cell: ``[N, ρ, ρ, ρ]`` (or ``[N, ρ³]``) on the bodies'
+        grids → ``[N, Bx·By·Bz]`` in the box (zero in the box's empty cells), e.g. commands chosen on the grid."""
+        values = torch.as_tensor(values)
+        if values.shape[0] != self.num_envs or values[0].numel() != self.rho ** 3:
+            raise ValueError(f"values must be [{self.num_envs}, {self.rho}, {self.rho}, {self.rho}], got "
+                             f"{tuple(values.shape)}")
+        out = values.new_zeros(self.num_envs, self.action_dim)
+        body, grid_cell, cell = self._indices(values.device)
+        out[body, cell] = values.reshape(self.num_envs, -1)[body, grid_cell]
+        return out
+
+    def _indices(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each voxel's body, its cell in its grid and its cell in the box, on ``device``."""
+        return (self._body_t.to(device), torch.from_numpy(self._grid_cell).to(device), self._cell_t.to(device))
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
         """``actions`` ``[N, Bx·By·Bz]`` (or ``[N, Bx, By, Bz]``), clipped to [−1, 1]: one control period."""

@@ -788,9 +788,15 @@ def policy_class_name(cls: type) -> str:
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
     """The networks any checkpoint may name (freeform's own)."""
-    from freeform.agents.networks import ConvController, MLPActorCritic, MLPController, VoxelActorCritic
+    from freeform.agents.networks import (
+        CodesignActorCritic,
+        ConvController,
+        MLPActorCritic,
+        MLPController,
+        VoxelActorCritic,
+    )
 
-    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController)
+    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic)
 
 
 __all__ = ["PPO", "builtin_policies", "choose_distribution", "policy_class_name"]

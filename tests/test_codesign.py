@@ -1,0 +1,126 @@
+"""Design then control in one episode (freeform/envs/codesign.py, CodesignActorCritic): the design stage builds what
+the design env builds from the same actions, the control stage scores what a control env of those bodies scores
+under the same commands, an empty body is frozen at reward 0, the policy's mask follows the stage, and PPO trains
+the whole thing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from freeform.agents import PPO, CodesignActorCritic, PPOConfig
+from freeform.body import largest_component
+from freeform.envs import CodesignEnv, DesignEnv
+from freeform.envs.codesign import CODESIGN_CHANNELS, CONTROL, GRID, STAGE
+from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
+from freeform.sim import SimConfig
+
+RHO, K, T = 6, 4, 4
+CONTROL_CFG = ControlConfig(burn_in=0.01, duration=0.0375, headings="random")  # 3 control steps
+
+
+def env(n: int = 3, seed: int = 2) -> CodesignEnv:
+    return CodesignEnv(n, resolution=RHO, materials=K, design_steps=T, sim=SimConfig(precision="f64"),
+                       control=CONTROL_CFG, seed=seed)
+
+
+def design_actions(n: int, gen: torch.Generator) -> list[torch.Tensor]:
+    """T design actions that place a material 1 … k−1 (never erase) at random positions near the centre."""
+    actions = [torch.randn(n, 3 + K, generator=gen) * 0.7 for _ in range(T)]
+    for a in actions:
+        a[:, 3:] = torch.eye(K)[torch.randint(1, K, (n,), generator=gen)] * 5
+    return actions
+
+
+def test_an_episode_designs_as_the_design_env_and_controls_as_the_control_env() -> None:
+    gen = torch.Generator().manual_seed(0)
+    e = env()
+    n, width = e.num_envs, e.action_dim
+    obs = e.reset()
+    assert tuple(obs.shape) == (n, len(CODESIGN_CHANNELS), RHO, RHO, RHO) and width == 3 + K + RHO ** 3
+    design = DesignEnv(n, resolution=RHO, materials=K, steps=T, compute_metrics=False)
+    design.reset()
+    acts = design_actions(n, gen)
+    for a in acts:
+        assert e.stage == "design" and float(obs[:, STAGE].abs().max()) == 0.0
+        full = torch.cat([a, torch.rand(n, RHO ** 3, generator=gen)], 1)  # the commands' part is ignored here
+        obs, reward, done, info = e.step(full)
+        design.grids = design.place_bundles(design.grids, a)
+        assert not done.any() and float(reward.abs().max()) == 0.0 and info == {}
+        assert torch.equal(obs[:, GRID].to(torch.uint8), design.grids)
+    assert e.stage == "control" and bool((obs[:, STAGE] == 1).all())
+    bodies = largest_component(design.grids)
+    alive = (bodies.flatten(1) > 0).any(dim=1)
+    # the reference: a control env of the same bodies, its headings drawn as the co-design env's
+    ref = ControlEnv(bodies[alive], sim=SimConfig(precision="f64"), control=CONTROL_CFG, seed=2,
+                     first_env=torch.nonzero(alive).flatten().numpy())
+    ref_obs = ref.reset(episode=0)
+    np.testing.assert_array_equal(e.heading[alive.numpy()], ref.heading)
+    torch.testing.assert_close(obs[alive][:, CONTROL], ref.to_grid(ref_obs), rtol=0, atol=0)
+    total = torch.zeros(n)
+    for step in range(CONTROL_CFG.steps):
+        commands = torch.rand(n, RHO ** 3, generator=gen) * 2 - 1
+        obs, reward, done, info = e.step(torch.cat([torch.zeros(n, 3 + K), commands], 1))
+        ref_obs, ref_reward, _, _ = ref.step(ref.from_grid(commands[alive].view(-1, RHO, RHO, RHO)))
+        torch.testing.assert_close(reward[alive], ref_reward, rtol=0, atol=0)
+        total += reward
+        assert bool(done.all()) == (step == CONTROL_CFG.steps - 1)
+    assert float(reward[~alive].abs().sum()) == 0.0 and bool(info["failed"].eq(~alive).all())
+    assert torch.equal(info["final_grids"], design.grids) and torch.equal(info["bodies"], bodies)
+    assert info["metrics"]["volume"].tolist() == (bodies > 0).flatten(1).sum(1).float().tolist()
+    assert bool(info["truncated"].all()) and e.stage == "design" and float(obs[:, GRID].abs().max()) == 0.0
+    assert float(total[alive].abs().min()) > 0  # the bodies moved
+
+
+def test_an_empty_body_is_frozen_with_reward_zero() -> None:
+    e = env(n=2)
+    e.reset()
+    erase = torch.zeros(2, e.action_dim)
+    erase[:, 3] = 5.0  # material 0 everywhere it paints: nothing is ever built
+    for _ in range(T):
+        obs, *_ = e.step(erase)
+    assert e.controlled is None and float(obs[:, CONTROL].abs().max()) == 0.0
+    for _ in range(CONTROL_CFG.steps):
+        obs, reward, done, info = e.step(torch.ones(2, e.action_dim))
+        assert float(reward.abs().max()) == 0.0
+    assert bool(info["failed"].all()) and bool(done.all())
+
+
+def test_the_policy_acts_with_the_design_head_then_the_controller() -> None:
+    e = env(n=2)
+    policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4)
+    obs = e.reset()
+    mean, log_std, mask, value = policy(obs)
+    assert mask.shape == (2, e.action_dim)
+    assert bool((mask[:, : 3 + K] == 1).all()) and float(mask[:, 3 + K:].abs().max()) == 0.0
+    build = torch.zeros(2, e.action_dim)
+    build[:, 3 + 2] = 5.0  # muscle A at the centre, every step
+    for _ in range(T):
+        obs, *_ = e.step(build)
+    mean, log_std, mask, value = policy(obs)
+    actuated = obs[:, CONTROL.start + OBS_CHANNELS.index("actuated")].reshape(2, -1)
+    assert float(mask[:, : 3 + K].abs().max()) == 0.0 and torch.equal(mask[:, 3 + K:], actuated)
+    assert int(actuated.sum()) == 2 * 8  # one 2³ bundle of muscle each
+    design_value = policy.design(obs[:, GRID].to(torch.uint8))[-1]
+    assert not torch.allclose(value, design_value)  # the controller's critic counts now
+
+
+def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
+    e = env(n=4)
+    policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4)
+    ppo = PPO(e, policy, PPOConfig(rollout_steps=e.steps, sgd_minibatch_size=8, num_sgd_iter=2, seed=0))
+    before = [p.detach().clone() for p in policy.parameters()]
+    stats = ppo.train_epoch()
+    assert np.isfinite(stats["episode_reward_mean"])
+    assert all(not torch.equal(b, p) for b, p in zip(before, policy.parameters(), strict=True) if p.requires_grad)
+    episodes = ppo.episodes()
+    assert episodes["final_grids"].shape == (4, RHO, RHO, RHO) and episodes["values"].shape == (4, e.steps)
+    state = e.state_dict()
+    assert state["episode"] == 1
+    e.step(torch.zeros(4, e.action_dim))
+    with pytest.raises(ValueError, match="between episodes"):
+        e.state_dict()
+    other = env(n=4)
+    other.load_state_dict(state)
+    assert other.episode == 1 and other.t == 0
