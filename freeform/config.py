@@ -94,7 +94,7 @@ class AgentConfig(PPOConfig):
         require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
 
 
-BODY_SOURCES = ("walker", "untrained_designs")
+BODY_SOURCES = ("walker", "untrained_designs", "codesign")
 CONTROLLERS = ("conv", "mlp")
 
 
@@ -109,7 +109,9 @@ class ControlRunConfig(ControlConfig):
     ``walker`` — the best open-loop gait of ``candidates`` bodies that an untrained design policy builds with the
     ``env`` and ``task.materials`` sizes (the control demo's body); ``untrained_designs`` — ``env.num_envs``
     such bodies, all different; a path — a ``.npy`` of uint8 grids ``[ρ, ρ, ρ]`` or ``[M, ρ, ρ, ρ]``, or a design
-    record ``records/epoch_<e>.npz`` of a design run, whose best ``top`` designs are taken."""
+    record ``records/epoch_<e>.npz`` of a design run, whose best ``top`` designs are taken; ``codesign`` — none
+    given: each episode first designs its body (``env.steps`` design actions at the ``env`` sizes, the design env's)
+    and then controls it, one PPO learning both (``freeform.envs.CodesignEnv``, ``docs/codesign.md``)."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -122,6 +124,12 @@ class ControlRunConfig(ControlConfig):
     ``MLPController`` over the flattened box (the baseline). Width: ``agent.hidden``."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
+    hidden: int | None = None
+    """The controller's width; None: ``agent.hidden`` (a co-design run's ``agent.hidden`` is its design network's)."""
+
+    @property
+    def codesign(self) -> bool:
+        return self.bodies == "codesign"
 
     def validate(self, key: str = "control") -> None:
         super().validate(key)
@@ -130,6 +138,10 @@ class ControlRunConfig(ControlConfig):
         require(self.top >= 1, f"{key}.top", "an integer >= 1", self.top)
         require(self.candidates >= 1, f"{key}.candidates", "an integer >= 1", self.candidates)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
+        require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
+        require(not self.codesign or self.controller == "conv", f"{key}.controller",
+                "conv with bodies=codesign (each episode's body differs: one set of weights for every cell)",
+                self.controller)
 
     def episode(self) -> ControlConfig:
         """The env's part (``ControlEnv(control=...)``)."""
@@ -225,11 +237,13 @@ def _validate_control(cfg: TrainConfig) -> None:
     require(cfg.algo.name == "ppo", "algo.name", "ppo in a control run (a controller is trained by PPO)", cfg.algo.name)
     require(not cfg.env.dense_every, "env.dense_every", "0 in a control run (design rewards have no design here)",
             cfg.env.dense_every)
-    steps = control.steps
+    steps = control.steps + (cfg.env.steps if control.codesign else 0)
     rollout = cfg.agent.rollout_steps
+    what = (f"{steps} steps ({cfg.env.steps} design + {control.steps} control)" if control.codesign
+            else f"{steps} steps (control.duration / control.period)")
     require(rollout is None or rollout % steps == 0, "agent.rollout_steps",
-            f"a multiple of the control episode's {steps} steps (control.duration / control.period; every epoch "
-            f"ends between episodes, where a control run checkpoints), or None", rollout)
+            f"a multiple of the control episode's {what}, or None: every epoch ends between episodes, where a "
+            f"control run checkpoints", rollout)
     require(not cfg.agent.obs_norm, "agent.obs_norm", "false in a control run (the controller reads its action mask "
             "from an observation channel, which must stay 0/1)", cfg.agent.obs_norm)
 
@@ -262,7 +276,8 @@ def ppo_config(cfg: TrainConfig, device: str | None) -> PPOConfig:
     ``rollout_steps`` defaulting to ``env.steps``, ``seed`` to the run's and ``device`` to ``device``."""
     agent = cfg.agent
     values = {f.name: getattr(agent, f.name) for f in dataclasses.fields(PPOConfig)}
-    episode = cfg.control.steps if cfg.control is not None else cfg.env.steps
+    control = cfg.control
+    episode = cfg.env.steps if control is None else control.steps + (cfg.env.steps if control.codesign else 0)
     values["rollout_steps"] = agent.rollout_steps if agent.rollout_steps is not None else episode
     values["seed"] = agent.seed if agent.seed is not None else cfg.seed
     values["device"] = agent.device if agent.device is not None else device

@@ -110,10 +110,12 @@ def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
     e = env(n=4)
     policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4)
     ppo = PPO(e, policy, PPOConfig(rollout_steps=e.steps, sgd_minibatch_size=8, num_sgd_iter=2, seed=0))
-    before = [p.detach().clone() for p in policy.parameters()]
+    heads = {"design": policy.design.actor_out.weight, "controller": policy.controller.actor.weight}
+    before = {name: w.detach().clone() for name, w in heads.items()}
     stats = ppo.train_epoch()
     assert np.isfinite(stats["episode_reward_mean"])
-    assert all(not torch.equal(b, p) for b, p in zip(before, policy.parameters(), strict=True) if p.requires_grad)
+    for name, w in heads.items():  # both stages' losses reach their own head
+        assert not torch.equal(before[name], w), name
     episodes = ppo.episodes()
     assert episodes["final_grids"].shape == (4, RHO, RHO, RHO) and episodes["values"].shape == (4, e.steps)
     state = e.state_dict()
@@ -124,3 +126,55 @@ def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
     other = env(n=4)
     other.load_state_dict(state)
     assert other.episode == 1 and other.t == 0
+
+
+def test_a_codesign_run_of_the_app_resumes_bit_for_bit(tmp_path) -> None:
+    """``freeform-train experiment=codesign_steering_cpu`` at a tiny size: 2 epochs = 1 + resume 1 (weights, records),
+    the records hold the designs and one value per design and control step, and the renders are logged."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from freeform import train as train_mod
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import compose
+    from freeform.records import read_record
+
+    cfg = compose("experiment=codesign_steering_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
+                  "control.duration=0.0375", "control.burn_in=0.01", "trainer.epochs=2", "trainer.render_every=2",
+                  "agent.sgd_minibatch_size=8", "agent.hidden=8", "control.hidden=4", "trainer.progress=false",
+                  "trainer.print_every=0", "trainer.threads=1", "sim.precision=f64", "seed=4")
+    train_mod.train(cfg, tmp_path / "straight")
+    cfg.trainer.epochs, cfg.trainer.render_every = 1, 0
+    train_mod.train(cfg, tmp_path / "split")
+    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
+    train_mod.train(cfg, tmp_path / "split")
+    a, b = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt")["ppo"] for d in ("straight", "split"))
+    for name, tensor in a["policy"].items():
+        assert torch.equal(tensor, b["policy"][name]), name
+    ra, rb = (read_record(tmp_path / d / "records" / "epoch_000001.npz") for d in ("straight", "split"))
+    np.testing.assert_array_equal(ra.rewards, rb.rewards)
+    np.testing.assert_array_equal(ra.final_grids, rb.final_grids)
+    assert ra.values.shape == (4, T + 3) and ra.final_grids.shape == (4, RHO, RHO, RHO)
+    events = EventAccumulator(str(tmp_path / "straight"), size_guidance={"images": 0})
+    events.Reload()
+    assert "bodies/best" in events.Tags()["images"]  # (the gait GIF only when the policy's mode builds a body)
+
+
+def test_a_recorded_episode_designs_then_drives_the_body() -> None:
+    e = env(n=2)
+    build = torch.zeros(2, e.action_dim)
+    build[:, 3 + 2] = 5.0  # muscle A at the centre, every design step
+    build[:, 3 + K:] = 1.0  # then every command at its top
+    recording, commands, total = e.record(lambda obs: build)
+    assert len(recording.times) == CONTROL_CFG.steps and recording.positions[0].shape == (CONTROL_CFG.steps, 8, 3)
+    assert commands.shape == (CONTROL_CFG.steps, 8) and bool((commands == 1).all()) and total != 0
+    assert e.t == 0 and e.stage == "design"
+    erase = torch.zeros(2, e.action_dim)
+    erase[:, 3] = 5.0
+    assert e.record(lambda obs: erase) is None
+
+
+def test_a_codesign_run_refuses_the_mlp_controller() -> None:
+    from freeform.config import compose
+
+    with pytest.raises(ValueError, match=r"control\.controller must be conv with bodies=codesign"):
+        compose("experiment=codesign_locomotion_cpu", "control.controller=mlp")

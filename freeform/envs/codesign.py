@@ -179,6 +179,28 @@ class CodesignEnv:
             out[self._alive.numpy()] = self.controlled.heading
         return out
 
+    @torch.no_grad()
+    def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float] | None:
+        """One episode under ``act`` (observations → actions), for looking at: ``act`` designs the bodies, then
+        drives them; robot ``robot``'s control window as ``ControlEnv.record`` gives it (a ``Recording``, its
+        commands, its return), or None when its body is empty. Starts a new episode and leaves the env at the
+        start of the next one."""
+        obs = self.reset()
+        for _ in range(self.design_steps):
+            obs, *_ = self.step(act(obs))
+        controlled, alive = self.controlled, self._alive
+        if controlled is None or not bool(alive[robot]):
+            self.reset()
+            return None
+
+        def act_on_box(obs_c: torch.Tensor) -> torch.Tensor:
+            actions = torch.as_tensor(act(self._control_obs(obs_c))).cpu()
+            return controlled.from_grid(actions[alive, self.design_dim:].reshape(-1, *(self.rho,) * 3))
+
+        out = controlled.record(act_on_box, robot=int(alive[:robot].sum()))
+        self.reset()
+        return out
+
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
         """The state between episodes (every epoch of whole episodes ends there): the episode count."""

@@ -115,20 +115,16 @@ def log_bodies(writer: SummaryWriter, final_grids: Any, rewards: Any, step: int,
     return log_epoch_renders(writer, final_grids, None, rewards, step, rng, simulator)
 
 
-def log_controlled_gait(writer: SummaryWriter, act: Any, body: Any, step: int, cfg: Any,
-                        box: tuple[int, int, int] | None = None, arch: str = "cpu",
-                        video: VideoConfig | None = None) -> float:
-    """A control run's render hook: one episode of ``body`` (uint8 ``[ρ, ρ, ρ]``) under the controller ``act``
-    (observations → actions, e.g. ``PPO.act(obs, deterministic=True)``) in a ``ControlEnv`` of the run's
-    ``sim`` and ``control`` (padded to ``box``, the box the controller was built for), logged as the GIF
-    ``bodies/controlled_gait`` at ``video.fps`` frames per simulated second (the burn-in not shown; a random
-    heading is the episode's draw of seed ``step``). Returns the episode's return."""
-    from freeform.envs.control import ControlEnv
-
+def log_controlled_gait(writer: SummaryWriter, env: Any, act: Any, step: int, video: VideoConfig | None = None) -> float:
+    """A control run's render hook: one episode of robot 0 of ``env`` (a ``ControlEnv`` or ``CodesignEnv``: its
+    ``record(act)``) under the policy ``act`` (observations → actions, e.g. ``PPO.act(obs, deterministic=True)``),
+    logged as the GIF ``bodies/controlled_gait`` at ``video.fps`` frames per simulated second (the burn-in not shown).
+    Returns the episode's return (NaN when a co-design episode built no body: nothing is logged)."""
     vid = video if video is not None else VideoConfig()
-    env = ControlEnv(torch.as_tensor(np.asarray(body))[None], sim=cfg.sim, control=cfg.control.episode(),
-                     arch=arch, seed=int(step), box=box)
-    recording, _, total = env.record(act)
+    recorded = env.record(act)
+    if recorded is None:
+        return float("nan")
+    recording, _, total = recorded
     every = max(1, round(1.0 / (vid.fps * env.control.period)))
     frames = render_recording(recording, 0, replace(RenderConfig(), size=vid.size),
                               frames=np.arange(0, len(recording.times), every))

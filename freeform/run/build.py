@@ -182,11 +182,19 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
 def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], seed: int,
                 grids: torch.Tensor | None = None) -> Any:
     """The run's ``ControlEnv`` of environments ``envs = (lo, hi)`` (its bodies :func:`control_bodies`, or
-    ``grids`` of all ``env.num_envs``), seeded ``seed``."""
+    ``grids`` of all ``env.num_envs``), seeded ``seed``; with ``control.bodies=codesign`` a ``CodesignEnv``."""
     from freeform.envs.control import ControlEnv
 
     assert cfg.control is not None
     arch = "cuda" if device.type == "cuda" else "cpu"
+    if cfg.control.codesign:  # each episode designs its bodies
+        from freeform.envs.codesign import CodesignEnv
+
+        e = cfg.env
+        return CodesignEnv(envs[1] - envs[0], resolution=e.resolution, materials=cfg.task.materials,
+                           design_steps=e.steps, bundle_size=e.bundle_size, sim=cfg.sim,
+                           control=cfg.control.episode(), arch=arch, seed=seed, device=device,
+                           action_bound=e.action_bound, mirror_y=e.mirror_y, first_env=envs[0])
     grids = control_bodies(cfg, arch) if grids is None else grids
     return ControlEnv(grids[envs[0]:envs[1]], sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed,
                       device=device, first_env=envs[0])
@@ -217,18 +225,24 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
 def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
     """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
     in dense rewards, ``agent.eval_every`` adds a deterministic evaluation env of its own (seed + 1)."""
-    from freeform.agents import PPO, ConvController, MLPController, VoxelActorCritic
+    from freeform.agents import PPO, CodesignActorCritic, ConvController, MLPController, VoxelActorCritic
 
     if cfg.control is not None:
         control = cfg.control
-        if control.controller == "conv":
-            policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel,
-                                    cfg.agent.hidden, control.init_log_std)
-        else:
-            policy = MLPController(env.observation_shape[0], env.box, env.mask_channel,
-                                   (cfg.agent.hidden, cfg.agent.hidden), control.init_log_std)
+        width = control.hidden if control.hidden is not None else cfg.agent.hidden
         eval_env = None
-        if cfg.agent.eval_every:  # the same bodies (this rank's), not searched again
+        if control.codesign:
+            policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
+                                                 log_std=control.init_log_std)
+            if cfg.agent.eval_every:
+                eval_env = control_env(cfg, device, envs, cfg.seed + 1)
+        elif control.controller == "conv":
+            policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel, width,
+                                    control.init_log_std)
+        else:
+            policy = MLPController(env.observation_shape[0], env.box, env.mask_channel, (width, width),
+                                   control.init_log_std)
+        if cfg.agent.eval_every and not control.codesign:  # the same bodies (this rank's), not searched again
             from freeform.envs.control import ControlEnv
 
             eval_env = ControlEnv(env.grids, sim=cfg.sim, control=control.episode(), arch=env.simulator.arch,

@@ -41,7 +41,7 @@ from freeform.envs.base import ReportsStats
 from freeform.learner import Episodes, Learner
 from freeform.logger import Logger
 from freeform.records import EpochRecord, placed
-from freeform.run.build import build, resolve_device
+from freeform.run.build import build, control_env, resolve_device
 from freeform.run.resume import find_checkpoint, read_checkpoint
 from freeform.run.rundir import RunDir
 
@@ -87,16 +87,20 @@ def render_callback(every: int) -> EpochCallback:
         if ctx.cfg.control is None:
             log_bodies(ctx.logger.writer, grids, ctx.episodes["rewards"], ctx.global_step, ctx.cfg)
             return
-        # a control run: the bodies' images, and the controller (its mode) driving the epoch's best body
+        # a control run: the bodies' images, and the policy's mode driving a body (co-design: designing it first)
         from freeform.render import log_controlled_gait, log_epoch_renders
 
         log_epoch_renders(ctx.logger.writer, grids, None, ctx.episodes["rewards"], ctx.global_step,
                           np.random.default_rng([ctx.cfg.seed, ctx.global_step]))
-        learner = ctx.learner
-        best = grids[int(ctx.episodes["rewards"].argmax())]
-        log_controlled_gait(ctx.logger.writer, lambda obs: learner.act(obs, deterministic=True), best,
-                            ctx.global_step, ctx.cfg, box=learner.env.box,
-                            arch="cuda" if learner.device.type == "cuda" else "cpu")
+        learner, cfg = ctx.learner, ctx.cfg
+        if cfg.control.codesign:  # the policy's mode designs a body and drives it
+            env = control_env(cfg, learner.device, (0, 1), ctx.global_step)
+        else:  # the controller drives the epoch's best body, in the box it was built for
+            from freeform.envs.control import ControlEnv
+
+            env = ControlEnv(grids[int(ctx.episodes["rewards"].argmax())][None], sim=cfg.sim,
+                             control=cfg.control.episode(), arch=learner.env.simulator.arch, box=learner.env.box)
+        log_controlled_gait(ctx.logger.writer, env, lambda obs: learner.act(obs, deterministic=True), ctx.global_step)
 
     return callback
 
