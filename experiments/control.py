@@ -12,6 +12,10 @@ policy (99 % bands; the copies differ only by the policy's noise) and once with 
 
     python -m experiments.control --minutes 28 --out docs/results/control_walker
     python -m experiments.control --gait docs/results/control_walker      # the trained gait, looked at
+    python -m experiments.control --evaluate runs/control_steering --out docs/results/control_steering  # an app run
+
+``--evaluate RUN`` evaluates a control or co-design run of ``freeform-train`` (``experiment=control_* |
+codesign_*``): its untrained and last policy on fresh headings, against open-loop gaits (``evaluate_run``).
 
 Writes ``curve.csv`` (per epoch: wall seconds, training return, the update's statistics), ``summary.csv``,
 ``control_walker.png``, ``walker.npy`` and ``controller.pt`` into ``--out``. ``--gait DIR`` replays DIR's controller
@@ -28,6 +32,7 @@ import json
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -99,49 +104,72 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
 
 
 @torch.no_grad()
-def heading_returns(ppo: PPO, env: ControlEnv, episodes: int) -> tuple[np.ndarray, np.ndarray]:
-    """``episodes`` stochastic episodes' returns and their headings (radians), from ``env``'s next episodes."""
-    returns, headings = [], []
-    while len(returns) * env.num_envs < episodes:
+def evaluation_episodes(ppo: PPO, env: Any, episodes: int) -> dict[str, Any]:
+    """``episodes`` stochastic episodes from ``env``'s next ones (a ``ControlEnv`` or ``CodesignEnv``): their returns,
+    headings (radians), bodies ``[E, ρ, ρ, ρ]`` and body metrics."""
+    out: dict[str, list] = {"returns": [], "headings": [], "bodies": [], "metrics": []}
+    while len(out["returns"]) * env.num_envs < episodes:
         obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
-        headings.append(env.heading.copy())
         while not bool(done.all()):
-            obs, reward, done, _ = env.step(ppo.act(obs))
+            heading = env.heading.copy()  # (the control stage's; the env draws the next episode's when it ends)
+            obs, reward, done, info = env.step(ppo.act(obs))
             total += reward
-        returns.append(total.numpy())
-    return np.concatenate(returns)[:episodes], np.concatenate(headings)[:episodes]
+        out["returns"].append(total.numpy())
+        out["headings"].append(heading)
+        out["bodies"].append(info.get("bodies", info["final_grids"]).cpu().numpy())
+        out["metrics"].append({k: v.cpu().numpy() for k, v in info["metrics"].items()})
+    return {"returns": np.concatenate(out["returns"])[:episodes], "headings": np.concatenate(out["headings"])[:episodes],
+            "bodies": np.concatenate(out["bodies"])[:episodes],
+            "metrics": {k: np.concatenate([m[k] for m in out["metrics"]])[:episodes] for k in out["metrics"][0]}}
+
+
+def open_loop_along(bodies: np.ndarray, headings: np.ndarray, sim: SimConfig, control: ControlConfig) -> np.ndarray:
+    """Each body's open-loop move along its heading in the control window (0 for an empty body)."""
+    moved = np.zeros(len(bodies))
+    built = (bodies.reshape(len(bodies), -1) > 0).any(axis=1)
+    if built.any():
+        moved[built] = open_loop_displacement(bodies[built], sim, control, headings=headings[built])
+    return moved
 
 
 def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dict]:
-    """A control run of the app (``freeform-train experiment=control_*``) evaluated: its untrained (checkpoint 0)
-    and its last controller, ``episodes`` stochastic episodes each on fresh headings (seed + 10,000), against the
-    bodies' open-loop gaits along the same headings. Writes ``summary.csv``, ``by_heading.csv`` (mean return per
-    heading sector), ``curve.csv`` (the training return per epoch, from TensorBoard) and ``<run name>.png``."""
+    """A control or co-design run of the app (``freeform-train experiment=control_* | codesign_*``) evaluated: its
+    untrained (checkpoint 0) and its last policy, ``episodes`` stochastic episodes each on fresh headings (seed +
+    10,000, the same for both), against the bodies' open-loop gaits along the same headings (a co-design run's:
+    the designs each policy built). Writes ``summary.csv``, ``by_heading.csv`` (mean return per heading sector),
+    ``metrics.csv`` (the bodies' seven metrics), ``curve.csv`` (the training return per epoch, from TensorBoard) and
+    ``<run name>.png``."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from freeform.checkpoint import load_checkpoint
     from freeform.config import from_container
-    from freeform.run.build import build
+    from freeform.run.build import build, control_env
 
     out.mkdir(parents=True, exist_ok=True)
     last = load_checkpoint(run / "checkpoints" / "last.pt")
     cfg = from_container(last["config"])
     env, ppo = build(cfg, torch.device("cpu"))
-    control = cfg.control.episode()
-    eval_env = ControlEnv(env.grids, sim=cfg.sim, control=control, seed=cfg.seed + 10_000, box=env.box)
-    rows, sectors = [], {}
+    control, codesign = cfg.control.episode(), cfg.control.codesign
+    seed = cfg.seed + 10_000
+    eval_env = (control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed) if codesign else
+                ControlEnv(env.grids, sim=cfg.sim, control=control, seed=seed, box=env.box))
+    rows, sectors, metrics = [], {}, []
+    what = "design + controller" if codesign else "controller"
     for name, path in (("untrained", run / "checkpoints" / "epoch_000000.pt"), ("trained", run / "checkpoints" / "last.pt")):
         state = load_checkpoint(path)
         ppo.restore(state)
-        eval_env.reset(seed=cfg.seed + 10_000)  # the same headings for both
-        returns, headings = heading_returns(ppo, eval_env, episodes)
-        rows.append(summary_row(f"controller, {name} ({state['ppo']['epoch']} epochs, stochastic)", returns))
-        sectors[name] = returns
+        eval_env.reset(seed=seed)
+        result = evaluation_episodes(ppo, eval_env, episodes)
+        headings = result["headings"]
+        rows.append(summary_row(f"{what}, {name} ({state['ppo']['epoch']} epochs, stochastic)", result["returns"]))
+        sectors[name] = result["returns"]
         print(f"{rows[-1]['what']}: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f}", flush=True)
-    open_loop = open_loop_displacement(eval_env.grids[np.arange(episodes) % eval_env.num_envs], cfg.sim, control,
-                                       headings=headings)
-    rows.insert(0, summary_row("open loop: the bodies' sine gaits along the same headings", open_loop))
-    sectors["open_loop"] = open_loop
+        metrics.append({"policy": name, **{k: float(v.mean()) for k, v in result["metrics"].items()}})
+        if codesign or name == "trained":  # (a control run's bodies are the same for both)
+            moved = open_loop_along(result["bodies"], headings, cfg.sim, control)
+            label = f"open loop: the {name} policy's designs" if codesign else "open loop: the bodies' sine gaits"
+            rows.insert(len(rows) - 1, summary_row(f"{label} along the same headings", moved))
+            sectors[f"open_loop_{name}" if codesign else "open_loop"] = moved
     sector = np.floor(np.mod(headings, 2 * np.pi) / (2 * np.pi / bins)).astype(int)
     by_heading = [{"sector_deg": f"{360 * k / bins:.0f}-{360 * (k + 1) / bins:.0f}", "n": int((sector == k).sum()),
                    **{name: float(v[sector == k].mean()) if (sector == k).any() else float("nan")
@@ -150,15 +178,16 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
     events.Reload()
     curve = [{"epoch": i + 1, "global_step": e.step, "episode_reward_mean": e.value}
              for i, e in enumerate(events.Scalars("charts/episode_reward_mean"))]
-    for name, table in (("summary.csv", rows), ("by_heading.csv", by_heading), ("curve.csv", curve)):
+    for name, table in (("summary.csv", rows), ("by_heading.csv", by_heading), ("metrics.csv", metrics),
+                        ("curve.csv", curve)):
         with open(out / name, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(table[0]))
             writer.writeheader()
             writer.writerows(table)
     (out / "run.json").write_text(json.dumps({"run": str(run), "name": cfg.name, "episodes": episodes,
                                               "epochs": int(last["ppo"]["epoch"]), "control": vars(cfg.control)}, indent=1))
-    figure([{"epoch": r["epoch"], "episode_reward_mean": r["episode_reward_mean"]} for r in curve],
-           rows, out / f"{cfg.name}.png", ylabel=f"move along the heading in {control.duration:g} s (voxel lengths)")
+    figure(curve, rows, out / f"{cfg.name}.png",
+           ylabel=f"move along the heading in {control.duration:g} s (voxel lengths)")
     for row in rows:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
     return rows
@@ -245,11 +274,13 @@ def main(argv: list[str] | None = None) -> None:
         writer.writeheader()
         writer.writerows(rows)
     (out / "args.json").write_text(json.dumps(vars(args), indent=1))
-    figure(curve, rows, out / "control_walker.png")
+    figure(curve, rows[:3], out / "control_walker.png")
 
 
 def figure(curve: list[dict], rows: list[dict], path: Path,
            ylabel: str = "move along +x in 2 s (voxel lengths)") -> None:
+    """The training return per epoch; open-loop rows as dashed lines, the policy's rows as points with their 99 %
+    bands (untrained at epoch 0, trained at the last)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -257,11 +288,15 @@ def figure(curve: list[dict], rows: list[dict], path: Path,
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot([r["epoch"] for r in curve], [r["episode_reward_mean"] for r in curve], color="k", lw=1,
-            label="controller, training return (mean of the copies)")
-    ax.axhline(rows[0]["mean"], color="tab:red", ls="--", label=rows[0]["what"])
-    for row, colour in ((rows[1], "tab:grey"), (rows[2], "tab:blue")):
-        ax.errorbar([0 if row is rows[1] else curve[-1]["epoch"]], [row["mean"]], yerr=[row["band99"]], fmt="o",
-                    color=colour, capsize=3, label=row["what"] + ", 99 % band")
+            label="training return (mean of the batch)")
+    lines, points = iter(("tab:red", "tab:orange", "tab:brown")), iter(("tab:grey", "tab:blue", "tab:green"))
+    for row in rows:
+        if row["what"].startswith("open loop"):
+            ax.axhline(row["mean"], color=next(lines), ls="--", label=row["what"])
+        else:
+            x = 0 if "untrained" in row["what"] else curve[-1]["epoch"]
+            ax.errorbar([x], [row["mean"]], yerr=[row["band99"]], fmt="o", color=next(points), capsize=3,
+                        label=row["what"] + ", 99 % band")
     ax.set_xlabel("epoch")
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=7)

@@ -178,3 +178,28 @@ def test_a_codesign_run_refuses_the_mlp_controller() -> None:
 
     with pytest.raises(ValueError, match=r"control\.controller must be conv with bodies=codesign"):
         compose("experiment=codesign_locomotion_cpu", "control.controller=mlp")
+
+
+def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
+    """``python -m experiments.control --evaluate RUN``: the untrained and trained policy on the same fresh headings,
+    each against its own designs' open-loop gaits, with the designs' metrics."""
+    import csv
+
+    from experiments.control import main
+    from freeform import train as train_mod
+    from freeform.config import compose
+
+    cfg = compose("experiment=codesign_steering_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
+                  "control.duration=0.0375", "control.burn_in=0.01", "trainer.epochs=1", "trainer.render_every=0",
+                  "agent.sgd_minibatch_size=8", "agent.hidden=8", "control.hidden=4", "trainer.progress=false",
+                  "trainer.print_every=0", "trainer.threads=1")
+    train_mod.train(cfg, tmp_path / "run")
+    main(["--evaluate", str(tmp_path / "run"), "--eval-episodes", "8", "--out", str(tmp_path / "eval")])
+    rows = list(csv.DictReader(open(tmp_path / "eval" / "summary.csv")))
+    assert [r["what"].split(" (")[0] for r in rows] == [
+        "open loop: the untrained policy's designs along the same headings", "design + controller, untrained",
+        "open loop: the trained policy's designs along the same headings", "design + controller, trained"]
+    assert all(int(r["n"]) == 8 for r in rows)
+    metrics = list(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
+    assert [m["policy"] for m in metrics] == ["untrained", "trained"] and "symmetry" in metrics[0]
+    assert (tmp_path / "eval" / "codesign_steering_cpu.png").is_file()
