@@ -142,3 +142,61 @@ def test_the_open_loop_figure_along_a_heading_is_the_gait_projected_on_it() -> N
     assert along_x[0] == moved[0] and abs(along_x[0]) > 1e-4  # it moves
     assert moved[2] == pytest.approx(-moved[0], rel=1e-9, abs=1e-12)
     assert moved[1] != moved[0]
+
+
+# Data parallel: two gloo ranks holding environments 0-2 and 3-4 of a steering batch train what one process trains.
+DP_ENVS = 5
+DP_CONTROL = ControlConfig(burn_in=0.01, duration=0.05, headings="random")
+
+
+def _dp_ppo(envs: tuple[int, int]):
+    from freeform.agents import PPO, ConvController, PPOConfig
+    from freeform.sim import SimConfig
+
+    torch.manual_seed(0)
+    grids = np.stack([ROD, CUBE, ROD, CUBE, ROD])[envs[0]:envs[1]]
+    env = ControlEnv(grids, sim=SimConfig(precision="f64"), control=DP_CONTROL, seed=5, first_env=envs[0], box=(3, 3, 3))
+    policy = ConvController.for_env(env, hidden=4)
+    return PPO(env, policy, PPOConfig(rollout_steps=DP_CONTROL.steps, num_sgd_iter=2, sgd_minibatch_size=6, seed=3,
+                                      lr=3e-3, reward_norm=True))
+
+
+def _dp_worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
+    import os
+
+    import torch.distributed as dist
+
+    from freeform.agents.distributed import env_slice
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        ppo = _dp_ppo(env_slice(DP_ENVS, world, rank))
+        stats = [ppo.train_epoch(), ppo.train_epoch()]
+        rewards = ppo.dp.gather_envs(ppo.rollout.rewards, dim=1)
+        torch.save({"stats": stats, "rewards": rewards, "heading": ppo.dp.gather_envs(
+            torch.from_numpy(ppo.env.heading), dim=0), "params": torch.cat([p.detach().reshape(-1)
+                                                                          for p in ppo.policy.parameters()])},
+                   Path(out_dir) / f"rank{rank}.pt")
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
+    os._exit(0)  # (as tests/test_distributed.py: native thread pools torn down at exit have aborted finished workers)
+
+
+@pytest.mark.usefixtures("one_thread", "keep_global_rng")
+def test_two_gloo_ranks_steer_as_one_process(tmp_path: Path) -> None:
+    import torch.multiprocessing as mp
+
+    single = _dp_ppo((0, DP_ENVS))
+    stats = [single.train_epoch(), single.train_epoch()]
+    mp.spawn(_dp_worker, args=(2, str(tmp_path / "pg"), str(tmp_path)), nprocs=2, join=True)
+    rank0 = torch.load(tmp_path / "rank0.pt", weights_only=False)
+    # each rank drew its environments' headings of the single process, episode after episode ...
+    np.testing.assert_array_equal(rank0["heading"].numpy(), single.env.heading)
+    # ... so the second epoch's rewards (after one data-parallel update) and statistics are the single run's
+    torch.testing.assert_close(rank0["rewards"], single.rollout.rewards, rtol=1e-4, atol=1e-6)
+    for key in ("episode_reward_mean", "policy_loss", "value_loss", "approx_kl"):
+        assert rank0["stats"][1][key] == pytest.approx(stats[1][key], rel=1e-4, abs=1e-6), key
+    torch.testing.assert_close(rank0["params"], torch.cat([p.detach().reshape(-1) for p in single.policy.parameters()]),
+                               rtol=1e-4, atol=1e-5)
