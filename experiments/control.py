@@ -46,20 +46,6 @@ RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's 
 
 
 @torch.no_grad()
-def episode_returns(ppo: PPO, env: ControlEnv, episodes: int, deterministic: bool) -> np.ndarray:
-    """Returns (displacement along the heading, voxel lengths) of ``episodes`` whole episodes (a multiple of the
-    env count), the policy's mode or its samples (which draw from PPO's generator)."""
-    out = []
-    while len(out) * env.num_envs < episodes:
-        obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
-        while not bool(done.all()):
-            obs, reward, done, _ = env.step(ppo.act(obs, deterministic=deterministic))
-            total += reward
-        out.append(total.numpy())
-    return np.concatenate(out)[:episodes]
-
-
-@torch.no_grad()
 def gait(directory: Path, fps: float = 40.0) -> dict:
     """Replay ``directory``'s trained controller (its mode) on the walker alone; GIFs of the closed- and open-loop
     gaits and figures of the commanded gait (``gait.json``)."""
@@ -104,15 +90,16 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
 
 
 @torch.no_grad()
-def evaluation_episodes(ppo: PPO, env: Any, episodes: int) -> dict[str, Any]:
-    """``episodes`` stochastic episodes from ``env``'s next ones (a ``ControlEnv`` or ``CodesignEnv``): their returns,
-    headings (radians), bodies ``[E, ρ, ρ, ρ]`` and body metrics."""
+def evaluation_episodes(ppo: PPO, env: Any, episodes: int, deterministic: bool = False) -> dict[str, Any]:
+    """``episodes`` whole episodes from ``env``'s next ones (a ``ControlEnv`` or ``CodesignEnv``), of the policy's
+    samples (which draw from PPO's generator) or its mode: their returns (the move along the heading, voxel
+    lengths), headings (radians), bodies ``[E, ρ, ρ, ρ]`` and body metrics."""
     out: dict[str, list] = {"returns": [], "headings": [], "bodies": [], "metrics": []}
     while len(out["returns"]) * env.num_envs < episodes:
         obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
         while not bool(done.all()):
             heading = env.heading.copy()  # (the control stage's; the env draws the next episode's when it ends)
-            obs, reward, done, info = env.step(ppo.act(obs))
+            obs, reward, done, info = env.step(ppo.act(obs, deterministic=deterministic))
             total += reward
         out["returns"].append(total.numpy())
         out["headings"].append(heading)
@@ -121,15 +108,6 @@ def evaluation_episodes(ppo: PPO, env: Any, episodes: int) -> dict[str, Any]:
     return {"returns": np.concatenate(out["returns"])[:episodes], "headings": np.concatenate(out["headings"])[:episodes],
             "bodies": np.concatenate(out["bodies"])[:episodes],
             "metrics": {k: np.concatenate([m[k] for m in out["metrics"]])[:episodes] for k in out["metrics"][0]}}
-
-
-def open_loop_along(bodies: np.ndarray, headings: np.ndarray, sim: SimConfig, control: ControlConfig) -> np.ndarray:
-    """Each body's open-loop move along its heading in the control window (0 for an empty body)."""
-    moved = np.zeros(len(bodies))
-    built = (bodies.reshape(len(bodies), -1) > 0).any(axis=1)
-    if built.any():
-        moved[built] = open_loop_displacement(bodies[built], sim, control, headings=headings[built])
-    return moved
 
 
 def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dict]:
@@ -166,7 +144,7 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
         print(f"{rows[-1]['what']}: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f}", flush=True)
         metrics.append({"policy": name, **{k: float(v.mean()) for k, v in result["metrics"].items()}})
         if codesign or name == "trained":  # (a control run's bodies are the same for both)
-            moved = open_loop_along(result["bodies"], headings, cfg.sim, control)
+            moved = open_loop_displacement(result["bodies"], cfg.sim, control, headings=headings)
             label = f"open loop: the {name} policy's designs" if codesign else "open loop: the bodies' sine gaits"
             rows.insert(len(rows) - 1, summary_row(f"{label} along the same headings", moved))
             sectors[f"open_loop_{name}" if codesign else "open_loop"] = moved
@@ -243,7 +221,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"box {env.box}, {env.action_dim} cells, {int(env.action_mask[0].sum())} actuated; "
           f"{control.steps} control steps of {control.period} s per episode")
     rows = [summary_row("open loop (its sine gait, deterministic)", np.array([scores.max()]))]
-    before = episode_returns(ppo, eval_env, args.eval_episodes, deterministic=False)
+    before = evaluation_episodes(ppo, eval_env, args.eval_episodes)["returns"]
     rows.append(summary_row("controller, untrained (stochastic)", before))
     print(f"untrained: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f} [{time.perf_counter() - t0:.0f} s]", flush=True)
 
@@ -256,11 +234,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"epoch {ppo.epoch}: return {stats['episode_reward_mean']:.3f}, σ {stats['action_std']:.3f}, "
               f"rollout {stats['time_rollout']:.1f} s, update {stats['time_update']:.1f} s", flush=True)
     ppo.save(out / "controller.pt")
-    after = episode_returns(ppo, eval_env, args.eval_episodes, deterministic=False)
+    after = evaluation_episodes(ppo, eval_env, args.eval_episodes)["returns"]
     rows.append(summary_row(f"controller, trained {ppo.epoch} epochs (stochastic)", after))
     # (the copies are one body from one settled state: the mode's episode is one number)
     rows.append(summary_row("controller, trained (deterministic)",
-                            episode_returns(ppo, eval_env, eval_env.num_envs, deterministic=True)[:1]))
+                            evaluation_episodes(ppo, eval_env, eval_env.num_envs, deterministic=True)["returns"][:1]))
     for row in rows:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
     if not curve:

@@ -230,6 +230,14 @@ def _validate_trainer(t: TrainerConfig) -> None:
     require(t.stop_grace_s >= 0, "trainer.stop_grace_s", "a number of seconds >= 0", t.stop_grace_s)
 
 
+def episode_steps(cfg: TrainConfig) -> int:
+    """Steps of one episode of the run's env: T design steps, a control run's control steps, or both (co-design)."""
+    control = cfg.control
+    if control is None:
+        return cfg.env.steps
+    return control.steps + (cfg.env.steps if control.codesign else 0)
+
+
 def _validate_control(cfg: TrainConfig) -> None:
     control = cfg.control
     assert control is not None
@@ -237,7 +245,7 @@ def _validate_control(cfg: TrainConfig) -> None:
     require(cfg.algo.name == "ppo", "algo.name", "ppo in a control run (a controller is trained by PPO)", cfg.algo.name)
     require(not cfg.env.dense_every, "env.dense_every", "0 in a control run (design rewards have no design here)",
             cfg.env.dense_every)
-    steps = control.steps + (cfg.env.steps if control.codesign else 0)
+    steps = episode_steps(cfg)
     rollout = cfg.agent.rollout_steps
     what = (f"{steps} steps ({cfg.env.steps} design + {control.steps} control)" if control.codesign
             else f"{steps} steps (control.duration / control.period)")
@@ -276,8 +284,7 @@ def ppo_config(cfg: TrainConfig, device: str | None) -> PPOConfig:
     ``rollout_steps`` defaulting to ``env.steps``, ``seed`` to the run's and ``device`` to ``device``."""
     agent = cfg.agent
     values = {f.name: getattr(agent, f.name) for f in dataclasses.fields(PPOConfig)}
-    control = cfg.control
-    episode = cfg.env.steps if control is None else control.steps + (cfg.env.steps if control.codesign else 0)
+    episode = episode_steps(cfg)
     values["rollout_steps"] = agent.rollout_steps if agent.rollout_steps is not None else episode
     values["seed"] = agent.seed if agent.seed is not None else cfg.seed
     values["device"] = agent.device if agent.device is not None else device
@@ -366,6 +373,7 @@ __all__ = [
     "TrainConfig",
     "TrainerConfig",
     "compose",
+    "episode_steps",
     "flatten",
     "from_container",
     "ppo_config",

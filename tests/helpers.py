@@ -45,6 +45,20 @@ def run_cli(monkeypatch: pytest.MonkeyPatch, *args: str) -> None:
     train_mod.main()
 
 
+def straight_and_resumed(cfg: Any, root: Path, epochs: int) -> tuple[Path, Path]:
+    """The resume tests' two runs of ``cfg``: ``epochs`` epochs straight in ``root/straight``, and ``epochs − 1`` then
+    one more resumed from its checkpoint in ``root/split``. Returns the two run directories (``cfg.trainer`` is left
+    as the resume set it)."""
+    straight, split = root / "straight", root / "split"
+    cfg.trainer.epochs = epochs
+    train_mod.train(cfg, straight)
+    cfg.trainer.epochs = epochs - 1
+    train_mod.train(cfg, split)
+    cfg.trainer.epochs, cfg.trainer.resume = epochs, str(split)
+    train_mod.train(cfg, split)
+    return straight, split
+
+
 def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
     """Every scalar curve of a run directory's TensorBoard events: ``{tag: [(step, value), ...]}``."""
     acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0})

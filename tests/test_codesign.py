@@ -128,25 +128,26 @@ def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
     assert other.episode == 1 and other.t == 0
 
 
+def tiny_codesign(*overrides: str):
+    """``experiment=codesign_steering_cpu`` at this file's sizes: a run of a few seconds."""
+    from freeform.config import compose
+
+    return compose("experiment=codesign_steering_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
+                   "control.duration=0.0375", "control.burn_in=0.01", "trainer.render_every=0",
+                   "agent.sgd_minibatch_size=8", "agent.hidden=8", "control.hidden=4", "trainer.progress=false",
+                   "trainer.print_every=0", "trainer.threads=1", *overrides)
+
+
 def test_a_codesign_run_of_the_app_resumes_bit_for_bit(tmp_path) -> None:
     """``freeform-train experiment=codesign_steering_cpu`` at a tiny size: 2 epochs = 1 + resume 1 (weights, records),
     the records hold the designs and one value per design and control step, and the renders are logged."""
+    from helpers import straight_and_resumed
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from freeform import train as train_mod
     from freeform.checkpoint import load_checkpoint
-    from freeform.config import compose
     from freeform.records import read_record
 
-    cfg = compose("experiment=codesign_steering_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
-                  "control.duration=0.0375", "control.burn_in=0.01", "trainer.epochs=2", "trainer.render_every=2",
-                  "agent.sgd_minibatch_size=8", "agent.hidden=8", "control.hidden=4", "trainer.progress=false",
-                  "trainer.print_every=0", "trainer.threads=1", "sim.precision=f64", "seed=4")
-    train_mod.train(cfg, tmp_path / "straight")
-    cfg.trainer.epochs, cfg.trainer.render_every = 1, 0
-    train_mod.train(cfg, tmp_path / "split")
-    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
-    train_mod.train(cfg, tmp_path / "split")
+    straight_and_resumed(tiny_codesign("trainer.render_every=2", "sim.precision=f64", "seed=4"), tmp_path, epochs=2)
     a, b = (load_checkpoint(tmp_path / d / "checkpoints" / "last.pt")["ppo"] for d in ("straight", "split"))
     for name, tensor in a["policy"].items():
         assert torch.equal(tensor, b["policy"][name]), name
@@ -187,13 +188,8 @@ def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
 
     from experiments.control import main
     from freeform import train as train_mod
-    from freeform.config import compose
 
-    cfg = compose("experiment=codesign_steering_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
-                  "control.duration=0.0375", "control.burn_in=0.01", "trainer.epochs=1", "trainer.render_every=0",
-                  "agent.sgd_minibatch_size=8", "agent.hidden=8", "control.hidden=4", "trainer.progress=false",
-                  "trainer.print_every=0", "trainer.threads=1")
-    train_mod.train(cfg, tmp_path / "run")
+    train_mod.train(tiny_codesign("trainer.epochs=1"), tmp_path / "run")
     main(["--evaluate", str(tmp_path / "run"), "--eval-episodes", "8", "--out", str(tmp_path / "eval")])
     rows = list(csv.DictReader(open(tmp_path / "eval" / "summary.csv")))
     assert [r["what"].split(" (")[0] for r in rows] == [

@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers import run_cli, scalars
+from helpers import run_cli, scalars, straight_and_resumed
 
-from freeform import train as train_mod
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
 from freeform.envs.control import ControlConfig, ControlEnv
@@ -65,12 +64,7 @@ def test_the_command_line_trains_a_controller_and_records_its_episodes(bodies: P
 
 def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path: Path) -> None:
     """Random headings (the episode count is the env's random state) and reward_norm (running statistics)."""
-    cfg = compose(*tiny_control(bodies, "trainer.epochs=2", "seed=3"))
-    train_mod.train(cfg, tmp_path / "straight")
-    cfg.trainer.epochs = 1
-    train_mod.train(cfg, tmp_path / "split")
-    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
-    train_mod.train(cfg, tmp_path / "split")
+    straight_and_resumed(compose(*tiny_control(bodies, "seed=3")), tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")["ppo"]
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")["ppo"]
     for name, tensor in a["policy"].items():
@@ -200,3 +194,15 @@ def test_two_gloo_ranks_steer_as_one_process(tmp_path: Path) -> None:
         assert rank0["stats"][1][key] == pytest.approx(stats[1][key], rel=1e-4, abs=1e-6), key
     torch.testing.assert_close(rank0["params"], torch.cat([p.detach().reshape(-1) for p in single.policy.parameters()]),
                                rtol=1e-4, atol=1e-5)
+
+
+def test_an_empty_grid_moves_zero_open_loop_and_the_others_keep_their_place() -> None:
+    """(A co-design policy's designs may be empty: the empty one has no robot, and the bodies after it must not shift.)"""
+    from freeform.envs.control import open_loop_displacement
+    from freeform.sim import SimConfig
+
+    sim, control = SimConfig(precision="f64"), ControlConfig(burn_in=0.05, duration=0.25)
+    alone = open_loop_displacement(np.stack([ROD, CUBE]), sim, control)
+    mixed = open_loop_displacement(np.stack([ROD, ROD * 0, CUBE]), sim, control, headings=np.zeros(3))
+    np.testing.assert_array_equal(mixed, [alone[0], 0.0, alone[1]])
+    assert open_loop_displacement(np.stack([ROD * 0]), sim, control).tolist() == [0.0]

@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 import torch
 from helpers import run_cli as cli  # tests/helpers.py
-from helpers import scalars, tiny
+from helpers import scalars, straight_and_resumed, tiny
 
-from freeform import train as train_mod
 from freeform.body import largest_component
 from freeform.checkpoint import load_checkpoint
 from freeform.envs import DesignEnv
@@ -167,12 +166,7 @@ def test_every_baseline_runs_through_the_training_app(algo: str, tmp_path: Path,
 def test_two_generations_equal_one_plus_resume_one_bit_for_bit(algo: str, tmp_path: Path) -> None:
     from freeform.config import compose
 
-    cfg = compose(*TINY, f"algo={algo}", "trainer.epochs=3", "seed=5")
-    train_mod.train(cfg, tmp_path / "straight")
-    cfg.trainer.epochs = 2
-    train_mod.train(cfg, tmp_path / "split")
-    cfg.trainer.epochs, cfg.trainer.resume = 3, str(tmp_path / "split")
-    train_mod.train(cfg, tmp_path / "split")
+    straight_and_resumed(compose(*TINY, f"algo={algo}", "seed=5"), tmp_path, epochs=3)
 
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")["evolution"]
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")["evolution"]

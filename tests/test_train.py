@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 from helpers import run_cli as cli  # tests/helpers.py
-from helpers import scalars, tiny
+from helpers import scalars, straight_and_resumed, tiny
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from freeform import train as train_mod
@@ -102,12 +102,7 @@ def test_resume_after_a_kill_continues_the_curves_exactly(
 def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(tmp_path: Path) -> None:
     from freeform.config import compose
 
-    cfg = compose(*TINY, "trainer.epochs=2", "seed=5")
-    train_mod.train(cfg, tmp_path / "straight")
-    cfg.trainer.epochs = 1
-    train_mod.train(cfg, tmp_path / "split")
-    cfg.trainer.epochs, cfg.trainer.resume = 2, str(tmp_path / "split")
-    train_mod.train(cfg, tmp_path / "split")
+    straight_and_resumed(compose(*TINY, "seed=5"), tmp_path, epochs=2)
 
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")

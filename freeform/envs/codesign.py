@@ -99,7 +99,7 @@ class CodesignEnv:
         self.t = 0
         self.grids = self.design.reset()
         self.controlled = None
-        return self._design_obs()
+        return self._observe()
 
     @property
     def stage(self) -> str:
@@ -121,7 +121,7 @@ class CodesignEnv:
             with serial_on_cpu("cpu"):
                 self.grids = self.design.place_bundles(self.grids, a[:, : self.design_dim])
             self.t += 1
-            obs = self._design_obs() if self.t < self.design_steps else self._start_control()
+            obs = self._observe() if self.t < self.design_steps else self._start_control()
             return obs, reward.to(self.device), done, {}
         controlled, alive = self.controlled, self._alive
         if controlled is not None:
@@ -131,7 +131,7 @@ class CodesignEnv:
             if "final_obs" in info_c:
                 obs_c = info_c["final_obs"]
         self.t += 1
-        obs = self._control_obs(obs_c if controlled is not None else None)
+        obs = self._observe(obs_c if controlled is not None else None)
         if self.t < self.steps:
             return obs, reward.to(self.device), done, {}
         info = {"truncated": torch.ones(n, dtype=torch.bool, device=self.device), "final_obs": obs,
@@ -152,19 +152,15 @@ class CodesignEnv:
             self.controlled = ControlEnv(bodies[self._alive], sim=self.sim, control=self.control, arch=self.arch,
                                          seed=self.seed, first_env=draws, simulator=self.simulator)
             obs_c = self.controlled.reset(episode=self.episode)
-            return self._control_obs(obs_c)
-        return self._control_obs(None)
+            return self._observe(obs_c)
+        return self._observe()
 
-    def _design_obs(self) -> torch.Tensor:
+    def _observe(self, obs_c: torch.Tensor | None = None) -> torch.Tensor:
+        """The observation now: stage and design progress from ``t``, the grid, and while controlling the control
+        env's observation ``obs_c`` moved to the bodies' grid cells (None: no body to control)."""
         obs = torch.zeros((self.num_envs, *self.observation_shape), dtype=torch.float32)
-        obs[:, DESIGN_PROGRESS] = self.t / self.design_steps
-        obs[:, GRID] = self.grids.float()
-        return obs.to(self.device)
-
-    def _control_obs(self, obs_c: torch.Tensor | None) -> torch.Tensor:
-        obs = torch.zeros((self.num_envs, *self.observation_shape), dtype=torch.float32)
-        obs[:, STAGE] = 1.0
-        obs[:, DESIGN_PROGRESS] = 1.0
+        obs[:, STAGE] = float(self.t >= self.design_steps)
+        obs[:, DESIGN_PROGRESS] = min(self.t / self.design_steps, 1.0)
         obs[:, GRID] = self.grids.float()
         if obs_c is not None:
             assert self.controlled is not None
@@ -194,7 +190,7 @@ class CodesignEnv:
             return None
 
         def act_on_box(obs_c: torch.Tensor) -> torch.Tensor:
-            actions = torch.as_tensor(act(self._control_obs(obs_c))).cpu()
+            actions = torch.as_tensor(act(self._observe(obs_c))).cpu()
             return controlled.from_grid(actions[alive, self.design_dim:].reshape(-1, *(self.rho,) * 3))
 
         out = controlled.record(act_on_box, robot=int(alive[:robot].sum()))
@@ -212,7 +208,8 @@ class CodesignEnv:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if state.get("config") != self._config():
-            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}")
+            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
+                             "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"]) - 1
         self.reset()
 

@@ -171,12 +171,12 @@ class ControlEnv:
         draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
         if draws.shape != (self.num_envs,) or (draws < 0).any():
             raise ValueError(f"first_env must be an int >= 0 or [{self.num_envs}] ints >= 0, got {first_env!r}")
-        self.seed, self.first_env, self._draws = int(seed), first_env, draws
+        self.seed, self._draws = int(seed), draws
         self.episode = -1
         """Episodes started so far − 1: the index of the current episode (its headings' draw)."""
-        from freeform.body import bodies_and_metrics  # (the records' body metrics, computed once per env)
+        from freeform.body import metrics  # (the records' body metrics, computed once per env)
 
-        self._metrics = {k: torch.as_tensor(v).float().to(self.device) for k, v in bodies_and_metrics(self.grids)[1].items()}
+        self._metrics = {k: v.float().to(self.device) for k, v in metrics(self.grids).items()}
         self._final_grids = self.grids.to(self.device)
         self.engine: Engine | None = None
         self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
@@ -309,7 +309,8 @@ class ControlEnv:
             raise ValueError("the state's bodies (per_env.grids) are not this environment's: a control run resumes "
                              "on the bodies it was trained on")
         if state.get("config") != self._config():
-            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}")
+            raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
+                             "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"])
         self._start_episode()
 
@@ -369,19 +370,25 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move along
     +x (or along ``headings [N]``, radians from +x towards +y: a steering task's figure) from ``control.burn_in``
     to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel lengths ``[N]``, 0 for a
-    robot that failed. The figure a controller is compared with."""
+    robot that failed and for an empty grid. The figure a controller is compared with."""
     sim, control = sim or SimConfig(), control or ControlConfig()
+    grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
+    out = np.zeros(len(grids))
     config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
     simulator = Simulator(config, arch=arch)
-    engine = simulator.engine(simulator.layout(torch.as_tensor(np.asarray(grids)).to(torch.uint8)))
+    layout = simulator.layout(grids)
+    if layout.num_robots == 0:
+        return out
+    engine = simulator.engine(layout)
     engine.advance_time(control.burn_in)
     start = engine.sense()[1]
     engine.advance_time(control.duration)
     end = engine.sense()[1]
-    ok = engine.robot_status() == RUNNING
-    heading = np.zeros(len(ok)) if headings is None else np.asarray(headings, np.float64)
+    body = layout.body_of_robot  # (an empty grid has no robot)
+    heading = np.zeros(len(body)) if headings is None else np.asarray(headings, np.float64)[body]
     move = (end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)
-    return np.where(ok, move / sim.voxel_size, 0.0)
+    out[body] = np.where(engine.robot_status() == RUNNING, move / sim.voxel_size, 0.0)
+    return out
 
 
 def untrained_walker(candidates: int, resolution: int, materials: int, steps: int, bundle_size: int, seed: int = 0,

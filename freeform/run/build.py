@@ -159,7 +159,10 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
 
         path = Path(source)
         if not path.is_file():
-            raise ValueError(f"control.bodies must be walker, untrained_designs or a file of bodies; no file {source!r}")
+            from freeform.config import BODY_SOURCES
+
+            raise ValueError(f"control.bodies must be one of {list(BODY_SOURCES)} or a file of bodies (a .npy of grids "
+                             f"or a design record .npz), and there is no file {source!r}")
         if path.suffix == ".npz":
             record = read_record(path)
             best = np.argsort(-record.rewards, kind="stable")[: control.top]
@@ -180,9 +183,10 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
 
 
 def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], seed: int,
-                grids: torch.Tensor | None = None) -> Any:
-    """The run's ``ControlEnv`` of environments ``envs = (lo, hi)`` (its bodies :func:`control_bodies`, or
-    ``grids`` of all ``env.num_envs``), seeded ``seed``; with ``control.bodies=codesign`` a ``CodesignEnv``."""
+                bodies: torch.Tensor | None = None, box: tuple[int, int, int] | None = None) -> Any:
+    """The run's ``ControlEnv`` of environments ``envs = (lo, hi)``, seeded ``seed``: their bodies are ``bodies``
+    (``[hi − lo, ρ, ρ, ρ]``; default: :func:`control_bodies`' ``lo … hi−1``), padded to ``box`` if given (the box a
+    controller was built for). With ``control.bodies=codesign`` a ``CodesignEnv`` (its bodies are designed)."""
     from freeform.envs.control import ControlEnv
 
     assert cfg.control is not None
@@ -195,9 +199,9 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
                            design_steps=e.steps, bundle_size=e.bundle_size, sim=cfg.sim,
                            control=cfg.control.episode(), arch=arch, seed=seed, device=device,
                            action_bound=e.action_bound, mirror_y=e.mirror_y, first_env=envs[0])
-    grids = control_bodies(cfg, arch) if grids is None else grids
-    return ControlEnv(grids[envs[0]:envs[1]], sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed,
-                      device=device, first_env=envs[0])
+    bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
+    return ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
+                      first_env=envs[0], box=box)
 
 
 def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None = None) -> tuple[VecEnv, Learner]:
@@ -230,23 +234,18 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
     if cfg.control is not None:
         control = cfg.control
         width = control.hidden if control.hidden is not None else cfg.agent.hidden
-        eval_env = None
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std)
-            if cfg.agent.eval_every:
-                eval_env = control_env(cfg, device, envs, cfg.seed + 1)
         elif control.controller == "conv":
             policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel, width,
                                     control.init_log_std)
         else:
             policy = MLPController(env.observation_shape[0], env.box, env.mask_channel, (width, width),
                                    control.init_log_std)
-        if cfg.agent.eval_every and not control.codesign:  # the same bodies (this rank's), not searched again
-            from freeform.envs.control import ControlEnv
-
-            eval_env = ControlEnv(env.grids, sim=cfg.sim, control=control.episode(), arch=env.simulator.arch,
-                                  seed=cfg.seed + 1, device=device, first_env=envs[0])
+        # (a control run's evaluation: this rank's bodies again, not searched again)
+        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if control.codesign else env.grids) if (
+            cfg.agent.eval_every) else None
         return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
     if cfg.env.dense_every:  # the partial body scored every k steps; records and returns keep the terminal reward

@@ -96,10 +96,8 @@ def render_callback(every: int) -> EpochCallback:
         if cfg.control.codesign:  # the policy's mode designs a body and drives it
             env = control_env(cfg, learner.device, (0, 1), ctx.global_step)
         else:  # the controller drives the epoch's best body, in the box it was built for
-            from freeform.envs.control import ControlEnv
-
-            env = ControlEnv(grids[int(ctx.episodes["rewards"].argmax())][None], sim=cfg.sim,
-                             control=cfg.control.episode(), arch=learner.env.simulator.arch, box=learner.env.box)
+            best = grids[int(ctx.episodes["rewards"].argmax())][None]
+            env = control_env(cfg, learner.device, (0, 1), ctx.global_step, bodies=best, box=learner.env.box)
         log_controlled_gait(ctx.logger.writer, env, lambda obs: learner.act(obs, deterministic=True), ctx.global_step)
 
     return callback
