@@ -69,53 +69,69 @@ def sim_section(arch: str, rehearsal: bool) -> None:
 
 
 def update_section(device: str, rehearsal: bool) -> None:
-    """The update alone: ms per minibatch of the paper's network (volume task: no simulation in the rollout)."""
+    """The update alone: ms per minibatch of the paper's network (volume task: no simulation in the rollout), eager,
+    ``torch.compile`` of the loss and the whole step as a CUDA graph (``agent.cuda_graph``)."""
     from freeform.config import compose
     from freeform.run.build import build
 
-    size = ["env.num_envs=16", "env.steps=20", "agent.num_sgd_iter=2"] if rehearsal else []
-    # (on the CPU the paper network's sparse trunk branches on the data, which torch.compile recompiles for: eager only)
-    for compiled in ((False,) if rehearsal else (False, True)):
-        cfg = compose("experiment=paper_volume", f"trainer.device={device}", f"agent.compile={str(compiled).lower()}",
-                      *size)
-        _, ppo = build(cfg, torch.device(device))
-        ppo.collect()
-        first = time.perf_counter()
-        ppo.update()
-        first = time.perf_counter() - first
-        runs = []
-        for _ in range(2):
+    # 4 passes of the paper's batch (128 × 100 samples: 400 minibatches) time a minibatch as well as its 50 do
+    size = ["env.num_envs=16", "env.steps=20", "agent.num_sgd_iter=2"] if rehearsal else ["agent.num_sgd_iter=4"]
+    # (on the CPU the paper network's sparse trunk branches on the data, which torch.compile recompiles for, and
+    # there are no CUDA graphs: eager only)
+    variants = (("eager", []),) if rehearsal else (
+        ("eager", []), ("torch.compile", ["agent.compile=true"]), ("CUDA graph", ["agent.cuda_graph=true"]))
+    for name, overrides in variants:
+        try:
+            cfg = compose("experiment=paper_volume", f"trainer.device={device}", "agent.cuda_graph=false", *size,
+                          *overrides)
+            _, ppo = build(cfg, torch.device(device))
             ppo.collect()
-            t0 = time.perf_counter()
+            first = time.perf_counter()
             ppo.update()
-            if device.startswith("cuda"):
-                torch.cuda.synchronize()
-            runs.append(time.perf_counter() - t0)
+            first = time.perf_counter() - first
+            runs = []
+            for _ in range(2):
+                ppo.collect()
+                t0 = time.perf_counter()
+                ppo.update()
+                if device.startswith("cuda"):
+                    torch.cuda.synchronize()
+                runs.append(time.perf_counter() - t0)
+        except Exception as e:  # one variant's failure is a figure too; the others still run
+            _line(f"update, {name}", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            continue
         batch = cfg.env.num_envs * cfg.env.steps
         minibatches = cfg.agent.num_sgd_iter * (batch // min(cfg.agent.sgd_minibatch_size, batch))
-        _line(f"update, {minibatches} minibatches of {cfg.agent.sgd_minibatch_size}, "
-              f"{'torch.compile' if compiled else 'eager'} (first update)",
+        _line(f"update, {minibatches} minibatches of {cfg.agent.sgd_minibatch_size}, {name} (first update)",
               f"{statistics.median(runs) / minibatches * 1e3:7.2f} ms per minibatch ({first:.1f} s)")
 
 
 def epoch_section(device: str, rehearsal: bool) -> None:
-    """One paper_locomotion epoch, as the trainer reports it (after a first epoch that compiles)."""
+    """One paper_locomotion epoch, as the trainer reports it (after a first epoch that compiles); on a GPU with the
+    update as a CUDA graph (``agent.cuda_graph``), and eager if that fails."""
     from freeform.config import compose
     from freeform.run.trainer import train
 
     preset = "experiment=locomotion_cpu" if rehearsal else "experiment=paper_locomotion"
-    cfg = compose(preset, f"trainer.device={device}", "trainer.epochs=2", "trainer.progress=false",
-                  "trainer.checkpoint_every=0")
-    with tempfile.TemporaryDirectory() as run:
-        t0 = time.perf_counter()
-        history = train(cfg, Path(run)).history
-        wall = time.perf_counter() - t0
-    last = history[-1]
-    rollout, update = last.get("perf/time_rollout", float("nan")), last.get("perf/time_update", float("nan"))
-    sim, env = last.get("perf/sim_seconds", float("nan")), last.get("perf/time_env", float("nan"))
-    _line(f"{preset.split('=')[1]} epoch 2 ({cfg.env.num_envs} robots): rollout (env | of it simulation) | update",
-          f"{rollout:6.2f} s ({env:.2f} | {sim:.2f}) | {update:6.2f} s")
-    _line("  both epochs, compilation included", f"{wall:7.1f} s")
+    for update in ((("agent.cuda_graph=false",),) if rehearsal else (("agent.cuda_graph=true",), ("agent.cuda_graph=false",))):
+        cfg = compose(preset, f"trainer.device={device}", "trainer.epochs=2", "trainer.progress=false",
+                      "trainer.checkpoint_every=0", *update)
+        try:
+            with tempfile.TemporaryDirectory() as run:
+                t0 = time.perf_counter()
+                history = train(cfg, Path(run)).history
+                wall = time.perf_counter() - t0
+        except Exception as e:
+            _line(f"{preset.split('=')[1]} epoch, cuda_graph={cfg.agent.cuda_graph}",
+                  f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            continue
+        last = history[-1]
+        rollout, upd = last.get("perf/time_rollout", float("nan")), last.get("perf/time_update", float("nan"))
+        sim, env = last.get("perf/sim_seconds", float("nan")), last.get("perf/time_env", float("nan"))
+        _line(f"{preset.split('=')[1]} epoch 2 ({cfg.env.num_envs} robots, cuda_graph={cfg.agent.cuda_graph}): "
+              "rollout (env | of it simulation) | update", f"{rollout:6.2f} s ({env:.2f} | {sim:.2f}) | {upd:6.2f} s")
+        _line("  both epochs, compilation included", f"{wall:7.1f} s")
+        return
 
 
 def control_section(arch: str, device: str, rehearsal: bool) -> None:

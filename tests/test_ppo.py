@@ -798,3 +798,26 @@ def test_compiled_instances_do_not_recompile_one_another() -> None:
                       PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=16, compile=True))
             ppo.train_epoch()
             assert counters["stats"]["unique_graphs"] > before  # this instance's loss was compiled
+
+
+def test_cuda_graph_is_refused_where_it_cannot_run() -> None:
+    """``cuda_graph`` needs a CUDA device and one process, and excludes ``compile``: each refusal names the key (the
+    graph itself is checked against the eager update on a GPU: tests/test_cuda.py)."""
+    with pytest.raises(ValueError, match="cuda_graph"):
+        PPOConfig(cuda_graph=True, compile=True)
+    with pytest.raises(ValueError, match="agent.cuda_graph needs a CUDA device"):
+        PPO(PointMassEnv(num_envs=4, horizon=3), MLPActorCritic(4, 2, hidden=(8,)), PPOConfig(cuda_graph=True))
+
+
+def test_the_checkpointed_optimizer_state_is_the_eager_adams() -> None:
+    """One checkpoint format whichever way the update runs: the eager Adam's state dict is saved as it is (a float
+    lr, the step count on the CPU), and loading it back leaves the optimizer as it was."""
+    ppo = PPO(PointMassEnv(num_envs=4, horizon=3), MLPActorCritic(4, 2, hidden=(8,)),
+              PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8))
+    ppo.train_epoch()
+    saved = ppo.state_dict()["optimizer"]
+    group = saved["param_groups"][0]
+    assert isinstance(group["lr"], float) and not group["capturable"] and saved["state"][0]["step"].device.type == "cpu"
+    ppo.load_state_dict(ppo.state_dict())
+    assert ppo.optimizer.param_groups[0]["lr"] == group["lr"] and not ppo.optimizer.param_groups[0]["capturable"]
+    torch.testing.assert_close(ppo.optimizer.state_dict()["state"][0], saved["state"][0], rtol=0, atol=0)

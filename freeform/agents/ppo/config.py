@@ -72,6 +72,11 @@ class PPOConfig:
     ≈ 100 operations costs more than its arithmetic: a few seconds of compiling at the first update, then shorter
     steps (measured: ``python -m benchmarks gym``, docs/ppo.md). Other rounding than eager; needs a C++ compiler. Off
     by default."""
+    cuda_graph: bool = False
+    """On a CUDA device, capture one minibatch's whole Adam step (zero the gradient, the loss, backward, clipping, a
+    capturable Adam) as a CUDA graph once and replay it for every minibatch (``freeform.agents.ppo.graphed``): one
+    launch instead of the step's hundreds, the same functions in the same order. One process only (a data-parallel
+    rank's share of a minibatch varies in size); not with ``compile``. Off by default (the CPU has no graphs)."""
     obs_norm: bool = False
     """Normalise observations by their running mean/variance (over all envs, updated every step), clipped to
     ±``obs_clip``; the statistics are saved in checkpoints and applied by ``act``. Off for the paper."""
@@ -120,8 +125,10 @@ class PPOConfig:
         for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
-        for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "bootstrap_truncated"):
+        for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "cuda_graph", "bootstrap_truncated"):
             require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
+        require(not (self.cuda_graph and self.compile), f"{key}.cuda_graph", "false when compile is true (pick one "
+                "of the two ways to cut the update's launches)", self.cuda_graph)
         require(self.grad_clip is None or (is_number(self.grad_clip) and self.grad_clip > 0), f"{key}.grad_clip",
                 "None or > 0", self.grad_clip)
         require(is_int(self.seed, -(2**63)), f"{key}.seed", "an int", self.seed)

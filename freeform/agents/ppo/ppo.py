@@ -37,6 +37,7 @@ from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import DeclaresDistribution, GroupedActions, Rebuildable, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.graphed import GraphedMinibatchStep
 from freeform.agents.ppo.losses import (
     compute_advantages,
     discounted_cumsum,
@@ -132,8 +133,19 @@ class PPO:
         """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
         clipping and zeroing are one operation each (``flat_params.py``)."""
         impl = {"fused": True} if config.fused_adam else {"foreach": True}
-        self.optimizer = torch.optim.Adam([self.flat.value], lr=config.lr, eps=config.adam_eps, **impl)
+        if config.cuda_graph:
+            if self.device.type != "cuda":
+                raise ValueError(f"agent.cuda_graph needs a CUDA device, and this PPO runs on {self.device}: set "
+                                 "agent.cuda_graph=false (the eager update is the CPU's)")
+            if self.dp.world_size > 1:
+                raise ValueError("agent.cuda_graph runs in one process only (a data-parallel rank's share of a "
+                                 "minibatch varies in size, and a graph has fixed shapes): set agent.cuda_graph=false")
+            impl["capturable"] = True  # the step count and the learning rate on the device: no sync in the graph
+        self.optimizer = torch.optim.Adam([self.flat.value], lr=self._lr_value(config.lr), eps=config.adam_eps, **impl)
         self._minibatch_loss = torch.compile(_own_code(minibatch_loss), dynamic=False) if config.compile else minibatch_loss
+        self._graphed = (GraphedMinibatchStep(self.policy, self.distribution, config, self.flat, self.optimizer,
+                                              self._minibatch_mean, self.device) if config.cuda_graph else None)
+        """The minibatch step as a CUDA graph (``agent.cuda_graph``), else None: the eager step in ``_sgd``."""
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.kl_coeff = float(config.kl_coeff)
@@ -409,7 +421,10 @@ class PPO:
         batch = self._train_batch()
         lr, kl_coeff = self.current_lr(), self.kl_coeff
         for group in self.optimizer.param_groups:
-            group["lr"] = lr
+            if isinstance(group["lr"], torch.Tensor):  # a graph reads it: written in place
+                group["lr"].fill_(lr)
+            else:
+                group["lr"] = lr
         means = self._sgd(batch, kl_coeff)
         # RLlib's rule, on the mean KL over every minibatch update of the epoch (the same number on every rank).
         self.kl_coeff = update_kl_coeff(kl_coeff, means[2], cfg.kl_target)
@@ -450,7 +465,8 @@ class PPO:
 
         kl_weight = torch.tensor(kl_coeff, device=self.device) if kl_coeff > 0.0 else None
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
-        totals = torch.zeros(6, device=self.device)  # policy, value, kl, entropy, clip fraction, total loss
+        # policy, value, kl, entropy, clip fraction, total loss
+        totals = self._graphed.totals.zero_() if self._graphed is not None else torch.zeros(6, device=self.device)
         self.policy.train()
         for _ in range(cfg.num_sgd_iter):
             order = torch.randperm(batch.size, generator=self.generator, device=self.device)
@@ -461,6 +477,9 @@ class PPO:
                 adv = batch.advantages[idx]
                 if cfg.advantage_norm == "minibatch":
                     adv = standardize(adv)
+                if self._graphed is not None:  # the same step, replayed (one process: idx is the minibatch)
+                    self._graphed(batch.obs, batch.samples, adv, idx, kl_weight)
+                    continue
                 idx, adv = dp.local_share(idx, adv)
                 flat.zero_grad()
                 if idx.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
@@ -475,6 +494,15 @@ class PPO:
                 self.optimizer.step()
         dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
         return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
+
+    def _minibatch_mean(self, x: torch.Tensor) -> torch.Tensor:
+        """The minibatch mean (``Collectives.minibatch_mean``) at the configured minibatch size: the graphed step's
+        ``reduce`` (its minibatches are full ones of one process)."""
+        return self.dp.minibatch_mean(x, x.shape[0])
+
+    def _lr_value(self, lr: float) -> float | torch.Tensor:
+        """The optimizer's lr as it holds it: a device tensor when a graph reads it (``cuda_graph``), else a float."""
+        return torch.tensor(float(lr), device=self.device) if self.config.cuda_graph else lr
 
     def _update_stats(self, batch: _TrainBatch, means: list[float], kl_coeff: float, lr: float) -> dict[str, float]:
         """The update's statistics over the global batch (the values, returns and σ gathered from every rank)."""
@@ -624,7 +652,7 @@ class PPO:
         """
         state = {
             "policy": self.policy.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": self._portable_optimizer_state(),
             "kl_coeff": self.kl_coeff,
             "epoch": self.epoch,
             "global_step": self.global_step,
@@ -649,7 +677,7 @@ class PPO:
             raise ValueError(f"the state holds {saved_envs} envs but this run has {self.num_envs}")
         state = self.dp.shard_state(state)
         self.policy.load_state_dict(state["policy"])
-        self.optimizer.load_state_dict(self.flat.optimizer_state(state["optimizer"]))
+        self._load_optimizer_state(self.flat.optimizer_state(state["optimizer"]))
         self.kl_coeff = float(state["kl_coeff"])
         self.epoch = int(state["epoch"])
         self.global_step = int(state["global_step"])
@@ -671,6 +699,26 @@ class PPO:
             if not hasattr(self.env, "load_state_dict"):
                 raise ValueError("the state holds an env state but the env has no load_state_dict()")
             self.env.load_state_dict(state["env"])
+
+    def _portable_optimizer_state(self) -> dict[str, Any]:
+        """The optimizer's state as the eager Adam holds it (lr a float, the step count on the CPU, not capturable),
+        whichever way this PPO runs: one checkpoint format, loadable by an eager or a graphed PPO."""
+        state = self.optimizer.state_dict()
+        if not self.config.cuda_graph:
+            return state
+        groups = [{**g, "lr": float(g["lr"]), "capturable": False} for g in state["param_groups"]]
+        moments = {i: {k: (v.cpu() if k == "step" else v) for k, v in s.items()} for i, s in state["state"].items()}
+        return {"state": moments, "param_groups": groups}
+
+    def _load_optimizer_state(self, state: dict[str, Any]) -> None:
+        """Load a portable optimizer state (:meth:`_portable_optimizer_state`) into this PPO's Adam as it runs."""
+        capturable = self.config.cuda_graph
+        groups = [{**g, "capturable": capturable} for g in state["param_groups"]]
+        self.optimizer.load_state_dict({**state, "param_groups": groups})  # capturable: the step count to the device
+        for group in self.optimizer.param_groups:
+            group["lr"] = self._lr_value(float(group["lr"]))
+        if self._graphed is not None:
+            self._graphed.reset()  # the graph read the old state's tensors
 
     def checkpoint(self) -> dict[str, Any]:
         """A self-describing checkpoint's content: the policy's class name and constructor arguments, this
