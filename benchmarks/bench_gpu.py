@@ -108,7 +108,7 @@ def update_section(device: str, rehearsal: bool) -> None:
 
 def epoch_section(device: str, rehearsal: bool) -> None:
     """One paper_locomotion epoch, as the trainer reports it (after a first epoch that compiles); on a GPU with the
-    update as a CUDA graph (``agent.cuda_graph``), and eager if that fails."""
+    update as a CUDA graph (``agent.cuda_graph``) and eager."""
     from freeform.config import compose
     from freeform.run.trainer import train
 
@@ -131,7 +131,6 @@ def epoch_section(device: str, rehearsal: bool) -> None:
         _line(f"{preset.split('=')[1]} epoch 2 ({cfg.env.num_envs} robots, cuda_graph={cfg.agent.cuda_graph}): "
               "rollout (env | of it simulation) | update", f"{rollout:6.2f} s ({env:.2f} | {sim:.2f}) | {upd:6.2f} s")
         _line("  both epochs, compilation included", f"{wall:7.1f} s")
-        return
 
 
 def control_section(arch: str, device: str, rehearsal: bool) -> None:

@@ -144,7 +144,8 @@ cuda_only = pytest.mark.skipif(ARCH != "cuda", reason="CUDA graphs need a CUDA d
 def test_graphed_update_follows_the_eager_one(agent: dict) -> None:
     """One epoch of 12 Adam steps (3 eager warm-ups, the capture, 8 replays) on the same rollout: the same statistics
     and weights as the eager update, to float rounding (capturable Adam computes its bias correction on the device,
-    in f32; on the CPU with a stand-in graph the gap after this epoch is 5e-7)."""
+    in f32; measured on an H200: 7.7e-7 for the paper's settings, 2.7e-5 with clipping and per-minibatch
+    advantages)."""
     runs = []
     for graphed in (False, True):
         ppo = _volume_ppo(graphed, **agent)
@@ -154,15 +155,15 @@ def test_graphed_update_follows_the_eager_one(agent: dict) -> None:
     print(f"graphed vs eager update, {agent or 'paper'}: weights {gap:.2e}, total loss "
           f"{eager_stats['total_loss']:.6f} / {graph_stats['total_loss']:.6f}")
     assert 0.0 < (eager_w - _volume_ppo(False, **agent).flat.value).abs().max().item()  # the epoch moved the weights
-    assert gap < 1e-5
+    assert gap < 1e-4
     for key in ("total_loss", "policy_loss", "value_loss", "entropy"):
         assert graph_stats[key] == pytest.approx(eager_stats[key], rel=1e-4, abs=1e-6)
 
 
 @cuda_only
 def test_graphed_update_resumes_bit_for_bit() -> None:
-    """Two epochs straight = one epoch, the state through a checkpoint's path (to_portable and back), one more:
-    the resumed PPO warms up eagerly again, so this holds only if a replay computes what the eager step computes."""
+    """Two epochs straight = one epoch, the state through ``state_dict`` (the checkpoint's format), one more: the
+    resumed PPO captures its graph anew, after the eager warm-up steps every update begins with."""
     straight = _volume_ppo(True)
     straight.train_epoch()
     straight.train_epoch()

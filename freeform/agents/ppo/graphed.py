@@ -8,10 +8,13 @@ The step is the eager one (``PPO._sgd``), the same functions in the same order. 
 met: fixed shapes (one process: every minibatch has ``sgd_minibatch_size`` samples; data parallel is refused, a
 rank's share varies), fixed addresses (the inputs are copied into buffers the graph reads; the flat parameter and
 gradient tensors are fixed already), and no host synchronisation inside the step: Adam is built ``capturable``
-(its step count and learning rate live on the device). The first ``WARMUP`` steps of a PPO's life run eagerly, on
-a side stream, through the same buffers — they initialise Adam's moments and the libraries' workspaces, which a
-capture may not allocate — then the next step is captured and every later one replayed. Loading a state drops the
-graph (the optimizer's tensors are new); the next update captures again.
+(its step count and learning rate live on the device). The first ``WARMUP`` steps of every update run eagerly, on
+a side stream, through the same buffers — at the first update they initialise Adam's moments and the libraries'
+workspaces, which a capture may not allocate — then the first update captures its next step, and every later step
+is a replay. Loading a state drops the graph (the optimizer's tensors are new); the next update captures again.
+Why every update and not only the first: an eager step and a replay need not agree to the bit (measured on an H200:
+they do not), so a resumed run, which must warm up again, would drift from a straight one; with the same eager
+steps in every update the two compute the same sequence, and resume stays bit for bit.
 """
 
 from __future__ import annotations
@@ -45,13 +48,16 @@ class GraphedMinibatchStep:
         self.totals = torch.zeros(6, device=device)
         self._inputs: dict[str, Any] | None = None
         self._graphs: dict[bool, torch.cuda.CUDAGraph] = {}
-        self._eager_steps = 0
+        self._eager_left = WARMUP
         self._stream = torch.cuda.Stream(device)
+
+    def begin_update(self) -> None:
+        """Called at the start of every update: its first ``WARMUP`` steps run eagerly."""
+        self._eager_left = WARMUP
 
     def reset(self) -> None:
         """Forget the graphs (after the optimizer's or the policy's tensors were replaced: ``load_state_dict``)."""
         self._graphs.clear()
-        self._eager_steps = 0
 
     def _buffers(self, obs: Observation, samples: torch.Tensor, size: int) -> dict[str, Any]:
         if self._inputs is None or self._inputs["samples"].shape != (size, samples.shape[1]):
@@ -90,16 +96,16 @@ class GraphedMinibatchStep:
         with_kl = kl_weight is not None
         if with_kl:
             inputs["kl_weight"].copy_(kl_weight)
-        graph = self._graphs.get(with_kl)
+        graph = self._graphs.get(with_kl) if self._eager_left == 0 else None
         if graph is not None:
             graph.replay()
             return
         current = torch.cuda.current_stream(self.device)
         self._stream.wait_stream(current)
         with torch.cuda.stream(self._stream):
-            if self._eager_steps < WARMUP:
+            if self._eager_left > 0:
                 self._body(with_kl)
-                self._eager_steps += 1
+                self._eager_left -= 1
             else:
                 graph = torch.cuda.CUDAGraph()
                 with torch.cuda.graph(graph, stream=self._stream):

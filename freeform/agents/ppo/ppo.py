@@ -467,6 +467,8 @@ class PPO:
         # Sums over minibatches, kept on the device so that no step waits for a host sync.
         # policy, value, kl, entropy, clip fraction, total loss
         totals = self._graphed.totals.zero_() if self._graphed is not None else torch.zeros(6, device=self.device)
+        if self._graphed is not None:
+            self._graphed.begin_update()
         self.policy.train()
         for _ in range(cfg.num_sgd_iter):
             order = torch.randperm(batch.size, generator=self.generator, device=self.device)
