@@ -821,3 +821,19 @@ def test_the_checkpointed_optimizer_state_is_the_eager_adams() -> None:
     ppo.load_state_dict(ppo.state_dict())
     assert ppo.optimizer.param_groups[0]["lr"] == group["lr"] and not ppo.optimizer.param_groups[0]["capturable"]
     torch.testing.assert_close(ppo.optimizer.state_dict()["state"][0], saved["state"][0], rtol=0, atol=0)
+
+
+def test_a_loaded_state_shares_no_tensor_with_its_source() -> None:
+    """``b.load_state_dict(a.state_dict())`` in memory, then both train: b's Adam moments are its own (torch's
+    optimizer load keeps a tensor already on the right device, which would make a and b train the same moments)."""
+    def make() -> PPO:
+        torch.manual_seed(0)
+        return PPO(PointMassEnv(num_envs=4, horizon=3), MLPActorCritic(4, 2, hidden=(8,)),
+                   PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8))
+
+    a, b = make(), make()
+    a.train_epoch()
+    b.load_state_dict(a.state_dict())
+    moments = b.optimizer.state_dict()["state"][0]["exp_avg"].clone()
+    a.train_epoch()
+    assert torch.equal(b.optimizer.state_dict()["state"][0]["exp_avg"], moments)

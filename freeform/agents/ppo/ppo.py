@@ -716,7 +716,11 @@ class PPO:
         """Load a portable optimizer state (:meth:`_portable_optimizer_state`) into this PPO's Adam as it runs."""
         capturable = self.config.cuda_graph
         groups = [{**g, "capturable": capturable} for g in state["param_groups"]]
-        self.optimizer.load_state_dict({**state, "param_groups": groups})  # capturable: the step count to the device
+        # Copies: torch's load keeps a tensor that is already on the right device, so the moments would otherwise be
+        # shared with the state's owner (another PPO, after ppo.load_state_dict(other.state_dict())) and both trained.
+        moments = {i: {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in s.items()}
+                   for i, s in state["state"].items()}
+        self.optimizer.load_state_dict({"state": moments, "param_groups": groups})  # capturable: step to the device
         for group in self.optimizer.param_groups:
             group["lr"] = self._lr_value(float(group["lr"]))
         if self._graphed is not None:
