@@ -173,7 +173,7 @@ def test_gpu_preset_without_cuda_stops_at_once_naming_the_cpu_override(tmp_path:
 
     cfg = compose("experiment=paper_locomotion")
     assert cfg.trainer.device == "cuda"
-    with pytest.raises(ValueError, match=r"experiment=paper_locomotion is meant for a GPU.*add trainer\.device=cpu"):
+    with pytest.raises(ValueError, match=r"experiment=paper_locomotion is meant for a GPU.*add trainer\.device=cpu agent\.cuda_graph=false"):
         train_mod.train(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()  # nothing was written
 

@@ -101,18 +101,20 @@ def build_task(cfg: TrainConfig, device: torch.device) -> Task:
 # ------------------------------------------------------------------------------------------------ env and learner
 
 
-def resolve_device(name: str, experiment: str | None = None) -> torch.device:
+def resolve_device(name: str, experiment: str | None = None, cuda_graph: bool = False) -> torch.device:
     """``trainer.device`` -> a torch device (``auto``: CUDA when available, else CPU; ``cuda``: this process's
     current GPU, which is the rank's own under torchrun, see ``distributed.pin_local_gpu``).
 
     A run that asks for CUDA where there is none stops here with one line naming the override that runs it on the
-    CPU anyway (the paper's GPU presets set ``trainer.device: cuda``)."""
+    CPU anyway (the paper's GPU presets set ``trainer.device: cuda``, and ``agent.cuda_graph: true``, which the CPU
+    has no use for: ``cuda_graph`` says so)."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
         what = f"experiment={experiment} is meant for a GPU (trainer.device={name})" if experiment else f"trainer.device={name}"
-        raise ValueError(f"{what} but no CUDA device is available here; add trainer.device=cpu to run it on the CPU anyway")
+        cpu = "trainer.device=cpu agent.cuda_graph=false" if cuda_graph else "trainer.device=cpu"
+        raise ValueError(f"{what} but no CUDA device is available here; add {cpu} to run it on the CPU anyway")
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
     return device

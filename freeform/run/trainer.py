@@ -141,7 +141,7 @@ class Trainer:
         self.cfg = cfg
         if cfg.trainer.threads:
             torch.set_num_threads(cfg.trainer.threads)
-        self.device = resolve_device(cfg.trainer.device, cfg.name)
+        self.device = resolve_device(cfg.trainer.device, cfg.name, cfg.agent.cuda_graph)
         lo, hi = distributed.env_slice(cfg.env.num_envs, distributed.world_size(), distributed.rank())
         self.env, self.learner = build(cfg, self.device, (lo, hi))
         self.collectives = distributed.collectives(hi - lo, self.device)
