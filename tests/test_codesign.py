@@ -199,3 +199,43 @@ def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
     metrics = list(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
     assert [m["policy"] for m in metrics] == ["untrained", "trained"] and "symmetry" in metrics[0]
     assert (tmp_path / "eval" / "codesign_steering_cpu.png").is_file()
+
+
+def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_tables(tmp_path) -> None:
+    """``python -m experiments.codesign``: a co-design run, an open-loop design run in the co-design episode's window
+    and a design-then-control run on the design run's first epoch, scored on 8 episodes each; the robot-seconds
+    are the hand count of each run's simulated windows."""
+    import csv
+
+    from experiments.codesign import main
+    from freeform import train as train_mod
+    from freeform.config import compose
+
+    burn_in, duration = 0.01, 0.0375
+    common = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "trainer.render_every=0",
+              "agent.sgd_minibatch_size=8", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1"]
+    window = [f"control.burn_in={burn_in}", f"control.duration={duration}"]
+    train_mod.train(compose("experiment=codesign_locomotion_cpu", "trainer.epochs=1", "agent.hidden=8",
+                            "control.hidden=4", *window, *common), tmp_path / "codesign")
+    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=2", "agent.hidden=8", "+task.options.measure=com",
+                            f"sim.burn_in={burn_in}", f"sim.duration={duration}", *common), tmp_path / "open_loop")
+    record = tmp_path / "open_loop" / "records" / "epoch_000000.npz"
+    train_mod.train(compose("experiment=control_locomotion_cpu", f"control.bodies={record}", "control.top=2",
+                            "trainer.epochs=1", "agent.hidden=4", *window, *common), tmp_path / "two_stage")
+    main(["--codesign", str(tmp_path / "codesign"), "--open-loop", str(tmp_path / "open_loop"),
+          "--two-stage", str(tmp_path / "two_stage"), "--episodes", "8", "--out", str(tmp_path / "out")])
+    rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
+    seconds = {r["method"].strip(): float(r["robot_seconds"]) for r in rows}
+    assert [r["method"].strip() for r in rows] == [
+        "co-design (one PPO: body, then controller)", "its designs, open loop", "open-loop design RL (the paper's)",
+        "design, then control (2 best designs)", "its bodies, open loop"]
+    assert all(int(r["n"]) == 8 for r in rows)
+    window_s = burn_in + duration
+    assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * window_s, abs=1e-3)
+    assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
+    assert seconds["design, then control (2 best designs)"] == pytest.approx(
+        1 * 4 * window_s + 1 * 4 * duration + 2 * burn_in, abs=1e-3)
+    assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])
+    metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))
+    assert len(metrics) == len(rows) and float(metrics[2]["volume"]) > 0
+    assert (tmp_path / "out" / "codesign_vs_baselines.png").is_file()

@@ -136,6 +136,8 @@ def test_the_open_loop_figure_along_a_heading_is_the_gait_projected_on_it() -> N
     assert along_x[0] == moved[0] and abs(along_x[0]) > 1e-4  # it moves
     assert moved[2] == pytest.approx(-moved[0], rel=1e-9, abs=1e-12)
     assert moved[1] != moved[0]
+    planar = open_loop_displacement(three, sim, control, planar=True)  # Pythagoras on the x and y moves
+    assert planar == pytest.approx(np.hypot(moved[0], moved[1]), rel=1e-9)
 
 
 # Data parallel: two gloo ranks holding environments 0-2 and 3-4 of a steering batch train what one process trains.

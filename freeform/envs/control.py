@@ -366,11 +366,12 @@ class ControlEnv:
 
 def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
                            control: ControlConfig | None = None, arch: str = "cpu",
-                           headings: np.ndarray | None = None) -> np.ndarray:
+                           headings: np.ndarray | None = None, planar: bool = False) -> np.ndarray:
     """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move along
-    +x (or along ``headings [N]``, radians from +x towards +y: a steering task's figure) from ``control.burn_in``
-    to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel lengths ``[N]``, 0 for a
-    robot that failed and for an empty grid. The figure a controller is compared with."""
+    +x (or along ``headings [N]``, radians from +x towards +y: a steering task's figure; or, ``planar``, the
+    distance in the ground plane whatever the direction: an open-loop body's own best heading) from
+    ``control.burn_in`` to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel lengths
+    ``[N]``, 0 for a robot that failed and for an empty grid. The figure a controller is compared with."""
     sim, control = sim or SimConfig(), control or ControlConfig()
     grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
     out = np.zeros(len(grids))
@@ -386,7 +387,10 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     end = engine.sense()[1]
     body = layout.body_of_robot  # (an empty grid has no robot)
     heading = np.zeros(len(body)) if headings is None else np.asarray(headings, np.float64)[body]
-    move = (end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)
+    if planar:
+        move = np.hypot((end - start)[:, 0], (end - start)[:, 1])
+    else:
+        move = (end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)
     out[body] = np.where(engine.robot_status() == RUNNING, move / sim.voxel_size, 0.0)
     return out
 

@@ -1,0 +1,219 @@
+"""Co-design against its two baselines at equal simulated robot-seconds (issue 32), on flat locomotion.
+
+Three runs of ``freeform-train``, each given the same budget of simulated robot-seconds:
+
+* ``--codesign RUN``: ``experiment=codesign_locomotion_cpu`` — one PPO designs a body and then controls it; every
+  episode settles its new body (``control.burn_in``) and controls it (``control.duration``).
+* ``--open-loop RUN``: open-loop design RL — ``experiment=locomotion_cpu`` with the co-design episode's window
+  (``sim.burn_in`` = ``control.burn_in``, ``sim.duration`` = ``control.duration``) and the centre of mass's move as
+  the reward (``+task.options.measure=com``): the paper's method, each body moving by its sine gait.
+* ``--two-stage RUN``: design, then control — a control run (``experiment=control_locomotion_cpu``) on the best
+  designs of one epoch of a design run (``control.bodies=<design run>/records/epoch_E.npz control.top=K``); its
+  budget is the design run's first E + 1 epochs plus its own.
+
+Every method is scored the same way: its last policy's bodies (256 designs of the design policies; the two-stage
+run's K bodies, cycled) in the co-design episode's window, stochastic policies as in training, 99 % bands. A
+controller is scored by its centre of mass's move along +x (what it was trained for); an open-loop body by its
+move in the plane in whichever direction its gait goes (what it was trained for; a gait has no heading to choose,
+so +x would score it 0 on average) — a figure that can only favour the open-loop bodies. The seven body metrics of
+each method's bodies (the paper's) go beside the scores.
+
+    python -m experiments.codesign --codesign runs/codesign_locomotion --open-loop runs/open_loop_locomotion \
+        --two-stage runs/two_stage_control --out docs/results/codesign_vs_baselines
+
+Writes ``summary.csv`` (method, robot-seconds, score with its band, what the score is), ``metrics.csv``,
+``run.json`` and ``codesign_vs_baselines.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from experiments.common import mean_band
+
+METRICS = ("volume", "surface_ratio", "passive_ratio", "lcc_ratio", "substructures", "symmetry", "compressibility")
+
+
+def _last(run: Path) -> tuple[Any, dict]:
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import from_container
+
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    return from_container(last["config"]), last
+
+
+def design_stage(control_cfg: Any) -> tuple[Path, int] | None:
+    """The design run and epoch count behind a two-stage control run's bodies (``control.bodies`` naming
+    ``<run>/records/epoch_E.npz``: E + 1 epochs of design), or None when its bodies came from elsewhere."""
+    source = Path(str(control_cfg.control.bodies))
+    match = re.fullmatch(r"epoch_(\d+)\.npz", source.name)
+    if match is None or source.parent.name != "records":
+        return None
+    return source.parent.parent, int(match.group(1)) + 1
+
+
+def robot_seconds(cfg: Any, epochs: int) -> float:
+    """The simulated robot-seconds ``epochs`` epochs of a run cost: a co-design or design epoch simulates every
+    environment's body through its window (settling included); a control epoch only the control window (each body
+    settles once, when the env is built, and is restored from that state at every episode)."""
+    envs = cfg.env.num_envs
+    if cfg.control is None:  # open-loop design RL
+        return epochs * envs * (cfg.sim.burn_in + cfg.sim.duration)
+    control = cfg.control
+    if control.codesign:
+        return epochs * envs * (control.burn_in + control.duration)
+    bodies = control.top if str(control.bodies).endswith(".npz") else envs
+    return epochs * envs * control.duration + bodies * control.burn_in
+
+
+def _metrics(info: dict) -> dict[str, np.ndarray]:
+    return {k: v.double().cpu().numpy() for k, v in info["metrics"].items()}
+
+
+@torch.no_grad()
+def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
+    """``episodes`` designs of an open-loop design run's last policy (sampled as in training), moved by their sine
+    gaits in ``window`` (a ``ControlConfig``): the move in the plane, along +x, and the body metrics."""
+    from freeform.envs.control import open_loop_displacement
+    from freeform.run.build import build, design_env
+
+    cfg, last = _last(run)
+    _, ppo = build(cfg, torch.device("cpu"))
+    ppo.restore(last)
+    env = design_env(cfg, torch.device("cpu"), episodes, cfg.seed + 10_000)
+    obs, done = env.reset(), torch.zeros(episodes, dtype=torch.bool)
+    while not bool(done.all()):
+        obs, _, done, info = env.step(ppo.act(obs))
+    grids = info["final_grids"].cpu().numpy()
+    return {"score": open_loop_displacement(grids, cfg.sim, window, planar=True),
+            "along_x": open_loop_displacement(grids, cfg.sim, window), "metrics": _metrics(info),
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
+
+
+@torch.no_grad()
+def controlled(run: Path, episodes: int) -> dict[str, Any]:
+    """A co-design or control run's last policy: ``episodes`` episodes on fresh episodes of its own env (a co-design
+    run designs every one), the move along +x, and the bodies' metrics."""
+    from experiments.control import evaluation_episodes
+    from freeform.envs.control import ControlEnv
+    from freeform.run.build import build, control_env
+
+    cfg, last = _last(run)
+    env, ppo = build(cfg, torch.device("cpu"))
+    ppo.restore(last)
+    seed = cfg.seed + 10_000
+    eval_env = (control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed) if cfg.control.codesign else
+                ControlEnv(env.grids, sim=cfg.sim, control=cfg.control.episode(), seed=seed, box=env.box))
+    eval_env.reset(seed=seed)
+    result = evaluation_episodes(ppo, eval_env, episodes)
+    return {"score": result["returns"], "metrics": result["metrics"], "epochs": int(last["ppo"]["epoch"]),
+            "cfg": cfg, "bodies": result["bodies"]}
+
+
+def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: int, out: Path) -> list[dict]:
+    from freeform.envs.control import open_loop_displacement
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows, metrics, runs = [], [], {}
+
+    def add(method: str, result: dict, budget: float, score: str, extra: dict | None = None) -> None:
+        mean, band = mean_band(np.asarray(result["score"], np.float64))
+        rows.append({"method": method, "robot_seconds": round(budget, 3), "epochs": result["epochs"],
+                     "n": len(result["score"]), "mean": float(mean), "band99": float(band), "score": score,
+                     **(extra or {})})
+        metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS}})
+        print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
+
+    co = controlled(codesign, episodes)
+    window = co["cfg"].control.episode()
+    runs["codesign"] = str(codesign)
+    add("co-design (one PPO: body, then controller)", co, robot_seconds(co["cfg"], co["epochs"]),
+        "move along +x, controlled")
+    gaits = open_loop_displacement(co["bodies"], co["cfg"].sim, window, planar=True)
+    add("  its designs, open loop", {**co, "score": gaits}, robot_seconds(co["cfg"], co["epochs"]),
+        "move in the plane, sine gait")
+
+    ol = open_loop_designs(open_loop, episodes, window)
+    runs["open_loop"] = str(open_loop)
+    add("open-loop design RL (the paper's)", ol, robot_seconds(ol["cfg"], ol["epochs"]),
+        "move in the plane, sine gait", {"along_x_mean": float(ol["along_x"].mean())})
+
+    if two_stage is not None:
+        ts = controlled(two_stage, episodes)
+        stage = design_stage(ts["cfg"])
+        design_budget = 0.0
+        if stage is not None:
+            design_cfg, _ = _last(stage[0])
+            design_budget = robot_seconds(design_cfg, stage[1])
+            runs["two_stage_design"] = f"{stage[0]} (first {stage[1]} epochs)"
+        runs["two_stage"] = str(two_stage)
+        add(f"design, then control ({ts['cfg'].control.top} best designs)", ts,
+            design_budget + robot_seconds(ts["cfg"], ts["epochs"]), "move along +x, controlled")
+        gaits = open_loop_displacement(ts["bodies"], ts["cfg"].sim, window, planar=True)
+        add("  its bodies, open loop", {**ts, "score": gaits}, design_budget + robot_seconds(ts["cfg"], ts["epochs"]),
+            "move in the plane, sine gait")
+
+    for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
+        fields = list(dict.fromkeys(k for row in table for k in row))
+        with open(out / name, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=fields)
+            writer.writeheader()
+            writer.writerows(table)
+    (out / "run.json").write_text(json.dumps({"runs": runs, "episodes": episodes,
+                                              "window_s": [window.burn_in, window.duration]}, indent=1))
+    figure(rows, metrics, out / "codesign_vs_baselines.png", window.duration)
+    return rows
+
+
+def figure(rows: list[dict], metrics: list[dict], path: Path, seconds: float) -> None:
+    """The scores with their 99 % bands (controlled: filled; the same bodies' open-loop gaits: hollow), the
+    robot-seconds under each, and the bodies' volume and passive ratio."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [3, 2]})
+    x = np.arange(len(rows))
+    for i, row in enumerate(rows):
+        hollow = "sine gait" in row["score"]
+        ax.errorbar([i], [row["mean"]], yerr=[row["band99"]], fmt="o", capsize=4, color="k",
+                    mfc="white" if hollow else "k")
+    ax.set_xticks(x, [f"{r['method'].strip()}\n{r['robot_seconds']:,.0f} robot-s" for r in rows], fontsize=6)
+    ax.set_ylabel(f"move in {seconds:g} s (voxel lengths)")
+    ax.set_title("filled: controlled, along +x; hollow: open loop, in the plane", fontsize=8)
+    ax.axhline(0, color="0.7", lw=0.8)
+    names = [m["method"].strip() for m in metrics]
+    bx.barh(np.arange(len(names)), [m["volume"] for m in metrics], color="0.6")
+    for i, m in enumerate(metrics):
+        bx.text(m["volume"], i, f"  passive {m['passive_ratio']:.2f}", va="center", fontsize=6)
+    bx.set_yticks(np.arange(len(names)), names, fontsize=6)
+    bx.set_xlabel("body volume (voxels)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--codesign", type=Path, required=True)
+    p.add_argument("--open-loop", type=Path, required=True)
+    p.add_argument("--two-stage", type=Path, default=None)
+    p.add_argument("--episodes", type=int, default=256)
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    for run in (args.codesign, args.open_loop, args.two_stage):
+        if run is not None and not (run / "checkpoints" / "last.pt").is_file():
+            raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
+    compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out)
+
+
+if __name__ == "__main__":
+    main()
