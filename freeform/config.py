@@ -126,6 +126,11 @@ class ControlRunConfig(ControlConfig):
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
     """The controller's width; None: ``agent.hidden`` (a co-design run's ``agent.hidden`` is its design network's)."""
+    controller_init: str | None = None
+    """Start the controller from a trained one: a control or co-design run's directory (its ``checkpoints/last.pt``)
+    or a checkpoint file; the controller's weights are loaded (the same ``controller`` kind and width), the rest
+    starts fresh. A co-design run so starts with a controller that already drives bodies (a warm start: its
+    robot-seconds belong to the co-design run's budget). None: from scratch."""
 
     @property
     def codesign(self) -> bool:
@@ -139,6 +144,8 @@ class ControlRunConfig(ControlConfig):
         require(self.candidates >= 1, f"{key}.candidates", "an integer >= 1", self.candidates)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
+        require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
+                f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not self.codesign or self.controller == "conv", f"{key}.controller",
                 "conv with bodies=codesign (each episode's body differs: one set of weights for every cell)",
                 self.controller)

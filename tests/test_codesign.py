@@ -239,3 +239,30 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))
     assert len(metrics) == len(rows) and float(metrics[2]["volume"]) > 0
     assert (tmp_path / "out" / "codesign_vs_baselines.png").is_file()
+
+
+def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
+    """``control.controller_init=RUN``: the co-design run's epoch-0 controller is RUN's trained controller, weight for
+    weight (its design network is fresh); a controller of another width is refused naming the key."""
+    from freeform import train as train_mod
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import compose
+
+    size = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "control.duration=0.0375",
+            "control.burn_in=0.01", "trainer.render_every=0", "agent.sgd_minibatch_size=8", "control.hidden=4",
+            "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1", "trainer.epochs=1"]
+    train_mod.train(compose("experiment=control_steering_cpu", "control.bodies=untrained_designs", *size),
+                    tmp_path / "control")
+    trained = load_checkpoint(tmp_path / "control" / "checkpoints" / "last.pt")["ppo"]["policy"]
+    train_mod.train(compose("experiment=codesign_steering_cpu", "agent.hidden=8", *size,
+                            f"control.controller_init={tmp_path / 'control'}"), tmp_path / "codesign")
+    start = load_checkpoint(tmp_path / "codesign" / "checkpoints" / "epoch_000000.pt")["ppo"]["policy"]
+    assert set(trained) == {k[len("controller."):] for k in start if k.startswith("controller.")}
+    for name, tensor in trained.items():
+        assert torch.equal(start[f"controller.{name}"], tensor), name
+    with pytest.raises(ValueError, match="control.controller_init=.*another controller"):
+        train_mod.train(compose("experiment=codesign_steering_cpu", "agent.hidden=8", *size, "control.hidden=6",
+                                f"control.controller_init={tmp_path / 'control'}"), tmp_path / "wide")
+    with pytest.raises(ValueError, match="control.controller_init=.*no such checkpoint"):
+        train_mod.train(compose("experiment=codesign_steering_cpu", *size,
+                                f"control.controller_init={tmp_path / 'nothing'}"), tmp_path / "none")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import random
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -227,6 +228,26 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
     return env, learner
 
 
+def load_controller(controller: torch.nn.Module, source: str) -> None:
+    """``control.controller_init``: a trained controller's weights into ``controller`` — from a control run's
+    policy, or a co-design run's ``controller.*`` part; ``source`` a run directory or a checkpoint file."""
+    from freeform.checkpoint import load_checkpoint
+
+    path = Path(source)
+    path = path / "checkpoints" / "last.pt" if path.is_dir() else path
+    if not path.is_file():
+        raise ValueError(f"control.controller_init={source!r}: no such checkpoint ({path} is not a file)")
+    weights = load_checkpoint(path)["ppo"]["policy"]
+    if any(k.startswith("controller.") for k in weights):  # a co-design run's actor-critic
+        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+    try:
+        controller.load_state_dict(weights)
+    except RuntimeError as e:
+        detail = "; ".join(line.strip() for line in str(e).splitlines()[:3])
+        raise ValueError(f"control.controller_init={source!r} holds another controller than this run builds (kind "
+                         f"or width: control.controller, control.hidden): {detail}") from e
+
+
 @register_learner("ppo")
 def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
     """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
@@ -245,6 +266,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         else:
             policy = MLPController(env.observation_shape[0], env.box, env.mask_channel, (width, width),
                                    control.init_log_std)
+        if control.controller_init is not None:
+            load_controller(policy.controller if control.codesign else policy, control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
         eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if control.codesign else env.grids) if (
             cfg.agent.eval_every) else None
