@@ -208,3 +208,24 @@ def test_an_empty_grid_moves_zero_open_loop_and_the_others_keep_their_place() ->
     mixed = open_loop_displacement(np.stack([ROD, ROD * 0, CUBE]), sim, control, headings=np.zeros(3))
     np.testing.assert_array_equal(mixed, [alone[0], 0.0, alone[1]])
     assert open_loop_displacement(np.stack([ROD * 0]), sim, control).tolist() == [0.0]
+
+
+def test_the_climb_preset_controls_bodies_on_its_slope(tmp_path: Path) -> None:
+    """``experiment=control_climb_cpu``: the control env stands on the run's terrain. A passive-commanded rod holds
+    still on flat ground and slides downhill (negative reward along +x, the uphill direction) on a 40° slope, past
+    what friction holds."""
+    from freeform.run.build import control_env
+
+    np.save(tmp_path / "rod.npy", ROD)
+    moved = {}
+    for degrees in (0.0, 40.0):
+        cfg = compose(*tiny_control(tmp_path / "rod.npy", "experiment=control_climb_cpu", f"sim.terrain.degrees={degrees}",
+                                    "control.duration=0.25", "control.burn_in=0.05", "control.headings=fixed"))
+        env = control_env(cfg, torch.device("cpu"), (0, 4), 0)
+        env.reset()
+        total = torch.zeros(4)
+        for _ in range(env.control.steps):
+            total += env.step(torch.zeros(4, env.action_dim))[1]
+        moved[degrees] = total
+    assert compose("experiment=control_climb_cpu").sim.terrain.kind == "slope"
+    assert moved[0.0].abs().max() < 1e-3 and (moved[40.0] < -0.1).all()
