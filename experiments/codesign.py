@@ -181,21 +181,27 @@ def figure(rows: list[dict], metrics: list[dict], path: Path, seconds: float) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def short(method: str) -> str:  # the tick labels: a method, or the open-loop gaits of its bodies
+        return method.strip().split(" (")[0].replace(", then ", ",\nthen ").replace("its ", "its\n")
+
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [3, 2]})
     x = np.arange(len(rows))
     for i, row in enumerate(rows):
         hollow = "sine gait" in row["score"]
-        ax.errorbar([i], [row["mean"]], yerr=[row["band99"]], fmt="o", capsize=4, color="k",
+        ax.errorbar([i], [float(row["mean"])], yerr=[float(row["band99"])], fmt="o", capsize=4, color="k",
                     mfc="white" if hollow else "k")
-    ax.set_xticks(x, [f"{r['method'].strip()}\n{r['robot_seconds']:,.0f} robot-s" for r in rows], fontsize=6)
+    ax.set_xticks(x, [f"{short(r['method'])}\n{float(r['robot_seconds']):,.0f} robot-s" for r in rows], fontsize=6)
     ax.set_ylabel(f"move in {seconds:g} s (voxel lengths)")
     ax.set_title("filled: controlled, along +x; hollow: open loop, in the plane", fontsize=8)
     ax.axhline(0, color="0.7", lw=0.8)
-    names = [m["method"].strip() for m in metrics]
-    bx.barh(np.arange(len(names)), [m["volume"] for m in metrics], color="0.6")
-    for i, m in enumerate(metrics):
-        bx.text(m["volume"], i, f"  passive {m['passive_ratio']:.2f}", va="center", fontsize=6)
+    methods = [m for m in metrics if not m["method"].startswith(" ")]  # (an open-loop row repeats its bodies)
+    names = [short(m["method"]) for m in methods]
+    bx.barh(np.arange(len(names)), [float(m["volume"]) for m in methods], color="0.6")
+    for i, m in enumerate(methods):
+        bx.text(float(m["volume"]), i, f"  passive {float(m['passive_ratio']):.2f}, "
+                f"largest part {float(m['lcc_ratio']):.2f}", va="center", fontsize=6)
     bx.set_yticks(np.arange(len(names)), names, fontsize=6)
+    bx.set_xlim(0, 1.6 * max(float(m["volume"]) for m in methods))
     bx.set_xlabel("body volume (voxels)")
     fig.tight_layout()
     fig.savefig(path, dpi=150)
@@ -203,12 +209,20 @@ def figure(rows: list[dict], metrics: list[dict], path: Path, seconds: float) ->
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--codesign", type=Path, required=True)
-    p.add_argument("--open-loop", type=Path, required=True)
+    p.add_argument("--codesign", type=Path)
+    p.add_argument("--open-loop", type=Path)
     p.add_argument("--two-stage", type=Path, default=None)
     p.add_argument("--episodes", type=int, default=256)
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--replot", action="store_true", help="redraw the figure from --out's CSVs (no runs needed)")
     args = p.parse_args(argv)
+    if args.replot:
+        rows, metrics = (list(csv.DictReader(open(args.out / name))) for name in ("summary.csv", "metrics.csv"))
+        seconds = json.loads((args.out / "run.json").read_text())["window_s"][1]
+        figure(rows, metrics, args.out / "codesign_vs_baselines.png", seconds)
+        return
+    if args.codesign is None or args.open_loop is None:
+        p.error("--codesign and --open-loop are required (or --replot)")
     for run in (args.codesign, args.open_loop, args.two_stage):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
