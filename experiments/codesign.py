@@ -63,15 +63,15 @@ def design_stage(control_cfg: Any) -> tuple[Path, int] | None:
 def robot_seconds(cfg: Any, epochs: int) -> float:
     """The simulated robot-seconds ``epochs`` epochs of a run cost: a co-design or design epoch simulates every
     environment's body through its window (settling included); a control epoch only the control window (each body
-    settles once, when the env is built, and is restored from that state at every episode)."""
+    settles once, when the env is built — every environment's copy, a body repeated over environments included —
+    and is restored from that state at every episode)."""
     envs = cfg.env.num_envs
     if cfg.control is None:  # open-loop design RL
         return epochs * envs * (cfg.sim.burn_in + cfg.sim.duration)
     control = cfg.control
     if control.codesign:
         return epochs * envs * (control.burn_in + control.duration)
-    bodies = control.top if str(control.bodies).endswith(".npz") else envs
-    return epochs * envs * control.duration + bodies * control.burn_in
+    return epochs * envs * control.duration + envs * control.burn_in
 
 
 def _metrics(info: dict) -> dict[str, np.ndarray]:
@@ -102,16 +102,14 @@ def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
 def controlled(run: Path, episodes: int) -> dict[str, Any]:
     """A co-design or control run's last policy: ``episodes`` episodes on fresh episodes of its own env (a co-design
     run designs every one), the move along +x, and the bodies' metrics."""
-    from experiments.control import evaluation_episodes
-    from freeform.envs.control import ControlEnv
-    from freeform.run.build import build, control_env
+    from experiments.control import evaluation_env, evaluation_episodes
+    from freeform.run.build import build
 
     cfg, last = _last(run)
     env, ppo = build(cfg, torch.device("cpu"))
     ppo.restore(last)
     seed = cfg.seed + 10_000
-    eval_env = (control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed) if cfg.control.codesign else
-                ControlEnv(env.grids, sim=cfg.sim, control=cfg.control.episode(), seed=seed, box=env.box))
+    eval_env = evaluation_env(cfg, env, seed)
     eval_env.reset(seed=seed)
     result = evaluation_episodes(ppo, eval_env, episodes)
     return {"score": result["returns"], "metrics": result["metrics"], "epochs": int(last["ppo"]["epoch"]),

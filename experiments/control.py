@@ -110,6 +110,16 @@ def evaluation_episodes(ppo: PPO, env: Any, episodes: int, deterministic: bool =
             "metrics": {k: np.concatenate([m[k] for m in out["metrics"]])[:episodes] for k in out["metrics"][0]}}
 
 
+def evaluation_env(cfg: Any, env: Any, seed: int) -> Any:
+    """A control or co-design run's env for evaluation, seeded ``seed``: a co-design run designs fresh bodies; a
+    control run's are its training env's ``env`` (not searched again), in the same box."""
+    from freeform.run.build import control_env
+
+    if cfg.control.codesign:
+        return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed)
+    return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed, bodies=env.grids, box=env.box)
+
+
 def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dict]:
     """A control or co-design run of the app (``freeform-train experiment=control_* | codesign_*``) evaluated: its
     untrained (checkpoint 0) and its last policy, ``episodes`` stochastic episodes each on fresh headings (seed +
@@ -121,7 +131,7 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
 
     from freeform.checkpoint import load_checkpoint
     from freeform.config import from_container
-    from freeform.run.build import build, control_env
+    from freeform.run.build import build
 
     out.mkdir(parents=True, exist_ok=True)
     last = load_checkpoint(run / "checkpoints" / "last.pt")
@@ -129,8 +139,7 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
     env, ppo = build(cfg, torch.device("cpu"))
     control, codesign = cfg.control.episode(), cfg.control.codesign
     seed = cfg.seed + 10_000
-    eval_env = (control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed) if codesign else
-                ControlEnv(env.grids, sim=cfg.sim, control=control, seed=seed, box=env.box))
+    eval_env = evaluation_env(cfg, env, seed)
     rows, sectors, metrics = [], {}, []
     what = "design + controller" if codesign else "controller"
     for name, path in (("untrained", run / "checkpoints" / "epoch_000000.pt"), ("trained", run / "checkpoints" / "last.pt")):

@@ -234,7 +234,7 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * window_s, abs=1e-3)
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
     assert seconds["design, then control (2 best designs)"] == pytest.approx(
-        1 * 4 * window_s + 1 * 4 * duration + 2 * burn_in, abs=1e-3)
+        1 * 4 * window_s + 1 * 4 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles)
     assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])
     metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))
     assert len(metrics) == len(rows) and float(metrics[2]["volume"]) > 0
