@@ -153,9 +153,11 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
         print(f"{rows[-1]['what']}: {rows[-1]['mean']:.3f} ± {rows[-1]['band99']:.3f}", flush=True)
         metrics.append({"policy": name, **{k: float(v.mean()) for k, v in result["metrics"].items()}})
         if codesign or name == "trained":  # (a control run's bodies are the same for both)
-            moved = open_loop_displacement(result["bodies"], cfg.sim, control, headings=headings)
+            moved = open_loop_displacement(result["bodies"], cfg.sim, control, headings=headings,
+                                           planar=control.headings == "any")
             label = f"open loop: the {name} policy's designs" if codesign else "open loop: the bodies' sine gaits"
-            rows.insert(len(rows) - 1, summary_row(f"{label} along the same headings", moved))
+            where = "in the plane" if control.headings == "any" else "along the same headings"
+            rows.insert(len(rows) - 1, summary_row(f"{label} {where}", moved))
             sectors[f"open_loop_{name}" if codesign else "open_loop"] = moved
     sector = np.floor(np.mod(headings, 2 * np.pi) / (2 * np.pi / bins)).astype(int)
     by_heading = [{"sector_deg": f"{360 * k / bins:.0f}-{360 * (k + 1) / bins:.0f}", "n": int((sector == k).sum()),
@@ -174,7 +176,8 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
     (out / "run.json").write_text(json.dumps({"run": str(run), "name": cfg.name, "episodes": episodes,
                                               "epochs": int(last["ppo"]["epoch"]), "control": vars(cfg.control)}, indent=1))
     figure(curve, rows, out / f"{cfg.name}.png",
-           ylabel=f"move along the heading in {control.duration:g} s (voxel lengths)")
+           ylabel=f"move {'in the plane' if control.headings == 'any' else 'along the heading'} in "
+                  f"{control.duration:g} s (voxel lengths)")
     for row in rows:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
     return rows

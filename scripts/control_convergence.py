@@ -1,9 +1,11 @@
 """Open loop as a controller: the sine gait replayed through commands held for a control period converges to the
 open-loop gait as the period shrinks (docs/control.md, "Equivalence").
 
-Each robot's command for a period is the open-loop term sin(2π(t/T + φ)) at the period's start (zero-order hold:
-what a controller acting every ``period`` seconds can do at best), then ``Engine.advance_time(period)``. After
-``SECONDS`` the centre of mass's horizontal displacement is compared with the open-loop engine's, robot by robot.
+Each robot's command for a period is the open-loop term sin(2π(t/T + φ)) held for the period (zero-order hold:
+what a controller acting every ``period`` seconds can do), taken at the period's start or at its midpoint (the hold
+a residual controller's base uses, ``ControlConfig.residual``: no half-period lag), then
+``Engine.advance_time(period)``. After ``SECONDS`` the centre of mass's horizontal displacement is compared with the
+open-loop engine's, robot by robot.
 
     python scripts/control_convergence.py            # 16 design bodies, f64, 1 s; ≈ 2 min on 2 cores
 """
@@ -49,18 +51,20 @@ def main() -> None:
     phase = np.array([0.0] + [m.phase for m in cfg.materials])[layout.material]
     print(f"{layout.num_robots} design bodies, f64, {SECONDS} s; open-loop displacement {open_loop.mean():.3f} "
           f"voxels on average")
-    print(f"{'period (s)':>11s} {'steps/period':>13s} {'mean |Δ| (voxels)':>18s} {'mean |Δ| / open loop':>21s}")
+    print(f"{'period (s)':>11s} {'steps/period':>13s} {'hold at':>9s} {'mean |Δ| (voxels)':>18s} "
+          f"{'mean |Δ| / open loop':>21s}")
     csim = Simulator(replace(cfg, actuation="command"), arch="cpu")
     for period in PERIODS:
-        engine = csim.engine(csim.layout(grids))
-        for k in range(round(SECONDS / period)):
-            t = k * period
-            engine.set_commands(np.sin(2 * math.pi * (t / cfg.temp_period + phase)))
-            engine.advance_time(period)
-        moved = np.linalg.norm(com_xy(engine, layout) - start, axis=1) / cfg.voxel_size
-        gap = np.abs(moved - open_loop)
-        print(f"{period:11.5f} {period / float(np.median(ref.dt0)):13.0f} {gap.mean():18.4f} "
-              f"{gap.mean() / open_loop.mean():21.1%}", flush=True)
+        for at, offset in (("start", 0.0), ("midpoint", 0.5)):
+            engine = csim.engine(csim.layout(grids))
+            for k in range(round(SECONDS / period)):
+                t = (k + offset) * period
+                engine.set_commands(np.sin(2 * math.pi * (t / cfg.temp_period + phase)))
+                engine.advance_time(period)
+            moved = np.linalg.norm(com_xy(engine, layout) - start, axis=1) / cfg.voxel_size
+            gap = np.abs(moved - open_loop)
+            print(f"{period:11.5f} {period / float(np.median(ref.dt0)):13.0f} {at:>9s} {gap.mean():18.4f} "
+                  f"{gap.mean() / open_loop.mean():21.1%}", flush=True)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,8 @@ the whole thing."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -20,9 +22,9 @@ RHO, K, T = 6, 4, 4
 CONTROL_CFG = ControlConfig(burn_in=0.01, duration=0.0375, headings="random")  # 3 control steps
 
 
-def env(n: int = 3, seed: int = 2) -> CodesignEnv:
+def env(n: int = 3, seed: int = 2, control: ControlConfig = CONTROL_CFG) -> CodesignEnv:
     return CodesignEnv(n, resolution=RHO, materials=K, design_steps=T, sim=SimConfig(precision="f64"),
-                       control=CONTROL_CFG, seed=seed)
+                       control=control, seed=seed)
 
 
 def design_actions(n: int, gen: torch.Generator) -> list[torch.Tensor]:
@@ -33,12 +35,16 @@ def design_actions(n: int, gen: torch.Generator) -> list[torch.Tensor]:
     return actions
 
 
-def test_an_episode_designs_as_the_design_env_and_controls_as_the_control_env() -> None:
+@pytest.mark.parametrize("residual", [False, True])
+def test_an_episode_designs_as_the_design_env_and_controls_as_the_control_env(residual: bool) -> None:
     gen = torch.Generator().manual_seed(0)
-    e = env()
+    control = replace(CONTROL_CFG, residual=residual)
+    e = env(control=control)
     n, width = e.num_envs, e.action_dim
     obs = e.reset()
-    assert tuple(obs.shape) == (n, len(CODESIGN_CHANNELS), RHO, RHO, RHO) and width == 3 + K + RHO ** 3
+    channels = len(CODESIGN_CHANNELS) + residual  # residual control: the open-loop sine's channel last
+    assert tuple(obs.shape) == (n, channels, RHO, RHO, RHO) and width == 3 + K + RHO ** 3
+    assert e.control_channels == (CONTROL.start, channels)
     design = DesignEnv(n, resolution=RHO, materials=K, steps=T, compute_metrics=False)
     design.reset()
     acts = design_actions(n, gen)
@@ -53,11 +59,11 @@ def test_an_episode_designs_as_the_design_env_and_controls_as_the_control_env() 
     bodies = largest_component(design.grids)
     alive = (bodies.flatten(1) > 0).any(dim=1)
     # the reference: a control env of the same bodies, its headings drawn as the co-design env's
-    ref = ControlEnv(bodies[alive], sim=SimConfig(precision="f64"), control=CONTROL_CFG, seed=2,
+    ref = ControlEnv(bodies[alive], sim=SimConfig(precision="f64"), control=control, seed=2,
                      first_env=torch.nonzero(alive).flatten().numpy())
     ref_obs = ref.reset(episode=0)
     np.testing.assert_array_equal(e.heading[alive.numpy()], ref.heading)
-    torch.testing.assert_close(obs[alive][:, CONTROL], ref.to_grid(ref_obs), rtol=0, atol=0)
+    torch.testing.assert_close(obs[alive][:, CONTROL.start:], ref.to_grid(ref_obs), rtol=0, atol=0)
     total = torch.zeros(n)
     for step in range(CONTROL_CFG.steps):
         commands = torch.rand(n, RHO ** 3, generator=gen) * 2 - 1

@@ -4,6 +4,7 @@ the action mask, episodes, rewards against the simulated centre of mass, and ref
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -138,3 +139,65 @@ def test_a_command_rate_limits_each_steps_change():
     assert float(free.engine._table("vr")[VR.CMD][free.layout.material == 2][0]) == pytest.approx(0.7)
     with pytest.raises(ValueError, match="command_rate"):
         ControlEnv(pair(), control=ControlConfig(command_rate=0.0))
+
+
+def test_residual_control_adds_the_action_to_the_open_loop_sine_held_at_the_period_midpoint():
+    """``residual``: a zero action replays each muscle's sine sin(2π(t/T + φ)) at the period's midpoint — the same
+    run, bit for bit, as a plain env given those commands by hand — and the last channel shows that sine."""
+    control = ControlConfig(burn_in=0.02, duration=0.05, headings="random")
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    cfg = SimConfig(precision="f64")
+    residual = ControlEnv(g, sim=cfg, control=replace(control, residual=True), seed=4)
+    plain = ControlEnv(g, sim=cfg, control=control, seed=4)
+    assert residual.channels == (*OBS_CHANNELS, "open_loop") and residual.observation_shape == (17, 3, 3, 3)
+    # the default materials: 1 passive, 2 a muscle at phase 0, 3 one at phase 0.5 (cycles); the box holds the pair's
+    # muscle at cell 0 and its passive voxel at cell 1, the cube's 27 muscles everywhere
+    phase = torch.tensor([[0.0], [0.5]], dtype=torch.float64)
+    muscle = residual.action_mask
+    assert muscle.sum(1).tolist() == [1, 27] and bool(muscle[0, 0])
+    obs_r, obs_p = residual.reset(), plain.reset()
+    for t in range(control.steps):
+        middle = (control.burn_in + (t + 0.5) * control.period) / cfg.temp_period
+        expected = torch.where(muscle, torch.sin(2 * math.pi * (middle + phase)), 0.0)
+        assert torch.equal(obs_r[:, -1].reshape(2, -1), expected.float())
+        assert torch.equal(obs_r[:, :-1], obs_p)
+        obs_r, r_r, _, _ = residual.step(torch.zeros(2, 27))
+        obs_p, r_p, _, _ = plain.step(expected)  # (float64: the command the residual env computes)
+        assert torch.equal(r_r, r_p)
+    assert float(r_r.abs().max()) > 0
+    # the sum is clipped: an action of +2 drives every muscle to +1 whatever its sine
+    residual.step(torch.full((2, 27), 2.0))
+    cmd = residual.engine._table("vr")[VR.CMD][np.isin(residual.layout.material, (2, 3))]
+    assert np.all(cmd == 1.0)
+
+
+def test_a_state_saved_before_a_config_field_existed_loads_with_its_default():
+    env = ControlEnv(pair(), sim=SimConfig(precision="f64"), control=ControlConfig(burn_in=0.0, duration=0.025))
+    env.reset()
+    state = env.state_dict()
+    del state["config"]["control"]["residual"]  # a checkpoint from before residual control
+    env.load_state_dict(state)
+    other = ControlEnv(pair(), control=ControlConfig(burn_in=0.0, duration=0.025, residual=True))
+    with pytest.raises(ValueError, match="does not match"):
+        other.load_state_dict(state)
+    with pytest.raises(ValueError, match="control.residual"):
+        ControlConfig(residual="yes").validate()
+
+
+def test_headings_any_rewards_the_growth_of_the_distance_from_the_start_in_the_plane():
+    """``headings="any"`` (the paper's locomotion reward for a controller): the return is the centre of mass's
+    distance in the ground plane from where the episode started, whichever way the body went; no heading is seen."""
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    control = ControlConfig(burn_in=0.01, duration=0.05, headings="any")
+    env = ControlEnv(g, sim=SimConfig(precision="f64"), control=control)
+    obs = env.reset()
+    start = env._com.copy()
+    assert float(obs[:, C["heading_cos"]].abs().max()) == 0 and float(obs[:, C["heading_sin"]].abs().max()) == 0
+    rng = torch.Generator().manual_seed(1)
+    total = np.zeros(2)
+    for t in range(control.steps - 1):
+        _, reward, _, _ = env.step(torch.rand((2, 27), generator=rng) * 2 - 1)
+        total += reward.double().numpy()
+    distance = np.hypot(*(env._com - start)[:, :2].T) / env.sim_config.voxel_size
+    assert distance.min() > 1e-4 and np.all(total > 0)
+    np.testing.assert_allclose(total, distance, rtol=1e-5, atol=1e-9)

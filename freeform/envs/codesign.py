@@ -6,8 +6,9 @@ Everything is on the design grid, so that both stages see one frame and one tens
 
 * Observations ``[N, len(CODESIGN_CHANNELS), ρ, ρ, ρ]`` float32: ``stage`` (0 while designing, 1 while
   controlling, on every cell), ``design_progress`` (t / T while designing, 1 after), ``grid`` (each cell's material
-  index, the design so far / the finished design), then the control env's ``OBS_CHANNELS`` moved from the body's
-  box to its grid cells (``ControlEnv.to_grid``), zero while designing.
+  index, the design so far / the finished design), then the control env's channels (``OBS_CHANNELS``; with
+  ``control.residual`` ``RESIDUAL_CHANNELS``) moved from the body's box to its grid cells (``ControlEnv.to_grid``),
+  zero while designing.
 * Actions ``[N, 3 + k + ρ³]``: the design action ``[x, y, z, w_0 … w_{k−1}]`` (the design env's), then one command
   per grid cell. A design step reads the first part, a control step the second (on the body's voxels: a voxel not
   in the body's largest component, like an empty cell, has no command). The distribution is a
@@ -36,14 +37,14 @@ import torch
 
 from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.body import bodies_and_metrics, serial_on_cpu
-from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
+from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig, ControlEnv
 from freeform.envs.design import DesignEnv
 from freeform.sim import SimConfig, Simulator
 
 CODESIGN_CHANNELS = ("stage", "design_progress", "grid", *OBS_CHANNELS)
 STAGE, DESIGN_PROGRESS, GRID = 0, 1, 2
 CONTROL = slice(3, 3 + len(OBS_CHANNELS))
-"""The control env's channels within a co-design observation."""
+"""The control env's channels within a co-design observation (``residual``: one more, ``RESIDUAL_CHANNELS``)."""
 
 
 class CodesignEnv:
@@ -68,10 +69,14 @@ class CodesignEnv:
         """Steps per episode: T design steps, then the control steps."""
         self.design_dim = 3 + materials
         self.action_dim = self.design_dim + resolution ** 3
-        self.observation_shape = (len(CODESIGN_CHANNELS), resolution, resolution, resolution)
+        control_channels = RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS
+        self.channels = (*CODESIGN_CHANNELS[: CONTROL.start], *control_channels)
+        """The observation's channels, in order."""
+        self.observation_shape = (len(self.channels), resolution, resolution, resolution)
         self.action_distribution = MaskedDiagGaussian(self.action_dim)
         self.stage_channel, self.grid_channel = STAGE, GRID
-        self.control_channels = (CONTROL.start, CONTROL.stop)
+        self.control_channels = (CONTROL.start, CONTROL.start + len(control_channels))
+        self._control = slice(*self.control_channels)
         self.mask_channel, self.filled_channel = OBS_CHANNELS.index("actuated"), OBS_CHANNELS.index("filled")
         """The channels a policy reads (``CodesignActorCritic.for_env``); mask and filled count from the control
         channels' start."""
@@ -164,7 +169,7 @@ class CodesignEnv:
         obs[:, GRID] = self.grids.float()
         if obs_c is not None:
             assert self.controlled is not None
-            obs[self._alive, CONTROL] = self.controlled.to_grid(obs_c.cpu())
+            obs[self._alive, self._control] = self.controlled.to_grid(obs_c.cpu())
         return obs.to(self.device)
 
     @property
@@ -207,7 +212,10 @@ class CodesignEnv:
         return {"episode": self.episode, "seed": self.seed, "config": self._config()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state.get("config") != self._config():
+        saved = state.get("config")
+        if not (isinstance(saved, dict) and self.control.same_as(saved.get("control", {}))
+                and {k: v for k, v in saved.items() if k != "control"}
+                == {k: v for k, v in self._config().items() if k != "control"}):
             raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
                              "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"]) - 1

@@ -12,7 +12,9 @@ that diverges or stalls stays in the batch, frozen, with reward 0 until the epis
 
 Reward: the centre of mass's displacement along the robot's heading during the step, in voxel lengths; the
 heading is +x (``headings="fixed"``, locomotion) or drawn uniformly per robot and episode (``"random"``, steering),
-and is in the observation.
+and is in the observation. ``headings="any"``: no heading — the step's growth of the centre of mass's distance
+from where the episode started, in the ground plane (the return is that distance: the paper's locomotion reward,
+by which open-loop bodies are scored; the heading channels are 0).
 
 The bodies' frame: every body is simulated as its largest component cropped to its bounding box (the layout's
 ``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
@@ -27,7 +29,12 @@ features broadcast to every filled cell: the heading's cos and sin, the episode'
 actuation clock's phase (sin and cos of 2π·t / ``sim.temp_period``, t the simulated time since placement): the
 rhythm the open-loop sine follows, so that a controller can reproduce that gait and need not invent a rhythm.
 
-Actions ``[N, Bx·By·Bz]``, one command per cell; only the actuated voxels' entries act. PPO's distribution is a
+Actions ``[N, Bx·By·Bz]``, one command per cell; only the actuated voxels' entries act. With
+``control.residual`` an action is a correction to the open-loop gait: each actuated voxel's command is its
+material's sine over the coming period (held at the period's midpoint) plus the action, clipped to [−1, 1], and the
+observation gains that sine as a last channel, ``open_loop`` (``RESIDUAL_CHANNELS``). Zero actions then replay the
+body's open-loop gait (up to the hold: ``docs/control.md``), so a controller starts from what the body already does
+and learns what to add to it. PPO's distribution is a
 :class:`~freeform.agents.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
 ``actuated`` channel (``mask_channel``) as the mask, so log-probabilities, entropy and KL count the entries that act.
 """
@@ -49,7 +56,10 @@ from freeform.sim.state import MT, RUNNING, SENSE
 
 OBS_CHANNELS = ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
                 "heading_cos", "heading_sin", "progress", "clock_sin", "clock_cos")
-HEADINGS = ("fixed", "random")
+RESIDUAL_CHANNELS = (*OBS_CHANNELS, "open_loop")
+"""A residual control env's channels (``ControlConfig.residual``): the last one is each actuated voxel's open-loop
+command over the coming period, the base its action is added to."""
+HEADINGS = ("fixed", "random", "any")
 
 
 @dataclass
@@ -60,11 +70,15 @@ class ControlConfig:
         decisions per stroke of the open-loop gait it replaces, ≈ 100 simulator steps at the default dt (1.2e-4 s).
     duration: simulated seconds of control per episode (``round(duration / period)`` steps).
     burn_in: seconds of settling before the controller acts (commands 0).
-    headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering).
+    headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering) | "any"
+        (the distance moved in the plane, whichever way: the paper's locomotion reward; no heading observed).
     command_rate: the most a voxel's command may change per simulated second (None: any change, at once — Voxelyze's
         actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings up to
         f_max Hz (the open-loop sine's 4 Hz: ≈ 25 /s); each step's command moves towards the action by at most
         ``command_rate · period``.
+    residual: actions are corrections added to the open-loop gait (each actuated voxel's sine of its material's
+        phase, held at the control period's midpoint), and the observation carries that sine (``RESIDUAL_CHANNELS``):
+        zero actions replay the open-loop gait. False: an action is the command itself (zero: no actuation).
     """
 
     period: float = 0.0125
@@ -72,6 +86,7 @@ class ControlConfig:
     burn_in: float = 0.25
     headings: str = "fixed"
     command_rate: float | None = None
+    residual: bool = False
 
     @property
     def steps(self) -> int:
@@ -87,12 +102,20 @@ class ControlConfig:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
         if self.command_rate is not None and not self.command_rate > 0:
             raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
+        if not isinstance(self.residual, bool):
+            raise ValueError(f"{key}.residual must be true or false, got {self.residual!r}")
+
+    def same_as(self, saved: dict[str, Any]) -> bool:
+        """Whether a saved config (``vars`` of one, from a checkpoint) is this one; a field it lacks — saved before
+        the field existed — counts as that field's default."""
+        return {**vars(ControlConfig()), **saved} == vars(self)
 
 
 class ControlEnv:
     """``num_envs`` bodies (uint8 grids ``[N, ρ, ρ, ρ]``, every one non-empty) under closed-loop control: a
     :class:`freeform.envs.VecEnv` whose action is one command per cell of the bodies' box (``action_dim`` =
-    Bx·By·Bz, C order) and whose observation is ``[N, len(OBS_CHANNELS), Bx, By, Bz]``. ``action_mask [N, Bx·By·Bz]``
+    Bx·By·Bz, C order) and whose observation is ``[N, len(channels), Bx, By, Bz]`` (``OBS_CHANNELS``, or with
+    ``control.residual`` ``RESIDUAL_CHANNELS``). ``action_mask [N, Bx·By·Bz]``
     marks the cells whose command acts (actuated voxels), as the observation's ``actuated`` channel does.
 
     sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``).
@@ -146,7 +169,9 @@ class ControlEnv:
             raise ValueError("ControlEnv simulates each body as one robot, in the order of the grids")
         self.origin = torch.from_numpy(lay.origin.astype(np.int64))
         """``[N, 3]`` where each body's box starts in its grid (the layout's crop origin)."""
-        self.observation_shape = (len(OBS_CHANNELS), *self.box)
+        self.channels = RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS
+        """The observation's channels, in order."""
+        self.observation_shape = (len(self.channels), *self.box)
         self.action_dim = math.prod(self.box)
         body = lay.body_of_robot[robot]
         self._body = body
@@ -168,6 +193,8 @@ class ControlEnv:
         self.filled_channel = OBS_CHANNELS.index("filled")
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
         self._actuated = actuated.astype(np.float64)
+        self._phase = np.array([0.0] + [m.phase for m in self.sim_config.materials])[lay.material]  # cycles
+        self._open_loop = np.zeros(lay.num_voxels)  # the coming period's open-loop commands (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
         draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
@@ -184,7 +211,7 @@ class ControlEnv:
         self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
         self.t = 0
         self.heading = np.zeros(self.num_envs)
-        self._com = np.zeros((self.num_envs, 3))
+        self._com = self._start = np.zeros((self.num_envs, 3))
 
     @staticmethod
     def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
@@ -222,6 +249,7 @@ class ControlEnv:
         self.t = 0
         self._command = np.zeros(self.layout.num_voxels)  # (the settled state's: commands start at 0)
         obs, self._com = self._observe()
+        self._start = self._com.copy()  # (headings "any": the distance is from here)
         return obs
 
     def to_grid(self, values: torch.Tensor) -> torch.Tensor:
@@ -269,6 +297,8 @@ class ControlEnv:
         commands = a.reshape(-1)[flat].to("cpu", torch.float64)
         if not torch.isfinite(commands).all():
             raise ValueError("actions must be finite in the cells that hold a voxel")
+        if self.control.residual:
+            commands = commands + torch.from_numpy(self._open_loop)
         target = commands.clamp(-1.0, 1.0).numpy()
         if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per step
             most = self.control.command_rate * self.control.period
@@ -279,7 +309,10 @@ class ControlEnv:
         self.t += 1
         obs, com = self._observe()
         ok = self.engine.robot_status() == RUNNING
-        move = ((com - self._com)[:, 0] * np.cos(self.heading) + (com - self._com)[:, 1] * np.sin(self.heading))
+        if self.control.headings == "any":  # the distance from the start grows: the return is the final distance
+            move = np.hypot(*(com - self._start)[:, :2].T) - np.hypot(*(self._com - self._start)[:, :2].T)
+        else:
+            move = (com - self._com)[:, 0] * np.cos(self.heading) + (com - self._com)[:, 1] * np.sin(self.heading)
         reward = np.where(ok, move / self._length, 0.0)
         self._com = com
         done = self.t >= self.control.steps
@@ -311,7 +344,7 @@ class ControlEnv:
         if grids.shape != self.grids.shape or not torch.equal(grids, self.grids):
             raise ValueError("the state's bodies (per_env.grids) are not this environment's: a control run resumes "
                              "on the bodies it was trained on")
-        if state.get("config") != self._config():
+        if not self._same_config(state.get("config")):
             raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
                              "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"])
@@ -319,6 +352,10 @@ class ControlEnv:
 
     def _config(self) -> dict[str, Any]:
         return {"control": vars(self.control).copy(), "box": list(self.box)}
+
+    def _same_config(self, saved: Any) -> bool:
+        return (isinstance(saved, dict) and isinstance(saved.get("control"), dict)
+                and self.control.same_as(saved["control"]) and saved.get("box") == list(self.box))
 
     @torch.no_grad()
     def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:
@@ -353,16 +390,22 @@ class ControlEnv:
         R = self.num_envs
         sensed, com = self.engine.sense()  # one kernel on the device, one copy back
         progress = self.t / self.control.steps
-        clock = 2 * math.pi * (self.control.burn_in + self.t * self.control.period) / self.sim_config.temp_period
+        start = self.control.burn_in + self.t * self.control.period
+        clock = 2 * math.pi * start / self.sim_config.temp_period
         r = self._robot
+        seen = float(self.control.headings != "any")  # (no heading to observe when any direction counts)
+        if self.control.residual:  # the sine at the period's midpoint: a hold without the half-period lag
+            middle = (start + 0.5 * self.control.period) / self.sim_config.temp_period
+            self._open_loop = self._actuated * np.sin(2 * math.pi * (middle + self._phase))
         features = np.concatenate([
             np.ones((len(r), 1)), self._material[:, None], self._actuated[:, None],
             sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,
             sensed[:, SENSE.STRAIN:SENSE.STRAIN + 1], sensed[:, SENSE.CONTACT:SENSE.CONTACT + 1],
-            np.stack([np.cos(self.heading)[r], np.sin(self.heading)[r], np.full(len(r), progress),
+            np.stack([seen * np.cos(self.heading)[r], seen * np.sin(self.heading)[r], np.full(len(r), progress),
                       np.full(len(r), math.sin(clock)), np.full(len(r), math.cos(clock))], 1),
+            *([self._open_loop[:, None]] if self.control.residual else []),
         ], 1)
-        obs = torch.zeros((R, len(OBS_CHANNELS), self.action_dim), dtype=torch.float32, device=self.device)
+        obs = torch.zeros((R, len(self.channels), self.action_dim), dtype=torch.float32, device=self.device)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first
         return obs.view(R, *self.observation_shape), com
 
@@ -413,4 +456,4 @@ def untrained_walker(candidates: int, resolution: int, materials: int, steps: in
     return grids[int(np.argmax(scores))][None], scores
 
 
-__all__ = ["HEADINGS", "OBS_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "untrained_walker"]
+__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "untrained_walker"]
