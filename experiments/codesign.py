@@ -74,6 +74,19 @@ def robot_seconds(cfg: Any, epochs: int) -> float:
     return epochs * envs * control.duration + envs * control.burn_in
 
 
+def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """Bodies moved by their open-loop sine gaits in ``window`` (a ``ControlConfig``) and what the score is: the
+    move in the plane, whichever way (a gait has no heading to choose), or on a steering task (``headings
+    "random"``) the move along ``headings [N]`` — the controllers' headings, or fresh uniform draws."""
+    from freeform.envs.control import open_loop_displacement
+
+    if window.headings != "random":
+        return open_loop_displacement(grids, sim, window, planar=True), "move in the plane, sine gait"
+    if headings is None:
+        headings = np.random.default_rng(10_000).uniform(0.0, 2 * np.pi, len(grids))
+    return open_loop_displacement(grids, sim, window, headings=headings), "move along its heading, sine gait"
+
+
 def _metrics(info: dict) -> dict[str, np.ndarray]:
     return {k: v.double().cpu().numpy() for k, v in info["metrics"].items()}
 
@@ -81,7 +94,7 @@ def _metrics(info: dict) -> dict[str, np.ndarray]:
 @torch.no_grad()
 def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     """``episodes`` designs of an open-loop design run's last policy (sampled as in training), moved by their sine
-    gaits in ``window`` (a ``ControlConfig``): the move in the plane, along +x, and the body metrics."""
+    gaits in ``window`` (a ``ControlConfig``): the score (:func:`gaits`), the move along +x, and the body metrics."""
     from freeform.envs.control import open_loop_displacement
     from freeform.run.build import build, design_env
 
@@ -93,7 +106,8 @@ def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     while not bool(done.all()):
         obs, _, done, info = env.step(ppo.act(obs))
     grids = info["final_grids"].cpu().numpy()
-    return {"score": open_loop_displacement(grids, cfg.sim, window, planar=True),
+    score, kind = gaits(grids, cfg.sim, window)
+    return {"score": score, "kind": kind,
             "along_x": open_loop_displacement(grids, cfg.sim, window), "metrics": _metrics(info),
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
 
@@ -113,7 +127,7 @@ def controlled(run: Path, episodes: int) -> dict[str, Any]:
     eval_env.reset(seed=seed)
     result = evaluation_episodes(ppo, eval_env, episodes)
     return {"score": result["returns"], "metrics": result["metrics"], "epochs": int(last["ppo"]["epoch"]),
-            "cfg": cfg, "bodies": result["bodies"]}
+            "cfg": cfg, "bodies": result["bodies"], "headings": result["headings"]}
 
 
 def trained_for(control: Any) -> str:
@@ -123,8 +137,6 @@ def trained_for(control: Any) -> str:
 
 
 def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: int, out: Path) -> list[dict]:
-    from freeform.envs.control import open_loop_displacement
-
     out.mkdir(parents=True, exist_ok=True)
     rows, metrics, runs = [], [], {}
 
@@ -141,14 +153,13 @@ def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: i
     runs["codesign"] = str(codesign)
     add("co-design (one PPO: body, then controller)", co, robot_seconds(co["cfg"], co["epochs"]),
         trained_for(window))
-    gaits = open_loop_displacement(co["bodies"], co["cfg"].sim, window, planar=True)
-    add("  its designs, open loop", {**co, "score": gaits}, robot_seconds(co["cfg"], co["epochs"]),
-        "move in the plane, sine gait")
+    moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
+    add("  its designs, open loop", {**co, "score": moved}, robot_seconds(co["cfg"], co["epochs"]), kind)
 
     ol = open_loop_designs(open_loop, episodes, window)
     runs["open_loop"] = str(open_loop)
-    add("open-loop design RL (the paper's)", ol, robot_seconds(ol["cfg"], ol["epochs"]),
-        "move in the plane, sine gait", {"along_x_mean": float(ol["along_x"].mean())})
+    add("open-loop design RL (the paper's)", ol, robot_seconds(ol["cfg"], ol["epochs"]), ol["kind"],
+        {"along_x_mean": float(ol["along_x"].mean())})
 
     if two_stage is not None:
         ts = controlled(two_stage, episodes)
@@ -161,9 +172,9 @@ def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: i
         runs["two_stage"] = str(two_stage)
         add(f"design, then control ({ts['cfg'].control.top} best designs)", ts,
             design_budget + robot_seconds(ts["cfg"], ts["epochs"]), trained_for(ts["cfg"].control))
-        gaits = open_loop_displacement(ts["bodies"], ts["cfg"].sim, window, planar=True)
-        add("  its bodies, open loop", {**ts, "score": gaits}, design_budget + robot_seconds(ts["cfg"], ts["epochs"]),
-            "move in the plane, sine gait")
+        moved, kind = gaits(ts["bodies"], ts["cfg"].sim, window, ts["headings"])
+        add("  its bodies, open loop", {**ts, "score": moved},
+            design_budget + robot_seconds(ts["cfg"], ts["epochs"]), kind)
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))
@@ -196,8 +207,11 @@ def figure(rows: list[dict], metrics: list[dict], path: Path, seconds: float) ->
                     mfc="white" if hollow else "k")
     ax.set_xticks(x, [f"{short(r['method'])}\n{float(r['robot_seconds']):,.0f} robot-s" for r in rows], fontsize=6)
     ax.set_ylabel(f"move in {seconds:g} s (voxel lengths)")
-    what = sorted({r["score"].split(",")[0].replace("move ", "") for r in rows if "sine gait" not in r["score"]})
-    ax.set_title(f"filled: controlled, {' / '.join(what)}; hollow: open loop, in the plane", fontsize=8)
+    def what(hollow: bool) -> str:
+        return " / ".join(sorted({r["score"].split(",")[0].replace("move ", "") for r in rows
+                                  if ("sine gait" in r["score"]) == hollow}))
+
+    ax.set_title(f"filled: controlled, {what(False)}; hollow: open loop, {what(True)}", fontsize=8)
     ax.axhline(0, color="0.7", lw=0.8)
     methods = [m for m in metrics if not m["method"].startswith(" ")]  # (an open-loop row repeats its bodies)
     names = [short(m["method"]) for m in methods]

@@ -236,6 +236,9 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
         "co-design (one PPO: body, then controller)", "its designs, open loop", "open-loop design RL (the paper's)",
         "design, then control (2 best designs)", "its bodies, open loop"]
     assert all(int(r["n"]) == 8 for r in rows)
+    assert [r["score"] for r in rows] == ["move along +x, controlled", "move in the plane, sine gait",
+                                          "move in the plane, sine gait", "move along +x, controlled",
+                                          "move in the plane, sine gait"]  # (each what it was trained for)
     window_s = burn_in + duration
     assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * window_s, abs=1e-3)
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
