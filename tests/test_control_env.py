@@ -12,7 +12,7 @@ import torch
 
 from freeform.envs import VecEnv
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
-from freeform.sim import SimConfig
+from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.state import MT, VR
 
@@ -141,34 +141,39 @@ def test_a_command_rate_limits_each_steps_change():
         ControlEnv(pair(), control=ControlConfig(command_rate=0.0))
 
 
-def test_residual_control_adds_the_action_to_the_open_loop_sine_held_at_the_period_midpoint():
-    """``residual``: a zero action replays each muscle's sine sin(2π(t/T + φ)) at the period's midpoint — the same
-    run, bit for bit, as a plain env given those commands by hand — and the last channel shows that sine."""
-    control = ControlConfig(burn_in=0.02, duration=0.05, headings="random")
+def test_residual_control_with_zero_actions_is_the_open_loop_gait_bit_for_bit():
+    """``residual``: the bodies walk their open-loop sine from t = 0 (burn-in included), corrected by the actions; with
+    zero actions they are where an open-loop engine puts them after the same time, to the bit (f64). The last
+    channel is each muscle's sine sin(2π(t/T + φ)) mid-way through the coming period, by hand."""
+    control = ControlConfig(burn_in=0.025, duration=0.05, headings="any", residual=True)
     g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
     cfg = SimConfig(precision="f64")
-    residual = ControlEnv(g, sim=cfg, control=replace(control, residual=True), seed=4)
-    plain = ControlEnv(g, sim=cfg, control=control, seed=4)
-    assert residual.channels == (*OBS_CHANNELS, "open_loop") and residual.observation_shape == (17, 3, 3, 3)
+    env = ControlEnv(g, sim=cfg, control=control)
+    assert env.channels == (*OBS_CHANNELS, "open_loop") and env.observation_shape == (17, 3, 3, 3)
+    assert env.sim_config.actuation == "residual"
     # the default materials: 1 passive, 2 a muscle at phase 0, 3 one at phase 0.5 (cycles); the box holds the pair's
     # muscle at cell 0 and its passive voxel at cell 1, the cube's 27 muscles everywhere
     phase = torch.tensor([[0.0], [0.5]], dtype=torch.float64)
-    muscle = residual.action_mask
+    muscle = env.action_mask
     assert muscle.sum(1).tolist() == [1, 27] and bool(muscle[0, 0])
-    obs_r, obs_p = residual.reset(), plain.reset()
+    obs = env.reset()
     for t in range(control.steps):
         middle = (control.burn_in + (t + 0.5) * control.period) / cfg.temp_period
         expected = torch.where(muscle, torch.sin(2 * math.pi * (middle + phase)), 0.0)
-        assert torch.equal(obs_r[:, -1].reshape(2, -1), expected.float())
-        assert torch.equal(obs_r[:, :-1], obs_p)
-        obs_r, r_r, _, _ = residual.step(torch.zeros(2, 27))
-        obs_p, r_p, _, _ = plain.step(expected)  # (float64: the command the residual env computes)
-        assert torch.equal(r_r, r_p)
-    assert float(r_r.abs().max()) > 0
-    # the sum is clipped: an action of +2 drives every muscle to +1 whatever its sine
-    residual.step(torch.full((2, 27), 2.0))
-    cmd = residual.engine._table("vr")[VR.CMD][np.isin(residual.layout.material, (2, 3))]
-    assert np.all(cmd == 1.0)
+        assert torch.equal(obs[:, -1].reshape(2, -1), expected.float())
+        if t < control.steps - 1:
+            obs, *_ = env.step(torch.zeros(2, 27))
+    open_loop = Simulator(replace(env.sim_config, actuation="sine"), arch="cpu")
+    engine = open_loop.engine(open_loop.layout(env.grids))
+    engine.advance_time(control.burn_in)
+    for _ in range(control.steps - 1):
+        engine.advance_time(control.period)
+    np.testing.assert_array_equal(env.engine.positions(), engine.positions())
+    assert np.abs(engine.positions() - env.layout.lattice * cfg.voxel_size).max() > 1e-4  # they walked
+    # a correction of +2 (actions are clipped there) drives every muscle to the top of its range at any phase
+    env.step(torch.zeros(2, 27))  # (the episode's last step: the env resets itself)
+    env.step(torch.full((2, 27), 5.0))
+    assert np.all(env.engine._table("vr")[VR.CMD][np.isin(env.layout.material, (2, 3))] == 2.0)
 
 
 def test_a_state_saved_before_a_config_field_existed_loads_with_its_default():

@@ -77,6 +77,36 @@ def test_a_command_sets_the_rest_size_of_spec_section_4():
     assert (mt[MT.CTE][mat] == 0).any() and (mt[MT.CTE][mat] != 0).any()  # both kinds are in the bodies
 
 
+@pytest.mark.reference
+@pytest.mark.parametrize("precision", ["f64", "f32"])
+def test_residual_actuation_with_zero_commands_is_the_open_loop_gait_bit_for_bit(precision):
+    """``actuation="residual"``: the kernels' sine plus a command of 0 — after 0.5 s the same poses as open loop."""
+    cfg = SimConfig(precision=precision, burn_in=0.0, duration=0.5)
+    results = [Simulator(replace(cfg, actuation=a), arch="cpu").simulate(bodies()) for a in ("sine", "residual")]
+    np.testing.assert_array_equal(results[0].com_end.numpy(), results[1].com_end.numpy())
+    np.testing.assert_array_equal(results[0].max_voxel_displacement.numpy(), results[1].max_voxel_displacement.numpy())
+
+
+def test_a_residual_command_corrects_the_sine_within_its_range():
+    """Residual actuation: T = T_base + A·clip(sine + c, −1, 1) — with the sine at its step-0 phase, commands of
+    ±2 give the range's ends and a command c in between the sine plus c (spec section 4's rest size)."""
+    cfg = SimConfig(precision="f64", actuation="residual", burn_in=0.0, duration=0.1)
+    sim = Simulator(cfg, arch="cpu")
+    engine = sim.engine(sim.layout(bodies()))
+    layout, mt = engine.layout, material_table(cfg)
+    n = layout.num_voxels
+    c = np.where(np.arange(n) % 3 == 0, 2.0, np.where(np.arange(n) % 3 == 1, -2.0, 0.3))
+    rt = engine._table("rt")
+    robot, mat = layout.voxel_robot, layout.material
+    sine = rt[RT.SIN][robot] * mt[MT.COSPHI][mat] + rt[RT.COS][robot] * mt[MT.SINPHI][mat]  # the coming step's
+    engine.set_commands(c)
+    engine.advance(1)
+    wave = np.clip(sine + c, -1.0, 1.0)
+    expected = mt[MT.L][mat] * (1.0 + (0.0 + cfg.temp_amplitude * wave) * mt[MT.CTE][mat])
+    np.testing.assert_allclose(engine.voxel_state()[VR.SIZE], expected, rtol=1e-15)
+    assert np.abs(wave).max() == 1.0 and (np.abs(wave) < 1).any()  # both the clip and the sum are exercised
+
+
 def test_bad_commands_are_refused_with_the_reason():
     sim = Simulator(SimConfig(duration=0.1), arch="cpu")
     with pytest.raises(RuntimeError, match="actuation='command'"):

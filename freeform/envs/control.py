@@ -3,7 +3,8 @@ each control period, sensing the body on its own grid (issue 29's first environm
 "Commanded actuation").
 
 One episode: the bodies are placed and settle for ``burn_in`` seconds with zero commands (the controller does not
-act then: every episode starts from a body at rest on the ground), then ``steps`` control steps of ``period``
+act then: every episode starts from a body at rest on the ground; under ``residual`` control the burn-in runs the
+open-loop gait, so the controller takes over a body already walking), then ``steps`` control steps of ``period``
 simulated seconds each. A step writes the actions as commands (``Engine.set_commands``: T = T_base + A·a, so
 a ∈ [−1, 1] spans the open-loop sine's range; a passive voxel's or an empty cell's entry has no effect) and runs
 each robot until its own clock passes the next control time (``Engine.advance_time``: rl4design's dt differs
@@ -30,11 +31,11 @@ actuation clock's phase (sin and cos of 2π·t / ``sim.temp_period``, t the simu
 rhythm the open-loop sine follows, so that a controller can reproduce that gait and need not invent a rhythm.
 
 Actions ``[N, Bx·By·Bz]``, one command per cell; only the actuated voxels' entries act. With
-``control.residual`` an action is a correction to the open-loop gait: each actuated voxel's command is its
-material's sine over the coming period (held at the period's midpoint) plus the action, clipped to [−1, 1], and the
-observation gains that sine as a last channel, ``open_loop`` (``RESIDUAL_CHANNELS``). Zero actions then replay the
-body's open-loop gait (up to the hold: ``docs/control.md``), so a controller starts from what the body already does
-and learns what to add to it. PPO's distribution is a
+``control.residual`` an action is a correction to the open-loop gait (``SimConfig(actuation="residual")``): each
+actuated voxel's actuation is its material's sine, computed every simulator step as open loop, plus the action
+(clipped to [−2, 2]), the sum kept in the sine's range; the observation gains the sine at the coming period's
+midpoint as a last channel, ``open_loop`` (``RESIDUAL_CHANNELS``). Zero actions are the body's open-loop gait, bit
+for bit, so a controller starts from what the body already does and learns what to add to it. PPO's distribution is a
 :class:`~freeform.agents.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
 ``actuated`` channel (``mask_channel``) as the mask, so log-probabilities, entropy and KL count the entries that act.
 """
@@ -69,16 +70,18 @@ class ControlConfig:
     period: simulated seconds per control step. 0.0125 s = 1/20 of the default actuation period (0.25 s): 20
         decisions per stroke of the open-loop gait it replaces, ≈ 100 simulator steps at the default dt (1.2e-4 s).
     duration: simulated seconds of control per episode (``round(duration / period)`` steps).
-    burn_in: seconds of settling before the controller acts (commands 0).
+    burn_in: seconds of settling before the controller acts (commands 0: no actuation, or under ``residual`` the
+        open-loop gait).
     headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering) | "any"
         (the distance moved in the plane, whichever way: the paper's locomotion reward; no heading observed).
     command_rate: the most a voxel's command may change per simulated second (None: any change, at once — Voxelyze's
         actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings up to
         f_max Hz (the open-loop sine's 4 Hz: ≈ 25 /s); each step's command moves towards the action by at most
         ``command_rate · period``.
-    residual: actions are corrections added to the open-loop gait (each actuated voxel's sine of its material's
-        phase, held at the control period's midpoint), and the observation carries that sine (``RESIDUAL_CHANNELS``):
-        zero actions replay the open-loop gait. False: an action is the command itself (zero: no actuation).
+    residual: actions (in [−2, 2]) are corrections added to the open-loop gait, each actuated voxel's sine of its
+        material's phase, computed at every simulator step (``SimConfig(actuation="residual")``), and the
+        observation carries that sine (``RESIDUAL_CHANNELS``); zero actions are the open-loop gait from t = 0, burn-in
+        included, bit for bit. False: an action is the command itself, in [−1, 1] (zero: no actuation).
     """
 
     period: float = 0.0125
@@ -194,7 +197,7 @@ class ControlEnv:
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
         self._actuated = actuated.astype(np.float64)
         self._phase = np.array([0.0] + [m.phase for m in self.sim_config.materials])[lay.material]  # cycles
-        self._open_loop = np.zeros(lay.num_voxels)  # the coming period's open-loop commands (residual control)
+        self._open_loop = np.zeros(lay.num_voxels)  # the sine mid-way through the coming period (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
         draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
@@ -215,9 +218,10 @@ class ControlEnv:
 
     @staticmethod
     def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
-        """What a control env simulates: ``sim`` with commanded actuation, no burn-in of its own, and a duration past
-        the episode's end (the episode's own clock: the simulator never stops a robot before the episode ends)."""
-        config = replace(sim, actuation="command", burn_in=0.0,
+        """What a control env simulates: ``sim`` with commanded actuation (``residual``: the sine corrected by the
+        commands), no burn-in of its own, and a duration past the episode's end (the episode's own clock: the
+        simulator never stops a robot before the episode ends)."""
+        config = replace(sim, actuation="residual" if control.residual else "command", burn_in=0.0,
                          duration=control.burn_in + control.steps * control.period + 1.0)
         config.validate("sim")
         return config
@@ -239,7 +243,7 @@ class ControlEnv:
             if self.control.burn_in > 0:
                 self.engine.advance_time(self.control.burn_in)
             self._settled = self.engine.snapshot()
-        else:  # (settling with zero commands is deterministic: the same state, bit for bit, without its cost)
+        else:  # (the burn-in is deterministic: the same state, bit for bit, without its cost)
             self.engine.restore(self._settled)
         if self.control.headings == "random":
             draw = np.random.default_rng([self.seed, self.episode]).uniform(0.0, 2 * math.pi, self._draws.max() + 1)
@@ -297,9 +301,8 @@ class ControlEnv:
         commands = a.reshape(-1)[flat].to("cpu", torch.float64)
         if not torch.isfinite(commands).all():
             raise ValueError("actions must be finite in the cells that hold a voxel")
-        if self.control.residual:
-            commands = commands + torch.from_numpy(self._open_loop)
-        target = commands.clamp(-1.0, 1.0).numpy()
+        reach = 2.0 if self.control.residual else 1.0  # (a correction of ±2 reaches the range from any phase)
+        target = commands.clamp(-reach, reach).numpy()
         if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per step
             most = self.control.command_rate * self.control.period
             target = np.clip(target, self._command - most, self._command + most)
@@ -394,7 +397,7 @@ class ControlEnv:
         clock = 2 * math.pi * start / self.sim_config.temp_period
         r = self._robot
         seen = float(self.control.headings != "any")  # (no heading to observe when any direction counts)
-        if self.control.residual:  # the sine at the period's midpoint: a hold without the half-period lag
+        if self.control.residual:  # what the corrections are added to: the sine, mid-way through the period
             middle = (start + 0.5 * self.control.period) / self.sim_config.temp_period
             self._open_loop = self._actuated * np.sin(2 * math.pi * (middle + self._phase))
         features = np.concatenate([

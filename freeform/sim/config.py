@@ -18,7 +18,7 @@ from freeform.validation import require
 
 REWARDS = ("max_voxel", "com")
 SEMANTICS = ("voxelyze", "rl4design")
-ACTUATIONS = ("sine", "command")
+ACTUATIONS = ("sine", "command", "residual")
 PRECISIONS = ("f32", "f64")
 # the least step cap accepted: a fixed-dt robot needs floor(T/dt) + 1 steps, and the clock's rounding may add one
 MIN_STEP_CAP = 1.5
@@ -56,7 +56,9 @@ class SimConfig:
     temp_amplitude / temp_period: actuation T(t) = A·sin(2π(t/period + phase)) (degrees, s).
     actuation: "sine" (open loop: each voxel's temperature follows the robot's clock and its material's phase) or
         "command" (closed loop: T = T_base + A·c with c each voxel's command, written by a controller between
-        calls: ``Engine.set_commands``; c in [−1, 1] spans the sine's range; the clock still runs).
+        calls: ``Engine.set_commands``; c in [−1, 1] spans the sine's range; the clock still runs) or "residual"
+        (the sine corrected: T = T_base + A·clip(sin(2π(t/period + phase)) + c, −1, 1), the sine computed every step
+        as open loop; zero commands are the open-loop gait, bit for bit).
     dt: fixed time step (s); None = dt_frac × the recommended step of each robot (spec section 10).
     burn_in / duration: evaluation window (s) that the reward measures.
     reward: deprecated — which displacement ``SimResult.displacement`` repeats; the result carries both

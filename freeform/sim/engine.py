@@ -316,9 +316,12 @@ class Engine:
     def set_commands(self, commands) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the
         next step on, its temperature is T_base + A·c (``SimConfig.actuation="command"``; c in [−1, 1] spans the
-        sine's range, a passive voxel's CTE of 0 ignores it). Commands hold until set again; they start at 0."""
+        sine's range, a passive voxel's CTE of 0 ignores it), or T_base + A·clip(sine + c, −1, 1) (``"residual"``:
+        c in [−2, 2] reaches any temperature of the range from any phase). Commands hold until set again; they
+        start at 0."""
         if not self.switches.command:
-            raise RuntimeError("set_commands needs an engine built with SimConfig(actuation='command'); this one "
+            raise RuntimeError("set_commands needs an engine built with SimConfig(actuation='command' or "
+                               "'residual'); this one "
                                "runs the open-loop sine (actuation='sine')")
         c = np.asarray(commands, dtype=np.float64)
         if c.shape != (self.layout.num_voxels,):

@@ -104,7 +104,7 @@ def initial_state(layout: Layout, config: SimConfig) -> InitialState:
     # rl4design refreshes dt every few steps unless dt is fixed
     switches = Switches(floor=int(config.floor), terrain=int(terrain.mode), rl4design=int(rl4design),
                         dynamic_dt=int(rl4design and config.dt is None),
-                        command=int(config.actuation == "command"))
+                        command={"sine": 0, "command": 1, "residual": 2}[config.actuation])
     precision = config.precision
     tables = {name: t.zeros(counts[t.items], precision) for name, t in TABLES.items()}
     _voxels(tables["vr"], tables["vi"], layout, config, terrain, offset)

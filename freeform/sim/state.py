@@ -82,7 +82,7 @@ class Table:
 # voxel is held); transverse area and strain sum for a link along each axis (from the voxel's Poisson strains,
 # cached for the next link update); rest size L·(1 + T·CTE) at the temperature in effect, constant temperature;
 # positions at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end; the
-# actuation command (Switches.command: T = TBASE + A·CMD in place of the clock's sine).
+# actuation command (Switches.command: T = TBASE + A·CMD in place of the clock's sine, or added to it).
 VR = Table("voxel_real", REAL, "voxels", (
     ("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("TAREA", 3), ("TSUM", 3), ("SIZE", 1),
     ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3), ("CMD", 1)))
@@ -166,4 +166,5 @@ class Switches(NamedTuple):
     dynamic_dt: int
     """1: rl4design's per-robot dt refresh from the links' ω² (rl4design with ``dt=None``)."""
     command: int = 0
-    """1: each voxel's temperature is T_base + A·``VR.CMD`` (``SimConfig.actuation="command"``), 0: the sine."""
+    """1: each voxel's temperature is T_base + A·``VR.CMD`` (``SimConfig.actuation="command"``); 2: T_base +
+    A·clip(sine + ``VR.CMD``, −1, 1) (``"residual"``); 0: the sine."""

@@ -56,13 +56,17 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
     @ti.func
     def temperature(s: ti.template(), v, mat, r):
         """T(τ) = T_base + A·sin(2π(τ/period + φ)), φ in cycles; sin/cos of 2πτ/period come from the robot. Under
-        commanded actuation (``s.sw.command``) the voxel's command takes the sine's place."""
+        commanded actuation (``s.sw.command`` 1) the voxel's command takes the sine's place; under residual
+        actuation (2) it corrects the sine, the sum kept in the sine's range (a zero command leaves the sine's
+        bits: |sine| ≤ 1)."""
         wave = ti.cast(0.0, real)
-        if ti.static(s.sw.command != 0):
+        if ti.static(s.sw.command == 1):
             wave = ld(s.vr, VR.CMD, v)
         else:
             wave = ti.cast(ld(s.rt, RT.SIN, r), real) * ld(s.mt, MT.COSPHI, mat) + \
                 ti.cast(ld(s.rt, RT.COS, r), real) * ld(s.mt, MT.SINPHI, mat)
+            if ti.static(s.sw.command == 2):
+                wave = ti.min(ti.max(wave + ld(s.vr, VR.CMD, v), -1.0), 1.0)
         return ld(s.vr, VR.TBASE, v) + ti.cast(ld(s.gp, GP.TEMP_AMP, 0), real) * wave
 
     # ------------------------------------------------------------ Poisson effects (spec section 6)
