@@ -14,7 +14,7 @@ from freeform.envs import VecEnv
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
-from freeform.sim.state import MT, VR
+from freeform.sim.state import MT, RT, VR
 
 C = {name: i for i, name in enumerate(OBS_CHANNELS)}
 
@@ -206,3 +206,18 @@ def test_headings_any_rewards_the_growth_of_the_distance_from_the_start_in_the_p
     distance = np.hypot(*(env._com - start)[:, :2].T) / env.sim_config.voxel_size
     assert distance.min() > 1e-4 and np.all(total > 0)
     np.testing.assert_allclose(total, distance, rtol=1e-5, atol=1e-9)
+
+
+def test_ramped_commands_reach_the_action_by_the_period_end():
+    """``ramp``: the env hands each period's commands to the engine as a ramp over the period; the commands in force
+    at its end are the actions, and a zero ramp of zero actions changes nothing (the open-loop case above)."""
+    control = ControlConfig(burn_in=0.0, duration=0.05, ramp=True)
+    env = ControlEnv(pair(), sim=SimConfig(precision="f64"), control=control)
+    env.reset()
+    env.step(torch.tensor([[0.6, 0.0]]))
+    env.step(torch.tensor([[-0.4, 0.0]]))
+    vr, muscle = env.engine._table("vr"), env.layout.material == 2
+    assert float(vr[VR.CMD][muscle][0]) == pytest.approx(-0.4) and float(vr[VR.CMD0][muscle][0]) == pytest.approx(0.6)
+    assert float(env.engine._table("rt")[RT.RAMP][0]) == control.period
+    with pytest.raises(ValueError, match="control.ramp"):
+        ControlConfig(ramp=1).validate()

@@ -107,6 +107,45 @@ def test_a_residual_command_corrects_the_sine_within_its_range():
     assert np.abs(wave).max() == 1.0 and (np.abs(wave) < 1).any()  # both the clip and the sum are exercised
 
 
+@pytest.mark.parametrize("actuation", ["command", "residual"])
+def test_a_ramped_command_moves_linearly_to_the_new_one_by_the_period_end(actuation):
+    """``set_commands(c, ramp=p)`` then ``advance_time(p)``: each step's command is c₀ + (c − c₀)·(1 − (limit − τ)/p),
+    τ the time of the step's temperature, c₀ the command before — spec section 4's rest size at every step, by hand;
+    by the period's end it is c, as a jump would have it."""
+    cfg = SimConfig(precision="f64", actuation=actuation, burn_in=0.0, duration=0.1)
+    sim = Simulator(cfg, arch="cpu")
+    engine = sim.engine(sim.layout(bodies()))
+    layout, mt = engine.layout, material_table(cfg)
+    robot, mat = layout.voxel_robot, layout.material
+    n = layout.num_voxels
+    before, after = np.linspace(-1.0, 1.0, n), np.linspace(0.8, -0.6, n)
+    engine.set_commands(before)
+    engine.advance_time(0.001)
+    period = 0.002
+    engine.set_commands(after, ramp=period)
+    limit = engine._limit + period
+    engine._write_column("rt", RT.UNTIL, limit)  # (what advance_time writes; here stepped one step at a time)
+    seen = 0
+    while True:
+        rt = engine._table("rt")
+        if not (rt[RT.T] < limit).any():
+            break
+        tau = (rt[RT.T] + rt[RT.DT])[robot]  # Voxelyze's temperature time: the step's end
+        frac = np.clip(1.0 - (limit[robot] - tau) / period, 0.0, 1.0)
+        c = before + (after - before) * frac
+        if actuation == "residual":
+            c = np.clip(rt[RT.SIN][robot] * mt[MT.COSPHI][mat] + rt[RT.COS][robot] * mt[MT.SINPHI][mat] + c, -1.0, 1.0)
+        engine._advance(1)
+        expected = mt[MT.L][mat] * (1.0 + cfg.temp_amplitude * c * mt[MT.CTE][mat])
+        np.testing.assert_allclose(engine.voxel_state()[VR.SIZE], expected, rtol=1e-14)
+        seen += bool(((frac > 0.1) & (frac < 0.9)).any())
+    assert seen >= 3  # several steps mid-ramp
+    np.testing.assert_array_equal(engine._table("vr")[VR.CMD], after)
+    assert engine.robot_steps().min() > 0
+    with pytest.raises(ValueError, match="ramp"):
+        engine.set_commands(after, ramp=-1.0)
+
+
 def test_bad_commands_are_refused_with_the_reason():
     sim = Simulator(SimConfig(duration=0.1), arch="cpu")
     with pytest.raises(RuntimeError, match="actuation='command'"):

@@ -82,6 +82,9 @@ class ControlConfig:
         material's phase, computed at every simulator step (``SimConfig(actuation="residual")``), and the
         observation carries that sine (``RESIDUAL_CHANNELS``); zero actions are the open-loop gait from t = 0, burn-in
         included, bit for bit. False: an action is the command itself, in [−1, 1] (zero: no actuation).
+    ramp: each step's command moves linearly from the last one to the new one over the control period (a
+        first-order hold: ``Engine.set_commands(ramp=period)``) instead of jumping at the period's start — Voxelyze
+        sets a voxel's rest size at once, so a jump of the command is a kick.
     """
 
     period: float = 0.0125
@@ -90,6 +93,7 @@ class ControlConfig:
     headings: str = "fixed"
     command_rate: float | None = None
     residual: bool = False
+    ramp: bool = False
 
     @property
     def steps(self) -> int:
@@ -105,8 +109,9 @@ class ControlConfig:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
         if self.command_rate is not None and not self.command_rate > 0:
             raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
-        if not isinstance(self.residual, bool):
-            raise ValueError(f"{key}.residual must be true or false, got {self.residual!r}")
+        for name in ("residual", "ramp"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
 
     def same_as(self, saved: dict[str, Any]) -> bool:
         """Whether a saved config (``vars`` of one, from a checkpoint) is this one; a field it lacks — saved before
@@ -307,7 +312,7 @@ class ControlEnv:
             most = self.control.command_rate * self.control.period
             target = np.clip(target, self._command - most, self._command + most)
         self._command = target
-        self.engine.set_commands(target)
+        self.engine.set_commands(target, ramp=self.control.period if self.control.ramp else 0.0)
         self.engine.advance_time(self.control.period)
         self.t += 1
         obs, com = self._observe()

@@ -162,6 +162,7 @@ class Engine:
         self.steps_done = 0
         self.trace_steps = 0  # the trace (start_trace): off until asked for
         self._limit: np.ndarray | None = None  # each robot's clock limit while advance_time steps it
+        self._commands, self._ramp = np.zeros(layout.num_voxels), 0.0  # the host's copies of VR.CMD and RT.RAMP
 
     # ------------------------------------------------------------------ host <-> device, one region at a time
     @property
@@ -284,7 +285,8 @@ class Engine:
         self._check_owner()
         return {"buffers": {name: runtime.to_numpy(self._buffers[name]).copy() for name in BUFFERS},
                 "packing": self.packing, "steps_done": self.steps_done, "trace_steps": self.trace_steps,
-                "limit": None if self._limit is None else self._limit.copy()}
+                "limit": None if self._limit is None else self._limit.copy(), "commands": self._commands.copy(),
+                "ramp": self._ramp}
 
     def restore(self, snapshot: dict[str, Any]) -> None:
         """Return to a :meth:`snapshot` of this engine (taken since it was built, with the same buffers)."""
@@ -299,6 +301,7 @@ class Engine:
         self.packing, self.steps_done = snapshot["packing"], snapshot["steps_done"]
         self.trace_steps = snapshot["trace_steps"]
         self._limit = None if snapshot["limit"] is None else snapshot["limit"].copy()
+        self._commands, self._ramp = snapshot["commands"].copy(), snapshot["ramp"]
 
     def sense(self) -> tuple[np.ndarray, np.ndarray]:
         """What a controller senses, gathered on the device in one kernel (``sensing.py``): float64
@@ -313,12 +316,15 @@ class Engine:
         values = runtime.to_numpy(out)[:size]
         return values[: n * SENSE.width].reshape(n, SENSE.width), values[n * SENSE.width:].reshape(R, 3)
 
-    def set_commands(self, commands) -> None:
+    def set_commands(self, commands, ramp: float = 0.0) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the
         next step on, its temperature is T_base + A·c (``SimConfig.actuation="command"``; c in [−1, 1] spans the
         sine's range, a passive voxel's CTE of 0 ignores it), or T_base + A·clip(sine + c, −1, 1) (``"residual"``:
         c in [−2, 2] reaches any temperature of the range from any phase). Commands hold until set again; they
-        start at 0."""
+        start at 0. ``ramp`` (s, > 0): each voxel's command moves linearly from the one in effect to the new one,
+        reaching it at the next :meth:`advance_time` limit, ``ramp`` seconds after the ramp's start (a control
+        period: a first-order hold — Voxelyze sets the rest size at once, so a jump of the command is an impulse);
+        0: at once."""
         if not self.switches.command:
             raise RuntimeError("set_commands needs an engine built with SimConfig(actuation='command' or "
                                "'residual'); this one "
@@ -328,7 +334,15 @@ class Engine:
             raise ValueError(f"commands must have shape ({self.layout.num_voxels},) (one per voxel), got {c.shape}")
         if not np.isfinite(c).all():
             raise ValueError("commands must be finite (a NaN or inf command would diverge its robot)")
+        if not (np.isfinite(ramp) and ramp >= 0):
+            raise ValueError(f"ramp must be >= 0 seconds, got {ramp!r}")
+        if ramp > 0:  # (the command in effect when the ramp starts: the last one, reached by now)
+            self._write_column("vr", VR.CMD0, self._commands.astype(self.np_real))
+        if ramp != self._ramp:
+            self._write_column("rt", RT.RAMP, np.full(self.layout.num_robots, float(ramp)))
+            self._ramp = float(ramp)
         self._write_column("vr", VR.CMD, c.astype(self.np_real))
+        self._commands = c.copy()
 
     def set_velocity(self, velocity: np.ndarray, release_static: bool = True) -> None:
         """Overwrite every voxel's linear velocity (float ``[n, 3]``, m/s), e.g. to launch a settled block.

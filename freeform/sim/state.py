@@ -82,10 +82,11 @@ class Table:
 # voxel is held); transverse area and strain sum for a link along each axis (from the voxel's Poisson strains,
 # cached for the next link update); rest size L·(1 + T·CTE) at the temperature in effect, constant temperature;
 # positions at the evaluation start/end, last centre-of-mass sample, and that sample at the start/end; the
-# actuation command (Switches.command: T = TBASE + A·CMD in place of the clock's sine, or added to it).
+# actuation command (Switches.command: T = TBASE + A·CMD in place of the clock's sine, or added to it) and the one
+# before it, which CMD replaces over the robot's RT.RAMP seconds.
 VR = Table("voxel_real", REAL, "voxels", (
     ("POS", 3), ("MOM", 3), ("ORI", 4), ("AMOM", 3), ("POS0", 3), ("TAREA", 3), ("TSUM", 3), ("SIZE", 1),
-    ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3), ("CMD", 1)))
+    ("TBASE", 1), ("PSTART", 3), ("PEND", 3), ("PSAMP", 3), ("PCS", 3), ("PCE", 3), ("CMD", 1), ("CMD0", 1)))
 # SLOT: the link in each direction (X_POS, X_NEG, Y_POS, Y_NEG, Z_POS, Z_NEG), -1 = none
 VI = Table("voxel_int", I32, "voxels", (("MAT", 1), ("ROBOT", 1), ("FLAGS", 1), ("SLOT", 6)))
 # Link: pos2 / angle1v / angle2v of the last step (VX's *_old, for the damping rates), axial strain, force and
@@ -99,7 +100,10 @@ LI = Table("link_int", I32, "links", (("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMA
 # each voxel evaluates T = T_base + A·(sin·cos φ + cos·sin φ) without a transcendental call of its own.
 # UNTIL: a robot steps only while T < UNTIL (Engine.advance_time: each robot runs until its own clock passes the
 # next control time; NO_LIMIT otherwise).
-RT = Table("robot_real", F64, "robots", (("T", 1), ("DT", 1), ("DTPREV", 1), ("SIN", 1), ("COS", 1), ("UNTIL", 1)))
+# UNTIL: the clock limit of advance_time; RAMP: how long a new command takes to replace the one before (s, 0: at
+# once; the ramp ends at UNTIL, Engine.set_commands).
+RT = Table("robot_real", F64, "robots", (("T", 1), ("DT", 1), ("DTPREV", 1), ("SIN", 1), ("COS", 1), ("UNTIL", 1),
+                                          ("RAMP", 1)))
 NO_LIMIT = 1e300  # (finite: fast-math assumes no infinities)
 # EVENTS: what the coming step's voxel update snapshots (EV_* bits), decided once per robot per step.
 # MAXSTEP: the step at which a robot still running is stopped as STALLED (SimConfig.step_cap).

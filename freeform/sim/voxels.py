@@ -25,6 +25,7 @@ from freeform.sim.state import (
     LR,
     LT,
     MT,
+    NO_LIMIT,
     RI,
     RT,
     STATIC,
@@ -60,13 +61,25 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         actuation (2) it corrects the sine, the sum kept in the sine's range (a zero command leaves the sine's
         bits: |sine| ≤ 1)."""
         wave = ti.cast(0.0, real)
+        command = ti.cast(0.0, real)
+        if ti.static(s.sw.command != 0):
+            command = ld(s.vr, VR.CMD, v)
+            ramp, until = ld(s.rt, RT.RAMP, r), ld(s.rt, RT.UNTIL, r)
+            if ramp > 0.0 and until < NO_LIMIT:  # a ramp from CMD0, ending at the control period's end
+                tau = ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r)  # (the time of this step's temperature: set_phase's)
+                if ti.static(s.sw.rl4design != 0):
+                    tau = ld(s.rt, RT.T, r)
+                frac = 1.0 - (until - tau) / ramp
+                if frac < 1.0:
+                    before = ld(s.vr, VR.CMD0, v)
+                    command = before + (command - before) * ti.cast(ti.max(frac, 0.0), real)
         if ti.static(s.sw.command == 1):
-            wave = ld(s.vr, VR.CMD, v)
+            wave = command
         else:
             wave = ti.cast(ld(s.rt, RT.SIN, r), real) * ld(s.mt, MT.COSPHI, mat) + \
                 ti.cast(ld(s.rt, RT.COS, r), real) * ld(s.mt, MT.SINPHI, mat)
             if ti.static(s.sw.command == 2):
-                wave = ti.min(ti.max(wave + ld(s.vr, VR.CMD, v), -1.0), 1.0)
+                wave = ti.min(ti.max(wave + command, -1.0), 1.0)
         return ld(s.vr, VR.TBASE, v) + ti.cast(ld(s.gp, GP.TEMP_AMP, 0), real) * wave
 
     # ------------------------------------------------------------ Poisson effects (spec section 6)
