@@ -74,17 +74,20 @@ def robot_seconds(cfg: Any, epochs: int) -> float:
     return epochs * envs * control.duration + envs * control.burn_in
 
 
-def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None) -> tuple[np.ndarray, str]:
-    """Bodies moved by their open-loop sine gaits in ``window`` (a ``ControlConfig``) and what the score is: the
-    move in the plane, whichever way (a gait has no heading to choose), or on a steering task (``headings
-    "random"``) the move along ``headings [N]`` — the controllers' headings, or fresh uniform draws."""
-    from freeform.envs.control import open_loop_displacement
+def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None,
+          moves: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """Bodies moved by their open-loop sine gaits in ``window`` (a ``ControlConfig``; or their ``moves`` ``[N, 2]``,
+    ``open_loop_moves``) and what the score is: the move in the plane, whichever way (a gait has no heading to
+    choose), or on a steering task (``headings "random"``) the move along ``headings [N]`` — the controllers'
+    headings, or fresh uniform draws."""
+    from freeform.envs.control import open_loop_displacement, open_loop_moves
 
+    moves = open_loop_moves(grids, sim, window) if moves is None else moves
     if window.headings != "random":
-        return open_loop_displacement(grids, sim, window, planar=True), "move in the plane, sine gait"
+        return open_loop_displacement(grids, planar=True, moves=moves), "move in the plane, sine gait"
     if headings is None:
         headings = np.random.default_rng(10_000).uniform(0.0, 2 * np.pi, len(grids))
-    return open_loop_displacement(grids, sim, window, headings=headings), "move along its heading, sine gait"
+    return open_loop_displacement(grids, headings=headings, moves=moves), "move along its heading, sine gait"
 
 
 def _metrics(info: dict) -> dict[str, np.ndarray]:
@@ -95,7 +98,7 @@ def _metrics(info: dict) -> dict[str, np.ndarray]:
 def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     """``episodes`` designs of an open-loop design run's last policy (sampled as in training), moved by their sine
     gaits in ``window`` (a ``ControlConfig``): the score (:func:`gaits`), the move along +x, and the body metrics."""
-    from freeform.envs.control import open_loop_displacement
+    from freeform.envs.control import open_loop_moves
     from freeform.run.build import build, design_env
 
     cfg, last = _last(run)
@@ -106,9 +109,9 @@ def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     while not bool(done.all()):
         obs, _, done, info = env.step(ppo.act(obs))
     grids = info["final_grids"].cpu().numpy()
-    score, kind = gaits(grids, cfg.sim, window)
-    return {"score": score, "kind": kind,
-            "along_x": open_loop_displacement(grids, cfg.sim, window), "metrics": _metrics(info),
+    moves = open_loop_moves(grids, cfg.sim, window)  # (simulated once: the score and the move along +x)
+    score, kind = gaits(grids, cfg.sim, window, moves=moves)
+    return {"score": score, "kind": kind, "along_x": moves[:, 0], "metrics": _metrics(info),
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
 
 

@@ -418,17 +418,14 @@ class ControlEnv:
         return obs.view(R, *self.observation_shape), com
 
 
-def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
-                           control: ControlConfig | None = None, arch: str = "cpu",
-                           headings: np.ndarray | None = None, planar: bool = False) -> np.ndarray:
-    """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move along
-    +x (or along ``headings [N]``, radians from +x towards +y: a steering task's figure; or, ``planar``, the
-    distance in the ground plane whatever the direction: an open-loop body's own best heading) from
-    ``control.burn_in`` to ``burn_in + duration`` (the sine from t = 0, as every open-loop body), in voxel lengths
-    ``[N]``, 0 for a robot that failed and for an empty grid. The figure a controller is compared with."""
+def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
+                    control: ControlConfig | None = None, arch: str = "cpu") -> np.ndarray:
+    """What the bodies' open-loop sine gaits do in a control episode's window: each body's centre of mass move in
+    the ground plane (x, y) from ``control.burn_in`` to ``burn_in + duration`` (the sine from t = 0, as every
+    open-loop body), in voxel lengths ``[N, 2]``, 0 for a robot that failed and for an empty grid."""
     sim, control = sim or SimConfig(), control or ControlConfig()
     grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
-    out = np.zeros(len(grids))
+    out = np.zeros((len(grids), 2))
     config = replace(sim, actuation="sine", burn_in=0.0, duration=control.burn_in + control.duration + 1.0)
     simulator = Simulator(config, arch=arch)
     layout = simulator.layout(grids)
@@ -439,14 +436,24 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     start = engine.sense()[1]
     engine.advance_time(control.duration)
     end = engine.sense()[1]
-    body = layout.body_of_robot  # (an empty grid has no robot)
-    heading = np.zeros(len(body)) if headings is None else np.asarray(headings, np.float64)[body]
-    if planar:
-        move = np.hypot((end - start)[:, 0], (end - start)[:, 1])
-    else:
-        move = (end - start)[:, 0] * np.cos(heading) + (end - start)[:, 1] * np.sin(heading)
-    out[body] = np.where(engine.robot_status() == RUNNING, move / sim.voxel_size, 0.0)
+    ok = (engine.robot_status() == RUNNING)[:, None]
+    out[layout.body_of_robot] = np.where(ok, (end - start)[:, :2] / sim.voxel_size, 0.0)  # (an empty grid: no robot)
     return out
+
+
+def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
+                           control: ControlConfig | None = None, arch: str = "cpu",
+                           headings: np.ndarray | None = None, planar: bool = False,
+                           moves: np.ndarray | None = None) -> np.ndarray:
+    """The bodies' open-loop gaits (:func:`open_loop_moves`, or ``moves`` computed before) as one figure per body
+    ``[N]``, voxel lengths: the move along +x, or along ``headings [N]`` (radians from +x towards +y: a steering
+    task's figure), or, ``planar``, the distance in the ground plane whatever the direction (an open-loop body's own
+    best heading). The figure a controller is compared with."""
+    moves = open_loop_moves(grids, sim, control, arch) if moves is None else np.asarray(moves, np.float64)
+    if planar:
+        return np.hypot(moves[:, 0], moves[:, 1])
+    heading = np.zeros(len(moves)) if headings is None else np.asarray(headings, np.float64)
+    return moves[:, 0] * np.cos(heading) + moves[:, 1] * np.sin(heading)
 
 
 def untrained_walker(candidates: int, resolution: int, materials: int, steps: int, bundle_size: int, seed: int = 0,
@@ -464,4 +471,4 @@ def untrained_walker(candidates: int, resolution: int, materials: int, steps: in
     return grids[int(np.argmax(scores))][None], scores
 
 
-__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "untrained_walker"]
+__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "open_loop_moves", "untrained_walker"]
