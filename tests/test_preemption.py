@@ -217,12 +217,14 @@ class _Failure:
             self.undo.append(lambda: setattr(torch, "save", real_save))
         elif self.name == "file size limit":  # a quota-like limit the kernel enforces, for root too (EFBIG)
             # Files may not grow past a limit that leaves the event file (and a record) room to double, and that a
-            # checkpoint exceeds twice over: midway between the two sizes as this run wrote them (both are ≈ 11 kB
-            # and ≈ 47 kB; a fixed number was flaky as the event file's size varies by a few hundred bytes).
+            # checkpoint exceeds: midway between twice the event file and the checkpoint as this run wrote them
+            # (≈ 11-12 kB and ≈ 47 kB; a fixed number was flaky as the event file's size varies by a few hundred
+            # bytes, and a limit below half the checkpoint left the event file too little margin: 12,048 bytes on
+            # one CI host against the 11,840 the old assertion allowed).
             events = max(p.stat().st_size for p in self.run.glob("events.out.tfevents.*"))
             checkpoint = (self.run / "checkpoints" / "last.pt").stat().st_size
-            assert 4 * events < checkpoint, (events, checkpoint)
-            limit = (2 * events + checkpoint // 2) // 2
+            assert 3 * events < checkpoint, (events, checkpoint)
+            limit = (2 * events + checkpoint) // 2
             soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
             previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # else the kernel's SIGXFSZ kills us
             resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
