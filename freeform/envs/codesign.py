@@ -37,7 +37,7 @@ import torch
 
 from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.body import bodies_and_metrics, serial_on_cpu
-from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig, ControlEnv
+from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig, ControlEnv, same_config
 from freeform.envs.design import DesignEnv
 from freeform.sim import SimConfig, Simulator
 
@@ -212,10 +212,7 @@ class CodesignEnv:
         return {"episode": self.episode, "seed": self.seed, "config": self._config()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        saved = state.get("config")
-        if not (isinstance(saved, dict) and self.control.same_as(saved.get("control", {}))
-                and {k: v for k, v in saved.items() if k != "control"}
-                == {k: v for k, v in self._config().items() if k != "control"}):
+        if not same_config(state.get("config"), self._config()):
             raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
                              "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"]) - 1

@@ -113,10 +113,13 @@ class ControlConfig:
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
 
-    def same_as(self, saved: dict[str, Any]) -> bool:
-        """Whether a saved config (``vars`` of one, from a checkpoint) is this one; a field it lacks — saved before
-        the field existed — counts as that field's default."""
-        return {**vars(ControlConfig()), **saved} == vars(self)
+
+def same_config(saved: Any, mine: dict[str, Any]) -> bool:
+    """Whether an env's saved config (a checkpoint's ``{"control": vars(ControlConfig), ...}``) is ``mine``; a
+    control field it lacks — saved before the field existed — counts as that field's default, so older runs resume."""
+    if not (isinstance(saved, dict) and isinstance(saved.get("control"), dict)):
+        return False
+    return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
 class ControlEnv:
@@ -352,7 +355,7 @@ class ControlEnv:
         if grids.shape != self.grids.shape or not torch.equal(grids, self.grids):
             raise ValueError("the state's bodies (per_env.grids) are not this environment's: a control run resumes "
                              "on the bodies it was trained on")
-        if not self._same_config(state.get("config")):
+        if not same_config(state.get("config"), self._config()):
             raise ValueError(f"state config {state.get('config')} does not match this environment's {self._config()}: "
                              "build the env with the saved run's config (a resume takes it from the checkpoint)")
         self.seed, self.episode = int(state["seed"]), int(state["episode"])
@@ -360,10 +363,6 @@ class ControlEnv:
 
     def _config(self) -> dict[str, Any]:
         return {"control": vars(self.control).copy(), "box": list(self.box)}
-
-    def _same_config(self, saved: Any) -> bool:
-        return (isinstance(saved, dict) and isinstance(saved.get("control"), dict)
-                and self.control.same_as(saved["control"]) and saved.get("box") == list(self.box))
 
     @torch.no_grad()
     def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:

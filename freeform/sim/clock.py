@@ -33,6 +33,15 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
         st(s.rt, RT.COS, r, ti.cos(a))
 
     @ti.func
+    def actuation_time(r, s: ti.template()):
+        """The time of the temperature robot r's voxels write in the coming step: t + dt (VX), t (rl4design, one
+        step late)."""
+        tau = ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r)
+        if ti.static(s.sw.rl4design != 0):
+            tau = ld(s.rt, RT.T, r)
+        return tau
+
+    @ti.func
     def max_link_omega2(r, s: ti.template()):
         """The largest ω² the robot's links stored this step (f64; 0 without links). A serial max in the robot
         phase: rl4design's dt refresh needs no float64 atomic (a compare-and-swap loop on CUDA)."""
@@ -57,11 +66,7 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
                 omega2 = max_link_omega2(r, s)
                 if omega2 > 0.0:
                     st(s.rt, RT.DT, r, ld(s.gp, GP.DT_FRAC, 0) / (TWO_PI * ti.sqrt(omega2)))
-        # next step the voxels write T(t + dt) (VX) or T(t) (rl4design, one step late)
-        tau = ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r)
-        if ti.static(s.sw.rl4design != 0):
-            tau = ld(s.rt, RT.T, r)
-        set_phase(r, s, tau)
+        set_phase(r, s, actuation_time(r, s))
         # the next step's snapshots, with the same f64 clock arithmetic as Engine's for step 0
         t_before = ld(s.rt, RT.T, r)
         t_after = t_before + ld(s.rt, RT.DT, r)
@@ -74,4 +79,4 @@ def make_clock(precision: str, order: str) -> SimpleNamespace:
             events |= EV_END
         st(s.ri, RI.EVENTS, r, events)
 
-    return SimpleNamespace(robot_advance=robot_advance, set_phase=set_phase)
+    return SimpleNamespace(robot_advance=robot_advance, set_phase=set_phase, actuation_time=actuation_time)

@@ -99,8 +99,7 @@ LI = Table("link_int", I32, "links", (("NEG", 1), ("POS", 1), ("AXIS", 1), ("LMA
 # SIN/COS: sin and cos of 2π·τ/period for the temperature the voxels write this step (τ = the time it is for), so
 # each voxel evaluates T = T_base + A·(sin·cos φ + cos·sin φ) without a transcendental call of its own.
 # UNTIL: a robot steps only while T < UNTIL (Engine.advance_time: each robot runs until its own clock passes the
-# next control time; NO_LIMIT otherwise).
-# UNTIL: the clock limit of advance_time; RAMP: how long a new command takes to replace the one before (s, 0: at
+# next control time; NO_LIMIT otherwise). RAMP: how long a new command takes to replace the one before (s, 0: at
 # once; the ramp ends at UNTIL, Engine.set_commands).
 RT = Table("robot_real", F64, "robots", (("T", 1), ("DT", 1), ("DTPREV", 1), ("SIN", 1), ("COS", 1), ("UNTIL", 1),
                                           ("RAMP", 1)))

@@ -10,6 +10,7 @@ import functools
 from types import SimpleNamespace
 
 from freeform.sim.access import make_access, make_numbers
+from freeform.sim.clock import make_clock
 from freeform.sim.config import POISSON_SERIES_TERMS
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
@@ -47,6 +48,7 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
     real, vec3, vec4, exact_vx, nonfinite = num.real, num.vec3, num.vec4, num.exact_vx, num.nonfinite
     ld, st, get3, set3, get4, set4 = acc.ld, acc.st, acc.get3, acc.set3, acc.get4, acc.set4
     qmul, rotate, from_rotation_vector = q.qmul, q.rotate, q.from_rotation_vector
+    actuation_time = make_clock(precision, order).actuation_time
 
     # ------------------------------------------------------------ actuation (spec section 4)
     @ti.func
@@ -66,10 +68,7 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             command = ld(s.vr, VR.CMD, v)
             ramp, until = ld(s.rt, RT.RAMP, r), ld(s.rt, RT.UNTIL, r)
             if ramp > 0.0 and until < NO_LIMIT:  # a ramp from CMD0, ending at the control period's end
-                tau = ld(s.rt, RT.T, r) + ld(s.rt, RT.DT, r)  # (the time of this step's temperature: set_phase's)
-                if ti.static(s.sw.rl4design != 0):
-                    tau = ld(s.rt, RT.T, r)
-                frac = 1.0 - (until - tau) / ramp
+                frac = 1.0 - (until - actuation_time(r, s)) / ramp
                 if frac < 1.0:
                     before = ld(s.vr, VR.CMD0, v)
                     command = before + (command - before) * ti.cast(ti.max(frac, 0.0), real)
