@@ -2,7 +2,9 @@
 design bodies (≈ 76 voxels each, ρ = 20) for a control period of 1, 10 and 100 simulator steps (fixed dt), and
 the time outside the simulator (writing the commands, sensing, the reward) as a share of the simulator's own time
 (``Engine.advance_time`` alone, measured on the same bodies just before). Issue 29's goal: ≤ 20 % at the default
-period (0.0125 s ≈ 100 steps at the default dt).
+period (0.0125 s ≈ 100 steps at the default dt). Then the engine's own part of a control step, the same commands
+and period two ways, alternated: ``set_commands`` + ``advance_time`` + ``sense`` (a call each, and the column
+writes and clock reads between them) against ``Engine.control_step`` (one call to the device).
 
 ``python -m benchmarks control``; ``FREEFORM_BENCH_QUICK=1`` uses 32 bodies.
 """
@@ -12,11 +14,12 @@ from __future__ import annotations
 import os
 import time
 
+import numpy as np
 import torch
 
 from benchmarks.bench_sim import random_design_bodies
 from freeform.envs.control import ControlConfig, ControlEnv
-from freeform.sim import SimConfig
+from freeform.sim import SimConfig, Simulator
 
 DT = 1e-4  # fixed, so that a period is a whole number of steps
 EVERY = (1, 10, 100)
@@ -45,6 +48,31 @@ def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
     return 1 / total, sim, max(total - sim, 0.0)
 
 
+def measure_engine(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu") -> tuple[float, float]:
+    """Seconds per control period of the engine alone on ``grids`` (f32, fixed dt, zero commands): stepwise
+    (set_commands, advance_time, sense) and in one call (control_step), alternated round by round."""
+    period = every * DT
+    config = SimConfig(dt=DT, actuation="command", burn_in=0.0, duration=1000 * period)
+    engines = []
+    for _ in range(2):
+        sim = Simulator(config, arch=arch)
+        engines.append(sim.engine(sim.layout(grids)))  # (a Simulator each: each its own arrays)
+    stepwise, one_call = engines
+    zero = np.zeros(stepwise.layout.num_voxels)
+    times = np.zeros(2)
+    for k in range(rounds + 1):  # (the first round compiles)
+        t0 = time.perf_counter()
+        stepwise.set_commands(zero)
+        stepwise.advance_time(period)
+        stepwise.sense()
+        t1 = time.perf_counter()
+        one_call.control_step(zero, period)
+        t2 = time.perf_counter()
+        if k:
+            times += (t1 - t0, t2 - t1)
+    return tuple(times / rounds)
+
+
 def main() -> None:
     n = 32 if os.environ.get("FREEFORM_BENCH_QUICK") else 128
     grids = random_design_bodies(n)
@@ -55,6 +83,12 @@ def main() -> None:
         rate, sim, outside = measure(grids, every, ROUNDS[every])
         print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {rate:16.1f} {sim * 1e3:12.2f} "
               f"{outside * 1e3:16.2f} {outside / sim:11.0%}", flush=True)
+    print("  the engine's part of a control step: set_commands + advance_time + sense, against control_step (one call)")
+    print(f"  {'period':>16s} {'stepwise ms':>12s} {'one call ms':>12s} {'saved ms':>9s}")
+    for every in EVERY:
+        stepwise, one_call = measure_engine(grids, every, 2 * ROUNDS[every])
+        print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {stepwise * 1e3:12.2f} {one_call * 1e3:12.2f} "
+              f"{(stepwise - one_call) * 1e3:9.2f}", flush=True)
 
 
 if __name__ == "__main__":

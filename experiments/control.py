@@ -63,7 +63,7 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
     com: list[float] = []
 
     def act(obs: torch.Tensor) -> torch.Tensor:  # the controller's mode, and the height of the centre of mass
-        com.append(float(env.engine.sense()[1][0, 2]))
+        com.append(float(env.engine.sense().com[0, 2]))
         mean, _, mask, _ = policy(obs)
         return (mean * mask).clamp(-1, 1)
 

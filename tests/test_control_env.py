@@ -200,7 +200,7 @@ def test_headings_any_rewards_the_growth_of_the_distance_from_the_start_in_the_p
     assert float(obs[:, C["heading_cos"]].abs().max()) == 0 and float(obs[:, C["heading_sin"]].abs().max()) == 0
     rng = torch.Generator().manual_seed(1)
     total = np.zeros(2)
-    for t in range(control.steps - 1):
+    for _ in range(control.steps - 1):
         _, reward, _, _ = env.step(torch.rand((2, 27), generator=rng) * 2 - 1)
         total += reward.double().numpy()
     distance = np.hypot(*(env._com - start)[:, :2].T) / env.sim_config.voxel_size

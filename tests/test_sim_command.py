@@ -200,8 +200,10 @@ def test_sensing_on_the_device_equals_the_tables_read_back(schedule):
     engine = sim.engine(sim.layout(bodies()))
     engine.set_commands(np.random.default_rng(2).uniform(-1, 1, engine.layout.num_voxels))
     engine.advance(300)
-    sensed, com = engine.sense()
+    sensed, com, time, status = engine.sense()
     lay = engine.layout
+    np.testing.assert_array_equal(time, engine.robot_time())
+    np.testing.assert_array_equal(status, engine.robot_status())
     mass = material_table(cfg)[MT.MASS][lay.material]
     pos, vel = engine.positions(), engine.velocities()
     expect_com = np.stack([np.bincount(lay.voxel_robot, weights=mass * pos[:, k]) for k in range(3)], 1)
@@ -233,7 +235,7 @@ def test_a_snapshot_restored_goes_on_bit_for_bit(schedule):
     def go_on() -> tuple[np.ndarray, ...]:
         engine.set_commands(commands)
         engine.advance_time(0.02)
-        return engine.positions(), engine.orientations(), engine.robot_time(), engine.sense()[1]
+        return engine.positions(), engine.orientations(), engine.robot_time(), engine.sense().com
 
     first = go_on()
     assert np.abs(first[0] - at_snapshot).max() > 1e-6  # the bodies moved after the snapshot
@@ -244,3 +246,55 @@ def test_a_snapshot_restored_goes_on_bit_for_bit(schedule):
     big = other.engine(other.layout(np.concatenate([bodies()] * 40)))
     with pytest.raises(ValueError, match="restore a snapshot of this engine"):
         big.restore(snap)
+
+
+@pytest.mark.parametrize("schedule, graph", [("robots", 64), ("flat", 64), ("flat", 0)])
+@pytest.mark.parametrize("semantics, actuation, ramp", [("voxelyze", "command", 0.0), ("rl4design", "residual", 1.0)])
+def test_a_control_step_in_one_call_equals_commands_advance_time_and_sense_bit_for_bit(schedule, graph, semantics,
+                                                                                        actuation, ramp):
+    """Engine.control_step(c, p, ramp) against set_commands(c, ramp) + advance_time(p) + sense(), over several
+    periods (f64): the same readout and every buffer the same to the bit, ramps included, and under rl4design's
+    dynamic dt (each robot its own steps; one whose dt shrinks within a period gets another round); a free
+    advance() in between makes the next period start at the clocks again, in both. On the flat schedule with and
+    without its compute graph (graph_launches 0: the launches from Python, quadrants' way)."""
+    cfg = SimConfig(precision="f64", semantics=semantics, burn_in=0.0, duration=1.0, actuation=actuation,
+                    graph_launches=graph)
+    two = [Simulator(cfg, arch="cpu", schedule=schedule) for _ in range(2)]
+    stepwise, one_call = (sim.engine(sim.layout(bodies())) for sim in two)
+    rng, period = np.random.default_rng(3), 0.0125
+    for k in range(6):
+        if k == 3:
+            stepwise.advance(7)
+            one_call.advance(7)
+        c = rng.uniform(-1, 1, stepwise.layout.num_voxels)
+        stepwise.set_commands(c, ramp=ramp * period)
+        stepwise.advance_time(period)
+        expect, got = stepwise.sense(), one_call.control_step(c, period, ramp=ramp * period)
+        for name, a, b in zip(expect._fields, expect, got, strict=True):
+            np.testing.assert_array_equal(b, a, err_msg=f"period {k}: readout.{name}")
+        for name, a in stepwise.snapshot()["buffers"].items():
+            np.testing.assert_array_equal(one_call.snapshot()["buffers"][name], a, err_msg=f"period {k}: {name}")
+    assert (got.time >= 6 * period).all() and (got.status == RUNNING).all()
+
+
+def test_a_control_step_is_one_call_to_the_device():
+    """With every other kernel taken away, control_step still runs a period: on the robots schedule it is one
+    kernel, on the flat one a compute graph (where the backend has graphs: Taichi's)."""
+    from types import SimpleNamespace
+
+    cfg = SimConfig(precision="f32", burn_in=0.0, duration=1.0, actuation="command")
+    for schedule, keep in (("robots", "control_robots"), ("flat", "control_graph")):
+        sim = Simulator(cfg, arch="cpu", schedule=schedule)
+        engine = sim.engine(sim.layout(bodies()))
+        if schedule == "flat" and engine.kernels.control_graph(1) is None:
+            continue  # (quadrants: no compute graphs, the step is three launches and the steps')
+        engine.control_step(np.zeros(engine.layout.num_voxels), 0.01)  # (the first step reads the clocks)
+
+        def refused(*args, **kwargs):
+            raise AssertionError("a control step launched a kernel of its own")
+
+        engine.kernels = SimpleNamespace(**{name: (value if name == keep else refused)
+                                            for name, value in vars(engine.kernels).items()})
+        engine._transfers = SimpleNamespace(read=refused, write=refused)
+        readout = engine.control_step(np.full(engine.layout.num_voxels, 0.5), 0.01)
+        assert (readout.time >= 0.02).all() and (readout.time < 0.02 + 1e-3).all(), (schedule, readout.time)

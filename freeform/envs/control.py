@@ -5,10 +5,10 @@ each control period, sensing the body on its own grid (issue 29's first environm
 One episode: the bodies are placed and settle for ``burn_in`` seconds with zero commands (the controller does not
 act then: every episode starts from a body at rest on the ground; under ``residual`` control the burn-in runs the
 open-loop gait, so the controller takes over a body already walking), then ``steps`` control steps of ``period``
-simulated seconds each. A step writes the actions as commands (``Engine.set_commands``: T = T_base + A·a, so
-a ∈ [−1, 1] spans the open-loop sine's range; a passive voxel's or an empty cell's entry has no effect) and runs
-each robot until its own clock passes the next control time (``Engine.advance_time``: rl4design's dt differs
-per robot). Every episode ends together, by its time limit (``truncated``), and the env resets itself. A robot
+simulated seconds each. A step writes the actions as commands (T = T_base + A·a, so a ∈ [−1, 1] spans the
+open-loop sine's range; a passive voxel's or an empty cell's entry has no effect), runs each robot until its own
+clock passes the next control time (rl4design's dt differs per robot) and senses, all in one call to the device
+(``Engine.control_step``). Every episode ends together, by its time limit (``truncated``), and the env resets itself. A robot
 that diverges or stalls stays in the batch, frozen, with reward 0 until the episode ends.
 
 Reward: the centre of mass's displacement along the robot's heading during the step, in voxel lengths; the
@@ -52,7 +52,7 @@ import torch
 from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
-from freeform.sim.engine import Engine
+from freeform.sim.engine import Engine, Readout
 from freeform.sim.state import MT, RUNNING, SENSE
 
 OBS_CHANNELS = ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact",
@@ -315,11 +315,11 @@ class ControlEnv:
             most = self.control.command_rate * self.control.period
             target = np.clip(target, self._command - most, self._command + most)
         self._command = target
-        self.engine.set_commands(target, ramp=self.control.period if self.control.ramp else 0.0)
-        self.engine.advance_time(self.control.period)
+        readout = self.engine.control_step(target, self.control.period,
+                                           ramp=self.control.period if self.control.ramp else 0.0)
         self.t += 1
-        obs, com = self._observe()
-        ok = self.engine.robot_status() == RUNNING
+        obs, com = self._observe(readout)
+        ok = readout.status == RUNNING
         if self.control.headings == "any":  # the distance from the start grows: the return is the final distance
             move = np.hypot(*(com - self._start)[:, :2].T) - np.hypot(*(self._com - self._start)[:, :2].T)
         else:
@@ -391,11 +391,12 @@ class ControlEnv:
         return recording, np.stack(commands), total
 
     # ------------------------------------------------------------------ sensing
-    def _observe(self) -> tuple[torch.Tensor, np.ndarray]:
-        """The observation ``[N, C, Bx, By, Bz]`` and each robot's centre of mass ``[N, 3]`` (m): the engine senses
-        on the device (``Engine.sense``); the host adds the per-body constants and scatters into the box."""
+    def _observe(self, readout: Readout | None = None) -> tuple[torch.Tensor, np.ndarray]:
+        """The observation ``[N, C, Bx, By, Bz]`` and each robot's centre of mass ``[N, 3]`` (m) from what the
+        engine sensed on the device (a control step's readout, else ``Engine.sense``: one kernel, one copy back);
+        the host adds the per-body constants and scatters into the box."""
         R = self.num_envs
-        sensed, com = self.engine.sense()  # one kernel on the device, one copy back
+        sensed, com = (self.engine.sense() if readout is None else readout)[:2]
         progress = self.t / self.control.steps
         start = self.control.burn_in + self.t * self.control.period
         clock = 2 * math.pi * start / self.sim_config.temp_period
@@ -432,9 +433,9 @@ def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = No
         return out
     engine = simulator.engine(layout)
     engine.advance_time(control.burn_in)
-    start = engine.sense()[1]
+    start = engine.sense().com
     engine.advance_time(control.duration)
-    end = engine.sense()[1]
+    end = engine.sense().com
     ok = (engine.robot_status() == RUNNING)[:, None]
     out[layout.body_of_robot] = np.where(ok, (end - start)[:, :2] / sim.voxel_size, 0.0)  # (an empty grid: no robot)
     return out

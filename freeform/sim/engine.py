@@ -13,7 +13,7 @@ batch outgrows it, so a long training run stops allocating device memory once it
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -23,8 +23,15 @@ from freeform.sim.config import SimConfig, material_table
 from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
 from freeform.sim.packing import Packing, buffer_dtype
-from freeform.sim.schedules import FLAT_ARGS, ORDER_OF, SCHEDULES, UNROLL, make_kernels, resolve_schedule
-from freeform.sim.sensing import make_sensing
+from freeform.sim.schedules import (
+    CONTROL_ARGS,
+    FLAT_ARGS,
+    ORDER_OF,
+    SCHEDULES,
+    UNROLL,
+    make_kernels,
+    resolve_schedule,
+)
 from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests)
     BUFFERS,
     DIVERGED,
@@ -40,6 +47,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
     MT,
     NO_LIMIT,
     RI,
+    ROBOT_SENSE,
     RT,
     RUNNING,
     SENSE,
@@ -55,7 +63,7 @@ from freeform.sim.state import (  # noqa: F401  (re-exported for tools and tests
 )
 from freeform.sim.summaries import make_summaries
 
-__all__ = ["SCHEDULES", "DeviceArrays", "Engine", "recommended_dt"]
+__all__ = ["SCHEDULES", "DeviceArrays", "Engine", "Readout", "recommended_dt"]
 
 # A batch that outgrows the arrays gets this much room beyond its own size, so a run whose bodies grow slowly
 # reallocates a logarithmic number of times, not every epoch.
@@ -65,6 +73,20 @@ INT32_MAX = np.iinfo(np.int32).max
 
 def _ceil_div(a: int, b: int) -> int:
     return -(-a // b)
+
+
+class Readout(NamedTuple):
+    """What a controller senses, as one copy back from the device (``Engine.sense``, ``Engine.control_step``)."""
+
+    voxels: np.ndarray
+    """float64 ``[n, SENSE.width]``: each voxel's position relative to its robot's centre of mass (m), velocity
+    (m/s), mean |strain| of its links, ground contact (0/1), in the layout's voxel order."""
+    com: np.ndarray
+    """float64 ``[R, 3]``: every robot's centre of mass (m)."""
+    time: np.ndarray
+    """float64 ``[R]``: every robot's clock (s)."""
+    status: np.ndarray
+    """int32 ``[R]``: RUNNING, DONE, DIVERGED or STALLED."""
 
 
 class DeviceArrays:
@@ -162,6 +184,8 @@ class Engine:
         self.steps_done = 0
         self.trace_steps = 0  # the trace (start_trace): off until asked for
         self._limit: np.ndarray | None = None  # each robot's clock limit while advance_time steps it
+        # every robot's (clock, dt, status) as the last control step read them back; None once anything else steps
+        self._clock: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._commands, self._ramp = np.zeros(layout.num_voxels), 0.0  # the host's copies of VR.CMD and RT.RAMP
 
     # ------------------------------------------------------------------ host <-> device, one region at a time
@@ -233,6 +257,7 @@ class Engine:
         self._advance(n_steps)
 
     def _advance(self, n_steps: int) -> None:
+        self._clock = None
         k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
         if self.schedule == "robots":
             k.run_robots(*buffers, n_steps, self._workers)
@@ -266,17 +291,68 @@ class Engine:
         start = self.robot_time() if self._limit is None else self._limit
         self._limit = start + period  # the host's copy of RT.UNTIL, written once per call
         self._write_column("rt", RT.UNTIL, self._limit)
+        return self._run_to_limit()
+
+    def _run_to_limit(self) -> int:
+        """Step until every running robot's clock has passed its limit; the steps issued."""
         steps = 0
         while True:
-            rt, status = self._table("rt"), self.robot_status()
-            behind = (status == RUNNING) & (rt[RT.T] < self._limit)
-            if not behind.any():
+            rt = self._table("rt")
+            n = self._steps_to_limit(rt[RT.T], rt[RT.DT], self.robot_status())
+            if n == 0:
                 return steps
-            # the steps the furthest-behind robot needs at its current dt (+1: it must pass the limit); a dt that
-            # shrinks meanwhile (rl4design) only means another round
-            n = int(np.ceil(((self._limit - rt[RT.T]) / rt[RT.DT])[behind].max())) + 1
             self._advance(n)
             steps += n
+
+    def _steps_to_limit(self, t: np.ndarray, dt: np.ndarray, status: np.ndarray) -> int:
+        """The steps the furthest-behind running robot needs at its current dt to pass its limit (+1: it must pass
+        it; a dt that shrinks meanwhile, rl4design's, only means another round), 0 when none is behind."""
+        behind = (status == RUNNING) & (t < self._limit)
+        return int(np.ceil(((self._limit - t) / dt)[behind].max())) + 1 if behind.any() else 0
+
+    def control_step(self, commands, period: float, ramp: float = 0.0) -> Readout:
+        """One control period in one call to the device: ``set_commands(commands, ramp)``, ``advance_time(period)``
+        and ``sense()``, bit for bit (tested), as one kernel launch on the robots schedule and one compute graph on
+        the flat one (where the backend has none, or ``graph_launches`` is 0: three launches and the steps'); one
+        copy each way. The host
+        knows each robot's clock from the last step's readout, so it issues the period's steps without asking.
+        A robot whose dt shrank meanwhile (rl4design) and is still behind gets more steps, and a second readout."""
+        self._check_owner()
+        c = self._checked_commands(commands, ramp)
+        if not (np.isfinite(period) and period > 0):
+            raise ValueError(f"period must be finite and > 0 seconds, got {period!r}")
+        R = self.layout.num_robots
+        if self._clock is None:
+            rt = self._table("rt")
+            self._clock = (rt[RT.T].copy(), rt[RT.DT].copy(), self.robot_status())
+        t, dt, status = self._clock
+        from_clock = self._limit is None
+        self._limit = (t if from_clock else self._limit) + float(period)  # what the device computes, the same sum
+        n = self._steps_to_limit(t, dt, status)
+        stage, length = self._arrays.buffer("commands", np.dtype(np.float64), max(1, c.size))
+        runtime.upload(stage, np.concatenate([c, np.zeros(length - c.size)]))
+        out, _ = self._arrays.staging(np.dtype(np.float64), self._readout_size())
+        k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
+        args = (*buffers, stage, out, float(period), float(ramp), int(from_clock))
+        if R == 0:
+            pass
+        elif self.schedule == "robots":
+            k.control_robots(*args, n, self._workers)
+            self.steps_done += n
+        elif self.config.graph_launches and (graph := k.control_graph(_ceil_div(n, UNROLL))) is not None:
+            graph.run(dict(zip(CONTROL_ARGS, (*args, UNROLL), strict=True)))
+            self.steps_done += _ceil_div(n, UNROLL) * UNROLL
+        else:  # (quadrants: no compute graphs; or graph_launches=0)
+            k.command(*args[:4], *args[5:])
+            self._advance(n)
+            k.sense(*buffers, out)
+        self._commands, self._ramp = c.copy(), float(ramp)
+        readout, dt = self._read(out)
+        if self._steps_to_limit(readout.time, dt, readout.status):
+            self._run_to_limit()
+            readout, dt = self._read(self._sense_into())
+        self._clock = (readout.time, dt, readout.status)
+        return readout
 
     def snapshot(self) -> dict[str, Any]:
         """The batch's whole state now: a host copy of the three buffers and the host's own bookkeeping, which
@@ -302,19 +378,32 @@ class Engine:
         self.trace_steps = snapshot["trace_steps"]
         self._limit = None if snapshot["limit"] is None else snapshot["limit"].copy()
         self._commands, self._ramp = snapshot["commands"].copy(), snapshot["ramp"]
+        self._clock = None
 
-    def sense(self) -> tuple[np.ndarray, np.ndarray]:
-        """What a controller senses, gathered on the device in one kernel (``sensing.py``): float64
-        ``[n, SENSE.width]`` per voxel (position relative to its robot's centre of mass in m, velocity in m/s, mean
-        |strain| of its links, ground contact 0/1) and every robot's centre of mass ``[R, 3]`` (m)."""
+    def sense(self) -> Readout:
+        """What a controller senses, gathered on the device in one kernel (``sensing.py``) and copied back once."""
         self._check_owner()
+        return self._read(self._sense_into())[0]
+
+    def _readout_size(self) -> int:
+        return self.layout.num_voxels * SENSE.width + self.layout.num_robots * ROBOT_SENSE.width
+
+    def _sense_into(self):
+        """The sensing array (a staging ndarray), filled by the ``sense`` kernel."""
+        out, _ = self._arrays.staging(np.dtype(np.float64), self._readout_size())
+        if self.layout.num_robots:
+            self.kernels.sense(*(self._buffers[name] for name in BUFFERS), out)
+        return out
+
+    def _read(self, out) -> tuple[Readout, np.ndarray]:
+        """The sensing array copied back: the readout, and every robot's dt ``[R]``."""
         n, R = self.layout.num_voxels, self.layout.num_robots
-        size = n * SENSE.width + 3 * R
-        out, _ = self._arrays.staging(np.dtype(np.float64), size)
-        if R:
-            make_sensing(self.precision, self.order).sense(*(self._buffers[name] for name in BUFFERS), out)
-        values = runtime.to_numpy(out)[:size]
-        return values[: n * SENSE.width].reshape(n, SENSE.width), values[n * SENSE.width:].reshape(R, 3)
+        values = runtime.to_numpy(out)[: self._readout_size()]
+        robots = values[n * SENSE.width:].reshape(R, ROBOT_SENSE.width)
+        readout = Readout(voxels=values[: n * SENSE.width].reshape(n, SENSE.width),
+                          com=robots[:, ROBOT_SENSE.span("COM")], time=robots[:, ROBOT_SENSE.T].copy(),
+                          status=robots[:, ROBOT_SENSE.STATUS].astype(np.int32))
+        return readout, robots[:, ROBOT_SENSE.DT].copy()
 
     def set_commands(self, commands, ramp: float = 0.0) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the
@@ -325,17 +414,7 @@ class Engine:
         reaching it at the next :meth:`advance_time` limit, ``ramp`` seconds after the ramp's start (a control
         period: a first-order hold — Voxelyze sets the rest size at once, so a jump of the command is an impulse);
         0: at once."""
-        if not self.switches.command:
-            raise RuntimeError("set_commands needs an engine built with SimConfig(actuation='command' or "
-                               "'residual'); this one "
-                               "runs the open-loop sine (actuation='sine')")
-        c = np.asarray(commands, dtype=np.float64)
-        if c.shape != (self.layout.num_voxels,):
-            raise ValueError(f"commands must have shape ({self.layout.num_voxels},) (one per voxel), got {c.shape}")
-        if not np.isfinite(c).all():
-            raise ValueError("commands must be finite (a NaN or inf command would diverge its robot)")
-        if not (np.isfinite(ramp) and ramp >= 0):
-            raise ValueError(f"ramp must be >= 0 seconds, got {ramp!r}")
+        c = self._checked_commands(commands, ramp)
         if ramp > 0:  # (the command in effect when the ramp starts: the last one, reached by now)
             self._write_column("vr", VR.CMD0, self._commands.astype(self.np_real))
         if ramp != self._ramp:
@@ -343,6 +422,20 @@ class Engine:
             self._ramp = float(ramp)
         self._write_column("vr", VR.CMD, c.astype(self.np_real))
         self._commands = c.copy()
+
+    def _checked_commands(self, commands, ramp: float) -> np.ndarray:
+        """``commands`` as float64 ``[n]``, or a clear error."""
+        if not self.switches.command:
+            raise RuntimeError("commands need an engine built with SimConfig(actuation='command' or 'residual'); "
+                               "this one runs the open-loop sine (actuation='sine')")
+        c = np.asarray(commands, dtype=np.float64)
+        if c.shape != (self.layout.num_voxels,):
+            raise ValueError(f"commands must have shape ({self.layout.num_voxels},) (one per voxel), got {c.shape}")
+        if not np.isfinite(c).all():
+            raise ValueError("commands must be finite (a NaN or inf command would diverge its robot)")
+        if not (np.isfinite(ramp) and ramp >= 0):
+            raise ValueError(f"ramp must be >= 0 seconds, got {ramp!r}")
+        return c
 
     def set_velocity(self, velocity: np.ndarray, release_static: bool = True) -> None:
         """Overwrite every voxel's linear velocity (float ``[n, 3]``, m/s), e.g. to launch a settled block.

@@ -22,12 +22,13 @@ import functools
 import warnings
 from types import SimpleNamespace
 
-from freeform.sim.access import make_access
+from freeform.sim.access import make_access, make_numbers
 from freeform.sim.clock import make_clock
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
-from freeform.sim.state import BUFFERS, HDR, LI, RI, RT, RUNNING, VI, Switches
+from freeform.sim.sensing import make_sensing
+from freeform.sim.state import BUFFERS, HDR, LI, RI, RT, RUNNING, VI, VR, Switches
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
@@ -37,6 +38,11 @@ ORDER_OF = {"robots": "aos", "flat": "soa"}
 UNROLL = 2  # steps per launch of the flat schedule
 # run_flat's arguments by name, in order: what a compute graph binds (flat_graph; Engine.advance)
 FLAT_ARGS = (*BUFFERS, "n_steps")
+# a control step's (control_robots; control_graph binds them by name): the commands (f64 [n]), the sensing array
+# (f64, sensing.py), the period (s), the ramp (s), whether the period starts at the robot's clock (1) or at its last
+# limit (0), the steps (at least the furthest-behind robot's)
+COMMAND_ARGS = (*BUFFERS, "commands", "period", "ramp", "from_clock")
+CONTROL_ARGS = (*BUFFERS, "commands", "out", "period", "ramp", "from_clock", "n_steps")
 # The flat schedule's host cost is per launch (Python, argument marshalling): runs of this many launches go through
 # one compute graph (Taichi's ti.graph, dispatched from C++) where the backend has one; SimConfig.graph_launches.
 # Taichi 1.7's CPU backend splits a range-for with a runtime bound into one block per thread of at least this
@@ -66,17 +72,21 @@ VOXELYZE_FLAT_FLOOR = Switches(floor=1, terrain=0, rl4design=0, dynamic_dt=0)  #
 @functools.cache
 def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELYZE_FLAT_FLOOR) -> SimpleNamespace:
     """Compile-once kernels for "f32" | "f64", memory order "soa" | "aos" and the compile-time ``switches``
-    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat``, ``flat_graph`` and
-    the test hook ``probe_rotations``. Every kernel takes the three buffers (``state.BUFFERS``) and a step count;
+    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat``, ``flat_graph``, the
+    control step's ``command``, ``control_robots`` and ``control_graph`` (``Engine.control_step``), and the test
+    hook ``probe_rotations``. Every kernel takes the three buffers (``state.BUFFERS``) and a step count;
     the switches are baked in rather than passed as ``ti.template`` arguments, so every argument is an array or a
     number (what a compute graph can bind)."""
     acc = make_access(precision, order)
-    ld, header, bind, Buffer = acc.ld, acc.header, acc.bind, acc.Buffer
+    ld, st, header, bind, Buffer = acc.ld, acc.st, acc.header, acc.bind, acc.Buffer
     link_update = make_links(precision, order).link_update
     voxel_update = make_voxels(precision, order).voxel_update
     robot_advance = make_clock(precision, order).robot_advance
     summarise_robot = make_summaries(precision, order).summarise_robot
+    sensing = make_sensing(precision, order)
+    real = make_numbers(precision).real
     Reals, Ints, F64s = Buffer["reals"], Buffer["ints"], Buffer["f64s"]
+    Commands = ti.types.ndarray(dtype=ti.f64, ndim=1)
 
     @ti.func
     def trace_sample(r, s: ti.template()):
@@ -107,24 +117,81 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
                 robot_advance(r, s)
                 trace_sample(r, s)
 
-    @ti.kernel
-    def run_robots(reals: Reals, ints: Ints, f64s: F64s, n_steps: ti.i32, workers: ti.i32):
-        """``workers`` threads each take the next unclaimed robot from the header's work counter and run it
-        ``n_steps`` steps.
+    @ti.func
+    def robots_worker(t, reals: ti.template(), ints: ti.template(), f64s: ti.template(), n_steps):
+        """Iteration t of the robots schedule's virtual range: the first of each block takes the next unclaimed
+        robot from the header's work counter and runs it ``n_steps`` steps, until none is left.
 
         Taichi's CPU backend splits a range-for into blocks of at least ``CPU_MIN_TASK_ITEMS`` iterations, one
         per thread: the loop runs ``workers`` such blocks, only the first iteration of each does anything, so
-        each thread runs one block of a virtual range, and the robots are handed out through an atomic counter.
-        """
-        ints[HDR.QUEUE] = 0  # (a top-level statement: runs before the parallel loop, as a serial task)
-        for t in range(workers * CPU_MIN_TASK_ITEMS):
-            if t % CPU_MIN_TASK_ITEMS == 0:
-                h = header(ints)
+        each thread runs one block of a virtual range, and the robots are handed out through an atomic counter
+        (reset to 0 by a top-level statement before the loop: it runs first, as a serial task)."""
+        if t % CPU_MIN_TASK_ITEMS == 0:
+            h = header(ints)
+            r = ti.atomic_add(ints[HDR.QUEUE], 1)
+            while r < h[HDR.N_ROBOTS]:
+                for _ in range(n_steps):
+                    robot_step(r, bind(reals, ints, f64s, h, switches))
                 r = ti.atomic_add(ints[HDR.QUEUE], 1)
-                while r < h[HDR.N_ROBOTS]:
-                    for _ in range(n_steps):
-                        robot_step(r, bind(reals, ints, f64s, h, switches))
-                    r = ti.atomic_add(ints[HDR.QUEUE], 1)
+
+    @ti.kernel
+    def run_robots(reals: Reals, ints: Ints, f64s: F64s, n_steps: ti.i32, workers: ti.i32):
+        """``workers`` threads each take the next unclaimed robot and run it ``n_steps`` steps (robots_worker)."""
+        ints[HDR.QUEUE] = 0
+        for t in range(workers * CPU_MIN_TASK_ITEMS):
+            robots_worker(t, reals, ints, f64s, n_steps)
+
+    # ------------------------------------------------------------ a control step (Engine.control_step)
+    @ti.func
+    def command_voxel(v, s: ti.template(), commands: ti.template(), ramp):
+        """Voxel v's new command (what ``Engine.set_commands`` writes): with a ramp, the command in effect so far
+        becomes the ramp's start."""
+        if ramp > 0.0:
+            st(s.vr, VR.CMD0, v, ld(s.vr, VR.CMD, v))
+        st(s.vr, VR.CMD, v, ti.cast(commands[v], real))
+
+    @ti.func
+    def command_robot(r, s: ti.template(), period, ramp, from_clock):
+        """Robot r's next clock limit, ``period`` after its last one (or after its clock, the first time: what
+        ``Engine.advance_time`` writes), and its ramp's length."""
+        start = ld(s.rt, RT.UNTIL, r)
+        if from_clock != 0:
+            start = ld(s.rt, RT.T, r)
+        st(s.rt, RT.UNTIL, r, start + period)
+        st(s.rt, RT.RAMP, r, ramp)
+
+    @ti.kernel
+    def command(reals: Reals, ints: Ints, f64s: F64s, commands: Commands, period: ti.f64, ramp: ti.f64,
+                from_clock: ti.i32):
+        """A control step's start: every voxel's command, every robot's limit and ramp."""
+        for v in range(ints[HDR.N_VOXELS]):
+            h = header(ints)
+            command_voxel(v, bind(reals, ints, f64s, h, switches), commands, ramp)
+        for r in range(ints[HDR.N_ROBOTS]):
+            h = header(ints)
+            command_robot(r, bind(reals, ints, f64s, h, switches), period, ramp, from_clock)
+
+    @ti.kernel
+    def control_robots(reals: Reals, ints: Ints, f64s: F64s, commands: Commands, out: sensing.Out, period: ti.f64,
+                       ramp: ti.f64, from_clock: ti.i32, n_steps: ti.i32, workers: ti.i32):
+        """A whole control step in one launch of the robots schedule: the commands written, ``n_steps`` steps
+        of every robot (each idles once its clock passes its limit), the senses read (sensing.py). Its loops run in
+        order, each a parallel task."""
+        for v in range(ints[HDR.N_VOXELS]):
+            h = header(ints)
+            command_voxel(v, bind(reals, ints, f64s, h, switches), commands, ramp)
+        for r in range(ints[HDR.N_ROBOTS]):
+            h = header(ints)
+            command_robot(r, bind(reals, ints, f64s, h, switches), period, ramp, from_clock)
+        ints[HDR.QUEUE] = 0
+        for t in range(workers * CPU_MIN_TASK_ITEMS):
+            robots_worker(t, reals, ints, f64s, n_steps)
+        for r in range(ints[HDR.N_ROBOTS]):
+            h = header(ints)
+            sensing.sense_robot(r, bind(reals, ints, f64s, h, switches), out)
+        for v in range(ints[HDR.N_VOXELS]):
+            h = header(ints)
+            sensing.sense_voxel(v, bind(reals, ints, f64s, h, switches), out)
 
     @ti.func
     def link_phase(lk, s: ti.template()):
@@ -176,15 +243,52 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
                                   f"{exc}); launching from Python", RuntimeWarning, stacklevel=3)
         return graphs[key]
 
+    def control_graph(launches: int):
+        """A compute graph of one control step on the flat schedule, bound by ``CONTROL_ARGS``' names: ``command``,
+        ``launches`` launches of ``run_flat`` (``n_steps`` each, at most ``UNROLL``), ``sense``. None where the
+        backend has no compute graphs; built once per kernel variant and length."""
+        key = ("control", launches)
+        if key not in graphs:
+            graphs[key] = None
+            if hasattr(ti.graph, "GraphBuilder"):
+                try:
+                    graphs[key] = _build_control_graph(launches)
+                except Exception as exc:
+                    warnings.warn(f"freeform.sim: no compute graph for a control step ({type(exc).__name__}: "
+                                  f"{exc}); launching from Python", RuntimeWarning, stacklevel=3)
+        return graphs[key]
+
+    def _graph_args(names):
+        kinds = {"commands": ("NDARRAY", ti.f64), "out": ("NDARRAY", ti.f64), "period": ("SCALAR", ti.f64),
+                 "ramp": ("SCALAR", ti.f64), "from_clock": ("SCALAR", ti.i32), "n_steps": ("SCALAR", ti.i32)}
+        args = {}
+        for name in names:
+            if name in BUFFERS:
+                args[name] = acc.graph_arg(name)
+            elif kinds[name][0] == "NDARRAY":
+                args[name] = ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=kinds[name][1], ndim=1)
+            else:
+                args[name] = ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=kinds[name][1])
+        return args
+
     def _build_flat_graph(launches: int):
-        args = [acc.graph_arg(name) if name in BUFFERS else ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=ti.i32)
-                for name in FLAT_ARGS]
+        args = _graph_args(FLAT_ARGS)
         builder = ti.graph.GraphBuilder()
         for _ in range(launches):
-            builder.dispatch(run_flat, *args)
+            builder.dispatch(run_flat, *(args[name] for name in FLAT_ARGS))
+        return builder.compile()
+
+    def _build_control_graph(launches: int):
+        args = _graph_args(CONTROL_ARGS)
+        builder = ti.graph.GraphBuilder()
+        builder.dispatch(command, *(args[name] for name in COMMAND_ARGS))
+        for _ in range(launches):
+            builder.dispatch(run_flat, *(args[name] for name in FLAT_ARGS))
+        builder.dispatch(sensing.sense, *(args[name] for name in (*BUFFERS, "out")))
         return builder.compile()
 
     graphs: dict = {}
-    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, flat_graph=flat_graph,
+    return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, flat_graph=flat_graph, command=command,
+                           control_robots=control_robots, control_graph=control_graph, sense=sensing.sense,
                            probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order,
                            switches=switches)
