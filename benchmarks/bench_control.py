@@ -35,7 +35,8 @@ def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
     env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control, arch=arch, device=device)
     env.reset()
     actions = torch.zeros((n, env.action_dim), device=device)
-    env.step(actions)  # compile (or load the kernel cache)
+    env.step(actions)  # compile (or load the kernel cache) what a step runs, and what advance_time runs
+    env.engine.advance_time(control.period)
     # (no explicit synchronisation: every call below ends by reading the robots' state back to the host)
     t0 = time.perf_counter()
     for _ in range(rounds):

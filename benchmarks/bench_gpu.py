@@ -135,13 +135,16 @@ def epoch_section(device: str, rehearsal: bool) -> None:
 
 def control_section(arch: str, device: str, rehearsal: bool) -> None:
     """Closed-loop control (issue 29): control steps per second of ControlEnv, a period of 100 simulator steps."""
-    from benchmarks.bench_control import measure
+    from benchmarks.bench_control import measure, measure_engine
 
     print("closed-loop control (ControlEnv, design bodies, f32, fixed dt 1e-4 s, a period of 100 steps):")
     for n in ((8, 16) if rehearsal else (128, 1024)):
         rate, sim, outside = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
         _line(f"{n} bodies: control steps/s | simulator ms | outside ms a step",
               f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f}")
+        stepwise, one_call = measure_engine(_bodies(n), 100, 3 if rehearsal else 10, arch)
+        _line(f"{n} bodies: engine ms a period, stepwise (3 calls + steps) | one call (control_step)",
+              f"{stepwise * 1e3:7.2f} | {one_call * 1e3:7.2f}")
 
 
 def main() -> None:

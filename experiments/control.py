@@ -55,7 +55,8 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
 
     args = json.loads((directory / "args.json").read_text())
     body = torch.from_numpy(np.load(directory / "walker.npy"))
-    sim, control = SimConfig(), ControlConfig(burn_in=args["burn_in"], command_rate=args.get("command_rate"))
+    sim, control = SimConfig(), ControlConfig(burn_in=args["burn_in"], command_rate=args.get("command_rate"),
+                                              ramp=args.get("ramp", False))
     payload = load_checkpoint(directory / "controller.pt")
     policy = ConvController(**payload["policy_kwargs"])
     policy.load_state_dict(payload["ppo"]["policy"])
@@ -202,6 +203,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="seconds of settling before the window (2 s, as the locomotion demo: bodies have landed)")
     p.add_argument("--command-rate", type=float, default=None,
                    help="the most a command may change per second (ControlConfig.command_rate; default: any)")
+    p.add_argument("--ramp", action="store_true",
+                   help="ramp each new command over the period instead of jumping to it (ControlConfig.ramp)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/control_walker")
     p.add_argument("--gait", metavar="DIR", help="only replay DIR's trained controller and write its gait")
@@ -216,7 +219,7 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(args.seed)
-    sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in, command_rate=args.command_rate)
+    sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in, command_rate=args.command_rate, ramp=args.ramp)
 
     t0 = time.perf_counter()
     body, scores = untrained_walker(args.candidates, RHO, MATERIALS, DESIGN_STEPS, BUNDLE, args.seed, sim, control)
