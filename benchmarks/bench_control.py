@@ -27,9 +27,12 @@ ROUNDS = {1: 40, 10: 20, 100: 6}
 
 
 def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
-            device: str = "cpu") -> tuple[float, float, float]:
-    """(control steps per second, simulator seconds per control step, seconds outside it) of ``ControlEnv`` on
-    ``grids`` with a period of ``every`` simulator steps (fixed dt), zero actions, after one step that compiles."""
+            device: str = "cpu") -> tuple[float, float, float, float]:
+    """(control steps per second, simulator seconds per control step, seconds outside it, seconds of the env's own
+    host work) of ``ControlEnv`` on ``grids`` with a period of ``every`` simulator steps (fixed dt), zero actions,
+    after one step that compiles. "Outside" is a step less ``advance_time`` alone (so it counts writing the commands
+    and sensing); the host work is a step less its ``Engine.control_step`` (the one call that writes the commands,
+    runs the period and senses)."""
     n = grids.shape[0]
     control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
     env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control, arch=arch, device=device)
@@ -42,11 +45,21 @@ def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
     for _ in range(rounds):
         env.engine.advance_time(control.period)
     sim = (time.perf_counter() - t0) / rounds
+    engine_time, control_step = [0.0], env.engine.control_step
+
+    def timed(*args, **kwargs):
+        t = time.perf_counter()
+        out = control_step(*args, **kwargs)
+        engine_time[0] += time.perf_counter() - t
+        return out
+
+    env.engine.control_step = timed
     t0 = time.perf_counter()
     for _ in range(rounds):
         env.step(actions)
     total = (time.perf_counter() - t0) / rounds
-    return 1 / total, sim, max(total - sim, 0.0)
+    del env.engine.control_step
+    return 1 / total, sim, max(total - sim, 0.0), total - engine_time[0] / rounds
 
 
 def measure_engine(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu") -> tuple[float, float]:
@@ -79,11 +92,12 @@ def main() -> None:
     grids = random_design_bodies(n)
     print(f"{n} design bodies, {int((grids > 0).sum()) / n:.0f} voxels each on average, ρ = {grids.shape[1]}; "
           f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads)")
-    print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}")
+    print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}"
+          f" {'env host ms':>12s} {'host/sim':>9s}")
     for every in EVERY:
-        rate, sim, outside = measure(grids, every, ROUNDS[every])
+        rate, sim, outside, host = measure(grids, every, ROUNDS[every])
         print(f"  {every:>5d} steps ({every * DT * 1e3:.1f} ms) {rate:16.1f} {sim * 1e3:12.2f} "
-              f"{outside * 1e3:16.2f} {outside / sim:11.0%}", flush=True)
+              f"{outside * 1e3:16.2f} {outside / sim:11.0%} {host * 1e3:12.2f} {host / sim:8.0%}", flush=True)
     print("  the engine's part of a control step: set_commands + advance_time + sense, against control_step (one call)")
     print(f"  {'period':>16s} {'stepwise ms':>12s} {'one call ms':>12s} {'saved ms':>9s}")
     for every in EVERY:

@@ -139,9 +139,9 @@ def control_section(arch: str, device: str, rehearsal: bool) -> None:
 
     print("closed-loop control (ControlEnv, design bodies, f32, fixed dt 1e-4 s, a period of 100 steps):")
     for n in ((8, 16) if rehearsal else (128, 1024)):
-        rate, sim, outside = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
-        _line(f"{n} bodies: control steps/s | simulator ms | outside ms a step",
-              f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f}")
+        rate, sim, outside, host = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
+        _line(f"{n} bodies: control steps/s | simulator ms | outside ms | env host ms a step",
+              f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f} | {host * 1e3:7.2f}")
         stepwise, one_call = measure_engine(_bodies(n), 100, 3 if rehearsal else 10, arch)
         _line(f"{n} bodies: engine ms a period, stepwise (3 calls + steps) | one call (control_step)",
               f"{stepwise * 1e3:7.2f} | {one_call * 1e3:7.2f}")
