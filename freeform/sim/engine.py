@@ -24,6 +24,7 @@ from freeform.sim.initial import initial_state, recommended_dt
 from freeform.sim.layout import Layout
 from freeform.sim.packing import Packing, buffer_dtype
 from freeform.sim.schedules import (
+    COMMAND_ARGS,
     CONTROL_ARGS,
     FLAT_ARGS,
     ORDER_OF,
@@ -68,6 +69,8 @@ __all__ = ["SCHEDULES", "DeviceArrays", "Engine", "Readout", "recommended_dt"]
 # A batch that outgrows the arrays gets this much room beyond its own size, so a run whose bodies grow slowly
 # reallocates a logarithmic number of times, not every epoch.
 CAPACITY_HEADROOM = 1.25
+# a control step's compute graph (flat schedule) has a multiple of this many launches: few graphs per run
+GRAPH_BUCKET = 8
 INT32_MAX = np.iinfo(np.int32).max
 
 
@@ -204,6 +207,8 @@ class Engine:
     def _upload(self, name: str, a: np.ndarray) -> None:
         """Write host ``a`` (``[columns, items]``, items ≤ the region's capacity) into region ``name``."""
         self._check_owner()
+        if name in ("rt", "ri"):
+            self._clock = None
         region = self.packing.regions[name]
         dtype = buffer_dtype(region.buffer, self.precision)
         stage = self._stage(region.flat(np.asarray(a, dtype=dtype)))
@@ -236,6 +241,8 @@ class Engine:
         """Write one column of table ``name`` for this batch's items (``values`` ``[items]``): one copy kernel,
         whatever the memory order — what a controller does every control period."""
         self._check_owner()
+        if name in ("rt", "ri"):  # (the robots' clocks or statuses may change: read them again)
+            self._clock = None
         dtype = buffer_dtype(self.packing.regions[name].buffer, self.precision)
         stage = self._stage(np.asarray(values, dtype=dtype))
         buf, at, step = self._column_place(name, column)
@@ -298,60 +305,68 @@ class Engine:
         steps = 0
         while True:
             rt = self._table("rt")
-            n = self._steps_to_limit(rt[RT.T], rt[RT.DT], self.robot_status())
+            n = self._steps_to_limit(rt[RT.T], rt[RT.DT], self.robot_status(), self._limit)
             if n == 0:
                 return steps
             self._advance(n)
             steps += n
 
-    def _steps_to_limit(self, t: np.ndarray, dt: np.ndarray, status: np.ndarray) -> int:
+    @staticmethod
+    def _steps_to_limit(t: np.ndarray, dt: np.ndarray, status: np.ndarray, limit: np.ndarray) -> int:
         """The steps the furthest-behind running robot needs at its current dt to pass its limit (+1: it must pass
         it; a dt that shrinks meanwhile, rl4design's, only means another round), 0 when none is behind."""
-        behind = (status == RUNNING) & (t < self._limit)
-        return int(np.ceil(((self._limit - t) / dt)[behind].max())) + 1 if behind.any() else 0
+        behind = (status == RUNNING) & (t < limit)
+        return int(np.ceil(((limit - t) / dt)[behind].max())) + 1 if behind.any() else 0
 
     def control_step(self, commands, period: float, ramp: float = 0.0) -> Readout:
         """One control period in one call to the device: ``set_commands(commands, ramp)``, ``advance_time(period)``
-        and ``sense()``, bit for bit (tested), as one kernel launch on the robots schedule and one compute graph on
-        the flat one (where the backend has none, or ``graph_launches`` is 0: three launches and the steps'); one
-        copy each way. The host
-        knows each robot's clock from the last step's readout, so it issues the period's steps without asking.
-        A robot whose dt shrank meanwhile (rl4design) and is still behind gets more steps, and a second readout."""
+        (``period`` one number of seconds for every robot) and ``sense()``, the same bits (tested), as one kernel
+        launch on the robots schedule and one compute graph on the flat one (three launches and the steps' where
+        the backend has no graphs, ``graph_launches`` is 0 or the period needs more than ``graph_launches``
+        launches), with one upload of the commands and one copy back of the readout. The host knows each robot's
+        clock from the last readout, so it issues the period's steps without asking (after anything else stepped
+        the robots it reads their clocks once). A robot whose dt shrank within the period (rl4design) and is still
+        behind gets another round and a second readout, as in ``advance_time``. ``steps_done`` counts the steps
+        issued, which on the flat schedule's graph include the idle ones that round the launches up."""
         self._check_owner()
         c = self._checked_commands(commands, ramp)
-        if not (np.isfinite(period) and period > 0):
-            raise ValueError(f"period must be finite and > 0 seconds, got {period!r}")
-        R = self.layout.num_robots
+        if np.ndim(period) != 0 or not (np.isfinite(period) and period > 0):
+            raise ValueError(f"period must be one number of seconds, finite and > 0 (per-robot periods: "
+                             f"advance_time), got {period!r}")
         if self._clock is None:
             rt = self._table("rt")
             self._clock = (rt[RT.T].copy(), rt[RT.DT].copy(), self.robot_status())
         t, dt, status = self._clock
         from_clock = self._limit is None
-        self._limit = (t if from_clock else self._limit) + float(period)  # what the device computes, the same sum
-        n = self._steps_to_limit(t, dt, status)
+        limit = (t if from_clock else self._limit) + float(period)  # what the device computes: the same sum
+        n = self._steps_to_limit(t, dt, status, limit)
         stage, length = self._arrays.buffer("commands", np.dtype(np.float64), max(1, c.size))
         runtime.upload(stage, np.concatenate([c, np.zeros(length - c.size)]))
         out, _ = self._arrays.staging(np.dtype(np.float64), self._readout_size())
-        k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
-        args = (*buffers, stage, out, float(period), float(ramp), int(from_clock))
-        if R == 0:
+        k = self.kernels
+        args = dict(zip(BUFFERS, (self._buffers[name] for name in BUFFERS), strict=True))
+        args.update(commands=stage, out=out, period=float(period), ramp=float(ramp), from_clock=int(from_clock))
+        # flat: launches rounded up to a multiple of GRAPH_BUCKET (idle steps), so that a period whose step count
+        # wavers by one, or rl4design's, reuses a few graphs
+        launches = min(_ceil_div(_ceil_div(n, UNROLL), GRAPH_BUCKET) * GRAPH_BUCKET, self.config.graph_launches)
+        if self.layout.num_robots == 0:
             pass
         elif self.schedule == "robots":
-            k.control_robots(*args, n, self._workers)
+            k.control_robots(*(args[name] for name in CONTROL_ARGS[:-1]), n, self._workers)
             self.steps_done += n
-        elif self.config.graph_launches and (graph := k.control_graph(_ceil_div(n, UNROLL))) is not None:
-            graph.run(dict(zip(CONTROL_ARGS, (*args, UNROLL), strict=True)))
-            self.steps_done += _ceil_div(n, UNROLL) * UNROLL
-        else:  # (quadrants: no compute graphs; or graph_launches=0)
-            k.command(*args[:4], *args[5:])
+        elif self.config.graph_launches and launches * UNROLL >= n and (graph := k.control_graph(launches)) is not None:
+            graph.run({**args, "n_steps": UNROLL})
+            self.steps_done += launches * UNROLL
+        else:
+            k.command(*(args[name] for name in COMMAND_ARGS))
             self._advance(n)
-            k.sense(*buffers, out)
-        self._commands, self._ramp = c.copy(), float(ramp)
+            k.sense(*(args[name] for name in (*BUFFERS, "out")))
+        self._limit, self._commands, self._ramp = limit, c.copy(), float(ramp)
         readout, dt = self._read(out)
-        if self._steps_to_limit(readout.time, dt, readout.status):
+        if self._steps_to_limit(readout.time, dt, readout.status, limit):
             self._run_to_limit()
             readout, dt = self._read(self._sense_into())
-        self._clock = (readout.time, dt, readout.status)
+        self._clock = (readout.time.copy(), dt, readout.status.copy())
         return readout
 
     def snapshot(self) -> dict[str, Any]:

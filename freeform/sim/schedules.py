@@ -176,7 +176,8 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
                        ramp: ti.f64, from_clock: ti.i32, n_steps: ti.i32, workers: ti.i32):
         """A whole control step in one launch of the robots schedule: the commands written, ``n_steps`` steps
         of every robot (each idles once its clock passes its limit), the senses read (sensing.py). Its loops run in
-        order, each a parallel task."""
+        order, each a parallel task; they repeat ``command``'s and ``sense``'s because Taichi runs in parallel only
+        the loops a kernel itself holds at its top level."""
         for v in range(ints[HDR.N_VOXELS]):
             h = header(ints)
             command_voxel(v, bind(reals, ints, f64s, h, switches), commands, ramp)

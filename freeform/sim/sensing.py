@@ -2,9 +2,9 @@
 
 The sensing array ``out`` (f64 ``[n·SENSE.width + R·ROBOT_SENSE.width]``) holds, for every voxel, a row of
 ``state.SENSE`` (its position relative to its robot's centre of mass, its velocity, the mean |strain| of its links,
-ground contact), then every robot's row of ``state.ROBOT_SENSE`` (its centre of mass, clock, dt, clock limit and
-status). One thread per robot sums its voxels in order (as ``summaries.py``: no float atomics, the same sums on
-every run), then one thread per voxel. The funcs are shared by the ``sense`` kernel here and by the one-call
+ground contact), then every robot's row of ``state.ROBOT_SENSE`` (its centre of mass, clock, dt and status). One
+thread per robot sums its voxels in order (as ``summaries.py``: no float atomics, the same sums on every run), then
+one thread per voxel. The funcs are shared by the ``sense`` kernel here and by the one-call
 control step (``schedules.py``), which senses at the end of the same launch.
 """
 
@@ -45,7 +45,6 @@ def make_sensing(precision: str, order: str) -> SimpleNamespace:
             out[row + ROBOT_SENSE.COM + k] = mx[k] / m
         out[row + ROBOT_SENSE.T] = ld(s.rt, RT.T, r)
         out[row + ROBOT_SENSE.DT] = ld(s.rt, RT.DT, r)
-        out[row + ROBOT_SENSE.UNTIL] = ld(s.rt, RT.UNTIL, r)
         out[row + ROBOT_SENSE.STATUS] = ti.cast(ld(s.ri, RI.STATUS, r), ti.f64)
 
     @ti.func

@@ -124,9 +124,9 @@ SUMMARY = Table("robot_summary", F64, "robots", (
 # rows, ROBOT_SENSE): its position relative to its robot's centre of mass (m), its velocity (m/s), the
 # mean |axial strain| of its links, ground contact (0/1)
 SENSE = Table("voxel_sense", F64, "voxels", (("REL", 3), ("VEL", 3), ("STRAIN", 1), ("CONTACT", 1)))
-# ... and of one robot (the rows after the voxels'): its centre of mass (m), its clock, dt and clock limit
-# (RT.T, RT.DT, RT.UNTIL) and status, so that one copy back tells the host where every robot is after a control step
-ROBOT_SENSE = Table("robot_sense", F64, "robots", (("COM", 3), ("T", 1), ("DT", 1), ("UNTIL", 1), ("STATUS", 1)))
+# ... and of one robot (the rows after the voxels'): its centre of mass (m), its clock and dt (RT.T, RT.DT) and
+# status, so that one copy back tells the host where every robot is after a control step
+ROBOT_SENSE = Table("robot_sense", F64, "robots", (("COM", 3), ("T", 1), ("DT", 1), ("STATUS", 1)))
 
 # global parameters (a plain f64 vector)
 # TER_*: the terrain's height field S(x, y) = BASE + GX·x + GY·y + grid (terrain.HeightField; the grid itself is the
