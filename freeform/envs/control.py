@@ -433,11 +433,11 @@ def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = No
         return out
     engine = simulator.engine(layout)
     engine.advance_time(control.burn_in)
-    start = engine.sense().com
+    start = engine.sense()
     engine.advance_time(control.duration)
-    end = engine.sense().com
-    ok = (engine.robot_status() == RUNNING)[:, None]
-    out[layout.body_of_robot] = np.where(ok, (end - start)[:, :2] / sim.voxel_size, 0.0)  # (an empty grid: no robot)
+    end = engine.sense()
+    ok = (end.status == RUNNING)[:, None]
+    out[layout.body_of_robot] = np.where(ok, (end.com - start.com)[:, :2] / sim.voxel_size, 0.0)  # (empty grid: no robot)
     return out
 
 

@@ -187,7 +187,7 @@ class Engine:
         self.steps_done = 0
         self.trace_steps = 0  # the trace (start_trace): off until asked for
         self._limit: np.ndarray | None = None  # each robot's clock limit while advance_time steps it
-        # every robot's (clock, dt, status) as the last control step read them back; None once anything else steps
+        # every robot's (clock, dt, status) as the last readout gave them; None once anything else steps or writes
         self._clock: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._commands, self._ramp = np.zeros(layout.num_voxels), 0.0  # the host's copies of VR.CMD and RT.RAMP
 
@@ -304,12 +304,16 @@ class Engine:
         """Step until every running robot's clock has passed its limit; the steps issued."""
         steps = 0
         while True:
-            rt = self._table("rt")
-            n = self._steps_to_limit(rt[RT.T], rt[RT.DT], self.robot_status(), self._limit)
+            n = self._steps_to_limit(*self._read_clock(), self._limit)
             if n == 0:
                 return steps
             self._advance(n)
             steps += n
+
+    def _read_clock(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every robot's clock, dt and status, read back from the device."""
+        rt = self._table("rt")
+        return rt[RT.T].copy(), rt[RT.DT].copy(), self.robot_status()
 
     @staticmethod
     def _steps_to_limit(t: np.ndarray, dt: np.ndarray, status: np.ndarray, limit: np.ndarray) -> int:
@@ -333,10 +337,7 @@ class Engine:
         if np.ndim(period) != 0 or not (np.isfinite(period) and period > 0):
             raise ValueError(f"period must be one number of seconds, finite and > 0 (per-robot periods: "
                              f"advance_time), got {period!r}")
-        if self._clock is None:
-            rt = self._table("rt")
-            self._clock = (rt[RT.T].copy(), rt[RT.DT].copy(), self.robot_status())
-        t, dt, status = self._clock
+        t, dt, status = self._read_clock() if self._clock is None else self._clock
         from_clock = self._limit is None
         limit = (t if from_clock else self._limit) + float(period)  # what the device computes: the same sum
         n = self._steps_to_limit(t, dt, status, limit)
@@ -355,18 +356,17 @@ class Engine:
             k.control_robots(*(args[name] for name in CONTROL_ARGS[:-1]), n, self._workers)
             self.steps_done += n
         elif self.config.graph_launches and launches * UNROLL >= n and (graph := k.control_graph(launches)) is not None:
-            graph.run({**args, "n_steps": UNROLL})
+            graph.run({**args, "n_steps": UNROLL})  # (every launch UNROLL steps: the last ones idle)
             self.steps_done += launches * UNROLL
         else:
             k.command(*(args[name] for name in COMMAND_ARGS))
             self._advance(n)
             k.sense(*(args[name] for name in (*BUFFERS, "out")))
         self._limit, self._commands, self._ramp = limit, c.copy(), float(ramp)
-        readout, dt = self._read(out)
-        if self._steps_to_limit(readout.time, dt, readout.status, limit):
+        readout = self._read(out)
+        if self._steps_to_limit(*self._clock, limit):
             self._run_to_limit()
-            readout, dt = self._read(self._sense_into())
-        self._clock = (readout.time.copy(), dt, readout.status.copy())
+            readout = self._read(self._sense_into())
         return readout
 
     def snapshot(self) -> dict[str, Any]:
@@ -398,7 +398,7 @@ class Engine:
     def sense(self) -> Readout:
         """What a controller senses, gathered on the device in one kernel (``sensing.py``) and copied back once."""
         self._check_owner()
-        return self._read(self._sense_into())[0]
+        return self._read(self._sense_into())
 
     def _readout_size(self) -> int:
         return self.layout.num_voxels * SENSE.width + self.layout.num_robots * ROBOT_SENSE.width
@@ -410,15 +410,17 @@ class Engine:
             self.kernels.sense(*(self._buffers[name] for name in BUFFERS), out)
         return out
 
-    def _read(self, out) -> tuple[Readout, np.ndarray]:
-        """The sensing array copied back: the readout, and every robot's dt ``[R]``."""
+    def _read(self, out) -> Readout:
+        """The sensing array copied back as a readout; the robots' clocks, dts and statuses in it are the host's
+        view of them until anything else steps or writes the robots (``_clock``: the next control step's steps)."""
         n, R = self.layout.num_voxels, self.layout.num_robots
         values = runtime.to_numpy(out)[: self._readout_size()]
         robots = values[n * SENSE.width:].reshape(R, ROBOT_SENSE.width)
         readout = Readout(voxels=values[: n * SENSE.width].reshape(n, SENSE.width),
                           com=robots[:, ROBOT_SENSE.span("COM")], time=robots[:, ROBOT_SENSE.T].copy(),
                           status=robots[:, ROBOT_SENSE.STATUS].astype(np.int32))
-        return readout, robots[:, ROBOT_SENSE.DT].copy()
+        self._clock = (readout.time.copy(), robots[:, ROBOT_SENSE.DT].copy(), readout.status.copy())
+        return readout
 
     def set_commands(self, commands, ramp: float = 0.0) -> None:
         """Each voxel's actuation command (float ``[n]``, the layout's voxel order; numpy or a CPU tensor): from the

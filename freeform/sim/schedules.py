@@ -233,60 +233,43 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         bound when it runs (``graph.run({name: value})``, the names of ``run_flat``'s arguments): the launches are
         issued from C++, without Python's per-launch cost. None where the backend has no compute graphs
         (quadrants) or ``launches`` is 0; built once per kernel variant and length."""
-        key = ("flat", launches)
-        if key not in graphs:
-            graphs[key] = None
-            if launches and hasattr(ti.graph, "GraphBuilder"):
-                try:
-                    graphs[key] = _build_flat_graph(launches)
-                except Exception as exc:  # a backend or arch whose graphs fail: launch from Python, say so once
-                    warnings.warn(f"freeform.sim: no compute graph for the flat schedule ({type(exc).__name__}: "
-                                  f"{exc}); launching from Python", RuntimeWarning, stacklevel=3)
-        return graphs[key]
+        return _graph(False, launches) if launches else None
 
     def control_graph(launches: int):
         """A compute graph of one control step on the flat schedule, bound by ``CONTROL_ARGS``' names: ``command``,
         ``launches`` launches of ``run_flat`` (``n_steps`` each, at most ``UNROLL``), ``sense``. None where the
         backend has no compute graphs; built once per kernel variant and length."""
-        key = ("control", launches)
+        return _graph(True, launches)
+
+    def _graph(control: bool, launches: int):
+        """The graph of ``launches`` ``run_flat`` launches, between ``command`` and ``sense`` for a control step,
+        built on first use; None (said once) where the backend has none or building it fails."""
+        key = (control, launches)
         if key not in graphs:
             graphs[key] = None
             if hasattr(ti.graph, "GraphBuilder"):
                 try:
-                    graphs[key] = _build_control_graph(launches)
-                except Exception as exc:
-                    warnings.warn(f"freeform.sim: no compute graph for a control step ({type(exc).__name__}: "
+                    args = _graph_args(CONTROL_ARGS if control else FLAT_ARGS)
+                    builder = ti.graph.GraphBuilder()
+                    if control:
+                        builder.dispatch(command, *(args[name] for name in COMMAND_ARGS))
+                    for _ in range(launches):
+                        builder.dispatch(run_flat, *(args[name] for name in FLAT_ARGS))
+                    if control:
+                        builder.dispatch(sensing.sense, *(args[name] for name in (*BUFFERS, "out")))
+                    graphs[key] = builder.compile()
+                except Exception as exc:  # a backend or arch whose graphs fail: launch from Python, say so once
+                    warnings.warn(f"freeform.sim: no compute graph for the flat schedule ({type(exc).__name__}: "
                                   f"{exc}); launching from Python", RuntimeWarning, stacklevel=3)
         return graphs[key]
 
     def _graph_args(names):
-        kinds = {"commands": ("NDARRAY", ti.f64), "out": ("NDARRAY", ti.f64), "period": ("SCALAR", ti.f64),
-                 "ramp": ("SCALAR", ti.f64), "from_clock": ("SCALAR", ti.i32), "n_steps": ("SCALAR", ti.i32)}
-        args = {}
-        for name in names:
-            if name in BUFFERS:
-                args[name] = acc.graph_arg(name)
-            elif kinds[name][0] == "NDARRAY":
-                args[name] = ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=kinds[name][1], ndim=1)
-            else:
-                args[name] = ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=kinds[name][1])
-        return args
-
-    def _build_flat_graph(launches: int):
-        args = _graph_args(FLAT_ARGS)
-        builder = ti.graph.GraphBuilder()
-        for _ in range(launches):
-            builder.dispatch(run_flat, *(args[name] for name in FLAT_ARGS))
-        return builder.compile()
-
-    def _build_control_graph(launches: int):
-        args = _graph_args(CONTROL_ARGS)
-        builder = ti.graph.GraphBuilder()
-        builder.dispatch(command, *(args[name] for name in COMMAND_ARGS))
-        for _ in range(launches):
-            builder.dispatch(run_flat, *(args[name] for name in FLAT_ARGS))
-        builder.dispatch(sensing.sense, *(args[name] for name in (*BUFFERS, "out")))
-        return builder.compile()
+        """The graph's placeholders for the arguments ``names``, by name."""
+        scalars = {"period": ti.f64, "ramp": ti.f64, "from_clock": ti.i32, "n_steps": ti.i32}
+        return {name: acc.graph_arg(name) if name in BUFFERS
+                else ti.graph.Arg(ti.graph.ArgKind.SCALAR, name, dtype=scalars[name]) if name in scalars
+                else ti.graph.Arg(ti.graph.ArgKind.NDARRAY, name, dtype=ti.f64, ndim=1)  # commands, out
+                for name in names}
 
     graphs: dict = {}
     return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, flat_graph=flat_graph, command=command,
