@@ -1,6 +1,7 @@
-"""PPO in four files, following the data: ``config`` (PPOConfig, presets) → ``rollout`` (storage, the minibatch's
-named sample columns) → ``losses`` (the pure functions) → ``ppo`` (the class: ``collect`` and ``update`` as named
-steps). ``from freeform.agents.ppo import ...`` gives every public name of the four."""
+"""PPO, following the data: ``config`` (PPOConfig, presets) → ``rollout`` (storage, the minibatch's named sample
+columns) → ``losses`` (the pure functions) → ``collect`` (rollout collection) → ``update`` (minibatch SGD, the KL
+rule; ``graphed``: its CUDA graph) → ``checkpoints`` (state, save, load) → ``ppo`` (the public class, whose parts the
+collection, update and checkpoints are). ``from freeform.agents.ppo import ...`` gives every public name."""
 
 from freeform.agents.ppo.config import (
     ADVANTAGE_NORMS,
