@@ -16,6 +16,7 @@ critic once over the whole rollout, which with one env is most of the acting cos
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from typing import Any, Protocol, runtime_checkable
@@ -155,6 +156,13 @@ class VoxelActorCritic(nn.Module):
         x = F.relu(self.conv1(self.one_hot(grids)))
         x = F.relu(self.conv2(x))
         return self.trunk_fc(x.flatten(1))
+
+    def for_export(self) -> VoxelActorCritic:
+        """The same network on the plain ``Conv3d`` trunk (the same function; ``torch.export`` traces it, not the
+        sparse CPU trunk): what ``PPO.export`` writes."""
+        twin = copy.deepcopy(self)
+        twin.trunk = "conv"
+        return twin
 
     def forward(self, grids: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """uint8 ``[N, ρ, ρ, ρ]`` → (mean ``[N, 3+k]``, log_std ``[N, 3+k]``, value ``[N]``), or (logits, value)."""

@@ -59,8 +59,14 @@ class RunningMeanStd:
 
     def normalize(self, x: torch.Tensor, clip: float, epsilon: float = 1e-8) -> torch.Tensor:
         """``clip((x − mean) / sqrt(var + ε), ±clip)`` as float32."""
-        out = (x - self.mean) / torch.sqrt(self.var + epsilon)  # float64: the subtraction promotes x
-        return out.clamp_(-clip, clip).to(torch.float32)
+        return self.normalize_with(x, self.mean, self.var, clip, epsilon)
+
+    @staticmethod
+    def normalize_with(x: torch.Tensor, mean: torch.Tensor, var: torch.Tensor, clip: float,
+                       epsilon: float = 1e-8) -> torch.Tensor:
+        """:meth:`normalize` with given statistics (what an exported policy folds in)."""
+        out = (x - mean) / torch.sqrt(var + epsilon)  # float64: the subtraction promotes x
+        return out.clamp(-clip, clip).to(torch.float32)
 
     def state_dict(self) -> dict[str, torch.Tensor]:
         count = torch.tensor(self.count, dtype=torch.float64)

@@ -22,6 +22,7 @@ uses the statistics of the global batch; the rules are in ``distributed.py`` (``
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -177,6 +178,14 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         """
         x = self.normalize_obs(self._here(obs))
         return self.distribution.env_actions(self._sample(x, deterministic)[0]).to(self.env.device)
+
+    def export(self, path: str | os.PathLike, opset: int | None = None) -> str:
+        """Write the actor's deterministic action to ``path`` as ONNX, observation normalisation folded in: the file
+        takes raw observations and returns what ``act(obs, deterministic=True)`` does (inputs, outputs and what
+        cannot be exported: ``freeform.agents.ppo.export``). Needs the ``export`` extra; returns the path."""
+        from freeform.agents.ppo.export import export_onnx
+
+        return export_onnx(self, path, opset)
 
     # -- the loop --------------------------------------------------------------------------------------------------
 
