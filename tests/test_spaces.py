@@ -316,7 +316,7 @@ class MatchNet(torch.nn.Module):
 def test_dict_observations_reach_a_users_network_by_name(tmp_path: Any) -> None:
     """``dict_obs=True``: the rollout keeps each part ([T, N, ...] per key; the MultiDiscrete target one-hot), PPO
     learns MatchEnv through a network that reads the parts by name, and a checkpoint round trip restores the dict
-    observation; obs_norm, which normalises one tensor, is refused."""
+    observation; obs_norm keeps statistics per part."""
     env = from_gymnasium(vector(MatchEnv), dict_obs=True)
     assert env.observation_shape == {"target": (7,), "noise": (2,)}
     torch.manual_seed(0)
@@ -331,8 +331,8 @@ def test_dict_observations_reach_a_users_network_by_name(tmp_path: Any) -> None:
         loaded = PPO.load(tmp_path / "match.pt", from_gymnasium(vector(MatchEnv), dict_obs=True),
                           policy_classes=[MatchNet])
     assert all(torch.equal(loaded.obs[k], ppo.obs[k]) for k in ppo.obs)
-    with pytest.raises(ValueError, match="obs_norm normalises one observation tensor"):
-        PPO(env, MatchNet(), PPOConfig(rollout_steps=4, obs_norm=True))
+    normed = PPO(env, MatchNet(), PPOConfig(rollout_steps=4, obs_norm=True))
+    assert set(normed.obs_rms) == {"target", "noise"} and normed.obs_rms["noise"].mean.shape == (2,)
 
 
 class GuessMaterialEnv:

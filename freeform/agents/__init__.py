@@ -11,6 +11,8 @@ from freeform.agents.networks import (
     MLPController,
     VoxelActorCritic,
 )
+from freeform.agents.observation_groups import GroupedMLPActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
 
 __all__ = ["PPO", "CodesignActorCritic", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]
+__all__ += ["GroupedMLPActorCritic"]

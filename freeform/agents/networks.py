@@ -239,7 +239,12 @@ class MLPActorCritic(nn.Module):
     @classmethod
     def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> MLPActorCritic:
         """The network for a ``VecEnv``: its flattened observation size and its ``action_distribution`` (a
-        Gaussian over ``action_dim`` where it declares none)."""
+        Gaussian over ``action_dim`` where it declares none). An env observing the groups ``"policy"`` and
+        ``"critic"`` gets the grouped network (``freeform.agents.observation_groups``)."""
+        from freeform.agents import observation_groups
+
+        if observation_groups.is_grouped(env.observation_shape):
+            return observation_groups.GroupedMLPActorCritic.for_env(env, hidden)
         if isinstance(env.observation_shape, Mapping):
             raise ValueError(f"MLPActorCritic reads one flat observation, and this env observes a dict of them "
                              f"{dict(env.observation_shape)}: flatten them (from_gymnasium's default) or write a "

@@ -47,7 +47,7 @@ class Checkpoints:
     obs: Observation
     episode_return: torch.Tensor
     episode_length: torch.Tensor
-    obs_rms: RunningMeanStd | None
+    obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None
     return_rms: RunningMeanStd | None
     discounted_return: torch.Tensor
     _collector: EpisodeCollector
@@ -73,7 +73,9 @@ class Checkpoints:
             PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
             "episode_carry": self._collector.state_dict(),  # global: cut from the gathered rollout
         }
-        if self.obs_rms is not None:
+        if isinstance(self.obs_rms, dict):  # per part of a dict observation
+            state["obs_rms"] = {k: rms.state_dict() for k, rms in self.obs_rms.items()}
+        elif self.obs_rms is not None:
             state["obs_rms"] = self.obs_rms.state_dict()
         if self.return_rms is not None:
             state["return_rms"] = self.return_rms.state_dict()
@@ -105,7 +107,13 @@ class Checkpoints:
             if rms is not None:
                 if name not in state:
                     raise ValueError(f"the config normalises ({name}) but the state holds no {name} statistics")
-                rms.load_state_dict(state[name])
+                if isinstance(rms, dict):
+                    if set(rms) != set(state[name]):
+                        raise ValueError(f"the state's {name} has parts {sorted(state[name])}, this run {sorted(rms)}")
+                    for key, part in rms.items():
+                        part.load_state_dict(state[name][key])
+                else:
+                    rms.load_state_dict(state[name])
         if self.return_rms is not None:
             self.discounted_return = per_env["discounted_return"].to(self.device, torch.float64)
         if "env" in state:
@@ -243,8 +251,9 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
         MLPController,
         VoxelActorCritic,
     )
+    from freeform.agents.observation_groups import GroupedMLPActorCritic
 
-    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic)
+    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic, GroupedMLPActorCritic)
 
 
 __all__ = ["Checkpoints", "builtin_policies", "policy_class_name"]

@@ -39,7 +39,7 @@ class RolloutCollection:
     episode_infos: list[dict[str, Any]]
     episode_return: torch.Tensor
     episode_length: torch.Tensor
-    obs_rms: RunningMeanStd | None
+    obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None
     return_rms: RunningMeanStd | None
     discounted_return: torch.Tensor
 
@@ -71,16 +71,22 @@ class RolloutCollection:
         """V(obs) ``[N]`` for observations as the policy sees them."""
         return self.policy.value(obs) if self.critic_apart else self.policy(obs)[-1]
 
-    def normalize_obs(self, obs: torch.Tensor) -> torch.Tensor:
-        """What the policy sees: ``obs`` itself, or with ``obs_norm`` ``clip((obs − μ) / √(σ² + 1e-8), ±obs_clip)``."""
-        if self.obs_rms is None:
+    def normalize_obs(self, obs: Observation) -> Observation:
+        """What the policy sees: ``obs`` itself, or with ``obs_norm`` ``clip((obs − μ) / √(σ² + 1e-8), ±obs_clip)``
+        (each part of a dict observation by its own statistics: per group)."""
+        rms, clip = self.obs_rms, self.config.obs_clip
+        if rms is None:
             return obs
-        return self.obs_rms.normalize(obs, self.config.obs_clip)
+        if isinstance(rms, dict):
+            return {k: rms[k].normalize(x, clip) for k, x in obs.items()}
+        return rms.normalize(obs, clip)
 
-    def _update_obs_rms(self, obs: torch.Tensor) -> None:
-        if self.obs_rms is not None:
-            obs, shape = self.dp.gather_envs(obs), self.obs_rms.mean.shape  # every rank's envs
-            self.obs_rms.update(obs if obs.shape[1:] == shape else obs.reshape(-1, *shape))
+    def _update_obs_rms(self, obs: Observation) -> None:
+        rms = self.obs_rms
+        for stats, x in (zip(rms.values(), (obs[k] for k in rms), strict=True) if isinstance(rms, dict)
+                         else ((rms, obs),) if rms is not None else ()):
+            x, shape = self.dp.gather_envs(x), stats.mean.shape  # every rank's envs
+            stats.update(x if x.shape[1:] == shape else x.reshape(-1, *shape))
 
     def _scale_rewards(self, rewards: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
         """``reward_norm``: the rollout's rewards ``[T, N]`` divided by √(Var[discounted return] + 1e-8), clipped.

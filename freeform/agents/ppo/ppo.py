@@ -35,6 +35,7 @@ from freeform.agents.distributions import ActionDistribution, DiagGaussian, Mask
 from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import DeclaresDistribution, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
+from freeform.agents.observation_groups import GROUPS, is_grouped, without_critic
 from freeform.agents.ppo.checkpoints import Checkpoints, builtin_policies, policy_class_name
 from freeform.agents.ppo.collect import RolloutCollection
 from freeform.agents.ppo.config import PPOConfig
@@ -95,6 +96,13 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         self.critic_apart = isinstance(policy, SplitActorCritic)
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
+        self.grouped = is_grouped(env.observation_shape)
+        """The env observes the groups ``"policy"`` and ``"critic"`` (``observation_groups.py``): the actor must read
+        ``"policy"`` alone, so the policy runs its halves apart."""
+        if self.grouped and not self.critic_apart:
+            raise ValueError(f"this env observes the groups {GROUPS}, of which the actor may read only 'policy': "
+                             f"{type(policy).__name__} must run its actor apart from its critic (action_params(obs) "
+                             "and value(obs), as MLPActorCritic.for_env(env)'s GroupedMLPActorCritic does)")
         self.flat = FlatParameters(self.policy.parameters())
         """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
         clipping and zeroing are one operation each (``flat_params.py``)."""
@@ -123,10 +131,11 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         self._eval_seeded = False
         # Running statistics of the optional normalisations (None when off, the paper's case).
         obs_shape = env.observation_shape
-        if config.obs_norm and isinstance(obs_shape, Mapping):
-            raise ValueError("obs_norm normalises one observation tensor, and this env observes a dict of them: "
-                             "normalise inside the policy, or let the env flatten its observations")
-        self.obs_rms = RunningMeanStd(tuple(obs_shape), self.device) if config.obs_norm else None
+        self.obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None = None
+        """``obs_norm``'s running statistics: one, or one per part of a dict observation (per group)."""
+        if config.obs_norm:
+            self.obs_rms = ({k: RunningMeanStd(tuple(s), self.device) for k, s in obs_shape.items()}
+                            if isinstance(obs_shape, Mapping) else RunningMeanStd(tuple(obs_shape), self.device))
         self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
         # float64 as the statistics (Gymnasium's too); only with reward_norm, as no float64 may exist (MPS)
         self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64 if config.reward_norm else torch.float32,
@@ -168,6 +177,15 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
             ):
                 raise ValueError("policy.action_params(obs) and policy.value(obs) must give what forward(obs) gives "
                                  f"(the distribution's parameters and the value, shapes {shapes})")
+        if self.grouped:  # the actor on the policy group alone: it must not need, nor read, the critic's
+            try:
+                alone = self.policy.action_params(without_critic(self.normalize_obs(self.obs)))
+            except KeyError as e:
+                raise ValueError(f"the actor of {type(self.policy).__name__} reads {e} of the observation, and it may "
+                                 "read only the 'policy' group (the 'critic' group is the critic's)") from e
+            if not all(torch.equal(a, o) for a, o in zip(alone, outputs, strict=False)):
+                raise ValueError(f"the actor of {type(self.policy).__name__} gives other actions without the "
+                                 "'critic' group: it may read only the 'policy' group")
     @torch.no_grad()
     def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
         """Actions ``[N, A]`` for raw observations ``[N, ...]`` (the distribution's mode if ``deterministic``: a

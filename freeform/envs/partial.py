@@ -1,0 +1,50 @@
+"""Partial observability for Gymnasium tasks: ``HideEntries`` hides entries of a ``Box`` observation from the policy
+— CartPole without its velocities, Pendulum without its angular velocity: tasks that need memory — and, with
+``critic=True``, hands them to the critic alone as the ``"critic"`` observation group (a privileged critic:
+``freeform.agents.observation_groups``; read it through ``from_gymnasium(..., dict_obs=True)``).
+
+Gymnasium is optional (``pip install 'freeform[gym]'``); it is imported when this module is.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+
+class HideEntries(gym.ObservationWrapper):
+    """A ``Box`` observation less the entries ``hidden`` (indices into the flattened observation). ``critic=False``:
+    the observation is the kept entries, ``Box [K]``; ``critic=True``: ``Dict(policy=kept [K], critic=hidden
+    [H])``."""
+
+    def __init__(self, env: gym.Env, hidden: Sequence[int], critic: bool = False) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"HideEntries needs a Box observation space, got {space}")
+        size = int(np.prod(space.shape))
+        hidden = sorted({int(i) for i in hidden})
+        if not hidden or hidden[0] < 0 or hidden[-1] >= size or len(hidden) == size:
+            raise ValueError(f"hidden must name some, not all, of the observation's {size} entries, got {hidden}")
+        self.hidden = np.array(hidden)
+        self.kept = np.array([i for i in range(size) if i not in hidden])
+        low, high = space.low.reshape(-1), space.high.reshape(-1)
+
+        def box(idx: np.ndarray) -> gym.spaces.Box:
+            return gym.spaces.Box(low[idx], high[idx], (len(idx),), space.dtype)
+
+        self.critic = critic
+        self.observation_space = (gym.spaces.Dict({"policy": box(self.kept), "critic": box(self.hidden)}) if critic
+                                  else box(self.kept))
+
+    def observation(self, observation: Any) -> Any:
+        flat = np.asarray(observation).reshape(-1)
+        if self.critic:
+            return {"policy": flat[self.kept], "critic": flat[self.hidden]}
+        return flat[self.kept]
+
+
+__all__ = ["HideEntries"]
