@@ -13,6 +13,7 @@ from freeform.agents.networks import (
 )
 from freeform.agents.observation_groups import GroupedMLPActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
+from freeform.agents.recurrent import RecurrentActorCritic
 
 __all__ = ["PPO", "CodesignActorCritic", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]
-__all__ += ["GroupedMLPActorCritic"]
+__all__ += ["GroupedMLPActorCritic", "RecurrentActorCritic"]

@@ -22,6 +22,8 @@ from freeform.agents.ppo.losses import (
     gaussian_log_prob,
     minibatch_loss,
     ppo2_value_loss,
+    ppo_loss,
+    sequence_minibatch_loss,
     standardize,
     update_kl_coeff,
 )
@@ -40,5 +42,6 @@ from freeform.agents.ppo.rollout import (
 __all__ = ["ADVANTAGE_NORMS", "CLEANRL_DISCRETE_PRESET", "CLEANRL_PRESET", "LR_SCHEDULES", "PPO", "VALUE_CLIP_MODES", "PPOConfig", "Rollout",
            "Samples", "Observation", "builtin_policies", "choose_distribution", "obs_first", "obs_map", "obs_shapes", "clamped_value_loss", "clipped_surrogate", "compute_advantages",
            "discounted_cumsum", "explained_variance", "gaussian_entropy", "gaussian_kl", "gaussian_log_prob",
-           "minibatch_loss", "minibatch_samples", "policy_class_name", "ppo2_value_loss", "sample_columns",
+           "minibatch_loss", "minibatch_samples", "policy_class_name", "ppo2_value_loss", "ppo_loss", "sample_columns",
+           "sequence_minibatch_loss",
            "standardize", "update_kl_coeff"]

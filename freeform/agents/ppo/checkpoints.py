@@ -53,6 +53,9 @@ class Checkpoints:
     _collector: EpisodeCollector
     _collected: int
     _graphed: GraphedMinibatchStep | None
+    recurrent: bool
+    policy_state: tuple[torch.Tensor, ...]
+    episode_start: torch.Tensor
     _here: Callable[[Observation], Observation]  # (RolloutCollection)
     _lr_value: Callable[[float], float | torch.Tensor]  # (MinibatchUpdate)
 
@@ -73,6 +76,9 @@ class Checkpoints:
             PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
             "episode_carry": self._collector.state_dict(),  # global: cut from the gathered rollout
         }
+        if self.recurrent:  # the state after the last observation, and whether the next one starts an episode
+            state[PER_ENV].update({f"policy_state_{i}": s for i, s in enumerate(self.policy_state)},
+                                  episode_start=self.episode_start)
         if isinstance(self.obs_rms, dict):  # per part of a dict observation
             state["obs_rms"] = {k: rms.state_dict() for k, rms in self.obs_rms.items()}
         elif self.obs_rms is not None:
@@ -103,6 +109,13 @@ class Checkpoints:
         self.obs = self._here(per_env["obs"])
         self.episode_return = per_env["episode_return"].to(self.device)
         self.episode_length = per_env["episode_length"].to(self.device)
+        if self.recurrent:
+            saved = sorted(k for k in per_env if k.startswith("policy_state_"))
+            if len(saved) != len(self.policy_state):
+                raise ValueError(f"the state holds {len(saved)} recurrent state tensors, and this policy has "
+                                 f"{len(self.policy_state)}")
+            self.policy_state = tuple(per_env[f"policy_state_{i}"].to(self.device) for i in range(len(saved)))
+            self.episode_start = per_env["episode_start"].to(self.device, torch.bool)
         for name, rms in (("obs_rms", self.obs_rms), ("return_rms", self.return_rms)):
             if rms is not None:
                 if name not in state:
@@ -252,8 +265,10 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
         VoxelActorCritic,
     )
     from freeform.agents.observation_groups import GroupedMLPActorCritic
+    from freeform.agents.recurrent import RecurrentActorCritic
 
-    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic, GroupedMLPActorCritic)
+    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic, GroupedMLPActorCritic,
+            RecurrentActorCritic)
 
 
 __all__ = ["Checkpoints", "builtin_policies", "policy_class_name"]

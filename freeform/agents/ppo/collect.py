@@ -32,6 +32,9 @@ class RolloutCollection:
     device: torch.device
     generator: torch.Generator
     critic_apart: bool
+    recurrent: bool
+    policy_state: tuple[torch.Tensor, ...]
+    episode_start: torch.Tensor
     num_envs: int
     global_step: int
     obs: Observation
@@ -62,6 +65,26 @@ class RolloutCollection:
             noise = self.dp.env_noise(params[0].new_empty(params[0].shape[0], self.env.action_dim), self.generator,
                                       self.distribution.noise_kind)
         return self.distribution.sample(params, noise), value, params
+
+    def _sample_recurrent(
+        self, obs: Observation, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor,
+        deterministic: bool = False, noise: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        """:meth:`_sample` for a recurrent policy: obs ``[N, ...]``, its ``state`` before this step and
+        ``episode_start [N]`` (reset there first) → (action, value ``[N]``, parameters, the state after the step)."""
+        *params, value, state = self.policy(obs_map(lambda x: x[None], obs), state, episode_start[None])
+        params = tuple(p[0] for p in params)
+        if deterministic:
+            return self.distribution.mode(params), value[0], params, state
+        if noise is None:
+            noise = self.dp.env_noise(params[0].new_empty(params[0].shape[0], self.env.action_dim), self.generator,
+                                      self.distribution.noise_kind)
+        return self.distribution.sample(params, noise), value[0], params, state
+
+    def _recurrent_value(self, obs: Observation, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+                         ) -> torch.Tensor:
+        """V(obs) ``[N]`` of a recurrent policy from ``state`` (its state is not advanced)."""
+        return self.policy(obs_map(lambda x: x[None], obs), state, episode_start[None])[-2][0]
 
     def _here(self, obs: Observation) -> Observation:
         """``obs`` on the PPO device (no operation where it is there already)."""
@@ -148,9 +171,16 @@ class RolloutCollection:
         # The env's tensors are moved or cast only where they need it: even a no-op .to() is an operation.
         env_device = self.env.device
         here = env_device is not None and torch.device(env_device) == self.device
+        states, starts = [], []  # a recurrent policy's, before each step
         for t in range(cfg.rollout_steps):
             x = self.normalize_obs(self.obs)
-            action, value, step_params = self._sample(x, noise=noise[t])
+            if self.recurrent:  # the state carried from the last step; reset where this observation starts an episode
+                states.append(self.policy_state)
+                starts.append(self.episode_start)
+                action, value, step_params, self.policy_state = self._sample_recurrent(
+                    x, self.policy_state, self.episode_start, noise=noise[t])
+            else:
+                action, value, step_params = self._sample(x, noise=noise[t])
             for store, item in ((seen, x), (actions, action), (values, value), (params, step_params)):
                 store.append(item)  # (values: None when the critic runs apart, after the loop)
             to_env = dist.env_actions(action)  # (a Gaussian's: the same tensor)
@@ -180,9 +210,13 @@ class RolloutCollection:
                     if truncated.any():
                         any_truncated = True
                         buf.truncated[t] = truncated
-                        final_value = self._value(self.normalize_obs(self._here(info["final_obs"])))
+                        final = self.normalize_obs(self._here(info["final_obs"]))
+                        final_value = (self._recurrent_value(final, self.policy_state, torch.zeros_like(truncated))
+                                       if self.recurrent else self._value(final))  # the state before the reset
                         buf.final_values[t] = torch.where(truncated, final_value, 0.0)
             self.obs = next_obs
+            if self.recurrent:  # the next observation begins an episode (Gymnasium's next-step reset: the new one's)
+                self.episode_start = done | buf.valid[t].logical_not() if "autoreset" in info else done
         for name, steps in (("actions", actions), ("rewards", rewards), ("dones", dones)):
             torch.stack(steps, out=buf[name])
         if isinstance(buf.obs, torch.Tensor):
@@ -194,6 +228,10 @@ class RolloutCollection:
             torch.stack([p[i] for p in params], out=stored)
         if not self.critic_apart:
             torch.stack(values, out=buf.values)
+        for i, stored in enumerate(buf.states):
+            torch.stack([s[i] for s in states], out=stored)
+        if starts:
+            torch.stack(starts, out=buf.episode_starts)
         return time_env, scored, any_truncated
 
     def _complete_rollout(self) -> torch.Tensor:
@@ -229,7 +267,9 @@ class RolloutCollection:
         buf.rewards = self._scale_rewards(buf.rewards, starts)
         if self.return_rms is not None:
             self.discounted_return = torch.where(buf.dones[-1], 0.0, self.discounted_return)
-        buf.last_value = self._value(self.normalize_obs(self.obs))
+        seen = self.normalize_obs(self.obs)
+        buf.last_value = (self._recurrent_value(seen, self.policy_state, self.episode_start) if self.recurrent
+                          else self._value(seen))
         buf.advantages, buf.returns = compute_advantages(
             buf.rewards, buf.values, buf.dones, buf.last_value, cfg.gamma, cfg.gae_lambda,
             *((buf.truncated, buf.final_values) if any_truncated else ()),

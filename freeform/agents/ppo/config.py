@@ -47,6 +47,11 @@ class PPOConfig:
     """Samples per minibatch; each pass reshuffles and uses ⌊B / size⌋ minibatches (the tail is dropped)."""
     rollout_steps: int = 100
     """Steps T collected from every environment per epoch (train batch = T·N)."""
+    sequence_length: int = 32
+    """A recurrent policy's (``freeform.agents.recurrent``): each env's rollout is cut into chunks of this many steps
+    (the last one padded and masked), each trained from the state stored at its start (truncated backpropagation
+    through time); a minibatch holds ``max(1, sgd_minibatch_size // sequence_length)`` chunks. Feed-forward policies
+    ignore it."""
     grad_clip: float | None = None
     """Max global gradient norm; None = no clipping (paper)."""
     seed: int = 0
@@ -122,7 +127,8 @@ class PPOConfig:
         for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
             value = getattr(self, name)
             require(is_number(value) and value >= 0.0, f"{key}.{name}", ">= 0", value)
-        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes"):
+        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes",
+                     "sequence_length"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
         for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "cuda_graph", "bootstrap_truncated"):

@@ -156,8 +156,52 @@ def minibatch_loss(
     Returns ``(loss, stats [6])``: stats are the policy loss, value loss, KL(π_old ‖ π), entropy, clip fraction and
     loss, detached. A pure function of its inputs, so that ``PPOConfig.compile`` can hand it to ``torch.compile``.
     """
-    s = sample_columns(samples, dist.action_dim)
     *params, value = policy(obs)
+    return ppo_loss(tuple(params), value, dist, cfg, samples, advantages, kl_coeff, reduce)
+
+
+def sequence_minibatch_loss(
+    policy: nn.Module,
+    dist: ActionDistribution,
+    cfg: PPOConfig,
+    obs: torch.Tensor | dict[str, torch.Tensor],
+    state: tuple[torch.Tensor, ...],
+    episode_start: torch.Tensor,
+    mask: torch.Tensor,
+    samples: torch.Tensor,
+    advantages: torch.Tensor,
+    kl_coeff: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`minibatch_loss` for a recurrent policy, on S sequences of L steps (truncated BPTT).
+
+    ``obs [L, S, ...]``; ``state`` the policy's state at each sequence's first step (``[S, ...]`` each);
+    ``episode_start [L, S]`` bool (the state is reset before such a step); ``mask [L, S]`` bool, the steps that count
+    (False: padding past the rollout's end, or a step where the env only reset); ``samples [L·S, A + P + 3]`` and
+    ``advantages [L·S]`` in the same (time-major) order. The means are over the masked steps."""
+    *params, value, _ = policy(obs, state, episode_start)
+    flat = tuple(p.reshape(-1, p.shape[-1]) for p in params)
+    weight = mask.reshape(-1)
+    count = weight.sum().clamp_min(1).to(value.dtype)
+
+    def reduce(x: torch.Tensor) -> torch.Tensor:
+        return torch.where(weight, x, 0.0).sum() / count
+
+    return ppo_loss(flat, value.reshape(-1), dist, cfg, samples, advantages, kl_coeff, reduce)
+
+
+def ppo_loss(
+    params: tuple[torch.Tensor, ...],
+    value: torch.Tensor,
+    dist: ActionDistribution,
+    cfg: PPOConfig,
+    samples: torch.Tensor,
+    advantages: torch.Tensor,
+    kl_coeff: torch.Tensor | None,
+    reduce: Callable[[torch.Tensor], torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The loss and its statistics from the policy's outputs on M samples: ``params`` (the distribution's, ``[M,
+    P_i]`` each) and ``value [M]``; the other arguments as :func:`minibatch_loss`'s."""
+    s = sample_columns(samples, dist.action_dim)
     ratio = torch.exp(dist.log_prob(params, s.actions) - s.old_logprobs)
     policy_loss = -reduce(clipped_surrogate(ratio, advantages, cfg.clip_param))
     if cfg.value_clip == "squared":
@@ -177,5 +221,5 @@ def minibatch_loss(
 
 
 __all__ = ["clamped_value_loss", "clipped_surrogate", "compute_advantages", "discounted_cumsum", "explained_variance",
-           "gaussian_entropy", "gaussian_kl", "gaussian_log_prob", "minibatch_loss", "ppo2_value_loss", "standardize",
-           "update_kl_coeff"]
+           "gaussian_entropy", "gaussian_kl", "gaussian_log_prob", "minibatch_loss", "ppo2_value_loss", "ppo_loss",
+           "sequence_minibatch_loss", "standardize", "update_kl_coeff"]

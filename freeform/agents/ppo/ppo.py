@@ -41,8 +41,9 @@ from freeform.agents.ppo.collect import RolloutCollection
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
 from freeform.agents.ppo.losses import minibatch_loss
-from freeform.agents.ppo.rollout import Rollout, obs_shapes
+from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map, obs_shapes
 from freeform.agents.ppo.update import MinibatchUpdate, _own_code
+from freeform.agents.recurrent import RecurrentPolicy
 from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
 from freeform.records import EpisodeCollector
@@ -93,13 +94,17 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         if config.obs_norm and isinstance(self.distribution, MaskedDiagGaussian):
             raise ValueError("obs_norm would rescale the observation channel that the policy reads its action mask "
                              "from (a MaskedDiagGaussian's mask must stay 0/1): leave obs_norm off for a control env")
-        self.critic_apart = isinstance(policy, SplitActorCritic)
+        self.recurrent = isinstance(policy, RecurrentPolicy)
+        """The policy has memory (``freeform.agents.recurrent``): PPO carries its state and trains on sequences."""
+        if self.recurrent:
+            _refuse_for_recurrent(config, self.dp.world_size)
+        self.critic_apart = isinstance(policy, SplitActorCritic) and not self.recurrent
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
         self.grouped = is_grouped(env.observation_shape)
         """The env observes the groups ``"policy"`` and ``"critic"`` (``observation_groups.py``): the actor must read
         ``"policy"`` alone, so the policy runs its halves apart."""
-        if self.grouped and not self.critic_apart:
+        if self.grouped and not (self.critic_apart or self.recurrent):
             raise ValueError(f"this env observes the groups {GROUPS}, of which the actor may read only 'policy': "
                              f"{type(policy).__name__} must run its actor apart from its critic (action_params(obs) "
                              "and value(obs), as MLPActorCritic.for_env(env)'s GroupedMLPActorCritic does)")
@@ -144,10 +149,18 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
 
         self.obs = self._here(env.reset(seed=config.seed))
         self._update_obs_rms(self.obs)
-        self._check_policy()
+        self.policy_state: tuple[torch.Tensor, ...] = ()
+        """A recurrent policy's state after the last observation it read, ``[N, ...]`` each (empty: feed-forward)."""
+        self.episode_start = torch.ones(env.num_envs, dtype=torch.bool, device=self.device)
+        """``[N]`` bool: the current observation begins an episode (a recurrent policy resets its state first)."""
+        if self.recurrent:
+            self.policy_state = tuple(x.to(self.device) for x in self.policy.initial_state(env.num_envs))
+            self._check_recurrent_policy()
+        else:
+            self._check_policy()
         obs_dtype = torch.float32 if self.obs_rms is not None else None
         self.rollout = Rollout.allocate(config.rollout_steps, env.num_envs, self.obs, obs_dtype, env.action_dim,
-                                        self.distribution.param_dims, self.device)
+                                        self.distribution.param_dims, self.device, self.policy_state)
         self.episode_infos: list[dict[str, Any]] = []
         self._collector = EpisodeCollector()  # episodes() cuts the rollouts; its carry is part of the state
         self._collected = 0  # the epoch count at the last episodes() call
@@ -186,16 +199,52 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
             if not all(torch.equal(a, o) for a, o in zip(alone, outputs, strict=False)):
                 raise ValueError(f"the actor of {type(self.policy).__name__} gives other actions without the "
                                  "'critic' group: it may read only the 'policy' group")
+
     @torch.no_grad()
-    def act(self, obs: torch.Tensor, deterministic: bool = False) -> torch.Tensor:
+    def _check_recurrent_policy(self) -> None:
+        """:meth:`_check_policy` for a recurrent policy: one step of ``forward(obs [1, N, ...], state, episode_start
+        [1, N])`` must give the distribution's parameters ``[1, N, P_i]``, the value ``[1, N]`` and a state of the
+        initial state's shapes."""
+        n, dist = self.env.num_envs, self.distribution
+        try:
+            outputs = self.policy(obs_map(lambda x: x[None], self.normalize_obs(self.obs)), self.policy_state,
+                                  self.episode_start[None])
+        except Exception as e:
+            raise ValueError(f"recurrent policy cannot read the env's observations {obs_shapes(self.obs)} with its "
+                             f"initial state ({type(e).__name__}: {e})") from e
+        wanted = [(1, n, p) for p in dist.param_dims] + [(1, n)]
+        shapes = [tuple(x.shape) for x in outputs[:-1]] if isinstance(outputs, tuple) else None
+        states = [tuple(x.shape) for x in outputs[-1]] if isinstance(outputs, tuple) else None
+        if shapes != wanted or states != [tuple(x.shape) for x in self.policy_state]:
+            raise ValueError(f"a recurrent policy must return its {dist} parameters, the value ({wanted}) and its state "
+                             f"{[tuple(x.shape) for x in self.policy_state]}, got {shapes} and {states}")
+
+    @torch.no_grad()
+    def act(self, obs: Observation, state: tuple[torch.Tensor, ...] | None = None,
+            episode_start: torch.Tensor | None = None, deterministic: bool = False) -> Any:
         """Actions ``[N, A]`` for raw observations ``[N, ...]`` (the distribution's mode if ``deterministic``: a
         Gaussian's mean), on the env's device, as the env takes them (int64 for a discrete distribution).
+
+        A recurrent policy returns ``(actions, state)``: ``state`` is what the previous call returned (None: every
+        env starts an episode), ``episode_start [N]`` bool marks the envs whose observation begins an episode (their
+        state is reset first; None: all where ``state`` is None, else none). A feed-forward policy takes neither.
 
         With ``obs_norm`` the observations are normalised by the saved statistics (not updated). Sampling draws from
         the training generator, so calls between epochs shift the training's random stream.
         """
         x = self.normalize_obs(self._here(obs))
-        return self.distribution.env_actions(self._sample(x, deterministic)[0]).to(self.env.device)
+        if not self.recurrent:
+            if state is not None or episode_start is not None:
+                raise ValueError(f"state and episode_start are a recurrent policy's, and {type(self.policy).__name__} "
+                                 "is feed-forward (pass deterministic by name: act(obs, deterministic=True))")
+            return self.distribution.env_actions(self._sample(x, deterministic)[0]).to(self.env.device)
+        n = obs_first(x).shape[0]
+        if episode_start is None:
+            episode_start = torch.full((n,), state is None, dtype=torch.bool, device=self.device)
+        if state is None:
+            state = tuple(s.to(self.device) for s in self.policy.initial_state(n))
+        action, _, _, state = self._sample_recurrent(x, tuple(state), self._here(episode_start).bool(), deterministic)
+        return self.distribution.env_actions(action).to(self.env.device), state
 
     def export(self, path: str | os.PathLike, opset: int | None = None) -> str:
         """Write the actor's deterministic action to ``path`` as ONNX, observation normalisation folded in: the file
@@ -260,11 +309,17 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         ep_return = torch.zeros(n, device=self.device)
         ep_length = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.policy.eval()
+        state = tuple(s.to(self.device) for s in self.policy.initial_state(n)) if self.recurrent else ()
+        start = torch.ones(n, dtype=torch.bool, device=self.device)
         while bool((counts < targets).any()):
-            mode = self.distribution.env_actions(self._sample(self.normalize_obs(obs), deterministic=True)[0])
-            obs, reward, done, info = env.step(mode.to(env.device))
+            if self.recurrent:
+                mode, _, _, state = self._sample_recurrent(self.normalize_obs(obs), state, start, deterministic=True)
+            else:
+                mode = self._sample(self.normalize_obs(obs), deterministic=True)[0]
+            obs, reward, done, info = env.step(self.distribution.env_actions(mode).to(env.device))
             obs, reward, done = self._here(obs), reward.to(self.device, torch.float32), done.to(self.device, torch.bool)
             moving = ~info["autoreset"].to(self.device, torch.bool) if "autoreset" in info else torch.ones_like(done)
+            start = done | ~moving
             ep_return += reward
             ep_length += moving.to(ep_length.dtype)
             wanted = done & (counts < targets)
@@ -308,6 +363,19 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         if episodes is not None:
             episodes["infos"] = infos
         return episodes
+
+
+def _refuse_for_recurrent(config: PPOConfig, world_size: int) -> None:
+    """What a recurrent policy cannot run with, refused with the reason."""
+    if config.cuda_graph:
+        raise ValueError("agent.cuda_graph captures the feed-forward minibatch step, and a recurrent policy's step runs "
+                         "a sequence whose resets vary: set agent.cuda_graph=false")
+    if config.compile:
+        raise ValueError("agent.compile compiles the feed-forward minibatch loss, not the sequence loss of a recurrent "
+                         "policy: set agent.compile=false")
+    if world_size > 1:
+        raise ValueError("a recurrent policy trains on sequences, and data-parallel PPO splits the batch by steps (its "
+                         "ranks would cut sequences): run it in one process")
 
 
 def choose_distribution(policy: nn.Module, env: VecEnv) -> ActionDistribution:

@@ -99,6 +99,11 @@ class Rollout:
     final_values: torch.Tensor
     valid: torch.Tensor
     episode_returns: torch.Tensor
+    states: tuple[torch.Tensor, ...] = ()
+    """A recurrent policy's state as each step's forward received it (before that step's reset), ``[T, N, ...]``
+    each; empty for a feed-forward policy."""
+    episode_starts: torch.Tensor | None = None
+    """``[T, N]`` bool, a recurrent policy's: the step's observation began an episode (its state was reset first)."""
 
     def __getitem__(self, name: str) -> torch.Tensor:
         """Dict-style access, ``rollout["obs"]``."""
@@ -125,10 +130,11 @@ class Rollout:
     @classmethod
     def allocate(
         cls, steps: int, num_envs: int, first_obs: Observation, obs_dtype: torch.dtype | None, action_dim: int,
-        param_dims: Sequence[int], device: torch.device,
+        param_dims: Sequence[int], device: torch.device, state: Sequence[torch.Tensor] = (),
     ) -> Rollout:
         """Storage for ``steps`` steps of ``num_envs`` envs observing like ``first_obs [N, ...]`` (in ``obs_dtype``,
-        None: as observed), acting with ``action_dim`` numbers from a distribution of ``param_dims``."""
+        None: as observed), acting with ``action_dim`` numbers from a distribution of ``param_dims``; a recurrent
+        policy's ``state`` (``[N, ...]`` each) gets a slot per step."""
         f32 = dict(dtype=torch.float32, device=device)
         return cls(
             obs=obs_map(lambda x: torch.zeros((steps, num_envs, *x.shape[1:]), dtype=obs_dtype or x.dtype,
@@ -146,6 +152,8 @@ class Rollout:
             final_values=torch.zeros((steps, num_envs), **f32),
             valid=torch.ones((steps, num_envs), dtype=torch.bool, device=device),
             episode_returns=torch.zeros((steps, num_envs), **f32),
+            states=tuple(torch.zeros((steps, *s.shape), dtype=s.dtype, device=device) for s in state),
+            episode_starts=torch.zeros((steps, num_envs), dtype=torch.bool, device=device) if state else None,
         )
 
 

@@ -19,7 +19,12 @@ from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import GroupedActions
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
-from freeform.agents.ppo.losses import explained_variance, standardize, update_kl_coeff
+from freeform.agents.ppo.losses import (
+    explained_variance,
+    sequence_minibatch_loss,
+    standardize,
+    update_kl_coeff,
+)
 from freeform.agents.ppo.rollout import Observation, Rollout, minibatch_samples, obs_map
 
 
@@ -32,6 +37,21 @@ class _TrainBatch(NamedTuple):
     advantages: torch.Tensor
     kept: torch.Tensor | None
     size: int
+
+
+class _SequenceBatch(NamedTuple):
+    """A recurrent policy's update view of the rollout: each env's T steps cut into C chunks of L steps (the last
+    padded), S = C·N sequences, time-major: ``obs [L, S, ...]``, ``samples [L, S, A + P + 3]``, ``advantages [L, S]``,
+    ``starts [L, S]`` bool (the state is reset before such a step), ``mask [L, S]`` bool (the steps that count: not
+    padding, not a step where the env only reset), ``state`` the stored state at each chunk's first step
+    (``[S, ...]`` each). Sequence s = c·N + n is env n's chunk c."""
+
+    obs: Observation
+    samples: torch.Tensor
+    advantages: torch.Tensor
+    starts: torch.Tensor
+    mask: torch.Tensor
+    state: tuple[torch.Tensor, ...]
 
 
 def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -59,6 +79,7 @@ class MinibatchUpdate:
     epoch: int
     kl_coeff: float
     _graphed: GraphedMinibatchStep | None
+    recurrent: bool
     _minibatch_loss: Callable[..., tuple[torch.Tensor, torch.Tensor]]
 
     def current_lr(self) -> float:
@@ -114,6 +135,8 @@ class MinibatchUpdate:
     def _sgd(self, batch: _TrainBatch, kl_coeff: float) -> list[float]:
         """``num_sgd_iter`` shuffled passes of minibatch Adam steps; the means over every minibatch of the policy
         loss, value loss, KL, entropy, clip fraction and total loss (over every rank)."""
+        if self.recurrent:
+            return self._sgd_sequences(self._sequences(batch), kl_coeff)
         cfg, dp, flat = self.config, self.dp, self.flat
         minibatch = min(cfg.sgd_minibatch_size, batch.size)
         num_minibatches = batch.size // minibatch
@@ -154,6 +177,61 @@ class MinibatchUpdate:
                     flat.clip_grad_norm_(cfg.grad_clip)
                 self.optimizer.step()
         dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
+        return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
+
+    def _sequences(self, batch: _TrainBatch) -> _SequenceBatch:
+        """The rollout as chunks of ``sequence_length`` steps per env (:class:`_SequenceBatch`); the advantages as
+        ``batch`` holds them (standardised over the batch's real transitions)."""
+        buf = self.rollout
+        steps, envs = buf.rewards.shape
+        length = min(self.config.sequence_length, steps)
+        chunks = -(-steps // length)
+        pad = chunks * length - steps
+
+        def cut(x: torch.Tensor) -> torch.Tensor:  # [T, N, ...] -> [L, C·N, ...]
+            if pad:
+                x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
+            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, chunks * envs, *x.shape[2:])
+
+        assert buf.episode_starts is not None
+        return _SequenceBatch(
+            obs=obs_map(cut, buf.obs),
+            samples=cut(batch.samples.reshape(steps, envs, -1)),
+            advantages=cut(batch.advantages.reshape(steps, envs)),
+            starts=cut(buf.episode_starts),
+            mask=cut(buf.valid),  # (padding: False)
+            state=tuple(s[::length].reshape(chunks * envs, *s.shape[2:]) for s in buf.states),
+        )
+
+    def _sgd_sequences(self, batch: _SequenceBatch, kl_coeff: float) -> list[float]:
+        """:meth:`_sgd` for a recurrent policy: each pass shuffles the sequences and steps Adam on minibatches of
+        ``max(1, sgd_minibatch_size // sequence_length)`` of them (``sgd_minibatch_size`` still counts steps), each
+        run from its stored state (truncated BPTT). One process (``PPO`` refuses data-parallel runs)."""
+        cfg, flat = self.config, self.flat
+        length, sequences = batch.mask.shape
+        per = min(sequences, max(1, cfg.sgd_minibatch_size // length))
+        num_minibatches = sequences // per
+        flat.check()
+        kl_weight = torch.tensor(kl_coeff, device=self.device) if kl_coeff > 0.0 else None
+        totals = torch.zeros(6, device=self.device)
+        self.policy.train()
+        for _ in range(cfg.num_sgd_iter):
+            order = torch.randperm(sequences, generator=self.generator, device=self.device)
+            for i in range(num_minibatches):
+                idx = order[i * per : (i + 1) * per]
+                mask, adv = batch.mask[:, idx], batch.advantages[:, idx]
+                if cfg.advantage_norm == "minibatch":  # over the steps that count
+                    adv = torch.where(mask, adv, 0.0).masked_scatter(mask, standardize(adv[mask]))
+                flat.zero_grad()
+                loss, stats = sequence_minibatch_loss(
+                    self.policy, self.distribution, cfg, obs_map(lambda x, i=idx: x[:, i], batch.obs),
+                    tuple(s[idx] for s in batch.state), batch.starts[:, idx], mask,
+                    batch.samples[:, idx].reshape(length * per, -1), adv.reshape(-1), kl_weight)
+                loss.backward()
+                totals += stats
+                if cfg.grad_clip is not None:
+                    flat.clip_grad_norm_(cfg.grad_clip)
+                self.optimizer.step()
         return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
 
     def _minibatch_mean(self, x: torch.Tensor) -> torch.Tensor:
