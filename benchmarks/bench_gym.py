@@ -41,7 +41,20 @@ cut as a termination. freeform's Box preset bootstraps (as SB3), its ``ppo.py`` 
 time per environment step over ``--split-epochs`` updates of 2,048 steps, ``--repeats`` times), the Gymnasium step
 inside freeform's rollout apart: the figures behind "where a step goes" in ``docs/ppo.md``.
 
-Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, tyro).
+**Memory** (``--memory``): tasks with a hidden variable — ``CartPole-v1-hidden`` (its two velocities hidden) and
+``Pendulum-v1-hidden`` (its angular velocity hidden), ``freeform.envs.partial.HideEntries`` — with the recipe of the
+base task, four runs each: ``freeform-lstm`` (``RecurrentActorCritic``, an LSTM of 256 per half and 64-64 tanh MLPs,
+``sequence_length`` = the minibatch size, so a minibatch is one sequence), ``sb3-lstm`` (sb3-contrib's
+``RecurrentPPO("MlpLstmPolicy")`` at its default sizes — the same — and the same values), ``freeform`` (the
+feed-forward policy, memoryless) and ``freeform-privileged`` (the feed-forward actor, its critic given the hidden
+entries as the ``"critic"`` observation group). Each row adds the **greedy return** (mean of 10 deterministic
+episodes after training). Defaults: 300k steps, seeds 0-3, ``runs/bench_gym_memory``:
+
+    python -m benchmarks.bench_gym --memory                      # the issue's table (two invocations side by side,
+    python -m benchmarks.bench_gym --memory --seeds 0 1 &        #  e.g. seeds 0 1 and 2 3, share the results file)
+    python -m benchmarks.bench_gym --memory --steps 4096 --seeds 0   # a smoke run
+
+Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, sb3-contrib, tyro).
 """
 
 from __future__ import annotations
@@ -63,7 +76,11 @@ from freeform.files import write_atomically
 
 CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
 CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/{{script}}"
-FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl")
+FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl", "freeform-lstm", "sb3-lstm", "freeform-privileged")
+MEMORY_FRAMEWORKS = ("freeform-lstm", "sb3-lstm", "freeform", "freeform-privileged")
+HIDDEN = {"CartPole-v1-hidden": ("CartPole-v1", (1, 3)), "Pendulum-v1-hidden": ("Pendulum-v1", (2,))}
+"""The memory tasks: a Gymnasium task and the entries of its observation hidden from the policy."""
+GREEDY_EPISODES = 10
 LAST_EPISODES = 20
 
 
@@ -84,11 +101,30 @@ def recipe(task: str) -> Recipe:
     """The task's recipe, from its action space: Box → ``ppo_continuous_action``, else ``ppo.py``."""
     import gymnasium as gym
 
-    env = gym.make(task)
+    env = gym.make(base_task(task)[0])
     try:
         return RECIPES["box" if isinstance(env.action_space, gym.spaces.Box) else "discrete"]
     finally:
         env.close()
+
+
+def base_task(task: str) -> tuple[str, tuple[int, ...]]:
+    """(the Gymnasium task, the observation entries hidden from the policy) of a task name."""
+    return HIDDEN.get(task, (task, ()))
+
+
+def gym_vec(task: str, envs: int, critic: bool = False):
+    """The task's vector env (``SAME_STEP``), its hidden entries removed (``critic``: as the critic's group)."""
+    import gymnasium as gym
+
+    base, hidden = base_task(task)
+    if not hidden:
+        return gym.make_vec(task, num_envs=envs, vectorization_mode="sync",
+                            vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    from freeform.envs.partial import HideEntries
+
+    return gym.vector.SyncVectorEnv([lambda: HideEntries(gym.make(base), hidden, critic=critic)] * envs,
+                                    autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
 
 
 def final_return(returns: list[float]) -> float:
@@ -100,30 +136,32 @@ def final_return(returns: list[float]) -> float:
 # ----------------------------------------------------------------------------------------------- the three runners
 
 
-def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False):
+def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, network: str = "mlp"):
     """freeform's run: ``PPO`` with ``PPOConfig.cleanrl()`` on one ``SAME_STEP`` env (``cleanrl_discrete()`` on 4
     for a discrete task) with episode statistics (``compile``: with ``torch.compile``'s minibatch loss, the
-    ``freeform-compile`` rows)."""
+    ``freeform-compile`` rows). ``network``: "mlp" (``MLPActorCritic``), "lstm" (``RecurrentActorCritic``, the
+    ``freeform-lstm`` rows) or "privileged" (the critic sees the hidden entries: ``freeform-privileged``)."""
     import gymnasium as gym
     import torch
 
-    from freeform.agents import PPO, MLPActorCritic, PPOConfig
+    from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic
     from freeform.envs import from_gymnasium
 
     r = recipe(task)
-    vec = gym.wrappers.vector.RecordEpisodeStatistics(
-        gym.make_vec(task, num_envs=r.envs, vectorization_mode="sync",
-                     vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    )
-    env = from_gymnasium(vec)
+    privileged = network == "privileged"
+    vec = gym.wrappers.vector.RecordEpisodeStatistics(gym_vec(task, r.envs, critic=privileged))
+    env = from_gymnasium(vec, dict_obs=privileged)
     torch.manual_seed(seed)
     preset = PPOConfig.cleanrl if r.script == "ppo_continuous_action.py" else PPOConfig.cleanrl_discrete
     config = preset(seed=seed, rollout_steps=r.batch // r.envs, lr_anneal_epochs=max(1, steps // r.batch), compile=compile)
+    if network == "lstm":  # one sequence per minibatch: sgd_minibatch_size steps
+        config.sequence_length = config.sgd_minibatch_size
+        return PPO(env, RecurrentActorCritic.for_env(env), config)
     return PPO(env, MLPActorCritic.for_env(env), config)
 
 
-def run_freeform(task: str, steps: int, seed: int, compile: bool = False) -> list[float]:
-    ppo = freeform_ppo(task, steps, seed, compile)
+def run_freeform(task: str, steps: int, seed: int, compile: bool = False, network: str = "mlp") -> dict:
+    ppo = freeform_ppo(task, steps, seed, compile, network)
     returns: list[float] = []
     for _ in range(steps // recipe(task).batch):
         ppo.train_epoch()
@@ -131,7 +169,14 @@ def run_freeform(task: str, steps: int, seed: int, compile: bool = False) -> lis
             gym_info = info["gym_info"]
             if "episode" in gym_info:
                 returns += [float(r) for r, ended in zip(gym_info["episode"]["r"], gym_info["_episode"], strict=True) if ended]
-    return returns
+    out: dict = {"returns": returns}
+    if base_task(task)[1]:  # the memory rows: greedy episodes after training
+        from freeform.envs import from_gymnasium
+
+        eval_env = from_gymnasium(gym_vec(task, 1, critic=network == "privileged"), seed=10_000 + seed,
+                                  dict_obs=network == "privileged")
+        out["greedy"] = ppo.evaluate(eval_env, episodes=GREEDY_EPISODES)["eval_return"]
+    return out
 
 
 def sb3_model(task: str, seed: int):
@@ -155,12 +200,54 @@ def sb3_model(task: str, seed: int):
                n_epochs=10, ent_coef=0.0, **common)
 
 
-def run_sb3(task: str, steps: int, seed: int) -> list[float]:
+def run_sb3(task: str, steps: int, seed: int) -> dict:
     model = sb3_model(task, seed)
     returns: list[float] = []
     batch = recipe(task).batch
     model.learn(total_timesteps=(steps // batch) * batch, callback=_SB3Episodes(returns))
-    return returns
+    return {"returns": returns}
+
+
+def sb3_lstm_model(task: str, seed: int):
+    """sb3-contrib's ``RecurrentPPO("MlpLstmPolicy")`` at its default sizes (an LSTM of 256 per half, 64-64 tanh
+    MLPs) with the recipe's values, on the task with its entries hidden (wrapping ``make_vec_env``'s ``Monitor``)."""
+    from sb3_contrib import RecurrentPPO
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from freeform.envs.partial import HideEntries
+
+    base, hidden = base_task(task)
+    r = recipe(task)
+    common = dict(gamma=0.99, gae_lambda=0.95, clip_range=0.2, vf_coef=0.25, max_grad_norm=0.5, device="cpu",
+                  seed=seed, stats_window_size=LAST_EPISODES, verbose=0)
+    env = make_vec_env(base, n_envs=r.envs, seed=seed, wrapper_class=lambda e: HideEntries(e, hidden))
+    if r.script == "ppo.py":
+        return RecurrentPPO("MlpLstmPolicy", env, learning_rate=lambda progress: 2.5e-4 * progress,
+                            n_steps=r.batch // r.envs, batch_size=128, n_epochs=4, ent_coef=0.01, **common), env
+    env = VecNormalize(env, gamma=0.99, clip_obs=10.0, clip_reward=10.0)
+    return RecurrentPPO("MlpLstmPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=r.batch,
+                        batch_size=64, n_epochs=10, ent_coef=0.0, **common), env
+
+
+def run_sb3_lstm(task: str, steps: int, seed: int) -> dict:
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from freeform.envs.partial import HideEntries
+
+    model, env = sb3_lstm_model(task, seed)
+    returns: list[float] = []
+    batch = recipe(task).batch
+    model.learn(total_timesteps=(steps // batch) * batch, callback=_SB3Episodes(returns))
+    base, hidden = base_task(task)
+    eval_env = make_vec_env(base, n_envs=1, seed=10_000 + seed, wrapper_class=lambda e: HideEntries(e, hidden))
+    if isinstance(env, VecNormalize):  # the training statistics, frozen; raw rewards
+        eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
+        eval_env.obs_rms = env.obs_rms
+    greedy, _ = evaluate_policy(model, eval_env, n_eval_episodes=GREEDY_EPISODES, deterministic=True)
+    return {"returns": returns, "greedy": float(greedy)}
 
 
 def _SB3Episodes(returns: list[float]):  # noqa: N802 - a factory for SB3's callback class (imported lazily)
@@ -289,19 +376,27 @@ def one_run(framework: str, task: str, steps: int, seed: int, cleanrl_dir: str |
                               cwd=Path(__file__).resolve().parent.parent)
         if done.returncode != 0:
             raise RuntimeError(f"{framework} failed ({done.returncode}):\n{done.stderr[-3000:]}")
-        returns = json.loads(done.stdout.strip().splitlines()[-1])["returns"]
+        out = json.loads(done.stdout.strip().splitlines()[-1])
+        returns = out["returns"]
     wall = time.perf_counter() - start
     batch = recipe(task).batch
-    return {"framework": framework, "task": task, "seed": seed, "steps": (steps // batch) * batch,
-            "final_return": final_return(returns), "episodes": len(returns), "wall_s": wall}
+    row = {"framework": framework, "task": task, "seed": seed, "steps": (steps // batch) * batch,
+           "final_return": final_return(returns), "episodes": len(returns), "wall_s": wall}
+    if framework != "cleanrl" and "greedy" in out:
+        row["greedy_return"] = out["greedy"]
+    return row
 
 
 def table(results: list[dict]) -> str:
     """Markdown: per task and framework, the final return and wall time of every seed and their mean."""
-    lines = ["| task | framework | final return (mean of last 20 episodes), per seed | mean | wall time per seed (s) | "
-             "mean wall (s) | × freeform's wall |", "|---|---|---|---|---|---|---|"]
+    greedy = any("greedy_return" in r for r in results)  # the memory table: greedy returns, walls against the LSTM's
+    base_fw = "freeform-lstm" if greedy else "freeform"
+    lines = ["| task | framework | final return (mean of last 20 episodes), per seed | mean | "
+             + ("greedy return (10 episodes), per seed | mean | " if greedy else "")
+             + f"wall time per seed (s) | mean wall (s) | × {base_fw}'s wall |",
+             "|---|---|---|---|" + ("---|---|" if greedy else "") + "---|---|---|"]
     for task in dict.fromkeys(r["task"] for r in results):
-        base = [r["wall_s"] for r in results if r["task"] == task and r["framework"] == "freeform"]
+        base = [r["wall_s"] for r in results if r["task"] == task and r["framework"] == base_fw]
         base_wall = sum(base) / len(base) if base else math.nan
         for fw in FRAMEWORKS:
             rs = [r for r in results if r["task"] == task and r["framework"] == fw]
@@ -309,28 +404,46 @@ def table(results: list[dict]) -> str:
                 continue
             rets, walls = [r["final_return"] for r in rs], [r["wall_s"] for r in rs]
             mean_wall = sum(walls) / len(walls)
+            greedy_cells = ""
+            if greedy:
+                g = [r.get("greedy_return", math.nan) for r in rs]
+                greedy_cells = f"{', '.join(f'{x:.1f}' for x in g)} | {sum(g) / len(g):.1f} | "
             lines.append(f"| {task} | {fw} | {', '.join(f'{x:.1f}' for x in rets)} | {sum(rets) / len(rets):.1f} | "
-                         f"{', '.join(f'{w:.0f}' for w in walls)} | {mean_wall:.0f} | {mean_wall / base_wall:.2f} |")
+                         f"{greedy_cells}{', '.join(f'{w:.0f}' for w in walls)} | {mean_wall:.0f} | "
+                         f"{mean_wall / base_wall:.2f} |")
     return "\n".join(lines)
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m benchmarks.bench_gym", description=__doc__.split("\n\n")[0])
-    p.add_argument("--tasks", nargs="+", default=["HalfCheetah-v5", "Hopper-v5"])
-    p.add_argument("--steps", type=int, default=500_000,
-                   help="environment steps per run (rounded down to whole updates: 2048 steps, or 512 for discrete tasks)")
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    p.add_argument("--frameworks", nargs="+", choices=FRAMEWORKS, default=list(FRAMEWORKS))
+    p.add_argument("--memory", action="store_true",
+                   help="the memory table: hidden-variable tasks, LSTM policies (defaults below change with it)")
+    p.add_argument("--tasks", nargs="+", default=None, help=f"default HalfCheetah-v5 Hopper-v5; --memory: {list(HIDDEN)}")
+    p.add_argument("--steps", type=int, default=None,
+                   help="environment steps per run, default 500k (--memory: 300k), rounded down to whole updates: "
+                        "2048 steps, or 512 for discrete tasks")
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="default 0 1 (--memory: 0 1 2 3)")
+    p.add_argument("--frameworks", nargs="+", choices=FRAMEWORKS, default=None,
+                   help=f"default freeform freeform-compile sb3 cleanrl; --memory: {' '.join(MEMORY_FRAMEWORKS)}")
     p.add_argument("--cleanrl-dir", default=os.environ.get("CLEANRL_DIR"),
                    help="a directory holding CleanRL's ppo.py and ppo_continuous_action.py (default: fetch the pinned "
                         "commit's)")
-    p.add_argument("--workdir", default="runs/bench_gym", help="where CleanRL's runs/ and the JSON results go")
+    p.add_argument("--workdir", default=None, help="where CleanRL's runs/ and the JSON results go (default "
+                   "runs/bench_gym, --memory: runs/bench_gym_memory)")
     p.add_argument("--show", action="store_true", help="print the table of WORKDIR/results.json; run nothing")
     p.add_argument("--split", action="store_true", help="time freeform's and SB3's rollout and update apart instead")
     p.add_argument("--split-epochs", type=int, default=3, help="--split: updates of 2,048 steps per measurement")
     p.add_argument("--repeats", type=int, default=2, help="--split: alternations of the two frameworks")
-    p.add_argument("--child", choices=("freeform", "freeform-compile", "sb3"), help=argparse.SUPPRESS)
-    return p.parse_args(argv)
+    p.add_argument("--child", choices=("freeform", "freeform-compile", "sb3", "freeform-lstm", "sb3-lstm",
+                                       "freeform-privileged"), help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    memory = args.memory
+    for name, plain, mem in (("tasks", ["HalfCheetah-v5", "Hopper-v5"], list(HIDDEN)), ("steps", 500_000, 300_000),
+                             ("seeds", [0, 1], [0, 1, 2, 3]), ("frameworks", list(FRAMEWORKS[:4]), list(MEMORY_FRAMEWORKS)),
+                             ("workdir", "runs/bench_gym", "runs/bench_gym_memory")):
+        if getattr(args, name) is None:
+            setattr(args, name, mem if memory else plain)
+    return args
 
 
 def _key(row: dict) -> tuple:
@@ -346,10 +459,13 @@ def run(argv: list[str] | None = None) -> list[dict]:
     if args.child:  # inside one run's own process
         task, steps, seed = args.tasks[0], args.steps, args.seeds[0]
         if args.child == "sb3":
-            returns = run_sb3(task, steps, seed)
+            out = run_sb3(task, steps, seed)
+        elif args.child == "sb3-lstm":
+            out = run_sb3_lstm(task, steps, seed)
         else:
-            returns = run_freeform(task, steps, seed, compile=args.child == "freeform-compile")
-        print(json.dumps({"returns": returns}))
+            network = {"freeform-lstm": "lstm", "freeform-privileged": "privileged"}.get(args.child, "mlp")
+            out = run_freeform(task, steps, seed, compile=args.child == "freeform-compile", network=network)
+        print(json.dumps(out))
         return []
     if args.split:
         for task in args.tasks:
@@ -370,8 +486,9 @@ def run(argv: list[str] | None = None) -> list[dict]:
                 rows = [r for r in _read(store) if _key(r) != _key(result)] + [result]
                 text = json.dumps(rows, indent=1).encode()
                 write_atomically(store, lambda f, text=text: f.write(text))
+                greedy = f", greedy {result['greedy_return']:.1f}" if "greedy_return" in result else ""
                 print(f"{fw:9s} {task} seed {seed}: final return {result['final_return']:.1f} "
-                      f"({result['episodes']} episodes), wall {result['wall_s']:.1f} s", flush=True)
+                      f"({result['episodes']} episodes{greedy}), wall {result['wall_s']:.1f} s", flush=True)
     shown = [r for r in _read(store) if r["task"] in args.tasks
              and r["steps"] == (args.steps // recipe(r["task"]).batch) * recipe(r["task"]).batch
              and r["seed"] in args.seeds and r["framework"] in args.frameworks]

@@ -55,22 +55,19 @@ def run_rnn(rnn: nn.LSTM | nn.GRU, x: torch.Tensor, state: State, episode_start:
     """``x [T, N, D]`` through ``rnn`` from ``state`` (``(h, c)`` or ``(h,)``, each ``[N, L, H]``), zeroing an env's
     state before each step t where ``episode_start[t]`` (``[T, N]`` bool). Returns ``(y [T, N, H], state)``.
 
-    One call over the whole sequence where no episode starts after its first step; else step by step (the state
-    reset between the steps), as CleanRL's ``ppo_atari_lstm.py`` does."""
+    Time is cut where any env starts an episode, and each piece is one call of ``rnn`` from the state reset at its
+    first step: the same arithmetic as CleanRL's ``ppo_atari_lstm.py`` step by step, in as many calls as there are
+    pieces (one where no episode starts after the first step)."""
     keep = (~episode_start).to(x.dtype)[:, :, None, None]  # [T, N, 1, 1]
     steps = x.shape[0]
-    if steps == 1 or not bool(episode_start[1:].any()):
-        hidden = tuple((h * keep[0]).transpose(0, 1).contiguous() for h in state)
-        y, out = rnn(x, hidden if len(hidden) == 2 else hidden[0])
-        out = out if isinstance(out, tuple) else (out,)
-        return y, tuple(h.transpose(0, 1) for h in out)
+    cuts = [0, steps] if steps == 1 else [0, *(episode_start[1:].any(1).nonzero()[:, 0] + 1).tolist(), steps]
     ys = []
-    for t in range(steps):
-        hidden = tuple((h * keep[t]).transpose(0, 1).contiguous() for h in state)
-        y, out = rnn(x[t : t + 1], hidden if len(hidden) == 2 else hidden[0])
+    for a, b in zip(cuts[:-1], cuts[1:], strict=False):
+        hidden = tuple((h * keep[a]).transpose(0, 1).contiguous() for h in state)
+        y, out = rnn(x[a:b], hidden if len(hidden) == 2 else hidden[0])
         state = tuple(h.transpose(0, 1) for h in (out if isinstance(out, tuple) else (out,)))
         ys.append(y)
-    return torch.cat(ys), state
+    return (ys[0] if len(ys) == 1 else torch.cat(ys)), state
 
 
 class RecurrentActorCritic(nn.Module):
