@@ -237,3 +237,25 @@ def test_an_lstm_learns_to_remember_a_cue() -> None:
     history = PPO(env, policy, cfg).learn(12)  # seeds 0-2: 0.98-1.0 after 8 epochs
     first, last = history[0]["episode_reward_mean"], np.mean([h["episode_reward_mean"] for h in history[-3:]])
     assert first < 0.7 and last > 0.9, (first, last)
+
+
+def test_a_recurrent_policy_over_observation_groups_keeps_the_critics_group_from_its_actor() -> None:
+    from test_observation_groups import DriftEnv  # (tests/ is on the path, as for helpers.py)
+
+    env = DriftEnv()
+    policy = small_recurrent(env)
+    assert policy.actor_rnn.input_size == 1 and policy.critic_rnn.input_size == 2
+    ppo = PPO(env, policy, PPOConfig(rollout_steps=6, sgd_minibatch_size=12, sequence_length=3, num_sgd_iter=1,
+                                     obs_norm=True))
+    ppo.learn(1)
+    obs = {"policy": torch.randn(4, 1), "critic": torch.randn(4, 1)}
+    other = {"policy": obs["policy"], "critic": obs["critic"] + 3.0}
+    a, _ = ppo.act(obs, deterministic=True)
+    b, _ = ppo.act(other, deterministic=True)
+    assert torch.equal(a, b)
+    with torch.no_grad():
+        v = ppo.policy(ppo._here({k: x[None] for k, x in obs.items()}), ppo.policy.initial_state(4),
+                       torch.ones(1, 4, dtype=torch.bool))[-2]
+        w = ppo.policy({k: x[None] for k, x in other.items()}, ppo.policy.initial_state(4),
+                       torch.ones(1, 4, dtype=torch.bool))[-2]
+    assert not torch.equal(v, w)
