@@ -105,9 +105,11 @@ class RolloutCollection:
         return rms.normalize(obs, clip)
 
     def _update_obs_rms(self, obs: Observation) -> None:
+        """Fold observations into ``obs_norm``'s statistics: one set, or one per part of a dict observation."""
         rms = self.obs_rms
-        for stats, x in (zip(rms.values(), (obs[k] for k in rms), strict=True) if isinstance(rms, dict)
-                         else ((rms, obs),) if rms is not None else ()):
+        if rms is None:
+            return
+        for stats, x in [(rms[k], obs[k]) for k in rms] if isinstance(rms, dict) else [(rms, obs)]:
             x, shape = self.dp.gather_envs(x), stats.mean.shape  # every rank's envs
             stats.update(x if x.shape[1:] == shape else x.reshape(-1, *shape))
 
