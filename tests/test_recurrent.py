@@ -259,3 +259,28 @@ def test_a_recurrent_policy_over_observation_groups_keeps_the_critics_group_from
         w = ppo.policy({k: x[None] for k, x in other.items()}, ppo.policy.initial_state(4),
                        torch.ones(1, 4, dtype=torch.bool))[-2]
     assert not torch.equal(v, w)
+
+
+@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+def test_gymnasium_autoreset_modes_reset_the_state_where_the_new_episode_begins(mode: str) -> None:
+    """Through ``from_gymnasium``: with Gymnasium's next-step reset the step that only resets is no transition, and
+    the state restarts at the new episode's first observation (the env's own time-in-episode, obs[0], is the count
+    of observations the policy has read before it); with same-step reset, at the observation after the done."""
+    pytest.importorskip("gymnasium")
+    from gymnasium.vector import AutoresetMode
+    from test_gymnasium import ToyVectorEnv
+
+    from freeform.envs import from_gymnasium
+
+    autoreset = AutoresetMode.NEXT_STEP if mode == "next_step" else AutoresetMode.SAME_STEP
+    env = from_gymnasium(ToyVectorEnv([3, 0, 2], [0, 4, 0], autoreset))
+    ppo = PPO(env, Counting(), PPOConfig(rollout_steps=13, num_sgd_iter=1, sgd_minibatch_size=8, sequence_length=4))
+    for _ in range(2):
+        ppo.collect()
+        buf = ppo.rollout
+        carried = buf.states[0][..., 0] * (~buf.episode_starts).float()
+        real = buf.valid
+        assert (~real).any() == (mode == "next_step")
+        assert torch.equal(carried[real], buf.obs[..., 0][real])
+        assert buf.truncated.any()
+        ppo.update()
