@@ -21,7 +21,7 @@ import torch.multiprocessing as mp
 from helpers import run_cli as cli  # tests/helpers.py
 from helpers import scalars, tiny
 
-from freeform.agents import PPO, MLPActorCritic, PPOConfig, VoxelActorCritic
+from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic, VoxelActorCritic
 from freeform.agents.distributed import Collectives, DataParallel, env_slice
 from freeform.envs import DesignEnv
 from freeform.records import read_record
@@ -40,6 +40,8 @@ CASES = {
     "batch": dict(advantage_norm="batch"),
     "minibatch": dict(advantage_norm="minibatch"),
     "mlp_normalised": dict(advantage_norm="minibatch", obs_norm=True, reward_norm=True, grad_clip=0.5),
+    # an LSTM: sequences of 3 steps (2 chunks per env, the second padded), 2 per minibatch, split by their env
+    "recurrent": dict(advantage_norm="minibatch", sequence_length=3, grad_clip=0.5),
 }
 
 
@@ -49,6 +51,8 @@ def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), case: str = "batch") -> PPO:
     env = DesignEnv(num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS)
     if case == "mlp_normalised":
         policy = MLPActorCritic(RHO**3, env.action_dim, hidden=(16,))
+    elif case == "recurrent":
+        policy = RecurrentActorCritic(RHO**3, env.action_dim, hidden=(8,), rnn_hidden=8)
     else:
         policy = VoxelActorCritic(resolution=RHO, materials=2, hidden=16)
     return PPO(env, policy, PPOConfig(**{**PPO_KW, **CASES[case]}))

@@ -271,6 +271,12 @@ class Collectives:
         tensors' matching entries)``, in minibatch order."""
         return (idx, *per_sample)
 
+    def local_sequences(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """A recurrent policy's minibatch: global sequence indices ``idx [M]`` (``s = c·N + n``: env n's chunk c) ->
+        ``(local indices c·n_local + n − lo of the ones this process holds, which of idx those are; None: all)``.
+        Sequences are split between ranks whole, by their env, never by steps."""
+        return idx, None
+
     def minibatch_mean(self, x: torch.Tensor, size: int) -> torch.Tensor:
         """This process's part of the mean of a per-sample quantity over a global minibatch of ``size`` samples."""
         return x.mean()
@@ -378,6 +384,11 @@ class DataParallel(Collectives):
     def local_share(self, idx: torch.Tensor, *per_sample: torch.Tensor) -> tuple[torch.Tensor, ...]:
         mask, local = self.local_indices(idx)
         return (local, *(x[mask] for x in per_sample))
+
+    def local_sequences(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        env, chunk = idx % self.num_envs, idx // self.num_envs
+        mine = (env >= self.lo) & (env < self.hi)
+        return chunk[mine] * self.local_envs + (env[mine] - self.lo), mine
 
     def minibatch_mean(self, x: torch.Tensor, size: int) -> torch.Tensor:
         # A rank's share of the global minibatch mean: the sum over its samples / the global minibatch size. Summed

@@ -171,17 +171,19 @@ def sequence_minibatch_loss(
     samples: torch.Tensor,
     advantages: torch.Tensor,
     kl_coeff: torch.Tensor | None,
+    count: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`minibatch_loss` for a recurrent policy, on S sequences of L steps (truncated BPTT).
 
     ``obs [L, S, ...]``; ``state`` the policy's state at each sequence's first step (``[S, ...]`` each);
     ``episode_start [L, S]`` bool (the state is reset before such a step); ``mask [L, S]`` bool, the steps that count
     (False: padding past the rollout's end, or a step where the env only reset); ``samples [L·S, A + P + 3]`` and
-    ``advantages [L·S]`` in the same (time-major) order. The means are over the masked steps."""
+    ``advantages [L·S]`` in the same (time-major) order. The means are over the masked steps: sums divided by
+    ``count``, the masked steps of the whole minibatch (None: these; data-parallel, every rank's)."""
     *params, value, _ = policy(obs, state, episode_start)
     flat = tuple(p.reshape(-1, p.shape[-1]) for p in params)
     weight = mask.reshape(-1)
-    count = weight.sum().clamp_min(1).to(value.dtype)
+    count = (weight.sum() if count is None else count).clamp_min(1).to(value.dtype)
 
     def reduce(x: torch.Tensor) -> torch.Tensor:
         return torch.where(weight, x, 0.0).sum() / count

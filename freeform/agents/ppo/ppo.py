@@ -97,7 +97,7 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         self.recurrent = isinstance(policy, RecurrentPolicy)
         """The policy has memory (``freeform.agents.recurrent``): PPO carries its state and trains on sequences."""
         if self.recurrent:
-            _refuse_for_recurrent(config, self.dp.world_size)
+            _refuse_for_recurrent(config)
         self.critic_apart = isinstance(policy, SplitActorCritic) and not self.recurrent
         """The policy has ``action_params``/``value`` (actor and critic share nothing): the rollout runs the actor per
         step and the critic once over the rollout (``networks.py``)."""
@@ -365,7 +365,7 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         return episodes
 
 
-def _refuse_for_recurrent(config: PPOConfig, world_size: int) -> None:
+def _refuse_for_recurrent(config: PPOConfig) -> None:
     """What a recurrent policy cannot run with, refused with the reason."""
     if config.cuda_graph:
         raise ValueError("agent.cuda_graph captures the feed-forward minibatch step, and a recurrent policy's step runs "
@@ -373,9 +373,6 @@ def _refuse_for_recurrent(config: PPOConfig, world_size: int) -> None:
     if config.compile:
         raise ValueError("agent.compile compiles the feed-forward minibatch loss, not the sequence loss of a recurrent "
                          "policy: set agent.compile=false")
-    if world_size > 1:
-        raise ValueError("a recurrent policy trains on sequences, and data-parallel PPO splits the batch by steps (its "
-                         "ranks would cut sequences): run it in one process")
 
 
 def choose_distribution(policy: nn.Module, env: VecEnv) -> ActionDistribution:

@@ -44,7 +44,8 @@ class _SequenceBatch(NamedTuple):
     padded), S = C·N sequences, time-major: ``obs [L, S, ...]``, ``samples [L, S, A + P + 3]``, ``advantages [L, S]``,
     ``starts [L, S]`` bool (the state is reset before such a step), ``mask [L, S]`` bool (the steps that count: not
     padding, not a step where the env only reset), ``state`` the stored state at each chunk's first step
-    (``[S, ...]`` each). Sequence s = c·N + n is env n's chunk c."""
+    (``[S, ...]`` each). Sequence s = c·N + n is env n's chunk c. Data-parallel, those are this rank's (N its envs),
+    and ``advantages`` and ``counted`` (the mask) the global batch's, ``[L, C·N_global]``."""
 
     obs: Observation
     samples: torch.Tensor
@@ -52,6 +53,7 @@ class _SequenceBatch(NamedTuple):
     starts: torch.Tensor
     mask: torch.Tensor
     state: tuple[torch.Tensor, ...]
+    counted: torch.Tensor
 
 
 def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -182,7 +184,7 @@ class MinibatchUpdate:
     def _sequences(self, batch: _TrainBatch) -> _SequenceBatch:
         """The rollout as chunks of ``sequence_length`` steps per env (:class:`_SequenceBatch`); the advantages as
         ``batch`` holds them (standardised over the batch's real transitions)."""
-        buf = self.rollout
+        buf, dp = self.rollout, self.dp
         steps, envs = buf.rewards.shape
         length = min(self.config.sequence_length, steps)
         chunks = -(-steps // length)
@@ -191,24 +193,27 @@ class MinibatchUpdate:
         def cut(x: torch.Tensor) -> torch.Tensor:  # [T, N, ...] -> [L, C·N, ...]
             if pad:
                 x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
-            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, chunks * envs, *x.shape[2:])
+            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, -1, *x.shape[2:])
 
         assert buf.episode_starts is not None
         return _SequenceBatch(
             obs=obs_map(cut, buf.obs),
             samples=cut(batch.samples.reshape(steps, envs, -1)),
-            advantages=cut(batch.advantages.reshape(steps, envs)),
+            advantages=cut(batch.advantages.reshape(steps, -1)),  # (global)
             starts=cut(buf.episode_starts),
             mask=cut(buf.valid),  # (padding: False)
             state=tuple(s[::length].reshape(chunks * envs, *s.shape[2:]) for s in buf.states),
+            counted=cut(dp.gather_envs(buf.valid, dim=1)),
         )
 
     def _sgd_sequences(self, batch: _SequenceBatch, kl_coeff: float) -> list[float]:
         """:meth:`_sgd` for a recurrent policy: each pass shuffles the sequences and steps Adam on minibatches of
         ``max(1, sgd_minibatch_size // sequence_length)`` of them (``sgd_minibatch_size`` still counts steps), each
-        run from its stored state (truncated BPTT). One process (``PPO`` refuses data-parallel runs)."""
-        cfg, flat = self.config, self.flat
-        length, sequences = batch.mask.shape
+        run from its stored state (truncated BPTT). Data-parallel, every rank draws the same permutation of the global
+        sequences and runs those of its envs (``dp.local_sequences``), the losses divided by the minibatch's global
+        step count; the gradients are summed over ranks, as in :meth:`_sgd`."""
+        cfg, flat, dp = self.config, self.flat, self.dp
+        length, sequences = batch.counted.shape  # (global)
         per = min(sequences, max(1, cfg.sgd_minibatch_size // length))
         num_minibatches = sequences // per
         flat.check()
@@ -219,19 +224,26 @@ class MinibatchUpdate:
             order = torch.randperm(sequences, generator=self.generator, device=self.device)
             for i in range(num_minibatches):
                 idx = order[i * per : (i + 1) * per]
-                mask, adv = batch.mask[:, idx], batch.advantages[:, idx]
+                counted, adv = batch.counted[:, idx], batch.advantages[:, idx]
                 if cfg.advantage_norm == "minibatch":  # over the steps that count
-                    adv = torch.where(mask, adv, 0.0).masked_scatter(mask, standardize(adv[mask]))
+                    adv = torch.where(counted, adv, 0.0).masked_scatter(counted, standardize(adv[counted]))
+                local, mine = dp.local_sequences(idx)
+                if mine is not None:
+                    adv = adv[:, mine]
                 flat.zero_grad()
-                loss, stats = sequence_minibatch_loss(
-                    self.policy, self.distribution, cfg, obs_map(lambda x, i=idx: x[:, i], batch.obs),
-                    tuple(s[idx] for s in batch.state), batch.starts[:, idx], mask,
-                    batch.samples[:, idx].reshape(length * per, -1), adv.reshape(-1), kl_weight)
-                loss.backward()
-                totals += stats
+                if local.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
+                    loss, stats = sequence_minibatch_loss(
+                        self.policy, self.distribution, cfg, obs_map(lambda x, i=local: x[:, i], batch.obs),
+                        tuple(s[local] for s in batch.state), batch.starts[:, local], batch.mask[:, local],
+                        batch.samples[:, local].reshape(length * local.numel(), -1), adv.reshape(-1), kl_weight,
+                        counted.sum())
+                    loss.backward()
+                    totals += stats
+                dp.all_reduce_grad_(flat.grad)
                 if cfg.grad_clip is not None:
                     flat.clip_grad_norm_(cfg.grad_clip)
                 self.optimizer.step()
+        dp.sum_(totals)  # each rank summed its shares of the minibatch means
         return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
 
     def _minibatch_mean(self, x: torch.Tensor) -> torch.Tensor:
