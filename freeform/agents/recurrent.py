@@ -60,6 +60,8 @@ def run_rnn(rnn: nn.LSTM | nn.GRU, x: torch.Tensor, state: State, episode_start:
     pieces (one where no episode starts after the first step)."""
     keep = (~episode_start).to(x.dtype)[:, :, None, None]  # [T, N, 1, 1]
     steps = x.shape[0]
+    if steps == 1 and not torch.is_grad_enabled():  # acting: one step by the cell, 3-4x faster than oneDNN's layer
+        return _one_step(rnn, x[0], tuple(h * keep[0] for h in state))
     cuts = [0, steps] if steps == 1 else [0, *(episode_start[1:].any(1).nonzero()[:, 0] + 1).tolist(), steps]
     ys = []
     for a, b in zip(cuts[:-1], cuts[1:], strict=False):
@@ -68,6 +70,25 @@ def run_rnn(rnn: nn.LSTM | nn.GRU, x: torch.Tensor, state: State, episode_start:
         state = tuple(h.transpose(0, 1) for h in (out if isinstance(out, tuple) else (out,)))
         ys.append(y)
     return (ys[0] if len(ys) == 1 else torch.cat(ys)), state
+
+
+def _one_step(rnn: nn.LSTM | nn.GRU, x: torch.Tensor, state: State) -> tuple[torch.Tensor, State]:
+    """One step of ``rnn`` (``x [N, D]``, ``state`` ``[N, L, H]`` each, already reset) by its cell function, layer by
+    layer: the same function as the layer (torch's native cell, not oneDNN's, which repacks its weights at every
+    call: ≈ 0.6 ms a step at 256 wide against ≈ 0.15). Returns ``(y [1, N, H], state)``."""
+    lstm = isinstance(rnn, nn.LSTM)
+    hs, cs = [], []
+    for k in range(rnn.num_layers):
+        weights = [getattr(rnn, f"{name}_l{k}", None) for name in ("weight_ih", "weight_hh", "bias_ih", "bias_hh")]
+        if lstm:
+            h, c = torch.lstm_cell(x, (state[0][:, k], state[1][:, k]), *weights)
+            cs.append(c)
+        else:
+            h = torch.gru_cell(x, state[0][:, k], *weights)
+        hs.append(h)
+        x = h
+    out = (torch.stack(hs, 1), torch.stack(cs, 1)) if lstm else (torch.stack(hs, 1),)
+    return x[None], out
 
 
 class RecurrentActorCritic(nn.Module):
