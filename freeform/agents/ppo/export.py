@@ -132,7 +132,8 @@ def export_onnx(ppo: PPO, path: str | os.PathLike, opset: int | None = None) -> 
         raise ValueError(f"cannot export {type(ppo.policy).__name__} to ONNX ({type(cause).__name__}: {first}); a "
                          "network may offer for_export(), a module of the same function that torch.export can "
                          "trace") from e
-    program.save(os.fspath(path))
+    if ppo.dp.is_writer:  # (data-parallel: every rank holds the same actor; rank 0 writes)
+        program.save(os.fspath(path))
     return os.fspath(path)
 
 
