@@ -20,7 +20,7 @@ from freeform.envs.population import DesignBodies, PopulationControlEnv, design_
 from freeform.records import read_record
 from freeform.sim import SimConfig
 
-SIZES = DesignBodies(resolution=6, materials=3, steps=6, bundle_size=2)
+SIZES = DesignBodies(resolution=6, materials=4, steps=6, bundle_size=2)
 SIM = SimConfig(burn_in=0.0, precision="f64")
 SHORT = ControlConfig(burn_in=0.02, duration=0.025, headings="any", residual=True, ramp=True)
 

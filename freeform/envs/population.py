@@ -32,11 +32,11 @@ from freeform.sim import SimConfig, Simulator
 @dataclass(frozen=True)
 class DesignBodies:
     """The design env's sizes, for bodies an untrained design policy builds (``freeform.evolve.
-    untrained_design_bodies``): grid ``resolution`` ρ, ``materials`` (incl. passive), ``steps`` design actions of
-    ``bundle_size``³ bundles."""
+    untrained_design_bodies``): grid ``resolution`` ρ, ``materials`` k (with empty: 4 = empty, passive and two
+    muscles in anti-phase), ``steps`` design actions of ``bundle_size``³ bundles (locomotion_cpu's by default)."""
 
     resolution: int = 8
-    materials: int = 3
+    materials: int = 4
     steps: int = 20
     bundle_size: int = 2
 
