@@ -73,6 +73,13 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     ra, rb = (read_record(tmp_path / d / "records" / "epoch_000001.npz") for d in ("straight", "split"))
     np.testing.assert_array_equal(ra.rewards, rb.rewards)
     np.testing.assert_array_equal(ra.values, rb.values)
+    # and the run's directory reads back as its controller, with the episode's config (evaluate --bodies reads it)
+    from freeform.agents.controllers import read_controller
+
+    saved = read_controller(tmp_path / "split")
+    assert saved.kind == "conv" and saved.control.headings == "random" and saved.sim is not None
+    assert saved.controller.state_dict().keys() == a["policy"].keys()
+    assert all(torch.equal(v, a["policy"][k]) for k, v in saved.controller.state_dict().items())
 
 
 def test_headings_are_drawn_per_episode_and_environment_whatever_the_slice() -> None:
