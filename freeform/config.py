@@ -24,6 +24,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
@@ -95,7 +96,8 @@ class AgentConfig(PPOConfig):
 
 
 BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
-CONTROLLERS = ("conv", "mlp")
+CONTROLLERS = tuple(CONTROLLER_CLASSES)
+"""``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
 
 
 @dataclass
@@ -129,8 +131,11 @@ class ControlRunConfig(ControlConfig):
     """Seed of the untrained designs (``walker``, ``untrained_designs``): apart from the run's ``seed``, so that a
     sweep over seeds trains controllers of the same bodies."""
     controller: str = "conv"
-    """``conv``: ``freeform.agents.ConvController`` (one set of weights for every cell, any body); ``mlp``:
-    ``MLPController`` over the flattened box (the baseline). Width: ``agent.hidden``."""
+    """A kind of ``freeform.agents.controllers.CONTROLLERS``: ``conv`` (``ConvController``: one set of weights for
+    every cell, any body), ``mlp`` (``MLPController`` over the flattened box: the baseline), ``context``
+    (``ContextConvController``: masked convolutions with the body's pooled features) or ``attention``
+    (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
+    Width: ``hidden``."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None

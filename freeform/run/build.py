@@ -260,7 +260,7 @@ def load_controller(controller: torch.nn.Module, source: str) -> None:
 def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
     """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
     in dense rewards, ``agent.eval_every`` adds a deterministic evaluation env of its own (seed + 1)."""
-    from freeform.agents import PPO, CodesignActorCritic, ConvController, MLPController, VoxelActorCritic
+    from freeform.agents import PPO, CodesignActorCritic, VoxelActorCritic, build_controller
 
     if cfg.control is not None:
         control = cfg.control
@@ -268,12 +268,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std)
-        elif control.controller == "conv":
-            policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel, width,
-                                    control.init_log_std)
-        else:
-            policy = MLPController(env.observation_shape[0], env.box, env.mask_channel, (width, width),
-                                   control.init_log_std)
+        else:  # (freeform.agents.controllers.CONTROLLERS)
+            policy = build_controller(control.controller, env, width, control.init_log_std)
         if control.controller_init is not None:
             load_controller(policy.controller if control.codesign else policy, control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
