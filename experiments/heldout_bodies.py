@@ -4,13 +4,15 @@
 * ``hand_built``: shapes a person would draw on an 8³ grid — quadrupeds, tripods, bipeds, worms, crawlers, tables,
   arches, hoppers, wedges — in sizes and muscle layouts (front/back, left/right, alternating segments, top/bottom),
   each a connected body with voxels of both muscle groups.
+* ``design_unseen``: for comparison, bodies of the training stream's own generator (an untrained design policy at
+  locomotion_cpu's sizes) from a stream no run trains on (``body_seed`` 10,000): unseen bodies, not an unseen kind.
 * ``grown``: random accretion (each body grown voxel by voxel from one seed voxel, a neighbour of the body chosen at
   random each time, biased along a random direction) with materials from a random smooth field (the sign of a
   random plane wave through the body: passive where it is near zero), a generator unlike the design env's bundles.
 
 Materials as the design env's (k = 4): 0 empty, 1 passive, 2 and 3 muscles in anti-phase.
 
-    python -m experiments.heldout_bodies --out docs/results/heldout_bodies     # hand_built.npy, grown.npy
+    python -m experiments.heldout_bodies --out docs/results/heldout_bodies   # hand_built, grown, design_unseen .npy
 """
 
 from __future__ import annotations
@@ -146,7 +148,10 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name, grids in (("hand_built", hand_built()), ("grown", grown(args.grown, args.seed))):
+    from freeform.envs.population import DesignBodies, design_cohort
+
+    unseen = design_cohort(DesignBodies(), args.grown, 10_000, 0).numpy()
+    for name, grids in (("hand_built", hand_built()), ("grown", grown(args.grown, args.seed)), ("design_unseen", unseen)):
         np.save(out / f"{name}.npy", grids)
         voxels = (grids > 0).reshape(len(grids), -1).sum(1)
         print(f"{name}: {len(grids)} bodies, {voxels.min()}-{voxels.max()} voxels (mean {voxels.mean():.0f}) -> "
