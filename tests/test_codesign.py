@@ -13,6 +13,7 @@ import torch
 
 from freeform.agents import PPO, CodesignActorCritic, PPOConfig
 from freeform.body import largest_component
+from freeform.config import EnvConfig
 from freeform.envs import CodesignEnv, DesignEnv
 from freeform.envs.codesign import CODESIGN_CHANNELS, CONTROL, GRID, STAGE
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
@@ -23,8 +24,7 @@ CONTROL_CFG = ControlConfig(burn_in=0.01, duration=0.0375, headings="random")  #
 
 
 def env(n: int = 3, seed: int = 2, control: ControlConfig = CONTROL_CFG) -> CodesignEnv:
-    return CodesignEnv(n, resolution=RHO, materials=K, design_steps=T, sim=SimConfig(precision="f64"),
-                       control=control, seed=seed)
+    return CodesignEnv(n, EnvConfig(resolution=RHO, steps=T), K, SimConfig(precision="f64"), control, seed=seed)
 
 
 def design_actions(n: int, gen: torch.Generator) -> list[torch.Tensor]:

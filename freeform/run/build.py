@@ -186,11 +186,8 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     if cfg.control.codesign:  # each episode designs its bodies
         from freeform.envs.codesign import CodesignEnv
 
-        e = cfg.env
-        return CodesignEnv(envs[1] - envs[0], resolution=e.resolution, materials=cfg.task.materials,
-                           design_steps=e.steps, bundle_size=e.bundle_size, sim=cfg.sim,
-                           control=cfg.control.episode(), arch=arch, seed=seed, device=device,
-                           action_bound=e.action_bound, mirror_y=e.mirror_y, first_env=envs[0])
+        return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), arch=arch,
+                           seed=seed, device=device, first_env=envs[0])
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
     return ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
                       first_env=envs[0], box=box)
