@@ -96,7 +96,7 @@ class AgentConfig(PPOConfig):
         require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
 
 
-BODY_SOURCES = ("walker", "untrained_designs", "codesign")
+BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
 CONTROLLERS = tuple(CONTROLLER_CLASSES)
 """``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
 
@@ -114,7 +114,16 @@ class ControlRunConfig(ControlConfig):
     such bodies, all different; a path — a ``.npy`` of uint8 grids ``[ρ, ρ, ρ]`` or ``[M, ρ, ρ, ρ]``, or a design
     record ``records/epoch_<e>.npz`` of a design run, whose best ``top`` designs are taken; ``codesign`` — none
     given: each episode first designs its body (``env.steps`` design actions at the ``env`` sizes, the design env's)
-    and then controls it, one PPO learning both (``freeform.envs.CodesignEnv``, ``docs/codesign.md``)."""
+    and then controls it, one PPO learning both (``freeform.envs.CodesignEnv``, ``docs/codesign.md``);
+    ``population`` — a stream of bodies an untrained design policy builds, a fresh cohort of ``env.num_envs`` every
+    ``refresh_every`` episodes, drawn from a pool of ``pool`` settled cohorts, on the ρ³ box
+    (``freeform.envs.PopulationControlEnv``): one controller for many bodies."""
+    pool: int = 4
+    """``bodies=population``: how many cohorts of ``env.num_envs`` bodies an episode draws from (each settled once
+    and restored when drawn again)."""
+    refresh_every: int = 1
+    """``bodies=population``: episodes between two new cohorts (the oldest leaves the pool); 0: a fixed
+    population of ``pool · env.num_envs`` bodies."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -148,6 +157,9 @@ class ControlRunConfig(ControlConfig):
                 f"one of {list(BODY_SOURCES)} or a path to a .npy of grids or a design record .npz", self.bodies)
         require(self.top >= 1, f"{key}.top", "an integer >= 1", self.top)
         require(self.candidates >= 1, f"{key}.candidates", "an integer >= 1", self.candidates)
+        require(isinstance(self.pool, int) and self.pool >= 1, f"{key}.pool", "an integer >= 1", self.pool)
+        require(isinstance(self.refresh_every, int) and self.refresh_every >= 0, f"{key}.refresh_every",
+                "an integer >= 0 (0: a fixed pool)", self.refresh_every)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),

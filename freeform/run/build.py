@@ -188,6 +188,14 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
 
         return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), arch=arch,
                            seed=seed, device=device, first_env=envs[0])
+    if cfg.control.bodies == "population" and bodies is None:  # fresh bodies every few episodes
+        from freeform.envs.population import DesignBodies, PopulationControlEnv
+
+        e, c = cfg.env, cfg.control
+        return PopulationControlEnv(DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size),
+                                    e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
+                                    sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
+                                    box=box)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
     return ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
                       first_env=envs[0], box=box)
@@ -251,7 +259,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         if control.controller_init is not None:
             load_controller(policy.controller if control.codesign else policy, control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
-        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if control.codesign else env.grids) if (
+        own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
+        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (
             cfg.agent.eval_every) else None
         return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
