@@ -28,6 +28,7 @@ from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
+from freeform.learner import learner_names
 from freeform.sim import SimConfig
 from freeform.validation import require
 
@@ -288,9 +289,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         require(cfg.task.materials <= len(cfg.sim.materials) + 1, "task.materials",
                 f"<= len(sim.materials) + 1 = {len(cfg.sim.materials) + 1} (materials 1..k-1 are simulated as "
                 f"sim.materials[0..k-2])", cfg.task.materials)
-    from freeform.run.build import LEARNERS  # (the registry a user's learner joins; imported when validating)
-
-    cfg.algo.validate("algo", cfg.env.num_envs, names=list(LEARNERS))
+    cfg.algo.validate("algo", cfg.env.num_envs, names=learner_names())  # (the registry, below config and app)
     require(cfg.algo.name == "ppo" or not cfg.env.dense_every, "env.dense_every",
             f"0 with algo.name={cfg.algo.name} (evolution scores whole designs; dense rewards are for PPO)",
             cfg.env.dense_every)

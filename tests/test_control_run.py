@@ -82,6 +82,19 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     assert all(torch.equal(v, a["policy"][k]) for k, v in saved.controller.state_dict().items())
 
 
+@pytest.mark.parametrize("kind", ["context", "attention"])
+def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: str, bodies: Path, tmp_path: Path) -> None:
+    """control.controller picks the registry's kind (build_controller); two epochs equal one plus a resumed one."""
+    straight_and_resumed(compose(*tiny_control(bodies, f"control.controller={kind}", "seed=1")), tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    from freeform.agents.controllers import CONTROLLERS
+
+    assert a["policy_class"].endswith(":" + CONTROLLERS[kind].__name__) and a["policy_kwargs"]["hidden"] == 4
+    for name, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][name]), name
+
+
 def test_headings_are_drawn_per_episode_and_environment_whatever_the_slice() -> None:
     """A data-parallel rank holding environments 2, 3 draws what one process draws for them, episode after episode."""
     grids = np.stack([ROD, CUBE, ROD, CUBE])

@@ -169,13 +169,16 @@ class ContextConvController(nn.Module):
     after every layer keeps the padding's features 0 (a bias never leaks into it), so a body in a larger box sees
     the zeros it would see at its own box's edge: the same commands. Actor: Conv3d(h→1, 1³) · f, each cell's mean
     command (weights N(0, 0.01²), bias 0); one learned log σ. Critic: pool(x) → Linear(2h→h) → tanh → Linear(h→1).
+
+    One block (the default) is ConvController's two 3³ convolutions plus the body's context, at about its cost on
+    the CPU (``python -m benchmarks controllers``); each further block adds a 3³ convolution and a round of context.
     """
 
     fits_any_box = True
     padding_invariant = True
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 16, blocks: int = 2, log_std: float = 0.0) -> None:
+                 hidden: int = 16, blocks: int = 1, log_std: float = 0.0) -> None:
         super().__init__()
         box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
         for name, value in (("hidden", hidden), ("blocks", blocks)):

@@ -3,6 +3,9 @@
     register_task("mine")(builder)        # task.name=mine: builder(cfg, device) -> a freeform.envs.Task
     register_learner("mine")(builder)     # algo.name=mine: builder(cfg, env, device, envs) -> a freeform.learner.Learner
 
+(``LEARNERS`` and ``register_learner`` live in ``freeform.learner``, below the config that validates the names;
+this module registers freeform's own.)
+
 Every trajectory reward registered with ``freeform.envs.trajectory.trajectory_reward`` is a task of its name too.
 """
 
@@ -18,15 +21,12 @@ import torch
 
 from freeform.config import TrainConfig, ppo_config
 from freeform.envs.base import Task, VecEnv
-from freeform.learner import Learner
+from freeform.learner import LEARNERS, Learner, register_learner
 
 TaskBuilder = Callable[[TrainConfig, torch.device], Task]
 TASKS: dict[str, TaskBuilder] = {}
 """``task.name`` -> builder ``(cfg, device) -> Task``. Add one with :func:`register_task`."""
 
-LearnerBuilder = Callable[[TrainConfig, Any, torch.device, tuple[int, int]], Learner]
-LEARNERS: dict[str, LearnerBuilder] = {}
-"""``algo.name`` -> builder ``(cfg, env, device, envs) -> Learner``. Add one with :func:`register_learner`."""
 
 
 def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
@@ -34,17 +34,6 @@ def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
 
     def decorate(builder: TaskBuilder) -> TaskBuilder:
         TASKS[name] = builder
-        return builder
-
-    return decorate
-
-
-def register_learner(*names: str) -> Callable[[LearnerBuilder], LearnerBuilder]:
-    """Decorator: make ``algo.name=<name>`` (each of ``names``) build its learner with the decorated function."""
-
-    def decorate(builder: LearnerBuilder) -> LearnerBuilder:
-        for name in names:
-            LEARNERS[name] = builder
         return builder
 
     return decorate
@@ -197,11 +186,8 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     if cfg.control.codesign:  # each episode designs its bodies
         from freeform.envs.codesign import CodesignEnv
 
-        e = cfg.env
-        return CodesignEnv(envs[1] - envs[0], resolution=e.resolution, materials=cfg.task.materials,
-                           design_steps=e.steps, bundle_size=e.bundle_size, sim=cfg.sim,
-                           control=cfg.control.episode(), arch=arch, seed=seed, device=device,
-                           action_bound=e.action_bound, mirror_y=e.mirror_y, first_env=envs[0])
+        return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), arch=arch,
+                           seed=seed, device=device, first_env=envs[0])
     if cfg.control.bodies == "population" and bodies is None:  # fresh bodies every few episodes
         from freeform.envs.population import DesignBodies, PopulationControlEnv
 
