@@ -36,8 +36,8 @@ def test_cohorts_are_fresh_non_empty_bodies_and_a_function_of_their_index() -> N
 def test_the_pool_slides_along_the_stream_and_a_redrawn_cohort_restores_its_settled_state() -> None:
     env = PopulationControlEnv(SIZES, 4, pool=2, refresh_every=2, sim=SIM, control=SHORT, seed=5)
     seen: dict[int, torch.Tensor] = {}
+    obs = env.reset()
     for episode in range(8):
-        obs = env.reset() if episode == 0 else obs
         c = env.cohort_at(episode)
         assert episode // 2 <= c < episode // 2 + 2 and env.current is env._cohorts[c]
         assert set(env._cohorts) <= {episode // 2 - 1, *range(episode // 2, episode // 2 + 2)}  # the old ones go

@@ -17,8 +17,9 @@ and is in the observation. ``headings="any"``: no heading — the step's growth 
 from where the episode started, in the ground plane (the return is that distance: the paper's locomotion reward,
 by which open-loop bodies are scored; the heading channels are 0).
 
-The bodies' frame: every body is simulated as its largest component cropped to its bounding box (the layout's
-``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
+The bodies' frame: every body is simulated as one robot, all its voxels (every component: pass
+``freeform.body.largest_component(grids)`` for the connected robot alone, as the design env's bodies are), cropped to
+its bounding box (the layout's ``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
 the largest box of the batch, ``box = (Bx, By, Bz)``: a 78-voxel design body of a 20³ grid sits in a box of a few
 hundred cells instead of 8,000 (the dense ρ³ grid made a rollout of 128 bodies gigabytes). A cell of the box is
 cell ``box_cell + origin`` of the body's grid (:meth:`ControlEnv.to_grid` maps any per-cell values back).
@@ -445,7 +446,8 @@ def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = No
     if layout.num_robots == 0:
         return out
     engine = simulator.engine(layout)
-    engine.advance_time(control.burn_in)
+    if control.burn_in > 0:
+        engine.advance_time(control.burn_in)
     start = engine.sense()
     engine.advance_time(control.duration)
     end = engine.sense()
