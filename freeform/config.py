@@ -137,6 +137,10 @@ class ControlRunConfig(ControlConfig):
     (``ContextConvController``: masked convolutions with the body's pooled features) or ``attention``
     (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
     Width: ``hidden``."""
+    head: str = "direct"
+    """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command) or
+    ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
+    ``controller=context`` or ``attention``)."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -162,6 +166,8 @@ class ControlRunConfig(ControlConfig):
                 "an integer >= 0 (0: a fixed pool)", self.refresh_every)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
+        require(self.head == "direct" or (self.head == "rhythm" and self.controller in ("context", "attention")),
+                f"{key}.head", "direct, or rhythm with controller=context or attention", self.head)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not self.codesign or self.controller == "conv", f"{key}.controller",

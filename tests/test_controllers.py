@@ -166,9 +166,9 @@ def test_padding_changes_nothing_for_the_masked_controllers_and_changes_the_conv
     cells = small.box
     torch.testing.assert_close(obs_large[0, :, : cells[0], : cells[1], : cells[2]], obs_small[0])  # (the env's padding)
     batch = obs_large.clone()
-    for kind in (*BOX_FREE, "conv"):
+    for kind, head in (*((k, "direct") for k in BOX_FREE), *((k, "rhythm") for k in BOX_FREE), ("conv", "direct")):
         torch.manual_seed(1)
-        net = build_controller(kind, large, hidden=8)
+        net = build_controller(kind, large, hidden=8, head=head)
         with torch.no_grad():
             mean_big, _, _, value_big = net(batch)
             mean_alone, _, _, value_alone = net(obs_small)  # (the same weights on another box)
@@ -179,6 +179,26 @@ def test_padding_changes_nothing_for_the_masked_controllers_and_changes_the_conv
         torch.testing.assert_close(on_its_cells, mean_alone[0], rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(value_big[0], value_alone[0], rtol=1e-5, atol=1e-6)
         assert (mean_alone[0] != 0).any()
+
+
+@pytest.mark.parametrize("kind", BOX_FREE)
+def test_a_rhythm_head_commands_its_amplitudes_on_the_actuation_clock(kind, envs_and_obs):
+    """Truth: the observation's own clock channels. With the head's weights 0 and its biases (u, v, w), every filled
+    cell's mean command is u·sin(2πt/T) + v·cos(2πt/T) + w, and an empty cell's is 0."""
+    _, env, _, obs = envs_and_obs
+    net = build_controller(kind, env, hidden=8, head="rhythm")
+    with torch.no_grad():
+        net.actor.weight.zero_()
+        net.actor.bias.copy_(torch.tensor([0.7, -0.4, 0.1]))
+        mean = net(obs)[0]
+    clock_sin, clock_cos = (obs[:, env.channels.index(c)].flatten(1) for c in ("clock_sin", "clock_cos"))
+    filled = obs[:, env.filled_channel].flatten(1)
+    assert 0 < clock_sin.abs().max() and 0 < clock_cos.abs().max()  # (the clock is not at a zero of either)
+    torch.testing.assert_close(mean, (0.7 * clock_sin - 0.4 * clock_cos + 0.1) * filled)
+    with pytest.raises(ValueError, match="head='rhythm' is for the controllers"):
+        build_controller("conv", env, hidden=8, head="rhythm")
+    with pytest.raises(ValueError, match="head must be one of"):
+        build_controller(kind, env, hidden=8, head="sine")
 
 
 @pytest.mark.parametrize("kind", BOX_FREE)

@@ -156,6 +156,41 @@ def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
     return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
 
 
+HEADS = ("direct", "rhythm")
+"""What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
+``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
+clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
+whose amplitude and phase each voxel's features set (a travelling wave when they vary with the voxel's place
+in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
+state instead of products of them with the clock."""
+
+
+def _head_outputs(head: str) -> int:
+    if head not in HEADS:
+        raise ValueError(f"head must be one of {HEADS}, got {head!r}")
+    return 1 if head == "direct" else 3
+
+
+def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
+    """The observation's (clock_sin, clock_cos) channels, needed by a ``rhythm`` head."""
+    if head != "rhythm":
+        return None
+    if clock_channels is None or len(clock_channels) != 2:
+        raise ValueError(f"a rhythm head needs clock_channels = (clock_sin, clock_cos) channel indices, got "
+                         f"{clock_channels!r}")
+    _check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
+    return int(clock_channels[0]), int(clock_channels[1])
+
+
+def _env_clock(env: Any, head: str) -> tuple[int, int] | None:
+    return (env.channels.index("clock_sin"), env.channels.index("clock_cos")) if head == "rhythm" else None
+
+
+def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
+    """``out [..., 3, *cells]`` (u, v, w) and ``clock [..., 2, *cells]`` (sin, cos) → u·sin + v·cos + w."""
+    return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
+
+
 class ContextConvController(nn.Module):
     """A masked convolutional controller with a view of the whole body: each cell's command reads its 5³
     neighbourhood and the body's pooled features, and the padding around a body changes nothing.
@@ -168,7 +203,8 @@ class ContextConvController(nn.Module):
     with pool(x) ``[N, 2h]`` the mean and max of x over the filled cells, broadcast to every cell. Multiplying by f
     after every layer keeps the padding's features 0 (a bias never leaks into it), so a body in a larger box sees
     the zeros it would see at its own box's edge: the same commands. Actor: Conv3d(h→1, 1³) · f, each cell's mean
-    command (weights N(0, 0.01²), bias 0); one learned log σ. Critic: pool(x) → Linear(2h→h) → tanh → Linear(h→1).
+    command (weights N(0, 0.01²), bias 0; ``head="rhythm"``: Conv3d(h→3, 1³), the cell's rhythm, :data:`HEADS`); one
+    learned log σ. Critic: pool(x) → Linear(2h→h) → tanh → Linear(h→1).
 
     One block (the default) is ConvController's two 3³ convolutions plus the body's context, at about its cost on
     the CPU (``python -m benchmarks controllers``); each further block adds a 3³ convolution and a round of context.
@@ -178,20 +214,22 @@ class ContextConvController(nn.Module):
     padding_invariant = True
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 16, blocks: int = 1, log_std: float = 0.0) -> None:
+                 hidden: int = 16, blocks: int = 1, log_std: float = 0.0, head: str = "direct",
+                 clock_channels: tuple[int, int] | None = None) -> None:
         super().__init__()
         box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
         for name, value in (("hidden", hidden), ("blocks", blocks)):
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, blocks=blocks, log_std=log_std)
+                                hidden=hidden, blocks=blocks, log_std=log_std, head=head, clock_channels=self.clock)
         self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
         self.distribution = MaskedDiagGaussian(math.prod(box))
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
-        self.actor = nn.Conv3d(hidden, 1, 1)
+        self.actor = nn.Conv3d(hidden, outputs, 1)
         nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
         nn.init.zeros_(self.actor.bias)
         self.log_std = nn.Parameter(torch.tensor(float(log_std)))
@@ -199,10 +237,10 @@ class ContextConvController(nn.Module):
         self.critic_out = nn.Linear(hidden, 1)
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0) -> ContextConvController:
+    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct") -> ContextConvController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std)
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
@@ -211,7 +249,10 @@ class ContextConvController(nn.Module):
         x = F.relu(self.conv_in(obs)) * filled
         for conv, context in zip(self.convs, self.contexts, strict=True):
             x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
-        mean = (self.actor(x) * filled).reshape(n, -1)
+        out = self.actor(x)
+        if self.clock is not None:
+            out = _rhythm(out, obs[:, list(self.clock)])[:, None]
+        mean = (out * filled).reshape(n, -1)
         value = self.critic_out(torch.tanh(self.critic_fc(_masked_pool(x, filled)))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), obs[:, self.mask_channel].reshape(n, -1), value
 
@@ -246,7 +287,8 @@ class VoxelAttentionController(nn.Module):
     features are its cell's observation, whose ``rel_x/y/z`` channels place it relative to the centre of mass (its
     position: the network has no other). Embedding: Linear(C→h) → ReLU → Linear(h→h); ``layers`` pre-norm
     transformer blocks of ``heads`` heads (:class:`_AttentionBlock`); LayerNorm. Actor: Linear(h→1) per token (weights
-    N(0, 0.01²), bias 0), scattered back to its cell (0 elsewhere); one learned log σ. Critic: the mean of the valid
+    N(0, 0.01²), bias 0; ``head="rhythm"``: Linear(h→3), the token's rhythm, :data:`HEADS`), scattered back to its
+    cell (0 elsewhere); one learned log σ. Critic: the mean of the valid
     tokens → Linear(h→h) → tanh → Linear(h→1). Gathering and scattering are tensor ops (no loop over bodies).
     """
 
@@ -254,7 +296,8 @@ class VoxelAttentionController(nn.Module):
     padding_invariant = True
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0) -> None:
+                 hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0, head: str = "direct",
+                 clock_channels: tuple[int, int] | None = None) -> None:
         super().__init__()
         box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
         for name, value in (("hidden", hidden), ("heads", heads), ("layers", layers)):
@@ -262,14 +305,16 @@ class VoxelAttentionController(nn.Module):
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
         if hidden % heads:
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, heads=heads, layers=layers, log_std=log_std)
+                                hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
+                                clock_channels=self.clock)
         self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
         self.distribution = MaskedDiagGaussian(math.prod(box))
         self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
         self.norm = nn.LayerNorm(hidden)
-        self.actor = nn.Linear(hidden, 1)
+        self.actor = nn.Linear(hidden, outputs)
         nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
         nn.init.zeros_(self.actor.bias)
         self.log_std = nn.Parameter(torch.tensor(float(log_std)))
@@ -277,10 +322,10 @@ class VoxelAttentionController(nn.Module):
         self.critic_out = nn.Linear(hidden, 1)
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0) -> VoxelAttentionController:
+    def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0, head: str = "direct") -> VoxelAttentionController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std)
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
 
     def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
@@ -302,7 +347,10 @@ class VoxelAttentionController(nn.Module):
         for block in self.blocks:
             x = block(x, valid)
         x = self.norm(x) * valid[..., None]
-        per_token = self.actor(x).squeeze(-1) * valid
+        out = self.actor(x).transpose(1, 2)  # [N, outputs, K]
+        if self.clock is not None:
+            out = _rhythm(out, features[..., list(self.clock)].transpose(1, 2))[:, None]
+        per_token = out[:, 0] * valid
         mean = per_token.new_zeros(n, math.prod(obs.shape[2:])).scatter(1, order, per_token)
         pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
@@ -316,13 +364,23 @@ CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPCon
 a body changes nothing."""
 
 
-def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0) -> nn.Module:
+def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
+                     head: str = "direct") -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
-    kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``."""
+    kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
+    ``head`` (:data:`HEADS`; ``rhythm`` for the kinds with a view of the whole body: ``context``, ``attention``)."""
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
+    _head_outputs(head)
+    if head != "direct" and kind not in RHYTHM_KINDS:
+        raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
     width = {} if hidden is None else {"hidden": hidden}
-    return CONTROLLERS[kind].for_env(env, log_std=log_std, **width)
+    options = {} if head == "direct" else {"head": head}
+    return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)
+
+
+RHYTHM_KINDS = ("context", "attention")
+"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
 
 def controller_kind(controller: nn.Module) -> str:

@@ -255,7 +255,7 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std)
         else:  # (freeform.agents.controllers.CONTROLLERS)
-            policy = build_controller(control.controller, env, width, control.init_log_std)
+            policy = build_controller(control.controller, env, width, control.init_log_std, control.head)
         if control.controller_init is not None:
             load_controller(policy.controller if control.codesign else policy, control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
