@@ -73,7 +73,8 @@ def check(arch: str, rehearsal: bool) -> None:
         engine.advance(300)
         runs[name] = (engine.positions(), engine.robot_steps(), engine.block_dim)
         runtime.sync()
-        _line(f"check: {name} (B = {engine.block_dim}), 300 steps, compilation included",
+        what = f"{name} (B = {engine.block_dim})" if schedule == "robots" else name
+        _line(f"check: {what}, 300 steps, compilation included",
               f"{time.perf_counter() - t0:7.2f} s")
     flat = runs["flat"][0]
     for name in ("block", "block B=32"):
