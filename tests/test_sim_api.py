@@ -153,13 +153,13 @@ def test_robots_schedule_on_cuda_only_behind_its_opt_in(monkeypatch):
 
 
 @pytest.mark.reference
-@pytest.mark.parametrize("precision", ["f32", "f64"])
-def test_block_of_lanes_per_robot_gives_the_same_bits_as_one_thread(precision):
+def test_block_of_lanes_per_robot_gives_the_same_bits_as_one_thread(precision="f64"):
     """The robots schedule's block (schedules.robot_steps): B lanes per robot, each striding over the robot's links
     and then its voxels, lane 0 the clock, the trace and rl4design's ω² max. On the CPU the lanes of a block run in
-    turn: B = 3 (uneven strides) and B = 32 (the GPU's warp: most lanes idle on these small robots) give the bits of
-    B = 1, the CPU's schedule, over 60 steps of three bodies with rl4design's dt refresh and a trace sample every
-    7 steps — the GPU's partition of the work, without a GPU."""
+    turn: B = 3 (uneven strides; lanes idle on the robot of one voxel) gives the bits of B = 1, the CPU's schedule,
+    over 60 steps of three bodies with rl4design's dt refresh and a trace sample every 7 steps — the GPU's partition
+    of the work, without a GPU. (One precision and one B > 1: each is a kernel compiled cold in CI; B = 32 and f32
+    passed too when this was written.)"""
     rng = np.random.default_rng(4)
     g = (rng.random((3, 4, 3, 3)) < 0.7).astype(np.uint8) * rng.integers(1, 4, size=(3, 4, 3, 3)).astype(np.uint8)
     g[:, 0, 0, 0] = 1
@@ -168,7 +168,7 @@ def test_block_of_lanes_per_robot_gives_the_same_bits_as_one_thread(precision):
     cfg = short(precision=precision, semantics="rl4design")
     layout = Simulator(cfg, arch="cpu").layout(g)
     states = []
-    for block_dim in (1, 3, 32):
+    for block_dim in (1, 3):
         eng = Engine(layout, cfg, arch="cpu", schedule="robots", block_dim=block_dim)
         eng.start_trace(7)
         eng.advance(33)
