@@ -48,7 +48,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         return L0
 
     @ti.func
-    def into_link_frame(s: ti.template(), n, p, axis):
+    def into_link_frame(s: ti.template(), n, p, axis: ti.template()):
         """orientLink's start (spec 5.1): both poses permuted onto +x (toAxisX) and expressed relative to the
         negative voxel, R = conj(q_N): p = Rotate(R, pos_P − pos_N), q2 = R·q_P (q1 becomes the identity)."""
         q1 = q_to_axis_x(get4(s.vr, VR.ORI, n), axis)
@@ -140,7 +140,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         return fN, fP, mN, mP
 
     @ti.func
-    def store_end_loads(s: ti.template(), lk, axis, q1, q2, small, fN, fP, mN, mP):
+    def store_end_loads(s: ti.template(), lk, axis: ti.template(), q1, q2, small, fN, fP, mN, mP):
         """The loads back in each voxel's local frame (spec 5.7): RotateInv by q1 (large angle only: else the
         identity) and q2, then toAxisOriginal; into the link's own columns, gathered by the voxels' fixed slots."""
         if not small:
@@ -169,8 +169,22 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
     def link_update(lk, s: ti.template()):
         """Forces and moments of link ``lk`` from its voxels' poses (spec 5, steps 1-8); marks the robot DIVERGED
         on a strain above ``max_strain`` or a non-finite one. ``s.sw`` (``state.Switches``): rl4design semantics;
-        dynamic_dt: store ω² for the dt refresh."""
-        n, p, axis, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.AXIS, lk), ld(s.li, LI.LMAT, lk)
+        dynamic_dt: store ω² for the dt refresh.
+
+        One compiled copy per axis (``link_along``): the permutations onto +x and back become register moves and
+        the axis's transverse columns fixed offsets (links come grouped by axis, so the branch is predictable)."""
+        axis = ld(s.li, LI.AXIS, lk)
+        if axis == 0:
+            link_along(lk, s, 0)
+        elif axis == 1:
+            link_along(lk, s, 1)
+        else:
+            link_along(lk, s, 2)
+
+    @ti.func
+    def link_along(lk, s: ti.template(), axis: ti.template()):
+        """``link_update`` of a link along ``axis`` (compile-time)."""
+        n, p, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.LMAT, lk)
         r = ld(s.vi, VI.ROBOT, n)
         mat_n, mat_p = ld(s.vi, VI.MAT, n), ld(s.vi, VI.MAT, p)
         flags = ld(s.li, LI.FLAGS, lk)
