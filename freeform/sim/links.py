@@ -59,6 +59,14 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         return pos2, q2
 
     @ti.func
+    def transverse_terms(s: ti.template(), n, p, axis: ti.template()):
+        """Volume effects (spec 5.3): the transverse area A_t and strain sum S_t, the means of both voxels' cached
+        Poisson terms for this axis."""
+        area = 0.5 * (ld(s.vr, VR.TAREA + axis, n) + ld(s.vr, VR.TAREA + axis, p))
+        ssum = 0.5 * (ld(s.vr, VR.TSUM + axis, n) + ld(s.vr, VR.TSUM + axis, p))
+        return area, ssum
+
+    @ti.func
     def angle_regime(s: ti.template(), pos2, L0, small, valid):
         """Voxelyze's small/large-angle switch with hysteresis (spec 5.1): SmallTurn = (|p.z| + |p.y|)/p.x and
         ExtendPerc = |1 − p.x/L0|. After a switch the rates below would compare poses from the two paths, so the
@@ -140,9 +148,9 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         return fN, fP, mN, mP
 
     @ti.func
-    def store_end_loads(s: ti.template(), lk, axis: ti.template(), q1, q2, small, fN, fP, mN, mP):
-        """The loads back in each voxel's local frame (spec 5.7): RotateInv by q1 (large angle only: else the
-        identity) and q2, then toAxisOriginal; into the link's own columns, gathered by the voxels' fixed slots."""
+    def to_voxel_frames(q1, q2, small, fN, fP, mN, mP):
+        """The loads in each end's voxel frame, still permuted onto +x (spec 5.7): RotateInv by q1 (large angle
+        only: else the identity) and by q2."""
         if not small:
             qc = conj(q1)
             fN = rotate(qc, fN)
@@ -150,6 +158,11 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         q2c = conj(q2)
         fP = rotate(q2c, fP)
         mP = rotate(q2c, mP)
+        return fN, fP, mN, mP
+
+    @ti.func
+    def store_end_loads(s: ti.template(), lk, axis: ti.template(), fN, fP, mN, mP):
+        """toAxisOriginal (spec 5.7), into the link's own columns, which the voxels gather through fixed slots."""
         set3(s.lr, LR.FN, lk, to_axis_original(fN, axis))
         set3(s.lr, LR.FP, lk, to_axis_original(fP, axis))
         set3(s.lr, LR.MN, lk, to_axis_original(mN, axis))
@@ -171,20 +184,10 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         on a strain above ``max_strain`` or a non-finite one. ``s.sw`` (``state.Switches``): rl4design semantics;
         dynamic_dt: store ω² for the dt refresh.
 
-        One compiled copy per axis (``link_along``): the permutations onto +x and back become register moves and
-        the axis's transverse columns fixed offsets (links come grouped by axis, so the branch is predictable)."""
-        axis = ld(s.li, LI.AXIS, lk)
-        if axis == 0:
-            link_along(lk, s, 0)
-        elif axis == 1:
-            link_along(lk, s, 1)
-        else:
-            link_along(lk, s, 2)
-
-    @ti.func
-    def link_along(lk, s: ti.template(), axis: ti.template()):
-        """``link_update`` of a link along ``axis`` (compile-time)."""
-        n, p, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.LMAT, lk)
+        What depends on the link's axis (the permutations onto +x and back, the axis's transverse columns) is
+        compiled once per axis, so the permutations are register moves and the columns fixed offsets; the beam
+        between them is compiled once (links come grouped by axis, so the branch is predictable)."""
+        n, p, axis, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.AXIS, lk), ld(s.li, LI.LMAT, lk)
         r = ld(s.vi, VI.ROBOT, n)
         mat_n, mat_p = ld(s.vi, VI.MAT, n), ld(s.vi, VI.MAT, p)
         flags = ld(s.li, LI.FLAGS, lk)
@@ -193,7 +196,12 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         L0 = rest_length(s, n, p)
 
         # 1. orientLink: the deformation in the link frame (x along the link, relative to the negative voxel)
-        pos2, q2 = into_link_frame(s, n, p, axis)
+        pos2, q2 = vec3(0.0, 0.0, 0.0), vec4(0.0, 0.0, 0.0, 0.0)
+        area, ssum = ti.cast(0.0, real), ti.cast(0.0, real)
+        for a in ti.static(range(3)):
+            if axis == a:
+                pos2, q2 = into_link_frame(s, n, p, a)
+                area, ssum = transverse_terms(s, n, p, a)
         small, valid = angle_regime(s, pos2, L0, small, valid)
         pos2, q1, q2, a1v, a2v = beam_deformation(pos2, q2, L0, small)
         strain = pos2[0] / L0
@@ -205,9 +213,7 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         dA1 = 0.5 * (a1v - get3(s.lr, LR.A1, lk))
         dA2 = 0.5 * (a2v - get3(s.lr, LR.A2, lk))
 
-        # 3.-4. volume effects (transverse area and strain sum from both voxels' cached Poisson strains), stress
-        area = 0.5 * (ld(s.vr, VR.TAREA + axis, n) + ld(s.vr, VR.TAREA + axis, p))
-        ssum = 0.5 * (ld(s.vr, VR.TSUM + axis, n) + ld(s.vr, VR.TSUM + axis, p))
+        # 3.-4. volume effects (the transverse area and strain sum, above), stress
         stress = axial_stress(s, k, strain, ssum)
 
         # 5.-6. elastic loads, then internal damping unless a regime switch invalidated the rates
@@ -218,7 +224,10 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
             valid = True  # damping resumes next step
 
         # 7. back into each voxel's local frame; this step's state for the next one
-        store_end_loads(s, lk, axis, q1, q2, small, fN, fP, mN, mP)
+        fN, fP, mN, mP = to_voxel_frames(q1, q2, small, fN, fP, mN, mP)
+        for a in ti.static(range(3)):
+            if axis == a:
+                store_end_loads(s, lk, a, fN, fP, mN, mP)
         set3(s.lr, LR.P2, lk, pos2)
         set3(s.lr, LR.A1, lk, a1v)
         set3(s.lr, LR.A2, lk, a2v)
