@@ -136,6 +136,9 @@ def dumped_instructions(name: str) -> float:
     for f in glob.glob(f"{os.environ['PROFILE_SIM_OUT']}/cg.out*"):
         text = Path(f).read_text(errors="replace")
         if f"\ndesc: Trigger: Client Request: {name}\n" in text:
+            if os.environ.get("PROFILE_SIM_ANNOTATE") and name == "step":  # the top functions (libm's by name)
+                print(subprocess.run(["callgrind_annotate", "--inclusive=no", f], capture_output=True,
+                                     text=True).stdout[:3000])
             for g in glob.glob(f"{os.environ['PROFILE_SIM_OUT']}/cg.out*"):
                 os.remove(g)
             return float(next(line.split()[1] for line in text.splitlines() if line.startswith("summary:")))
@@ -165,6 +168,7 @@ def main() -> None:
     parser.add_argument("--precision", default="f32", choices=("f32", "f64"))
     parser.add_argument("--native", action="store_true", help="time the segments natively instead")
     parser.add_argument("--repeat", type=int, default=3, help="native: best of this many")
+    parser.add_argument("--annotate", action="store_true", help="print callgrind's top functions of the step")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     os.environ.setdefault("TI_CPU_MAX_NUM_THREADS", "1")
@@ -178,7 +182,7 @@ def main() -> None:
             cmd = ["valgrind", "--tool=callgrind", "--instr-atstart=no",
                    f"--callgrind-out-file={tmp}/cg.out", sys.executable, __file__, "--child",
                    *sys.argv[1:]]
-            env = {**os.environ, "PROFILE_SIM_OUT": str(tmp)}
+            env = {**os.environ, "PROFILE_SIM_OUT": str(tmp), "PROFILE_SIM_ANNOTATE": "1" if args.annotate else ""}
             subprocess.run(cmd, env=env, check=True)
             return
         cg = callgrind_shim(tmp)
