@@ -71,7 +71,7 @@ def phase_kernels(precision: str, switches):
         def robot_steps(r, s: ti.template(), n_steps):
             for _ in range(n_steps):
                 for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
-                    link_update(lk, s)
+                    link_update(lk, r, s)
                 if ti.static(with_voxels):
                     for v in range(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r)):
                         voxel_update(v, s)

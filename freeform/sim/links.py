@@ -179,16 +179,15 @@ def make_links(precision: str, order: str) -> SimpleNamespace:
         st(s.lr, LR.OMEGA2, lk, kax / ti.min(ld(s.mt, MT.MASS, mat_n), ld(s.mt, MT.MASS, mat_p)))
 
     @ti.func
-    def link_update(lk, s: ti.template()):
-        """Forces and moments of link ``lk`` from its voxels' poses (spec 5, steps 1-8); marks the robot DIVERGED
-        on a strain above ``max_strain`` or a non-finite one. ``s.sw`` (``state.Switches``): rl4design semantics;
+    def link_update(lk, r, s: ti.template()):
+        """Forces and moments of link ``lk`` of robot ``r`` from its voxels' poses (spec 5, steps 1-8); marks the
+        robot DIVERGED on a strain above ``max_strain`` or a non-finite one. ``s.sw`` (``state.Switches``): rl4design semantics;
         dynamic_dt: store ω² for the dt refresh.
 
         What depends on the link's axis (the permutations onto +x and back, the axis's transverse columns) is
         compiled once per axis, so the permutations are register moves and the columns fixed offsets; the beam
         between them is compiled once (links come grouped by axis, so the branch is predictable)."""
         n, p, axis, k = ld(s.li, LI.NEG, lk), ld(s.li, LI.POS, lk), ld(s.li, LI.AXIS, lk), ld(s.li, LI.LMAT, lk)
-        r = ld(s.vi, VI.ROBOT, n)
         mat_n, mat_p = ld(s.vi, VI.MAT, n), ld(s.vi, VI.MAT, p)
         flags = ld(s.li, LI.FLAGS, lk)
         valid = (flags & VALID) != 0

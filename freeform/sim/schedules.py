@@ -109,7 +109,7 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         """One step of robot r by the calling thread alone."""
         if stepping(r, s):
             for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
-                link_update(lk, s)
+                link_update(lk, r, s)
             if ld(s.ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
                 for v in range(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r)):
                     voxel_update(v, s)
@@ -196,8 +196,9 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
 
     @ti.func
     def link_phase(lk, s: ti.template()):
-        if stepping(ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk)), s):
-            link_update(lk, s)
+        r = ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk))
+        if stepping(r, s):
+            link_update(lk, r, s)
 
     @ti.func
     def voxel_phase(v, s: ti.template()):
