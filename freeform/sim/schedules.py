@@ -161,20 +161,26 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
             ti.simt.block.sync()
 
     @ti.func
-    def lanes(lo, hi, lane, update: ti.template(), s: ti.template()):
-        """``update(i, s)`` of items ``lo`` … ``hi − 1`` by lane ``lane`` of a block of B: its items are lane, lane
-        + B, … (neighbouring lanes, neighbouring items); on the CPU one thread runs every lane in turn. Items within
-        a phase are independent (each writes its own columns), so the partition leaves the bits as they were."""
+    def lanes(lo, hi, lane, update: ti.template(), r, s: ti.template()):
+        """``update(i, r, s)`` of robot r's items ``lo`` … ``hi − 1`` by lane ``lane`` of a block of B: its items
+        are lane, lane + B, … (neighbouring lanes, neighbouring items); on the CPU one thread runs every lane in
+        turn. Items within a phase are independent (each writes its own columns), so the partition leaves the bits
+        as they were."""
         if ti.static(B == 1):
             for i in range(lo, hi):
-                update(i, s)
+                update(i, r, s)
         elif ti.static(simt):
             for k in range((hi - lo - lane + B - 1) // B):
-                update(lo + lane + k * B, s)
+                update(lo + lane + k * B, r, s)
         else:
             for ln in range(B):
                 for k in range((hi - lo - ln + B - 1) // B):
-                    update(lo + ln + k * B, s)
+                    update(lo + ln + k * B, r, s)
+
+    @ti.func
+    def robot_voxel_update(v, r, s: ti.template()):
+        """``voxel_update`` in ``lanes``' form (a voxel finds its robot itself)."""
+        voxel_update(v, s)
 
     @ti.func
     def robot_steps(r, lane, n_steps, s: ti.template()):
@@ -188,12 +194,12 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
             go = stepping(r, s)
             barrier()
             if go:
-                lanes(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r), lane, link_update, s)
+                lanes(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r), lane, link_update, r, s)
             barrier()
             go = go and ld(s.ri, RI.STATUS, r) == RUNNING  # a diverged link aborts the step, as in VX
             barrier()
             if go:
-                lanes(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r), lane, voxel_update, s)
+                lanes(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r), lane, robot_voxel_update, r, s)
             barrier()
             if lane == 0 and go and ld(s.ri, RI.STATUS, r) == RUNNING:
                 robot_advance(r, s)
@@ -295,8 +301,9 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
 
     @ti.func
     def link_phase(lk, s: ti.template()):
-        if stepping(ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk)), s):
-            link_update(lk, s)
+        r = ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk))
+        if stepping(r, s):
+            link_update(lk, r, s)
 
     @ti.func
     def voxel_phase(v, s: ti.template()):
