@@ -17,7 +17,10 @@ so that both see the same machine load; the load average is printed with each ro
 
 ``python -m benchmarks sim``; environment: ``FREEFORM_BENCH_PRECISION=f64`` measures double precision
 (``f32,f64`` both, in one run), ``FREEFORM_BENCH_BACKENDS=taichi`` one backend only (default: both where quadrants
-is installed), ``FREEFORM_BENCH_SCALE=0.2`` shortens every run (a quick look; launch overheads then weigh more).
+is installed), ``FREEFORM_BENCH_SCALE=0.2`` shortens every run (a quick look; launch overheads then weigh more),
+``FREEFORM_BENCH_TREES=before=/tmp/ff-before,after=.`` runs every row on each named checkout of freeform too (a
+worker per checkout and backend, alternated like the backends: a before/after comparison in one run; make the
+"before" checkout with ``git archive REF | tar -x -C DIR``).
 """
 
 from __future__ import annotations
@@ -148,13 +151,15 @@ def worker() -> None:
 
 
 class Worker:
-    """A worker subprocess on one backend."""
+    """A worker subprocess on one backend, running the freeform of checkout ``tree`` (default: this one)."""
 
-    def __init__(self, backend: str):
-        env = {**os.environ, "FREEFORM_BACKEND": backend}
+    def __init__(self, backend: str, tree: str | None = None):
+        root = Path(tree).resolve() if tree else Path(__file__).resolve().parents[1]
+        path = os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)
+        env = {**os.environ, "FREEFORM_BACKEND": backend, "PYTHONPATH": path}
         self.proc = subprocess.Popen([sys.executable, "-m", "benchmarks.bench_sim", "--worker"], env=env, text=True,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                                     cwd=Path(__file__).resolve().parents[1])
+                                     cwd=root)
 
     def ask(self, req: dict) -> dict:
         self.proc.stdin.write(json.dumps(req) + "\n")
@@ -173,8 +178,13 @@ class Worker:
 def main() -> None:
     precisions = os.environ.get("FREEFORM_BENCH_PRECISION", "f32").split(",")
     default = "taichi,quadrants" if importlib.util.find_spec("quadrants") is not None else "taichi"
-    backends = os.environ.get("FREEFORM_BENCH_BACKENDS", default).split(",")
-    workers = {b: Worker(b) for b in backends}
+    names = os.environ.get("FREEFORM_BENCH_BACKENDS", default).split(",")
+    trees = [t.split("=", 1) for t in os.environ.get("FREEFORM_BENCH_TREES", "").split(",") if t]
+    # a column per backend, or per (checkout, backend) with FREEFORM_BENCH_TREES
+    columns = {f"{b}@{label}": (b, tree) for label, tree in trees for b in names} if trees else \
+        {b: (b, None) for b in names}
+    backends = list(columns)
+    workers = {c: Worker(*columns[c]) for c in backends}
     try:
         infos = {b: w.ask({"kind": "info"}) for b, w in workers.items()}
         for b in backends:  # warm every simulator before any timing (compile or load the kernel cache)

@@ -15,7 +15,17 @@ policy (99 % bands; the copies differ only by the policy's noise) and once with 
     python -m experiments.control --evaluate runs/control_steering --out docs/results/control_steering  # an app run
 
 ``--evaluate RUN`` evaluates a control or co-design run of ``freeform-train`` (``experiment=control_* |
-codesign_*``): its untrained and last policy on fresh headings, against open-loop gaits (``evaluate_run``).
+codesign_*``): its untrained and last policy on fresh headings, against open-loop gaits (``evaluate_run``), and
+writes the last controller as ``controller.pt`` beside the results.
+
+Zero-shot, on bodies of your own (``evaluate_bodies``)::
+
+    python -m experiments.control --evaluate PATH --bodies BODIES.npy --headings fixed|random|any \
+        --eval-episodes N --out DIR
+
+PATH a control run's directory, a results folder holding ``controller.pt``, or that file; BODIES a ``.npy`` of
+uint8 grids ``[M, ρ, ρ, ρ]`` (0 empty, 1 passive, 2 and 3 muscles in anti-phase). Writes ``DIR/bodies.csv`` and
+``DIR/summary.csv``: open loop, the controller, the controller with its sensed channels zeroed, an untrained one.
 
 Writes ``curve.csv`` (per epoch: wall seconds, training return, the update's statistics), ``summary.csv``,
 ``control_walker.png``, ``walker.npy`` and ``controller.pt`` into ``--out``. ``--gait DIR`` replays DIR's controller
@@ -39,7 +49,15 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.envs.control import ControlConfig, ControlEnv, open_loop_displacement, untrained_walker
+from freeform.agents.controllers import CONTROLLER_FILE, CONTROLLERS, read_controller, save_controller
+from freeform.envs.control import (
+    HEADINGS,
+    ControlConfig,
+    ControlEnv,
+    open_loop_displacement,
+    open_loop_moves,
+    untrained_walker,
+)
 from freeform.sim import SimConfig, Simulator
 
 RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
@@ -49,18 +67,13 @@ RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's 
 def gait(directory: Path, fps: float = 40.0) -> dict:
     """Replay ``directory``'s trained controller (its mode) on the walker alone; GIFs of the closed- and open-loop
     gaits and figures of the commanded gait (``gait.json``)."""
-    from freeform.checkpoint import load_checkpoint
     from freeform.render.gait import render_recording, simulate_gait
     from freeform.render.video import write_video
 
-    args = json.loads((directory / "args.json").read_text())
     body = torch.from_numpy(np.load(directory / "walker.npy"))
-    sim, control = SimConfig(), ControlConfig(burn_in=args["burn_in"], command_rate=args.get("command_rate"),
-                                              ramp=args.get("ramp", False))
-    payload = load_checkpoint(directory / "controller.pt")
-    policy = ConvController(**payload["policy_kwargs"])
-    policy.load_state_dict(payload["ppo"]["policy"])
-    env = ControlEnv(body, sim=sim, control=control)
+    saved = read_controller(directory / CONTROLLER_FILE)
+    policy, sim, control = saved.controller, saved.sim or SimConfig(), saved.control
+    env = ControlEnv(body, sim=sim, control=control, box=policy.box)
     com: list[float] = []
 
     def act(obs: torch.Tensor) -> torch.Tensor:  # the controller's mode, and the height of the centre of mass
@@ -176,12 +189,134 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
             writer.writerows(table)
     (out / "run.json").write_text(json.dumps({"run": str(run), "name": cfg.name, "episodes": episodes,
                                               "epochs": int(last["ppo"]["epoch"]), "control": vars(cfg.control)}, indent=1))
+    saved = read_controller(run)  # the last policy's controller, self-contained (--evaluate DIR --bodies reads it)
+    save_controller(out / CONTROLLER_FILE, saved.controller, saved.control, saved.sim)
     figure(curve, rows, out / f"{cfg.name}.png",
            ylabel=f"move {'in the plane' if control.headings == 'any' else 'along the heading'} in "
                   f"{control.duration:g} s (voxel lengths)")
     for row in rows:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
     return rows
+
+
+SENSED = ("rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact")
+"""The observation's sensed channels: zeroed, a controller has only the body's shape, the task and the clock."""
+
+
+def read_bodies(path: Path, materials: int) -> torch.Tensor:
+    """The bodies of a ``.npy`` of integer grids ``[M, ρ, ρ, ρ]`` (or one ``[ρ, ρ, ρ]``) in the design env's
+    materials (0 empty, 1 … ``materials``), as uint8, each reduced to its largest 6-connected component (the robot;
+    its other pieces would fall apart from it). Malformed input is refused naming the body and the problem; no row is
+    ever dropped."""
+    from freeform.body import largest_component
+
+    try:
+        grids = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--bodies {path}: not a .npy of grids ({e})") from e
+    grids = grids[None] if grids.ndim == 3 else grids
+    if grids.ndim != 4 or len(grids) == 0 or not grids.shape[1] == grids.shape[2] == grids.shape[3]:
+        raise ValueError(f"--bodies {path}: grids must be [M, ρ, ρ, ρ] (M ≥ 1 cubes), got shape {list(grids.shape)}")
+    if not (np.issubdtype(grids.dtype, np.integer) or grids.dtype == np.bool_):
+        raise ValueError(f"--bodies {path}: grids must hold integer material indices (uint8), got {grids.dtype}")
+    for i, grid in enumerate(grids):
+        bad = np.unique(grid[(grid < 0) | (grid > materials)])
+        if bad.size:
+            raise ValueError(f"--bodies {path}: body {i} holds material {bad.tolist()}, allowed 0 (empty) … {materials}")
+        if not grid.any():
+            raise ValueError(f"--bodies {path}: body {i} is empty (no voxel: nothing to control)")
+    return largest_component(torch.from_numpy(grids.astype(np.uint8)))
+
+
+def body_box(grids: torch.Tensor) -> tuple[int, int, int]:
+    """The box that holds every body of ``grids`` cropped to its bounding box (the env's ``box``)."""
+    from freeform.body import bounding_box
+
+    lo, hi = bounding_box(grids)
+    return tuple(int(b) for b in (hi - lo).amax(0))  # type: ignore[return-value]
+
+
+@torch.no_grad()
+def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
+                    seed: int = 0) -> tuple[list[dict], list[dict]]:
+    """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
+    control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
+    each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
+    body × episode three times over, the three groups with the same headings (the same draws): the controller, the
+    controller with its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses
+    nothing), and an untrained controller of the same architecture (seeded ``seed``). The box is the one the
+    controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
+
+    Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
+    the same window and headings, the controller's mean over its episodes and that mean's 99 % band) and
+    ``out/summary.csv`` (the four means over the bodies, with 99 % bands across bodies), and ``out/run.json``.
+    Returns (the body rows, the summary rows)."""
+    saved = read_controller(source)
+    control = replace(saved.control, headings=headings or saved.control.headings)
+    control.validate()
+    sim = saved.sim or SimConfig()
+    grids = read_bodies(bodies, len(sim.materials))
+    m, n = len(grids), episodes
+    need, trained = body_box(grids), tuple(saved.controller.box)
+    box = trained if all(b <= t for b, t in zip(need, trained, strict=True)) else need
+    if box != trained:
+        saved = read_controller(saved.path, box=box)  # (the MLP is refused here, with the reason)
+    controller = saved.controller.eval()
+    torch.manual_seed(seed)
+    untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
+
+    per_episode = grids.repeat_interleave(n, 0)  # body i's episodes are rows i·n … i·n + n − 1
+    env = ControlEnv(per_episode.repeat(3, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
+                     first_env=np.tile(np.arange(m * n), 3))
+    sensed = [env.channels.index(c) for c in SENSED]
+
+    def zeroed(obs: torch.Tensor) -> torch.Tensor:
+        obs = obs.clone()
+        obs[:, sensed] = 0.0
+        return obs
+
+    generator = torch.Generator().manual_seed(seed)
+    groups = ((controller, lambda o: o), (controller, zeroed), (untrained, lambda o: o))
+    obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
+    for _ in range(control.steps):
+        heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
+        actions = []
+        for (net, view), part in zip(groups, obs.chunk(3), strict=True):
+            params = net(view(part))[:3]
+            actions.append(net.distribution.sample(params, torch.randn(params[0].shape, generator=generator)))
+        obs, reward, _, _ = env.step(torch.cat(actions))
+        total += reward.double()
+    returns = total.numpy().reshape(3, m, n)
+
+    moves = open_loop_moves(grids, sim, control)  # [M, 2]
+    along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
+                                   planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
+    open_loop = along.mean(1)
+    filled = obs[: m * n : n, env.filled_channel].flatten(1).sum(1)  # (the next episode's: the same bodies)
+    actuated = env.action_mask[: m * n : n].sum(1)
+    rows = []
+    for i in range(m):
+        mean, band = mean_band(returns[0, i])
+        rows.append({"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
+                     "controller": float(mean), "band99": float(band)})
+    per_body = returns.mean(2)
+    summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
+               summary_row(f"controller ({saved.kind}, stochastic)", per_body[0]),
+               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[1]),
+               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[2])]
+    out.mkdir(parents=True, exist_ok=True)
+    for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
+        with open(out / name, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(table[0]))
+            writer.writeheader()
+            writer.writerows(table)
+    (out / "run.json").write_text(json.dumps({
+        "controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies), "body_count": m,
+        "episodes_per_body": n, "box": list(box), "trained_box": list(trained), "seed": seed,
+        "control": vars(control)}, indent=1))
+    for row in summary:
+        print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
+    return rows, summary
 
 
 def summary_row(name: str, values: np.ndarray) -> dict:
@@ -208,8 +343,22 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="runs/control_walker")
     p.add_argument("--gait", metavar="DIR", help="only replay DIR's trained controller and write its gait")
-    p.add_argument("--evaluate", metavar="RUN", help="only evaluate RUN, a control run of freeform-train, into --out")
+    p.add_argument("--evaluate", metavar="PATH",
+                   help="only evaluate: a control run of freeform-train (its untrained and last policy, into --out), "
+                        "or with --bodies any saved controller (a run's directory, a folder holding controller.pt, "
+                        "or that file) on the given bodies")
+    p.add_argument("--bodies", metavar="BODIES.npy",
+                   help="with --evaluate: a .npy of uint8 grids [M, ρ, ρ, ρ] (0 empty, 1 passive, 2 and 3 muscles): "
+                        "writes bodies.csv and summary.csv into --out (--eval-episodes episodes per body)")
+    p.add_argument("--headings", choices=HEADINGS, default=None,
+                   help="with --bodies: the heading task (default: the controller's own)")
     args = p.parse_args(argv)
+    if args.bodies and not args.evaluate:
+        p.error("--bodies needs --evaluate PATH (the controller to evaluate)")
+    if args.evaluate and args.bodies:
+        evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
+                        args.seed)
+        return
     if args.evaluate:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))
         return
@@ -248,7 +397,7 @@ def main(argv: list[str] | None = None) -> None:
             "time_update")}})
         print(f"epoch {ppo.epoch}: return {stats['episode_reward_mean']:.3f}, σ {stats['action_std']:.3f}, "
               f"rollout {stats['time_rollout']:.1f} s, update {stats['time_update']:.1f} s", flush=True)
-    ppo.save(out / "controller.pt")
+    save_controller(out / CONTROLLER_FILE, ppo.policy, control, sim)
     after = evaluation_episodes(ppo, eval_env, args.eval_episodes)["returns"]
     rows.append(summary_row(f"controller, trained {ppo.epoch} epochs (stochastic)", after))
     # (the copies are one body from one settled state: the mode's episode is one number)

@@ -24,9 +24,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
+from freeform.learner import learner_names
 from freeform.sim import SimConfig
 from freeform.validation import require
 
@@ -94,8 +96,9 @@ class AgentConfig(PPOConfig):
         require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
 
 
-BODY_SOURCES = ("walker", "untrained_designs", "codesign")
-CONTROLLERS = ("conv", "mlp")
+BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
+CONTROLLERS = tuple(CONTROLLER_CLASSES)
+"""``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
 
 
 @dataclass
@@ -111,7 +114,16 @@ class ControlRunConfig(ControlConfig):
     such bodies, all different; a path — a ``.npy`` of uint8 grids ``[ρ, ρ, ρ]`` or ``[M, ρ, ρ, ρ]``, or a design
     record ``records/epoch_<e>.npz`` of a design run, whose best ``top`` designs are taken; ``codesign`` — none
     given: each episode first designs its body (``env.steps`` design actions at the ``env`` sizes, the design env's)
-    and then controls it, one PPO learning both (``freeform.envs.CodesignEnv``, ``docs/codesign.md``)."""
+    and then controls it, one PPO learning both (``freeform.envs.CodesignEnv``, ``docs/codesign.md``);
+    ``population`` — a stream of bodies an untrained design policy builds, a fresh cohort of ``env.num_envs`` every
+    ``refresh_every`` episodes, drawn from a pool of ``pool`` settled cohorts, on the ρ³ box
+    (``freeform.envs.PopulationControlEnv``): one controller for many bodies."""
+    pool: int = 4
+    """``bodies=population``: how many cohorts of ``env.num_envs`` bodies an episode draws from (each settled once
+    and restored when drawn again)."""
+    refresh_every: int = 1
+    """``bodies=population``: episodes between two new cohorts (the oldest leaves the pool); 0: a fixed
+    population of ``pool · env.num_envs`` bodies."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -120,8 +132,15 @@ class ControlRunConfig(ControlConfig):
     """Seed of the untrained designs (``walker``, ``untrained_designs``): apart from the run's ``seed``, so that a
     sweep over seeds trains controllers of the same bodies."""
     controller: str = "conv"
-    """``conv``: ``freeform.agents.ConvController`` (one set of weights for every cell, any body); ``mlp``:
-    ``MLPController`` over the flattened box (the baseline). Width: ``agent.hidden``."""
+    """A kind of ``freeform.agents.controllers.CONTROLLERS``: ``conv`` (``ConvController``: one set of weights for
+    every cell, any body), ``mlp`` (``MLPController`` over the flattened box: the baseline), ``context``
+    (``ContextConvController``: masked convolutions with the body's pooled features) or ``attention``
+    (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
+    Width: ``hidden``."""
+    head: str = "direct"
+    """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command) or
+    ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
+    ``controller=context`` or ``attention``)."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -142,8 +161,13 @@ class ControlRunConfig(ControlConfig):
                 f"one of {list(BODY_SOURCES)} or a path to a .npy of grids or a design record .npz", self.bodies)
         require(self.top >= 1, f"{key}.top", "an integer >= 1", self.top)
         require(self.candidates >= 1, f"{key}.candidates", "an integer >= 1", self.candidates)
+        require(isinstance(self.pool, int) and self.pool >= 1, f"{key}.pool", "an integer >= 1", self.pool)
+        require(isinstance(self.refresh_every, int) and self.refresh_every >= 0, f"{key}.refresh_every",
+                "an integer >= 0 (0: a fixed pool)", self.refresh_every)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
+        require(self.head == "direct" or (self.head == "rhythm" and self.controller in ("context", "attention")),
+                f"{key}.head", "direct, or rhythm with controller=context or attention", self.head)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not self.codesign or self.controller == "conv", f"{key}.controller",
@@ -271,9 +295,7 @@ def validate(cfg: TrainConfig) -> TrainConfig:
         require(cfg.task.materials <= len(cfg.sim.materials) + 1, "task.materials",
                 f"<= len(sim.materials) + 1 = {len(cfg.sim.materials) + 1} (materials 1..k-1 are simulated as "
                 f"sim.materials[0..k-2])", cfg.task.materials)
-    from freeform.run.build import LEARNERS  # (the registry a user's learner joins; imported when validating)
-
-    cfg.algo.validate("algo", cfg.env.num_envs, names=list(LEARNERS))
+    cfg.algo.validate("algo", cfg.env.num_envs, names=learner_names())  # (the registry, below config and app)
     require(cfg.algo.name == "ppo" or not cfg.env.dense_every, "env.dense_every",
             f"0 with algo.name={cfg.algo.name} (evolution scores whole designs; dense rewards are for PPO)",
             cfg.env.dense_every)

@@ -1,7 +1,9 @@
 """The Learner protocol: what the trainer (``freeform.run``) needs from an algorithm, and all it sees of one.
 
 PPO (``freeform.agents.PPO``) and every evolutionary method (``freeform.evolve.Evolution``) implement it; a new
-learner implements it and registers a builder (``freeform.run.build.register_learner``), and the trainer, the run
+learner implements it and registers a builder (:func:`register_learner`, here below both the config and the app so
+that ``freeform.config`` validates ``algo.name`` against the registry without importing ``freeform.run``), and the
+trainer, the run
 directory, TensorBoard, the design records, checkpoints, resume and preemption then work for it unchanged. The
 trainer never asks which learner it drives, never sees a rollout, and takes its collectives from
 ``freeform.agents.distributed``, not from the learner.
@@ -21,7 +23,7 @@ episodes an epoch finished are handed over in the design records' layout (``free
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, Protocol, runtime_checkable
 
 Episodes = dict[str, Any]
@@ -58,4 +60,30 @@ class Learner(Protocol):
         ...
 
 
-__all__ = ["Episodes", "Learner"]
+LearnerBuilder = Callable[[Any, Any, Any, tuple[int, int]], Learner]
+"""``(cfg: TrainConfig, env, device: torch.device, envs: (lo, hi)) -> Learner``."""
+LEARNERS: dict[str, LearnerBuilder] = {}
+"""``algo.name`` -> its builder. freeform's own (``freeform.evolve.config.ALGORITHMS``) are registered by
+``freeform.run.build``; add one with :func:`register_learner`."""
+
+
+def register_learner(*names: str) -> Callable[[LearnerBuilder], LearnerBuilder]:
+    """Decorator: make ``algo.name=<name>`` (each of ``names``) build its learner with the decorated function."""
+
+    def decorate(builder: LearnerBuilder) -> LearnerBuilder:
+        for name in names:
+            LEARNERS[name] = builder
+        return builder
+
+    return decorate
+
+
+def learner_names() -> list[str]:
+    """Every ``algo.name`` a run may give: freeform's own and every registered one (what ``freeform.config``
+    validates against)."""
+    from freeform.evolve.config import ALGORITHMS
+
+    return list(dict.fromkeys([*ALGORITHMS, *LEARNERS]))
+
+
+__all__ = ["LEARNERS", "Episodes", "Learner", "LearnerBuilder", "learner_names", "register_learner"]

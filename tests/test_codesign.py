@@ -13,6 +13,7 @@ import torch
 
 from freeform.agents import PPO, CodesignActorCritic, PPOConfig
 from freeform.body import largest_component
+from freeform.config import EnvConfig
 from freeform.envs import CodesignEnv, DesignEnv
 from freeform.envs.codesign import CODESIGN_CHANNELS, CONTROL, GRID, STAGE
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
@@ -23,8 +24,7 @@ CONTROL_CFG = ControlConfig(burn_in=0.01, duration=0.0375, headings="random")  #
 
 
 def env(n: int = 3, seed: int = 2, control: ControlConfig = CONTROL_CFG) -> CodesignEnv:
-    return CodesignEnv(n, resolution=RHO, materials=K, design_steps=T, sim=SimConfig(precision="f64"),
-                       control=control, seed=seed)
+    return CodesignEnv(n, EnvConfig(resolution=RHO, steps=T), K, SimConfig(precision="f64"), control, seed=seed)
 
 
 def design_actions(n: int, gen: torch.Generator) -> list[torch.Tensor]:
@@ -205,6 +205,14 @@ def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
     metrics = list(csv.DictReader(open(tmp_path / "eval" / "metrics.csv")))
     assert [m["policy"] for m in metrics] == ["untrained", "trained"] and "symmetry" in metrics[0]
     assert (tmp_path / "eval" / "codesign_steering_cpu.png").is_file()
+    # the trained controller part, self-contained beside the tables (--evaluate DIR --bodies reads it)
+    from freeform.agents.controllers import read_controller
+    from freeform.checkpoint import load_checkpoint
+
+    saved = read_controller(tmp_path / "eval")
+    weights = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")["ppo"]["policy"]
+    assert saved.kind == "conv" and saved.controller.box == (RHO,) * 3 and saved.control.headings == "random"
+    assert all(torch.equal(v, weights[f"controller.{k}"]) for k, v in saved.controller.state_dict().items())
 
 
 def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_tables(tmp_path) -> None:

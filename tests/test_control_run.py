@@ -73,6 +73,26 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     ra, rb = (read_record(tmp_path / d / "records" / "epoch_000001.npz") for d in ("straight", "split"))
     np.testing.assert_array_equal(ra.rewards, rb.rewards)
     np.testing.assert_array_equal(ra.values, rb.values)
+    # and the run's directory reads back as its controller, with the episode's config (evaluate --bodies reads it)
+    from freeform.agents.controllers import read_controller
+
+    saved = read_controller(tmp_path / "split")
+    assert saved.kind == "conv" and saved.control.headings == "random" and saved.sim is not None
+    assert saved.controller.state_dict().keys() == a["policy"].keys()
+    assert all(torch.equal(v, a["policy"][k]) for k, v in saved.controller.state_dict().items())
+
+
+@pytest.mark.parametrize("kind", ["context", "attention"])
+def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: str, bodies: Path, tmp_path: Path) -> None:
+    """control.controller picks the registry's kind (build_controller); two epochs equal one plus a resumed one."""
+    straight_and_resumed(compose(*tiny_control(bodies, f"control.controller={kind}", "seed=1")), tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    from freeform.agents.controllers import CONTROLLERS
+
+    assert a["policy_class"].endswith(":" + CONTROLLERS[kind].__name__) and a["policy_kwargs"]["hidden"] == 4
+    for name, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][name]), name
 
 
 def test_headings_are_drawn_per_episode_and_environment_whatever_the_slice() -> None:
@@ -101,7 +121,7 @@ def test_bodies_from_a_design_record_are_its_best(tmp_path: Path) -> None:
 @pytest.mark.parametrize("override, message", [
     ("algo=ga", r"algo\.name must be ppo in a control run"),
     ("agent.rollout_steps=6", r"agent\.rollout_steps must be a multiple of the control episode's 4 steps"),
-    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp'\]"),
+    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp', 'context', 'attention'\]"),
     ("agent.obs_norm=true", r"agent\.obs_norm must be false in a control run"),
 ])
 def test_a_bad_control_run_is_refused_naming_the_key(bodies: Path, override: str, message: str) -> None:

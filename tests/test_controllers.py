@@ -10,6 +10,7 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
+from freeform.agents.controllers import CONTROLLERS, build_controller, read_controller, save_controller
 from freeform.agents.distributions import MaskedDiagGaussian, from_spec
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
@@ -119,3 +120,169 @@ def test_controller_refusals(bad: dict) -> None:
     kwargs = dict(channels=len(OBS_CHANNELS), box=(2, 2, 2), mask_channel=2) | bad
     with pytest.raises(ValueError, match="box|mask_channel"):
         ConvController(**kwargs)
+
+
+# ------------------------------------------------------------------ controllers with a view of the whole body
+
+BOX_FREE = ("context", "attention")  # the kinds whose padding changes nothing
+
+
+def two_boxes() -> tuple[ControlEnv, ControlEnv]:
+    """The bar alone (box 3 × 1 × 1) and the bar beside a larger body, a 3 × 2 × 2 block of muscle with a passive
+    voxel (box 3 × 2 × 2); a short settle so that velocities and strains are not 0."""
+    big = np.zeros((4, 4, 4), np.uint8)
+    big[0:3, 0:2, 0:2], big[1, 1, 1] = 3, 1
+    control = ControlConfig(burn_in=0.01, duration=0.05)
+    return (ControlEnv(bodies()[:1], control=control), ControlEnv(np.stack([bodies()[0], big]), control=control))
+
+
+@pytest.fixture(scope="module")
+def envs_and_obs() -> tuple[ControlEnv, ControlEnv, torch.Tensor, torch.Tensor]:
+    small, large = two_boxes()
+    return small, large, small.reset(), large.reset()
+
+
+@pytest.mark.parametrize("kind", list(CONTROLLERS))
+def test_every_controller_gives_a_command_per_cell_and_the_env_mask_on_bodies_of_different_boxes(kind, envs_and_obs):
+    for env, obs in (envs_and_obs[0], envs_and_obs[2]), (envs_and_obs[1], envs_and_obs[3]):
+        torch.manual_seed(0)
+        net = build_controller(kind, env, hidden=8 if kind != "mlp" else 16, log_std=-0.5)
+        mean, log_std, mask, value = net(obs)
+        assert mean.shape == log_std.shape == mask.shape == (env.num_envs, env.action_dim)
+        assert value.shape == (env.num_envs,) and torch.isfinite(value).all()
+        torch.testing.assert_close(mask, env.action_mask.float())
+        assert net.distribution == env.action_distribution
+        torch.testing.assert_close(log_std, torch.full_like(mean, -0.5))
+        assert 0 < mean.abs().max() < 0.2  # the head starts near 0: an untrained controller leaves a body near rest
+        if kind in BOX_FREE:  # (no command for a cell without a voxel)
+            assert (mean[obs[:, env.filled_channel].flatten(1) == 0] == 0).all()
+
+
+def test_padding_changes_nothing_for_the_masked_controllers_and_changes_the_conv_controllers(envs_and_obs):
+    """Truth: the bar alone in its own box 3 × 1 × 1. The same observation padded into the 3 × 2 × 2 box beside
+    the larger body (as the env pads it: at the corner, zeros around) must give the same commands on its cells and
+    the same value. ConvController's biases leak into the padding, so it fails this (the check can tell)."""
+    small, large, obs_small, obs_large = envs_and_obs
+    cells = small.box
+    torch.testing.assert_close(obs_large[0, :, : cells[0], : cells[1], : cells[2]], obs_small[0])  # (the env's padding)
+    batch = obs_large.clone()
+    for kind, head in (*((k, "direct") for k in BOX_FREE), *((k, "rhythm") for k in BOX_FREE), ("conv", "direct")):
+        torch.manual_seed(1)
+        net = build_controller(kind, large, hidden=8, head=head)
+        with torch.no_grad():
+            mean_big, _, _, value_big = net(batch)
+            mean_alone, _, _, value_alone = net(obs_small)  # (the same weights on another box)
+        on_its_cells = mean_big[0].view(large.box)[: cells[0], : cells[1], : cells[2]].reshape(-1)
+        if kind == "conv":
+            assert (on_its_cells - mean_alone[0]).abs().max() > 1e-5 or (value_big[0] - value_alone[0]).abs() > 1e-5
+            continue
+        torch.testing.assert_close(on_its_cells, mean_alone[0], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(value_big[0], value_alone[0], rtol=1e-5, atol=1e-6)
+        assert (mean_alone[0] != 0).any()
+
+
+@pytest.mark.parametrize("kind", BOX_FREE)
+def test_a_rhythm_head_commands_its_amplitudes_on_the_actuation_clock(kind, envs_and_obs):
+    """Truth: the observation's own clock channels. With the head's weights 0 and its biases (u, v, w), every filled
+    cell's mean command is u·sin(2πt/T) + v·cos(2πt/T) + w, and an empty cell's is 0."""
+    _, env, _, obs = envs_and_obs
+    net = build_controller(kind, env, hidden=8, head="rhythm")
+    with torch.no_grad():
+        net.actor.weight.zero_()
+        net.actor.bias.copy_(torch.tensor([0.7, -0.4, 0.1]))
+        mean = net(obs)[0]
+    clock_sin, clock_cos = (obs[:, env.channels.index(c)].flatten(1) for c in ("clock_sin", "clock_cos"))
+    filled = obs[:, env.filled_channel].flatten(1)
+    assert 0 < clock_sin.abs().max() and 0 < clock_cos.abs().max()  # (the clock is not at a zero of either)
+    torch.testing.assert_close(mean, (0.7 * clock_sin - 0.4 * clock_cos + 0.1) * filled)
+    with pytest.raises(ValueError, match="head='rhythm' is for the controllers"):
+        build_controller("conv", env, hidden=8, head="rhythm")
+    with pytest.raises(ValueError, match="head must be one of"):
+        build_controller(kind, env, hidden=8, head="sine")
+
+
+@pytest.mark.parametrize("kind", BOX_FREE)
+def test_the_masked_distribution_ignores_the_unactuated_cells(kind, envs_and_obs):
+    """The log-probability and entropy of the controller's distribution do not move when the actions of cells that
+    do not act (a passive voxel, empty cells) are scrambled; they do when an actuated cell's action moves."""
+    _, env, _, obs = envs_and_obs
+    torch.manual_seed(2)
+    net = build_controller(kind, env, hidden=8)
+    params = net(obs)[:3]
+    actions = torch.randn(env.num_envs, env.action_dim)
+    scrambled, moved = actions.clone(), actions.clone()
+    scrambled[~env.action_mask] = torch.randn(int((~env.action_mask).sum())) * 10
+    moved[env.action_mask] += 0.5
+    dist = net.distribution
+    torch.testing.assert_close(dist.log_prob(params, scrambled), dist.log_prob(params, actions))
+    assert (dist.log_prob(params, moved) - dist.log_prob(params, actions)).abs().min() > 1e-4
+
+
+def test_a_controller_built_for_one_box_runs_on_another_and_reads_back_for_it(tmp_path, envs_and_obs):
+    """Weights of a controller built for the 3 × 1 × 1 box run the 3 × 2 × 2 one (read back by read_controller
+    for that box: the same outputs as the weights loaded by hand); the MLP is refused with the reason."""
+    small, large, _, obs = envs_and_obs
+    for kind in (*BOX_FREE, "conv"):
+        torch.manual_seed(3)
+        net = build_controller(kind, small, hidden=8)
+        save_controller(tmp_path / f"{kind}.pt", net, ControlConfig(burn_in=0.01, duration=0.05), SimConfig())
+        saved = read_controller(tmp_path / f"{kind}.pt", box=large.box)
+        assert saved.kind == kind and saved.controller.box == large.box and saved.control.duration == 0.05
+        assert saved.sim == SimConfig()
+        by_hand = CONTROLLERS[kind](**{**net.init_kwargs, "box": large.box})
+        by_hand.load_state_dict(net.state_dict())
+        with torch.no_grad():
+            for a, b in zip(saved.controller(obs), by_hand(obs), strict=True):
+                torch.testing.assert_close(a, b, rtol=0, atol=0)
+    mlp = build_controller("mlp", small, hidden=8)
+    save_controller(tmp_path / "mlp.pt", mlp, ControlConfig())
+    assert read_controller(tmp_path / "mlp.pt", box=small.box).kind == "mlp"  # its own box: fine
+    with pytest.raises(ValueError, match=r"'mlp' controller learnt each cell of its box \(3, 1, 1\) apart.*\(3, 2, 2\)"):
+        read_controller(tmp_path / "mlp.pt", box=large.box)
+
+
+@pytest.mark.parametrize("kind", BOX_FREE)
+def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
+    """One PPO epoch moves every weight the loss reaches (actor head, trunk, critic, σ) and a run's checkpoint of it
+    reads back as a controller."""
+    env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
+    torch.manual_seed(0)
+    net = build_controller(kind, env, hidden=8)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    ppo = PPO(env, net, PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8, lr=1e-3, seed=0))
+    assert np.isfinite(ppo.train_epoch()["action_std"])
+    still = [k for k, v in net.state_dict().items() if torch.equal(v, before[k])]
+    assert still == []
+    ppo.save(tmp_path / "ppo.pt")
+    (tmp_path / "args.json").write_text('{"burn_in": 0.0}')  # (experiments/control.py's older layout)
+    saved = read_controller(tmp_path / "ppo.pt")
+    assert saved.kind == kind and all(torch.equal(v, net.state_dict()[k]) for k, v in saved.controller.state_dict().items())
+    again = PPO.load(tmp_path / "ppo.pt", env)  # (PPO's own loader builds every registered controller)
+    assert type(again.policy) is type(net) and all(torch.equal(v, net.state_dict()[k])
+                                                   for k, v in again.policy.state_dict().items())
+
+
+def test_ppo_loads_a_checkpoint_naming_the_controllers_old_module(tmp_path) -> None:
+    """Checkpoints written before the controllers moved to agents/controllers.py name
+    ``freeform.agents.networks:ConvController``; they still load."""
+    from freeform.checkpoint import load_checkpoint, save_checkpoint
+
+    env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
+    ppo = PPO(env, build_controller("conv", env, hidden=4), PPOConfig(rollout_steps=4, sgd_minibatch_size=8, seed=0))
+    ppo.save(tmp_path / "ppo.pt")
+    payload = load_checkpoint(tmp_path / "ppo.pt")
+    assert payload["policy_class"] == "freeform.agents.controllers:ConvController"
+    payload["policy_class"] = "freeform.agents.networks:ConvController"
+    save_checkpoint(tmp_path / "old.pt", payload)
+    assert type(PPO.load(tmp_path / "old.pt", env).policy) is ConvController
+
+
+def test_the_registry_names_reach_the_config() -> None:
+    from freeform.config import ControlRunConfig
+
+    for kind in CONTROLLERS:
+        ControlRunConfig(controller=kind).validate()
+    with pytest.raises(ValueError, match=r"control.controller.*'conv', 'mlp', 'context', 'attention'"):
+        ControlRunConfig(controller="unet").validate()
+    with pytest.raises(ValueError, match="controller kind must be one of"):
+        build_controller("unet", None)

@@ -8,6 +8,7 @@ them on ``FREEFORM_CHECK_ARCH`` (default ``cuda``); ``FREEFORM_CHECK_ARCH=cpu`` 
   f32 and f64, both semantics, within the tolerances below: measured on an H100 (``gpu-measured.md``) for 0.5 s
   of 16 design bodies and two cubes — f64 < 1e-5 voxel, COM 1.3e-12 m; f32 ≤ 0.002 voxel, COM ≤ 1.1e-5 m — with
   room for the bodies and the shorter run here;
+* the robots schedule as a thread block per robot (issue 44) against the CPU, and run twice: the same bits;
 * a planted NaN diverges its robot only; a compute graph equals launches from Python bit for bit on the device;
   many ``simulate`` calls of random batch sizes in one process.
 """
@@ -79,6 +80,24 @@ def test_device_matches_the_cpu(reference: dict[str, np.ndarray], precision: str
     print(f"{ARCH} vs cpu, {precision} {semantics}: displacement {gap_d:.2e} voxel, COM {gap_c:.2e} m")
     assert gap_d <= ATOL_VOXELS[precision] and gap_c <= ATOL_COM_M[precision]
     assert np.abs(d).max() > 0.05  # the bodies moved: the comparison is not of resting ones
+
+
+@pytest.mark.parametrize("precision, semantics", [("f64", "voxelyze"), ("f32", "rl4design")])
+def test_block_schedule_matches_the_cpu_and_repeats(reference: dict[str, np.ndarray], precision: str, semantics: str,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """schedule="robots" on the device: a thread block per robot (issue 44, behind FREEFORM_CUDA_ROBOTS; the 10³
+    cube's 2,700 links give B = 128), within the flat schedule's tolerances of the CPU, and a second run the same
+    bits (no float atomics: the block's reductions are serial on lane 0). On the CPU rehearsal: the CPU's own
+    robots schedule."""
+    monkeypatch.setenv("FREEFORM_CUDA_ROBOTS", "1")
+    runs = [_simulate(ARCH, "robots", precision, semantics) for _ in range(2)]
+    r = runs[0]
+    assert not r.diverged.any() and not r.stalled.any()
+    d, com = reference[f"{precision}_{semantics}_displacement"], reference[f"{precision}_{semantics}_com_end"]
+    gap_d, gap_c = np.abs(r.displacement.numpy() - d).max(), np.abs(r.com_end.numpy() - com).max()
+    print(f"{ARCH} block vs cpu, {precision} {semantics}: displacement {gap_d:.2e} voxel, COM {gap_c:.2e} m")
+    assert gap_d <= ATOL_VOXELS[precision] and gap_c <= ATOL_COM_M[precision]
+    assert torch.equal(runs[0].com_end, runs[1].com_end) and torch.equal(runs[0].steps, runs[1].steps)
 
 
 def test_planted_nan_diverges_its_robot_only() -> None:

@@ -83,3 +83,20 @@ def test_a_registered_toy_learner_runs_records_and_resumes_exactly(random_search
 def test_ppo_and_evolution_are_learners() -> None:
     for algo in ("ppo", "ga"):
         assert isinstance(build(compose(*tiny(f"algo.name={algo}")), torch.device("cpu"))[1], Learner)
+
+
+def test_the_config_validates_learner_names_without_importing_the_app() -> None:
+    """The registry lives in freeform.learner, below the config and the app: validating a config imports no part of
+    freeform.run (a subprocess, to see a fresh sys.modules), and once the app is imported every one of freeform's own
+    names has its builder."""
+    import subprocess
+    import sys
+
+    from freeform import learner
+    from freeform.evolve.config import ALGORITHMS
+
+    code = ("import sys; from freeform.config import TrainConfig, validate; validate(TrainConfig()); "
+            "print(sorted(m for m in sys.modules if m.startswith('freeform.run')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+    assert LEARNERS is learner.LEARNERS and set(ALGORITHMS) <= set(LEARNERS)

@@ -1,19 +1,26 @@
 """Agents: a hand-written batched PPO and its actor-critic networks.
 
 ``PPO(env, policy, PPOConfig(...))`` trains any ``freeform.envs.VecEnv``; ``VoxelActorCritic`` is the paper's network
-over uint8 voxel grids, ``MLPActorCritic`` serves flat observations.
+over uint8 voxel grids, ``MLPActorCritic`` serves flat observations; the control env's controllers are in
+``freeform.agents.controllers`` (``CONTROLLERS``, ``build_controller``, ``save_controller`` / ``read_controller``).
 """
 
-from freeform.agents.networks import (
-    CodesignActorCritic,
+from freeform.agents.controllers import (
+    CONTROLLERS,
+    ContextConvController,
     ConvController,
-    MLPActorCritic,
     MLPController,
-    VoxelActorCritic,
+    VoxelAttentionController,
+    build_controller,
+    read_controller,
+    save_controller,
 )
+from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
 from freeform.agents.observation_groups import GroupedMLPActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.recurrent import RecurrentActorCritic
 
-__all__ = ["PPO", "CodesignActorCritic", "ConvController", "MLPActorCritic", "MLPController", "PPOConfig", "VoxelActorCritic"]
+__all__ = ["CONTROLLERS", "PPO", "CodesignActorCritic", "ContextConvController", "ConvController", "MLPActorCritic",
+           "MLPController", "PPOConfig", "VoxelActorCritic", "VoxelAttentionController", "build_controller",
+           "read_controller", "save_controller"]
 __all__ += ["GroupedMLPActorCritic", "RecurrentActorCritic"]

@@ -1,6 +1,8 @@
 """Actor-critic networks: the contracts PPO relies on, declared (:class:`ActorCritic`, :class:`SplitActorCritic`,
-:class:`DeclaresDistribution`, :class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network and a
-small MLP for flat observations.
+:class:`DeclaresDistribution`, :class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network, a
+small MLP for flat observations and the co-design actor-critic. The control env's controllers live in
+``freeform.agents.controllers`` (``ConvController`` and ``MLPController`` are re-exported here under their old
+names).
 
 A policy is an ``nn.Module`` whose ``forward(obs)`` returns its action distribution's parameters, then the critic's
 V(obs) ``[N]``: for Box actions ``(mean [N, A], log_std [N, A], value [N])``, the Gaussian policy
@@ -25,6 +27,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from freeform.agents.controllers import ConvController, MLPController
 from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian, from_spec
 from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
 
@@ -286,68 +289,6 @@ class MLPActorCritic(nn.Module):
         return (*self.action_params(obs), self.value(obs))
 
 
-def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
-    """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
-    channel."""
-    if not isinstance(channels, int) or channels < 1:
-        raise ValueError(f"channels must be a positive int, got {channels!r}")
-    box = tuple(int(b) for b in box)
-    if len(box) != 3 or min(box) < 1:
-        raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
-    for name, index in channel_indices.items():
-        if not isinstance(index, int) or not 0 <= index < channels:
-            raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
-    return box  # type: ignore[return-value]
-
-
-class ConvController(nn.Module):
-    """A controller that fits any body: a fully convolutional 3-D actor-critic over a body's cells.
-
-    Observations ``[N, C, Bx, By, Bz]`` (the control env's box; channel ``mask_channel`` marks the cells whose
-    command acts). Trunk: Conv3d(C→h, 3³, pad 1) → ReLU → Conv3d(h→h, 3³, pad 1) → ReLU, so each cell's features
-    see its 5³ neighbourhood and the task features every filled cell carries; one set of weights for every cell of
-    every body. Actor: Conv3d(h→1, 1³) = each cell's mean command, a learned log σ shared by all cells. Critic: the
-    trunk's features averaged over the filled cells (channel ``filled_channel``) → Linear(h→h) → tanh → Linear(h→1).
-    Outputs ``(mean, log_std, mask [N, Bx·By·Bz], value [N])``: a ``MaskedDiagGaussian``'s parameters, the mask read
-    from the observation.
-    """
-
-    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 16, log_std: float = 0.0) -> None:
-        super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
-        if not isinstance(hidden, int) or hidden < 1:
-            raise ValueError(f"hidden must be a positive int, got {hidden!r}")
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, log_std=log_std)
-        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
-        self.distribution = MaskedDiagGaussian(math.prod(box))
-        self.conv1 = nn.Conv3d(channels, hidden, 3, padding=1)
-        self.conv2 = nn.Conv3d(hidden, hidden, 3, padding=1)
-        self.actor = nn.Conv3d(hidden, 1, 1)
-        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0: a body at rest
-        nn.init.zeros_(self.actor.bias)
-        self.log_std = nn.Parameter(torch.tensor(float(log_std)))
-        self.critic_fc = nn.Linear(hidden, hidden)
-        self.critic_out = nn.Linear(hidden, 1)
-
-    @classmethod
-    def for_env(cls, env: Any, hidden: int = 16) -> ConvController:
-        """The controller for a ``ControlEnv`` (its box, channels and mask channel)."""
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden)
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
-        n = obs.shape[0]
-        x = F.relu(self.conv2(F.relu(self.conv1(obs))))
-        mean = self.actor(x).reshape(n, -1)
-        mask = obs[:, self.mask_channel].reshape(n, -1)
-        filled = obs[:, self.filled_channel : self.filled_channel + 1]
-        pooled = (x * filled).sum((2, 3, 4)) / filled.sum((2, 3, 4)).clamp_min(1.0)
-        value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
-        return mean, self.log_std.expand_as(mean), mask, value
-
-
 class CodesignActorCritic(nn.Module):
     """One actor-critic for a design-then-control episode (``freeform.envs.CodesignEnv``): the paper's design
     network (:class:`VoxelActorCritic`) on the grid channel while designing, a :class:`ConvController` on the control
@@ -395,29 +336,5 @@ class CodesignActorCritic(nn.Module):
                 torch.where(controlling, value_c, value_d))
 
 
-class MLPController(nn.Module):
-    """The baseline controller: tanh MLPs over the whole flattened box (``MLPActorCritic``'s layers), one output per
-    cell, a learned log σ per cell; the mask read from channel ``mask_channel`` as in :class:`ConvController`.
-    Unlike the convolutional one it fits one box size and learns each cell apart."""
-
-    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int,
-                 hidden: tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> None:
-        super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel)
-        cells = math.prod(box)
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden),
-                                log_std=log_std)
-        self.box, self.mask_channel = box, mask_channel
-        self.distribution = MaskedDiagGaussian(cells)
-        self.net = MLPActorCritic(channels * cells, cells, hidden)
-        with torch.no_grad():
-            self.net.log_std.fill_(float(log_std))
-
-    @classmethod
-    def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> MLPController:
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, hidden)
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
-        mean, log_std, value = self.net(obs)
-        return mean, log_std, obs[:, self.mask_channel].reshape(obs.shape[0], -1), value
+__all__ = ["ActorCritic", "CodesignActorCritic", "ConvController", "DeclaresDistribution", "GroupedActions", "MLPActorCritic",
+           "MLPController", "Rebuildable", "SplitActorCritic", "VoxelActorCritic"]

@@ -13,12 +13,14 @@ from freeform.envs.codesign import CodesignEnv
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.dense import DenseDesignReward
 from freeform.envs.design import DesignEnv
+from freeform.envs.population import PopulationControlEnv
 from freeform.envs.tasks import LocomotionTask, VolumeTask
 from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
     "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask",
     "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "CodesignEnv",
+    "PopulationControlEnv",
     "from_gymnasium",
     "to_gymnasium",
 ]

@@ -30,7 +30,7 @@ draw ``first_env + i``, so that the episode count is the env's whole random stat
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -41,6 +41,9 @@ from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig
 from freeform.envs.design import DesignEnv
 from freeform.sim import SimConfig, Simulator
 
+if TYPE_CHECKING:
+    from freeform.config import EnvConfig
+
 CODESIGN_CHANNELS = ("stage", "design_progress", "grid", *OBS_CHANNELS)
 STAGE, DESIGN_PROGRESS, GRID = 0, 1, 2
 CONTROL = slice(3, 3 + len(OBS_CHANNELS))
@@ -48,17 +51,23 @@ CONTROL = slice(3, 3 + len(OBS_CHANNELS))
 
 
 class CodesignEnv:
-    """``num_envs`` design-then-control episodes (module docstring). ``resolution``, ``materials``,
-    ``design_steps``, ``bundle_size``, ``action_bound``, ``mirror_y``: the design env's; ``sim``, ``control``:
-    the control env's (``control.headings`` "fixed": +x, "random": steering)."""
+    """``num_envs`` design-then-control episodes (module docstring), from the config objects a run has: ``design``,
+    the design env's setting (a run's ``env`` section, ``freeform.config.EnvConfig``: ``resolution``, ``steps``
+    design steps, ``bundle_size``, ``action_bound``, ``mirror_y``; its ``num_envs`` is not read — a data-parallel
+    rank holds ``num_envs`` of them, from ``first_env`` on), ``materials`` (``task.materials``, k incl. empty),
+    ``sim`` and ``control``: the control env's (``control.headings`` "fixed": +x, "random": steering)."""
 
-    def __init__(self, num_envs: int, resolution: int = 8, materials: int = 4, design_steps: int = 20,
-                 bundle_size: int = 2, sim: SimConfig | None = None, control: ControlConfig | None = None,
-                 arch: str = "cpu", seed: int = 0, device: str | torch.device = "cpu", action_bound: float = 2.0,
-                 mirror_y: bool = False, first_env: int = 0) -> None:
+    def __init__(self, num_envs: int, design: EnvConfig | None = None, materials: int = 4,
+                 sim: SimConfig | None = None, control: ControlConfig | None = None, *, arch: str = "cpu",
+                 seed: int = 0, device: str | torch.device = "cpu", first_env: int = 0) -> None:
+        from freeform.config import EnvConfig  # (freeform.config imports the envs)
+
+        if design is None:  # the CPU co-design setting
+            design = EnvConfig(resolution=8, steps=20, bundle_size=2, action_bound=2.0, mirror_y=False)
+        resolution, design_steps = design.resolution, design.steps
         self.design = DesignEnv(num_envs, resolution=resolution, materials=materials, steps=design_steps,
-                                bundle_size=bundle_size, device="cpu", action_bound=action_bound,
-                                compute_metrics=False, mirror_y=mirror_y)
+                                bundle_size=design.bundle_size, device="cpu", action_bound=design.action_bound,
+                                compute_metrics=False, mirror_y=design.mirror_y)
         self.control = control or ControlConfig()
         self.control.validate()
         if not (isinstance(first_env, int) and first_env >= 0):

@@ -17,8 +17,9 @@ and is in the observation. ``headings="any"``: no heading — the step's growth 
 from where the episode started, in the ground plane (the return is that distance: the paper's locomotion reward,
 by which open-loop bodies are scored; the heading channels are 0).
 
-The bodies' frame: every body is simulated as its largest component cropped to its bounding box (the layout's
-``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
+The bodies' frame: every body is simulated as one robot, all its voxels (every component: pass
+``freeform.body.largest_component(grids)`` for the connected robot alone, as the design env's bodies are), cropped to
+its bounding box (the layout's ``lattice``, with the crop ``origin`` in the body's grid), and the controller sees and acts on that box, padded to
 the largest box of the batch, ``box = (Bx, By, Bz)``: a 78-voxel design body of a 20³ grid sits in a box of a few
 hundred cells instead of 8,000 (the dense ρ³ grid made a rollout of 128 bodies gigabytes). A cell of the box is
 cell ``box_cell + origin`` of the body's grid (:meth:`ControlEnv.to_grid` maps any per-cell values back).
@@ -74,10 +75,12 @@ class ControlConfig:
         open-loop gait).
     headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering) | "any"
         (the distance moved in the plane, whichever way: the paper's locomotion reward; no heading observed).
-    command_rate: the most a voxel's command may change per simulated second (None: any change, at once — Voxelyze's
-        actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings up to
-        f_max Hz (the open-loop sine's 4 Hz: ≈ 25 /s); each step's command moves towards the action by at most
-        ``command_rate · period``.
+    command_rate: the most what a muscle receives may change per simulated second (None: any change, at once —
+        Voxelyze's actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings
+        up to f_max Hz (the open-loop sine's 4 Hz: ≈ 25.1 /s, so 26 lets that gait through untouched); at each control
+        step what a voxel receives — its command, or under ``residual`` its sine plus its correction, clipped to
+        [−1, 1] — moves towards what the action asks by at most ``command_rate · period`` (held at the control
+        steps' ends; with ``ramp`` the received value moves linearly between them, up to the sine's own curvature).
     residual: actions (in [−2, 2]) are corrections added to the open-loop gait, each actuated voxel's sine of its
         material's phase, computed at every simulator step (``SimConfig(actuation="residual")``), and the
         observation carries that sine (``RESIDUAL_CHANNELS``); zero actions are the open-loop gait from t = 0, burn-in
@@ -245,7 +248,9 @@ class ControlEnv:
 
     def _start_episode(self) -> torch.Tensor:
         if self._settled is not None and self.engine is not None and not self.engine.current:
-            self._settled = None  # someone built another engine on this env's simulator: settle afresh
+            # someone built another engine on this env's simulator (a population env's other cohort): a fresh
+            # engine of the same layout takes the settled state back, bit for bit, without settling again
+            self.engine = self.simulator.engine(self.layout)
         if self._settled is None:  # the first episode settles the bodies; the others start from that state
             self.engine = self.simulator.engine(self.layout)
             if self.control.burn_in > 0:
@@ -260,6 +265,9 @@ class ControlEnv:
             self.heading = np.zeros(self.num_envs)
         self.t = 0
         self._command = np.zeros(self.layout.num_voxels)  # (the settled state's: commands start at 0)
+        # what each muscle receives as the episode starts (residual: the open-loop sine, walked through the burn-in)
+        self._received = self._actuated * np.sin(2 * math.pi * (self.control.burn_in / self.sim_config.temp_period
+                                                                + self._phase)) if self.control.residual else 0.0
         obs, self._com = self._observe()
         self._start = self._com.copy()  # (headings "any": the distance is from here)
         return obs
@@ -313,7 +321,13 @@ class ControlEnv:
         target = commands.clamp(-reach, reach).numpy()
         if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per step
             most = self.control.command_rate * self.control.period
-            target = np.clip(target, self._command - most, self._command + most)
+            if self.control.residual:  # the muscle receives the sine plus the correction: that is what is limited
+                end = (self.control.burn_in + (self.t + 1) * self.control.period) / self.sim_config.temp_period
+                sine = self._actuated * np.sin(2 * math.pi * (end + self._phase))
+                received = np.clip(np.clip(sine + target, -1.0, 1.0), self._received - most, self._received + most)
+                target, self._received = received - sine, received
+            else:
+                target = np.clip(target, self._command - most, self._command + most)
         self._command = target
         readout = self.engine.control_step(target, self.control.period,
                                            ramp=self.control.period if self.control.ramp else 0.0)
@@ -432,7 +446,8 @@ def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = No
     if layout.num_robots == 0:
         return out
     engine = simulator.engine(layout)
-    engine.advance_time(control.burn_in)
+    if control.burn_in > 0:
+        engine.advance_time(control.burn_in)
     start = engine.sense()
     engine.advance_time(control.duration)
     end = engine.sense()

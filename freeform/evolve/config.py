@@ -44,7 +44,7 @@ class AlgoConfig:
 
     def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
-        build (the trainer's registry, ``freeform.run.build.LEARNERS``, which a user's learner joins)."""
+        build (the registry ``freeform.learner.LEARNERS``, which a user's learner joins)."""
         require(self.name in names, f"{key}.name", f"one of {list(names)}", self.name)
         if num_envs is not None:
             require(is_int(self.elite, 0) and self.elite < num_envs, f"{key}.elite",

@@ -3,6 +3,9 @@
     register_task("mine")(builder)        # task.name=mine: builder(cfg, device) -> a freeform.envs.Task
     register_learner("mine")(builder)     # algo.name=mine: builder(cfg, env, device, envs) -> a freeform.learner.Learner
 
+(``LEARNERS`` and ``register_learner`` live in ``freeform.learner``, below the config that validates the names;
+this module registers freeform's own.)
+
 Every trajectory reward registered with ``freeform.envs.trajectory.trajectory_reward`` is a task of its name too.
 """
 
@@ -18,15 +21,12 @@ import torch
 
 from freeform.config import TrainConfig, ppo_config
 from freeform.envs.base import Task, VecEnv
-from freeform.learner import Learner
+from freeform.learner import LEARNERS, Learner, register_learner
 
 TaskBuilder = Callable[[TrainConfig, torch.device], Task]
 TASKS: dict[str, TaskBuilder] = {}
 """``task.name`` -> builder ``(cfg, device) -> Task``. Add one with :func:`register_task`."""
 
-LearnerBuilder = Callable[[TrainConfig, Any, torch.device, tuple[int, int]], Learner]
-LEARNERS: dict[str, LearnerBuilder] = {}
-"""``algo.name`` -> builder ``(cfg, env, device, envs) -> Learner``. Add one with :func:`register_learner`."""
 
 
 def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
@@ -34,17 +34,6 @@ def register_task(name: str) -> Callable[[TaskBuilder], TaskBuilder]:
 
     def decorate(builder: TaskBuilder) -> TaskBuilder:
         TASKS[name] = builder
-        return builder
-
-    return decorate
-
-
-def register_learner(*names: str) -> Callable[[LearnerBuilder], LearnerBuilder]:
-    """Decorator: make ``algo.name=<name>`` (each of ``names``) build its learner with the decorated function."""
-
-    def decorate(builder: LearnerBuilder) -> LearnerBuilder:
-        for name in names:
-            LEARNERS[name] = builder
         return builder
 
     return decorate
@@ -197,11 +186,16 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     if cfg.control.codesign:  # each episode designs its bodies
         from freeform.envs.codesign import CodesignEnv
 
-        e = cfg.env
-        return CodesignEnv(envs[1] - envs[0], resolution=e.resolution, materials=cfg.task.materials,
-                           design_steps=e.steps, bundle_size=e.bundle_size, sim=cfg.sim,
-                           control=cfg.control.episode(), arch=arch, seed=seed, device=device,
-                           action_bound=e.action_bound, mirror_y=e.mirror_y, first_env=envs[0])
+        return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), arch=arch,
+                           seed=seed, device=device, first_env=envs[0])
+    if cfg.control.bodies == "population" and bodies is None:  # fresh bodies every few episodes
+        from freeform.envs.population import DesignBodies, PopulationControlEnv
+
+        e, c = cfg.env, cfg.control
+        return PopulationControlEnv(DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size),
+                                    e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
+                                    sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
+                                    box=box)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
     return ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
                       first_env=envs[0], box=box)
@@ -252,7 +246,7 @@ def load_controller(controller: torch.nn.Module, source: str) -> None:
 def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
     """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
     in dense rewards, ``agent.eval_every`` adds a deterministic evaluation env of its own (seed + 1)."""
-    from freeform.agents import PPO, CodesignActorCritic, ConvController, MLPController, VoxelActorCritic
+    from freeform.agents import PPO, CodesignActorCritic, VoxelActorCritic, build_controller
 
     if cfg.control is not None:
         control = cfg.control
@@ -260,16 +254,13 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std)
-        elif control.controller == "conv":
-            policy = ConvController(env.observation_shape[0], env.box, env.mask_channel, env.filled_channel, width,
-                                    control.init_log_std)
-        else:
-            policy = MLPController(env.observation_shape[0], env.box, env.mask_channel, (width, width),
-                                   control.init_log_std)
+        else:  # (freeform.agents.controllers.CONTROLLERS)
+            policy = build_controller(control.controller, env, width, control.init_log_std, control.head)
         if control.controller_init is not None:
             load_controller(policy.controller if control.codesign else policy, control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
-        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if control.codesign else env.grids) if (
+        own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
+        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (
             cfg.agent.eval_every) else None
         return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 

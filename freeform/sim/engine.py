@@ -30,6 +30,7 @@ from freeform.sim.schedules import (
     ORDER_OF,
     SCHEDULES,
     UNROLL,
+    block_dim_for,
     make_kernels,
     resolve_schedule,
 )
@@ -147,10 +148,13 @@ class Engine:
     the CPU default; arrays in "aos" order) or "flat" (one thread per link/voxel/robot; the CUDA default; "soa").
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
+    block_dim: the robots schedule's lanes per robot (``schedules.make_kernels``); None = 1 on the CPU, on CUDA
+    ``schedules.block_dim_for`` the batch's largest robot. On the CPU a B > 1 runs the GPU's partition of each
+    robot's work lane by lane (the same bits: a test of the GPU's indexing without a GPU).
     """
 
     def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto",
-                 arrays: DeviceArrays | None = None):
+                 arrays: DeviceArrays | None = None, block_dim: int | None = None):
         config.validate()
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
@@ -159,7 +163,8 @@ class Engine:
         self.layout, self.config = layout, config
         # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one
         # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
-        self.order = ORDER_OF[self.schedule]
+        # (on CUDA both schedules read "soa": a robot's block of threads reads neighbouring links and voxels)
+        self.order = "soa" if self.arch == "cuda" else ORDER_OF[self.schedule]
         self.precision = config.precision
         self.np_real = np.float64 if config.precision == "f64" else np.float32
         initial = initial_state(layout, config)
@@ -167,7 +172,12 @@ class Engine:
         self.counts = initial.counts
         self.dt0, self.max_steps = initial.dt0, initial.max_steps
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
-        self.kernels = make_kernels(config.precision, self.order, self.switches)
+        simt = self.arch == "cuda" and self.schedule == "robots"
+        if block_dim is None:
+            max_links = int(np.diff(layout.link_start).max()) if simt and layout.num_robots else 0
+            block_dim = block_dim_for(max_links) if simt else 1
+        self.block_dim = block_dim if self.schedule == "robots" else 1
+        self.kernels = make_kernels(config.precision, self.order, self.switches, self.block_dim, simt)
         self._transfers = make_transfers()
         R = layout.num_robots
         self._arrays = arrays if arrays is not None else DeviceArrays()

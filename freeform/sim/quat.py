@@ -56,27 +56,28 @@ def make_quat(precision: str) -> SimpleNamespace:
                     w * tz + x * ty - y * tx + z * tw)
 
     @ti.func
-    def to_axis_x(v, axis):
-        """Permute a link-axis vector onto +x (VX toAxisX); for a quaternion pass its (x, y, z)."""
+    def to_axis_x(v, axis: ti.template()):
+        """Permute a vector along link axis ``axis`` (0, 1, 2: compile-time) onto +x (VX toAxisX); for a quaternion
+        pass its (x, y, z)."""
         r = v
-        if axis == 1:
+        if ti.static(axis == 1):
             r = vec3(v[1], -v[0], v[2])
-        elif axis == 2:
+        elif ti.static(axis == 2):
             r = vec3(v[2], v[1], -v[0])
         return r
 
     @ti.func
-    def to_axis_original(v, axis):
+    def to_axis_original(v, axis: ti.template()):
         """The inverse of ``to_axis_x``."""
         r = v
-        if axis == 1:
+        if ti.static(axis == 1):
             r = vec3(-v[1], v[0], v[2])
-        elif axis == 2:
+        elif ti.static(axis == 2):
             r = vec3(-v[2], v[1], v[0])
         return r
 
     @ti.func
-    def q_to_axis_x(q, axis):
+    def q_to_axis_x(q, axis: ti.template()):
         v = to_axis_x(vec3(q[1], q[2], q[3]), axis)
         return vec4(q[0], v[0], v[1], v[2])
 

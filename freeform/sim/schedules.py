@@ -6,10 +6,15 @@ robot's ``robot_advance`` (clock.py) and, when its step count reaches a trace sa
 
 * ``flat`` (the CUDA default, "soa" arrays): one thread per link, then per voxel, then per robot, ``UNROLL``
   steps per launch.
-* ``robots`` (the CPU default, "aos" arrays): one worker per CPU thread; each takes the next unclaimed robot from an
-  atomic queue and runs it many steps (no per-step thread-pool synchronisation, which would cost more than a step
-  of a small robot; the robot's data stays in cache; robots of any size balance dynamically). On a GPU it would
-  run one thread per robot, so it is refused there (``resolve_schedule``).
+* ``robots`` (the CPU default, "aos" arrays): each robot is run by a *block* of ``B`` lanes that stride over its
+  links, then its voxels, then (lane 0) its bookkeeping, with a barrier between the phases and the step loop
+  inside the kernel. On the CPU ``B`` = 1 and the barrier is compiled out: one worker per CPU thread takes the next
+  unclaimed robot from an atomic queue and runs it many steps (no per-step thread-pool synchronisation, which would
+  cost more than a step of a small robot; the robot's data stays in cache; robots of any size balance
+  dynamically). On CUDA (``simt``, behind ``FREEFORM_CUDA_ROBOTS``: ``resolve_schedule``) the block is a thread
+  block of ``B`` threads ("soa" arrays: neighbouring lanes read neighbouring links), ``ti.simt.block.sync()``
+  between the phases, one launch for a whole ``advance`` or control period. A CPU block of ``B`` > 1 runs its lanes
+  one after another within each phase: the GPU's partition of the work, testable on the CPU (``block_dims``).
 
 Every kernel takes the three buffers of ``state.BUFFERS`` and a step count; loops are bounded by the batch's counts
 in the buffers' header, not by the buffers' sizes: the Engine reuses buffers sized for the largest batch seen, whose
@@ -19,6 +24,7 @@ tails hold stale items.
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
 
 import functools
+import os
 import warnings
 from types import SimpleNamespace
 
@@ -50,19 +56,53 @@ CONTROL_ARGS = (*BUFFERS, "commands", "out", "period", "ramp", "from_clock", "n_
 CPU_MIN_TASK_ITEMS = 512
 
 
+# The opt-in to the robots schedule on CUDA until it is measured faster than flat (docs/physics.md, "The GPU"):
+# "1" (or "auto"): B chosen per batch (``block_dim_for``); a number: that B (a multiple of 32, at most 1024).
+CUDA_ROBOTS_ENV = "FREEFORM_CUDA_ROBOTS"
+# B on CUDA: the smallest of these that leaves each lane at most LINKS_PER_LANE links of the batch's largest robot
+# (the largest otherwise). A warp at least (the barrier's unit); robots of very different sizes share one launch's
+# B: a small robot's block idles some lanes, a large one's lanes take more links each.
+CUDA_BLOCK_DIMS = (32, 64, 128, 256)
+LINKS_PER_LANE = 8
+
+
+def cuda_robots_opt_in() -> str | None:
+    """``$FREEFORM_CUDA_ROBOTS`` if it opts in to the robots schedule on CUDA ("1", "auto" or a B), else None."""
+    flag = os.environ.get(CUDA_ROBOTS_ENV, "")
+    if flag in ("", "0"):
+        return None
+    if flag not in ("1", "auto") and not (flag.isdigit() and int(flag) % 32 == 0 and 32 <= int(flag) <= 1024):
+        raise ValueError(f"{CUDA_ROBOTS_ENV} must be 0, 1, auto or a multiple of 32 up to 1024, got {flag!r}")
+    return flag
+
+
+def block_dim_for(max_links: int) -> int:
+    """The robots schedule's B on CUDA for a batch whose largest robot has ``max_links`` links (or the B that
+    ``$FREEFORM_CUDA_ROBOTS`` names): the smallest of ``CUDA_BLOCK_DIMS`` giving each lane at most
+    ``LINKS_PER_LANE`` links, else the largest."""
+    flag = cuda_robots_opt_in()
+    if flag is not None and flag.isdigit() and flag != "1":
+        return int(flag)
+    for b in CUDA_BLOCK_DIMS:
+        if max_links <= b * LINKS_PER_LANE:
+            return b
+    return CUDA_BLOCK_DIMS[-1]
+
+
 def resolve_schedule(schedule: str, arch: str) -> str:
     """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "flat" on CUDA and "robots" on the CPU.
 
-    "robots" on CUDA is refused: it would run one GPU thread per robot (128 threads for a paper batch)."""
+    "robots" on CUDA (a thread block per robot) runs only behind ``$FREEFORM_CUDA_ROBOTS`` until it is measured
+    faster than flat; "auto" stays flat there."""
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if arch not in ("cpu", "cuda"):
         raise ValueError(f"arch must be 'cpu' or 'cuda' here (the arch Taichi runs on), got {arch!r}")
     if schedule == "auto":
         return "flat" if arch == "cuda" else "robots"
-    if schedule == "robots" and arch == "cuda":
-        raise ValueError("schedule='robots' runs one GPU thread per robot and is refused on CUDA; "
-                         "use schedule='flat' (or 'auto', which picks it there)")
+    if schedule == "robots" and arch == "cuda" and cuda_robots_opt_in() is None:
+        raise ValueError(f"schedule='robots' on CUDA (a thread block per robot) is not measured yet and runs only "
+                         f"with {CUDA_ROBOTS_ENV}=1; use schedule='flat' (or 'auto', which picks it there)")
     return schedule
 
 
@@ -70,9 +110,13 @@ VOXELYZE_FLAT_FLOOR = Switches(floor=1, terrain=0, rl4design=0, dynamic_dt=0)  #
 
 
 @functools.cache
-def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELYZE_FLAT_FLOOR) -> SimpleNamespace:
+def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELYZE_FLAT_FLOOR, block_dim: int = 1,
+                 simt: bool = False) -> SimpleNamespace:
     """Compile-once kernels for "f32" | "f64", memory order "soa" | "aos" and the compile-time ``switches``
-    (``state.Switches``: each combination used compiles once): ``run_robots``, ``run_flat``, ``flat_graph``, the
+    (``state.Switches``: each combination used compiles once), the robots schedule's block of ``block_dim`` lanes
+    per robot, and ``simt``: each lane a GPU thread, a barrier between the phases (CUDA only), or else one CPU
+    thread running the lanes in turn (``block_dim`` 1 and no ``simt``: the CPU's robots schedule): ``run_robots``,
+    ``run_flat``, ``flat_graph``, the
     control step's ``command``, ``control_robots`` and ``control_graph`` (``Engine.control_step``), and the test
     hook ``probe_rotations``. Every kernel takes the three buffers (``state.BUFFERS``) and a step count;
     the switches are baked in rather than passed as ``ti.template`` arguments, so every argument is an array or a
@@ -104,41 +148,100 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         """Robot r takes the coming step: it is running and its clock has not passed its limit (``RT.UNTIL``)."""
         return ld(s.ri, RI.STATUS, r) == RUNNING and ld(s.rt, RT.T, r) < ld(s.rt, RT.UNTIL, r)
 
+    B = block_dim
+    if B < 1 or (simt and B % 32):
+        raise ValueError(f"block_dim must be >= 1 (a multiple of 32 with simt), got {B}")
+    loop_block = B if simt else None  # ti.loop_config: the thread block of a robot (CUDA only)
+
     @ti.func
-    def robot_step(r, s: ti.template()):
-        """One step of robot r by the calling thread alone."""
-        if stepping(r, s):
-            for lk in range(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r)):
-                link_update(lk, s)
-            if ld(s.ri, RI.STATUS, r) == RUNNING:  # a diverged link aborts the step, as in VX
-                for v in range(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r)):
-                    voxel_update(v, s)
-            if ld(s.ri, RI.STATUS, r) == RUNNING:
+    def barrier():
+        """Every lane of the block waits here for the others (CUDA's ``__syncthreads``); compiled out on the CPU,
+        where one thread runs the block's lanes in turn within each phase."""
+        if ti.static(simt):
+            ti.simt.block.sync()
+
+    @ti.func
+    def lanes(lo, hi, lane, update: ti.template(), r, s: ti.template()):
+        """``update(i, r, s)`` of robot r's items ``lo`` … ``hi − 1`` by lane ``lane`` of a block of B: its items
+        are lane, lane + B, … (neighbouring lanes, neighbouring items); on the CPU one thread runs every lane in
+        turn. Items within a phase are independent (each writes its own columns), so the partition leaves the bits
+        as they were."""
+        if ti.static(B == 1):
+            for i in range(lo, hi):
+                update(i, r, s)
+        elif ti.static(simt):
+            for k in range((hi - lo - lane + B - 1) // B):
+                update(lo + lane + k * B, r, s)
+        else:
+            for ln in range(B):
+                for k in range((hi - lo - ln + B - 1) // B):
+                    update(lo + ln + k * B, r, s)
+
+    @ti.func
+    def robot_voxel_update(v, r, s: ti.template()):
+        """``voxel_update`` in ``lanes``' form (a voxel finds its robot itself)."""
+        voxel_update(v, s)
+
+    @ti.func
+    def robot_steps(r, lane, n_steps, s: ti.template()):
+        """``n_steps`` steps of robot r by lane ``lane`` of its block: the links, then the voxels, then (lane 0) the
+        robot's clock and trace, a barrier after each phase and after each read of the status that a later phase
+        may write (a link or a voxel marks its robot diverged), so every lane of the block takes the same branches.
+        Lane 0's serial loops over the robot (rl4design's ω² max, the trace's sums) are the block's reductions, in
+        a fixed order: no float atomics, the same bits on every run. With B = 1 and no barrier: one thread's
+        ``if stepping: links; if running: voxels; if running: clock`` per step, as the schedule always was."""
+        for _ in range(n_steps):
+            go = stepping(r, s)
+            barrier()
+            if go:
+                lanes(ld(s.ri, RI.LSTART, r), ld(s.ri, RI.LEND, r), lane, link_update, r, s)
+            barrier()
+            go = go and ld(s.ri, RI.STATUS, r) == RUNNING  # a diverged link aborts the step, as in VX
+            barrier()
+            if go:
+                lanes(ld(s.ri, RI.VSTART, r), ld(s.ri, RI.VEND, r), lane, robot_voxel_update, r, s)
+            barrier()
+            if lane == 0 and go and ld(s.ri, RI.STATUS, r) == RUNNING:
                 robot_advance(r, s)
                 trace_sample(r, s)
+            barrier()
 
     @ti.func
     def robots_worker(t, reals: ti.template(), ints: ti.template(), f64s: ti.template(), n_steps):
-        """Iteration t of the robots schedule's virtual range: the first of each block takes the next unclaimed
-        robot from the header's work counter and runs it ``n_steps`` steps, until none is left.
+        """Iteration t of the robots schedule's range. CUDA (``simt``): lane t % B of robot t // B's block, each
+        robot one thread block (the GPU's block scheduler balances robots of different sizes).
 
-        Taichi's CPU backend splits a range-for into blocks of at least ``CPU_MIN_TASK_ITEMS`` iterations, one
+        CPU: Taichi's CPU backend splits a range-for into blocks of at least ``CPU_MIN_TASK_ITEMS`` iterations, one
         per thread: the loop runs ``workers`` such blocks, only the first iteration of each does anything, so
         each thread runs one block of a virtual range, and the robots are handed out through an atomic counter
-        (reset to 0 by a top-level statement before the loop: it runs first, as a serial task)."""
-        if t % CPU_MIN_TASK_ITEMS == 0:
+        (reset to 0 by a top-level statement before the loop: it runs first, as a serial task); each is run
+        ``n_steps`` steps before the thread takes the next."""
+        if ti.static(simt):
+            h = header(ints)
+            robot_steps(t // B, t % B, n_steps, bind(reals, ints, f64s, h, switches))
+        elif t % CPU_MIN_TASK_ITEMS == 0:
             h = header(ints)
             r = ti.atomic_add(ints[HDR.QUEUE], 1)
             while r < h[HDR.N_ROBOTS]:
-                for _ in range(n_steps):
-                    robot_step(r, bind(reals, ints, f64s, h, switches))
+                robot_steps(r, 0, n_steps, bind(reals, ints, f64s, h, switches))
                 r = ti.atomic_add(ints[HDR.QUEUE], 1)
+
+    @ti.func
+    def robots_range(ints: ti.template(), workers):
+        """The robots schedule's range: B lanes per robot on CUDA, ``workers`` blocks of the CPU's minimum task."""
+        n = workers * CPU_MIN_TASK_ITEMS
+        if ti.static(simt):
+            n = ints[HDR.N_ROBOTS] * B
+        return n
 
     @ti.kernel
     def run_robots(reals: Reals, ints: Ints, f64s: F64s, n_steps: ti.i32, workers: ti.i32):
-        """``workers`` threads each take the next unclaimed robot and run it ``n_steps`` steps (robots_worker)."""
-        ints[HDR.QUEUE] = 0
-        for t in range(workers * CPU_MIN_TASK_ITEMS):
+        """Every robot ``n_steps`` steps (robots_worker): on the CPU ``workers`` threads each take the next
+        unclaimed robot; on CUDA one thread block per robot."""
+        if ti.static(not simt):
+            ints[HDR.QUEUE] = 0
+        ti.loop_config(block_dim=loop_block)
+        for t in range(robots_range(ints, workers)):
             robots_worker(t, reals, ints, f64s, n_steps)
 
     # ------------------------------------------------------------ a control step (Engine.control_step)
@@ -184,8 +287,10 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
         for r in range(ints[HDR.N_ROBOTS]):
             h = header(ints)
             command_robot(r, bind(reals, ints, f64s, h, switches), period, ramp, from_clock)
-        ints[HDR.QUEUE] = 0
-        for t in range(workers * CPU_MIN_TASK_ITEMS):
+        if ti.static(not simt):
+            ints[HDR.QUEUE] = 0
+        ti.loop_config(block_dim=loop_block)
+        for t in range(robots_range(ints, workers)):
             robots_worker(t, reals, ints, f64s, n_steps)
         for r in range(ints[HDR.N_ROBOTS]):
             h = header(ints)
@@ -196,8 +301,9 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
 
     @ti.func
     def link_phase(lk, s: ti.template()):
-        if stepping(ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk)), s):
-            link_update(lk, s)
+        r = ld(s.vi, VI.ROBOT, ld(s.li, LI.NEG, lk))
+        if stepping(r, s):
+            link_update(lk, r, s)
 
     @ti.func
     def voxel_phase(v, s: ti.template()):
@@ -275,4 +381,4 @@ def make_kernels(precision: str, order: str = "soa", switches: Switches = VOXELY
     return SimpleNamespace(run_robots=run_robots, run_flat=run_flat, flat_graph=flat_graph, command=command,
                            control_robots=control_robots, control_graph=control_graph, sense=sensing.sense,
                            probe_rotations=make_quat(precision).probe_rotations, precision=precision, order=order,
-                           switches=switches)
+                           switches=switches, block_dim=block_dim, simt=simt)

@@ -204,6 +204,7 @@ class Checkpoints:
         """
         payload = load_checkpoint(path)
         allowed = {policy_class_name(c): c for c in (*builtin_policies(), *policy_classes)}
+        allowed.update({old: allowed[policy_class_name(c)] for old, c in moved_policies().items()})
         try:
             name = payload["policy_class"]
             if name not in allowed:
@@ -256,19 +257,22 @@ def policy_class_name(cls: type) -> str:
 
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
-    """The networks any checkpoint may name (freeform's own)."""
-    from freeform.agents.networks import (
-        CodesignActorCritic,
-        ConvController,
-        MLPActorCritic,
-        MLPController,
-        VoxelActorCritic,
-    )
+    """The networks any checkpoint may name (freeform's own: every controller of the registry included)."""
+    from freeform.agents.controllers import CONTROLLERS
+    from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
     from freeform.agents.observation_groups import GroupedMLPActorCritic
     from freeform.agents.recurrent import RecurrentActorCritic
 
-    return (VoxelActorCritic, MLPActorCritic, ConvController, MLPController, CodesignActorCritic, GroupedMLPActorCritic,
-            RecurrentActorCritic)
+    return (VoxelActorCritic, MLPActorCritic, CodesignActorCritic, GroupedMLPActorCritic, RecurrentActorCritic,
+            *CONTROLLERS.values())
+
+
+def moved_policies() -> dict[str, type[nn.Module]]:
+    """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now)."""
+    from freeform.agents.controllers import ConvController, MLPController
+
+    return {"freeform.agents.networks:ConvController": ConvController,
+            "freeform.agents.networks:MLPController": MLPController}
 
 
 __all__ = ["Checkpoints", "builtin_policies", "policy_class_name"]

@@ -1,0 +1,499 @@
+"""Controllers for the control env (:class:`freeform.envs.control.ControlEnv`), a registry of them by kind, and the
+self-contained ``controller.pt`` file.
+
+Every controller reads observations ``[N, C, Bx, By, Bz]`` (the env's box; ``filled_channel`` marks the body's
+cells, ``mask_channel`` the cells whose command acts) and returns a ``MaskedDiagGaussian``'s parameters and the
+critic's value: ``(mean [N, A], log_std [N, A], mask [N, A], value [N])``, A = Bx·By·Bz, C order; the mask is read
+from the observation. Each keeps its constructor's arguments in ``init_kwargs`` and has ``for_env(env, hidden,
+log_std)``; the actor's head starts near 0 (an untrained controller leaves a body near rest, or on its open-loop
+gait under residual control) and σ is one learned number.
+
+=============  ==============================  =====================  ==========================================
+kind           class                           one set of weights     padding changes nothing
+=============  ==============================  =====================  ==========================================
+``conv``       :class:`ConvController`         any box                no: its biases leak into the padding
+``mlp``        :class:`MLPController`          its own box only       (one box)
+``context``    :class:`ContextConvController`  any box                yes: features masked after every layer
+``attention``  :class:`VoxelAttentionController`  any box              yes: only the filled cells are tokens
+=============  ==============================  =====================  ==========================================
+
+"Padding changes nothing": a body's commands (on its cells) and value are the same, within float rounding,
+whether it sits alone in its own box or in the larger box of a batch with larger bodies (the env pads every body
+to the batch's box, at its corner). The costs of each on the 2-core CPU are in ``docs/control.md``.
+
+:func:`build_controller` builds one by kind for an env; :func:`save_controller` writes a ``controller.pt``
+(weights, kind, ``init_kwargs``, the ``ControlConfig`` and the ``SimConfig``) through ``freeform.checkpoint`` and
+:func:`read_controller` rebuilds it, for any box where the kind allows, from that file, a results folder holding
+one, or a control run's directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from freeform.agents.distributions import MaskedDiagGaussian
+
+
+def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
+    """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
+    channel."""
+    if not isinstance(channels, int) or channels < 1:
+        raise ValueError(f"channels must be a positive int, got {channels!r}")
+    box = tuple(int(b) for b in box)
+    if len(box) != 3 or min(box) < 1:
+        raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
+    for name, index in channel_indices.items():
+        if not isinstance(index, int) or not 0 <= index < channels:
+            raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
+    return box  # type: ignore[return-value]
+
+
+class ConvController(nn.Module):
+    """A controller that fits any body: a fully convolutional 3-D actor-critic over a body's cells.
+
+    Observations ``[N, C, Bx, By, Bz]`` (the control env's box; channel ``mask_channel`` marks the cells whose
+    command acts). Trunk: Conv3d(C→h, 3³, pad 1) → ReLU → Conv3d(h→h, 3³, pad 1) → ReLU, so each cell's features
+    see its 5³ neighbourhood and the task features every filled cell carries; one set of weights for every cell of
+    every body. Actor: Conv3d(h→1, 1³) = each cell's mean command, a learned log σ shared by all cells. Critic: the
+    trunk's features averaged over the filled cells (channel ``filled_channel``) → Linear(h→h) → tanh → Linear(h→1).
+    Outputs ``(mean, log_std, mask [N, Bx·By·Bz], value [N])``: a ``MaskedDiagGaussian``'s parameters, the mask read
+    from the observation.
+
+    Padding is not neutral here: the first convolution's bias makes every empty cell's features non-zero, and the
+    second reads them, so a body's commands depend on the box it is padded to, i.e. on the other bodies of its
+    batch (a test shows it). Kept as it is: the trained results in ``docs/control.md`` are this network's.
+    """
+
+    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
+                 hidden: int = 16, log_std: float = 0.0) -> None:
+        super().__init__()
+        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        if not isinstance(hidden, int) or hidden < 1:
+            raise ValueError(f"hidden must be a positive int, got {hidden!r}")
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                                hidden=hidden, log_std=log_std)
+        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
+        self.distribution = MaskedDiagGaussian(math.prod(box))
+        self.conv1 = nn.Conv3d(channels, hidden, 3, padding=1)
+        self.conv2 = nn.Conv3d(hidden, hidden, 3, padding=1)
+        self.actor = nn.Conv3d(hidden, 1, 1)
+        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0: a body at rest
+        nn.init.zeros_(self.actor.bias)
+        self.log_std = nn.Parameter(torch.tensor(float(log_std)))
+        self.critic_fc = nn.Linear(hidden, hidden)
+        self.critic_out = nn.Linear(hidden, 1)
+
+    fits_any_box = True
+    padding_invariant = False
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0) -> ConvController:
+        """The controller for a ``ControlEnv`` (its box, channels and mask channel)."""
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
+                   log_std)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
+        n = obs.shape[0]
+        x = F.relu(self.conv2(F.relu(self.conv1(obs))))
+        mean = self.actor(x).reshape(n, -1)
+        mask = obs[:, self.mask_channel].reshape(n, -1)
+        filled = obs[:, self.filled_channel : self.filled_channel + 1]
+        pooled = (x * filled).sum((2, 3, 4)) / filled.sum((2, 3, 4)).clamp_min(1.0)
+        value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
+        return mean, self.log_std.expand_as(mean), mask, value
+
+
+class MLPController(nn.Module):
+    """The baseline controller: tanh MLPs over the whole flattened box (``MLPActorCritic``'s layers), one output per
+    cell, a learned log σ per cell; the mask read from channel ``mask_channel`` as in :class:`ConvController`.
+    Unlike the convolutional one it fits one box size and learns each cell apart."""
+
+    fits_any_box = False
+    padding_invariant = False
+
+    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int,
+                 hidden: tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> None:
+        from freeform.agents.networks import MLPActorCritic  # (networks imports this module)
+
+        super().__init__()
+        box = _check_control_input(channels, box, mask_channel=mask_channel)
+        cells = math.prod(box)
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden),
+                                log_std=log_std)
+        self.box, self.mask_channel = box, mask_channel
+        self.distribution = MaskedDiagGaussian(cells)
+        self.net = MLPActorCritic(channels * cells, cells, hidden)
+        with torch.no_grad():
+            self.net.log_std.fill_(float(log_std))
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int | tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> MLPController:
+        """The controller for a ``ControlEnv``; an int ``hidden`` h is two layers of h."""
+        hidden = (hidden, hidden) if isinstance(hidden, int) else hidden
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, hidden, log_std)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
+        mean, log_std, value = self.net(obs)
+        return mean, log_std, obs[:, self.mask_channel].reshape(obs.shape[0], -1), value
+
+
+def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
+    """Features ``x [N, h, Bx, By, Bz]`` (≥ 0, zero outside the body) pooled over the body's cells (``filled
+    [N, 1, Bx, By, Bz]``): their mean and max ``[N, 2h]``. The max over the whole box is the body's, since every
+    feature is ≥ 0 and the padding's are 0."""
+    count = filled.sum((2, 3, 4)).clamp_min(1.0)
+    return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
+
+
+HEADS = ("direct", "rhythm")
+"""What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
+``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
+clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
+whose amplitude and phase each voxel's features set (a travelling wave when they vary with the voxel's place
+in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
+state instead of products of them with the clock."""
+
+
+def _head_outputs(head: str) -> int:
+    if head not in HEADS:
+        raise ValueError(f"head must be one of {HEADS}, got {head!r}")
+    return 1 if head == "direct" else 3
+
+
+def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
+    """The observation's (clock_sin, clock_cos) channels, needed by a ``rhythm`` head."""
+    if head != "rhythm":
+        return None
+    if clock_channels is None or len(clock_channels) != 2:
+        raise ValueError(f"a rhythm head needs clock_channels = (clock_sin, clock_cos) channel indices, got "
+                         f"{clock_channels!r}")
+    _check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
+    return int(clock_channels[0]), int(clock_channels[1])
+
+
+def _env_clock(env: Any, head: str) -> tuple[int, int] | None:
+    return (env.channels.index("clock_sin"), env.channels.index("clock_cos")) if head == "rhythm" else None
+
+
+def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
+    """``out [..., 3, *cells]`` (u, v, w) and ``clock [..., 2, *cells]`` (sin, cos) → u·sin + v·cos + w."""
+    return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
+
+
+class ContextConvController(nn.Module):
+    """A masked convolutional controller with a view of the whole body: each cell's command reads its 5³
+    neighbourhood and the body's pooled features, and the padding around a body changes nothing.
+
+    Observations ``[N, C, Bx, By, Bz]``; f = the ``filled`` channel ``[N, 1, Bx, By, Bz]``. Trunk::
+
+        x = ReLU(Conv3d(C→h, 3³)(obs)) · f
+        for each of ``blocks`` blocks:   x = ReLU(Conv3d(h→h, 3³)(x) + Linear(2h→h)(pool(x))) · f
+
+    with pool(x) ``[N, 2h]`` the mean and max of x over the filled cells, broadcast to every cell. Multiplying by f
+    after every layer keeps the padding's features 0 (a bias never leaks into it), so a body in a larger box sees
+    the zeros it would see at its own box's edge: the same commands. Actor: Conv3d(h→1, 1³) · f, each cell's mean
+    command (weights N(0, 0.01²), bias 0; ``head="rhythm"``: Conv3d(h→3, 1³), the cell's rhythm, :data:`HEADS`); one
+    learned log σ. Critic: pool(x) → Linear(2h→h) → tanh → Linear(h→1).
+
+    One block (the default) is ConvController's two 3³ convolutions plus the body's context, at about its cost on
+    the CPU (``python -m benchmarks controllers``); each further block adds a 3³ convolution and a round of context.
+    """
+
+    fits_any_box = True
+    padding_invariant = True
+
+    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
+                 hidden: int = 16, blocks: int = 1, log_std: float = 0.0, head: str = "direct",
+                 clock_channels: tuple[int, int] | None = None) -> None:
+        super().__init__()
+        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        for name, value in (("hidden", hidden), ("blocks", blocks)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                                hidden=hidden, blocks=blocks, log_std=log_std, head=head, clock_channels=self.clock)
+        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
+        self.distribution = MaskedDiagGaussian(math.prod(box))
+        self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
+        self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
+        self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
+        self.actor = nn.Conv3d(hidden, outputs, 1)
+        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
+        nn.init.zeros_(self.actor.bias)
+        self.log_std = nn.Parameter(torch.tensor(float(log_std)))
+        self.critic_fc = nn.Linear(2 * hidden, hidden)
+        self.critic_out = nn.Linear(hidden, 1)
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct") -> ContextConvController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
+        n = obs.shape[0]
+        filled = obs[:, self.filled_channel : self.filled_channel + 1]
+        x = F.relu(self.conv_in(obs)) * filled
+        for conv, context in zip(self.convs, self.contexts, strict=True):
+            x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
+        out = self.actor(x)
+        if self.clock is not None:
+            out = _rhythm(out, obs[:, list(self.clock)])[:, None]
+        mean = (out * filled).reshape(n, -1)
+        value = self.critic_out(torch.tanh(self.critic_fc(_masked_pool(x, filled)))).squeeze(-1)
+        return mean, self.log_std.expand_as(mean), obs[:, self.mask_channel].reshape(n, -1), value
+
+
+class _AttentionBlock(nn.Module):
+    """A pre-norm transformer block over tokens ``[N, K, h]`` with a key mask ``valid [N, K]`` (True: a token):
+    x + MultiHeadAttention(LN(x)), then + MLP(LN(x)) (h → 2h → h, ReLU). Masked keys get no weight, so a valid
+    token's output does not depend on how many padding tokens follow."""
+
+    def __init__(self, width: int, heads: int) -> None:
+        super().__init__()
+        self.heads = heads
+        self.norm1, self.norm2 = nn.LayerNorm(width), nn.LayerNorm(width)
+        self.qkv = nn.Linear(width, 3 * width)
+        self.out = nn.Linear(width, width)
+        self.mlp = nn.Sequential(nn.Linear(width, 2 * width), nn.ReLU(), nn.Linear(2 * width, width))
+
+    def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        n, k, h = x.shape
+        q, key, v = self.qkv(self.norm1(x)).view(n, k, 3, self.heads, h // self.heads).permute(2, 0, 3, 1, 4)
+        attended = F.scaled_dot_product_attention(q, key, v, attn_mask=valid[:, None, None, :])  # [N, heads, K, h/heads]
+        x = x + self.out(attended.transpose(1, 2).reshape(n, k, h))
+        return x + self.mlp(self.norm2(x))
+
+
+class VoxelAttentionController(nn.Module):
+    """Attention over a body's voxels: every filled cell is a token, every token attends to every other, and the
+    padding (empty cells, a larger box) is no token at all.
+
+    Observations ``[N, C, Bx, By, Bz]``. Tokens: each body's filled cells (channel ``filled_channel``), gathered in
+    C order into ``[N, K, C]``, K = the batch's largest voxel count, the rest masked (``valid [N, K]``); a token's
+    features are its cell's observation, whose ``rel_x/y/z`` channels place it relative to the centre of mass (its
+    position: the network has no other). Embedding: Linear(C→h) → ReLU → Linear(h→h); ``layers`` pre-norm
+    transformer blocks of ``heads`` heads (:class:`_AttentionBlock`); LayerNorm. Actor: Linear(h→1) per token (weights
+    N(0, 0.01²), bias 0; ``head="rhythm"``: Linear(h→3), the token's rhythm, :data:`HEADS`), scattered back to its
+    cell (0 elsewhere); one learned log σ. Critic: the mean of the valid
+    tokens → Linear(h→h) → tanh → Linear(h→1). Gathering and scattering are tensor ops (no loop over bodies).
+    """
+
+    fits_any_box = True
+    padding_invariant = True
+
+    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
+                 hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0, head: str = "direct",
+                 clock_channels: tuple[int, int] | None = None) -> None:
+        super().__init__()
+        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        for name, value in (("hidden", hidden), ("heads", heads), ("layers", layers)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if hidden % heads:
+            raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                                hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
+                                clock_channels=self.clock)
+        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
+        self.distribution = MaskedDiagGaussian(math.prod(box))
+        self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
+        self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
+        self.norm = nn.LayerNorm(hidden)
+        self.actor = nn.Linear(hidden, outputs)
+        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
+        nn.init.zeros_(self.actor.bias)
+        self.log_std = nn.Parameter(torch.tensor(float(log_std)))
+        self.critic_fc = nn.Linear(hidden, hidden)
+        self.critic_out = nn.Linear(hidden, 1)
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0, head: str = "direct") -> VoxelAttentionController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+
+    def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
+        (a padding token's is an empty cell, each cell at most once) and ``valid [N, K]``."""
+        cells = obs.flatten(2).transpose(1, 2)  # [N, A, C]
+        filled = cells[..., self.filled_channel] > 0.5
+        count = filled.sum(1)
+        k = max(int(count.max()), 1)
+        order = torch.argsort((~filled).to(torch.int32), dim=1, stable=True)[:, :k]  # the filled cells first, in C order
+        features = cells.gather(1, order[..., None].expand(-1, -1, cells.shape[2]))
+        valid = torch.arange(k, device=obs.device)[None] < count[:, None]
+        return features, order, valid
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
+        n = obs.shape[0]
+        features, order, valid = self.tokens(obs)
+        x = self.embed(features)
+        for block in self.blocks:
+            x = block(x, valid)
+        x = self.norm(x) * valid[..., None]
+        out = self.actor(x).transpose(1, 2)  # [N, outputs, K]
+        if self.clock is not None:
+            out = _rhythm(out, features[..., list(self.clock)].transpose(1, 2))[:, None]
+        per_token = out[:, 0] * valid
+        mean = per_token.new_zeros(n, math.prod(obs.shape[2:])).scatter(1, order, per_token)
+        pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+        value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
+        return mean, self.log_std.expand_as(mean), obs[:, self.mask_channel].reshape(n, -1), value
+
+
+CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPController,
+                                           "context": ContextConvController, "attention": VoxelAttentionController}
+"""``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
+``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
+a body changes nothing."""
+
+
+def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
+                     head: str = "direct") -> nn.Module:
+    """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
+    kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
+    ``head`` (:data:`HEADS`; ``rhythm`` for the kinds with a view of the whole body: ``context``, ``attention``)."""
+    if kind not in CONTROLLERS:
+        raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
+    _head_outputs(head)
+    if head != "direct" and kind not in RHYTHM_KINDS:
+        raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
+    width = {} if hidden is None else {"hidden": hidden}
+    options = {} if head == "direct" else {"head": head}
+    return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)
+
+
+RHYTHM_KINDS = ("context", "attention")
+"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
+
+
+def controller_kind(controller: nn.Module) -> str:
+    """The registry's name for ``controller``'s class."""
+    for kind, cls in CONTROLLERS.items():
+        if type(controller) is cls:
+            return kind
+    raise ValueError(f"{type(controller).__name__} is not one of the registered controllers {list(CONTROLLERS)}")
+
+
+# ------------------------------------------------------------------------------------------------ controller.pt
+
+CONTROLLER_FILE = "controller.pt"
+
+
+@dataclass
+class SavedController:
+    """A controller read back by :func:`read_controller`: the network (weights loaded, built for the box asked
+    for), its kind, the episode's ``ControlConfig`` it was trained under, its ``SimConfig`` (None where the file
+    has none) and the file it came from."""
+
+    controller: nn.Module
+    kind: str
+    control: Any
+    sim: Any
+    path: Path
+
+
+def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: Any = None) -> Path:
+    """Write ``controller.pt``, self-contained: ``{"controller": {"kind", "init_kwargs", "weights"}, "control":
+    the ControlConfig's fields, "sim": the SimConfig as a dict or None}``, atomically through
+    ``freeform.checkpoint.save_checkpoint`` (read with ``weights_only``). ``control`` may be a ``ControlRunConfig``
+    (its episode's fields are kept). Returns the path written."""
+    from freeform.checkpoint import save_checkpoint
+    from freeform.envs.control import ControlConfig
+
+    episode = {f.name: getattr(control, f.name) for f in dataclasses.fields(ControlConfig)}
+    return save_checkpoint(path, {
+        "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
+                       "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
+        "control": episode, "sim": dataclasses.asdict(sim) if sim is not None else None})
+
+
+def read_controller(source: str | Path, box: tuple[int, int, int] | None = None) -> SavedController:
+    """The controller in ``source``, rebuilt: a ``controller.pt`` (:func:`save_controller`; also the older files of
+    ``experiments/control.py``, a PPO checkpoint beside its ``args.json``), a folder holding one, or a control or
+    co-design run's directory (its ``checkpoints/last.pt``; a co-design run's controller part). ``box``: build it for
+    this box instead of the one it trained in — any box for the kinds that fit any box, refused with the reason for
+    the MLP."""
+    from freeform.checkpoint import load_checkpoint
+
+    path = Path(source)
+    if path.is_dir():
+        candidates = (path / CONTROLLER_FILE, path / "checkpoints" / "last.pt")
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            raise ValueError(f"{source}: holds neither {CONTROLLER_FILE} nor checkpoints/last.pt (a control run's)")
+        path = found
+    payload = load_checkpoint(path)
+    kind, kwargs, weights, control, sim = _saved_parts(payload, path)
+    saved_box = tuple(int(b) for b in kwargs["box"])
+    if box is not None and tuple(int(b) for b in box) != saved_box:
+        if not CONTROLLERS[kind].fits_any_box:
+            raise ValueError(f"{path}: its {kind!r} controller learnt each cell of its box {saved_box} apart and runs "
+                             f"on that box only, and these bodies need the box {tuple(box)}")
+        kwargs = {**kwargs, "box": tuple(int(b) for b in box)}
+    controller = CONTROLLERS[kind](**kwargs)
+    controller.load_state_dict(weights)
+    return SavedController(controller, kind, control, sim, path)
+
+
+def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, Any], dict[str, Any], Any, Any]:
+    """(kind, init_kwargs, weights, ControlConfig, SimConfig or None) from any of the files
+    :func:`read_controller` reads."""
+    from omegaconf import OmegaConf
+
+    from freeform.envs.control import ControlConfig
+    from freeform.sim import SimConfig
+
+    if "controller" in payload:  # save_controller's
+        part = payload["controller"]
+        sim = payload.get("sim")
+        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), sim)) if sim is not None else None
+        return part["kind"], dict(part["init_kwargs"]), part["weights"], ControlConfig(**payload["control"]), sim
+    if "policy_class" not in payload:
+        raise ValueError(f"{path}: neither a controller.pt nor a PPO or run checkpoint")
+    name = payload["policy_class"].rsplit(":", 1)[-1]
+    kwargs, weights = dict(payload["policy_kwargs"]), payload["ppo"]["policy"]
+    if name == "CodesignActorCritic":  # a co-design run: its controller part
+        start, stop = kwargs["control_channels"]
+        kind, weights = "conv", {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+        kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
+                      filled_channel=kwargs["filled_channel"], hidden=kwargs["controller_hidden"],
+                      log_std=kwargs["log_std"])
+    else:
+        kind = next((k for k, cls in CONTROLLERS.items() if cls.__name__ == name), None)
+        if kind is None:
+            raise ValueError(f"{path}: its policy {name} is no controller (one of {list(CONTROLLERS)})")
+    if "config" in payload:  # a run's checkpoint
+        from freeform.config import from_container
+
+        cfg = from_container(payload["config"])
+        if cfg.control is None:
+            raise ValueError(f"{path}: a run without a control section (a design run) has no controller")
+        return kind, kwargs, weights, cfg.control.episode(), cfg.sim
+    args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
+    if not args.is_file():
+        raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
+    saved = json.loads(args.read_text())
+    control = ControlConfig(burn_in=saved["burn_in"], command_rate=saved.get("command_rate"),
+                            ramp=saved.get("ramp", False))
+    return kind, kwargs, weights, control, SimConfig()
+
+
+__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "ContextConvController", "ConvController", "MLPController", "SavedController",
+           "VoxelAttentionController", "build_controller", "controller_kind", "read_controller", "save_controller"]
