@@ -1,14 +1,16 @@
 """The feed-forward PPO path pinned to the bit: a few epochs on a design env (the paper's network, RLlib's
 semantics), on Hopper-v5 (CleanRL's Box preset: observation and reward normalisation, minibatch advantages, PPO2
 value clip) and on CartPole-v1 (the discrete preset) give the same weights as the code before the PPO package was
-split (``tests/data/ppo_feedforward_reference.pt``, written by ``python tests/test_ppo_reference.py --write`` at
-58715e8). Floating-point results can differ between CPUs (vector widths, MKL paths), so the file also holds a
-fingerprint of this host's arithmetic: where it matches the writer's, the weights must be equal bit for bit; on
-another host, within float32 rounding of a few epochs."""
+split (``tests/data/ppo_feedforward_reference.json``, written by ``python tests/test_ppo_reference.py --write`` at
+58715e8: per run the weights' SHA-256, sum, norm and 64 evenly spaced values — a description of the weights, not a
+checkpoint). Floating-point results can differ between CPUs (vector widths, MKL paths), so the file also holds a
+fingerprint of this host's arithmetic: where it matches the writer's, the weights must be equal bit for bit (their
+hash); on another host, within float32 rounding of a few epochs (sum, norm and the sampled values)."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import sys
 from pathlib import Path
 
@@ -19,7 +21,7 @@ from freeform.agents import PPO, MLPActorCritic, PPOConfig, VoxelActorCritic
 
 pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
 
-REFERENCE = Path(__file__).parent / "data" / "ppo_feedforward_reference.pt"
+REFERENCE = Path(__file__).parent / "data" / "ppo_feedforward_reference.json"
 
 
 def host_fingerprint() -> str:
@@ -70,20 +72,30 @@ RUNS = {
 }
 
 
+def describe(weights: torch.Tensor) -> dict:
+    """What the reference keeps of a run's flat float32 weights."""
+    w = weights.float().contiguous()
+    return {"shape": list(w.shape), "sha256": hashlib.sha256(w.numpy().tobytes()).hexdigest(),
+            "sum": float(w.double().sum()), "norm": float(w.double().norm()),
+            "sample": [float(x) for x in w[:: max(1, w.numel() // 64)][:64]]}
+
+
 @pytest.mark.parametrize("name", list(RUNS))
 def test_feedforward_weights_are_those_before_the_split(name: str) -> None:
-    saved = torch.load(REFERENCE, weights_only=True)
-    got = RUNS[name]()
-    want = saved["weights"][name]
-    assert got.shape == want.shape
+    saved = json.loads(REFERENCE.read_text())
+    got, want = describe(RUNS[name]()), saved["weights"][name]
+    assert got["shape"] == want["shape"]
     if saved["host"] == host_fingerprint():
-        assert torch.equal(got, want), f"{name}: max |Δ| {(got - want).abs().max().item():.3g}"
+        assert got["sha256"] == want["sha256"], f"{name}: the weights differ from the pinned ones (sum {got['sum']} " \
+                                                f"against {want['sum']})"
     else:  # another CPU: other last bits, amplified a little by a few Adam steps
-        torch.testing.assert_close(got, want, rtol=1e-3, atol=1e-4)
+        torch.testing.assert_close(torch.tensor(got["sample"]), torch.tensor(want["sample"]), rtol=1e-3, atol=1e-4)
+        torch.testing.assert_close(torch.tensor([got["sum"], got["norm"]]), torch.tensor([want["sum"], want["norm"]]),
+                                   rtol=1e-3, atol=1e-3)
 
 
 if __name__ == "__main__" and "--write" in sys.argv:
     torch.set_num_threads(1)
-    weights = {name: run() for name, run in RUNS.items()}
-    torch.save({"host": host_fingerprint(), "weights": weights}, REFERENCE)
-    print({k: v.shape for k, v in weights.items()})
+    reference = {"host": host_fingerprint(), "weights": {name: describe(run()) for name, run in RUNS.items()}}
+    REFERENCE.write_text(json.dumps(reference, indent=1))
+    print({k: v["shape"] for k, v in reference["weights"].items()})
