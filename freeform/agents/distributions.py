@@ -392,7 +392,25 @@ def for_space(space: Any) -> ActionDistribution:
                      "Box, Discrete, MultiDiscrete and MultiBinary actions")
 
 
-__all__ = ["ActionDistribution", "Bernoulli", "Categorical", "DiagGaussian", "MaskedDiagGaussian", "MultiCategorical",
+def head_distribution(distribution: Any, action_dim: int | None, network: str,
+                      masked_hint: str = "") -> ActionDistribution:
+    """The distribution a network with an action head over flat observations serves: ``distribution`` (an
+    ``ActionDistribution`` or its ``spec()``; None: a Gaussian over ``action_dim``), ``action_dim`` agreeing with it
+    when given. A ``MaskedDiagGaussian`` is refused (its mask comes from the observation: ``masked_hint`` says what to
+    use instead)."""
+    if distribution is None:
+        if not isinstance(action_dim, int) or action_dim < 1:
+            raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
+        distribution = DiagGaussian(action_dim)
+    dist = from_spec(distribution)
+    if isinstance(dist, MaskedDiagGaussian):
+        raise ValueError(f"{network} has no head for a MaskedDiagGaussian{masked_hint}")
+    if action_dim is not None and action_dim != dist.action_dim:
+        raise ValueError(f"action_dim {action_dim!r} disagrees with the {dist} ({dist.action_dim} numbers per action)")
+    return dist
+
+
+__all__ = ["head_distribution", "ActionDistribution", "Bernoulli", "Categorical", "DiagGaussian", "MaskedDiagGaussian", "MultiCategorical",
            "Params", "bernoulli_entropy", "bernoulli_kl", "bernoulli_log_prob", "categorical_entropy", "categorical_kl",
            "categorical_log_prob", "categorical_sample", "for_space", "from_spec", "gaussian_entropy",
            "gaussian_entropy_entries", "gaussian_kl", "gaussian_kl_entries", "gaussian_log_prob",

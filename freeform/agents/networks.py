@@ -28,7 +28,13 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from freeform.agents.controllers import ConvController, MLPController
-from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian, from_spec
+from freeform.agents.distributions import (
+    ActionDistribution,
+    DiagGaussian,
+    MaskedDiagGaussian,
+    from_spec,
+    head_distribution,
+)
 from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
 
 TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
@@ -200,16 +206,8 @@ class MLPActorCritic(nn.Module):
         super().__init__()
         if not isinstance(obs_dim, int) or obs_dim < 1:
             raise ValueError(f"obs_dim must be a positive int, got {obs_dim!r}")
-        if distribution is None:
-            if not isinstance(action_dim, int) or action_dim < 1:
-                raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
-            distribution = DiagGaussian(action_dim)
-        dist = from_spec(distribution)
-        if isinstance(dist, MaskedDiagGaussian):
-            raise ValueError("MLPActorCritic has no head for a MaskedDiagGaussian (its mask comes from the observation): "
-                             "use MLPController or ConvController for a control env")
-        if action_dim is not None and action_dim != dist.action_dim:
-            raise ValueError(f"action_dim {action_dim!r} disagrees with the {dist} ({dist.action_dim} numbers per action)")
+        dist = head_distribution(distribution, action_dim, "MLPActorCritic", " (its mask comes from the observation): "
+                                 "use MLPController or ConvController for a control env")
         hidden = tuple(hidden)
         if not hidden or not all(isinstance(h, int) and h > 0 for h in hidden):
             raise ValueError(f"hidden must be a non-empty sequence of positive ints, got {hidden!r}")

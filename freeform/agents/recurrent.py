@@ -22,7 +22,11 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian, from_spec
+from freeform.agents.distributions import (
+    ActionDistribution,
+    DiagGaussian,
+    head_distribution,
+)
 
 State = tuple[torch.Tensor, ...]
 """A recurrent policy's hidden state: tensors ``[N, ...]``, batch first."""
@@ -112,13 +116,7 @@ class RecurrentActorCritic(nn.Module):
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         if rnn not in RNN_KINDS:
             raise ValueError(f"rnn must be one of {RNN_KINDS}, got {rnn!r}")
-        if distribution is None:
-            if not isinstance(action_dim, int) or action_dim < 1:
-                raise ValueError(f"action_dim must be a positive int, got {action_dim!r}")
-            distribution = DiagGaussian(action_dim)
-        dist = from_spec(distribution)
-        if isinstance(dist, MaskedDiagGaussian):
-            raise ValueError("RecurrentActorCritic has no head for a MaskedDiagGaussian")
+        dist = head_distribution(distribution, action_dim, "RecurrentActorCritic")
         hidden = tuple(hidden)
         if not all(isinstance(h, int) and h > 0 for h in hidden):
             raise ValueError(f"hidden must be a sequence of positive ints, got {hidden!r}")

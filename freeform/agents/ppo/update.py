@@ -174,10 +174,7 @@ class MinibatchUpdate:
                                                        batch.samples.index_select(0, idx), adv, kl_weight, reduce)
                     loss.backward()
                     totals += stats
-                dp.all_reduce_grad_(flat.grad)
-                if cfg.grad_clip is not None:
-                    flat.clip_grad_norm_(cfg.grad_clip)
-                self.optimizer.step()
+                self._step(flat)
         dp.sum_(totals)  # each rank summed its shares of the minibatch means: their sum is the global mean
         return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
 
@@ -239,12 +236,16 @@ class MinibatchUpdate:
                         counted.sum())
                     loss.backward()
                     totals += stats
-                dp.all_reduce_grad_(flat.grad)
-                if cfg.grad_clip is not None:
-                    flat.clip_grad_norm_(cfg.grad_clip)
-                self.optimizer.step()
+                self._step(flat)
         dp.sum_(totals)  # each rank summed its shares of the minibatch means
         return (totals / (cfg.num_sgd_iter * num_minibatches)).tolist()
+
+    def _step(self, flat: Any) -> None:
+        """One optimiser step from the minibatch's gradients: summed over ranks, clipped, applied (both SGD loops)."""
+        self.dp.all_reduce_grad_(flat.grad)
+        if self.config.grad_clip is not None:
+            flat.clip_grad_norm_(self.config.grad_clip)
+        self.optimizer.step()
 
     def _minibatch_mean(self, x: torch.Tensor) -> torch.Tensor:
         """The minibatch mean (``Collectives.minibatch_mean``) at the configured minibatch size: the graphed step's
