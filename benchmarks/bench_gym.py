@@ -48,7 +48,9 @@ base task, four runs each: ``freeform-lstm`` (``RecurrentActorCritic``, an LSTM 
 ``RecurrentPPO("MlpLstmPolicy")`` at its default sizes — the same — and the same values), ``freeform`` (the
 feed-forward policy, memoryless) and ``freeform-privileged`` (the feed-forward actor, its critic given the hidden
 entries as the ``"critic"`` observation group). Each row adds the **greedy return** (mean of 10 deterministic
-episodes after training). Defaults: 300k steps, seeds 0-3, ``runs/bench_gym_memory``:
+episodes after training). Pendulum's rows take the ``box-memory`` recipe (8 envs × 256 steps, minibatches of 512:
+8 chunks of 64 steps), CartPole's the discrete one (a chunk is an env's 128-step rollout). Defaults: 300k steps,
+seeds 0-3, ``runs/bench_gym_memory``:
 
     python -m benchmarks.bench_gym --memory                      # the issue's table (two invocations side by side,
     python -m benchmarks.bench_gym --memory --seeds 0 1 &        #  e.g. seeds 0 1 and 2 3, share the results file)
@@ -91,9 +93,17 @@ class Recipe:
     script: str
     envs: int
     batch: int
+    minibatch: int
+    sequence: int
+    """A recurrent policy's chunk length (steps; ``PPOConfig.sequence_length``, one chunk or more per minibatch)."""
 
 
-RECIPES = {"box": Recipe("ppo_continuous_action.py", envs=1, batch=2048), "discrete": Recipe("ppo.py", envs=4, batch=512)}
+RECIPES = {"box": Recipe("ppo_continuous_action.py", envs=1, batch=2048, minibatch=64, sequence=64),
+           "discrete": Recipe("ppo.py", envs=4, batch=512, minibatch=128, sequence=128),
+           "box-memory": Recipe("ppo_continuous_action.py", envs=8, batch=2048, minibatch=512, sequence=64)}
+"""``box-memory``: a Box task with hidden entries (``--memory``): the Box script's values on 8 envs × 256 steps and
+minibatches of 512 (8 chunks of 64 steps), for every row of the task alike — the script's 320 minibatches of one
+64-step chunk per update would make an LSTM's update 8x longer for the same samples."""
 
 
 @functools.cache
@@ -103,7 +113,9 @@ def recipe(task: str) -> Recipe:
 
     env = gym.make(base_task(task)[0])
     try:
-        return RECIPES["box" if isinstance(env.action_space, gym.spaces.Box) else "discrete"]
+        if not isinstance(env.action_space, gym.spaces.Box):
+            return RECIPES["discrete"]
+        return RECIPES["box-memory" if base_task(task)[1] else "box"]
     finally:
         env.close()
 
@@ -153,9 +165,9 @@ def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, networ
     env = from_gymnasium(vec, dict_obs=privileged)
     torch.manual_seed(seed)
     preset = PPOConfig.cleanrl if r.script == "ppo_continuous_action.py" else PPOConfig.cleanrl_discrete
-    config = preset(seed=seed, rollout_steps=r.batch // r.envs, lr_anneal_epochs=max(1, steps // r.batch), compile=compile)
-    if network == "lstm":  # one sequence per minibatch: sgd_minibatch_size steps
-        config.sequence_length = config.sgd_minibatch_size
+    config = preset(seed=seed, rollout_steps=r.batch // r.envs, lr_anneal_epochs=max(1, steps // r.batch),
+                    compile=compile, sgd_minibatch_size=r.minibatch, sequence_length=r.sequence)
+    if network == "lstm":
         return PPO(env, RecurrentActorCritic.for_env(env), config)
     return PPO(env, MLPActorCritic.for_env(env), config)
 
@@ -195,9 +207,9 @@ def sb3_model(task: str, seed: int):
         env = make_vec_env(task, n_envs=r.envs, seed=seed)
         return PPO("MlpPolicy", env, learning_rate=lambda progress: 2.5e-4 * progress, n_steps=r.batch // r.envs,
                    batch_size=128, n_epochs=4, ent_coef=0.01, **common)
-    env = VecNormalize(make_vec_env(task, n_envs=1, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
-    return PPO("MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=r.batch, batch_size=64,
-               n_epochs=10, ent_coef=0.0, **common)
+    env = VecNormalize(make_vec_env(task, n_envs=r.envs, seed=seed), gamma=0.99, clip_obs=10.0, clip_reward=10.0)
+    return PPO("MlpPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=r.batch // r.envs,
+               batch_size=r.minibatch, n_epochs=10, ent_coef=0.0, **common)
 
 
 def run_sb3(task: str, steps: int, seed: int) -> dict:
@@ -226,8 +238,8 @@ def sb3_lstm_model(task: str, seed: int):
         return RecurrentPPO("MlpLstmPolicy", env, learning_rate=lambda progress: 2.5e-4 * progress,
                             n_steps=r.batch // r.envs, batch_size=128, n_epochs=4, ent_coef=0.01, **common), env
     env = VecNormalize(env, gamma=0.99, clip_obs=10.0, clip_reward=10.0)
-    return RecurrentPPO("MlpLstmPolicy", env, learning_rate=lambda progress: 3e-4 * progress, n_steps=r.batch,
-                        batch_size=64, n_epochs=10, ent_coef=0.0, **common), env
+    return RecurrentPPO("MlpLstmPolicy", env, learning_rate=lambda progress: 3e-4 * progress,
+                        n_steps=r.batch // r.envs, batch_size=r.minibatch, n_epochs=10, ent_coef=0.0, **common), env
 
 
 def run_sb3_lstm(task: str, steps: int, seed: int) -> dict:

@@ -124,6 +124,10 @@ class ControlRunConfig(ControlConfig):
     refresh_every: int = 1
     """``bodies=population``: episodes between two new cohorts (the oldest leaves the pool); 0: a fixed
     population of ``pool · env.num_envs`` bodies."""
+    copies: int = 1
+    """``bodies=population``: environments per body (``env.num_envs / copies`` bodies a cohort), each body's copies
+    starting from the same settled state: with ``agent.group_baseline`` a copy's rewards are judged against its
+    siblings' (``freeform.envs.population``)."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -164,6 +168,8 @@ class ControlRunConfig(ControlConfig):
         require(isinstance(self.pool, int) and self.pool >= 1, f"{key}.pool", "an integer >= 1", self.pool)
         require(isinstance(self.refresh_every, int) and self.refresh_every >= 0, f"{key}.refresh_every",
                 "an integer >= 0 (0: a fixed pool)", self.refresh_every)
+        require(isinstance(self.copies, int) and self.copies >= 1 and (self.copies == 1 or self.bodies == "population"),
+                f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
         require(self.head == "direct" or (self.head == "rhythm" and self.controller in ("context", "attention")),

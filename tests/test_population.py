@@ -69,10 +69,47 @@ def test_bad_streams_are_refused_with_the_reason() -> None:
         PopulationControlEnv(SIZES, 4, envs=(3, 6))
 
 
+def test_copies_of_a_body_start_alike_and_are_named_as_one_group() -> None:
+    steer = ControlConfig(burn_in=0.02, duration=0.025, headings="random", residual=True, ramp=True)
+    env = PopulationControlEnv(SIZES, 6, pool=1, copies=3, sim=SIM, control=steer, seed=4)
+    obs = env.reset()
+    assert env.reward_groups.tolist() == [0, 0, 0, 1, 1, 1]
+    assert torch.equal(env.grids[0], env.grids[2]) and not torch.equal(env.grids[0], env.grids[3])
+    assert torch.equal(obs[0], obs[1]) and torch.equal(obs[3], obs[5])  # one settled state, one heading per body
+    assert torch.equal(env.grids[3], design_cohort(SIZES, 2, 0, 0)[1])  # the cohort's second body
+    actions = torch.zeros(6, env.action_dim)
+    actions[1] = 0.5  # one copy acts otherwise: only its reward moves
+    _, reward, _, _ = env.step(actions)
+    assert reward[0] == reward[2] and reward[0] != reward[1] and reward[3] == reward[4] == reward[5]
+    part = PopulationControlEnv(SIZES, 6, pool=1, copies=3, sim=SIM, control=steer, seed=4, envs=(3, 6))
+    assert torch.equal(part.reset(), obs[3:]) and part.reward_groups.tolist() == [0, 0, 0]
+    with pytest.raises(ValueError, match="copies = 4 must divide"):
+        PopulationControlEnv(SIZES, 6, copies=4)
+    with pytest.raises(ValueError, match="copies = 3 must divide the cohort's 6 environments and this process's "
+                                         "slice 2..6"):
+        PopulationControlEnv(SIZES, 6, copies=3, envs=(2, 6))
+
+
+def test_the_group_baseline_subtracts_the_siblings_mean_and_needs_groups() -> None:
+    from freeform.agents import PPO, PPOConfig
+    from freeform.agents.controllers import ConvController
+    from freeform.agents.ppo.losses import leave_one_out
+
+    rewards = torch.tensor([[1.0, 3.0, 10.0, 20.0, 30.0], [0.0, 0.0, 1.0, 1.0, 4.0]])
+    expected = torch.tensor([[-2.0, 2.0, -15.0, 0.0, 15.0], [0.0, 0.0, -1.5, -1.5, 3.0]])
+    torch.testing.assert_close(leave_one_out(rewards, torch.tensor([0, 0, 1, 1, 1])), expected)
+    env = ControlEnv(design_cohort(SIZES, 2, 0, 0), sim=SIM, control=SHORT)
+    with pytest.raises(ValueError, match="group_baseline needs an env that names each environment's group"):
+        PPO(env, ConvController.for_env(env, hidden=4), PPOConfig(group_baseline=True))
+    env.reward_groups = torch.tensor([0, 1])
+    with pytest.raises(ValueError, match=r"used by >= 2 environments \(copies\), got \[0, 1\]"):
+        PPO(env, ConvController.for_env(env, hidden=4), PPOConfig(group_baseline=True))
+
+
 def tiny_population(*overrides: str) -> list[str]:
     values = {"experiment": "control_population_steering_cpu", "env.num_envs": 4, "env.resolution": 6,
               "env.steps": 6, "control.burn_in": 0.01, "control.duration": 0.05, "control.pool": 2,
-              "control.refresh_every": 1, "agent.hidden": 4, "agent.sgd_minibatch_size": 8, "trainer.progress": "false",
+              "control.refresh_every": 1, "control.copies": 2, "agent.group_baseline": "true", "agent.hidden": 4, "agent.sgd_minibatch_size": 8, "trainer.progress": "false",
               "trainer.print_every": 0, "trainer.threads": 1, "trainer.render_every": 0, "trainer.checkpoint_every": 1,
               "sim.precision": "f64", "seed": 3}
     for override in overrides:

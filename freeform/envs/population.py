@@ -12,6 +12,12 @@ Which cohorts an episode may draw from — the *pool* — slides along the strea
 starts from) and its state kept (``Engine.snapshot``), so a body that is drawn again restores that state instead of
 settling anew: a new cohort costs one settle, a reused one nothing. Cohorts that left the pool are forgotten.
 
+With ``copies = m > 1`` a cohort holds ``num_envs / m`` bodies, each controlled by ``m`` environments side by side
+from the same settled state (and, with random headings, the same heading): :attr:`PopulationControlEnv.reward_groups`
+names each environment's body, so that PPO's ``group_baseline`` can judge a copy's rewards against its siblings'
+(what the copies differ in is the policy's noise alone) instead of against other bodies, whose gaits differ by more
+than any correction.
+
 Everything else — observations, actions, rewards, the episode, bandwidth and residual control — is
 :class:`~freeform.envs.control.ControlEnv`'s, on a box fixed for the whole stream (the design grid's ρ³ unless
 given: every body of the design env fits it), so the rollout's shapes never change.
@@ -68,6 +74,7 @@ class PopulationControlEnv:
         full size).
     pool, refresh_every: cohorts an episode may draw from, and episodes between two steps of the pool along the
         stream (0: the pool never moves).
+    copies: environments per body (module docstring); ``total``, and a rank's ``envs``, hold whole groups of copies.
     sim, control, arch, seed, device: as :class:`ControlEnv` (episode e's headings and cohort are drawn from
         ``default_rng([seed, e])``).
     """
@@ -75,15 +82,20 @@ class PopulationControlEnv:
     def __init__(self, sizes: DesignBodies, total: int, pool: int = 4, refresh_every: int = 1, body_seed: int = 0,
                  sim: SimConfig | None = None, control: ControlConfig | None = None, arch: str = "cpu",
                  seed: int = 0, device: str | torch.device = "cpu", envs: tuple[int, int] | None = None,
-                 box: tuple[int, int, int] | None = None) -> None:
+                 box: tuple[int, int, int] | None = None, copies: int = 1) -> None:
         lo, hi = envs if envs is not None else (0, total)
         if not (isinstance(total, int) and 0 <= lo < hi <= total):
             raise ValueError(f"envs must be (lo, hi) with 0 <= lo < hi <= total = {total!r}, got {envs!r}")
+        if not (isinstance(copies, int) and copies >= 1):
+            raise ValueError(f"copies must be an int >= 1 (environments per body), got {copies!r}")
+        if total % copies or lo % copies or hi % copies:
+            raise ValueError(f"copies = {copies} must divide the cohort's {total} environments and this process's "
+                             f"slice {lo}..{hi} (each body's copies side by side in one process)")
         if not (isinstance(pool, int) and pool >= 1):
             raise ValueError(f"pool must be an int >= 1 (cohorts of bodies an episode draws from), got {pool!r}")
         if not (isinstance(refresh_every, int) and refresh_every >= 0):
             raise ValueError(f"refresh_every must be an int >= 0 (episodes; 0: a fixed pool), got {refresh_every!r}")
-        self.sizes, self.total, self.envs = sizes, total, (lo, hi)
+        self.sizes, self.total, self.envs, self.copies = sizes, total, (lo, hi), copies
         self.pool, self.refresh_every, self.body_seed = pool, refresh_every, int(body_seed)
         self.control, self._sim = control or ControlConfig(), sim or SimConfig()
         self.control.validate()
@@ -92,6 +104,8 @@ class PopulationControlEnv:
         self.arch, self.seed, self.device = arch, int(seed), torch.device(device)
         self.num_envs = hi - lo
         self.box = tuple(int(b) for b in box) if box is not None else (sizes.resolution,) * 3
+        self.reward_groups = torch.arange(lo, hi, device=self.device) // copies - lo // copies
+        """Each environment's body within this process, int64 ``[num_envs]``: environments of one group are copies."""
         self._cohorts: dict[int, ControlEnv] = {}
         self.episode = -1
         self.current = self._cohort(0)  # (its shapes are every cohort's: the same box and channels)
@@ -108,9 +122,11 @@ class PopulationControlEnv:
     def _cohort(self, c: int) -> ControlEnv:
         if c not in self._cohorts:
             lo, hi = self.envs
-            grids = design_cohort(self.sizes, self.total, self.body_seed, c)[lo:hi]
+            m = self.copies
+            grids = design_cohort(self.sizes, self.total // m, self.body_seed, c).repeat_interleave(m, 0)[lo:hi]
+            draws = np.arange(lo, hi) // m if m > 1 else lo  # (copies share their heading's draw)
             self._cohorts[c] = ControlEnv(grids, sim=self._sim, control=self.control, arch=self.arch, seed=self.seed,
-                                          device=self.device, first_env=lo, box=self.box, simulator=self.simulator)
+                                          device=self.device, first_env=draws, box=self.box, simulator=self.simulator)
         return self._cohorts[c]
 
     @property
@@ -169,7 +185,7 @@ class PopulationControlEnv:
 
     def _config(self) -> dict[str, Any]:
         return {"control": vars(self.control).copy(), "box": list(self.box), "sizes": vars(self.sizes).copy(),
-                "total": self.total, "pool": self.pool, "refresh_every": self.refresh_every,
+                "total": self.total, **({"copies": self.copies} if self.copies > 1 else {}), "pool": self.pool, "refresh_every": self.refresh_every,
                 "body_seed": self.body_seed}
 
 

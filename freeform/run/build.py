@@ -194,6 +194,7 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
         e, c = cfg.env, cfg.control
         return PopulationControlEnv(DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size),
                                     e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
+                                    copies=c.copies,
                                     sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
                                     box=box)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies

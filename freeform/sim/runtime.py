@@ -134,7 +134,13 @@ def ensure(arch: str = "auto", backend: str | None = None) -> str:
     use(backend)
     if _active is None:
         want = ti.cpu if arch == "cpu" else ti.cuda
-        ti.init(arch=want, log_level=ti.WARN, offline_cache=True, fast_math=fast_math())
+        options = {}
+        if arch == "cpu" and "TI_ADVANCED_OPTIMIZATION" not in os.environ:
+            # The backend's own IR passes cost 2/3 of a kernel's compile (10 s -> 3-4 s per variant) and nothing at
+            # run time on the CPU, where LLVM optimises the same code; on the strict path the program is the same
+            # bits either way (docs/physics.md, "Compile time"). CUDA keeps them (unmeasured there).
+            options["advanced_optimization"] = False
+        ti.init(arch=want, log_level=ti.WARN, offline_cache=True, fast_math=fast_math(), **options)
         got = "cuda" if ti.lang.impl.current_cfg().arch == ti.cuda else "cpu"
         if arch == "cuda" and got != "cuda":
             # the backend silently fell back to the CPU; the caller asked for a GPU, so say so.

@@ -16,7 +16,7 @@ from freeform.agents.distributed import Collectives
 from freeform.agents.distributions import ActionDistribution
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
-from freeform.agents.ppo.losses import compute_advantages, discounted_cumsum
+from freeform.agents.ppo.losses import compute_advantages, discounted_cumsum, leave_one_out
 from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map
 from freeform.envs.base import VecEnv
 
@@ -266,6 +266,8 @@ class RolloutCollection:
         """The rewards PPO learns from (scaled with ``reward_norm``) and GAE's advantages and value targets; an
         episode that the rollout cut is bootstrapped with V of its last observation."""
         cfg, buf = self.config, self.rollout
+        if cfg.group_baseline:
+            buf.rewards = leave_one_out(buf.rewards, self.reward_groups)
         buf.rewards = self._scale_rewards(buf.rewards, starts)
         if self.return_rms is not None:
             self.discounted_return = torch.where(buf.dones[-1], 0.0, self.discounted_return)

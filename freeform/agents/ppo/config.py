@@ -93,6 +93,12 @@ class PPOConfig:
     the paper."""
     reward_clip: float = 10.0
     """Clip of the scaled rewards (``reward_norm``)."""
+    group_baseline: bool = False
+    """Learn from each reward minus the mean of the same step's rewards in the env's other copies of that
+    environment (``env.reward_groups``: ``PopulationControlEnv`` with ``control.copies`` >= 2), a leave-one-out
+    baseline (RLOO's, per step): the copies start alike, so what is left is what the policy's noise did, without the
+    spread between bodies. Unbiased: the siblings' rewards do not depend on this copy's actions. Episode statistics
+    stay raw."""
     bootstrap_truncated: bool = True
     """An episode cut by a time limit (the env's ``info["truncated"]``) is bootstrapped with V of its last
     observation, as SB3 does; False: it ends as a terminated one does (CleanRL's scripts, which treat a
@@ -131,7 +137,8 @@ class PPOConfig:
                      "sequence_length"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
-        for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "cuda_graph", "bootstrap_truncated"):
+        for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "cuda_graph", "bootstrap_truncated",
+                     "group_baseline"):
             require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
         require(not (self.cuda_graph and self.compile), f"{key}.cuda_graph", "false when compile is true (pick one "
                 "of the two ways to cut the update's launches)", self.cuda_graph)

@@ -21,6 +21,16 @@ from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.rollout import sample_columns
 
 
+def leave_one_out(rewards: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:
+    """Each reward minus the mean of the same step's rewards in its group's other members: ``rewards [T, N]``,
+    ``groups [N]`` int64 in ``0 … G−1``, every group of >= 2 members (``PPOConfig.group_baseline``)."""
+    count = torch.bincount(groups).to(rewards.dtype)
+    total = torch.zeros(rewards.shape[0], len(count), dtype=rewards.dtype, device=rewards.device)
+    total.index_add_(1, groups, rewards)
+    others = (total[:, groups] - rewards) / (count[groups] - 1)
+    return rewards - others
+
+
 def discounted_cumsum(
     x: torch.Tensor,
     discount: float,

@@ -108,6 +108,8 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
             raise ValueError(f"this env observes the groups {GROUPS}, of which the actor may read only 'policy': "
                              f"{type(policy).__name__} must run its actor apart from its critic (action_params(obs) "
                              "and value(obs), as MLPActorCritic.for_env(env)'s GroupedMLPActorCritic does)")
+        self.reward_groups = _reward_groups(env, self.device) if config.group_baseline else None
+        """``group_baseline``: each env's group (``env.reward_groups``), int64 ``[N]`` on the policy's device."""
         self.flat = FlatParameters(self.policy.parameters())
         """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
         clipping and zeroing are one operation each (``flat_params.py``)."""
@@ -391,5 +393,20 @@ def choose_distribution(policy: nn.Module, env: VecEnv) -> ActionDistribution:
         raise ValueError(f"the {dist} gives {dist.action_dim} numbers per action but the env takes {env.action_dim}")
     return dist
 
+
+
+def _reward_groups(env: VecEnv, device: torch.device) -> torch.Tensor:
+    """``env.reward_groups`` checked for ``group_baseline``: ids ``0 … G−1`` of ``[num_envs]``, each used >= 2 times."""
+    groups = getattr(env, "reward_groups", None)
+    if groups is None:
+        raise ValueError(f"agent.group_baseline needs an env that names each environment's group of copies "
+                         f"(env.reward_groups), and {type(env).__name__} has none: use control.bodies=population "
+                         "with control.copies >= 2, or set agent.group_baseline=false")
+    groups = torch.as_tensor(groups, device=device).long()
+    count = torch.bincount(groups) if groups.numel() and int(groups.min()) >= 0 else None
+    if groups.shape != (env.num_envs,) or count is None or int(count.min()) < 2:
+        raise ValueError(f"env.reward_groups must give each of the {env.num_envs} environments a group id 0..G-1 "
+                         f"used by >= 2 environments (copies), got {groups.tolist()}")
+    return groups
 
 __all__ = ["PPO", "builtin_policies", "choose_distribution", "policy_class_name"]
