@@ -242,7 +242,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
     control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
     each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
-    body × episode three times over, the three groups with the same headings (the same draws): the controller, the
+    body × episode four times over, the groups with the same headings (the same draws): the controller, the
+    controller's mean command (deterministic: what it learned, without its exploration noise), the
     controller with its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses
     nothing), and an untrained controller of the same architecture (seeded ``seed``). The box is the one the
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
@@ -266,8 +267,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
 
     per_episode = grids.repeat_interleave(n, 0)  # body i's episodes are rows i·n … i·n + n − 1
-    env = ControlEnv(per_episode.repeat(3, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
-                     first_env=np.tile(np.arange(m * n), 3))
+    env = ControlEnv(per_episode.repeat(4, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
+                     first_env=np.tile(np.arange(m * n), 4))
     sensed = [env.channels.index(c) for c in SENSED]
 
     def zeroed(obs: torch.Tensor) -> torch.Tensor:
@@ -276,17 +277,19 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
         return obs
 
     generator = torch.Generator().manual_seed(seed)
-    groups = ((controller, lambda o: o), (controller, zeroed), (untrained, lambda o: o))
+    groups = ((controller, lambda o: o, True), (controller, lambda o: o, False), (controller, zeroed, True),
+              (untrained, lambda o: o, True))
     obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
     for _ in range(control.steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         actions = []
-        for (net, view), part in zip(groups, obs.chunk(3), strict=True):
+        for (net, view, stochastic), part in zip(groups, obs.chunk(4), strict=True):
             params = net(view(part))[:3]
-            actions.append(net.distribution.sample(params, torch.randn(params[0].shape, generator=generator)))
+            noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
+            actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
         total += reward.double()
-    returns = total.numpy().reshape(3, m, n)
+    returns = total.numpy().reshape(4, m, n)
 
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
     along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
@@ -302,8 +305,9 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     per_body = returns.mean(2)
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
                summary_row(f"controller ({saved.kind}, stochastic)", per_body[0]),
-               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[1]),
-               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[2])]
+               summary_row(f"controller ({saved.kind}, mean command)", per_body[1]),
+               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[2]),
+               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[3])]
     out.mkdir(parents=True, exist_ok=True)
     for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
         with open(out / name, "w", newline="") as f:

@@ -36,7 +36,7 @@ def read_csv(path: Path) -> list[dict]:
 def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_path) -> None:
     """A controller trained in a 2 × 1 × 1 box (here: saved untrained) evaluated on bodies needing 2 × 2 × 1: a row
     per body with its simulated voxels (counted by hand), its open-loop gait (along +x, as open_loop_displacement
-    scores it on the bodies as simulated), finite controller figures; the summary's four rows."""
+    scores it on the bodies as simulated), finite controller figures; the summary's five rows."""
     torch.manual_seed(0)
     net = ContextConvController(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0)
     save_controller(tmp_path / "controller.pt", net, SHORT, SimConfig())
@@ -52,9 +52,9 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     np.testing.assert_allclose([float(r["open_loop"]) for r in rows], expected, rtol=1e-6, atol=1e-9)
     assert all(np.isfinite(float(r["controller"])) and float(r["band99"]) >= 0 for r in rows)
     summary = read_csv(tmp_path / "eval" / "summary.csv")
-    assert len(summary) == 4 and [r["n"] for r in summary] == ["3"] * 4
-    assert summary[1]["what"].startswith("controller (context") and "zeroed" in summary[2]["what"]
-    assert "untrained" in summary[3]["what"]
+    assert len(summary) == 5 and [r["n"] for r in summary] == ["3"] * 5
+    assert summary[1]["what"].startswith("controller (context") and "mean command" in summary[2]["what"]
+    assert "zeroed" in summary[3]["what"] and "untrained" in summary[4]["what"]
     np.testing.assert_allclose(float(summary[0]["mean"]), expected.mean(), rtol=1e-6)
     np.testing.assert_allclose(float(summary[1]["mean"]), np.mean([float(r["controller"]) for r in rows]), rtol=1e-6)
 

@@ -225,7 +225,9 @@ def test_sensing_on_the_device_equals_the_tables_read_back(schedule):
 @pytest.mark.parametrize("schedule", ["robots", "flat"])
 def test_a_snapshot_restored_goes_on_bit_for_bit(schedule):
     """advance 0.05 s, snapshot, advance with commands → X; restore, the same again → X to the bit (f64), with the
-    control limit (``advance_time``'s host copy) restored too; a snapshot of another size is refused."""
+    control limit (``advance_time``'s host copy) restored too — also into a fresh engine of the same layout after a
+    larger batch grew the simulator's buffers (a population env's cohorts); a snapshot of another batch is
+    refused."""
     cfg = SimConfig(precision="f64", burn_in=0.0, duration=1.0, actuation="command")
     sim = Simulator(cfg, arch="cpu", schedule=schedule)
     engine = sim.engine(sim.layout(bodies()))
@@ -240,6 +242,12 @@ def test_a_snapshot_restored_goes_on_bit_for_bit(schedule):
 
     first = go_on()
     assert np.abs(first[0] - at_snapshot).max() > 1e-6  # the bodies moved after the snapshot
+    engine.restore(snap)
+    for a, b in zip(go_on(), first, strict=True):
+        np.testing.assert_array_equal(a, b)
+    sim.engine(sim.layout(np.concatenate([bodies()] * 8)))  # a larger batch grows the simulator's buffers
+    engine = sim.engine(sim.layout(bodies()))  # a fresh engine of the snapshot's layout takes it back
+    assert any(engine._buffers[n].shape[0] > snap["buffers"][n].shape[0] for n in snap["buffers"])
     engine.restore(snap)
     for a, b in zip(go_on(), first, strict=True):
         np.testing.assert_array_equal(a, b)

@@ -385,20 +385,32 @@ class Engine:
         env restores its bodies' settled state at every episode instead of settling them again)."""
         self._check_owner()
         return {"buffers": {name: runtime.to_numpy(self._buffers[name]).copy() for name in BUFFERS},
-                "packing": self.packing, "steps_done": self.steps_done, "trace_steps": self.trace_steps,
+                "counts": dict(self.counts), "packing": self.packing, "steps_done": self.steps_done,
+                "trace_steps": self.trace_steps,
                 "limit": None if self._limit is None else self._limit.copy(), "commands": self._commands.copy(),
                 "ramp": self._ramp}
 
     def restore(self, snapshot: dict[str, Any]) -> None:
-        """Return to a :meth:`snapshot` of this engine (taken since it was built, with the same buffers)."""
+        """Return to a :meth:`snapshot` of this engine, or of an engine of the same layout on the same simulator:
+        the batch goes on as it would have from the snapshot, bit for bit. The device buffers may have grown since
+        (another batch needed more room): the snapshot's packing comes back with it, and the buffers' tails past it
+        are never read."""
         self._check_owner()
+        if snapshot.get("counts", self.counts) != self.counts:
+            raise ValueError(f"the snapshot holds another batch ({snapshot['counts']}) than this engine "
+                             f"({self.counts}): restore a snapshot of this engine")
         for name in BUFFERS:
             saved, have = snapshot["buffers"][name], tuple(self._buffers[name].shape)
-            if saved.shape != have:
+            if saved.shape[0] > have[0] or saved.shape[1:] != have[1:]:
                 raise ValueError(f"the snapshot's {name} buffer has {saved.shape[0]} elements, this engine's "
                                  f"{have[0]}: restore a snapshot of this engine, taken after start_trace if it traces")
         for name in BUFFERS:
-            runtime.upload(self._buffers[name], snapshot["buffers"][name])
+            saved = snapshot["buffers"][name]
+            if saved.shape[0] < self._buffers[name].shape[0]:  # (grown since: the snapshot's part, zeros after)
+                grown = np.zeros(tuple(self._buffers[name].shape), saved.dtype)
+                grown[: saved.shape[0]] = saved
+                saved = grown
+            runtime.upload(self._buffers[name], saved)
         self.packing, self.steps_done = snapshot["packing"], snapshot["steps_done"]
         self.trace_steps = snapshot["trace_steps"]
         self._limit = None if snapshot["limit"] is None else snapshot["limit"].copy()
