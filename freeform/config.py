@@ -176,6 +176,8 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.head", "direct, or rhythm with controller=context or attention", self.head)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
+        require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",
+                "false with bodies=codesign (a co-design episode observes its design first)", self.privileged_critic)
         require(not self.codesign or self.controller == "conv", f"{key}.controller",
                 "conv with bodies=codesign (each episode's body differs: one set of weights for every cell)",
                 self.controller)

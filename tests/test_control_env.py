@@ -221,3 +221,36 @@ def test_ramped_commands_reach_the_action_by_the_period_end():
     assert float(env.engine._table("rt")[RT.RAMP][0]) == control.period
     with pytest.raises(ValueError, match="control.ramp"):
         ControlConfig(ramp=1).validate()
+
+
+def test_the_privileged_critic_sees_the_displacement_the_orientation_and_the_time_left():
+    """``privileged_critic``: the observation's groups; the critic's state is the displacement since the episode's
+    start (against the env's own centre of mass), an orientation recovered exactly from voxel offsets rotated by a
+    known rotation (scipy's, the independent truth) and the fraction of the episode left."""
+    from scipy.spatial.transform import Rotation
+
+    from freeform.envs.control import CRITIC_STATE
+    from freeform.sim.state import SENSE
+
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    control = ControlConfig(burn_in=0.01, duration=0.05, headings="any", privileged_critic=True)
+    env = ControlEnv(g, sim=SimConfig(precision="f64"), control=control)
+    assert env.observation_shape == {"policy": (len(OBS_CHANNELS), 3, 3, 3), "critic": (len(CRITIC_STATE),)}
+    obs = env.reset()
+    plain = ControlEnv(g, sim=SimConfig(precision="f64"), control=replace(control, privileged_critic=False)).reset()
+    assert torch.equal(obs["policy"], plain)  # the actor sees what it would without the critic's group
+    critic = obs["critic"].double().numpy()
+    assert critic.shape == (2, 10) and np.all(critic[:, :3] == 0) and np.all(critic[:, 9] == 1.0)
+    np.testing.assert_allclose(critic[1, 3:9], [1, 0, 0, 0, 1, 0], atol=0.02)  # the settled cube, upright
+    start = env._com.copy()
+    for step in range(1, 3):
+        obs, _, _, _ = env.step(torch.full((2, 27), 0.5))
+        critic = obs["critic"].double().numpy()
+        np.testing.assert_allclose(critic[:, :3], (env._com - start) / env.sim_config.voxel_size, rtol=1e-5, atol=1e-7)
+        assert critic[0, 9] == pytest.approx(1 - step / control.steps)
+    truth = Rotation.random(2, random_state=0).as_matrix()
+    sensed = np.zeros((env.layout.num_voxels, SENSE.width))
+    rotated = np.einsum("vij,vj->vi", truth[env._robot], env._rest) * env.sim_config.voxel_size
+    sensed[:, SENSE.span("REL")] = rotated
+    recovered = env._critic_state(sensed, env._com).double().numpy()[:, 3:9]
+    np.testing.assert_allclose(recovered[1], np.concatenate([truth[1][:, 0], truth[1][:, 1]]), atol=1e-6)  # the cube

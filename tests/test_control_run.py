@@ -82,17 +82,28 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     assert all(torch.equal(v, a["policy"][k]) for k, v in saved.controller.state_dict().items())
 
 
-@pytest.mark.parametrize("kind", ["context", "attention"])
-def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: str, bodies: Path, tmp_path: Path) -> None:
-    """control.controller picks the registry's kind (build_controller); two epochs equal one plus a resumed one."""
-    straight_and_resumed(compose(*tiny_control(bodies, f"control.controller={kind}", "seed=1")), tmp_path, epochs=2)
+@pytest.mark.parametrize("kind, privileged", [("context", False), ("attention", False), ("context", True)])
+def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: str, privileged: bool, bodies: Path,
+                                                                        tmp_path: Path) -> None:
+    """control.controller picks the registry's kind (build_controller); two epochs equal one plus a resumed one.
+    control.privileged_critic: the same controller inside a PrivilegedCritic, whose actor a controller.pt keeps."""
+    overrides = (f"control.controller={kind}", "seed=1", f"control.privileged_critic={str(privileged).lower()}")
+    straight_and_resumed(compose(*tiny_control(bodies, *overrides)), tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
-    from freeform.agents.controllers import CONTROLLERS
+    from freeform.agents.controllers import CONTROLLERS, read_controller
 
-    assert a["policy_class"].endswith(":" + CONTROLLERS[kind].__name__) and a["policy_kwargs"]["hidden"] == 4
-    for name, tensor in a["ppo"]["policy"].items():
-        assert torch.equal(tensor, b["ppo"]["policy"][name]), name
+    kwargs = a["policy_kwargs"]["controller"] if privileged else a["policy_kwargs"]
+    name = "PrivilegedCritic" if privileged else CONTROLLERS[kind].__name__
+    assert a["policy_class"].endswith(":" + name) and kwargs["hidden"] == 4
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    saved = read_controller(tmp_path / "straight")  # the actor alone, acting on the sensed channels
+    assert saved.kind == kind and not saved.control.privileged_critic
+    prefix = "controller." if privileged else ""
+    assert all(torch.equal(v, a["ppo"]["policy"][prefix + k]) for k, v in saved.controller.state_dict().items())
+    if privileged:  # the critic's own part learnt something in two epochs (it starts at zero)
+        assert a["ppo"]["policy"]["critic_head.2.weight"].abs().max() > 0
 
 
 def test_headings_are_drawn_per_episode_and_environment_whatever_the_slice() -> None:

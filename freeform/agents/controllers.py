@@ -364,11 +364,65 @@ CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPCon
 a body changes nothing."""
 
 
+class PrivilegedCritic(nn.Module):
+    """A controller whose critic also reads privileged state: for an env observing the groups ``{"policy": the
+    cells' channels [N, C, Bx, By, Bz], "critic": [N, S]}`` (``ControlConfig.privileged_critic``). The actor is the
+    controller's own, on ``obs["policy"]`` alone (what a deployed controller senses); the value is the controller's
+    own value plus a small MLP of (that value, ``obs["critic"]``), whose last layer starts at zero, so training
+    starts from the controller's critic and learns what the privileged state adds (e.g. the distance already
+    covered, on which a ``headings="any"`` reward depends).
+
+    kind, controller: the controller's registry name and ``init_kwargs``; critic_dim: S; hidden: the MLP's width.
+    """
+
+    def __init__(self, kind: str, controller: dict[str, Any], critic_dim: int, hidden: int = 64) -> None:
+        super().__init__()
+        if kind not in CONTROLLERS:
+            raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
+        if not isinstance(critic_dim, int) or critic_dim < 1:
+            raise ValueError(f"critic_dim must be a positive int, got {critic_dim!r}")
+        self.controller = CONTROLLERS[kind](**controller)
+        self.critic_head = nn.Sequential(nn.Linear(critic_dim + 1, hidden), nn.Tanh(), nn.Linear(hidden, 1))
+        nn.init.zeros_(self.critic_head[-1].weight)
+        nn.init.zeros_(self.critic_head[-1].bias)
+        self.distribution = self.controller.distribution
+        self.fits_any_box = self.controller.fits_any_box
+        self.padding_invariant = self.controller.padding_invariant
+        self.kind = kind
+        self.init_kwargs = {"kind": kind, "controller": dict(self.controller.init_kwargs), "critic_dim": critic_dim,
+                            "hidden": hidden}
+
+    def action_params(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """``obs["policy"]`` → (mean, log σ, mask): the controller's; the critic group is never read."""
+        return tuple(self.controller(obs["policy"])[:-1])
+
+    def value(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Both groups → V ``[N]``."""
+        return self._value(self.controller(obs["policy"])[-1], obs["critic"])
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """(mean, log σ, mask, value), as a controller's forward."""
+        *params, own = self.controller(obs["policy"])
+        return (*params, self._value(own, obs["critic"]))
+
+    def _value(self, own: torch.Tensor, privileged: torch.Tensor) -> torch.Tensor:
+        return own + self.critic_head(torch.cat([own[:, None], privileged.to(own.dtype)], 1)).squeeze(-1)
+
+
 def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
                      head: str = "direct") -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
-    ``head`` (:data:`HEADS`; ``rhythm`` for the kinds with a view of the whole body: ``context``, ``attention``)."""
+    ``head`` (:data:`HEADS`; ``rhythm`` for the kinds with a view of the whole body: ``context``, ``attention``).
+    An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
+    a :class:`PrivilegedCritic`."""
+    from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
+
+    shape = env.observation_shape
+    if is_grouped(shape):
+        view = _PolicyView(env, shape[POLICY])
+        inner = build_controller(kind, view, hidden, log_std, head)
+        return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     _head_outputs(head)
@@ -379,12 +433,24 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)
 
 
+class _PolicyView:
+    """An env as its actor sees it: the ``"policy"`` group's shape, everything else the env's."""
+
+    def __init__(self, env: Any, shape: tuple[int, ...]) -> None:
+        self._env, self.observation_shape = env, tuple(shape)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._env, name)
+
+
 RHYTHM_KINDS = ("context", "attention")
 """The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
 
 def controller_kind(controller: nn.Module) -> str:
-    """The registry's name for ``controller``'s class."""
+    """The registry's name for ``controller``'s class (a :class:`PrivilegedCritic`'s: its controller's)."""
+    if isinstance(controller, PrivilegedCritic):
+        return controller.kind
     for kind, cls in CONTROLLERS.items():
         if type(controller) is cls:
             return kind
@@ -418,6 +484,9 @@ def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: 
     from freeform.envs.control import ControlConfig
 
     episode = {f.name: getattr(control, f.name) for f in dataclasses.fields(ControlConfig)}
+    episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
+    if isinstance(controller, PrivilegedCritic):
+        controller = controller.controller
     return save_checkpoint(path, {
         "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
                        "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
@@ -469,7 +538,10 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
         raise ValueError(f"{path}: neither a controller.pt nor a PPO or run checkpoint")
     name = payload["policy_class"].rsplit(":", 1)[-1]
     kwargs, weights = dict(payload["policy_kwargs"]), payload["ppo"]["policy"]
-    if name == "CodesignActorCritic":  # a co-design run: its controller part
+    if name == "PrivilegedCritic":  # its controller part: the actor (and its own critic)
+        kind, kwargs = kwargs["kind"], dict(kwargs["controller"])
+        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+    elif name == "CodesignActorCritic":  # a co-design run: its controller part
         start, stop = kwargs["control_channels"]
         kind, weights = "conv", {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
         kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
@@ -485,7 +557,7 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
         cfg = from_container(payload["config"])
         if cfg.control is None:
             raise ValueError(f"{path}: a run without a control section (a design run) has no controller")
-        return kind, kwargs, weights, cfg.control.episode(), cfg.sim
+        return kind, kwargs, weights, dataclasses.replace(cfg.control.episode(), privileged_critic=False), cfg.sim
     args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
     if not args.is_file():
         raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
@@ -495,5 +567,6 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
     return kind, kwargs, weights, control, SimConfig()
 
 
-__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "ContextConvController", "ConvController", "MLPController", "SavedController",
+__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "ContextConvController", "ConvController", "MLPController",
+           "PrivilegedCritic", "SavedController",
            "VoxelAttentionController", "build_controller", "controller_kind", "read_controller", "save_controller"]

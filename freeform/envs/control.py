@@ -62,6 +62,11 @@ RESIDUAL_CHANNELS = (*OBS_CHANNELS, "open_loop")
 """A residual control env's channels (``ControlConfig.residual``): the last one is each actuated voxel's open-loop
 command over the coming period, the base its action is added to."""
 HEADINGS = ("fixed", "random", "any")
+CRITIC_STATE = ("dx", "dy", "dz", "r11", "r21", "r31", "r12", "r22", "r32", "time_left")
+"""The privileged critic's entries per body (``ControlConfig.privileged_critic``): the centre of mass's displacement
+since the episode's start (voxel lengths), the body's orientation — the first two columns of the rotation that best
+maps its voxels' rest offsets onto their offsets now (Kabsch's, about the centre of mass) — and the fraction of the
+episode left."""
 
 
 @dataclass
@@ -88,6 +93,10 @@ class ControlConfig:
     ramp: each step's command moves linearly from the last one to the new one over the control period (a
         first-order hold: ``Engine.set_commands(ramp=period)``) instead of jumping at the period's start — Voxelyze
         sets a voxel's rest size at once, so a jump of the command is a kick.
+    privileged_critic: the observation becomes the groups ``{"policy": the cells' channels, "critic": [N, 10]}``
+        (``freeform.agents.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
+        each body's displacement since the episode's start (voxel lengths; under ``headings="any"`` its reward is
+        the growth of that distance), its orientation, and the episode's time left — and the actor does not.
     """
 
     period: float = 0.0125
@@ -97,6 +106,7 @@ class ControlConfig:
     command_rate: float | None = None
     residual: bool = False
     ramp: bool = False
+    privileged_critic: bool = False
 
     @property
     def steps(self) -> int:
@@ -112,7 +122,7 @@ class ControlConfig:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
         if self.command_rate is not None and not self.command_rate > 0:
             raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
-        for name in ("residual", "ramp"):
+        for name in ("residual", "ramp", "privileged_critic"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
 
@@ -185,7 +195,9 @@ class ControlEnv:
         """``[N, 3]`` where each body's box starts in its grid (the layout's crop origin)."""
         self.channels = RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS
         """The observation's channels, in order."""
-        self.observation_shape = (len(self.channels), *self.box)
+        self.observation_shape: Any = (len(self.channels), *self.box)
+        if self.control.privileged_critic:
+            self.observation_shape = {"policy": self.observation_shape, "critic": (len(CRITIC_STATE),)}
         self.action_dim = math.prod(self.box)
         body = lay.body_of_robot[robot]
         self._body = body
@@ -205,6 +217,10 @@ class ControlEnv:
         """What PPO trains: a Gaussian per cell, counted where the ``actuated`` channel (``mask_channel``) is 1."""
         self.mask_channel = OBS_CHANNELS.index("actuated")
         self.filled_channel = OBS_CHANNELS.index("filled")
+        centre = np.zeros((self.num_envs, 3))
+        np.add.at(centre, robot, lattice.astype(np.float64))
+        centre /= np.bincount(robot, minlength=self.num_envs)[:, None]
+        self._rest = lattice - centre[robot]  # each voxel's rest offset from its body's centre (voxel lengths)
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
         self._actuated = actuated.astype(np.float64)
         self._phase = np.array([0.0] + [m.phase for m in self.sim_config.materials])[lay.material]  # cycles
@@ -429,7 +445,24 @@ class ControlEnv:
         ], 1)
         obs = torch.zeros((R, len(self.channels), self.action_dim), dtype=torch.float32, device=self.device)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first
-        return obs.view(R, *self.observation_shape), com
+        obs = obs.view(R, len(self.channels), *self.box)
+        if self.control.privileged_critic:
+            return {"policy": obs, "critic": self._critic_state(sensed, com)}, com
+        return obs, com
+
+    def _critic_state(self, sensed: np.ndarray, com: np.ndarray) -> torch.Tensor:
+        """``CRITIC_STATE`` ``[N, 10]`` float32: displacement since the episode's start, orientation, time left."""
+        moved = (com - (self._start if self.t > 0 else com)) / self._length
+        now = sensed[:, SENSE.span("REL")] / self._length
+        cov = np.zeros((self.num_envs, 3, 3))
+        np.add.at(cov, self._robot, self._rest[:, :, None] * now[:, None, :])  # Σ rest ⊗ now, per body
+        u, _, vt = np.linalg.svd(cov)
+        flip = np.sign(np.linalg.det(np.transpose(vt, (0, 2, 1)) @ np.transpose(u, (0, 2, 1))))
+        vt[:, 2] *= np.where(flip == 0, 1.0, flip)[:, None]  # a rotation, not a reflection
+        rotation = np.transpose(vt, (0, 2, 1)) @ np.transpose(u, (0, 2, 1))  # rest → now
+        left = np.full((self.num_envs, 1), 1.0 - self.t / self.control.steps)
+        state = np.concatenate([moved, rotation[:, :, 0], rotation[:, :, 1], left], 1)
+        return torch.from_numpy(state).float().to(self.device)
 
 
 def open_loop_moves(grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,

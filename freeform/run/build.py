@@ -258,7 +258,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         else:  # (freeform.agents.controllers.CONTROLLERS)
             policy = build_controller(control.controller, env, width, control.init_log_std, control.head)
         if control.controller_init is not None:
-            load_controller(policy.controller if control.codesign else policy, control.controller_init)
+            load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
+                            control.controller_init)
         # (a control run's evaluation: this rank's bodies again, not searched again)
         own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
         eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (

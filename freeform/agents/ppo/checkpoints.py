@@ -258,13 +258,13 @@ def policy_class_name(cls: type) -> str:
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
     """The networks any checkpoint may name (freeform's own: every controller of the registry included)."""
-    from freeform.agents.controllers import CONTROLLERS
+    from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic
     from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
     from freeform.agents.observation_groups import GroupedMLPActorCritic
     from freeform.agents.recurrent import RecurrentActorCritic
 
     return (VoxelActorCritic, MLPActorCritic, CodesignActorCritic, GroupedMLPActorCritic, RecurrentActorCritic,
-            *CONTROLLERS.values())
+            PrivilegedCritic, *CONTROLLERS.values())
 
 
 def moved_policies() -> dict[str, type[nn.Module]]:
