@@ -142,9 +142,10 @@ class ControlRunConfig(ControlConfig):
     (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
     Width: ``hidden``."""
     head: str = "direct"
-    """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command) or
+    """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
-    ``controller=context`` or ``attention``)."""
+    ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
+    ``control.stroke_periods`` >= 1)."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -172,8 +173,10 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
-        require(self.head == "direct" or (self.head == "rhythm" and self.controller in ("context", "attention")),
-                f"{key}.head", "direct, or rhythm with controller=context or attention", self.head)
+        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in ("context", "attention")),
+                f"{key}.head", "direct, or rhythm or stroke with controller=context or attention", self.head)
+        require((self.head == "stroke") == (self.stroke_periods >= 1), f"{key}.head",
+                "stroke exactly when control.stroke_periods >= 1 (the env's actions are then strokes)", self.head)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",

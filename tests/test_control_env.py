@@ -254,3 +254,46 @@ def test_the_privileged_critic_sees_the_displacement_the_orientation_and_the_tim
     sensed[:, SENSE.span("REL")] = rotated
     recovered = env._critic_state(sensed, env._com).double().numpy()[:, 3:9]
     np.testing.assert_allclose(recovered[1], np.concatenate([truth[1][:, 0], truth[1][:, 1]]), atol=1e-6)  # the cube
+
+
+@pytest.mark.parametrize("residual", [False, True])
+def test_a_stroke_plays_a_sin_plus_b_cos_of_each_voxels_own_phase_for_its_periods(residual):
+    """``stroke_periods = 3``: one action (a, b) per cell is, bit for bit, three period steps whose commands are
+    a·sin θ + b·cos θ, θ = 2π(t/T + φ) at each period's middle (computed here from the materials' phases); the
+    rewards telescope to the same moves; under residual control zero strokes are the open-loop gait."""
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    control = ControlConfig(burn_in=0.01, period=0.01, duration=0.06, headings="fixed", residual=residual,
+                            ramp=True, command_rate=30.0)
+    sim = SimConfig(precision="f64")
+    strokes = ControlEnv(g, sim=sim, control=replace(control, stroke_periods=3))
+    periods = ControlEnv(g, sim=sim, control=control)
+    assert strokes.action_dim == 2 * 27 and strokes.control.steps == 2 and periods.control.steps == 6
+    strokes.reset(), periods.reset()
+    phase = {m.phase for m in sim.materials}
+    assert len(phase) > 1  # (the two muscles differ in phase: each voxel's own θ matters)
+    cell_phase = torch.zeros(2, 27, dtype=torch.float64)
+    for body in range(2):
+        for cell in range(27):
+            material = int(g[body].reshape(-1)[cell])
+            cell_phase[body, cell] = sim.materials[material - 1].phase if material else 0.0
+    rng = torch.Generator().manual_seed(2)
+    total_strokes, total_periods = 0.0, 0.0
+    for step in range(2):
+        a, b = (torch.rand((2, 27), generator=rng, dtype=torch.float64) - 0.5 for _ in range(2))
+        _, reward, _, _ = strokes.step(torch.cat([a, b], 1))
+        total_strokes = total_strokes + reward.double()
+        for k in range(3):
+            middle = (control.burn_in + (3 * step + k + 0.5) * control.period) / sim.temp_period
+            theta = 2 * math.pi * (middle + cell_phase)
+            _, reward, _, _ = periods.step(a * torch.sin(theta) + b * torch.cos(theta))
+            total_periods = total_periods + reward.double()
+        np.testing.assert_array_equal(strokes.engine.positions(), periods.engine.positions())
+    torch.testing.assert_close(total_strokes, total_periods, rtol=1e-6, atol=1e-9)
+    if residual:  # zero strokes: the open-loop gait, as zero commands
+        strokes.reset(), periods.reset()
+        strokes.step(torch.zeros(2, 54))
+        for _ in range(3):
+            periods.step(torch.zeros(2, 27))
+        np.testing.assert_array_equal(strokes.engine.positions(), periods.engine.positions())
+    with pytest.raises(ValueError, match=r"a stroke's \(a, b\) per cell"):
+        strokes.step(torch.zeros(2, 27))

@@ -4,6 +4,8 @@ entries never reach the loss."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -286,3 +288,38 @@ def test_the_registry_names_reach_the_config() -> None:
         ControlRunConfig(controller="unet").validate()
     with pytest.raises(ValueError, match="controller kind must be one of"):
         build_controller("unet", None)
+
+
+@pytest.mark.parametrize("kind", BOX_FREE)
+def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
+    """An env of strokes (``stroke_periods``): the head's mean is every filled cell's a, then its b (the head's
+    two biases where its weights are 0), the mask the actuated cells twice; the bar alone and padded beside the larger
+    body gets the same (a, b); a direct head on this env, or a stroke head on a period env, is refused."""
+    small, large = (replace_control(env, stroke_periods=2) for env in two_boxes())
+    obs_small, obs_large = small.reset(), large.reset()
+    net = build_controller(kind, large, hidden=8, head="stroke")
+    with torch.no_grad():
+        mean, _, mask, _ = net(obs_large)
+        net.actor.weight.zero_()
+        net.actor.bias.copy_(torch.tensor([0.3, -0.6]))
+        constant = net(obs_large)[0]
+        alone = net(obs_small)[0]
+    cells = math.prod(large.box)
+    assert mean.shape == mask.shape == (2, 2 * cells) and net.distribution == large.action_distribution
+    torch.testing.assert_close(mask, large.action_mask.float())
+    filled = obs_large[:, large.filled_channel].flatten(1)
+    torch.testing.assert_close(constant, torch.cat([0.3 * filled, -0.6 * filled], 1))
+    a, b = constant[0, :cells].view(large.box), constant[0, cells:].view(large.box)
+    ends = small.box
+    torch.testing.assert_close(torch.cat([a[: ends[0], : ends[1], : ends[2]].reshape(-1),
+                                          b[: ends[0], : ends[1], : ends[2]].reshape(-1)]), alone[0])
+    with pytest.raises(ValueError, match="actions are strokes"):
+        build_controller(kind, large, hidden=8)
+    with pytest.raises(ValueError, match="head=stroke needs control.stroke_periods"):
+        build_controller(kind, two_boxes()[1], hidden=8, head="stroke")
+
+
+def replace_control(env: ControlEnv, **changes) -> ControlEnv:
+    from dataclasses import replace
+
+    return ControlEnv(env.grids, control=replace(env.control, **changes))

@@ -156,19 +156,28 @@ def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
     return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
 
 
-HEADS = ("direct", "rhythm")
+HEADS = ("direct", "rhythm", "stroke")
 """What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
 ``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
 clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
 whose amplitude and phase each voxel's features set (a travelling wave when they vary with the voxel's place
 in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
-state instead of products of them with the clock."""
+state instead of products of them with the clock. ``stroke`` — two numbers (a, b), the action itself of an env
+whose actions are strokes (``ControlConfig.stroke_periods``: the env plays a·sin + b·cos of each voxel's own phase
+over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated."""
 
 
 def _head_outputs(head: str) -> int:
     if head not in HEADS:
         raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-    return 1 if head == "direct" else 3
+    return {"direct": 1, "rhythm": 3, "stroke": 2}[head]
+
+
+def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """A head's per-cell outputs ``[N, c, cells]`` (c = 1, or 2 for a stroke) and the actuated cells ``[N, cells]``
+    → (the mean ``[N, c·cells]``, the mask ``[N, c·cells]``)."""
+    n = out.shape[0]
+    return out.reshape(n, -1), (mask.repeat(1, 2) if head == "stroke" else mask)
 
 
 def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
@@ -224,8 +233,8 @@ class ContextConvController(nn.Module):
         outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                                 hidden=hidden, blocks=blocks, log_std=log_std, head=head, clock_channels=self.clock)
-        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
-        self.distribution = MaskedDiagGaussian(math.prod(box))
+        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
+        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
@@ -252,9 +261,9 @@ class ContextConvController(nn.Module):
         out = self.actor(x)
         if self.clock is not None:
             out = _rhythm(out, obs[:, list(self.clock)])[:, None]
-        mean = (out * filled).reshape(n, -1)
+        mean, mask = _per_cell_mean((out * filled).flatten(2), obs[:, self.mask_channel].reshape(n, -1), self.head)
         value = self.critic_out(torch.tanh(self.critic_fc(_masked_pool(x, filled)))).squeeze(-1)
-        return mean, self.log_std.expand_as(mean), obs[:, self.mask_channel].reshape(n, -1), value
+        return mean, self.log_std.expand_as(mean), mask, value
 
 
 class _AttentionBlock(nn.Module):
@@ -309,8 +318,8 @@ class VoxelAttentionController(nn.Module):
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                                 hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
                                 clock_channels=self.clock)
-        self.box, self.mask_channel, self.filled_channel = box, mask_channel, filled_channel
-        self.distribution = MaskedDiagGaussian(math.prod(box))
+        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
+        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
         self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
         self.norm = nn.LayerNorm(hidden)
@@ -350,11 +359,13 @@ class VoxelAttentionController(nn.Module):
         out = self.actor(x).transpose(1, 2)  # [N, outputs, K]
         if self.clock is not None:
             out = _rhythm(out, features[..., list(self.clock)].transpose(1, 2))[:, None]
-        per_token = out[:, 0] * valid
-        mean = per_token.new_zeros(n, math.prod(obs.shape[2:])).scatter(1, order, per_token)
+        per_token = out * valid[:, None]
+        cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
+        cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
+        mean, mask = _per_cell_mean(cells, obs[:, self.mask_channel].reshape(n, -1), self.head)
         pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
-        return mean, self.log_std.expand_as(mean), obs[:, self.mask_channel].reshape(n, -1), value
+        return mean, self.log_std.expand_as(mean), mask, value
 
 
 CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPController,
@@ -418,6 +429,8 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     a :class:`PrivilegedCritic`."""
     from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
 
+    if kind not in CONTROLLERS:
+        raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     shape = env.observation_shape
     if is_grouped(shape):
         view = _PolicyView(env, shape[POLICY])
@@ -428,6 +441,11 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     _head_outputs(head)
     if head != "direct" and kind not in RHYTHM_KINDS:
         raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
+    strokes = getattr(env, "action_channels", 1) == 2
+    if strokes != (head == "stroke"):
+        raise ValueError(f"head={head!r} for an env whose actions are " + ("strokes (control.stroke_periods >= 1): "
+                         "use head=stroke" if strokes else "one command per cell: head=stroke needs "
+                         "control.stroke_periods >= 1"))
     width = {} if hidden is None else {"hidden": hidden}
     options = {} if head == "direct" else {"head": head}
     return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)

@@ -93,6 +93,12 @@ class ControlConfig:
     ramp: each step's command moves linearly from the last one to the new one over the control period (a
         first-order hold: ``Engine.set_commands(ramp=period)``) instead of jumping at the period's start — Voxelyze
         sets a voxel's rest size at once, so a jump of the command is a kick.
+    stroke_periods: 0 — an action is one control period's commands. n >= 1 — an action is a *stroke*, held for n
+        control periods: each cell's pair (a, b), and what the voxel receives at each of those periods is
+        a·sin θ + b·cos θ, θ = 2π(t/T + φ) the phase of its own open-loop sine at the period's middle (φ its
+        material's phase): under ``residual`` control (0, 0) is the open-loop gait, b shifts its phase and a scales
+        it. The action is ``[N, 2·Bx·By·Bz]`` (every a, then every b); an episode is ``duration / (n·period)``
+        decisions, each of whose exploration noise acts over a whole stroke instead of one period.
     privileged_critic: the observation becomes the groups ``{"policy": the cells' channels, "critic": [N, 10]}``
         (``freeform.agents.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
         each body's displacement since the episode's start (voxel lengths; under ``headings="any"`` its reward is
@@ -106,11 +112,18 @@ class ControlConfig:
     command_rate: float | None = None
     residual: bool = False
     ramp: bool = False
+    stroke_periods: int = 0
     privileged_critic: bool = False
 
     @property
+    def periods_per_step(self) -> int:
+        """Control periods one action lasts (``stroke_periods``, or 1)."""
+        return max(1, self.stroke_periods)
+
+    @property
     def steps(self) -> int:
-        return max(1, round(self.duration / self.period))
+        """Decisions (env steps) per episode."""
+        return max(1, round(self.duration / (self.period * self.periods_per_step)))
 
     def validate(self, key: str = "control") -> None:
         for name in ("period", "duration"):
@@ -125,6 +138,10 @@ class ControlConfig:
         for name in ("residual", "ramp", "privileged_critic"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
+        if not (isinstance(self.stroke_periods, int) and not isinstance(self.stroke_periods, bool)
+                and self.stroke_periods >= 0):
+            raise ValueError(f"{key}.stroke_periods must be an int >= 0 (0: an action is one period's commands), "
+                             f"got {self.stroke_periods!r}")
 
 
 def same_config(saved: Any, mine: dict[str, Any]) -> bool:
@@ -198,11 +215,15 @@ class ControlEnv:
         self.observation_shape: Any = (len(self.channels), *self.box)
         if self.control.privileged_critic:
             self.observation_shape = {"policy": self.observation_shape, "critic": (len(CRITIC_STATE),)}
-        self.action_dim = math.prod(self.box)
+        self.cells = math.prod(self.box)
+        """Cells of the box, Bx·By·Bz."""
+        self.action_channels = 2 if self.control.stroke_periods else 1
+        """Numbers per cell of an action: a command, or a stroke's (a, b) (``stroke_periods``)."""
+        self.action_dim = self.cells * self.action_channels
         body = lay.body_of_robot[robot]
         self._body = body
         self._cell = (lattice[:, 0] * self.box[1] + lattice[:, 1]) * self.box[2] + lattice[:, 2]  # C order in the box
-        self._flat = body * self.action_dim + self._cell  # into [N·A]
+        self._flat = body * self.cells + self._cell  # into [N·cells]
         grid = lattice + lay.origin[robot].astype(np.int64)
         self._grid_cell = (grid[:, 0] * self.rho + grid[:, 1]) * self.rho + grid[:, 2]
         # the observation is assembled where the policy reads it (on a GPU: no [N, C, box] grid built on the host and
@@ -210,9 +231,9 @@ class ControlEnv:
         self._flat_t = torch.from_numpy(self._flat).to(self.device)
         self._body_t, self._cell_t = torch.from_numpy(body).to(self.device), torch.from_numpy(self._cell).to(self.device)
         actuated = mt[MT.CTE][lay.material] != 0
-        self.action_mask = torch.zeros(self.num_envs * self.action_dim, dtype=torch.bool)
+        self.action_mask = torch.zeros(self.num_envs * self.cells, dtype=torch.bool)
         self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(actuated)
-        self.action_mask = self.action_mask.view(self.num_envs, self.action_dim).to(self.device)
+        self.action_mask = self.action_mask.view(self.num_envs, self.cells).repeat(1, self.action_channels).to(self.device)
         self.action_distribution = MaskedDiagGaussian(self.action_dim)
         """What PPO trains: a Gaussian per cell, counted where the ``actuated`` channel (``mask_channel``) is 1."""
         self.mask_channel = OBS_CHANNELS.index("actuated")
@@ -239,7 +260,7 @@ class ControlEnv:
         self._final_grids = self.grids.to(self.device)
         self.engine: Engine | None = None
         self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
-        self.t = 0
+        self.t = self._periods = 0
         self.heading = np.zeros(self.num_envs)
         self._com = self._start = np.zeros((self.num_envs, 3))
 
@@ -249,7 +270,7 @@ class ControlEnv:
         commands), no burn-in of its own, and a duration past the episode's end (the episode's own clock: the
         simulator never stops a robot before the episode ends)."""
         config = replace(sim, actuation="residual" if control.residual else "command", burn_in=0.0,
-                         duration=control.burn_in + control.steps * control.period + 1.0)
+                         duration=control.burn_in + control.steps * control.periods_per_step * control.period + 1.0)
         config.validate("sim")
         return config
 
@@ -279,7 +300,7 @@ class ControlEnv:
             self.heading = draw[self._draws]
         else:
             self.heading = np.zeros(self.num_envs)
-        self.t = 0
+        self.t = self._periods = 0
         self._command = np.zeros(self.layout.num_voxels)  # (the settled state's: commands start at 0)
         # what each muscle receives as the episode starts (residual: the open-loop sine, walked through the burn-in)
         self._received = self._actuated * np.sin(2 * math.pi * (self.control.burn_in / self.sim_config.temp_period
@@ -293,11 +314,11 @@ class ControlEnv:
         bodies' own grids ``[N, ρ, ρ, ρ]`` / ``[N, C, ρ, ρ, ρ]``: each voxel's value in its grid cell, zero
         elsewhere."""
         values = torch.as_tensor(values)
-        if values.shape[0] != self.num_envs or values[0].numel() % self.action_dim:
-            raise ValueError(f"values must be [{self.num_envs}, {self.action_dim}] or [{self.num_envs}, C, *{self.box}] "
+        if values.shape[0] != self.num_envs or values[0].numel() % self.cells:
+            raise ValueError(f"values must be [{self.num_envs}, {self.cells}] or [{self.num_envs}, C, *{self.box}] "
                              f"(per cell of the box), got {tuple(values.shape)}")
-        lead = values[0].numel() // self.action_dim
-        flat = values.reshape(self.num_envs, lead, self.action_dim)
+        lead = values[0].numel() // self.cells
+        flat = values.reshape(self.num_envs, lead, self.cells)
         out = values.new_zeros(self.num_envs, lead, self.rho ** 3)
         body, grid_cell, cell = self._indices(values.device)
         out[body, :, grid_cell] = flat[body, :, cell]
@@ -311,7 +332,7 @@ class ControlEnv:
         if values.shape[0] != self.num_envs or values[0].numel() != self.rho ** 3:
             raise ValueError(f"values must be [{self.num_envs}, {self.rho}, {self.rho}, {self.rho}], got "
                              f"{tuple(values.shape)}")
-        out = values.new_zeros(self.num_envs, self.action_dim)
+        out = values.new_zeros(self.num_envs, self.cells)
         body, grid_cell, cell = self._indices(values.device)
         out[body, cell] = values.reshape(self.num_envs, -1)[body, grid_cell]
         return out
@@ -321,32 +342,29 @@ class ControlEnv:
         return (self._body_t.to(device), torch.from_numpy(self._grid_cell).to(device), self._cell_t.to(device))
 
     def step(self, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
-        """``actions`` ``[N, Bx·By·Bz]`` (or ``[N, Bx, By, Bz]``), clipped to [−1, 1]: one control period."""
+        """``actions`` ``[N, Bx·By·Bz]`` (or ``[N, Bx, By, Bz]``), clipped to [−1, 1]: one control period (with
+        ``stroke_periods`` n: ``[N, 2·Bx·By·Bz]``, a stroke's (a, b) per cell, held for n periods)."""
         if self.engine is None:
             raise RuntimeError("call reset() before step()")
         a = torch.as_tensor(actions).detach()
         if a.numel() != self.num_envs * self.action_dim or a.shape[0] != self.num_envs:
-            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}] (one per cell of the bodies' box "
+            what = "a stroke's (a, b) per cell" if self.control.stroke_periods else "one per cell"
+            raise ValueError(f"actions must be [{self.num_envs}, {self.action_dim}] ({what} of the bodies' box "
                              f"{self.box}), got {tuple(a.shape)}")
         # only the cells that hold a voxel are read (the rest are ignored, NaN included)
         flat = self._flat_t if self._flat_t.device == a.device else self._flat_t.to(a.device)
-        commands = a.reshape(-1)[flat].to("cpu", torch.float64)
-        if not torch.isfinite(commands).all():
+        values = a.reshape(self.num_envs, self.action_channels, self.cells).transpose(0, 1).reshape(
+            self.action_channels, -1)[:, flat].to("cpu", torch.float64)
+        if not torch.isfinite(values).all():
             raise ValueError("actions must be finite in the cells that hold a voxel")
-        reach = 2.0 if self.control.residual else 1.0  # (a correction of ±2 reaches the range from any phase)
-        target = commands.clamp(-reach, reach).numpy()
-        if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per step
-            most = self.control.command_rate * self.control.period
-            if self.control.residual:  # the muscle receives the sine plus the correction: that is what is limited
-                end = (self.control.burn_in + (self.t + 1) * self.control.period) / self.sim_config.temp_period
-                sine = self._actuated * np.sin(2 * math.pi * (end + self._phase))
-                received = np.clip(np.clip(sine + target, -1.0, 1.0), self._received - most, self._received + most)
-                target, self._received = received - sine, received
+        values = values.numpy()
+        for _ in range(self.control.periods_per_step):
+            if self.control.stroke_periods:  # the stroke at this period's middle, in each voxel's own phase
+                middle = (self.control.burn_in + (self._periods + 0.5) * self.control.period) / self.sim_config.temp_period
+                theta = 2 * math.pi * (middle + self._phase)
+                readout = self._period(values[0] * np.sin(theta) + values[1] * np.cos(theta))
             else:
-                target = np.clip(target, self._command - most, self._command + most)
-        self._command = target
-        readout = self.engine.control_step(target, self.control.period,
-                                           ramp=self.control.period if self.control.ramp else 0.0)
+                readout = self._period(values[0])
         self.t += 1
         obs, com = self._observe(readout)
         ok = readout.status == RUNNING
@@ -366,6 +384,24 @@ class ControlEnv:
             obs = self.reset()
         dones = torch.full((self.num_envs,), done, dtype=torch.bool, device=self.device)
         return obs, torch.from_numpy(reward).float().to(self.device), dones, info
+
+    def _period(self, commands: np.ndarray) -> Readout:
+        """One control period of per-voxel ``commands`` ``[V]``: clipped, limited to a muscle's bandwidth, run."""
+        reach = 2.0 if self.control.residual else 1.0  # (a correction of ±2 reaches the range from any phase)
+        target = np.clip(commands, -reach, reach)
+        if self.control.command_rate is not None:  # a muscle's bandwidth: at most rate·period per period
+            most = self.control.command_rate * self.control.period
+            if self.control.residual:  # the muscle receives the sine plus the correction: that is what is limited
+                end = (self.control.burn_in + (self._periods + 1) * self.control.period) / self.sim_config.temp_period
+                sine = self._actuated * np.sin(2 * math.pi * (end + self._phase))
+                received = np.clip(np.clip(sine + target, -1.0, 1.0), self._received - most, self._received + most)
+                target, self._received = received - sine, received
+            else:
+                target = np.clip(target, self._command - most, self._command + most)
+        self._command = target
+        self._periods += 1
+        return self.engine.control_step(target, self.control.period,
+                                        ramp=self.control.period if self.control.ramp else 0.0)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:
@@ -414,7 +450,8 @@ class ControlEnv:
             if not bool(done[robot]):
                 positions.append(self.engine.positions()[mine])
                 orientations.append(self.engine.orientations()[mine])
-        recording = Recording(times=self.control.burn_in + self.control.period * np.arange(len(positions)),
+        step_s = self.control.period * self.control.periods_per_step
+        recording = Recording(times=self.control.burn_in + step_s * np.arange(len(positions)),
                               voxel_size=self.sim_config.voxel_size, lattice=[lay.lattice[mine]],
                               materials=[lay.material[mine]], positions=[np.stack(positions).astype(np.float32)],
                               orientations=[np.stack(orientations).astype(np.float32)])
@@ -428,7 +465,7 @@ class ControlEnv:
         R = self.num_envs
         sensed, com = (self.engine.sense() if readout is None else readout)[:2]
         progress = self.t / self.control.steps
-        start = self.control.burn_in + self.t * self.control.period
+        start = self.control.burn_in + self.t * self.control.periods_per_step * self.control.period
         clock = 2 * math.pi * start / self.sim_config.temp_period
         r = self._robot
         seen = float(self.control.headings != "any")  # (no heading to observe when any direction counts)
@@ -443,7 +480,7 @@ class ControlEnv:
                       np.full(len(r), math.sin(clock)), np.full(len(r), math.cos(clock))], 1),
             *([self._open_loop[:, None]] if self.control.residual else []),
         ], 1)
-        obs = torch.zeros((R, len(self.channels), self.action_dim), dtype=torch.float32, device=self.device)
+        obs = torch.zeros((R, len(self.channels), self.cells), dtype=torch.float32, device=self.device)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first
         obs = obs.view(R, len(self.channels), *self.box)
         if self.control.privileged_critic:
