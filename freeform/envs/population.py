@@ -109,7 +109,7 @@ class PopulationControlEnv:
         self._cohorts: dict[int, ControlEnv] = {}
         self.episode = -1
         self.current = self._cohort(0)  # (its shapes are every cohort's: the same box and channels)
-        for name in ("channels", "observation_shape", "action_dim", "action_distribution", "mask_channel",
+        for name in ("channels", "observation_shape", "action_dim", "action_channels", "cells", "action_distribution", "mask_channel",
                      "filled_channel", "rho"):
             setattr(self, name, getattr(self.current, name))
 
