@@ -9,6 +9,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from freeform import train as train_mod
@@ -57,6 +58,24 @@ def straight_and_resumed(cfg: Any, root: Path, epochs: int) -> tuple[Path, Path]
     cfg.trainer.epochs, cfg.trainer.resume = epochs, str(split)
     train_mod.train(cfg, split)
     return straight, split
+
+
+def learned_straight_and_resumed(build: Any, env: Any, path: Path, epochs: int) -> tuple[Any, Any]:
+    """The library-level resume check: ``build()`` (a fresh ``PPO``) learns ``epochs`` epochs straight; another
+    learns ``epochs − 1``, is saved to ``path`` and loaded onto ``env()`` (a fresh env), and learns one more. Asserts
+    the two policies' weights equal to the bit; returns (straight, resumed) for the caller's own checks."""
+    from freeform.agents import PPO
+
+    straight = build()
+    straight.learn(epochs)
+    first = build()
+    first.learn(epochs - 1)
+    first.save(path)
+    resumed = PPO.load(path, env())
+    resumed.learn(1)
+    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
+        assert torch.equal(a, b)
+    return straight, resumed
 
 
 def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:

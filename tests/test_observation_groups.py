@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from helpers import learned_straight_and_resumed
 
 from freeform.agents import PPO, GroupedMLPActorCritic, MLPActorCritic, PPOConfig
 
@@ -142,15 +143,7 @@ def test_resume_with_groups_and_obs_norm_is_bit_for_bit(tmp_path: Any) -> None:
         cfg = PPOConfig.cleanrl(rollout_steps=16, sgd_minibatch_size=16, num_sgd_iter=2, seed=1)  # obs, reward norm
         return PPO(env, MLPActorCritic.for_env(env), cfg)
 
-    straight = build()
-    straight.learn(2)
-    first = build()
-    first.learn(1)
-    first.save(tmp_path / "groups.pt")
-    resumed = PPO.load(tmp_path / "groups.pt", DriftEnv())
-    resumed.learn(1)
-    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
-        assert torch.equal(a, b)
+    straight, resumed = learned_straight_and_resumed(build, DriftEnv, tmp_path / "groups.pt", epochs=2)
     for key in ("policy", "critic"):
         assert torch.equal(straight.obs_rms[key].var, resumed.obs_rms[key].var)
         assert torch.equal(straight.rollout.obs[key], resumed.rollout.obs[key])

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn as nn
+from helpers import learned_straight_and_resumed
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic
 from freeform.agents.distributions import Categorical
@@ -142,15 +143,7 @@ def test_resume_with_a_recurrent_policy_is_bit_for_bit(tmp_path: Any) -> None:
         cfg = PPOConfig.cleanrl(rollout_steps=9, sequence_length=4, sgd_minibatch_size=8, num_sgd_iter=2, seed=3)
         return PPO(env, small_recurrent(env), cfg)
 
-    straight = build()
-    straight.learn(3)
-    first = build()
-    first.learn(2)
-    first.save(tmp_path / "lstm.pt")
-    resumed = PPO.load(tmp_path / "lstm.pt", CounterEnv())
-    resumed.learn(1)
-    for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
-        assert torch.equal(a, b)
+    straight, resumed = learned_straight_and_resumed(build, CounterEnv, tmp_path / "lstm.pt", epochs=3)
     for a, b in zip((*straight.policy_state, *straight.rollout.states), (*resumed.policy_state, *resumed.rollout.states),
                     strict=True):
         assert torch.equal(a, b)
