@@ -109,9 +109,15 @@ class PopulationControlEnv:
         self._cohorts: dict[int, ControlEnv] = {}
         self.episode = -1
         self.current = self._cohort(0)  # (its shapes are every cohort's: the same box and channels)
-        for name in ("channels", "observation_shape", "action_dim", "action_channels", "cells", "action_distribution", "mask_channel",
-                     "filled_channel", "rho"):
-            setattr(self, name, getattr(self.current, name))
+
+    def __getattr__(self, name: str) -> Any:
+        """Everything else is the playing cohort's ``ControlEnv``'s — its shapes (``observation_shape``,
+        ``action_dim``, ``action_distribution``, … the same in every cohort: one box, one ``ControlConfig``), its
+        ``action_mask``, ``heading`` — read from it, never copied."""
+        current = self.__dict__.get("current")
+        if current is None or name.startswith("__"):
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(current, name)
 
     # ------------------------------------------------------------------ the stream
     def cohort_at(self, episode: int) -> int:
