@@ -3,10 +3,13 @@ GPU"): µs a step at batch 1, 128 and 1,024 design bodies and a batch of 20³ cu
 simulation, a control period (``Engine.control_step``) at N = 128 and 1,024 — each row flat and block side by side,
 after a check that the block runs agree with flat and repeat bit for bit.
 
-``python -m benchmarks blocks`` on a CUDA machine (sets ``FREEFORM_CUDA_ROBOTS=1``, the opt-in; under 3 minutes
-with a cold kernel cache); ``python -m benchmarks.bench_blocks --rehearse`` (or ``FREEFORM_BENCH_ARCH=cpu``) runs
-every row on the CPU at tiny sizes, where "block" is the CPU's robots schedule (B = 1), the check's B = 32 runs
-the lanes in turn, and flat launches from Python (no compute graph to build). Timings on a shared machine are indications: compare rows of one run only.
+``python -m benchmarks blocks`` on a CUDA machine (B chosen per batch; under 3.5 minutes with a cold kernel cache).
+``python -m benchmarks.bench_blocks --sweep`` (≈ 2 minutes): B from 64 to 512 at 128 and 1,024 bodies, flat against
+block for 8³ and 12³ cubes (where ``auto`` changes schedule), and the trainer's paper epoch with ``auto`` kept flat
+($FREEFORM_CUDA_ROBOTS=0) and as it picks. ``--rehearse`` (or ``FREEFORM_BENCH_ARCH=cpu``) runs either on the CPU at
+tiny sizes, where "block" is the CPU's robots schedule (B = 1), the check's B = 32 runs the lanes in turn, and flat
+launches from Python (no compute graph to build). Timings on a shared machine are indications: compare rows of one
+run only.
 """
 
 from __future__ import annotations
@@ -152,17 +155,72 @@ def control_rows(arch: str, rehearsal: bool) -> None:
         _line(f"a control period of 100 steps, {n} bodies, ms: flat | block", " | ".join(cells))
 
 
+def sweep_rows(arch: str, rehearsal: bool) -> None:
+    """B swept at 128 and 1,024 design bodies; flat against block (B chosen) for cubes of 8³ and 12³ (where the
+    largest robot's links say whether "auto" takes the block schedule: ``schedules.CUDA_AUTO_MAX_LINKS``)."""
+    cfg = SimConfig(**PAPER_SIM, burn_in=100.0)
+    steps = 64 if rehearsal else 512
+    for batch in ((8,) if rehearsal else (128, 1024)):
+        grids = _bodies(batch)
+        dims = (1, 2) if rehearsal else (64, 128, 256, 512)
+        cells = [f"B={b}: {_us_per_step(_engine(grids, cfg, arch, 'robots', b), steps):.1f}" for b in dims]
+        _line(f"µs a step, {batch} design bodies, block by B", " | ".join(cells))
+    cube_cfg = SimConfig(precision="f32", burn_in=100.0)
+    for edge, n in (((4, 2),) if rehearsal else ((8, 16), (12, 16))):
+        cubes = torch.full((n, edge, edge, edge), 2, dtype=torch.uint8)
+        flat = _us_per_step(_engine(cubes, cube_cfg, arch, "flat"), steps // 4)
+        block_engine = _engine(cubes, cube_cfg, arch, "robots")
+        block = _us_per_step(block_engine, steps // 4)
+        links = int(np.diff(block_engine.layout.link_start).max())
+        _line(f"µs a step, {n} cubes of {edge}³ ({links} links; voxelyze): flat | block (B = {block_engine.block_dim})",
+              f"{flat:8.1f} | {block:8.1f}")
+
+
+def app_epoch_rows(rehearsal: bool) -> None:
+    """One paper_locomotion epoch as the trainer reports it (the second of two; CUDA-graph update), with the
+    simulator's "auto" schedule kept flat ($FREEFORM_CUDA_ROBOTS=0) and as it now picks (the block schedule for
+    the design env's bodies)."""
+    import tempfile
+    from pathlib import Path
+
+    from freeform.config import compose
+    from freeform.run.trainer import train
+
+    preset = "experiment=locomotion_cpu" if rehearsal else "experiment=paper_locomotion"
+    device = "cpu" if rehearsal else "cuda"
+    extra = ("trainer.epochs=1",) if rehearsal else ("trainer.epochs=2", "agent.cuda_graph=true")
+    for name, flag in (("flat", "0"), ("auto", "auto")):
+        os.environ[CUDA_ROBOTS_ENV] = flag
+        cfg = compose(preset, f"trainer.device={device}", "trainer.progress=false", "trainer.checkpoint_every=0", *extra)
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory() as run:
+            last = train(cfg, Path(run)).history[-1]
+        wall = time.perf_counter() - t0
+        get = {k: last.get(k, math.nan) for k in ("perf/time_rollout", "perf/time_env", "perf/sim_seconds",
+                                                   "perf/time_update")}
+        _line(f"{preset.split('=')[1]} epoch {cfg.trainer.epochs}, simulator {name}: "
+              "rollout (env | simulation) | update",
+              f"{get['perf/time_rollout']:6.2f} s ({get['perf/time_env']:.2f} | {get['perf/sim_seconds']:.2f}) | "
+              f"{get['perf/time_update']:6.2f} s; {wall:.0f} s with compilation")
+    os.environ[CUDA_ROBOTS_ENV] = "1"
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if "--rehearse" in argv:
         os.environ["FREEFORM_BENCH_ARCH"] = "cpu"
-    os.environ.setdefault(CUDA_ROBOTS_ENV, "1")  # the opt-in to the block schedule on CUDA
+    os.environ.setdefault(CUDA_ROBOTS_ENV, "1")  # B chosen per batch (the rows name flat explicitly)
     arch = runtime.ensure(os.environ.get("FREEFORM_BENCH_ARCH", "auto"))
     rehearsal = arch == "cpu"
     print(f"{runtime.describe()} on {arch}, fast-math {'on' if runtime.fast_math() else 'off'}; "
           + (torch.cuda.get_device_name() if arch == "cuda" else f"CPU rehearsal, {runtime.num_threads()} threads: "
              "tiny sizes, block = the CPU's robots schedule") + f"; {CUDA_ROBOTS_ENV}={os.environ[CUDA_ROBOTS_ENV]}")
     t0 = time.perf_counter()
+    if "--sweep" in argv:  # the second device call of issue 44: B, the auto threshold, the trainer's epoch
+        sweep_rows(arch, rehearsal)
+        app_epoch_rows(rehearsal)
+        print(f"  (blocks --sweep: {time.perf_counter() - t0:.0f} s)")
+        return
     check(arch, rehearsal)
     block_us = step_rows(arch, rehearsal)
     control_rows(arch, rehearsal)

@@ -85,8 +85,8 @@ def test_device_matches_the_cpu(reference: dict[str, np.ndarray], precision: str
 @pytest.mark.parametrize("precision, semantics", [("f64", "voxelyze"), ("f32", "rl4design")])
 def test_block_schedule_matches_the_cpu_and_repeats(reference: dict[str, np.ndarray], precision: str, semantics: str,
                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """schedule="robots" on the device: a thread block per robot (issue 44, behind FREEFORM_CUDA_ROBOTS; the 10³
-    cube's 2,700 links give B = 128), within the flat schedule's tolerances of the CPU, and a second run the same
+    """schedule="robots" on the device: a thread block per robot (issue 44; B chosen per batch, the 10³
+    cube's 2,700 links give B = 512), within the flat schedule's tolerances of the CPU, and a second run the same
     bits (no float atomics: the block's reductions are serial on lane 0). On the CPU rehearsal: the CPU's own
     robots schedule."""
     monkeypatch.setenv("FREEFORM_CUDA_ROBOTS", "1")

@@ -131,25 +131,26 @@ def test_invalid_arch_and_schedule():
         Simulator(short(), arch="cpu").simulate(np.ones((1, 1, 1, 1), np.uint8), record_every=0)
 
 
-def test_robots_schedule_on_cuda_only_behind_its_opt_in(monkeypatch):
-    """A thread block per robot on CUDA is not measured yet: refused without FREEFORM_CUDA_ROBOTS, naming the
-    schedule to use (checked here without a GPU by passing the arch; Simulator refuses before Taichi starts); "auto"
-    stays flat on CUDA with or without it. B: a warp for small robots, more lanes for large ones, or the one named."""
+def test_auto_picks_the_block_schedule_on_cuda_for_small_robots(monkeypatch):
+    """On CUDA "auto" takes the thread block per robot where it was measured faster than flat (robots of at most
+    CUDA_AUTO_MAX_LINKS links: the design env's bodies, cubes up to 8³) and flat beyond or where
+    FREEFORM_CUDA_ROBOTS=0 says so (checked without a GPU by passing the arch). B: each lane a couple of links of the
+    largest robot, fewer lanes in a big batch (H100: 256 best at 128 design bodies, 128 at 1,024), or the one named."""
     monkeypatch.delenv(CUDA_ROBOTS_ENV, raising=False)
-    with pytest.raises(ValueError, match="schedule='flat'"):
-        resolve_schedule("robots", "cuda")
-    with pytest.raises(ValueError, match="schedule='flat'"):
-        Simulator(short(), arch="cuda", schedule="robots")
-    assert resolve_schedule("auto", "cuda") == "flat" and resolve_schedule("flat", "cuda") == "flat"
+    assert resolve_schedule("auto", "cuda", 388) == "robots" and resolve_schedule("auto", "cuda", 1344) == "flat"
+    assert resolve_schedule("auto", "cuda") == "flat"  # a Simulator before its first batch: nothing chosen yet
+    assert resolve_schedule("robots", "cuda") == "robots" and resolve_schedule("flat", "cuda", 10) == "flat"
     assert resolve_schedule("auto", "cpu") == "robots" and resolve_schedule("flat", "cpu") == "flat"
-    monkeypatch.setenv(CUDA_ROBOTS_ENV, "1")
-    assert resolve_schedule("robots", "cuda") == "robots" and resolve_schedule("auto", "cuda") == "flat"
-    assert [block_dim_for(m) for m in (0, 256, 257, 700, 2048, 22800)] == [32, 32, 64, 128, 256, 256]
+    assert Simulator(short(), arch="cuda", schedule="robots").schedule == "robots"  # refused nothing, started nothing
+    assert [block_dim_for(m) for m in (0, 50, 64, 65, 388, 530, 1344, 22800)] == [32, 32, 32, 64, 256, 512, 512, 512]
+    assert [block_dim_for(530, n) for n in (1, 128, 256, 1024, 4096, 10**6)] == [512, 512, 512, 128, 32, 32]
+    monkeypatch.setenv(CUDA_ROBOTS_ENV, "0")
+    assert resolve_schedule("auto", "cuda", 388) == "flat" and resolve_schedule("robots", "cuda") == "robots"
     monkeypatch.setenv(CUDA_ROBOTS_ENV, "64")
-    assert block_dim_for(22800) == 64
+    assert block_dim_for(22800) == 64 and resolve_schedule("auto", "cuda", 388) == "robots"
     monkeypatch.setenv(CUDA_ROBOTS_ENV, "48")
     with pytest.raises(ValueError, match=CUDA_ROBOTS_ENV):
-        resolve_schedule("robots", "cuda")
+        resolve_schedule("auto", "cuda", 388)
 
 
 @pytest.mark.reference

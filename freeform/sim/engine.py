@@ -159,7 +159,8 @@ class Engine:
         if schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.arch = runtime.ensure(arch, config.backend)
-        self.schedule = resolve_schedule(schedule, self.arch)
+        max_links = int(np.diff(layout.link_start).max()) if layout.num_robots else 0
+        self.schedule = resolve_schedule(schedule, self.arch, max_links)
         self.layout, self.config = layout, config
         # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one
         # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
@@ -174,8 +175,7 @@ class Engine:
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
         simt = self.arch == "cuda" and self.schedule == "robots"
         if block_dim is None:
-            max_links = int(np.diff(layout.link_start).max()) if simt and layout.num_robots else 0
-            block_dim = block_dim_for(max_links) if simt else 1
+            block_dim = block_dim_for(max_links, layout.num_robots) if simt else 1
         self.block_dim = block_dim if self.schedule == "robots" else 1
         self.kernels = make_kernels(config.precision, self.order, self.switches, self.block_dim, simt)
         self._transfers = make_transfers()

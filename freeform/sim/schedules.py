@@ -11,7 +11,7 @@ robot's ``robot_advance`` (clock.py) and, when its step count reaches a trace sa
   inside the kernel. On the CPU ``B`` = 1 and the barrier is compiled out: one worker per CPU thread takes the next
   unclaimed robot from an atomic queue and runs it many steps (no per-step thread-pool synchronisation, which would
   cost more than a step of a small robot; the robot's data stays in cache; robots of any size balance
-  dynamically). On CUDA (``simt``, behind ``FREEFORM_CUDA_ROBOTS``: ``resolve_schedule``) the block is a thread
+  dynamically). On CUDA (``simt``; "auto" picks it for small robots: ``resolve_schedule``) the block is a thread
   block of ``B`` threads ("soa" arrays: neighbouring lanes read neighbouring links), ``ti.simt.block.sync()``
   between the phases, one launch for a whole ``advance`` or control period. A CPU block of ``B`` > 1 runs its lanes
   one after another within each phase: the GPU's partition of the work, testable on the CPU (``block_dims``).
@@ -56,54 +56,62 @@ CONTROL_ARGS = (*BUFFERS, "commands", "out", "period", "ramp", "from_clock", "n_
 CPU_MIN_TASK_ITEMS = 512
 
 
-# The opt-in to the robots schedule on CUDA until it is measured faster than flat (docs/physics.md, "The GPU"):
-# "1" (or "auto"): B chosen per batch (``block_dim_for``); a number: that B (a multiple of 32, at most 1024).
+# The robots schedule on CUDA (a thread block per robot) against flat, measured on one H100 (docs/physics.md, "The
+# GPU"; benchmarks/bench_blocks.py): faster for the design env's bodies at every batch (µs a step 8.7 vs 34.8 at 1
+# body, 13.2 vs 34.5 at 128 with B = 256, 38.1 vs 48.0 at 1,024 with B = 128; the paper epoch's simulation 1.34
+# vs 3.53 s), even at 8³ cubes (1,344 links: 29.6 vs 30.0), slower beyond (12³: 81.6 vs 33.6; 20³: 433.7 vs 45.1).
+# "auto" picks it on CUDA for batches whose largest robot has at most CUDA_AUTO_MAX_LINKS links.
+# $FREEFORM_CUDA_ROBOTS: "0" keeps "auto" flat on CUDA; a number fixes B (a multiple of 32, at most 1024); "1" or
+# "auto" (or unset): B chosen per batch (``block_dim_for``).
 CUDA_ROBOTS_ENV = "FREEFORM_CUDA_ROBOTS"
-# B on CUDA: the smallest of these that leaves each lane at most LINKS_PER_LANE links of the batch's largest robot
-# (the largest otherwise). A warp at least (the barrier's unit); robots of very different sizes share one launch's
-# B: a small robot's block idles some lanes, a large one's lanes take more links each.
-CUDA_BLOCK_DIMS = (32, 64, 128, 256)
-LINKS_PER_LANE = 8
+CUDA_AUTO_MAX_LINKS = 1024
+# B on CUDA: the smallest of these that leaves each lane at most LINKS_PER_LANE links of the batch's largest robot,
+# but no more lanes in all than CUDA_BATCH_LANES (a big batch fills the GPU with its blocks: at 1,024 design bodies
+# B = 128 beat 256 and 512, at 128 bodies B = 256 beat 128 and 512). A warp at least (the barrier's unit); robots of
+# very different sizes share one launch's B: a small robot's block idles some lanes, a large one's lanes take more
+# links each.
+CUDA_BLOCK_DIMS = (32, 64, 128, 256, 512)
+LINKS_PER_LANE = 2
+CUDA_BATCH_LANES = 1 << 17
 
 
-def cuda_robots_opt_in() -> str | None:
-    """``$FREEFORM_CUDA_ROBOTS`` if it opts in to the robots schedule on CUDA ("1", "auto" or a B), else None."""
+def cuda_robots_flag() -> str:
+    """``$FREEFORM_CUDA_ROBOTS``, checked: "" (unset), "0", "1", "auto" or a B."""
     flag = os.environ.get(CUDA_ROBOTS_ENV, "")
-    if flag in ("", "0"):
-        return None
-    if flag not in ("1", "auto") and not (flag.isdigit() and int(flag) % 32 == 0 and 32 <= int(flag) <= 1024):
+    if flag not in ("", "0", "1", "auto") and not (flag.isdigit() and int(flag) % 32 == 0 and 32 <= int(flag) <= 1024):
         raise ValueError(f"{CUDA_ROBOTS_ENV} must be 0, 1, auto or a multiple of 32 up to 1024, got {flag!r}")
     return flag
 
 
-def block_dim_for(max_links: int) -> int:
-    """The robots schedule's B on CUDA for a batch whose largest robot has ``max_links`` links (or the B that
-    ``$FREEFORM_CUDA_ROBOTS`` names): the smallest of ``CUDA_BLOCK_DIMS`` giving each lane at most
-    ``LINKS_PER_LANE`` links, else the largest."""
-    flag = cuda_robots_opt_in()
-    if flag is not None and flag.isdigit() and flag != "1":
+def block_dim_for(max_links: int, num_robots: int = 1) -> int:
+    """The robots schedule's B on CUDA for a batch of ``num_robots`` whose largest has ``max_links`` links (or the B
+    that ``$FREEFORM_CUDA_ROBOTS`` names): the smallest of ``CUDA_BLOCK_DIMS`` giving each lane at most
+    ``LINKS_PER_LANE`` links, the largest otherwise, then halved while the batch's lanes pass ``CUDA_BATCH_LANES``."""
+    flag = cuda_robots_flag()
+    if flag.isdigit() and flag not in ("0", "1"):
         return int(flag)
-    for b in CUDA_BLOCK_DIMS:
-        if max_links <= b * LINKS_PER_LANE:
-            return b
-    return CUDA_BLOCK_DIMS[-1]
+    b = next((b for b in CUDA_BLOCK_DIMS if max_links <= b * LINKS_PER_LANE), CUDA_BLOCK_DIMS[-1])
+    while b > CUDA_BLOCK_DIMS[0] and b * num_robots > CUDA_BATCH_LANES:
+        b //= 2
+    return b
 
 
-def resolve_schedule(schedule: str, arch: str) -> str:
-    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "flat" on CUDA and "robots" on the CPU.
-
-    "robots" on CUDA (a thread block per robot) runs only behind ``$FREEFORM_CUDA_ROBOTS`` until it is measured
-    faster than flat; "auto" stays flat there."""
+def resolve_schedule(schedule: str, arch: str, max_links: int | None = None) -> str:
+    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "robots" on the CPU; on CUDA "robots" (a
+    thread block per robot) when the batch's largest robot has at most ``CUDA_AUTO_MAX_LINKS`` links (``max_links``;
+    None: not known yet, as for a Simulator before its first batch) and ``$FREEFORM_CUDA_ROBOTS`` is not "0",
+    else "flat"."""
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if arch not in ("cpu", "cuda"):
         raise ValueError(f"arch must be 'cpu' or 'cuda' here (the arch Taichi runs on), got {arch!r}")
-    if schedule == "auto":
-        return "flat" if arch == "cuda" else "robots"
-    if schedule == "robots" and arch == "cuda" and cuda_robots_opt_in() is None:
-        raise ValueError(f"schedule='robots' on CUDA (a thread block per robot) is not measured yet and runs only "
-                         f"with {CUDA_ROBOTS_ENV}=1; use schedule='flat' (or 'auto', which picks it there)")
-    return schedule
+    flag = cuda_robots_flag() if arch == "cuda" else ""
+    if schedule != "auto":
+        return schedule
+    if arch == "cpu":
+        return "robots"
+    small = max_links is not None and max_links <= CUDA_AUTO_MAX_LINKS
+    return "robots" if small and flag != "0" else "flat"
 
 
 VOXELYZE_FLAT_FLOOR = Switches(floor=1, terrain=0, rl4design=0, dynamic_dt=0)  # the default simulation
