@@ -249,8 +249,11 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
-    the same window and headings, the controller's mean over its episodes and that mean's 99 % band) and
-    ``out/summary.csv`` (the four means over the bodies, with 99 % bands across bodies), and ``out/run.json``.
+    the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean command's
+and the untrained controller's means) and
+    ``out/summary.csv`` (the five means over the bodies, with 99 % bands across bodies, then two paired differences
+per body — mean command minus open loop, stochastic minus untrained — whose bands leave out the across-body
+spread), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
     saved = read_controller(source)
     control = replace(saved.control, headings=headings or saved.control.headings)
@@ -301,13 +304,18 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     for i in range(m):
         mean, band = mean_band(returns[0, i])
         rows.append({"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
-                     "controller": float(mean), "band99": float(band)})
+                     "controller": float(mean), "band99": float(band),
+                     "mean_command": float(returns[1, i].mean()), "untrained": float(returns[3, i].mean())})
     per_body = returns.mean(2)
+    # paired: each body against itself (same headings, same noise streams), so the across-body spread cancels
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
                summary_row(f"controller ({saved.kind}, stochastic)", per_body[0]),
                summary_row(f"controller ({saved.kind}, mean command)", per_body[1]),
                summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[2]),
-               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[3])]
+               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[3]),
+               summary_row("paired per body: controller (mean command) minus open loop", per_body[1] - open_loop),
+               summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
+                           per_body[0] - per_body[3])]
     out.mkdir(parents=True, exist_ok=True)
     for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
         with open(out / name, "w", newline="") as f:
