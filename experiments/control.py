@@ -49,7 +49,13 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.agents.controllers import CONTROLLER_FILE, CONTROLLERS, read_controller, save_controller
+from freeform.agents.controllers import (
+    CONTROLLER_FILE,
+    CONTROLLERS,
+    controller_step,
+    read_controller,
+    save_controller,
+)
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -75,10 +81,12 @@ def gait(directory: Path, fps: float = 40.0) -> dict:
     policy, sim, control = saved.controller, saved.sim or SimConfig(), saved.control
     env = ControlEnv(body, sim=sim, control=control, box=policy.box)
     com: list[float] = []
+    state = None  # (a recurrent controller's, carried through the episode)
 
     def act(obs: torch.Tensor) -> torch.Tensor:  # the controller's mode, and the height of the centre of mass
+        nonlocal state
         com.append(float(env.engine.sense().com[0, 2]))
-        mean, _, mask, _ = policy(obs)
+        (mean, _, mask, _), state = controller_step(policy, obs, state)
         return (mean * mask).clamp(-1, 1)
 
     recording, c, total = env.record(act)
@@ -111,9 +119,10 @@ def evaluation_episodes(ppo: PPO, env: Any, episodes: int, deterministic: bool =
     out: dict[str, list] = {"returns": [], "headings": [], "bodies": [], "metrics": []}
     while len(out["returns"]) * env.num_envs < episodes:
         obs, total, done = env.reset(), torch.zeros(env.num_envs), torch.zeros(env.num_envs, dtype=torch.bool)
+        act = ppo.episode_actor(deterministic)  # (a recurrent policy's state starts with these episodes)
         while not bool(done.all()):
             heading = env.heading.copy()  # (the control stage's; the env draws the next episode's when it ends)
-            obs, reward, done, info = env.step(ppo.act(obs, deterministic=deterministic))
+            obs, reward, done, info = env.step(act(obs))
             total += reward
         out["returns"].append(total.numpy())
         out["headings"].append(heading)
@@ -283,11 +292,13 @@ spread), and ``out/run.json``.
     groups = ((controller, lambda o: o, True), (controller, lambda o: o, False), (controller, zeroed, True),
               (untrained, lambda o: o, True))
     obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
+    states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
     for _ in range(control.steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         actions = []
-        for (net, view, stochastic), part in zip(groups, obs.chunk(4), strict=True):
-            params = net(view(part))[:3]
+        for g, ((net, view, stochastic), part) in enumerate(zip(groups, obs.chunk(4), strict=True)):
+            outputs, states[g] = controller_step(net, view(part), states[g])
+            params = outputs[:3]
             noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))

@@ -90,3 +90,40 @@ def test_malformed_bodies_are_refused_naming_the_body(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"learnt each cell of its box \(2, 1, 1\) apart.*\(2, 2, 1\)"):
         main(["--evaluate", str(tmp_path / "mlp.pt"), "--bodies", str(tmp_path / "bodies.npy"), "--eval-episodes", "1",
               "--out", str(tmp_path / "eval")])
+
+
+def test_a_recurrent_controller_without_memory_evaluates_as_its_feed_forward_twin(tmp_path) -> None:
+    """Truth: ContextConvController. A RecurrentContextController given the same convolutions, context and heads,
+    and whose memory enters nothing (its columns of the context and critic layers 0), is the same function of each
+    observation: the evaluate command, which carries the recurrent state through the episode, gives the same rows.
+    With the memory's weights back, the rows change (the state is carried and read)."""
+    from freeform.agents.controllers import RecurrentContextController
+
+    torch.manual_seed(0)
+    args = dict(channels=len(OBS_CHANNELS), box=(2, 1, 1), mask_channel=OBS_CHANNELS.index("actuated"), hidden=4,
+                log_std=-1.0)
+    twin = ContextConvController(**args)
+    net = RecurrentContextController(**args, memory=3)
+    with torch.no_grad():
+        twin.actor.weight.normal_(std=0.5)
+        for name in ("conv_in", "actor", "critic_out"):
+            getattr(net, name).load_state_dict(getattr(twin, name).state_dict())
+        net.conv.load_state_dict(twin.convs[0].state_dict())
+        for mine, theirs in ((net.context, twin.contexts[0]), (net.critic_fc, twin.critic_fc)):
+            mine.bias.copy_(theirs.bias)
+            mine.weight.zero_()
+            mine.weight[:, :8].copy_(theirs.weight)
+    rows = {}
+    for name, controller in (("twin", twin), ("gru", net)):
+        save_controller(tmp_path / name / "controller.pt", controller, SHORT, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    with torch.no_grad():
+        net.context.weight[:, 8:].normal_(std=2.0)
+    save_controller(tmp_path / "gru_memory" / "controller.pt", net, SHORT, SimConfig())
+    for name in ("twin", "gru", "gru_memory"):
+        main(["--evaluate", str(tmp_path / name), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
+              "--eval-episodes", "2", "--out", str(tmp_path / f"eval_{name}")])
+        rows[name] = np.array([(float(r["controller"]), float(r["mean_command"]))
+                               for r in read_csv(tmp_path / f"eval_{name}" / "bodies.csv")])
+    np.testing.assert_allclose(rows["gru"], rows["twin"], rtol=1e-5, atol=1e-7)
+    assert np.abs(rows["gru_memory"] - rows["twin"]).max() > 1e-4

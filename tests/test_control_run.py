@@ -82,7 +82,8 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     assert all(torch.equal(v, a["policy"][k]) for k, v in saved.controller.state_dict().items())
 
 
-@pytest.mark.parametrize("kind, privileged", [("context", False), ("attention", False), ("context", True)])
+@pytest.mark.parametrize("kind, privileged", [("context", False), ("attention", False), ("context", True),
+                                            ("context_gru", False)])
 def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: str, privileged: bool, bodies: Path,
                                                                         tmp_path: Path) -> None:
     """control.controller picks the registry's kind (build_controller); two epochs equal one plus a resumed one.
@@ -132,7 +133,7 @@ def test_bodies_from_a_design_record_are_its_best(tmp_path: Path) -> None:
 @pytest.mark.parametrize("override, message", [
     ("algo=ga", r"algo\.name must be ppo in a control run"),
     ("agent.rollout_steps=6", r"agent\.rollout_steps must be a multiple of the control episode's 4 steps"),
-    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp', 'context', 'attention'\]"),
+    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp', 'context', 'attention', 'context_gru'\]"),
     ("agent.obs_norm=true", r"agent\.obs_norm must be false in a control run"),
     ("control.stroke_periods=2", r"control\.head must be stroke exactly when control\.stroke_periods >= 1"),
     ("control.stroke_periods=-1", r"control\.stroke_periods must be an int >= 0"),

@@ -12,7 +12,13 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
-from freeform.agents.controllers import CONTROLLERS, build_controller, read_controller, save_controller
+from freeform.agents.controllers import (
+    CONTROLLERS,
+    build_controller,
+    controller_step,
+    read_controller,
+    save_controller,
+)
 from freeform.agents.distributions import MaskedDiagGaussian, from_spec
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
@@ -126,7 +132,12 @@ def test_controller_refusals(bad: dict) -> None:
 
 # ------------------------------------------------------------------ controllers with a view of the whole body
 
-BOX_FREE = ("context", "attention")  # the kinds whose padding changes nothing
+BOX_FREE = ("context", "attention", "context_gru")  # the kinds whose padding changes nothing
+
+
+def run(net: torch.nn.Module, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """One step of any controller from its episode's start (a recurrent one from its initial state)."""
+    return controller_step(net, obs)[0]
 
 
 def two_boxes() -> tuple[ControlEnv, ControlEnv]:
@@ -149,7 +160,7 @@ def test_every_controller_gives_a_command_per_cell_and_the_env_mask_on_bodies_of
     for env, obs in (envs_and_obs[0], envs_and_obs[2]), (envs_and_obs[1], envs_and_obs[3]):
         torch.manual_seed(0)
         net = build_controller(kind, env, hidden=8 if kind != "mlp" else 16, log_std=-0.5)
-        mean, log_std, mask, value = net(obs)
+        mean, log_std, mask, value = run(net, obs)
         assert mean.shape == log_std.shape == mask.shape == (env.num_envs, env.action_dim)
         assert value.shape == (env.num_envs,) and torch.isfinite(value).all()
         torch.testing.assert_close(mask, env.action_mask.float())
@@ -172,8 +183,8 @@ def test_padding_changes_nothing_for_the_masked_controllers_and_changes_the_conv
         torch.manual_seed(1)
         net = build_controller(kind, large, hidden=8, head=head)
         with torch.no_grad():
-            mean_big, _, _, value_big = net(batch)
-            mean_alone, _, _, value_alone = net(obs_small)  # (the same weights on another box)
+            mean_big, _, _, value_big = run(net, batch)
+            mean_alone, _, _, value_alone = run(net, obs_small)  # (the same weights on another box)
         on_its_cells = mean_big[0].view(large.box)[: cells[0], : cells[1], : cells[2]].reshape(-1)
         if kind == "conv":
             assert (on_its_cells - mean_alone[0]).abs().max() > 1e-5 or (value_big[0] - value_alone[0]).abs() > 1e-5
@@ -192,7 +203,7 @@ def test_a_rhythm_head_commands_its_amplitudes_on_the_actuation_clock(kind, envs
     with torch.no_grad():
         net.actor.weight.zero_()
         net.actor.bias.copy_(torch.tensor([0.7, -0.4, 0.1]))
-        mean = net(obs)[0]
+        mean = run(net, obs)[0]
     clock_sin, clock_cos = (obs[:, env.channels.index(c)].flatten(1) for c in ("clock_sin", "clock_cos"))
     filled = obs[:, env.filled_channel].flatten(1)
     assert 0 < clock_sin.abs().max() and 0 < clock_cos.abs().max()  # (the clock is not at a zero of either)
@@ -210,7 +221,7 @@ def test_the_masked_distribution_ignores_the_unactuated_cells(kind, envs_and_obs
     _, env, _, obs = envs_and_obs
     torch.manual_seed(2)
     net = build_controller(kind, env, hidden=8)
-    params = net(obs)[:3]
+    params = run(net, obs)[:3]
     actions = torch.randn(env.num_envs, env.action_dim)
     scrambled, moved = actions.clone(), actions.clone()
     scrambled[~env.action_mask] = torch.randn(int((~env.action_mask).sum())) * 10
@@ -234,7 +245,7 @@ def test_a_controller_built_for_one_box_runs_on_another_and_reads_back_for_it(tm
         by_hand = CONTROLLERS[kind](**{**net.init_kwargs, "box": large.box})
         by_hand.load_state_dict(net.state_dict())
         with torch.no_grad():
-            for a, b in zip(saved.controller(obs), by_hand(obs), strict=True):
+            for a, b in zip(run(saved.controller, obs), run(by_hand, obs), strict=True):
                 torch.testing.assert_close(a, b, rtol=0, atol=0)
     mlp = build_controller("mlp", small, hidden=8)
     save_controller(tmp_path / "mlp.pt", mlp, ControlConfig())
@@ -299,11 +310,11 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
     obs_small, obs_large = small.reset(), large.reset()
     net = build_controller(kind, large, hidden=8, head="stroke")
     with torch.no_grad():
-        mean, _, mask, _ = net(obs_large)
+        mean, _, mask, _ = run(net, obs_large)
         net.actor.weight.zero_()
         net.actor.bias.copy_(torch.tensor([0.3, -0.6]))
-        constant = net(obs_large)[0]
-        alone = net(obs_small)[0]
+        constant = run(net, obs_large)[0]
+        alone = run(net, obs_small)[0]
     cells = math.prod(large.box)
     assert mean.shape == mask.shape == (2, 2 * cells) and net.distribution == large.action_distribution
     torch.testing.assert_close(mask, large.action_mask.float())
@@ -323,3 +334,33 @@ def replace_control(env: ControlEnv, **changes) -> ControlEnv:
     from dataclasses import replace
 
     return ControlEnv(env.grids, control=replace(env.control, **changes))
+
+
+def test_the_recurrent_controller_remembers_the_episode_and_forgets_it_at_a_reset(envs_and_obs) -> None:
+    """Truth: the same controller stepped one observation at a time (controller_step, the state carried by hand).
+    A sequence of T steps in one call gives those outputs; an episode start at step k gives step k's outputs from
+    the initial state; the memory is not a no-op (the same last observation after two different histories gives
+    different commands); and it is refused behind a privileged critic, naming why."""
+    _, env, _, obs = envs_and_obs
+    torch.manual_seed(4)
+    net = build_controller("context_gru", env, hidden=8)
+    with torch.no_grad():
+        net.actor.weight.normal_(std=0.3)  # (commands that show the memory's effect above rounding)
+        seq = obs[None] + 0.3 * torch.randn(5, *obs.shape) * obs[None, :, env.filled_channel : env.filled_channel + 1]
+        start = torch.zeros(5, env.num_envs, dtype=torch.bool)
+        start[3, 1] = True  # env 1 starts a new episode at step 3
+        mean, _, _, value, state = net(seq, net.initial_state(env.num_envs), start)
+        carried = None
+        for t in range(5):
+            if t == 3:
+                carried = (carried[0] * torch.tensor([1.0, 0.0])[:, None, None],)  # env 1's reset, by hand
+            (m, _, _, v), carried = controller_step(net, seq[t], carried)
+            torch.testing.assert_close(mean[t], m, rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(value[t], v, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(state[0], carried[0], rtol=1e-5, atol=1e-6)
+        fresh = run(net, seq[3])
+        torch.testing.assert_close(mean[3, 1], fresh[0][1], rtol=1e-5, atol=1e-6)  # reset: as from the start
+        assert (mean[3, 0] - fresh[0][0]).abs().max() > 1e-4  # env 0 remembers its three steps
+    grouped = replace_control(env, privileged_critic=True)
+    with pytest.raises(ValueError, match="context_gru.*privileged"):
+        build_controller("context_gru", grouped, hidden=8)

@@ -41,6 +41,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from freeform.agents.distributions import MaskedDiagGaussian
+from freeform.agents.recurrent import run_rnn
 
 
 def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
@@ -266,6 +267,103 @@ class ContextConvController(nn.Module):
         return mean, self.log_std.expand_as(mean), mask, value
 
 
+class RecurrentContextController(nn.Module):
+    """:class:`ContextConvController` with a memory of how this body has moved: a GRU over the body's pooled
+    features, step after step of the episode, whose state joins the body's context in every cell's command and in
+    the critic. A controller meeting a body it never saw can then tell, from the body's answers to its last
+    commands (sensed velocities, strains, contacts), what kind of body it drives — the implicit system
+    identification that a feed-forward controller, which sees one instant, cannot do.
+
+    A recurrent policy (``freeform.agents.recurrent``): observations ``[T, N, C, Bx, By, Bz]``, the state
+    ``(h [N, 1, M],)`` (zeros at an episode's start; actor and critic share it), ``episode_start [T, N]``. Trunk at
+    each step, f the ``filled`` channel::
+
+        x = ReLU(Conv3d(C→h, 3³)(obs)) · f
+        m_t = GRU(pool(x), m_{t−1})                                     (M wide: ``memory``)
+        x = ReLU(Conv3d(h→h, 3³)(x) + Linear(2h+M→h)([pool(x), m_t])) · f
+
+    then ContextConvController's heads (``direct``, ``rhythm``, ``stroke``), the critic on ``[pool(x), m_t]``.
+    Padding changes nothing, as there. The convolutions run on all T·N observations at once; only the GRU steps.
+    """
+
+    fits_any_box = True
+    padding_invariant = True
+    actor_state_size = 1  # the GRU's state is the actor's (the critic reads it): an exported actor carries it all
+
+    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
+                 hidden: int = 16, memory: int = 32, log_std: float = 0.0, head: str = "direct",
+                 clock_channels: tuple[int, int] | None = None) -> None:
+        super().__init__()
+        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        for name, value in (("hidden", hidden), ("memory", memory)):
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                                hidden=hidden, memory=memory, log_std=log_std, head=head, clock_channels=self.clock)
+        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
+        self.memory = memory
+        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
+        self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
+        self.gru = nn.GRU(2 * hidden, memory)
+        self.conv = nn.Conv3d(hidden, hidden, 3, padding=1)
+        self.context = nn.Linear(2 * hidden + memory, hidden)
+        self.actor = nn.Conv3d(hidden, outputs, 1)
+        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
+        nn.init.zeros_(self.actor.bias)
+        self.log_std = nn.Parameter(torch.tensor(float(log_std)))
+        self.critic_fc = nn.Linear(2 * hidden + memory, hidden)
+        self.critic_out = nn.Linear(hidden, 1)
+
+    @classmethod
+    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
+                memory: int = 32) -> RecurrentContextController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
+                   memory, log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+
+    def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
+        """``(zeros [N, 1, memory],)``: the GRU's state at an episode's start."""
+        return (self.log_std.new_zeros(num_envs, 1, self.memory),)
+
+    def _steps(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...]]:
+        """→ (the actor's per-cell outputs ``[T·N, c, cells]``, the mask ``[T·N, cells]``, the critic's input
+        ``[T·N, 2h+M]``, the state after the last step)."""
+        steps, n = obs.shape[:2]
+        o = obs.flatten(0, 1)
+        filled = o[:, self.filled_channel : self.filled_channel + 1]
+        x = F.relu(self.conv_in(o)) * filled
+        pooled = _masked_pool(x, filled)
+        m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
+        x = F.relu(self.conv(x) + self.context(torch.cat([pooled, m.flatten(0, 1)], 1))[:, :, None, None, None]) * filled
+        out = self.actor(x)
+        if self.clock is not None:
+            out = _rhythm(out, o[:, list(self.clock)])[:, None]
+        summary = torch.cat([_masked_pool(x, filled), m.flatten(0, 1)], 1)
+        return (out * filled).flatten(2), o[:, self.mask_channel].flatten(1), summary, state
+
+    def action_params(self, obs: torch.Tensor, actor_state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+                      ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        """The actor alone: ``obs [T, N, C, Bx, By, Bz]`` → ((mean, log σ, mask) ``[T, N, A]`` each, state)."""
+        steps, n = obs.shape[:2]
+        out, mask, _, state = self._steps(obs, actor_state, episode_start)
+        mean, mask = _per_cell_mean(out, mask, self.head)
+        mean, mask = mean.view(steps, n, -1), mask.view(steps, n, -1)
+        return (mean, self.log_std.expand_as(mean), mask), state
+
+    def forward(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+                ) -> tuple[Any, ...]:
+        """``obs [T, N, C, Bx, By, Bz]``, ``state``, ``episode_start [T, N]`` → (mean, log σ, mask ``[T, N, A]``,
+        value ``[T, N]``, state)."""
+        steps, n = obs.shape[:2]
+        out, mask, summary, state = self._steps(obs, state, episode_start)
+        mean, mask = _per_cell_mean(out, mask, self.head)
+        mean, mask = mean.view(steps, n, -1), mask.view(steps, n, -1)
+        value = self.critic_out(torch.tanh(self.critic_fc(summary))).view(steps, n)
+        return mean, self.log_std.expand_as(mean), mask, value, state
+
+
 class _AttentionBlock(nn.Module):
     """A pre-norm transformer block over tokens ``[N, K, h]`` with a key mask ``valid [N, K]`` (True: a token):
     x + MultiHeadAttention(LN(x)), then + MLP(LN(x)) (h → 2h → h, ReLU). Masked keys get no weight, so a valid
@@ -369,7 +467,8 @@ class VoxelAttentionController(nn.Module):
 
 
 CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPController,
-                                           "context": ContextConvController, "attention": VoxelAttentionController}
+                                           "context": ContextConvController, "attention": VoxelAttentionController,
+                                           "context_gru": RecurrentContextController}
 """``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
 ``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
 a body changes nothing."""
@@ -420,6 +519,19 @@ class PrivilegedCritic(nn.Module):
         return own + self.critic_head(torch.cat([own[:, None], privileged.to(own.dtype)], 1)).squeeze(-1)
 
 
+def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor, ...] | None = None
+                    ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...] | None]:
+    """One control step of any controller: ``obs [N, C, Bx, By, Bz]`` → ((mean, log σ, mask, value), state). A
+    recurrent one (``initial_state``, e.g. :class:`RecurrentContextController`) starts from its initial state where
+    ``state`` is None and returns the state after the step; a feed-forward one returns None for it."""
+    if not hasattr(net, "initial_state"):
+        return tuple(net(obs)), None
+    if state is None:
+        state = net.initial_state(obs.shape[0])
+    *out, state = net(obs[None], state, torch.zeros(1, obs.shape[0], dtype=torch.bool, device=obs.device))
+    return tuple(o[0] for o in out), state
+
+
 def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
                      head: str = "direct") -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
@@ -433,6 +545,9 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     shape = env.observation_shape
     if is_grouped(shape):
+        if hasattr(CONTROLLERS[kind], "initial_state"):
+            raise ValueError(f"controller {kind!r} is recurrent, and PrivilegedCritic wraps feed-forward controllers "
+                             "(its critic reads one step): set control.privileged_critic=false")
         view = _PolicyView(env, shape[POLICY])
         inner = build_controller(kind, view, hidden, log_std, head)
         return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
@@ -461,7 +576,7 @@ class _PolicyView:
         return getattr(self._env, name)
 
 
-RHYTHM_KINDS = ("context", "attention")
+RHYTHM_KINDS = ("context", "attention", "context_gru")
 """The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
 

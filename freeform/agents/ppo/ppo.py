@@ -248,6 +248,21 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         action, _, _, state = self._sample_recurrent(x, tuple(state), self._here(episode_start).bool(), deterministic)
         return self.distribution.env_actions(action).to(self.env.device), state
 
+    def episode_actor(self, deterministic: bool = False) -> Callable[[Observation], torch.Tensor]:
+        """``act`` as a function of the observation alone, for one batch of episodes that all start at its first
+        call (an env's ``reset``): a recurrent policy's state is carried from call to call inside it, a
+        feed-forward policy's calls are ``act``'s. Make a new one for the next episodes."""
+        if not self.recurrent:
+            return lambda obs: self.act(obs, deterministic=deterministic)
+        state = None
+
+        def actor(obs: Observation) -> torch.Tensor:
+            nonlocal state
+            actions, state = self.act(obs, state, deterministic=deterministic)
+            return actions
+
+        return actor
+
     def export(self, path: str | os.PathLike, opset: int | None = None) -> str:
         """Write the actor's deterministic action to ``path`` as ONNX, observation normalisation folded in: the file
         takes raw observations and returns what ``act(obs, deterministic=True)`` does (inputs, outputs and what
