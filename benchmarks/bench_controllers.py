@@ -20,12 +20,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from freeform.agents.controllers import CONTROLLERS, build_controller
+from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
 from freeform.envs.control import ControlConfig, ControlEnv
 
 WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"
 ROUNDS = 5
-WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32}
+WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16}
+SEQUENCE = 8  # a recurrent controller's update runs the 512 samples as 64 sequences of 8 steps (one stroke episode)
 
 
 def seconds(fn) -> float:
@@ -64,10 +65,15 @@ def main() -> None:
             for kind, net in nets.items():
                 def act(net=net, obs=obs) -> None:
                     with torch.no_grad():
-                        net(obs)
+                        controller_step(net, obs)
 
                 def learn(net=net, batch=batch) -> None:
-                    mean, log_std, _, value = net(batch)
+                    if hasattr(net, "initial_state"):
+                        seq = batch.view(SEQUENCE, -1, *batch.shape[1:])
+                        start = torch.zeros(seq.shape[:2], dtype=torch.bool)
+                        mean, log_std, _, value, _ = net(seq, net.initial_state(seq.shape[1]), start)
+                    else:
+                        mean, log_std, _, value = net(batch)
                     (mean.square().mean() + log_std.mean() + value.square().mean()).backward()
                     net.zero_grad(set_to_none=True)
 

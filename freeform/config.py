@@ -25,6 +25,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
+from freeform.agents.controllers import RHYTHM_KINDS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
@@ -173,8 +174,8 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
-        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in ("context", "attention")),
-                f"{key}.head", "direct, or rhythm or stroke with controller=context or attention", self.head)
+        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in RHYTHM_KINDS),
+                f"{key}.head", f"direct, or rhythm or stroke with controller in {list(RHYTHM_KINDS)}", self.head)
         require((self.head == "stroke") == (self.stroke_periods >= 1), f"{key}.head",
                 "stroke exactly when control.stroke_periods >= 1 (the env's actions are then strokes)", self.head)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),

@@ -109,7 +109,8 @@ def test_the_group_baseline_subtracts_the_siblings_mean_and_needs_groups() -> No
 def tiny_population(*overrides: str) -> list[str]:
     values = {"experiment": "control_population_steering_cpu", "env.num_envs": 4, "env.resolution": 6,
               "env.steps": 6, "control.burn_in": 0.01, "control.duration": 0.05, "control.pool": 2,
-              "control.refresh_every": 1, "control.copies": 2, "agent.group_baseline": "true", "agent.hidden": 4, "agent.sgd_minibatch_size": 8, "trainer.progress": "false",
+              "control.refresh_every": 1, "control.copies": 2, "control.period": 0.0125, "control.stroke_periods": 1,
+              "agent.rollout_steps": 4, "agent.hidden": 4, "agent.sgd_minibatch_size": 8, "trainer.progress": "false",
               "trainer.print_every": 0, "trainer.threads": 1, "trainer.render_every": 0, "trainer.checkpoint_every": 1,
               "sim.precision": "f64", "seed": 3}
     for override in overrides:
