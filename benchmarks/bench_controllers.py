@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
+from freeform.agents.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig, ControlEnv
 
 WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"
@@ -68,7 +69,7 @@ def main() -> None:
                         controller_step(net, obs)
 
                 def learn(net=net, batch=batch) -> None:
-                    if hasattr(net, "initial_state"):
+                    if isinstance(net, RecurrentPolicy):
                         seq = batch.view(SEQUENCE, -1, *batch.shape[1:])
                         start = torch.zeros(seq.shape[:2], dtype=torch.bool)
                         mean, log_std, _, value, _ = net(seq, net.initial_state(seq.shape[1]), start)

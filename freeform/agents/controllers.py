@@ -41,7 +41,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from freeform.agents.distributions import MaskedDiagGaussian
-from freeform.agents.recurrent import run_rnn
+from freeform.agents.recurrent import RecurrentPolicy, run_rnn
 
 
 def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
@@ -201,6 +201,33 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
     return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
 
 
+def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel: int, filled_channel: int,
+                           head: str, clock_channels: Any, log_std: float, **sizes: int) -> int:
+    """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
+    channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes). Returns the actor
+    head's outputs per cell."""
+    box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+    for name, value in sizes.items():
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+    net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                           **sizes, log_std=log_std, head=head, clock_channels=net.clock)
+    net.box, net.mask_channel, net.filled_channel, net.head = box, mask_channel, filled_channel, head
+    net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
+    return outputs
+
+
+def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]``: (mean, mask) ``[N, A]``
+    (a rhythm head played on the observation's clock; zero outside the body)."""
+    out = net.actor(x)
+    if net.clock is not None:
+        out = _rhythm(out, obs[:, list(net.clock)])[:, None]
+    return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)
+
+
 class ContextConvController(nn.Module):
     """A masked convolutional controller with a view of the whole body: each cell's command reads its 5³
     neighbourhood and the body's pooled features, and the padding around a body changes nothing.
@@ -227,15 +254,8 @@ class ContextConvController(nn.Module):
                  hidden: int = 16, blocks: int = 1, log_std: float = 0.0, head: str = "direct",
                  clock_channels: tuple[int, int] | None = None) -> None:
         super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
-        for name, value in (("hidden", hidden), ("blocks", blocks)):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, blocks=blocks, log_std=log_std, head=head, clock_channels=self.clock)
-        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
-        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
+        outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
+                                         log_std, hidden=hidden, blocks=blocks)
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
@@ -254,15 +274,11 @@ class ContextConvController(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
-        n = obs.shape[0]
         filled = obs[:, self.filled_channel : self.filled_channel + 1]
         x = F.relu(self.conv_in(obs)) * filled
         for conv, context in zip(self.convs, self.contexts, strict=True):
             x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
-        out = self.actor(x)
-        if self.clock is not None:
-            out = _rhythm(out, obs[:, list(self.clock)])[:, None]
-        mean, mask = _per_cell_mean((out * filled).flatten(2), obs[:, self.mask_channel].reshape(n, -1), self.head)
+        mean, mask = _cell_means(self, x, obs, filled)
         value = self.critic_out(torch.tanh(self.critic_fc(_masked_pool(x, filled)))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 
@@ -294,16 +310,9 @@ class RecurrentContextController(nn.Module):
                  hidden: int = 16, memory: int = 32, log_std: float = 0.0, head: str = "direct",
                  clock_channels: tuple[int, int] | None = None) -> None:
         super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
-        for name, value in (("hidden", hidden), ("memory", memory)):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, memory=memory, log_std=log_std, head=head, clock_channels=self.clock)
-        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
+        outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
+                                         log_std, hidden=hidden, memory=memory)
         self.memory = memory
-        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.gru = nn.GRU(2 * hidden, memory)
         self.conv = nn.Conv3d(hidden, hidden, 3, padding=1)
@@ -327,9 +336,9 @@ class RecurrentContextController(nn.Module):
         return (self.log_std.new_zeros(num_envs, 1, self.memory),)
 
     def _steps(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, ...]]:
-        """→ (the actor's per-cell outputs ``[T·N, c, cells]``, the mask ``[T·N, cells]``, the critic's input
-        ``[T·N, 2h+M]``, the state after the last step)."""
+               ) -> tuple[tuple[torch.Tensor, ...], torch.Tensor, tuple[torch.Tensor, ...]]:
+        """→ ((mean, log σ, mask) ``[T, N, A]`` each, the critic's input ``[T·N, 2h+M]``, the state after the last
+        step)."""
         steps, n = obs.shape[:2]
         o = obs.flatten(0, 1)
         filled = o[:, self.filled_channel : self.filled_channel + 1]
@@ -337,31 +346,23 @@ class RecurrentContextController(nn.Module):
         pooled = _masked_pool(x, filled)
         m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
         x = F.relu(self.conv(x) + self.context(torch.cat([pooled, m.flatten(0, 1)], 1))[:, :, None, None, None]) * filled
-        out = self.actor(x)
-        if self.clock is not None:
-            out = _rhythm(out, o[:, list(self.clock)])[:, None]
+        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, x, o, filled))
         summary = torch.cat([_masked_pool(x, filled), m.flatten(0, 1)], 1)
-        return (out * filled).flatten(2), o[:, self.mask_channel].flatten(1), summary, state
+        return (mean, self.log_std.expand_as(mean), mask), summary, state
 
     def action_params(self, obs: torch.Tensor, actor_state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
                       ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
         """The actor alone: ``obs [T, N, C, Bx, By, Bz]`` → ((mean, log σ, mask) ``[T, N, A]`` each, state)."""
-        steps, n = obs.shape[:2]
-        out, mask, _, state = self._steps(obs, actor_state, episode_start)
-        mean, mask = _per_cell_mean(out, mask, self.head)
-        mean, mask = mean.view(steps, n, -1), mask.view(steps, n, -1)
-        return (mean, self.log_std.expand_as(mean), mask), state
+        params, _, state = self._steps(obs, actor_state, episode_start)
+        return params, state
 
     def forward(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
                 ) -> tuple[Any, ...]:
         """``obs [T, N, C, Bx, By, Bz]``, ``state``, ``episode_start [T, N]`` → (mean, log σ, mask ``[T, N, A]``,
         value ``[T, N]``, state)."""
-        steps, n = obs.shape[:2]
-        out, mask, summary, state = self._steps(obs, state, episode_start)
-        mean, mask = _per_cell_mean(out, mask, self.head)
-        mean, mask = mean.view(steps, n, -1), mask.view(steps, n, -1)
-        value = self.critic_out(torch.tanh(self.critic_fc(summary))).view(steps, n)
-        return mean, self.log_std.expand_as(mean), mask, value, state
+        params, summary, state = self._steps(obs, state, episode_start)
+        value = self.critic_out(torch.tanh(self.critic_fc(summary))).view(obs.shape[:2])
+        return (*params, value, state)
 
 
 class _AttentionBlock(nn.Module):
@@ -524,7 +525,7 @@ def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor
     """One control step of any controller: ``obs [N, C, Bx, By, Bz]`` → ((mean, log σ, mask, value), state). A
     recurrent one (``initial_state``, e.g. :class:`RecurrentContextController`) starts from its initial state where
     ``state`` is None and returns the state after the step; a feed-forward one returns None for it."""
-    if not hasattr(net, "initial_state"):
+    if not isinstance(net, RecurrentPolicy):
         return tuple(net(obs)), None
     if state is None:
         state = net.initial_state(obs.shape[0])
@@ -545,7 +546,7 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     shape = env.observation_shape
     if is_grouped(shape):
-        if hasattr(CONTROLLERS[kind], "initial_state"):
+        if issubclass(CONTROLLERS[kind], RecurrentPolicy):
             raise ValueError(f"controller {kind!r} is recurrent, and PrivilegedCritic wraps feed-forward controllers "
                              "(its critic reads one step): set control.privileged_critic=false")
         view = _PolicyView(env, shape[POLICY])
