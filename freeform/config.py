@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
-from freeform.agents.controllers import RHYTHM_KINDS
+from freeform.agents.controllers import RHYTHM_KINDS, STROKE_HEADS, WAVE_KINDS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
@@ -146,7 +147,12 @@ class ControlRunConfig(ControlConfig):
     """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
     ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
+    ``control.stroke_periods`` >= 1) or ``wave`` (a stroke whose mean is a travelling wave: the body's wave vector,
+    each cell's amplitude and phase offset, and a free correction; ``controller=context`` or ``context_gru``, with
     ``control.stroke_periods`` >= 1)."""
+    wave_k: float = 1.0
+    """``head=wave``: the wave number the untrained controller plays along x (rad per voxel length): every voxel
+    receives sin(2πt/T − wave_k·x), x its place along x from the centre of mass; 0: every voxel in one phase."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -174,10 +180,14 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
-        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in RHYTHM_KINDS),
-                f"{key}.head", f"direct, or rhythm or stroke with controller in {list(RHYTHM_KINDS)}", self.head)
-        require((self.head == "stroke") == (self.stroke_periods >= 1), f"{key}.head",
-                "stroke exactly when control.stroke_periods >= 1 (the env's actions are then strokes)", self.head)
+        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in RHYTHM_KINDS)
+                or (self.head == "wave" and self.controller in WAVE_KINDS), f"{key}.head",
+                f"direct, rhythm or stroke with controller in {list(RHYTHM_KINDS)}, or wave with controller in "
+                f"{list(WAVE_KINDS)}", self.head)
+        require((self.head in STROKE_HEADS) == (self.stroke_periods >= 1), f"{key}.head",
+                f"one of {list(STROKE_HEADS)} exactly when control.stroke_periods >= 1 (the env's actions are then "
+                "strokes)", self.head)
+        require(math.isfinite(self.wave_k), f"{key}.wave_k", "a finite wave number (rad per voxel length)", self.wave_k)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",

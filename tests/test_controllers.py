@@ -14,6 +14,7 @@ from torch.distributions import Normal, kl_divergence
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.controllers import (
     CONTROLLERS,
+    WAVE_KINDS,
     build_controller,
     controller_step,
     read_controller,
@@ -299,6 +300,13 @@ def test_the_registry_names_reach_the_config() -> None:
         ControlRunConfig(controller="unet").validate()
     with pytest.raises(ValueError, match="controller kind must be one of"):
         build_controller("unet", None)
+    ControlRunConfig(controller="context", head="wave", stroke_periods=10).validate()
+    for bad, match in ((dict(controller="attention", head="wave", stroke_periods=10), "control.head"),
+                       (dict(controller="context", head="wave"), "control.head.*stroke_periods >= 1"),
+                       (dict(controller="context", head="wave", stroke_periods=10, wave_k=float("nan")),
+                        "control.wave_k")):
+        with pytest.raises(ValueError, match=match):
+            ControlRunConfig(**bad).validate()
 
 
 @pytest.mark.parametrize("kind", BOX_FREE)
@@ -326,8 +334,58 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
                                           b[: ends[0], : ends[1], : ends[2]].reshape(-1)]), alone[0])
     with pytest.raises(ValueError, match="actions are strokes"):
         build_controller(kind, large, hidden=8)
-    with pytest.raises(ValueError, match="head=stroke needs control.stroke_periods"):
+    with pytest.raises(ValueError, match="head=stroke or wave needs control.stroke_periods"):
         build_controller(kind, two_boxes()[1], hidden=8, head="stroke")
+
+
+@pytest.mark.parametrize("residual", [True, False])
+@pytest.mark.parametrize("kind", WAVE_KINDS)
+def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual):
+    """Truth: what the stroke env plays, (1 + a)·sin θ + b·cos θ under residual control (a·sin θ + b·cos θ without),
+    θ = 2π(t/T + φ) each voxel's own phase (φ its material's, read from the sim's materials), equals
+    sin(2πt/T − k·x) at every t for the untrained head (its per-cell outputs and its wave vector's weights 0): k =
+    (wave_k, 0, 0) from the config, then a wave vector along y set through its bias. Padding changes nothing with the
+    head's random weights; the attention controller and a period env are refused."""
+    small, large = (replace_control(env, stroke_periods=2, residual=residual) for env in two_boxes())
+    obs_small, obs_large = small.reset(), large.reset()
+    torch.manual_seed(0)
+    net = build_controller(kind, large, hidden=8, head="wave", wave_k=0.8)
+    with torch.no_grad():
+        mean_large, _, mask, _ = run(net, obs_large)
+        alone = run(net, obs_small)[0]
+    cells = math.prod(large.box)
+    assert mean_large.shape == mask.shape == (2, 2 * cells) and net.distribution == large.action_distribution
+    a, b = mean_large[0, :cells].view(large.box), mean_large[0, cells:].view(large.box)
+    ends = small.box
+    torch.testing.assert_close(torch.cat([a[: ends[0], : ends[1], : ends[2]].reshape(-1),
+                                          b[: ends[0], : ends[1], : ends[2]].reshape(-1)]), alone[0])
+    grids = large.grids
+    phases = np.array([0.0] + [m.phase for m in large.sim_config.materials])
+    filled = obs_large[:, large.filled_channel].bool()
+    channel = {c: i for i, c in enumerate(large.channels)}
+    for k, bias in ((0.8, (0.0, 0.0, 0.0)), (0.0, (0.0, 0.7, 0.0))):
+        with torch.no_grad():
+            net.actor.weight.zero_()
+            net.actor.bias.zero_()
+            net.wave_k.weight.zero_()
+            net.wave_k.bias.copy_(torch.tensor(bias))
+            net.wave["k"] = k
+            mean = run(net, obs_large)[0].double()
+        a, b = mean[:, :cells].view(-1, *large.box), mean[:, cells:].view(-1, *large.box)
+        place = k * obs_large[:, channel["rel_x"]].double() + bias[1] * obs_large[:, channel["rel_y"]].double()
+        for n in range(2):
+            cell = large.origin[n]
+            for i, j, m in filled[n].nonzero().tolist():
+                phi = phases[grids[n][cell[0] + i, cell[1] + j, cell[2] + m]]
+                for t_over_T in (0.0, 0.3, 0.71):
+                    theta = 2 * math.pi * (t_over_T + phi)
+                    played = (1.0 if residual else 0.0) * math.sin(theta) + a[n, i, j, m] * math.sin(theta) + \
+                        b[n, i, j, m] * math.cos(theta)
+                    assert abs(float(played) - math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]))) < 1e-5
+    with pytest.raises(ValueError, match="head='wave' is for the controllers"):
+        build_controller("attention", large, hidden=8, head="wave")
+    with pytest.raises(ValueError, match="head=stroke or wave needs"):
+        build_controller(kind, two_boxes()[1], hidden=8, head="wave")
 
 
 def replace_control(env: ControlEnv, **changes) -> ControlEnv:

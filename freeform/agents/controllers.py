@@ -157,7 +157,7 @@ def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
     return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
 
 
-HEADS = ("direct", "rhythm", "stroke")
+HEADS = ("direct", "rhythm", "stroke", "wave")
 """What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
 ``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
 clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
@@ -165,20 +165,83 @@ whose amplitude and phase each voxel's features set (a travelling wave when they
 in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
 state instead of products of them with the clock. ``stroke`` — two numbers (a, b), the action itself of an env
 whose actions are strokes (``ControlConfig.stroke_periods``: the env plays a·sin + b·cos of each voxel's own phase
-over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated."""
+over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated. ``wave`` — a stroke
+whose mean is a travelling wave (:func:`_wave_strokes`): the body's wave vector k (from its pooled features, starting
+at ``wave_k`` along x), each cell's amplitude and phase offset, and a free (a, b) correction; a voxel at x relative
+to the centre of mass then receives A·sin(2πt/T − k·x − ψ), the rule that moves bodies of every kind
+(``docs/control.md``) with the wave's direction, length and shape learnt per body."""
+
+STROKE_HEADS = ("stroke", "wave")
+"""The heads whose actions are strokes (``ControlConfig.stroke_periods`` >= 1): two numbers a cell."""
 
 
 def _head_outputs(head: str) -> int:
     if head not in HEADS:
         raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-    return {"direct": 1, "rhythm": 3, "stroke": 2}[head]
+    return {"direct": 1, "rhythm": 3, "stroke": 2, "wave": 4}[head]
 
 
 def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[torch.Tensor, torch.Tensor]:
     """A head's per-cell outputs ``[N, c, cells]`` (c = 1, or 2 for a stroke) and the actuated cells ``[N, cells]``
     → (the mean ``[N, c·cells]``, the mask ``[N, c·cells]``)."""
     n = out.shape[0]
-    return out.reshape(n, -1), (mask.repeat(1, 2) if head == "stroke" else mask)
+    return out.reshape(n, -1), (mask.repeat(1, 2) if head in STROKE_HEADS else mask)
+
+
+WAVE_KINDS = ("context", "context_gru")
+"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
+
+
+def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
+    """A ``wave`` head's description of the observation, checked: ``pos_channels`` (rel_x, rel_y, rel_z: voxel
+    lengths from the centre of mass), ``material_channel`` (material index / (len(phases) − 1)), ``phases`` (each
+    material index's open-loop phase in cycles, index 0 empty), ``residual`` (the env adds the open-loop sine to
+    the action) and ``k`` (the wave number the untrained head starts from, rad per voxel length, along x)."""
+    if head != "wave":
+        return None
+    keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
+    if not isinstance(wave, dict) or set(wave) != keys:
+        raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} (build_controller fills it "
+                         f"from the env), got {wave!r}")
+    pos = tuple(int(c) for c in wave["pos_channels"])
+    if len(pos) != 3:
+        raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
+    _check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
+                         material=int(wave["material_channel"]))
+    phases = tuple(float(p) for p in wave["phases"])
+    if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
+        raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
+    if not math.isfinite(float(wave["k"])):
+        raise ValueError(f"wave k (rad per voxel length) must be finite, got {wave['k']!r}")
+    return dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
+                residual=bool(wave["residual"]), k=float(wave["k"]))
+
+
+def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
+    if head != "wave":
+        return None
+    materials = env.sim_config.materials
+    return dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
+                material_channel=env.channels.index("material"), phases=(0.0, *(m.phase for m in materials)),
+                residual=bool(env.control.residual), k=float(wave_k))
+
+
+def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any]) -> torch.Tensor:
+    """A ``wave`` head's strokes ``[N, 2, *box]`` (a, b) from its per-cell outputs ``out [N, 4, *box]`` (amplitude
+    change α, phase offset ψ, correction (ca, cb)), the body's wave vector ``k [N, 3]`` and ``obs``.
+
+    The stroke env plays a·sin θ + b·cos θ, θ = 2π(t/T + φ) a voxel's own phase (φ its material's), added under
+    residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (A = 1 + α; x its
+    place relative to the centre of mass), write 2πt/T − δ' = θ − δ, δ = 2πφ + δ': then (1 + a) = A cos δ and
+    b = −A sin δ under residual control (1 + a → a without), plus the corrections."""
+    phases = torch.tensor(wave["phases"], dtype=obs.dtype, device=obs.device)
+    index = torch.round(obs[:, wave["material_channel"]] * (len(phases) - 1)).long().clamp(0, len(phases) - 1)
+    place = (k[:, :, None, None, None] * obs[:, list(wave["pos_channels"])]).sum(1)
+    delta = 2 * math.pi * phases[index] + place + out[:, 1]
+    amplitude = 1.0 + out[:, 0]
+    a = amplitude * torch.cos(delta) - (1.0 if wave["residual"] else 0.0) + out[:, 2]
+    b = -amplitude * torch.sin(delta) + out[:, 3]
+    return torch.stack([a, b], 1)
 
 
 def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
@@ -202,29 +265,40 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
 
 
 def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel: int, filled_channel: int,
-                           head: str, clock_channels: Any, log_std: float, **sizes: int) -> int:
+                           head: str, clock_channels: Any, log_std: float, wave: Any = None, **sizes: int) -> int:
     """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
-    channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes). Returns the actor
-    head's outputs per cell."""
+    channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
+    body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
+    wave's initial k along x). Returns the actor head's outputs per cell."""
     box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
     for name, value in sizes.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
     outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+    net.wave = _wave_setup(channels, head, wave)
     net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                            **sizes, log_std=log_std, head=head, clock_channels=net.clock)
+    if net.wave is not None:  # (absent otherwise: the files of the other heads stay as they were)
+        net.init_kwargs["wave"] = dict(net.wave)
+        net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
+        nn.init.normal_(net.wave_k.weight, std=0.01)
+        nn.init.zeros_(net.wave_k.bias)
     net.box, net.mask_channel, net.filled_channel, net.head = box, mask_channel, filled_channel, head
-    net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
+    net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
     return outputs
 
 
 def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]``: (mean, mask) ``[N, A]``
-    (a rhythm head played on the observation's clock; zero outside the body)."""
+    (a rhythm head played on the observation's clock, a wave head's strokes; zero outside the body)."""
     out = net.actor(x)
     if net.clock is not None:
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
+    if net.wave is not None:
+        k = net.wave_k(_masked_pool(x, filled)) + torch.tensor([net.wave["k"], 0.0, 0.0], dtype=x.dtype,
+                                                               device=x.device)
+        out = _wave_strokes(out, k, obs, net.wave)
     return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)
 
 
@@ -252,10 +326,10 @@ class ContextConvController(nn.Module):
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 16, blocks: int = 1, log_std: float = 0.0, head: str = "direct",
-                 clock_channels: tuple[int, int] | None = None) -> None:
+                 clock_channels: tuple[int, int] | None = None, wave: dict[str, Any] | None = None) -> None:
         super().__init__()
         outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
-                                         log_std, hidden=hidden, blocks=blocks)
+                                         log_std, wave, hidden=hidden, blocks=blocks)
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
@@ -267,10 +341,12 @@ class ContextConvController(nn.Module):
         self.critic_out = nn.Linear(hidden, 1)
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct") -> ContextConvController:
-        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
+    def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
+                wave_k: float = 1.0) -> ContextConvController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's initial
+        wave number ``wave_k``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head), wave=_env_wave(env, head, wave_k))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
@@ -308,10 +384,10 @@ class RecurrentContextController(nn.Module):
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 16, memory: int = 32, log_std: float = 0.0, head: str = "direct",
-                 clock_channels: tuple[int, int] | None = None) -> None:
+                 clock_channels: tuple[int, int] | None = None, wave: dict[str, Any] | None = None) -> None:
         super().__init__()
         outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
-                                         log_std, hidden=hidden, memory=memory)
+                                         log_std, wave, hidden=hidden, memory=memory)
         self.memory = memory
         self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
         self.gru = nn.GRU(2 * hidden, memory)
@@ -326,10 +402,12 @@ class RecurrentContextController(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
-                memory: int = 32) -> RecurrentContextController:
-        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
+                memory: int = 32, wave_k: float = 1.0) -> RecurrentContextController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's initial
+        wave number ``wave_k``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   memory, log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+                   memory, log_std=log_std, head=head, clock_channels=_env_clock(env, head),
+                   wave=_env_wave(env, head, wave_k))
 
     def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
         """``(zeros [N, 1, memory],)``: the GRU's state at an episode's start."""
@@ -413,12 +491,14 @@ class VoxelAttentionController(nn.Module):
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
         if hidden % heads:
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
+        if head == "wave":
+            raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not the attention controller")
         outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                                 hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
                                 clock_channels=self.clock)
         self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
-        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head == "stroke" else 1))
+        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
         self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
         self.norm = nn.LayerNorm(hidden)
@@ -534,10 +614,11 @@ def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor
 
 
 def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
-                     head: str = "direct") -> nn.Module:
+                     head: str = "direct", wave_k: float = 1.0) -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
-    ``head`` (:data:`HEADS`; ``rhythm`` for the kinds with a view of the whole body: ``context``, ``attention``).
+    ``head`` (:data:`HEADS`; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`RHYTHM_KINDS`;
+    ``wave`` for :data:`WAVE_KINDS`, starting from the wave number ``wave_k`` along x).
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
     from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
@@ -550,20 +631,24 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
             raise ValueError(f"controller {kind!r} is recurrent, and PrivilegedCritic wraps feed-forward controllers "
                              "(its critic reads one step): set control.privileged_critic=false")
         view = _PolicyView(env, shape[POLICY])
-        inner = build_controller(kind, view, hidden, log_std, head)
+        inner = build_controller(kind, view, hidden, log_std, head, wave_k)
         return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     _head_outputs(head)
     if head != "direct" and kind not in RHYTHM_KINDS:
         raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
+    if head == "wave" and kind not in WAVE_KINDS:
+        raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not {kind!r}")
     strokes = getattr(env, "action_channels", 1) == 2
-    if strokes != (head == "stroke"):
+    if strokes != (head in STROKE_HEADS):
         raise ValueError(f"head={head!r} for an env whose actions are " + ("strokes (control.stroke_periods >= 1): "
-                         "use head=stroke" if strokes else "one command per cell: head=stroke needs "
-                         "control.stroke_periods >= 1"))
+                         f"use a head of {list(STROKE_HEADS)}" if strokes else "one command per cell: head=stroke "
+                         "or wave needs control.stroke_periods >= 1"))
     width = {} if hidden is None else {"hidden": hidden}
     options = {} if head == "direct" else {"head": head}
+    if head == "wave":
+        options["wave_k"] = wave_k
     return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)
 
 
@@ -701,6 +786,6 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
     return kind, kwargs, weights, control, SimConfig()
 
 
-__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "ContextConvController", "ConvController", "MLPController",
+__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "HEADS", "STROKE_HEADS", "WAVE_KINDS", "ContextConvController", "ConvController", "MLPController",
            "PrivilegedCritic", "SavedController",
            "VoxelAttentionController", "build_controller", "controller_kind", "read_controller", "save_controller"]

@@ -256,7 +256,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std)
         else:  # (freeform.agents.controllers.CONTROLLERS)
-            policy = build_controller(control.controller, env, width, control.init_log_std, control.head)
+            policy = build_controller(control.controller, env, width, control.init_log_std, control.head,
+                                      control.wave_k)
         if control.controller_init is not None:
             load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
                             control.controller_init)
