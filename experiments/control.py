@@ -49,13 +49,8 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.agents.controllers import (
-    CONTROLLER_FILE,
-    CONTROLLERS,
-    controller_step,
-    read_controller,
-    save_controller,
-)
+from freeform.agents.controller_file import CONTROLLER_FILE, read_controller, save_controller
+from freeform.agents.controllers import CONTROLLERS, controller_step
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -251,18 +246,20 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
     control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
     each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
-    body × episode four times over, the groups with the same headings (the same draws): the controller, the
+    body × episode five times over, the groups with the same headings (the same draws): the controller, the
     controller's mean command (deterministic: what it learned, without its exploration noise), the
     controller with its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses
-    nothing), and an untrained controller of the same architecture (seeded ``seed``). The box is the one the
+    nothing), and an untrained controller of the same architecture (seeded ``seed``), stochastic and its mean
+    command (what the architecture does before learning: the open-loop gait for most heads, the hand-set
+    travelling wave for a ``wave`` head). The box is the one the
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
     the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean command's
-and the untrained controller's means) and
-    ``out/summary.csv`` (the five means over the bodies, with 99 % bands across bodies, then two paired differences
-per body — mean command minus open loop, stochastic minus untrained — whose bands leave out the across-body
-spread), and ``out/run.json``.
+and the untrained controller's means, stochastic and mean command) and
+    ``out/summary.csv`` (the six means over the bodies, with 99 % bands across bodies, then three paired differences
+per body — mean command minus open loop, stochastic minus untrained, mean command minus the untrained mean command —
+whose bands leave out the across-body spread), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
     saved = read_controller(source)
     control = replace(saved.control, headings=headings or saved.control.headings)
@@ -279,8 +276,8 @@ spread), and ``out/run.json``.
     untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
 
     per_episode = grids.repeat_interleave(n, 0)  # body i's episodes are rows i·n … i·n + n − 1
-    env = ControlEnv(per_episode.repeat(4, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
-                     first_env=np.tile(np.arange(m * n), 4))
+    env = ControlEnv(per_episode.repeat(5, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
+                     first_env=np.tile(np.arange(m * n), 5))
     sensed = [env.channels.index(c) for c in SENSED]
 
     def zeroed(obs: torch.Tensor) -> torch.Tensor:
@@ -290,20 +287,20 @@ spread), and ``out/run.json``.
 
     generator = torch.Generator().manual_seed(seed)
     groups = ((controller, lambda o: o, True), (controller, lambda o: o, False), (controller, zeroed, True),
-              (untrained, lambda o: o, True))
+              (untrained, lambda o: o, True), (untrained, lambda o: o, False))
     obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
     states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
     for _ in range(control.steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         actions = []
-        for g, ((net, view, stochastic), part) in enumerate(zip(groups, obs.chunk(4), strict=True)):
+        for g, ((net, view, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
             outputs, states[g] = controller_step(net, view(part), states[g])
             params = outputs[:3]
             noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
         total += reward.double()
-    returns = total.numpy().reshape(4, m, n)
+    returns = total.numpy().reshape(len(groups), m, n)
 
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
     along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
@@ -316,7 +313,8 @@ spread), and ``out/run.json``.
         mean, band = mean_band(returns[0, i])
         rows.append({"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
                      "controller": float(mean), "band99": float(band),
-                     "mean_command": float(returns[1, i].mean()), "untrained": float(returns[3, i].mean())})
+                     "mean_command": float(returns[1, i].mean()), "untrained": float(returns[3, i].mean()),
+                     "untrained_mean_command": float(returns[4, i].mean())})
     per_body = returns.mean(2)
     # paired: each body against itself (same headings, same noise streams), so the across-body spread cancels
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
@@ -324,9 +322,12 @@ spread), and ``out/run.json``.
                summary_row(f"controller ({saved.kind}, mean command)", per_body[1]),
                summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[2]),
                summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[3]),
+               summary_row(f"untrained controller ({saved.kind}, seed {seed}, mean command)", per_body[4]),
                summary_row("paired per body: controller (mean command) minus open loop", per_body[1] - open_loop),
                summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
-                           per_body[0] - per_body[3])]
+                           per_body[0] - per_body[3]),
+               summary_row("paired per body: controller (mean command) minus untrained (mean command)",
+                           per_body[1] - per_body[4])]
     out.mkdir(parents=True, exist_ok=True)
     for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
         with open(out / name, "w", newline="") as f:

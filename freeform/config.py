@@ -25,8 +25,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from freeform.agents.controller_heads import RHYTHM_KINDS, STROKE_HEADS, WAVE_KINDS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
-from freeform.agents.controllers import RHYTHM_KINDS, STROKE_HEADS, WAVE_KINDS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig

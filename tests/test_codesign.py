@@ -206,7 +206,7 @@ def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
     assert [m["policy"] for m in metrics] == ["untrained", "trained"] and "symmetry" in metrics[0]
     assert (tmp_path / "eval" / "codesign_steering_cpu.png").is_file()
     # the trained controller part, self-contained beside the tables (--evaluate DIR --bodies reads it)
-    from freeform.agents.controllers import read_controller
+    from freeform.agents.controller_file import read_controller
     from freeform.checkpoint import load_checkpoint
 
     saved = read_controller(tmp_path / "eval")

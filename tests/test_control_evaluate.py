@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from experiments.control import main, read_bodies
-from freeform.agents.controllers import ContextConvController, MLPController, save_controller
+from freeform.agents.controller_file import save_controller
+from freeform.agents.controllers import ContextConvController, MLPController
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, open_loop_displacement
 from freeform.sim import SimConfig
 
@@ -36,7 +37,7 @@ def read_csv(path: Path) -> list[dict]:
 def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_path) -> None:
     """A controller trained in a 2 × 1 × 1 box (here: saved untrained) evaluated on bodies needing 2 × 2 × 1: a row
     per body with its simulated voxels (counted by hand), its open-loop gait (along +x, as open_loop_displacement
-    scores it on the bodies as simulated), finite controller figures; the summary's five rows and two paired
+    scores it on the bodies as simulated), finite controller figures; the summary's six rows and three paired
     differences."""
     torch.manual_seed(0)
     net = ContextConvController(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0)
@@ -45,7 +46,8 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
           "--eval-episodes", "2", "--out", str(tmp_path / "eval")])
     rows = read_csv(tmp_path / "eval" / "bodies.csv")
-    assert list(rows[0]) == ["body", "voxels", "actuated", "open_loop", "controller", "band99", "mean_command", "untrained"]
+    assert list(rows[0]) == ["body", "voxels", "actuated", "open_loop", "controller", "band99", "mean_command", "untrained",
+                            "untrained_mean_command"]
     assert [(int(r["body"]), int(r["voxels"]), int(r["actuated"])) for r in rows] == [(0, 2, 2), (1, 3, 2), (2, 2, 2)]
     as_simulated = tiny_bodies()
     as_simulated[2, 2, 2, 2] = 0
@@ -53,14 +55,15 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     np.testing.assert_allclose([float(r["open_loop"]) for r in rows], expected, rtol=1e-6, atol=1e-9)
     assert all(np.isfinite(float(r["controller"])) and float(r["band99"]) >= 0 for r in rows)
     summary = read_csv(tmp_path / "eval" / "summary.csv")
-    assert len(summary) == 7 and [r["n"] for r in summary] == ["3"] * 7
+    assert len(summary) == 9 and [r["n"] for r in summary] == ["3"] * 9
     assert summary[1]["what"].startswith("controller (context") and "mean command" in summary[2]["what"]
-    assert "zeroed" in summary[3]["what"] and "untrained" in summary[4]["what"]
+    assert "zeroed" in summary[3]["what"] and "untrained" in summary[4]["what"] and "mean command" in summary[5]["what"]
     np.testing.assert_allclose(float(summary[0]["mean"]), expected.mean(), rtol=1e-6)
     np.testing.assert_allclose(float(summary[1]["mean"]), np.mean([float(r["controller"]) for r in rows]), rtol=1e-6)
     # the paired rows: per-body differences, recomputed from the body rows (mean command - own gait, stochastic -
     # untrained), so their band is the spread of the differences, not of the bodies
-    for row, (a, b) in ((summary[5], ("mean_command", "open_loop")), (summary[6], ("controller", "untrained"))):
+    for row, (a, b) in ((summary[6], ("mean_command", "open_loop")), (summary[7], ("controller", "untrained")),
+                        (summary[8], ("mean_command", "untrained_mean_command"))):
         diff = np.array([float(r[a]) - float(r[b]) for r in rows])
         assert row["what"].startswith("paired")
         np.testing.assert_allclose(float(row["mean"]), diff.mean(), rtol=1e-6, atol=1e-9)

@@ -74,7 +74,7 @@ def test_two_epochs_equal_one_plus_resume_one_bit_for_bit(bodies: Path, tmp_path
     np.testing.assert_array_equal(ra.rewards, rb.rewards)
     np.testing.assert_array_equal(ra.values, rb.values)
     # and the run's directory reads back as its controller, with the episode's config (evaluate --bodies reads it)
-    from freeform.agents.controllers import read_controller
+    from freeform.agents.controller_file import read_controller
 
     saved = read_controller(tmp_path / "split")
     assert saved.kind == "conv" and saved.control.headings == "random" and saved.sim is not None
@@ -92,7 +92,8 @@ def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: st
     straight_and_resumed(compose(*tiny_control(bodies, *overrides)), tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
-    from freeform.agents.controllers import CONTROLLERS, read_controller
+    from freeform.agents.controller_file import read_controller
+    from freeform.agents.controllers import CONTROLLERS
 
     kwargs = a["policy_kwargs"]["controller"] if privileged else a["policy_kwargs"]
     name = "PrivilegedCritic" if privileged else CONTROLLERS[kind].__name__

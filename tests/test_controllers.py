@@ -12,14 +12,9 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
-from freeform.agents.controllers import (
-    CONTROLLERS,
-    WAVE_KINDS,
-    build_controller,
-    controller_step,
-    read_controller,
-    save_controller,
-)
+from freeform.agents.controller_file import read_controller, save_controller
+from freeform.agents.controller_heads import WAVE_KINDS
+from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
 from freeform.agents.distributions import MaskedDiagGaussian, from_spec
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv

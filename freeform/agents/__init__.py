@@ -2,9 +2,11 @@
 
 ``PPO(env, policy, PPOConfig(...))`` trains any ``freeform.envs.VecEnv``; ``VoxelActorCritic`` is the paper's network
 over uint8 voxel grids, ``MLPActorCritic`` serves flat observations; the control env's controllers are in
-``freeform.agents.controllers`` (``CONTROLLERS``, ``build_controller``, ``save_controller`` / ``read_controller``).
+``freeform.agents.controllers`` (``CONTROLLERS``, ``build_controller``) and ``freeform.agents.controller_file``
+(``save_controller`` / ``read_controller``).
 """
 
+from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controllers import (
     CONTROLLERS,
     ContextConvController,
@@ -12,8 +14,6 @@ from freeform.agents.controllers import (
     MLPController,
     VoxelAttentionController,
     build_controller,
-    read_controller,
-    save_controller,
 )
 from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
 from freeform.agents.observation_groups import GroupedMLPActorCritic

@@ -21,41 +21,37 @@ kind           class                           one set of weights     padding ch
 whether it sits alone in its own box or in the larger box of a batch with larger bodies (the env pads every body
 to the batch's box, at its corner). The costs of each on the 2-core CPU are in ``docs/control.md``.
 
-:func:`build_controller` builds one by kind for an env; :func:`save_controller` writes a ``controller.pt``
-(weights, kind, ``init_kwargs``, the ``ControlConfig`` and the ``SimConfig``) through ``freeform.checkpoint`` and
-:func:`read_controller` rebuilds it, for any box where the kind allows, from that file, a results folder holding
-one, or a control run's directory.
+:func:`build_controller` builds one by kind for an env. The actor heads the body controllers share are in
+:mod:`freeform.agents.controller_heads`; the self-contained ``controller.pt`` (``save_controller``,
+``read_controller``) in :mod:`freeform.agents.controller_file`.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from freeform.agents.controller_heads import (
+    RHYTHM_KINDS,
+    STROKE_HEADS,
+    WAVE_KINDS,
+    _body_controller_setup,
+    _cell_means,
+    _check_control_input,
+    _clock_channels,
+    _env_clock,
+    _env_wave,
+    _head_outputs,
+    _masked_pool,
+    _per_cell_mean,
+    _rhythm,
+)
 from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.agents.recurrent import RecurrentPolicy, run_rnn
-
-
-def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
-    """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
-    channel."""
-    if not isinstance(channels, int) or channels < 1:
-        raise ValueError(f"channels must be a positive int, got {channels!r}")
-    box = tuple(int(b) for b in box)
-    if len(box) != 3 or min(box) < 1:
-        raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
-    for name, index in channel_indices.items():
-        if not isinstance(index, int) or not 0 <= index < channels:
-            raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
-    return box  # type: ignore[return-value]
 
 
 class ConvController(nn.Module):
@@ -147,159 +143,6 @@ class MLPController(nn.Module):
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
         mean, log_std, value = self.net(obs)
         return mean, log_std, obs[:, self.mask_channel].reshape(obs.shape[0], -1), value
-
-
-def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
-    """Features ``x [N, h, Bx, By, Bz]`` (≥ 0, zero outside the body) pooled over the body's cells (``filled
-    [N, 1, Bx, By, Bz]``): their mean and max ``[N, 2h]``. The max over the whole box is the body's, since every
-    feature is ≥ 0 and the padding's are 0."""
-    count = filled.sum((2, 3, 4)).clamp_min(1.0)
-    return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
-
-
-HEADS = ("direct", "rhythm", "stroke", "wave")
-"""What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
-``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
-clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
-whose amplitude and phase each voxel's features set (a travelling wave when they vary with the voxel's place
-in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
-state instead of products of them with the clock. ``stroke`` — two numbers (a, b), the action itself of an env
-whose actions are strokes (``ControlConfig.stroke_periods``: the env plays a·sin + b·cos of each voxel's own phase
-over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated. ``wave`` — a stroke
-whose mean is a travelling wave (:func:`_wave_strokes`): the body's wave vector k (from its pooled features, starting
-at ``wave_k`` along x), each cell's amplitude and phase offset, and a free (a, b) correction; a voxel at x relative
-to the centre of mass then receives A·sin(2πt/T − k·x − ψ), the rule that moves bodies of every kind
-(``docs/control.md``) with the wave's direction, length and shape learnt per body."""
-
-STROKE_HEADS = ("stroke", "wave")
-"""The heads whose actions are strokes (``ControlConfig.stroke_periods`` >= 1): two numbers a cell."""
-
-
-def _head_outputs(head: str) -> int:
-    if head not in HEADS:
-        raise ValueError(f"head must be one of {HEADS}, got {head!r}")
-    return {"direct": 1, "rhythm": 3, "stroke": 2, "wave": 4}[head]
-
-
-def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """A head's per-cell outputs ``[N, c, cells]`` (c = 1, or 2 for a stroke) and the actuated cells ``[N, cells]``
-    → (the mean ``[N, c·cells]``, the mask ``[N, c·cells]``)."""
-    n = out.shape[0]
-    return out.reshape(n, -1), (mask.repeat(1, 2) if head in STROKE_HEADS else mask)
-
-
-WAVE_KINDS = ("context", "context_gru")
-"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
-
-
-def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
-    """A ``wave`` head's description of the observation, checked: ``pos_channels`` (rel_x, rel_y, rel_z: voxel
-    lengths from the centre of mass), ``material_channel`` (material index / (len(phases) − 1)), ``phases`` (each
-    material index's open-loop phase in cycles, index 0 empty), ``residual`` (the env adds the open-loop sine to
-    the action) and ``k`` (the wave number the untrained head starts from, rad per voxel length, along x)."""
-    if head != "wave":
-        return None
-    keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
-    if not isinstance(wave, dict) or set(wave) != keys:
-        raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} (build_controller fills it "
-                         f"from the env), got {wave!r}")
-    pos = tuple(int(c) for c in wave["pos_channels"])
-    if len(pos) != 3:
-        raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
-    _check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
-                         material=int(wave["material_channel"]))
-    phases = tuple(float(p) for p in wave["phases"])
-    if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
-        raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
-    if not math.isfinite(float(wave["k"])):
-        raise ValueError(f"wave k (rad per voxel length) must be finite, got {wave['k']!r}")
-    return dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
-                residual=bool(wave["residual"]), k=float(wave["k"]))
-
-
-def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
-    if head != "wave":
-        return None
-    materials = env.sim_config.materials
-    return dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
-                material_channel=env.channels.index("material"), phases=(0.0, *(m.phase for m in materials)),
-                residual=bool(env.control.residual), k=float(wave_k))
-
-
-def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any]) -> torch.Tensor:
-    """A ``wave`` head's strokes ``[N, 2, *box]`` (a, b) from its per-cell outputs ``out [N, 4, *box]`` (amplitude
-    change α, phase offset ψ, correction (ca, cb)), the body's wave vector ``k [N, 3]`` and ``obs``.
-
-    The stroke env plays a·sin θ + b·cos θ, θ = 2π(t/T + φ) a voxel's own phase (φ its material's), added under
-    residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (A = 1 + α; x its
-    place relative to the centre of mass), write 2πt/T − δ' = θ − δ, δ = 2πφ + δ': then (1 + a) = A cos δ and
-    b = −A sin δ under residual control (1 + a → a without), plus the corrections."""
-    phases = torch.tensor(wave["phases"], dtype=obs.dtype, device=obs.device)
-    index = torch.round(obs[:, wave["material_channel"]] * (len(phases) - 1)).long().clamp(0, len(phases) - 1)
-    place = (k[:, :, None, None, None] * obs[:, list(wave["pos_channels"])]).sum(1)
-    delta = 2 * math.pi * phases[index] + place + out[:, 1]
-    amplitude = 1.0 + out[:, 0]
-    a = amplitude * torch.cos(delta) - (1.0 if wave["residual"] else 0.0) + out[:, 2]
-    b = -amplitude * torch.sin(delta) + out[:, 3]
-    return torch.stack([a, b], 1)
-
-
-def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
-    """The observation's (clock_sin, clock_cos) channels, needed by a ``rhythm`` head."""
-    if head != "rhythm":
-        return None
-    if clock_channels is None or len(clock_channels) != 2:
-        raise ValueError(f"a rhythm head needs clock_channels = (clock_sin, clock_cos) channel indices, got "
-                         f"{clock_channels!r}")
-    _check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
-    return int(clock_channels[0]), int(clock_channels[1])
-
-
-def _env_clock(env: Any, head: str) -> tuple[int, int] | None:
-    return (env.channels.index("clock_sin"), env.channels.index("clock_cos")) if head == "rhythm" else None
-
-
-def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
-    """``out [..., 3, *cells]`` (u, v, w) and ``clock [..., 2, *cells]`` (sin, cos) → u·sin + v·cos + w."""
-    return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
-
-
-def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel: int, filled_channel: int,
-                           head: str, clock_channels: Any, log_std: float, wave: Any = None, **sizes: int) -> int:
-    """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
-    channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
-    body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
-    wave's initial k along x). Returns the actor head's outputs per cell."""
-    box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
-    for name, value in sizes.items():
-        if not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be a positive int, got {value!r}")
-    outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
-    net.wave = _wave_setup(channels, head, wave)
-    net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                           **sizes, log_std=log_std, head=head, clock_channels=net.clock)
-    if net.wave is not None:  # (absent otherwise: the files of the other heads stay as they were)
-        net.init_kwargs["wave"] = dict(net.wave)
-        net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
-        nn.init.normal_(net.wave_k.weight, std=0.01)
-        nn.init.zeros_(net.wave_k.bias)
-    net.box, net.mask_channel, net.filled_channel, net.head = box, mask_channel, filled_channel, head
-    net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
-    return outputs
-
-
-def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]``: (mean, mask) ``[N, A]``
-    (a rhythm head played on the observation's clock, a wave head's strokes; zero outside the body)."""
-    out = net.actor(x)
-    if net.clock is not None:
-        out = _rhythm(out, obs[:, list(net.clock)])[:, None]
-    if net.wave is not None:
-        k = net.wave_k(_masked_pool(x, filled)) + torch.tensor([net.wave["k"], 0.0, 0.0], dtype=x.dtype,
-                                                               device=x.device)
-        out = _wave_strokes(out, k, obs, net.wave)
-    return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)
 
 
 class ContextConvController(nn.Module):
@@ -662,10 +505,6 @@ class _PolicyView:
         return getattr(self._env, name)
 
 
-RHYTHM_KINDS = ("context", "attention", "context_gru")
-"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
-
-
 def controller_kind(controller: nn.Module) -> str:
     """The registry's name for ``controller``'s class (a :class:`PrivilegedCritic`'s: its controller's)."""
     if isinstance(controller, PrivilegedCritic):
@@ -676,116 +515,6 @@ def controller_kind(controller: nn.Module) -> str:
     raise ValueError(f"{type(controller).__name__} is not one of the registered controllers {list(CONTROLLERS)}")
 
 
-# ------------------------------------------------------------------------------------------------ controller.pt
-
-CONTROLLER_FILE = "controller.pt"
-
-
-@dataclass
-class SavedController:
-    """A controller read back by :func:`read_controller`: the network (weights loaded, built for the box asked
-    for), its kind, the episode's ``ControlConfig`` it was trained under, its ``SimConfig`` (None where the file
-    has none) and the file it came from."""
-
-    controller: nn.Module
-    kind: str
-    control: Any
-    sim: Any
-    path: Path
-
-
-def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: Any = None) -> Path:
-    """Write ``controller.pt``, self-contained: ``{"controller": {"kind", "init_kwargs", "weights"}, "control":
-    the ControlConfig's fields, "sim": the SimConfig as a dict or None}``, atomically through
-    ``freeform.checkpoint.save_checkpoint`` (read with ``weights_only``). ``control`` may be a ``ControlRunConfig``
-    (its episode's fields are kept). Returns the path written."""
-    from freeform.checkpoint import save_checkpoint
-    from freeform.envs.control import ControlConfig
-
-    episode = {f.name: getattr(control, f.name) for f in dataclasses.fields(ControlConfig)}
-    episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
-    if isinstance(controller, PrivilegedCritic):
-        controller = controller.controller
-    return save_checkpoint(path, {
-        "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
-                       "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
-        "control": episode, "sim": dataclasses.asdict(sim) if sim is not None else None})
-
-
-def read_controller(source: str | Path, box: tuple[int, int, int] | None = None) -> SavedController:
-    """The controller in ``source``, rebuilt: a ``controller.pt`` (:func:`save_controller`; also the older files of
-    ``experiments/control.py``, a PPO checkpoint beside its ``args.json``), a folder holding one, or a control or
-    co-design run's directory (its ``checkpoints/last.pt``; a co-design run's controller part). ``box``: build it for
-    this box instead of the one it trained in — any box for the kinds that fit any box, refused with the reason for
-    the MLP."""
-    from freeform.checkpoint import load_checkpoint
-
-    path = Path(source)
-    if path.is_dir():
-        candidates = (path / CONTROLLER_FILE, path / "checkpoints" / "last.pt")
-        found = next((c for c in candidates if c.is_file()), None)
-        if found is None:
-            raise ValueError(f"{source}: holds neither {CONTROLLER_FILE} nor checkpoints/last.pt (a control run's)")
-        path = found
-    payload = load_checkpoint(path)
-    kind, kwargs, weights, control, sim = _saved_parts(payload, path)
-    saved_box = tuple(int(b) for b in kwargs["box"])
-    if box is not None and tuple(int(b) for b in box) != saved_box:
-        if not CONTROLLERS[kind].fits_any_box:
-            raise ValueError(f"{path}: its {kind!r} controller learnt each cell of its box {saved_box} apart and runs "
-                             f"on that box only, and these bodies need the box {tuple(box)}")
-        kwargs = {**kwargs, "box": tuple(int(b) for b in box)}
-    controller = CONTROLLERS[kind](**kwargs)
-    controller.load_state_dict(weights)
-    return SavedController(controller, kind, control, sim, path)
-
-
-def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, Any], dict[str, Any], Any, Any]:
-    """(kind, init_kwargs, weights, ControlConfig, SimConfig or None) from any of the files
-    :func:`read_controller` reads."""
-    from omegaconf import OmegaConf
-
-    from freeform.envs.control import ControlConfig
-    from freeform.sim import SimConfig
-
-    if "controller" in payload:  # save_controller's
-        part = payload["controller"]
-        sim = payload.get("sim")
-        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), sim)) if sim is not None else None
-        return part["kind"], dict(part["init_kwargs"]), part["weights"], ControlConfig(**payload["control"]), sim
-    if "policy_class" not in payload:
-        raise ValueError(f"{path}: neither a controller.pt nor a PPO or run checkpoint")
-    name = payload["policy_class"].rsplit(":", 1)[-1]
-    kwargs, weights = dict(payload["policy_kwargs"]), payload["ppo"]["policy"]
-    if name == "PrivilegedCritic":  # its controller part: the actor (and its own critic)
-        kind, kwargs = kwargs["kind"], dict(kwargs["controller"])
-        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
-    elif name == "CodesignActorCritic":  # a co-design run: its controller part
-        start, stop = kwargs["control_channels"]
-        kind, weights = "conv", {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
-        kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
-                      filled_channel=kwargs["filled_channel"], hidden=kwargs["controller_hidden"],
-                      log_std=kwargs["log_std"])
-    else:
-        kind = next((k for k, cls in CONTROLLERS.items() if cls.__name__ == name), None)
-        if kind is None:
-            raise ValueError(f"{path}: its policy {name} is no controller (one of {list(CONTROLLERS)})")
-    if "config" in payload:  # a run's checkpoint
-        from freeform.config import from_container
-
-        cfg = from_container(payload["config"])
-        if cfg.control is None:
-            raise ValueError(f"{path}: a run without a control section (a design run) has no controller")
-        return kind, kwargs, weights, dataclasses.replace(cfg.control.episode(), privileged_critic=False), cfg.sim
-    args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
-    if not args.is_file():
-        raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
-    saved = json.loads(args.read_text())
-    control = ControlConfig(burn_in=saved["burn_in"], command_rate=saved.get("command_rate"),
-                            ramp=saved.get("ramp", False))
-    return kind, kwargs, weights, control, SimConfig()
-
-
-__all__ = ["CONTROLLERS", "CONTROLLER_FILE", "HEADS", "STROKE_HEADS", "WAVE_KINDS", "ContextConvController", "ConvController", "MLPController",
-           "PrivilegedCritic", "SavedController",
-           "VoxelAttentionController", "build_controller", "controller_kind", "read_controller", "save_controller"]
+__all__ = ["CONTROLLERS", "ContextConvController", "ConvController", "MLPController", "PrivilegedCritic",
+           "RecurrentContextController", "VoxelAttentionController", "build_controller", "controller_kind",
+           "controller_step"]

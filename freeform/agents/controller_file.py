@@ -1,0 +1,125 @@
+"""The self-contained ``controller.pt``: :func:`save_controller` writes a controller (weights, kind, ``init_kwargs``,
+the ``ControlConfig`` and the ``SimConfig``) through ``freeform.checkpoint``; :func:`read_controller` rebuilds it, for
+any box where the kind allows, from that file, a results folder holding one, or a control run's directory."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch.nn as nn
+
+from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind
+
+CONTROLLER_FILE = "controller.pt"
+
+
+@dataclass
+class SavedController:
+    """A controller read back by :func:`read_controller`: the network (weights loaded, built for the box asked
+    for), its kind, the episode's ``ControlConfig`` it was trained under, its ``SimConfig`` (None where the file
+    has none) and the file it came from."""
+
+    controller: nn.Module
+    kind: str
+    control: Any
+    sim: Any
+    path: Path
+
+
+def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: Any = None) -> Path:
+    """Write ``controller.pt``, self-contained: ``{"controller": {"kind", "init_kwargs", "weights"}, "control":
+    the ControlConfig's fields, "sim": the SimConfig as a dict or None}``, atomically through
+    ``freeform.checkpoint.save_checkpoint`` (read with ``weights_only``). ``control`` may be a ``ControlRunConfig``
+    (its episode's fields are kept). Returns the path written."""
+    from freeform.checkpoint import save_checkpoint
+    from freeform.envs.control import ControlConfig
+
+    episode = {f.name: getattr(control, f.name) for f in dataclasses.fields(ControlConfig)}
+    episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
+    if isinstance(controller, PrivilegedCritic):
+        controller = controller.controller
+    return save_checkpoint(path, {
+        "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
+                       "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
+        "control": episode, "sim": dataclasses.asdict(sim) if sim is not None else None})
+
+
+def read_controller(source: str | Path, box: tuple[int, int, int] | None = None) -> SavedController:
+    """The controller in ``source``, rebuilt: a ``controller.pt`` (:func:`save_controller`; also the older files of
+    ``experiments/control.py``, a PPO checkpoint beside its ``args.json``), a folder holding one, or a control or
+    co-design run's directory (its ``checkpoints/last.pt``; a co-design run's controller part). ``box``: build it for
+    this box instead of the one it trained in — any box for the kinds that fit any box, refused with the reason for
+    the MLP."""
+    from freeform.checkpoint import load_checkpoint
+
+    path = Path(source)
+    if path.is_dir():
+        candidates = (path / CONTROLLER_FILE, path / "checkpoints" / "last.pt")
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            raise ValueError(f"{source}: holds neither {CONTROLLER_FILE} nor checkpoints/last.pt (a control run's)")
+        path = found
+    payload = load_checkpoint(path)
+    kind, kwargs, weights, control, sim = _saved_parts(payload, path)
+    saved_box = tuple(int(b) for b in kwargs["box"])
+    if box is not None and tuple(int(b) for b in box) != saved_box:
+        if not CONTROLLERS[kind].fits_any_box:
+            raise ValueError(f"{path}: its {kind!r} controller learnt each cell of its box {saved_box} apart and runs "
+                             f"on that box only, and these bodies need the box {tuple(box)}")
+        kwargs = {**kwargs, "box": tuple(int(b) for b in box)}
+    controller = CONTROLLERS[kind](**kwargs)
+    controller.load_state_dict(weights)
+    return SavedController(controller, kind, control, sim, path)
+
+
+def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, Any], dict[str, Any], Any, Any]:
+    """(kind, init_kwargs, weights, ControlConfig, SimConfig or None) from any of the files
+    :func:`read_controller` reads."""
+    from omegaconf import OmegaConf
+
+    from freeform.envs.control import ControlConfig
+    from freeform.sim import SimConfig
+
+    if "controller" in payload:  # save_controller's
+        part = payload["controller"]
+        sim = payload.get("sim")
+        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), sim)) if sim is not None else None
+        return part["kind"], dict(part["init_kwargs"]), part["weights"], ControlConfig(**payload["control"]), sim
+    if "policy_class" not in payload:
+        raise ValueError(f"{path}: neither a controller.pt nor a PPO or run checkpoint")
+    name = payload["policy_class"].rsplit(":", 1)[-1]
+    kwargs, weights = dict(payload["policy_kwargs"]), payload["ppo"]["policy"]
+    if name == "PrivilegedCritic":  # its controller part: the actor (and its own critic)
+        kind, kwargs = kwargs["kind"], dict(kwargs["controller"])
+        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+    elif name == "CodesignActorCritic":  # a co-design run: its controller part
+        start, stop = kwargs["control_channels"]
+        kind, weights = "conv", {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+        kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
+                      filled_channel=kwargs["filled_channel"], hidden=kwargs["controller_hidden"],
+                      log_std=kwargs["log_std"])
+    else:
+        kind = next((k for k, cls in CONTROLLERS.items() if cls.__name__ == name), None)
+        if kind is None:
+            raise ValueError(f"{path}: its policy {name} is no controller (one of {list(CONTROLLERS)})")
+    if "config" in payload:  # a run's checkpoint
+        from freeform.config import from_container
+
+        cfg = from_container(payload["config"])
+        if cfg.control is None:
+            raise ValueError(f"{path}: a run without a control section (a design run) has no controller")
+        return kind, kwargs, weights, dataclasses.replace(cfg.control.episode(), privileged_critic=False), cfg.sim
+    args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
+    if not args.is_file():
+        raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
+    saved = json.loads(args.read_text())
+    control = ControlConfig(burn_in=saved["burn_in"], command_rate=saved.get("command_rate"),
+                            ramp=saved.get("ramp", False))
+    return kind, kwargs, weights, control, SimConfig()
+
+
+__all__ = ["CONTROLLER_FILE", "SavedController", "read_controller", "save_controller"]

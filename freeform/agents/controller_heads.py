@@ -1,0 +1,184 @@
+"""What the controllers of :mod:`freeform.agents.controllers` share: the input checks, the body's pooled
+features, and the actor heads (:data:`HEADS`) that turn each cell's features into its mean action — a command, a
+rhythm on the actuation clock, a stroke's (a, b), or a travelling wave's stroke."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+import torch.nn as nn
+
+from freeform.agents.distributions import MaskedDiagGaussian
+
+
+def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
+    """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
+    channel."""
+    if not isinstance(channels, int) or channels < 1:
+        raise ValueError(f"channels must be a positive int, got {channels!r}")
+    box = tuple(int(b) for b in box)
+    if len(box) != 3 or min(box) < 1:
+        raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {box!r}")
+    for name, index in channel_indices.items():
+        if not isinstance(index, int) or not 0 <= index < channels:
+            raise ValueError(f"{name} must be a channel index in [0, {channels}), got {index!r}")
+    return box  # type: ignore[return-value]
+
+
+RHYTHM_KINDS = ("context", "attention", "context_gru")
+"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
+
+
+def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
+    """Features ``x [N, h, Bx, By, Bz]`` (≥ 0, zero outside the body) pooled over the body's cells (``filled
+    [N, 1, Bx, By, Bz]``): their mean and max ``[N, 2h]``. The max over the whole box is the body's, since every
+    feature is ≥ 0 and the padding's are 0."""
+    count = filled.sum((2, 3, 4)).clamp_min(1.0)
+    return torch.cat([x.sum((2, 3, 4)) / count, x.amax((2, 3, 4))], dim=1)
+
+
+HEADS = ("direct", "rhythm", "stroke", "wave")
+"""What a controller's actor head gives each cell: ``direct`` — its mean command, one number from its features;
+``rhythm`` — three numbers (u, v, w) and the mean command u·sin(2πt/T) + v·cos(2πt/T) + w, t/T the actuation
+clock's phase the observation carries (``clock_sin``, ``clock_cos``): a rhythm at the open-loop sine's frequency
+whose amplitude and phase each voxel's features set (a travelling wave when they vary with the voxel's place
+in the body), and a slow offset w for feedback. The network then learns smooth functions of a voxel's place and
+state instead of products of them with the clock. ``stroke`` — two numbers (a, b), the action itself of an env
+whose actions are strokes (``ControlConfig.stroke_periods``: the env plays a·sin + b·cos of each voxel's own phase
+over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated. ``wave`` — a stroke
+whose mean is a travelling wave (:func:`_wave_strokes`): the body's wave vector k (from its pooled features, starting
+at ``wave_k`` along x), each cell's amplitude and phase offset, and a free (a, b) correction; a voxel at x relative
+to the centre of mass then receives A·sin(2πt/T − k·x − ψ), the rule that moves bodies of every kind
+(``docs/control.md``) with the wave's direction, length and shape learnt per body."""
+
+STROKE_HEADS = ("stroke", "wave")
+"""The heads whose actions are strokes (``ControlConfig.stroke_periods`` >= 1): two numbers a cell."""
+
+
+def _head_outputs(head: str) -> int:
+    if head not in HEADS:
+        raise ValueError(f"head must be one of {HEADS}, got {head!r}")
+    return {"direct": 1, "rhythm": 3, "stroke": 2, "wave": 4}[head]
+
+
+def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """A head's per-cell outputs ``[N, c, cells]`` (c = 1, or 2 for a stroke) and the actuated cells ``[N, cells]``
+    → (the mean ``[N, c·cells]``, the mask ``[N, c·cells]``)."""
+    n = out.shape[0]
+    return out.reshape(n, -1), (mask.repeat(1, 2) if head in STROKE_HEADS else mask)
+
+
+WAVE_KINDS = ("context", "context_gru")
+"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
+
+
+def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
+    """A ``wave`` head's description of the observation, checked: ``pos_channels`` (rel_x, rel_y, rel_z: voxel
+    lengths from the centre of mass), ``material_channel`` (material index / (len(phases) − 1)), ``phases`` (each
+    material index's open-loop phase in cycles, index 0 empty), ``residual`` (the env adds the open-loop sine to
+    the action) and ``k`` (the wave number the untrained head starts from, rad per voxel length, along x)."""
+    if head != "wave":
+        return None
+    keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
+    if not isinstance(wave, dict) or set(wave) != keys:
+        raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} (build_controller fills it "
+                         f"from the env), got {wave!r}")
+    pos = tuple(int(c) for c in wave["pos_channels"])
+    if len(pos) != 3:
+        raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
+    _check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
+                         material=int(wave["material_channel"]))
+    phases = tuple(float(p) for p in wave["phases"])
+    if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
+        raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
+    if not math.isfinite(float(wave["k"])):
+        raise ValueError(f"wave k (rad per voxel length) must be finite, got {wave['k']!r}")
+    return dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
+                residual=bool(wave["residual"]), k=float(wave["k"]))
+
+
+def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
+    if head != "wave":
+        return None
+    materials = env.sim_config.materials
+    return dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
+                material_channel=env.channels.index("material"), phases=(0.0, *(m.phase for m in materials)),
+                residual=bool(env.control.residual), k=float(wave_k))
+
+
+def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any]) -> torch.Tensor:
+    """A ``wave`` head's strokes ``[N, 2, *box]`` (a, b) from its per-cell outputs ``out [N, 4, *box]`` (amplitude
+    change α, phase offset ψ, correction (ca, cb)), the body's wave vector ``k [N, 3]`` and ``obs``.
+
+    The stroke env plays a·sin θ + b·cos θ, θ = 2π(t/T + φ) a voxel's own phase (φ its material's), added under
+    residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (A = 1 + α; x its
+    place relative to the centre of mass), write 2πt/T − δ' = θ − δ, δ = 2πφ + δ': then (1 + a) = A cos δ and
+    b = −A sin δ under residual control (1 + a → a without), plus the corrections."""
+    phases = torch.tensor(wave["phases"], dtype=obs.dtype, device=obs.device)
+    index = torch.round(obs[:, wave["material_channel"]] * (len(phases) - 1)).long().clamp(0, len(phases) - 1)
+    place = (k[:, :, None, None, None] * obs[:, list(wave["pos_channels"])]).sum(1)
+    delta = 2 * math.pi * phases[index] + place + out[:, 1]
+    amplitude = 1.0 + out[:, 0]
+    a = amplitude * torch.cos(delta) - (1.0 if wave["residual"] else 0.0) + out[:, 2]
+    b = -amplitude * torch.sin(delta) + out[:, 3]
+    return torch.stack([a, b], 1)
+
+
+def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int, int] | None:
+    """The observation's (clock_sin, clock_cos) channels, needed by a ``rhythm`` head."""
+    if head != "rhythm":
+        return None
+    if clock_channels is None or len(clock_channels) != 2:
+        raise ValueError(f"a rhythm head needs clock_channels = (clock_sin, clock_cos) channel indices, got "
+                         f"{clock_channels!r}")
+    _check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
+    return int(clock_channels[0]), int(clock_channels[1])
+
+
+def _env_clock(env: Any, head: str) -> tuple[int, int] | None:
+    return (env.channels.index("clock_sin"), env.channels.index("clock_cos")) if head == "rhythm" else None
+
+
+def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
+    """``out [..., 3, *cells]`` (u, v, w) and ``clock [..., 2, *cells]`` (sin, cos) → u·sin + v·cos + w."""
+    return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
+
+
+def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel: int, filled_channel: int,
+                           head: str, clock_channels: Any, log_std: float, wave: Any = None, **sizes: int) -> int:
+    """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
+    channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
+    body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
+    wave's initial k along x). Returns the actor head's outputs per cell."""
+    box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+    for name, value in sizes.items():
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+    net.wave = _wave_setup(channels, head, wave)
+    net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
+                           **sizes, log_std=log_std, head=head, clock_channels=net.clock)
+    if net.wave is not None:  # (absent otherwise: the files of the other heads stay as they were)
+        net.init_kwargs["wave"] = dict(net.wave)
+        net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
+        nn.init.normal_(net.wave_k.weight, std=0.01)
+        nn.init.zeros_(net.wave_k.bias)
+    net.box, net.mask_channel, net.filled_channel, net.head = box, mask_channel, filled_channel, head
+    net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
+    return outputs
+
+
+def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]``: (mean, mask) ``[N, A]``
+    (a rhythm head played on the observation's clock, a wave head's strokes; zero outside the body)."""
+    out = net.actor(x)
+    if net.clock is not None:
+        out = _rhythm(out, obs[:, list(net.clock)])[:, None]
+    if net.wave is not None:
+        k = net.wave_k(_masked_pool(x, filled)) + torch.tensor([net.wave["k"], 0.0, 0.0], dtype=x.dtype,
+                                                               device=x.device)
+        out = _wave_strokes(out, k, obs, net.wave)
+    return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)
