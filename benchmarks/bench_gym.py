@@ -48,8 +48,8 @@ base task, four runs each: ``freeform-lstm`` (``RecurrentActorCritic``, an LSTM 
 ``RecurrentPPO("MlpLstmPolicy")`` at its default sizes — the same — and the same values), ``freeform`` (the
 feed-forward policy, memoryless) and ``freeform-privileged`` (the feed-forward actor, its critic given the hidden
 entries as the ``"critic"`` observation group); asked for by name, ``freeform-lstm-sb3`` (``freeform-lstm`` with
-SB3-contrib's two loss settings that the recipe's preset differs by: no value clipping, and a time limit bootstrapped
-with V of the last observation). Each row adds the **greedy return** (mean of 10 deterministic
+SB3-contrib's loss settings where the recipe's preset differs: no value clipping, and — on CartPole, whose
+``ppo.py`` preset ends an episode at its time limit — a time limit bootstrapped with V of the last observation). Each row adds the **greedy return** (mean of 10 deterministic
 episodes after training). Pendulum's rows take the ``box-memory`` recipe (8 envs × 256 steps, minibatches of 512:
 8 chunks of 64 steps), CartPole's the discrete one (a chunk is an env's 128-step rollout). Defaults: 300k steps,
 seeds 0-3, ``runs/bench_gym_memory``:
@@ -157,7 +157,7 @@ def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, networ
     for a discrete task) with episode statistics (``compile``: with ``torch.compile``'s minibatch loss, the
     ``freeform-compile`` rows). ``network``: "mlp" (``MLPActorCritic``), "lstm" (``RecurrentActorCritic``, the
     ``freeform-lstm`` rows), "lstm-sb3" (the same with SB3-contrib's value loss, unclipped, and its time-limit
-    bootstrap: ``freeform-lstm-sb3``) or "privileged" (the critic sees the hidden entries: ``freeform-privileged``)."""
+    bootstrap, which the Box preset already has: ``freeform-lstm-sb3``) or "privileged" (the critic sees the hidden entries: ``freeform-privileged``)."""
     import gymnasium as gym
     import torch
 

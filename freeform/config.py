@@ -144,7 +144,7 @@ class ControlRunConfig(ControlConfig):
     (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
     Width: ``hidden``."""
     head: str = "direct"
-    """The controller's actor head (``freeform.agents.controllers.HEADS``): ``direct`` (each cell's mean command),
+    """The controller's actor head (``freeform.agents.controller_heads.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
     ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
     ``control.stroke_periods`` >= 1) or ``wave`` (a stroke whose mean is a travelling wave: the body's wave vector,

@@ -335,17 +335,20 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
 
 @pytest.mark.parametrize("residual", [True, False])
 @pytest.mark.parametrize("kind", WAVE_KINDS)
-def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual):
+def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual, tmp_path):
     """Truth: what the stroke env plays, (1 + a)·sin θ + b·cos θ under residual control (a·sin θ + b·cos θ without),
     θ = 2π(t/T + φ) each voxel's own phase (φ its material's, read from the sim's materials), equals
-    sin(2πt/T − k·x) at every t for the untrained head (its per-cell outputs and its wave vector's weights 0): k =
-    (wave_k, 0, 0) from the config, then a wave vector along y set through its bias. Padding changes nothing with the
-    head's random weights; the attention controller and a period env are refused."""
+    (1 + α)·sin(2πt/T − k·x − ψ) + ca·sin θ + cb·cos θ at every t for the head whose per-cell outputs are the
+    constants (α, ψ, ca, cb): first the untrained wave (all 0, k = (wave_k, 0, 0) from the config), then a wave
+    vector along y set through its layer's bias with every per-cell term set. Padding changes nothing with the wave
+    vector's weights scaled up (a leak into the pooled features would move k); a controller.pt gives the same
+    means; the attention controller and a period env are refused."""
     small, large = (replace_control(env, stroke_periods=2, residual=residual) for env in two_boxes())
     obs_small, obs_large = small.reset(), large.reset()
     torch.manual_seed(0)
     net = build_controller(kind, large, hidden=8, head="wave", wave_k=0.8)
     with torch.no_grad():
+        net.wave_k.weight.mul_(100.0)
         mean_large, _, mask, _ = run(net, obs_large)
         alone = run(net, obs_small)[0]
     cells = math.prod(large.box)
@@ -354,20 +357,25 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
     ends = small.box
     torch.testing.assert_close(torch.cat([a[: ends[0], : ends[1], : ends[2]].reshape(-1),
                                           b[: ends[0], : ends[1], : ends[2]].reshape(-1)]), alone[0])
+    save_controller(tmp_path / "controller.pt", net, large.control, large.sim_config)
+    with torch.no_grad():
+        torch.testing.assert_close(run(read_controller(tmp_path).controller, obs_large)[0], mean_large)
     grids = large.grids
     phases = np.array([0.0] + [m.phase for m in large.sim_config.materials])
     filled = obs_large[:, large.filled_channel].bool()
     channel = {c: i for i, c in enumerate(large.channels)}
-    for k, bias in ((0.8, (0.0, 0.0, 0.0)), (0.0, (0.0, 0.7, 0.0))):
+    for k, bias, (alpha, psi, ca, cb) in (((0.8, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)),
+                                          ((0.0, 0.0, 0.0), (0.0, 0.7, 0.0), (0.3, -0.9, 0.2, -0.15))):
         with torch.no_grad():
             net.actor.weight.zero_()
-            net.actor.bias.zero_()
+            net.actor.bias.copy_(torch.tensor([alpha, psi, ca, cb]))
             net.wave_k.weight.zero_()
             net.wave_k.bias.copy_(torch.tensor(bias))
-            net.wave["k"] = k
+            net.wave_k0.copy_(torch.tensor(k))
             mean = run(net, obs_large)[0].double()
         a, b = mean[:, :cells].view(-1, *large.box), mean[:, cells:].view(-1, *large.box)
-        place = k * obs_large[:, channel["rel_x"]].double() + bias[1] * obs_large[:, channel["rel_y"]].double()
+        place = (k[0] + bias[0]) * obs_large[:, channel["rel_x"]].double() + \
+            bias[1] * obs_large[:, channel["rel_y"]].double()
         for n in range(2):
             cell = large.origin[n]
             for i, j, m in filled[n].nonzero().tolist():
@@ -376,9 +384,12 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
                     theta = 2 * math.pi * (t_over_T + phi)
                     played = (1.0 if residual else 0.0) * math.sin(theta) + a[n, i, j, m] * math.sin(theta) + \
                         b[n, i, j, m] * math.cos(theta)
-                    assert abs(float(played) - math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]))) < 1e-5
+                    wave = (1 + alpha) * math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]) - psi)
+                    assert abs(float(played) - (wave + ca * math.sin(theta) + cb * math.cos(theta))) < 1e-5
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):
         build_controller("attention", large, hidden=8, head="wave")
+    with pytest.raises(ValueError, match="head='wave' is for the controllers"):
+        build_controller("conv", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="head=stroke or wave needs"):
         build_controller(kind, two_boxes()[1], hidden=8, head="wave")
 

@@ -108,15 +108,16 @@ def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
                 residual=bool(env.control.residual), k=float(wave_k))
 
 
-def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any]) -> torch.Tensor:
+def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any],
+                  phases: torch.Tensor) -> torch.Tensor:
     """A ``wave`` head's strokes ``[N, 2, *box]`` (a, b) from its per-cell outputs ``out [N, 4, *box]`` (amplitude
-    change α, phase offset ψ, correction (ca, cb)), the body's wave vector ``k [N, 3]`` and ``obs``.
+    change α, phase offset ψ, correction (ca, cb)), the body's wave vector ``k [N, 3]``, ``obs`` and each material
+    index's phase ``phases`` (cycles, index 0 empty).
 
     The stroke env plays a·sin θ + b·cos θ, θ = 2π(t/T + φ) a voxel's own phase (φ its material's), added under
     residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (A = 1 + α; x its
     place relative to the centre of mass), write 2πt/T − δ' = θ − δ, δ = 2πφ + δ': then (1 + a) = A cos δ and
     b = −A sin δ under residual control (1 + a → a without), plus the corrections."""
-    phases = torch.tensor(wave["phases"], dtype=obs.dtype, device=obs.device)
     index = torch.round(obs[:, wave["material_channel"]] * (len(phases) - 1)).long().clamp(0, len(phases) - 1)
     place = (k[:, :, None, None, None] * obs[:, list(wave["pos_channels"])]).sum(1)
     delta = 2 * math.pi * phases[index] + place + out[:, 1]
@@ -151,7 +152,9 @@ def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel
     """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
     channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
     body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
-    wave's initial k along x). Returns the actor head's outputs per cell."""
+    wave's initial k along x, ``net.wave_k0``) and the materials' phases (``net.wave_phases``; both buffers, out of
+    the state dict, made once so that a forward pass copies nothing to the device: a CUDA graph can capture it).
+    Returns the actor head's outputs per cell."""
     box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
     for name, value in sizes.items():
         if not isinstance(value, int) or value < 1:
@@ -165,6 +168,8 @@ def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel
         net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
         nn.init.normal_(net.wave_k.weight, std=0.01)
         nn.init.zeros_(net.wave_k.bias)
+        net.register_buffer("wave_k0", torch.tensor([net.wave["k"], 0.0, 0.0]), persistent=False)
+        net.register_buffer("wave_phases", torch.tensor(net.wave["phases"]), persistent=False)
     net.box, net.mask_channel, net.filled_channel, net.head = box, mask_channel, filled_channel, head
     net.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
     return outputs
@@ -178,7 +183,6 @@ def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torc
     if net.clock is not None:
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
     if net.wave is not None:
-        k = net.wave_k(_masked_pool(x, filled)) + torch.tensor([net.wave["k"], 0.0, 0.0], dtype=x.dtype,
-                                                               device=x.device)
-        out = _wave_strokes(out, k, obs, net.wave)
+        k = net.wave_k(_masked_pool(x, filled)) + net.wave_k0
+        out = _wave_strokes(out, k, obs, net.wave, net.wave_phases)
     return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)

@@ -1,12 +1,11 @@
-"""Controllers for the control env (:class:`freeform.envs.control.ControlEnv`), a registry of them by kind, and the
-self-contained ``controller.pt`` file.
+"""Controllers for the control env (:class:`freeform.envs.control.ControlEnv`) and a registry of them by kind.
 
 Every controller reads observations ``[N, C, Bx, By, Bz]`` (the env's box; ``filled_channel`` marks the body's
 cells, ``mask_channel`` the cells whose command acts) and returns a ``MaskedDiagGaussian``'s parameters and the
 critic's value: ``(mean [N, A], log_std [N, A], mask [N, A], value [N])``, A = Bx·By·Bz, C order; the mask is read
 from the observation. Each keeps its constructor's arguments in ``init_kwargs`` and has ``for_env(env, hidden,
 log_std)``; the actor's head starts near 0 (an untrained controller leaves a body near rest, or on its open-loop
-gait under residual control) and σ is one learned number.
+gait under residual control; a ``wave`` head plays its hand-set travelling wave) and σ is one learned number.
 
 =============  ==============================  =====================  ==========================================
 kind           class                           one set of weights     padding changes nothing
@@ -157,8 +156,10 @@ class ContextConvController(nn.Module):
     with pool(x) ``[N, 2h]`` the mean and max of x over the filled cells, broadcast to every cell. Multiplying by f
     after every layer keeps the padding's features 0 (a bias never leaks into it), so a body in a larger box sees
     the zeros it would see at its own box's edge: the same commands. Actor: Conv3d(h→1, 1³) · f, each cell's mean
-    command (weights N(0, 0.01²), bias 0; ``head="rhythm"``: Conv3d(h→3, 1³), the cell's rhythm, :data:`HEADS`); one
-    learned log σ. Critic: pool(x) → Linear(2h→h) → tanh → Linear(h→1).
+    command (weights N(0, 0.01²), bias 0; the other heads of ``controller_heads.HEADS``: Conv3d(h→3, 1³), the cell's
+    rhythm; Conv3d(h→2, 1³), a stroke's (a, b); Conv3d(h→4, 1³), a wave's amplitude, phase and correction, with the
+    body's wave vector Linear(2h→3)(pool(x)) added to ``wave_k`` along x); one learned log σ. Critic: pool(x) →
+    Linear(2h→h) → tanh → Linear(h→1).
 
     One block (the default) is ConvController's two 3³ convolutions plus the body's context, at about its cost on
     the CPU (``python -m benchmarks controllers``); each further block adds a 3³ convolution and a round of context.
@@ -217,7 +218,8 @@ class RecurrentContextController(nn.Module):
         m_t = GRU(pool(x), m_{t−1})                                     (M wide: ``memory``)
         x = ReLU(Conv3d(h→h, 3³)(x) + Linear(2h+M→h)([pool(x), m_t])) · f
 
-    then ContextConvController's heads (``direct``, ``rhythm``, ``stroke``), the critic on ``[pool(x), m_t]``.
+    then ContextConvController's heads (``direct``, ``rhythm``, ``stroke``, ``wave``), the critic on
+    ``[pool(x), m_t]``.
     Padding changes nothing, as there. The convolutions run on all T·N observations at once; only the GRU steps.
     """
 
@@ -316,7 +318,7 @@ class VoxelAttentionController(nn.Module):
     features are its cell's observation, whose ``rel_x/y/z`` channels place it relative to the centre of mass (its
     position: the network has no other). Embedding: Linear(C→h) → ReLU → Linear(h→h); ``layers`` pre-norm
     transformer blocks of ``heads`` heads (:class:`_AttentionBlock`); LayerNorm. Actor: Linear(h→1) per token (weights
-    N(0, 0.01²), bias 0; ``head="rhythm"``: Linear(h→3), the token's rhythm, :data:`HEADS`), scattered back to its
+    N(0, 0.01²), bias 0; ``head="rhythm"``: Linear(h→3), the token's rhythm, ``controller_heads.HEADS``), scattered back to its
     cell (0 elsewhere); one learned log σ. Critic: the mean of the valid
     tokens → Linear(h→h) → tanh → Linear(h→1). Gathering and scattering are tensor ops (no loop over bodies).
     """
@@ -460,7 +462,7 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
                      head: str = "direct", wave_k: float = 1.0) -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
-    ``head`` (:data:`HEADS`; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`RHYTHM_KINDS`;
+    ``head`` (``controller_heads.HEADS``; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`RHYTHM_KINDS`;
     ``wave`` for :data:`WAVE_KINDS`, starting from the wave number ``wave_k`` along x).
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
@@ -479,10 +481,10 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     _head_outputs(head)
-    if head != "direct" and kind not in RHYTHM_KINDS:
-        raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
     if head == "wave" and kind not in WAVE_KINDS:
         raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not {kind!r}")
+    if head != "direct" and kind not in RHYTHM_KINDS:
+        raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
     strokes = getattr(env, "action_channels", 1) == 2
     if strokes != (head in STROKE_HEADS):
         raise ValueError(f"head={head!r} for an env whose actions are " + ("strokes (control.stroke_periods >= 1): "
