@@ -130,3 +130,30 @@ def test_a_recurrent_controller_without_memory_evaluates_as_its_feed_forward_twi
                                for r in read_csv(tmp_path / f"eval_{name}" / "bodies.csv")])
     np.testing.assert_allclose(rows["gru"], rows["twin"], rtol=1e-5, atol=1e-7)
     assert np.abs(rows["gru_memory"] - rows["twin"]).max() > 1e-4
+
+
+def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
+    """Truth: numpy on the same per-body values, pooled over the three sets: the means, the paired difference's
+    99 % band (2.5758 · sd / √n), the ratio to the open loop and the count of bodies beyond their gait; a results
+    folder missing a set's table for a seed leaves that seed out."""
+    from experiments import control_population as cp
+
+    rng = np.random.default_rng(0)
+    pooled = []
+    for name, n in zip(cp.SETS, (3, 4, 2), strict=True):
+        values = rng.uniform(0.0, 1.0, size=(n, len(cp.COLUMNS)))
+        pooled.append(values)
+        with open(tmp_path / f"seed0_{name}_bodies.csv", "w") as f:
+            f.write("body," + ",".join(cp.COLUMNS) + "\n")
+            f.writelines(f"{i}," + ",".join(str(v) for v in row) + "\n" for i, row in enumerate(values))
+    (tmp_path / "seed1_grown_bodies.csv").write_text((tmp_path / "seed0_grown_bodies.csv").read_text())
+    assert cp.seeds_in(tmp_path) == [0]
+    row = cp.all_sets_row(tmp_path, 0)
+    v = {c: np.concatenate(pooled)[:, i] for i, c in enumerate(cp.COLUMNS)}
+    assert row["bodies"] == 9
+    np.testing.assert_allclose(row["mean_command"], v["mean_command"].mean())
+    diff = v["mean_command"] - v["untrained_mean_command"]
+    np.testing.assert_allclose(row["mean_command_minus_untrained_mean_command_band99"],
+                               2.5758 * diff.std(ddof=1) / 3.0, rtol=1e-3)
+    np.testing.assert_allclose(row["mean_command_over_open_loop"], v["mean_command"].mean() / v["open_loop"].mean())
+    assert row["beyond_own_gait"] == int((v["mean_command"] > v["open_loop"]).sum())

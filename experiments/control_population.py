@@ -1,0 +1,116 @@
+"""The population controller's results across seeds and held-out sets, in one table and one figure (issue 42;
+``docs/control.md``, "A travelling-wave head").
+
+Reads what ``python -m experiments.control --evaluate RUN --bodies SET.npy`` wrote for each training seed and set,
+kept as ``RESULTS/seed<S>_<SET>_bodies.csv``, and each seed's training curve ``RESULTS/seed<S>.curve.csv``
+(``epoch, reward_mean``), and writes:
+
+* ``RESULTS/all_sets.csv``: per seed, over every held-out body of every set together, the means with 99 % bands
+  across bodies (open loop, the controller stochastic and its mean command, the untrained controller stochastic and
+  its mean command), the three paired differences per body, the ratio of the mean command's mean to the open
+  loop's, and how many bodies the mean command moves beyond their own gait;
+* ``RESULTS/control_population.png``: the training return per epoch of each seed, and per set the open-loop gaits,
+  the untrained controller's mean command and the trained one's, with their 99 % bands.
+
+    python -m experiments.control_population --results docs/results/control_population
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import re
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import mean_band
+
+SETS = ("design_unseen", "grown", "hand_built")
+COLUMNS = ("open_loop", "controller", "mean_command", "untrained", "untrained_mean_command")
+PAIRS = (("mean_command", "open_loop"), ("controller", "untrained"), ("mean_command", "untrained_mean_command"))
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def seeds_in(results: Path) -> list[int]:
+    """The seeds with a body table for every set (``seed<S>_<SET>_bodies.csv``), in order."""
+    found = {int(m.group(1)) for p in results.glob("seed*_bodies.csv") if (m := re.match(r"seed(\d+)_", p.name))}
+    return sorted(s for s in found if all((results / f"seed{s}_{name}_bodies.csv").is_file() for name in SETS))
+
+
+def all_sets_row(results: Path, seed: int) -> dict[str, object]:
+    """One seed's summary over the bodies of every set together (module docstring)."""
+    rows = [r for name in SETS for r in read_rows(results / f"seed{seed}_{name}_bodies.csv")]
+    value = {c: np.array([float(r[c]) for r in rows]) for c in COLUMNS}
+    out: dict[str, object] = {"seed": seed, "bodies": len(rows)}
+    for c in COLUMNS:
+        out[c], out[f"{c}_band99"] = mean_band(value[c])
+    for a, b in PAIRS:
+        out[f"{a}_minus_{b}"], out[f"{a}_minus_{b}_band99"] = mean_band(value[a] - value[b])
+    out["mean_command_over_open_loop"] = float(value["mean_command"].mean() / value["open_loop"].mean())
+    out["beyond_own_gait"] = int((value["mean_command"] > value["open_loop"]).sum())
+    return out
+
+
+def figure(results: Path, seeds: list[int], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (curve_ax, bar_ax) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [1, 1.3]})
+    for seed in seeds:
+        curve = results / f"seed{seed}.curve.csv"
+        if curve.is_file():
+            rows = read_rows(curve)
+            curve_ax.plot([int(r["epoch"]) for r in rows], [float(r["reward_mean"]) for r in rows], lw=1,
+                          label=f"seed {seed}")
+    curve_ax.set(xlabel="epoch", ylabel="training return (voxel lengths in 2 s)",
+                 title="training: the stream of bodies")
+    curve_ax.legend(fontsize=7)
+    # (the open-loop gaits and the untrained controller are the same for every seed: drawn once)
+    bars = [("open_loop", "own open-loop gait", "tab:grey", seeds[0], ""),
+            ("untrained_mean_command", "untrained (the hand-set wave)", "tab:orange", seeds[0], "")]
+    bars += [("mean_command", "trained, mean command", "tab:blue", seed, f", seed {seed}") for seed in seeds]
+    width = 0.8 / len(bars)
+    for b, (column, label, colour, seed, which) in enumerate(bars):
+        means, bands = zip(*(mean_band(np.array([float(r[column]) for r in read_rows(
+            results / f"seed{seed}_{name}_bodies.csv")])) for name in SETS), strict=True)
+        x = np.arange(len(SETS)) - 0.4 + width * (b + 0.5)
+        bar_ax.bar(x, means, width, yerr=bands, color=colour, alpha=1.0 - 0.3 * max(0, b - 2), capsize=2,
+                   label=label + which)
+    bar_ax.set_xticks(np.arange(len(SETS)), [f"{name}\n({len(read_rows(results / f'seed{seeds[0]}_{name}_bodies.csv'))} bodies)"
+                                             for name in SETS])
+    bar_ax.set(ylabel="distance in the plane in 2 s (voxel lengths)", title="zero-shot on held-out bodies (99 % bands)")
+    bar_ax.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--results", default="docs/results/control_population")
+    args = p.parse_args(argv)
+    results = Path(args.results)
+    seeds = seeds_in(results)
+    if not seeds:
+        raise SystemExit(f"{results}: no seed<S>_<SET>_bodies.csv for every set of {SETS}")
+    rows = [all_sets_row(results, seed) for seed in seeds]
+    with open(results / "all_sets.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    for row in rows:
+        print(f"seed {row['seed']}: mean command {row['mean_command']:.3f} against open loop {row['open_loop']:.3f} "
+              f"(x{row['mean_command_over_open_loop']:.2f}), {row['beyond_own_gait']} of {row['bodies']} beyond their "
+              f"gait; over the untrained mean command {row['mean_command_minus_untrained_mean_command']:+.3f} ± "
+              f"{row['mean_command_minus_untrained_mean_command_band99']:.3f}")
+    figure(results, seeds, results / "control_population.png")
+
+
+if __name__ == "__main__":
+    main()
