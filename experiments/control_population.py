@@ -24,16 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import mean_band
+from experiments.common import mean_band, pyplot, read_csv
 
 SETS = ("design_unseen", "grown", "hand_built")
 COLUMNS = ("open_loop", "controller", "mean_command", "untrained", "untrained_mean_command")
 PAIRS = (("mean_command", "open_loop"), ("controller", "untrained"), ("mean_command", "untrained_mean_command"))
 
 
-def read_rows(path: Path) -> list[dict[str, str]]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+def body_columns(results: Path, seed: int, name: str) -> dict[str, np.ndarray]:
+    """One seed's ``bodies.csv`` of set ``name``: its columns, numeric ones as float arrays."""
+    return read_csv(results / f"seed{seed}_{name}_bodies.csv")[1]
 
 
 def seeds_in(results: Path) -> list[int]:
@@ -44,9 +44,9 @@ def seeds_in(results: Path) -> list[int]:
 
 def all_sets_row(results: Path, seed: int) -> dict[str, object]:
     """One seed's summary over the bodies of every set together (module docstring)."""
-    rows = [r for name in SETS for r in read_rows(results / f"seed{seed}_{name}_bodies.csv")]
-    value = {c: np.array([float(r[c]) for r in rows]) for c in COLUMNS}
-    out: dict[str, object] = {"seed": seed, "bodies": len(rows)}
+    tables = [body_columns(results, seed, name) for name in SETS]
+    value = {c: np.concatenate([t[c] for t in tables]) for c in COLUMNS}
+    out: dict[str, object] = {"seed": seed, "bodies": len(value["open_loop"])}
     for c in COLUMNS:
         out[c], out[f"{c}_band99"] = mean_band(value[c])
     for a, b in PAIRS:
@@ -57,18 +57,13 @@ def all_sets_row(results: Path, seed: int) -> dict[str, object]:
 
 
 def figure(results: Path, seeds: list[int], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (curve_ax, bar_ax) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [1, 1.3]})
     for seed in seeds:
         curve = results / f"seed{seed}.curve.csv"
         if curve.is_file():
-            rows = read_rows(curve)
-            curve_ax.plot([int(r["epoch"]) for r in rows], [float(r["reward_mean"]) for r in rows], lw=1,
-                          label=f"seed {seed}")
+            columns = read_csv(curve)[1]
+            curve_ax.plot(columns["epoch"], columns["reward_mean"], lw=1, label=f"seed {seed}")
     curve_ax.set(xlabel="epoch", ylabel="training return (voxel lengths in 2 s)",
                  title="training: the stream of bodies")
     curve_ax.legend(fontsize=7)
@@ -78,12 +73,11 @@ def figure(results: Path, seeds: list[int], path: Path) -> None:
     bars += [("mean_command", "trained, mean command", "tab:blue", seed, f", seed {seed}") for seed in seeds]
     width = 0.8 / len(bars)
     for b, (column, label, colour, seed, which) in enumerate(bars):
-        means, bands = zip(*(mean_band(np.array([float(r[column]) for r in read_rows(
-            results / f"seed{seed}_{name}_bodies.csv")])) for name in SETS), strict=True)
+        means, bands = zip(*(mean_band(body_columns(results, seed, name)[column]) for name in SETS), strict=True)
         x = np.arange(len(SETS)) - 0.4 + width * (b + 0.5)
         bar_ax.bar(x, means, width, yerr=bands, color=colour, alpha=1.0 - 0.3 * max(0, b - 2), capsize=2,
                    label=label + which)
-    bar_ax.set_xticks(np.arange(len(SETS)), [f"{name}\n({len(read_rows(results / f'seed{seeds[0]}_{name}_bodies.csv'))} bodies)"
+    bar_ax.set_xticks(np.arange(len(SETS)), [f"{name}\n({len(body_columns(results, seeds[0], name)['body'])} bodies)"
                                              for name in SETS])
     bar_ax.set(ylabel="distance in the plane in 2 s (voxel lengths)", title="zero-shot on held-out bodies (99 % bands)")
     bar_ax.legend(fontsize=6, ncol=2)
