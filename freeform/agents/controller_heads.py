@@ -102,9 +102,8 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
 def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
     if head != "wave":
         return None
-    materials = env.sim_config.materials
     return dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
-                material_channel=env.channels.index("material"), phases=(0.0, *(m.phase for m in materials)),
+                material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
                 residual=bool(env.control.residual), k=float(wave_k))
 
 

@@ -244,7 +244,9 @@ class ControlEnv:
         self._rest = lattice - centre[robot]  # each voxel's rest offset from its body's centre (voxel lengths)
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
         self._actuated = actuated.astype(np.float64)
-        self._phase = np.array([0.0] + [m.phase for m in self.sim_config.materials])[lay.material]  # cycles
+        self.material_phases = (0.0, *(m.phase for m in self.sim_config.materials))
+        """Each material index's open-loop phase in cycles (index 0: empty), as the simulator plays it."""
+        self._phase = np.array(self.material_phases)[lay.material]  # cycles
         self._open_loop = np.zeros(lay.num_voxels)  # the sine mid-way through the coming period (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
