@@ -151,8 +151,9 @@ class ControlRunConfig(ControlConfig):
     each cell's amplitude and phase offset, and a free correction; ``controller=context`` or ``context_gru``, with
     ``control.stroke_periods`` >= 1)."""
     wave_k: float = 1.0
-    """``head=wave``: the wave number the untrained controller plays along x (rad per voxel length): every voxel
-    receives sin(2πt/T − wave_k·x), x its place along x from the centre of mass; 0: every voxel in one phase."""
+    """``head=wave``: the wave number the untrained controller plays along x, or along the heading where the task
+    has one (rad per voxel length): every voxel receives sin(2πt/T − wave_k·x), x its place along that direction
+    from the centre of mass; 0: every voxel in one phase."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None

@@ -333,17 +333,20 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
         build_controller(kind, two_boxes()[1], hidden=8, head="stroke")
 
 
-@pytest.mark.parametrize("residual", [True, False])
+@pytest.mark.parametrize(("residual", "headings"), [(True, "fixed"), (False, "fixed"), (True, "random")])
 @pytest.mark.parametrize("kind", WAVE_KINDS)
-def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual, tmp_path):
+def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual, headings, tmp_path):
     """Truth: what the stroke env plays, (1 + a)·sin θ + b·cos θ under residual control (a·sin θ + b·cos θ without),
     θ = 2π(t/T + φ) each voxel's own phase (φ its material's, read from the sim's materials), equals
     (1 + α)·sin(2πt/T − k·x − ψ) + ca·sin θ + cb·cos θ at every t for the head whose per-cell outputs are the
     constants (α, ψ, ca, cb): first the untrained wave (all 0, k = (wave_k, 0, 0) from the config), then a wave
-    vector along y set through its layer's bias with every per-cell term set. Padding changes nothing with the wave
-    vector's weights scaled up (a leak into the pooled features would move k); a controller.pt gives the same
-    means; the attention controller and a period env are refused."""
-    small, large = (replace_control(env, stroke_periods=2, residual=residual) for env in two_boxes())
+    vector along y set through its layer's bias with every per-cell term set. With random headings both vectors are
+    in the heading's frame: the world's k is turned by each body's heading (x along it), so the wave travels where
+    the body is sent. Padding changes nothing with the wave vector's weights scaled up (a leak into the pooled
+    features would move k); a controller.pt gives the same means; the attention controller and a period env are
+    refused."""
+    small, large = (replace_control(env, stroke_periods=2, residual=residual, headings=headings)
+                    for env in two_boxes())
     obs_small, obs_large = small.reset(), large.reset()
     torch.manual_seed(0)
     net = build_controller(kind, large, hidden=8, head="wave", wave_k=0.8)
@@ -374,8 +377,11 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
             net.wave_k0.copy_(torch.tensor(k))
             mean = run(net, obs_large)[0].double()
         a, b = mean[:, :cells].view(-1, *large.box), mean[:, cells:].view(-1, *large.box)
-        place = (k[0] + bias[0]) * obs_large[:, channel["rel_x"]].double() + \
-            bias[1] * obs_large[:, channel["rel_y"]].double()
+        heading = torch.from_numpy(large.heading)[:, None, None, None]
+        assert headings == "fixed" or heading.abs().min() > 0.1  # (a turn the test can see)
+        along, across = k[0] + bias[0], bias[1]  # (the heading's frame)
+        place = (along * torch.cos(heading) - across * torch.sin(heading)) * obs_large[:, channel["rel_x"]].double() + \
+            (along * torch.sin(heading) + across * torch.cos(heading)) * obs_large[:, channel["rel_y"]].double()
         for n in range(2):
             cell = large.origin[n]
             for i, j, m in filled[n].nonzero().tolist():

@@ -49,7 +49,8 @@ state instead of products of them with the clock. ``stroke`` — two numbers (a,
 whose actions are strokes (``ControlConfig.stroke_periods``: the env plays a·sin + b·cos of each voxel's own phase
 over several periods); the mean is ``[N, 2·cells]``, every a then every b, the mask repeated. ``wave`` — a stroke
 whose mean is a travelling wave (:func:`_wave_strokes`): the body's wave vector k (from its pooled features, starting
-at ``wave_k`` along x), each cell's amplitude and phase offset, and a free (a, b) correction; a voxel at x relative
+at ``wave_k`` along x, or along the heading where the env has one: :func:`_wave_vector`), each cell's amplitude and
+phase offset, and a free (a, b) correction; a voxel at x relative
 to the centre of mass then receives A·sin(2πt/T − k·x − ψ), the rule that moves bodies of every kind
 (``docs/control.md``) with the wave's direction, length and shape learnt per body."""
 
@@ -82,9 +83,9 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     if head != "wave":
         return None
     keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
-    if not isinstance(wave, dict) or set(wave) != keys:
-        raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} (build_controller fills it "
-                         f"from the env), got {wave!r}")
+    if not isinstance(wave, dict) or not keys <= set(wave) <= keys | {"heading_channels"}:
+        raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} and optionally "
+                         f"heading_channels (build_controller fills it from the env), got {wave!r}")
     pos = tuple(int(c) for c in wave["pos_channels"])
     if len(pos) != 3:
         raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
@@ -95,16 +96,40 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
         raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
     if not math.isfinite(float(wave["k"])):
         raise ValueError(f"wave k (rad per voxel length) must be finite, got {wave['k']!r}")
-    return dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
-                residual=bool(wave["residual"]), k=float(wave["k"]))
+    setup = dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
+                 residual=bool(wave["residual"]), k=float(wave["k"]))
+    if wave.get("heading_channels") is not None:  # (a file from before steering has no key: its wave stays along x)
+        heading = tuple(int(c) for c in wave["heading_channels"])
+        if len(heading) != 2:
+            raise ValueError(f"wave heading_channels must be the 2 channels heading_cos, heading_sin, got "
+                             f"{wave['heading_channels']!r}")
+        _check_control_input(channels, (1, 1, 1), heading_cos=heading[0], heading_sin=heading[1])
+        setup["heading_channels"] = heading
+    return setup
 
 
 def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
     if head != "wave":
         return None
-    return dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
+    wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
                 material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
                 residual=bool(env.control.residual), k=float(wave_k))
+    if env.control.headings != "any":  # (a heading to follow: the wave's frame turns with it)
+        wave["heading_channels"] = (env.channels.index("heading_cos"), env.channels.index("heading_sin"))
+    return wave
+
+
+def _wave_vector(k: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, wave: dict[str, Any]) -> torch.Tensor:
+    """The body's wave vector ``[N, 3]`` in the world's frame from ``k [N, 3]`` in the heading's frame (x along
+    the heading; the identity without ``heading_channels``): turned about z by the heading the observation carries
+    (every filled cell holds its cos and sin; their mean over the body). A body's learnt wave then follows any
+    heading, and the untrained wave travels along it — the direction in which the hand-set wave moves bodies of
+    every kind (``docs/control.md``, "Steering")."""
+    if "heading_channels" not in wave:
+        return k
+    count = filled.sum((1, 2, 3, 4)).clamp_min(1.0)
+    c, s = ((obs[:, i] * filled[:, 0]).sum((1, 2, 3)) / count for i in wave["heading_channels"])
+    return torch.stack([c * k[:, 0] - s * k[:, 1], s * k[:, 0] + c * k[:, 1], k[:, 2]], 1)
 
 
 def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: dict[str, Any],
@@ -182,6 +207,6 @@ def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torc
     if net.clock is not None:
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
     if net.wave is not None:
-        k = net.wave_k(_masked_pool(x, filled)) + net.wave_k0
+        k = _wave_vector(net.wave_k(_masked_pool(x, filled)) + net.wave_k0, obs, filled, net.wave)
         out = _wave_strokes(out, k, obs, net.wave, net.wave_phases)
     return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)
