@@ -25,7 +25,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from freeform.agents.controller_heads import RHYTHM_KINDS, STROKE_HEADS, WAVE_KINDS
+from freeform.agents.controller_heads import head_rule
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
@@ -181,13 +181,8 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
-        require(self.head == "direct" or (self.head in ("rhythm", "stroke") and self.controller in RHYTHM_KINDS)
-                or (self.head == "wave" and self.controller in WAVE_KINDS), f"{key}.head",
-                f"direct, rhythm or stroke with controller in {list(RHYTHM_KINDS)}, or wave with controller in "
-                f"{list(WAVE_KINDS)}", self.head)
-        require((self.head in STROKE_HEADS) == (self.stroke_periods >= 1), f"{key}.head",
-                f"one of {list(STROKE_HEADS)} exactly when control.stroke_periods >= 1 (the env's actions are then "
-                "strokes)", self.head)
+        allowed = head_rule(self.controller, self.head, strokes=self.stroke_periods >= 1)
+        require(allowed is None, f"{key}.head", allowed, self.head)
         require(math.isfinite(self.wave_k), f"{key}.wave_k", "a finite wave number (rad per voxel length)", self.wave_k)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)

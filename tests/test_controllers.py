@@ -327,9 +327,9 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
     ends = small.box
     torch.testing.assert_close(torch.cat([a[: ends[0], : ends[1], : ends[2]].reshape(-1),
                                           b[: ends[0], : ends[1], : ends[2]].reshape(-1)]), alone[0])
-    with pytest.raises(ValueError, match="actions are strokes"):
+    with pytest.raises(ValueError, match=r"head must be one of \['stroke', 'wave'\] exactly when control.stroke_periods >= 1"):
         build_controller(kind, large, hidden=8)
-    with pytest.raises(ValueError, match="head=stroke or wave needs control.stroke_periods"):
+    with pytest.raises(ValueError, match="exactly when control.stroke_periods >= 1"):
         build_controller(kind, two_boxes()[1], hidden=8, head="stroke")
 
 
@@ -396,7 +396,7 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
         build_controller("attention", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):
         build_controller("conv", large, hidden=8, head="wave")
-    with pytest.raises(ValueError, match="head=stroke or wave needs"):
+    with pytest.raises(ValueError, match="exactly when control.stroke_periods >= 1"):
         build_controller(kind, two_boxes()[1], hidden=8, head="wave")
 
 

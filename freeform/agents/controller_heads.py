@@ -30,6 +30,9 @@ def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tup
 RHYTHM_KINDS = ("context", "attention", "context_gru")
 """The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
+WAVE_KINDS = ("context", "context_gru")
+"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
+
 
 def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
     """Features ``x [N, h, Bx, By, Bz]`` (≥ 0, zero outside the body) pooled over the body's cells (``filled
@@ -58,6 +61,22 @@ STROKE_HEADS = ("stroke", "wave")
 """The heads whose actions are strokes (``ControlConfig.stroke_periods`` >= 1): two numbers a cell."""
 
 
+def head_rule(kind: str, head: str, strokes: bool) -> str | None:
+    """The one rule for an actor head, checked by the config and by ``build_controller``: what ``head`` must be
+    for a ``kind`` controller on an env whose actions are strokes (``strokes``: ``stroke_periods >= 1``) or not, as
+    the ``allowed`` of ``<key> must be <allowed>, got <head>``; None where ``head`` is allowed."""
+    if head not in HEADS:
+        return f"one of {list(HEADS)}"
+    if head == "wave" and kind not in WAVE_KINDS:
+        return f"not 'wave' for controller {kind!r} (head='wave' is for the controllers {list(WAVE_KINDS)})"
+    if head != "direct" and kind not in RHYTHM_KINDS:
+        return f"'direct' for controller {kind!r} (head={head!r} is for the controllers {list(RHYTHM_KINDS)})"
+    if strokes != (head in STROKE_HEADS):
+        return (f"one of {list(STROKE_HEADS)} exactly when control.stroke_periods >= 1 (the env's actions are then "
+                "strokes)")
+    return None
+
+
 def _head_outputs(head: str) -> int:
     if head not in HEADS:
         raise ValueError(f"head must be one of {HEADS}, got {head!r}")
@@ -69,10 +88,6 @@ def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[to
     → (the mean ``[N, c·cells]``, the mask ``[N, c·cells]``)."""
     n = out.shape[0]
     return out.reshape(n, -1), (mask.repeat(1, 2) if head in STROKE_HEADS else mask)
-
-
-WAVE_KINDS = ("context", "context_gru")
-"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
 
 
 def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:

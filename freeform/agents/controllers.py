@@ -35,7 +35,6 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from freeform.agents.controller_heads import (
-    RHYTHM_KINDS,
     STROKE_HEADS,
     WAVE_KINDS,
     _body_controller_setup,
@@ -48,6 +47,7 @@ from freeform.agents.controller_heads import (
     _masked_pool,
     _per_cell_mean,
     _rhythm,
+    head_rule,
 )
 from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.agents.recurrent import RecurrentPolicy, run_rnn
@@ -462,7 +462,7 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
                      head: str = "direct", wave_k: float = 1.0) -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
-    ``head`` (``controller_heads.HEADS``; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`RHYTHM_KINDS`;
+    ``head`` (``controller_heads.HEADS``; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`~freeform.agents.controller_heads.RHYTHM_KINDS`;
     ``wave`` for :data:`WAVE_KINDS`, starting from the wave number ``wave_k`` along x).
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
@@ -480,16 +480,9 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
         return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
-    _head_outputs(head)
-    if head == "wave" and kind not in WAVE_KINDS:
-        raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not {kind!r}")
-    if head != "direct" and kind not in RHYTHM_KINDS:
-        raise ValueError(f"head={head!r} is for the controllers {list(RHYTHM_KINDS)}, not {kind!r}")
-    strokes = getattr(env, "action_channels", 1) == 2
-    if strokes != (head in STROKE_HEADS):
-        raise ValueError(f"head={head!r} for an env whose actions are " + ("strokes (control.stroke_periods >= 1): "
-                         f"use a head of {list(STROKE_HEADS)}" if strokes else "one command per cell: head=stroke "
-                         "or wave needs control.stroke_periods >= 1"))
+    allowed = head_rule(kind, head, strokes=getattr(env, "action_channels", 1) == 2)
+    if allowed is not None:
+        raise ValueError(f"head must be {allowed}, got {head!r}")
     width = {} if hidden is None else {"hidden": hidden}
     options = {} if head == "direct" else {"head": head}
     if head == "wave":
