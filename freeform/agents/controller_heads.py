@@ -214,14 +214,15 @@ def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel
     return outputs
 
 
-def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor
+def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]``: (mean, mask) ``[N, A]``
-    (a rhythm head played on the observation's clock, a wave head's strokes; zero outside the body)."""
+    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]`` (``pooled`` =
+    ``_masked_pool(x, filled)``, which the critic reads too): (mean, mask) ``[N, A]`` (a rhythm head played on the
+    observation's clock, a wave head's strokes; zero outside the body)."""
     out = net.actor(x)
     if net.clock is not None:
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
     if net.wave is not None:
-        k = _wave_vector(net.wave_k(_masked_pool(x, filled)) + net.wave_k0, obs, filled, net.wave)
+        k = _wave_vector(net.wave_k(pooled) + net.wave_k0, obs, filled, net.wave)
         out = _wave_strokes(out, k, obs, net.wave, net.wave_phases)
     return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)

@@ -198,8 +198,9 @@ class ContextConvController(nn.Module):
         x = F.relu(self.conv_in(obs)) * filled
         for conv, context in zip(self.convs, self.contexts, strict=True):
             x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
-        mean, mask = _cell_means(self, x, obs, filled)
-        value = self.critic_out(torch.tanh(self.critic_fc(_masked_pool(x, filled)))).squeeze(-1)
+        pooled = _masked_pool(x, filled)
+        mean, mask = _cell_means(self, x, obs, filled, pooled)
+        value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 
 
@@ -269,8 +270,9 @@ class RecurrentContextController(nn.Module):
         pooled = _masked_pool(x, filled)
         m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
         x = F.relu(self.conv(x) + self.context(torch.cat([pooled, m.flatten(0, 1)], 1))[:, :, None, None, None]) * filled
-        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, x, o, filled))
-        summary = torch.cat([_masked_pool(x, filled), m.flatten(0, 1)], 1)
+        body = _masked_pool(x, filled)
+        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, x, o, filled, body))
+        summary = torch.cat([body, m.flatten(0, 1)], 1)
         return (mean, self.log_std.expand_as(mean), mask), summary, state
 
     def action_params(self, obs: torch.Tensor, actor_state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
