@@ -49,7 +49,9 @@ base task, four runs each: ``freeform-lstm`` (``RecurrentActorCritic``, an LSTM 
 feed-forward policy, memoryless) and ``freeform-privileged`` (the feed-forward actor, its critic given the hidden
 entries as the ``"critic"`` observation group); asked for by name, ``freeform-lstm-sb3`` (``freeform-lstm`` with
 SB3-contrib's loss settings where the recipe's preset differs: no value clipping, and — on CartPole, whose
-``ppo.py`` preset ends an episode at its time limit — a time limit bootstrapped with V of the last observation) and ``freeform-lstm-unclipped`` (the value loss unclipped alone). Each row adds the **greedy return** (mean of 10 deterministic
+``ppo.py`` preset ends an episode at its time limit — a time limit bootstrapped with V of the last observation),
+``freeform-lstm-unclipped`` (the value loss unclipped alone) and ``freeform-lstm-bootstrap`` (the time-limit
+bootstrap alone). Each row adds the **greedy return** (mean of 10 deterministic
 episodes after training). Pendulum's rows take the ``box-memory`` recipe (8 envs × 256 steps, minibatches of 512:
 8 chunks of 64 steps), CartPole's the discrete one (a chunk is an env's 128-step rollout). Defaults: 300k steps,
 seeds 0-3, ``runs/bench_gym_memory``:
@@ -82,7 +84,7 @@ from freeform.files import write_atomically
 CLEANRL_COMMIT = "fe8d8a03c41a7ef5b523e2e354bd01c363e786bb"
 CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMIT}/cleanrl/{{script}}"
 FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl", "freeform-lstm", "sb3-lstm", "freeform-privileged",
-              "freeform-lstm-sb3", "freeform-lstm-unclipped")
+              "freeform-lstm-sb3", "freeform-lstm-unclipped", "freeform-lstm-bootstrap")
 MEMORY_FRAMEWORKS = ("freeform-lstm", "sb3-lstm", "freeform", "freeform-privileged")
 HIDDEN = {"CartPole-v1-hidden": ("CartPole-v1", (1, 3)), "Pendulum-v1-hidden": ("Pendulum-v1", (2,))}
 """The memory tasks: a Gymnasium task and the entries of its observation hidden from the policy."""
@@ -158,7 +160,7 @@ def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, networ
     ``freeform-compile`` rows). ``network``: "mlp" (``MLPActorCritic``), "lstm" (``RecurrentActorCritic``, the
     ``freeform-lstm`` rows), "lstm-sb3" (the same with SB3-contrib's value loss, unclipped, and its time-limit
     bootstrap, which the Box preset already has: ``freeform-lstm-sb3``), "lstm-unclipped" (the value loss
-    unclipped alone) or "privileged" (the critic sees the hidden entries: ``freeform-privileged``)."""
+    unclipped alone), "lstm-bootstrap" (the time-limit bootstrap alone) or "privileged" (the critic sees the hidden entries: ``freeform-privileged``)."""
     import gymnasium as gym
     import torch
 
@@ -174,9 +176,10 @@ def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, networ
     config = preset(seed=seed, rollout_steps=r.batch // r.envs, lr_anneal_epochs=max(1, steps // r.batch),
                     compile=compile, sgd_minibatch_size=r.minibatch, sequence_length=r.sequence)
     if network in ("lstm-sb3", "lstm-unclipped"):  # (a clip range no step reaches: the plain squared error)
-        config = dataclasses.replace(config, vf_clip_param=1e9,
-                                     bootstrap_truncated=network == "lstm-sb3" or config.bootstrap_truncated)
-    if network in ("lstm", "lstm-sb3", "lstm-unclipped"):
+        config = dataclasses.replace(config, vf_clip_param=1e9)
+    if network in ("lstm-sb3", "lstm-bootstrap"):
+        config = dataclasses.replace(config, bootstrap_truncated=True)
+    if network in ("lstm", "lstm-sb3", "lstm-unclipped", "lstm-bootstrap"):
         return PPO(env, RecurrentActorCritic.for_env(env), config)
     return PPO(env, MLPActorCritic.for_env(env), config)
 
@@ -456,7 +459,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--split-epochs", type=int, default=3, help="--split: updates of 2,048 steps per measurement")
     p.add_argument("--repeats", type=int, default=2, help="--split: alternations of the two frameworks")
     p.add_argument("--child", choices=("freeform", "freeform-compile", "sb3", "freeform-lstm", "sb3-lstm",
-                                       "freeform-privileged", "freeform-lstm-sb3", "freeform-lstm-unclipped"),
+                                       "freeform-privileged", "freeform-lstm-sb3", "freeform-lstm-unclipped",
+                                       "freeform-lstm-bootstrap"),
                    help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     memory = args.memory
@@ -486,7 +490,8 @@ def run(argv: list[str] | None = None) -> list[dict]:
             out = run_sb3_lstm(task, steps, seed)
         else:
             network = {"freeform-lstm": "lstm", "freeform-privileged": "privileged",
-                       "freeform-lstm-sb3": "lstm-sb3", "freeform-lstm-unclipped": "lstm-unclipped"}.get(args.child, "mlp")
+                       "freeform-lstm-sb3": "lstm-sb3", "freeform-lstm-unclipped": "lstm-unclipped",
+                       "freeform-lstm-bootstrap": "lstm-bootstrap"}.get(args.child, "mlp")
             out = run_freeform(task, steps, seed, compile=args.child == "freeform-compile", network=network)
         print(json.dumps(out))
         return []
