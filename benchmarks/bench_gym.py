@@ -60,6 +60,10 @@ seeds 0-3, ``runs/bench_gym_memory``:
     python -m benchmarks.bench_gym --memory --seeds 0 1 &        #  e.g. seeds 0 1 and 2 3, share the results file)
     python -m benchmarks.bench_gym --memory --steps 4096 --seeds 0   # a smoke run
 
+**Asymmetric** (``--memory --tasks Pendulum-v1-noisy --frameworks freeform freeform-privileged``): the policy's
+observation with Gaussian noise (``NOISY``: σ per entry), the privileged critic given the clean one — does a critic
+that knows the true state help a feed-forward actor that cannot? The base task's recipe, greedy returns as above.
+
 Needs ``pip install 'freeform[bench]'`` (MuJoCo, SB3, sb3-contrib, tyro).
 """
 
@@ -88,6 +92,10 @@ FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl", "freeform-lstm",
 MEMORY_FRAMEWORKS = ("freeform-lstm", "sb3-lstm", "freeform", "freeform-privileged")
 HIDDEN = {"CartPole-v1-hidden": ("CartPole-v1", (1, 3)), "Pendulum-v1-hidden": ("Pendulum-v1", (2,))}
 """The memory tasks: a Gymnasium task and the entries of its observation hidden from the policy."""
+NOISY = {"Pendulum-v1-noisy": ("Pendulum-v1", (0.2, 0.2, 1.0)),
+         "CartPole-v1-noisy": ("CartPole-v1", (0.1, 0.2, 0.02, 0.2))}
+"""The asymmetric tasks (``freeform.envs.partial.NoisyEntries``): a Gymnasium task and the σ of the Gaussian noise on
+each entry of the observation the policy sees; a ``freeform-privileged`` critic reads the clean observation."""
 GREEDY_EPISODES = 10
 LAST_EPISODES = 20
 
@@ -128,6 +136,8 @@ def recipe(task: str) -> Recipe:
 
 def base_task(task: str) -> tuple[str, tuple[int, ...]]:
     """(the Gymnasium task, the observation entries hidden from the policy) of a task name."""
+    if task in NOISY:
+        return NOISY[task][0], ()
     return HIDDEN.get(task, (task, ()))
 
 
@@ -136,6 +146,11 @@ def gym_vec(task: str, envs: int, critic: bool = False):
     import gymnasium as gym
 
     base, hidden = base_task(task)
+    if task in NOISY:
+        from freeform.envs.partial import NoisyEntries
+
+        return gym.vector.SyncVectorEnv([lambda: NoisyEntries(gym.make(base), NOISY[task][1], critic=critic)] * envs,
+                                        autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     if not hidden:
         return gym.make_vec(task, num_envs=envs, vectorization_mode="sync",
                             vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
@@ -194,7 +209,7 @@ def run_freeform(task: str, steps: int, seed: int, compile: bool = False, networ
             if "episode" in gym_info:
                 returns += [float(r) for r, ended in zip(gym_info["episode"]["r"], gym_info["_episode"], strict=True) if ended]
     out: dict = {"returns": returns}
-    if base_task(task)[1]:  # the memory rows: greedy episodes after training
+    if base_task(task)[1] or task in NOISY:  # the memory and asymmetric rows: greedy episodes after training
         from freeform.envs import from_gymnasium
 
         eval_env = from_gymnasium(gym_vec(task, 1, critic=network == "privileged"), seed=10_000 + seed,

@@ -13,6 +13,13 @@ kept as ``RESULTS/seed<S>_<SET>_bodies.csv``, and each seed's training curve ``R
   the untrained controller's mean command and the trained one's, with their 99 % bands.
 
     python -m experiments.control_population --results docs/results/control_population
+
+``--steer-waves``: instead, where the hand-set wave takes the held-out bodies when it travels along a heading, or at
+an angle to it — the untrained wave controller of the steering preset, its wave vector set to k·(cos o, sin o, 0) in
+the heading's frame (x along the heading), on every held-out body along random headings: the mean move along the
+heading per set, k and offset o (``RESULTS/steer_waves.csv``; ≈ 5 min on 2 cores):
+
+    python -m experiments.control_population --steer-waves --results docs/results/control_population_steering
 """
 
 from __future__ import annotations
@@ -85,11 +92,66 @@ def figure(results: Path, seeds: list[int], path: Path) -> None:
     fig.savefig(path, dpi=150)
 
 
+def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
+                offsets: tuple[float, ...] = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)) -> list[dict]:
+    """The rows of ``--steer-waves`` (module docstring): per k, offset and set of ``bodies/SET.npy``, the mean move
+    along the heading of the untrained wave controller's mean command, one episode a body, the same headings for
+    every offset (each body's episode 0 of seed 0)."""
+    import torch
+
+    from freeform.agents.controllers import build_controller, controller_step
+    from freeform.config import compose
+    from freeform.envs.control import ControlEnv
+
+    cfg = compose("experiment=control_population_steering_cpu")
+    control, sim = cfg.control.episode(), cfg.sim
+    sets = {name: np.load(bodies / f"{name}.npy") for name in SETS}
+    grids = np.concatenate([np.tile(g, (len(offsets), 1, 1, 1)) for g in sets.values()])
+    first = np.concatenate([np.tile(np.arange(len(g)), len(offsets)) for g in sets.values()])
+    env = ControlEnv(grids, sim=sim, control=control, seed=0, first_env=first)
+    rows = []
+    for k in ks:
+        net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave", wave_k=k).eval()
+        angle = torch.cat([torch.tensor(offsets, dtype=torch.float32).repeat_interleave(len(g)) for g in sets.values()])
+        with torch.no_grad():
+            net.wave_k.weight.zero_()  # (the wave vector is wave_k0 + bias: k along each body's offset)
+            net.wave_k.bias.zero_()
+        obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
+        k_frame = k * torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros_like(angle)], 1)
+        net.wave_k0 = k_frame  # ([N, 3]: one offset per environment)
+        for _ in range(control.steps):
+            with torch.no_grad():
+                outputs, _ = controller_step(net, obs, None)
+            obs, reward, _, _ = env.step(net.distribution.mode(outputs[:3]))
+            total += reward.double()
+        start = 0
+        for name, g in sets.items():
+            moves = total[start : start + len(offsets) * len(g)].numpy().reshape(len(offsets), len(g))
+            start += len(offsets) * len(g)
+            for offset, along in zip(offsets, moves, strict=True):
+                mean, band = mean_band(along)
+                rows.append({"set": name, "k": k, "offset_rad": round(float(offset), 4), "along_heading": float(mean),
+                             "band99": float(band), "bodies": len(g)})
+                print(rows[-1], flush=True)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--results", default="docs/results/control_population")
+    p.add_argument("--steer-waves", action="store_true",
+                   help="the hand-set wave along headings and at angles to them (steer_waves.csv; module docstring)")
+    p.add_argument("--bodies", default="docs/results/heldout_bodies", help="the held-out sets' folder")
     args = p.parse_args(argv)
     results = Path(args.results)
+    if args.steer_waves:
+        rows = steer_waves(Path(args.bodies))
+        results.mkdir(parents=True, exist_ok=True)
+        with open(results / "steer_waves.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        return
     seeds = seeds_in(results)
     if not seeds:
         raise SystemExit(f"{results}: no seed<S>_<SET>_bodies.csv for every set of {SETS}")

@@ -161,3 +161,39 @@ def test_the_exported_actor_takes_the_policy_group_alone(tmp_path: Any) -> None:
     obs = {"policy": torch.randn(16, 2), "critic": torch.randn(16, 2)}
     (actions,) = session.run(None, {"policy": obs["policy"].numpy()})
     np.testing.assert_array_equal(actions, ppo.act(obs, deterministic=True).numpy())
+
+
+def test_noisy_entries_give_the_policy_noise_of_the_stated_size_and_the_critic_the_clean_state() -> None:
+    """Truth: the wrapped CartPole's own observation (the critic's group, equal to an unwrapped env's of the same
+    seed and actions) and the noise's sample moments over 4,000 steps against the stated σ per entry (a 99.9 %
+    band for the mean and the standard deviation); the same seed gives the same noise; bad σ is refused."""
+    from freeform.envs.partial import NoisyEntries
+
+    std = np.array([0.1, 0.0, 0.02, 0.5], np.float32)
+    env, plain = NoisyEntries(gym.make("CartPole-v1"), std, critic=True), gym.make("CartPole-v1")
+    assert env.observation_space["policy"].shape == env.observation_space["critic"].shape == (4,)
+    obs, _ = env.reset(seed=3)
+    clean, _ = plain.reset(seed=3)
+    noise, again = [], NoisyEntries(gym.make("CartPole-v1"), std, critic=True)
+    first, _ = again.reset(seed=3)
+    assert np.array_equal(first["policy"], obs["policy"])
+    for t in range(4000):
+        np.testing.assert_array_equal(obs["critic"], clean)
+        noise.append(obs["policy"] - obs["critic"])
+        action = t % 2
+        obs, _, done, cut, _ = env.step(action)
+        clean, _, _, _, _ = plain.step(action)
+        if done or cut:
+            obs, _ = env.reset(seed=t)
+            clean, _ = plain.reset(seed=t)
+    noise = np.array(noise, np.float64)
+    n = len(noise)
+    assert np.all(noise[:, 1] == 0.0)
+    for i in (0, 2, 3):
+        assert abs(noise[:, i].mean()) < 3.3 * std[i] / np.sqrt(n)
+        assert abs(noise[:, i].std() / std[i] - 1.0) < 3.3 / np.sqrt(2 * n)
+    alone = NoisyEntries(gym.make("CartPole-v1"), 0.1)
+    assert alone.observation_space.shape == (4,) and alone.reset(seed=0)[0].shape == (4,)
+    for bad in (-0.1, [0.1, 0.1], float("nan")):
+        with pytest.raises(ValueError, match="std must be one finite number >= 0 or 4 of them"):
+            NoisyEntries(gym.make("CartPole-v1"), bad)

@@ -3,6 +3,10 @@
 ``critic=True``, hands them to the critic alone as the ``"critic"`` observation group (a privileged critic:
 ``freeform.agents.observation_groups``; read it through ``from_gymnasium(..., dict_obs=True)``).
 
+``NoisyEntries`` adds Gaussian noise to what the policy observes and, with ``critic=True``, hands the clean
+observation to the critic alone: rsl_rl's legged-robot setting (noisy sensors for the actor, the simulator's true
+state for the critic), the asymmetric actor-critic test of ``docs/ppo.md``.
+
 Gymnasium is optional (``pip install 'freeform[gym]'``); it is imported when this module is.
 """
 
@@ -47,4 +51,32 @@ class HideEntries(gym.ObservationWrapper):
         return flat[self.kept]
 
 
-__all__ = ["HideEntries"]
+class NoisyEntries(gym.ObservationWrapper):
+    """A ``Box`` observation with independent Gaussian noise of standard deviation ``std`` (one per entry of the
+    flattened observation, or one for all; ≥ 0, 0: that entry exact) added to every observation the policy sees,
+    drawn from the wrapper's ``np_random`` (seeded by ``reset(seed=...)``). ``critic=False``: ``Box`` of the same
+    shape, unbounded; ``critic=True``: ``Dict(policy=noisy, critic=clean)``, each flattened."""
+
+    def __init__(self, env: gym.Env, std: float | Sequence[float], critic: bool = False) -> None:
+        super().__init__(env)
+        space = env.observation_space
+        if not isinstance(space, gym.spaces.Box):
+            raise ValueError(f"NoisyEntries needs a Box observation space, got {space}")
+        size = int(np.prod(space.shape))
+        std = np.broadcast_to(np.asarray(std, dtype=np.float64), (size,)) if np.ndim(std) == 0 else \
+            np.asarray(std, dtype=np.float64)
+        if std.shape != (size,) or not np.all(np.isfinite(std)) or np.any(std < 0):
+            raise ValueError(f"std must be one finite number >= 0 or {size} of them (one per observation entry), "
+                             f"got {std.tolist()}")
+        self.std, self.critic = std.astype(space.dtype), critic
+        noisy = gym.spaces.Box(-np.inf, np.inf, (size,), space.dtype)
+        clean = gym.spaces.Box(space.low.reshape(-1), space.high.reshape(-1), (size,), space.dtype)
+        self.observation_space = gym.spaces.Dict({"policy": noisy, "critic": clean}) if critic else noisy
+
+    def observation(self, observation: Any) -> Any:
+        flat = np.asarray(observation).reshape(-1)
+        noisy = (flat + self.std * self.np_random.standard_normal(flat.shape)).astype(flat.dtype)
+        return {"policy": noisy, "critic": flat} if self.critic else noisy
+
+
+__all__ = ["HideEntries", "NoisyEntries"]
