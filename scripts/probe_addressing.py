@@ -8,6 +8,8 @@ ways and counts the instructions of each in the printed assembly:
 
 * ``flat``: a 1-D scalar buffer, ``buf[base + i·16 + c]`` (today's ``aos`` access);
 * ``vec``: a 1-D buffer of 16-vectors, ``buf[base + i][c]`` (the row's address once, the columns as offsets);
+* ``vec8``, ``vec4``: a 1-D buffer of 8- or 4-vectors, ``buf[base + i·16/L + c // L][c % L]`` (a row of 16 as
+  16/L vectors: what a packed buffer of L-vectors, every table's width padded to a multiple of L, would give);
 * ``twod``: a 2-D scalar buffer, ``buf[base + i, c]``.
 
     python scripts/probe_addressing.py      # ~15 s; the assembly is written in a temporary folder
@@ -23,7 +25,7 @@ import sys
 import tempfile
 
 WIDTH, PAIRS = 16, 8
-LAYOUTS = ("flat", "vec", "twod")
+LAYOUTS = ("flat", "vec", "vec8", "vec4", "twod")
 COUNTED = ("movslq", "lea", "vmovss", "vfmadd", "vmul")
 
 
@@ -57,6 +59,20 @@ def child(layout: str) -> None:
                     for c in ti.static(range(PAIRS)):
                         s += buf[base + i][c] * buf[base + i][c + PAIRS]
                     buf[base + i][WIDTH - 1] = s
+    elif layout in ("vec4", "vec8"):
+        lanes = 4 if layout == "vec4" else 8
+        buf = ti.Vector.ndarray(lanes, ti.f32, 100 * WIDTH // lanes)
+
+        @ti.kernel
+        def rows(buf: ti.types.ndarray(dtype=ti.types.vector(lanes, ti.f32), ndim=1),
+                 hdr: ti.types.ndarray(dtype=ti.i32, ndim=1), n: ti.i32):
+            base = hdr[0]
+            for _ in range(1):
+                for i in range(n):
+                    at, s = base + i * (WIDTH // lanes), 0.0
+                    for c in ti.static(range(PAIRS)):
+                        s += buf[at + c // lanes][c % lanes] * buf[at + (c + PAIRS) // lanes][(c + PAIRS) % lanes]
+                    buf[at + (WIDTH - 1) // lanes][(WIDTH - 1) % lanes] = s
     else:
         buf = ti.ndarray(ti.f32, (100, WIDTH))
 
