@@ -15,8 +15,8 @@ kept as ``RESULTS/seed<S>_<SET>_bodies.csv``, and each seed's training curve ``R
     python -m experiments.control_population --results docs/results/control_population
 
 ``--steer-waves``: instead, where the hand-set wave takes the held-out bodies when it travels along a heading, or at
-an angle to it — the untrained wave controller of the steering preset, its wave vector set to k·(cos o, sin o, 0) in
-the heading's frame (x along the heading), on every held-out body along random headings: the mean move along the
+an angle to it — the steering preset's wave head playing the hand-set wave exactly (its per-cell outputs 0), its wave
+vector set to k·(cos o, sin o, 0) in the heading's frame (x along the heading), on every held-out body along random headings: the mean move along the
 heading per set, k and offset o (``RESULTS/steer_waves.csv``; ≈ 5 min on 2 cores):
 
     python -m experiments.control_population --steer-waves --results docs/results/control_population_steering
@@ -63,7 +63,7 @@ def all_sets_row(results: Path, seed: int) -> dict[str, object]:
     return out
 
 
-def figure(results: Path, seeds: list[int], path: Path) -> None:
+def figure(results: Path, seeds: list[int], path: Path, moved: str = "distance in the plane") -> None:
     plt = pyplot()
     fig, (curve_ax, bar_ax) = plt.subplots(1, 2, figsize=(10, 3.6), gridspec_kw={"width_ratios": [1, 1.3]})
     for seed in seeds:
@@ -86,7 +86,7 @@ def figure(results: Path, seeds: list[int], path: Path) -> None:
                    label=label + which)
     bar_ax.set_xticks(np.arange(len(SETS)), [f"{name}\n({len(body_columns(results, seeds[0], name)['body'])} bodies)"
                                              for name in SETS])
-    bar_ax.set(ylabel="distance in the plane in 2 s (voxel lengths)", title="zero-shot on held-out bodies (99 % bands)")
+    bar_ax.set(ylabel=f"{moved} in 2 s (voxel lengths)", title="zero-shot on held-out bodies (99 % bands)")
     bar_ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
@@ -95,7 +95,7 @@ def figure(results: Path, seeds: list[int], path: Path) -> None:
 def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
                 offsets: tuple[float, ...] = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)) -> list[dict]:
     """The rows of ``--steer-waves`` (module docstring): per k, offset and set of ``bodies/SET.npy``, the mean move
-    along the heading of the untrained wave controller's mean command, one episode a body, the same headings for
+    along the heading of the hand-set wave's mean command, one episode a body, the same headings for
     every offset (each body's episode 0 of seed 0)."""
     import torch
 
@@ -113,9 +113,10 @@ def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
     for k in ks:
         net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave", wave_k=k).eval()
         angle = torch.cat([torch.tensor(offsets, dtype=torch.float32).repeat_interleave(len(g)) for g in sets.values()])
-        with torch.no_grad():
-            net.wave_k.weight.zero_()  # (the wave vector is wave_k0 + bias: k along each body's offset)
-            net.wave_k.bias.zero_()
+        with torch.no_grad():  # the hand-set wave exactly: no per-cell amplitude, phase or correction, and the
+            for layer in (net.actor, net.wave_k):  # wave vector wave_k0 alone (k along each body's offset)
+                layer.weight.zero_()
+                layer.bias.zero_()
         obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
         k_frame = k * torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros_like(angle)], 1)
         net.wave_k0 = k_frame  # ([N, 3]: one offset per environment)
@@ -142,6 +143,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steer-waves", action="store_true",
                    help="the hand-set wave along headings and at angles to them (steer_waves.csv; module docstring)")
     p.add_argument("--bodies", default="docs/results/heldout_bodies", help="the held-out sets' folder")
+    p.add_argument("--headings", choices=("any", "random"), default="any",
+                   help="what the evaluations scored: the distance in the plane (any) or the move along random "
+                        "headings (random: a steering controller's; its open loop is ~0, so no ratio is printed)")
     args = p.parse_args(argv)
     results = Path(args.results)
     if args.steer_waves:
@@ -161,11 +165,13 @@ def main(argv: list[str] | None = None) -> None:
         writer.writeheader()
         writer.writerows(rows)
     for row in rows:
-        print(f"seed {row['seed']}: mean command {row['mean_command']:.3f} against open loop {row['open_loop']:.3f} "
-              f"(x{row['mean_command_over_open_loop']:.2f}), {row['beyond_own_gait']} of {row['bodies']} beyond their "
+        ratio = f" (x{row['mean_command_over_open_loop']:.2f})" if args.headings == "any" else ""
+        print(f"seed {row['seed']}: mean command {row['mean_command']:.3f} ± {row['mean_command_band99']:.3f} against "
+              f"open loop {row['open_loop']:.3f}{ratio}, {row['beyond_own_gait']} of {row['bodies']} beyond their "
               f"gait; over the untrained mean command {row['mean_command_minus_untrained_mean_command']:+.3f} ± "
               f"{row['mean_command_minus_untrained_mean_command_band99']:.3f}")
-    figure(results, seeds, results / "control_population.png")
+    figure(results, seeds, results / "control_population.png",
+           moved="distance in the plane" if args.headings == "any" else "along a random heading")
 
 
 if __name__ == "__main__":
