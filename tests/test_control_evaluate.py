@@ -157,3 +157,21 @@ def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
                                2.5758 * diff.std(ddof=1) / 3.0, rtol=1e-3)
     np.testing.assert_allclose(row["mean_command_over_open_loop"], v["mean_command"].mean() / v["open_loop"].mean())
     assert row["beyond_own_gait"] == int((v["mean_command"] > v["open_loop"]).sum())
+
+
+def test_the_committed_population_controllers_are_in_the_repository_and_load() -> None:
+    """The two controllers the docs tell a user to evaluate on their own bodies are in a fresh clone (``.gitignore``
+    ignores ``*.pt`` elsewhere) and rebuild from their files alone: the flat one with its wave along x, the steering
+    one with its wave in the heading's frame, each under its preset's task."""
+    from pathlib import Path
+
+    from freeform.agents.controller_file import read_controller
+
+    root = Path(__file__).resolve().parent.parent / "docs" / "results"
+    flat, steering = (read_controller(root / name / "controller.pt")
+                      for name in ("control_population", "control_population_steering"))
+    for saved in (flat, steering):
+        assert saved.kind == "context" and saved.controller.head == "wave" and saved.control.residual
+    assert flat.control.headings == "any" and "heading_channels" not in flat.controller.wave
+    assert steering.control.headings == "random" and steering.controller.wave["heading_channels"] == (11, 12)
+    assert steering.controller.wave["k"] == 1.5 and flat.controller.wave["k"] == 1.0
