@@ -90,6 +90,10 @@ CLEANRL_URL = f"https://raw.githubusercontent.com/vwxyzjn/cleanrl/{CLEANRL_COMMI
 FRAMEWORKS = ("freeform", "freeform-compile", "sb3", "cleanrl", "freeform-lstm", "sb3-lstm", "freeform-privileged",
               "freeform-lstm-sb3", "freeform-lstm-unclipped", "freeform-lstm-bootstrap")
 MEMORY_FRAMEWORKS = ("freeform-lstm", "sb3-lstm", "freeform", "freeform-privileged")
+NETWORKS = {"freeform": "mlp", "freeform-compile": "mlp", "freeform-lstm": "lstm", "freeform-privileged": "privileged",
+            "freeform-lstm-sb3": "lstm-sb3", "freeform-lstm-unclipped": "lstm-unclipped",
+            "freeform-lstm-bootstrap": "lstm-bootstrap"}
+"""Each freeform framework's network (``freeform_ppo``'s ``network``): the one list of what a child run builds."""
 HIDDEN = {"CartPole-v1-hidden": ("CartPole-v1", (1, 3)), "Pendulum-v1-hidden": ("Pendulum-v1", (2,))}
 """The memory tasks: a Gymnasium task and the entries of its observation hidden from the policy."""
 NOISY = {"Pendulum-v1-noisy": ("Pendulum-v1", (0.2, 0.2, 1.0)),
@@ -194,7 +198,7 @@ def freeform_ppo(task: str, steps: int, seed: int, compile: bool = False, networ
         config = dataclasses.replace(config, vf_clip_param=1e9)
     if network in ("lstm-sb3", "lstm-bootstrap"):
         config = dataclasses.replace(config, bootstrap_truncated=True)
-    if network in ("lstm", "lstm-sb3", "lstm-unclipped", "lstm-bootstrap"):
+    if network.startswith("lstm"):
         return PPO(env, RecurrentActorCritic.for_env(env), config)
     return PPO(env, MLPActorCritic.for_env(env), config)
 
@@ -473,10 +477,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--split", action="store_true", help="time freeform's and SB3's rollout and update apart instead")
     p.add_argument("--split-epochs", type=int, default=3, help="--split: updates of 2,048 steps per measurement")
     p.add_argument("--repeats", type=int, default=2, help="--split: alternations of the two frameworks")
-    p.add_argument("--child", choices=("freeform", "freeform-compile", "sb3", "freeform-lstm", "sb3-lstm",
-                                       "freeform-privileged", "freeform-lstm-sb3", "freeform-lstm-unclipped",
-                                       "freeform-lstm-bootstrap"),
-                   help=argparse.SUPPRESS)
+    p.add_argument("--child", choices=(*NETWORKS, "sb3", "sb3-lstm"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     memory = args.memory
     for name, plain, mem in (("tasks", ["HalfCheetah-v5", "Hopper-v5"], list(HIDDEN)), ("steps", 500_000, 300_000),
@@ -504,10 +505,8 @@ def run(argv: list[str] | None = None) -> list[dict]:
         elif args.child == "sb3-lstm":
             out = run_sb3_lstm(task, steps, seed)
         else:
-            network = {"freeform-lstm": "lstm", "freeform-privileged": "privileged",
-                       "freeform-lstm-sb3": "lstm-sb3", "freeform-lstm-unclipped": "lstm-unclipped",
-                       "freeform-lstm-bootstrap": "lstm-bootstrap"}.get(args.child, "mlp")
-            out = run_freeform(task, steps, seed, compile=args.child == "freeform-compile", network=network)
+            out = run_freeform(task, steps, seed, compile=args.child == "freeform-compile",
+                               network=NETWORKS[args.child])
         print(json.dumps(out))
         return []
     if args.split:

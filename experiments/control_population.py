@@ -25,17 +25,21 @@ heading per set, k and offset o (``RESULTS/steer_waves.csv``; ≈ 5 min on 2 cor
 from __future__ import annotations
 
 import argparse
-import csv
 import re
 from pathlib import Path
 
 import numpy as np
 
-from experiments.common import mean_band, pyplot, read_csv
+from experiments.common import mean_band, pyplot, read_csv, write_csv
 
 SETS = ("design_unseen", "grown", "hand_built")
 COLUMNS = ("open_loop", "controller", "mean_command", "untrained", "untrained_mean_command")
 PAIRS = (("mean_command", "open_loop"), ("controller", "untrained"), ("mean_command", "untrained_mean_command"))
+
+
+def write_rows(path: Path, rows: list[dict]) -> Path:
+    """``rows`` (dicts with the same keys) as ``path``'s CSV columns (``experiments.common.write_csv``)."""
+    return write_csv(path, {key: [row[key] for row in rows] for key in rows[0]})
 
 
 def body_columns(results: Path, seed: int, name: str) -> dict[str, np.ndarray]:
@@ -99,14 +103,15 @@ def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
     every offset (each body's episode 0 of seed 0)."""
     import torch
 
+    from experiments.control import read_bodies
     from freeform.agents.controllers import build_controller, controller_step
     from freeform.config import compose
     from freeform.envs.control import ControlEnv
 
     cfg = compose("experiment=control_population_steering_cpu")
     control, sim = cfg.control.episode(), cfg.sim
-    sets = {name: np.load(bodies / f"{name}.npy") for name in SETS}
-    grids = np.concatenate([np.tile(g, (len(offsets), 1, 1, 1)) for g in sets.values()])
+    sets = {name: read_bodies(bodies / f"{name}.npy", len(sim.materials)) for name in SETS}  # (as --evaluate reads them)
+    grids = torch.cat([g.repeat(len(offsets), 1, 1, 1) for g in sets.values()])
     first = np.concatenate([np.tile(np.arange(len(g)), len(offsets)) for g in sets.values()])
     env = ControlEnv(grids, sim=sim, control=control, seed=0, first_env=first)
     rows = []
@@ -149,21 +154,13 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     results = Path(args.results)
     if args.steer_waves:
-        rows = steer_waves(Path(args.bodies))
-        results.mkdir(parents=True, exist_ok=True)
-        with open(results / "steer_waves.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_rows(results / "steer_waves.csv", steer_waves(Path(args.bodies)))
         return
     seeds = seeds_in(results)
     if not seeds:
         raise SystemExit(f"{results}: no seed<S>_<SET>_bodies.csv for every set of {SETS}")
     rows = [all_sets_row(results, seed) for seed in seeds]
-    with open(results / "all_sets.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows(results / "all_sets.csv", rows)
     for row in rows:
         ratio = f" (x{row['mean_command_over_open_loop']:.2f})" if args.headings == "any" else ""
         print(f"seed {row['seed']}: mean command {row['mean_command']:.3f} ± {row['mean_command_band99']:.3f} against "

@@ -63,8 +63,8 @@ class NoisyEntries(gym.ObservationWrapper):
         if not isinstance(space, gym.spaces.Box):
             raise ValueError(f"NoisyEntries needs a Box observation space, got {space}")
         size = int(np.prod(space.shape))
-        std = np.broadcast_to(np.asarray(std, dtype=np.float64), (size,)) if np.ndim(std) == 0 else \
-            np.asarray(std, dtype=np.float64)
+        std = np.asarray(std, dtype=np.float64)
+        std = np.full(size, float(std)) if std.ndim == 0 else std
         if std.shape != (size,) or not np.all(np.isfinite(std)) or np.any(std < 0):
             raise ValueError(f"std must be one finite number >= 0 or {size} of them (one per observation entry), "
                              f"got {std.tolist()}")
