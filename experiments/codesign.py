@@ -62,16 +62,37 @@ def design_stage(control_cfg: Any) -> tuple[Path, int] | None:
 
 def robot_seconds(cfg: Any, epochs: int) -> float:
     """The simulated robot-seconds ``epochs`` epochs of a run cost: a co-design or design epoch simulates every
-    environment's body through its window (settling included); a control epoch only the control window (each body
-    settles once, when the env is built — every environment's copy, a body repeated over environments included —
-    and is restored from that state at every episode)."""
+    environment's body through its window (settling included; a design scored by a controller, through that
+    controller's episode); a control epoch only the control window (each body settles once, when the env is built —
+    every environment's copy, a body repeated over environments included — and is restored from that state at every
+    episode); a population run's, every cohort it played settled once (``freeform.envs.population.robot_seconds``)."""
     envs = cfg.env.num_envs
-    if cfg.control is None:  # open-loop design RL
-        return epochs * envs * (cfg.sim.burn_in + cfg.sim.duration)
+    if cfg.control is None:
+        if cfg.task.name == "controlled_locomotion":  # design after control: each design a controlled episode
+            from freeform.agents.controller_file import read_controller
+
+            episode = read_controller(cfg.task.options["controller"]).control
+            return epochs * envs * (episode.burn_in + episode.duration)
+        return epochs * envs * (cfg.sim.burn_in + cfg.sim.duration)  # open-loop design RL
     control = cfg.control
     if control.codesign:
         return epochs * envs * (control.burn_in + control.duration)
+    if control.bodies == "population":
+        from freeform.envs.population import robot_seconds as stream_seconds
+
+        return stream_seconds(epochs * cfg.agent.rollout_steps // control.steps, envs, control, cfg.seed)
     return epochs * envs * control.duration + envs * control.burn_in
+
+
+def pretraining_seconds(overrides: list[str]) -> tuple[float, str]:
+    """The robot-seconds of the control run that the app's ``overrides`` describe (its preset, seed and epochs: the
+    run behind a frozen controller), and those overrides as one string."""
+    from freeform.config import compose
+
+    cfg = compose(*overrides)
+    if cfg.control is None:
+        raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
+    return robot_seconds(cfg, cfg.trainer.epochs), " ".join(overrides)
 
 
 def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None,
@@ -133,13 +154,37 @@ def controlled(run: Path, episodes: int) -> dict[str, Any]:
             "cfg": cfg, "bodies": result["bodies"], "headings": result["headings"]}
 
 
+@torch.no_grad()
+def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, Any]:
+    """``episodes`` designs of a design-after-control run's last policy (``task.name=controlled_locomotion``,
+    sampled as in training): scored by its task (the frozen controller driving each one, the move in the plane) and
+    by their own sine gaits in ``window`` (:func:`gaits`), with the body metrics."""
+    from freeform.run.build import build, build_task, design_env
+
+    cfg, last = _last(run)
+    _, ppo = build(cfg, torch.device("cpu"))
+    ppo.restore(last)
+    env = design_env(cfg, torch.device("cpu"), episodes, cfg.seed + 10_000)
+    obs, done = env.reset(), torch.zeros(episodes, dtype=torch.bool)
+    while not bool(done.all()):
+        obs, _, done, info = env.step(ppo.act(obs))
+    grids = info["final_grids"].cpu()
+    score = build_task(cfg, torch.device("cpu")).reward(grids, bodies=info["bodies"].cpu()).numpy()
+    gait, kind = gaits(grids.numpy(), cfg.sim, window)
+    return {"score": score, "gaits": gait, "gait_kind": kind, "metrics": _metrics(info),
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
+
+
 def trained_for(control: Any) -> str:
     """What a controller's score is, from its run's ``control.headings``."""
     return {"fixed": "move along +x, controlled", "any": "move in the plane, controlled",
             "random": "move along its heading, controlled"}[control.headings]
 
 
-def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: int, out: Path) -> list[dict]:
+def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, episodes: int, out: Path,
+            designed: Path | None = None, pretraining: list[str] | None = None) -> list[dict]:
+    """Every method given against open-loop design RL (module docstring); ``designed``: a design-after-control run,
+    its budget its design epochs' plus the pretraining run's (``pretraining``: that run's app overrides)."""
     out.mkdir(parents=True, exist_ok=True)
     rows, metrics, runs = [], [], {}
 
@@ -151,13 +196,20 @@ def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: i
         metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS}})
         print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
 
-    co = controlled(codesign, episodes)
-    window = co["cfg"].control.episode()
-    runs["codesign"] = str(codesign)
-    add("co-design (one PPO: body, then controller)", co, robot_seconds(co["cfg"], co["epochs"]),
-        trained_for(window))
-    moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
-    add("  its designs, open loop", {**co, "score": moved}, robot_seconds(co["cfg"], co["epochs"]), kind)
+    window = None
+    if codesign is not None:
+        co = controlled(codesign, episodes)
+        window = co["cfg"].control.episode()
+        runs["codesign"] = str(codesign)
+        add("co-design (one PPO: body, then controller)", co, robot_seconds(co["cfg"], co["epochs"]),
+            trained_for(window))
+        moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
+        add("  its designs, open loop", {**co, "score": moved}, robot_seconds(co["cfg"], co["epochs"]), kind)
+    if window is None:  # (no co-design run: the open-loop run's own window, its settling then its evaluation)
+        from freeform.envs.control import ControlConfig
+
+        ol_cfg, _ = _last(open_loop)
+        window = ControlConfig(burn_in=ol_cfg.sim.burn_in, duration=ol_cfg.sim.duration, headings="any")
 
     ol = open_loop_designs(open_loop, episodes, window)
     runs["open_loop"] = str(open_loop)
@@ -178,6 +230,16 @@ def compare(codesign: Path, open_loop: Path, two_stage: Path | None, episodes: i
         moved, kind = gaits(ts["bodies"], ts["cfg"].sim, window, ts["headings"])
         add("  its bodies, open loop", {**ts, "score": moved},
             design_budget + robot_seconds(ts["cfg"], ts["epochs"]), kind)
+
+    if designed is not None:
+        dc = designed_for_controller(designed, episodes, window)
+        before, what = pretraining_seconds(pretraining) if pretraining else (0.0, "not counted")
+        runs["designed_for_controller"] = str(designed)
+        runs["pretraining"] = what
+        budget = before + robot_seconds(dc["cfg"], dc["epochs"])
+        add("design after control (frozen population controller)", dc, budget, "move in the plane, controlled",
+            {"pretraining_robot_seconds": round(before, 3)})
+        add("  its designs, open loop", {**dc, "score": dc["gaits"]}, budget, dc["gait_kind"])
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))
@@ -234,6 +296,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--codesign", type=Path)
     p.add_argument("--open-loop", type=Path)
     p.add_argument("--two-stage", type=Path, default=None)
+    p.add_argument("--designed", type=Path, default=None,
+                   help="a design-after-control run (experiment=controlled_design_cpu): designs for a frozen controller")
+    p.add_argument("--pretraining", nargs="+", default=None, metavar="OVERRIDE",
+                   help="the app overrides of the control run behind --designed's controller, whose robot-seconds its "
+                        "budget includes (e.g. experiment=control_population_cpu seed=0)")
     p.add_argument("--episodes", type=int, default=256)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--replot", action="store_true", help="redraw the figure from --out's CSVs (no runs needed)")
@@ -243,12 +310,12 @@ def main(argv: list[str] | None = None) -> None:
         seconds = json.loads((args.out / "run.json").read_text())["window_s"][1]
         figure(rows, metrics, args.out / "codesign_vs_baselines.png", seconds)
         return
-    if args.codesign is None or args.open_loop is None:
-        p.error("--codesign and --open-loop are required (or --replot)")
-    for run in (args.codesign, args.open_loop, args.two_stage):
+    if args.open_loop is None or (args.codesign is None and args.designed is None):
+        p.error("--open-loop and --codesign or --designed are required (or --replot)")
+    for run in (args.codesign, args.open_loop, args.two_stage, args.designed):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
-    compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out)
+    compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ import torch
 
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
-from freeform.agents.controller_file import CONTROLLER_FILE, read_controller, save_controller
+from freeform.agents.controller_file import CONTROLLER_FILE, controller_for, read_controller, save_controller
 from freeform.agents.controllers import CONTROLLERS, controller_step
 from freeform.envs.control import (
     HEADINGS,
@@ -232,14 +232,6 @@ def read_bodies(path: Path, materials: int) -> torch.Tensor:
     return largest_component(torch.from_numpy(grids.astype(np.uint8)))
 
 
-def body_box(grids: torch.Tensor) -> tuple[int, int, int]:
-    """The box that holds every body of ``grids`` cropped to its bounding box (the env's ``box``)."""
-    from freeform.body import bounding_box
-
-    lo, hi = bounding_box(grids)
-    return tuple(int(b) for b in (hi - lo).amax(0))  # type: ignore[return-value]
-
-
 @torch.no_grad()
 def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
                     seed: int = 0) -> tuple[list[dict], list[dict]]:
@@ -262,15 +254,13 @@ per body — mean command minus open loop, stochastic minus untrained, mean comm
 whose bands leave out the across-body spread), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
     saved = read_controller(source)
-    control = replace(saved.control, headings=headings or saved.control.headings)
-    control.validate()
     sim = saved.sim or SimConfig()
     grids = read_bodies(bodies, len(sim.materials))
-    m, n = len(grids), episodes
-    need, trained = body_box(grids), tuple(saved.controller.box)
-    box = trained if all(b <= t for b, t in zip(need, trained, strict=True)) else need
-    if box != trained:
-        saved = read_controller(saved.path, box=box)  # (the MLP is refused here, with the reason)
+    trained = tuple(saved.controller.box)
+    saved = controller_for(saved.path, grids)  # (its own box where the bodies fit it; the MLP refused otherwise)
+    control = replace(saved.control, headings=headings or saved.control.headings)
+    control.validate()
+    m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
     untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()

@@ -175,3 +175,41 @@ def test_the_committed_population_controllers_are_in_the_repository_and_load() -
     assert flat.control.headings == "any" and "heading_channels" not in flat.controller.wave
     assert steering.control.headings == "random" and steering.controller.wave["heading_channels"] == (11, 12)
     assert steering.controller.wave["k"] == 1.5 and flat.controller.wave["k"] == 1.0
+
+
+def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_loop_gait(tmp_path) -> None:
+    """``ControlledLocomotionTask`` with a residual controller whose mean command is 0 everywhere (its actor zeroed)
+    scores each body by its own sine gait — ``open_loop_displacement`` of the bodies as simulated, an independent
+    simulation — and an empty body by 0; the run's sim must have the controller's materials."""
+    from dataclasses import replace
+
+    from freeform.envs import ControlledLocomotionTask
+    from freeform.envs.control import RESIDUAL_CHANNELS
+
+    control = replace(SHORT, residual=True)
+    net = ContextConvController(len(RESIDUAL_CHANNELS), (2, 2, 1), RESIDUAL_CHANNELS.index("actuated"), hidden=4,
+                                log_std=-1.0)
+    with torch.no_grad():
+        for p in net.actor.parameters():
+            p.zero_()
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    task = ControlledLocomotionTask(str(tmp_path), headings="fixed")
+    grids = np.concatenate([tiny_bodies(), np.zeros((1, 3, 3, 3), np.uint8)])
+    reward = task.reward(torch.from_numpy(grids))
+    as_simulated = tiny_bodies()
+    as_simulated[2, 2, 2, 2] = 0
+    expected = open_loop_displacement(as_simulated, SimConfig(), control)
+    assert reward.dtype == torch.float32 and reward.shape == (4,) and float(reward[3]) == 0.0
+    assert np.abs(expected).min() > 1e-4  # (the gaits move: a score of 0 would not pass for them)
+    np.testing.assert_allclose(reward[:3].numpy(), expected, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="materials"):
+        ControlledLocomotionTask(str(tmp_path), sim=SimConfig(materials=SimConfig().materials[:2]))
+
+
+def test_the_app_refuses_design_after_control_without_a_controller() -> None:
+    from freeform.config import compose
+    from freeform.run.build import build_task
+
+    cfg = compose("experiment=controlled_design_cpu", "~task.options.controller")
+    with pytest.raises(ValueError, match="task.options.controller"):
+        build_task(cfg, torch.device("cpu"))

@@ -52,6 +52,32 @@ def test_the_pool_slides_along_the_stream_and_a_redrawn_cohort_restores_its_sett
     assert torch.equal(fresh.reset(), seen[3])  # the first observation a control env of those bodies gives
 
 
+def test_a_streams_robot_seconds_count_one_settle_per_cohort_it_builds(monkeypatch) -> None:
+    """``population.robot_seconds`` (the budget ``experiments.codesign`` charges a population run) against the env
+    itself: every control env the stream builds settles its environments once, and every episode runs the window."""
+    from types import SimpleNamespace
+
+    from freeform.envs import population
+
+    built = []
+    original = ControlEnv.__init__
+
+    def counting(self, grids, *args, **kwargs):
+        built.append(len(grids))
+        original(self, grids, *args, **kwargs)
+
+    monkeypatch.setattr(ControlEnv, "__init__", counting)
+    env = PopulationControlEnv(SIZES, 4, pool=2, refresh_every=2, sim=SIM, control=SHORT, seed=7)
+    env.reset()
+    run = SimpleNamespace(burn_in=SHORT.burn_in, duration=SHORT.duration, pool=2, refresh_every=2)
+    for episodes in range(1, 9):  # (the last step's reset settles the next episode's cohort: counted)
+        for _ in range(SHORT.steps):
+            env.step(torch.zeros(4, env.action_dim))
+        simulated = episodes * 4 * SHORT.duration + sum(built) * SHORT.burn_in
+        assert population.robot_seconds(episodes, 4, run, seed=7) == pytest.approx(simulated), episodes
+    assert len(built) >= 4  # (eight episodes, a new cohort every two)
+
+
 def test_a_rank_holds_its_slice_of_every_cohort() -> None:
     whole = PopulationControlEnv(SIZES, 4, pool=3, refresh_every=1, sim=SIM, control=SHORT, seed=2)
     part = PopulationControlEnv(SIZES, 4, pool=3, refresh_every=1, sim=SIM, control=SHORT, seed=2, envs=(2, 4))

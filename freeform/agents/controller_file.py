@@ -76,6 +76,26 @@ def read_controller(source: str | Path, box: tuple[int, int, int] | None = None)
     return SavedController(controller, kind, control, sim, path)
 
 
+def body_box(grids: Any) -> tuple[int, int, int]:
+    """The box that holds every body of ``grids`` (uint8 ``[M, X, Y, Z]``) cropped to its bounding box: the
+    ``ControlEnv``'s ``box`` for them."""
+    from freeform.body import bounding_box
+
+    lo, hi = bounding_box(grids)
+    return tuple(int(b) for b in (hi - lo).amax(0))  # type: ignore[return-value]
+
+
+def controller_for(source: str | Path, grids: Any) -> SavedController:
+    """The controller in ``source`` (:func:`read_controller`) built for a box that holds the bodies of ``grids``:
+    the box it trained in where they fit it (its weights see what they saw in training), else theirs (refused for a
+    kind that fits one box, with the reason)."""
+    saved = read_controller(source)
+    need, trained = body_box(grids), tuple(int(b) for b in saved.controller.box)
+    if all(b <= t for b, t in zip(need, trained, strict=True)):
+        return saved
+    return read_controller(saved.path, box=need)
+
+
 def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, Any], dict[str, Any], Any, Any]:
     """(kind, init_kwargs, weights, ControlConfig, SimConfig or None) from any of the files
     :func:`read_controller` reads."""
@@ -122,4 +142,4 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
     return kind, kwargs, weights, control, SimConfig()
 
 
-__all__ = ["CONTROLLER_FILE", "SavedController", "read_controller", "save_controller"]
+__all__ = ["CONTROLLER_FILE", "SavedController", "body_box", "controller_for", "read_controller", "save_controller"]

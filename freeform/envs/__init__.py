@@ -14,11 +14,11 @@ from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.dense import DenseDesignReward
 from freeform.envs.design import DesignEnv
 from freeform.envs.population import PopulationControlEnv
-from freeform.envs.tasks import LocomotionTask, VolumeTask
+from freeform.envs.tasks import ControlledLocomotionTask, LocomotionTask, VolumeTask
 from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
-    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask",
+    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask", "ControlledLocomotionTask",
     "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "CodesignEnv",
     "PopulationControlEnv",
     "from_gymnasium",

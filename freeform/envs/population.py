@@ -35,6 +35,23 @@ from freeform.envs.control import ControlConfig, ControlEnv, same_config
 from freeform.sim import SimConfig, Simulator
 
 
+def cohort_at(episode: int, pool: int, refresh_every: int, seed: int) -> int:
+    """The cohort episode ``episode`` of a stream with this ``pool``, ``refresh_every`` and ``seed`` plays (module
+    docstring): what :meth:`PopulationControlEnv.cohort_at` answers, for a stream not built."""
+    first = episode // refresh_every if refresh_every else 0
+    return first + int(np.random.default_rng([seed, episode, 1]).integers(pool))
+
+
+def robot_seconds(episodes: int, num_envs: int, control: Any, seed: int) -> float:
+    """The simulated robot-seconds of ``episodes`` episodes of a stream of ``num_envs`` environments (``control``:
+    a run's ``control`` section, with ``burn_in``, ``duration``, ``pool``, ``refresh_every``): every environment's
+    control window each episode, and one settle (``burn_in``) of every environment of each cohort played — cohort 0
+    (built with the env) and the next episode's (the last step's reset settles it) included; a reused cohort
+    restores its settled state for nothing."""
+    played = {0} | {cohort_at(e, control.pool, control.refresh_every, seed) for e in range(episodes + 1)}
+    return episodes * num_envs * control.duration + len(played) * num_envs * control.burn_in
+
+
 @dataclass(frozen=True)
 class DesignBodies:
     """The design env's sizes, for bodies an untrained design policy builds (``freeform.evolve.
@@ -122,8 +139,7 @@ class PopulationControlEnv:
     # ------------------------------------------------------------------ the stream
     def cohort_at(self, episode: int) -> int:
         """The cohort episode ``episode`` plays (module docstring)."""
-        first = episode // self.refresh_every if self.refresh_every else 0
-        return first + int(np.random.default_rng([self.seed, episode, 1]).integers(self.pool))
+        return cohort_at(episode, self.pool, self.refresh_every, self.seed)
 
     def _cohort(self, c: int) -> ControlEnv:
         if c not in self._cohorts:

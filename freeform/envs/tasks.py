@@ -17,7 +17,7 @@ import torch
 
 from freeform.body import check_grids, largest_component, serial_on_cpu
 
-__all__ = ["LocomotionTask", "SimulatedTask", "VolumeTask"]
+__all__ = ["ControlledLocomotionTask", "LocomotionTask", "SimulatedTask", "VolumeTask"]
 
 
 @dataclass
@@ -171,3 +171,77 @@ class LocomotionTask(SimulatedTask):
         chosen = result.max_voxel_displacement if self.measure == "max_voxel" else result.com_displacement
         displacement = chosen.to(torch.float32)
         return torch.where(displacement < self.min_reward, 0.0, displacement)  # NaN stays NaN: counted as failed
+
+
+class ControlledLocomotionTask:
+    """Locomotion under a trained controller: each body is driven for one control episode by the controller in
+    ``controller`` (a ``controller.pt``, a folder holding one, or a control run's directory:
+    :func:`freeform.agents.controller_file.read_controller`), and its reward is how far it moves, in voxel lengths:
+    the control env's return under ``headings`` (default "any": the distance moved in the plane, the locomotion
+    score; "fixed": along +x). The episode is the controller's own (its ``ControlConfig``: settling, window,
+    residual control, strokes, the muscles' bandwidth) in its own physics (its ``SimConfig``), and the controller
+    acts by its mean command, deterministically: a design is scored by what the controller learnt, not by its
+    exploration. So design RL on this task learns bodies for that controller — design after control, the
+    controller frozen (``docs/codesign.md``).
+
+    Empty bodies score 0 and are not simulated; a body that fails in simulation (diverged) scores what it moved up
+    to then. ``stats`` as :class:`SimulatedTask`'s (``perf/sim_seconds``: the episode's wall time)."""
+
+    def __init__(self, controller: str, sim: Any = None, device: str | torch.device | None = None, arch: str = "cpu",
+                 headings: str = "any", seed: int = 0) -> None:
+        """``sim``: the run's ``SimConfig``, checked to have the controller's materials (the physics is the
+        controller's own); ``arch``: "cpu" | "cuda" | "auto"; ``seed``: the episodes' headings where they are
+        drawn (``headings="random"``)."""
+        from dataclasses import replace
+
+        from freeform.agents.controller_file import read_controller
+        from freeform.envs.control import HEADINGS, ControlEnv
+        from freeform.sim import SimConfig, Simulator
+
+        if arch not in ARCHS:
+            raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
+        if headings not in HEADINGS:
+            raise ValueError(f"headings must be one of {HEADINGS}, got {headings!r}")
+        saved = read_controller(controller)
+        self.sim = saved.sim or SimConfig()
+        if sim is not None and len(sim.materials) != len(self.sim.materials):
+            raise ValueError(f"the controller {saved.path} was trained with {len(self.sim.materials)} materials and "
+                             f"the run's sim has {len(sim.materials)}: design with the materials it knows")
+        self.source, self.seed = saved.path, int(seed)
+        self.control = replace(saved.control, headings=headings)
+        self.control.validate()
+        self.device = torch.device(device) if device is not None else None
+        # one simulator for every call, its device arrays reused: the control env's physics (commanded actuation)
+        self.simulator = Simulator(ControlEnv.simulation(self.sim, self.control), arch=arch)
+        self.stats: dict[str, float] = {}
+
+    def reward(self, final_grids: torch.Tensor, bodies: torch.Tensor | None = None) -> torch.Tensor:
+        """``final_grids`` ``[N, ρ, ρ, ρ] uint8`` (``bodies`` optional: their largest components) -> each body's
+        move under the controller ``[N] float32``."""
+        from freeform.agents.controller_file import controller_for
+        from freeform.agents.controllers import controller_step
+        from freeform.envs.control import ControlEnv
+
+        if bodies is None:
+            check_grids(final_grids, name="final_grids")
+            bodies = largest_component(final_grids)
+        device = self.device if self.device is not None else final_grids.device
+        bodies = bodies.cpu()
+        live = torch.nonzero(bodies.reshape(bodies.shape[0], -1).any(1)).flatten()
+        reward = torch.zeros(bodies.shape[0], dtype=torch.float32)
+        self.stats = {"perf/sim_seconds": 0.0, "stats/sim_bodies": float(live.numel())}
+        if live.numel() == 0:
+            return reward.to(device)
+        t0 = time.perf_counter()
+        net = controller_for(self.source, bodies[live]).controller.eval()
+        env = ControlEnv(bodies[live], sim=self.sim, control=self.control, seed=self.seed, box=tuple(net.box),
+                         simulator=self.simulator)
+        obs, total, state = env.reset(), torch.zeros(len(live), dtype=torch.float64), None
+        with torch.no_grad():
+            for _ in range(self.control.steps):
+                outputs, state = controller_step(net, obs, state)
+                obs, step_reward, _, _ = env.step(net.distribution.mode(outputs[:3]))
+                total += step_reward.double()
+        reward[live] = total.float()
+        self.stats["perf/sim_seconds"] = time.perf_counter() - t0
+        return reward.to(device)

@@ -62,6 +62,16 @@ def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
     return LocomotionTask(**_simulator_options(cfg, device))
 
 
+@register_task("controlled_locomotion")
+def _controlled_locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
+    from freeform.envs import ControlledLocomotionTask
+
+    if "controller" not in cfg.task.options:
+        raise ValueError("task.name=controlled_locomotion needs task.options.controller=PATH (a controller.pt, a "
+                         "folder holding one, or a control run's directory)")
+    return ControlledLocomotionTask(**_simulator_options(cfg, device))
+
+
 def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
     """A ``TrajectoryTask`` of the reward registered as ``task.name`` (freeform/envs/trajectory.py)."""
     from freeform.envs import TrajectoryTask
