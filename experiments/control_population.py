@@ -20,6 +20,12 @@ vector set to k·(cos o, sin o, 0) in the heading's frame (x along the heading),
 heading per set, k and offset o (``RESULTS/steer_waves.csv``; ≈ 5 min on 2 cores):
 
     python -m experiments.control_population --steer-waves --results docs/results/control_population_steering
+
+``--steer-feedback``: the same hand-set wave along the heading, turned after every control step by a gain times the
+angle between the heading and the way the body moved over that step (integral feedback on the heading error): per
+gain and set, the mean move along the heading (``RESULTS/steer_feedback.csv``; ≈ 2 min):
+
+    python -m experiments.control_population --steer-feedback --results docs/results/control_population_steering
 """
 
 from __future__ import annotations
@@ -96,11 +102,13 @@ def figure(results: Path, seeds: list[int], path: Path, moved: str = "distance i
     fig.savefig(path, dpi=150)
 
 
-def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
-                offsets: tuple[float, ...] = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)) -> list[dict]:
-    """The rows of ``--steer-waves`` (module docstring): per k, offset and set of ``bodies/SET.npy``, the mean move
-    along the heading of the hand-set wave's mean command, one episode a body, the same headings for
-    every offset (each body's episode 0 of seed 0)."""
+def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.ndarray]:
+    """The steering preset's wave head playing the hand-set wave exactly (its per-cell outputs 0) on every held-out
+    body of ``bodies/SET.npy`` (read as ``--evaluate`` reads them), ``variants`` times over, one episode each along
+    seed 0's random headings: per set, the move along the heading ``[variants, bodies]``. Before each control step
+    the wave vector is k·(cos o, sin o, 0) in the heading's frame (x along the heading), o = ``turn(step, env,
+    moved)`` ``[variants · all bodies]`` (variant-major within each set), ``moved`` each body's centre-of-mass move
+    ``[N, 2]`` over the step before (None at the first)."""
     import torch
 
     from experiments.control import read_bodies
@@ -110,35 +118,76 @@ def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
 
     cfg = compose("experiment=control_population_steering_cpu")
     control, sim = cfg.control.episode(), cfg.sim
-    sets = {name: read_bodies(bodies / f"{name}.npy", len(sim.materials)) for name in SETS}  # (as --evaluate reads them)
-    grids = torch.cat([g.repeat(len(offsets), 1, 1, 1) for g in sets.values()])
-    first = np.concatenate([np.tile(np.arange(len(g)), len(offsets)) for g in sets.values()])
+    sets = {name: read_bodies(bodies / f"{name}.npy", len(sim.materials)) for name in SETS}
+    grids = torch.cat([g.repeat(variants, 1, 1, 1) for g in sets.values()])
+    first = np.concatenate([np.tile(np.arange(len(g)), variants) for g in sets.values()])
     env = ControlEnv(grids, sim=sim, control=control, seed=0, first_env=first)
+    net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave", wave_k=k).eval()
+    with torch.no_grad():  # the hand-set wave exactly: no per-cell amplitude, phase or correction, and the wave
+        for layer in (net.actor, net.wave_k):  # vector wave_k0 alone, turned per environment below
+            layer.weight.zero_()
+            layer.bias.zero_()
+    obs, total, moved = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64), None
+    for step in range(control.steps):
+        angle = torch.as_tensor(turn(step, env, moved), dtype=torch.float32)
+        net.wave_k0 = k * torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros_like(angle)], 1)  # ([N, 3])
+        before = env._com[:, :2].copy()
+        with torch.no_grad():
+            outputs, _ = controller_step(net, obs, None)
+        obs, reward, _, _ = env.step(net.distribution.mode(outputs[:3]))
+        total += reward.double()
+        moved = env._com[:, :2] - before
+    out, start = {}, 0
+    for name, g in sets.items():
+        out[name] = total[start: start + variants * len(g)].numpy().reshape(variants, len(g))
+        start += variants * len(g)
+    return out
+
+
+def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
+                offsets: tuple[float, ...] = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)) -> list[dict]:
+    """The rows of ``--steer-waves`` (module docstring): per k, offset and set, the mean move along the heading of
+    the hand-set wave held at that offset from the heading."""
+    sizes = [len(np.load(bodies / f"{name}.npy")) for name in SETS]
+    angle = np.concatenate([np.repeat(offsets, n) for n in sizes])
     rows = []
     for k in ks:
-        net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave", wave_k=k).eval()
-        angle = torch.cat([torch.tensor(offsets, dtype=torch.float32).repeat_interleave(len(g)) for g in sets.values()])
-        with torch.no_grad():  # the hand-set wave exactly: no per-cell amplitude, phase or correction, and the
-            for layer in (net.actor, net.wave_k):  # wave vector wave_k0 alone (k along each body's offset)
-                layer.weight.zero_()
-                layer.bias.zero_()
-        obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
-        k_frame = k * torch.stack([torch.cos(angle), torch.sin(angle), torch.zeros_like(angle)], 1)
-        net.wave_k0 = k_frame  # ([N, 3]: one offset per environment)
-        for _ in range(control.steps):
-            with torch.no_grad():
-                outputs, _ = controller_step(net, obs, None)
-            obs, reward, _, _ = env.step(net.distribution.mode(outputs[:3]))
-            total += reward.double()
-        start = 0
-        for name, g in sets.items():
-            moves = total[start : start + len(offsets) * len(g)].numpy().reshape(len(offsets), len(g))
-            start += len(offsets) * len(g)
-            for offset, along in zip(offsets, moves, strict=True):
+        moves = hand_set_wave(bodies, k, len(offsets), lambda step, env, moved: angle)
+        for name in SETS:
+            for offset, along in zip(offsets, moves[name], strict=True):
                 mean, band = mean_band(along)
                 rows.append({"set": name, "k": k, "offset_rad": round(float(offset), 4), "along_heading": float(mean),
-                             "band99": float(band), "bodies": len(g)})
+                             "band99": float(band), "bodies": moves[name].shape[1]})
                 print(rows[-1], flush=True)
+    return rows
+
+
+def steer_feedback(bodies: Path, k: float = 1.5, gains: tuple[float, ...] = (0.0, 0.3, 0.6, 1.0)) -> list[dict]:
+    """The rows of ``--steer-feedback`` (module docstring): the hand-set wave turned after every control step by
+    ``gain`` × the angle between the heading and the body's last move (integral feedback on the heading error; gain
+    0: held along the heading), per gain and set, the mean move along the heading."""
+    sizes = [len(np.load(bodies / f"{name}.npy")) for name in SETS]
+    gain = np.concatenate([np.repeat(gains, n) for n in sizes])
+    offset = np.zeros(len(gain))
+
+    def turn(step, env, moved):
+        nonlocal offset
+        if moved is None:
+            offset = np.zeros(len(gain))
+        else:  # heading minus the direction moved, in (−π, π]
+            error = np.angle(np.exp(1j * (env.heading - np.arctan2(moved[:, 1], moved[:, 0]))))
+            offset = offset + gain * error
+        return offset
+
+    moves = hand_set_wave(bodies, k, len(gains), turn)
+    rows = []
+    for name in [*SETS, "all"]:
+        for g, gg in enumerate(gains):
+            along = np.concatenate([moves[n][g] for n in SETS]) if name == "all" else moves[name][g]
+            mean, band = mean_band(along)
+            rows.append({"set": name, "k": k, "gain": gg, "along_heading": float(mean), "band99": float(band),
+                         "bodies": len(along)})
+            print(rows[-1], flush=True)
     return rows
 
 
@@ -147,6 +196,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--results", default="docs/results/control_population")
     p.add_argument("--steer-waves", action="store_true",
                    help="the hand-set wave along headings and at angles to them (steer_waves.csv; module docstring)")
+    p.add_argument("--steer-feedback", action="store_true",
+                   help="the hand-set wave turned by the heading error after every step (steer_feedback.csv)")
     p.add_argument("--bodies", default="docs/results/heldout_bodies", help="the held-out sets' folder")
     p.add_argument("--headings", choices=("any", "random"), default="any",
                    help="what the evaluations scored: the distance in the plane (any) or the move along random "
@@ -155,6 +206,9 @@ def main(argv: list[str] | None = None) -> None:
     results = Path(args.results)
     if args.steer_waves:
         write_rows(results / "steer_waves.csv", steer_waves(Path(args.bodies)))
+        return
+    if args.steer_feedback:
+        write_rows(results / "steer_feedback.csv", steer_feedback(Path(args.bodies)))
         return
     seeds = seeds_in(results)
     if not seeds:

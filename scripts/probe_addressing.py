@@ -10,7 +10,13 @@ ways and counts the instructions of each in the printed assembly:
 * ``vec``: a 1-D buffer of 16-vectors, ``buf[base + i][c]`` (the row's address once, the columns as offsets);
 * ``vec8``, ``vec4``: a 1-D buffer of 8- or 4-vectors, ``buf[base + i·16/L + c // L][c % L]`` (a row of 16 as
   16/L vectors: what a packed buffer of L-vectors, every table's width padded to a multiple of L, would give);
-* ``twod``: a 2-D scalar buffer, ``buf[base + i, c]``.
+* ``twod``: a 2-D scalar buffer, ``buf[base + i, c]``;
+* ``flat-gathered``, ``vec-gathered``: ``flat`` and ``vec`` with the item read from an index array, ``j = idx[i]``
+  (as a link reads its voxels' rows: the real kernels' case), so LLVM knows nothing of ``j``'s range.
+
+The loop counter ``i`` of the plain layouts is an induction variable whose range LLVM knows, so it can widen it to
+64 bits and share one address between a row's columns; a gathered ``j`` gives it nothing to widen: there ``vec`` pays
+what ``flat`` pays (measured in the real kernel too: ``docs/physics.md``).
 
     python scripts/probe_addressing.py      # ~15 s; the assembly is written in a temporary folder
 """
@@ -25,7 +31,7 @@ import sys
 import tempfile
 
 WIDTH, PAIRS = 16, 8
-LAYOUTS = ("flat", "vec", "vec8", "vec4", "twod")
+LAYOUTS = ("flat", "vec", "vec8", "vec4", "twod", "flat-gathered", "vec-gathered")
 COUNTED = ("movslq", "lea", "vmovss", "vfmadd", "vmul")
 
 
@@ -34,6 +40,32 @@ def child(layout: str) -> None:
     import taichi as ti
 
     ti.init(arch=ti.cpu, print_kernel_asm=True, offline_cache=False, cpu_max_num_threads=1)
+    Idx = ti.types.ndarray(dtype=ti.i32, ndim=1)
+    if layout == "flat-gathered":
+        buf = ti.ndarray(ti.f32, 100 * WIDTH)
+
+        @ti.kernel
+        def gathered(buf: ti.types.ndarray(dtype=ti.f32, ndim=1), idx: Idx, n: ti.i32):
+            for _ in range(1):
+                for i in range(n):
+                    at, s = idx[i] * WIDTH, 0.0
+                    for c in ti.static(range(PAIRS)):
+                        s += buf[at + c] * buf[at + c + PAIRS]
+                    buf[at + WIDTH - 1] = s
+    elif layout == "vec-gathered":
+        buf = ti.Vector.ndarray(WIDTH, ti.f32, 100)
+
+        @ti.kernel
+        def gathered(buf: ti.types.ndarray(dtype=ti.types.vector(WIDTH, ti.f32), ndim=1), idx: Idx, n: ti.i32):
+            for _ in range(1):
+                for i in range(n):
+                    j, s = idx[i], 0.0
+                    for c in ti.static(range(PAIRS)):
+                        s += buf[j][c] * buf[j][c + PAIRS]
+                    buf[j][WIDTH - 1] = s
+    if layout.endswith("gathered"):
+        gathered(buf, ti.ndarray(ti.i32, 10), 10)
+        return
     if layout == "flat":
         buf = ti.ndarray(ti.f32, 100 * WIDTH)
 
