@@ -116,10 +116,9 @@ def _metrics(info: dict) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
-    """``episodes`` designs of an open-loop design run's last policy (sampled as in training), moved by their sine
-    gaits in ``window`` (a ``ControlConfig``): the score (:func:`gaits`), the move along +x, and the body metrics."""
-    from freeform.envs.control import open_loop_moves
+def last_designs(run: Path, episodes: int) -> tuple[Any, dict, dict]:
+    """A design run's config, last checkpoint and the final ``info`` of ``episodes`` designs of its last policy,
+    sampled as in training, on a design env seeded apart from training's (``cfg.seed + 10_000``)."""
     from freeform.run.build import build, design_env
 
     cfg, last = _last(run)
@@ -129,6 +128,16 @@ def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     obs, done = env.reset(), torch.zeros(episodes, dtype=torch.bool)
     while not bool(done.all()):
         obs, _, done, info = env.step(ppo.act(obs))
+    return cfg, last, info
+
+
+@torch.no_grad()
+def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
+    """``episodes`` designs of an open-loop design run's last policy (sampled as in training), moved by their sine
+    gaits in ``window`` (a ``ControlConfig``): the score (:func:`gaits`), the move along +x, and the body metrics."""
+    from freeform.envs.control import open_loop_moves
+
+    cfg, last, info = last_designs(run, episodes)
     grids = info["final_grids"].cpu().numpy()
     moves = open_loop_moves(grids, cfg.sim, window)  # (simulated once: the score and the move along +x)
     score, kind = gaits(grids, cfg.sim, window, moves=moves)
@@ -159,15 +168,9 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
     """``episodes`` designs of a design-after-control run's last policy (``task.name=controlled_locomotion``,
     sampled as in training): scored by its task (the frozen controller driving each one, the move in the plane) and
     by their own sine gaits in ``window`` (:func:`gaits`), with the body metrics."""
-    from freeform.run.build import build, build_task, design_env
+    from freeform.run.build import build_task
 
-    cfg, last = _last(run)
-    _, ppo = build(cfg, torch.device("cpu"))
-    ppo.restore(last)
-    env = design_env(cfg, torch.device("cpu"), episodes, cfg.seed + 10_000)
-    obs, done = env.reset(), torch.zeros(episodes, dtype=torch.bool)
-    while not bool(done.all()):
-        obs, _, done, info = env.step(ppo.act(obs))
+    cfg, last, info = last_designs(run, episodes)
     grids = info["final_grids"].cpu()
     score = build_task(cfg, torch.device("cpu")).reward(grids, bodies=info["bodies"].cpu()).numpy()
     gait, kind = gaits(grids.numpy(), cfg.sim, window)

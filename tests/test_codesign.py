@@ -285,3 +285,42 @@ def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
     with pytest.raises(ValueError, match="control.controller_init=.*no such checkpoint"):
         train_mod.train(compose("experiment=codesign_steering_cpu", *size,
                                 f"control.controller_init={tmp_path / 'nothing'}"), tmp_path / "none")
+
+
+def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -> None:
+    """``python -m experiments.codesign --designed RUN --pretraining ...``: a design run whose designs a frozen
+    controller drives (``task.name=controlled_locomotion``) beside open-loop design RL; its budget is its epochs of
+    controlled episodes (the controller's settling and window) plus the control run's that the overrides describe —
+    here a fixed population (one cohort, settled once), so the hand count is exact."""
+    import csv
+
+    from experiments.codesign import main
+    from freeform import train as train_mod
+    from freeform.agents.controller_file import save_controller
+    from freeform.agents.controllers import ContextConvController
+    from freeform.config import compose
+    from freeform.envs.control import RESIDUAL_CHANNELS
+
+    episode = ControlConfig(burn_in=0.01, duration=0.0375, headings="any", residual=True)
+    net = ContextConvController(len(RESIDUAL_CHANNELS), (RHO,) * 3, RESIDUAL_CHANNELS.index("actuated"), hidden=4)
+    save_controller(tmp_path / "controller.pt", net, episode, SimConfig())
+    common = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "trainer.render_every=0", "agent.hidden=8",
+              "agent.sgd_minibatch_size=8", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1"]
+    train_mod.train(compose("experiment=controlled_design_cpu", "trainer.epochs=2",
+                            f"task.options.controller={tmp_path / 'controller.pt'}", *common), tmp_path / "designed")
+    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=1", "+task.options.measure=com",
+                            "sim.burn_in=0.01", "sim.duration=0.0375", *common), tmp_path / "open_loop")
+    pretraining = ["experiment=control_population_cpu", "trainer.epochs=3", "env.num_envs=8", "control.pool=1",
+                   "control.refresh_every=0"]
+    main(["--designed", str(tmp_path / "designed"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
+          "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
+    rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    designed = rows["design after control (frozen population controller)"]
+    population = compose(*pretraining)
+    episodes = 3 * population.agent.rollout_steps // population.control.steps  # every cohort the same: one settle
+    before = episodes * 8 * population.control.duration + 8 * population.control.burn_in
+    assert float(designed["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
+    assert float(designed["robot_seconds"]) == pytest.approx(before + 2 * 4 * (0.01 + 0.0375), abs=1e-3)
+    assert designed["score"] == "move in the plane, controlled" and int(designed["n"]) == 4
+    assert rows["its designs, open loop"]["score"] == "move in the plane, sine gait"
+    assert float(rows["open-loop design RL (the paper's)"]["robot_seconds"]) == pytest.approx(4 * 0.0475, abs=1e-3)
