@@ -142,7 +142,7 @@ def open_loop_designs(run: Path, episodes: int, window: Any) -> dict[str, Any]:
     moves = open_loop_moves(grids, cfg.sim, window)  # (simulated once: the score and the move along +x)
     score, kind = gaits(grids, cfg.sim, window, moves=moves)
     return {"score": score, "kind": kind, "along_x": moves[:, 0], "metrics": _metrics(info),
-            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "grids": grids}
 
 
 @torch.no_grad()
@@ -172,10 +172,11 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
 
     cfg, last, info = last_designs(run, episodes)
     grids = info["final_grids"].cpu()
-    score = build_task(cfg, torch.device("cpu")).reward(grids, bodies=info["bodies"].cpu()).numpy()
+    task = build_task(cfg, torch.device("cpu"))
+    score = task.reward(grids, bodies=info["bodies"].cpu()).numpy()
     gait, kind = gaits(grids.numpy(), cfg.sim, window)
     return {"score": score, "gaits": gait, "gait_kind": kind, "metrics": _metrics(info),
-            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg}
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task}
 
 
 def trained_for(control: Any) -> str:
@@ -243,6 +244,10 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         add("design after control (frozen population controller)", dc, budget, "move in the plane, controlled",
             {"pretraining_robot_seconds": round(before, 3)})
         add("  its designs, open loop", {**dc, "score": dc["gaits"]}, budget, dc["gait_kind"])
+        driven = dc["task"].reward(torch.from_numpy(ol["grids"])).numpy()  # (the paper's designs, then the controller)
+        add("open-loop design RL's designs, driven by the same controller", {**ol, "score": driven},
+            before + robot_seconds(ol["cfg"], ol["epochs"]), "move in the plane, controlled",
+            {"pretraining_robot_seconds": round(before, 3)})
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))

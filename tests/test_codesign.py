@@ -324,3 +324,6 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
     assert designed["score"] == "move in the plane, controlled" and int(designed["n"]) == 4
     assert rows["its designs, open loop"]["score"] == "move in the plane, sine gait"
     assert float(rows["open-loop design RL (the paper's)"]["robot_seconds"]) == pytest.approx(4 * 0.0475, abs=1e-3)
+    driven = rows["open-loop design RL's designs, driven by the same controller"]  # (no training beyond both runs)
+    assert float(driven["robot_seconds"]) == pytest.approx(before + 4 * 0.0475, abs=1e-3)
+    assert driven["score"] == "move in the plane, controlled" and int(driven["n"]) == 4
