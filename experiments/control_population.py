@@ -102,6 +102,20 @@ def figure(results: Path, seeds: list[int], path: Path, moved: str = "distance i
     fig.savefig(path, dpi=150)
 
 
+def held_out_sets(bodies: Path, materials: int) -> dict:
+    """Every held-out set of ``bodies/SET.npy`` as ``--evaluate`` reads it (``experiments.control.read_bodies``)."""
+    from experiments.control import read_bodies
+
+    return {name: read_bodies(bodies / f"{name}.npy", materials) for name in SETS}
+
+
+def set_sizes(bodies: Path) -> list[int]:
+    """The bodies in each held-out set, in ``SETS``' order (the steering preset's materials)."""
+    from freeform.config import compose
+
+    return [len(g) for g in held_out_sets(bodies, len(compose("experiment=control_population_steering_cpu").sim.materials)).values()]
+
+
 def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.ndarray]:
     """The steering preset's wave head playing the hand-set wave exactly (its per-cell outputs 0) on every held-out
     body of ``bodies/SET.npy`` (read as ``--evaluate`` reads them), ``variants`` times over, one episode each along
@@ -111,14 +125,13 @@ def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.n
     ``[N, 2]`` over the step before (None at the first)."""
     import torch
 
-    from experiments.control import read_bodies
     from freeform.agents.controllers import build_controller, controller_step
     from freeform.config import compose
     from freeform.envs.control import ControlEnv
 
     cfg = compose("experiment=control_population_steering_cpu")
     control, sim = cfg.control.episode(), cfg.sim
-    sets = {name: read_bodies(bodies / f"{name}.npy", len(sim.materials)) for name in SETS}
+    sets = held_out_sets(bodies, len(sim.materials))
     grids = torch.cat([g.repeat(variants, 1, 1, 1) for g in sets.values()])
     first = np.concatenate([np.tile(np.arange(len(g)), variants) for g in sets.values()])
     env = ControlEnv(grids, sim=sim, control=control, seed=0, first_env=first)
@@ -148,7 +161,7 @@ def steer_waves(bodies: Path, ks: tuple[float, ...] = (1.0, 1.5, 2.0),
                 offsets: tuple[float, ...] = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)) -> list[dict]:
     """The rows of ``--steer-waves`` (module docstring): per k, offset and set, the mean move along the heading of
     the hand-set wave held at that offset from the heading."""
-    sizes = [len(np.load(bodies / f"{name}.npy")) for name in SETS]
+    sizes = set_sizes(bodies)
     angle = np.concatenate([np.repeat(offsets, n) for n in sizes])
     rows = []
     for k in ks:
@@ -166,7 +179,7 @@ def steer_feedback(bodies: Path, k: float = 1.5, gains: tuple[float, ...] = (0.0
     """The rows of ``--steer-feedback`` (module docstring): the hand-set wave turned after every control step by
     ``gain`` × the angle between the heading and the body's last move (integral feedback on the heading error; gain
     0: held along the heading), per gain and set, the mean move along the heading."""
-    sizes = [len(np.load(bodies / f"{name}.npy")) for name in SETS]
+    sizes = set_sizes(bodies)
     gain = np.concatenate([np.repeat(gains, n) for n in sizes])
     offset = np.zeros(len(gain))
 
