@@ -176,7 +176,7 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
     score = task.reward(grids, bodies=info["bodies"].cpu()).numpy()
     gait, kind = gaits(grids.numpy(), cfg.sim, window)
     return {"score": score, "gaits": gait, "gait_kind": kind, "metrics": _metrics(info),
-            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task}
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids}
 
 
 def trained_for(control: Any) -> str:
@@ -185,10 +185,21 @@ def trained_for(control: Any) -> str:
             "random": "move along its heading, controlled"}[control.headings]
 
 
+def adapted_label(cfg: Any, epochs: int) -> str:
+    """What an ``--adapted`` control run did to the controller: trained on the designs' stream (``control.designer``)
+    or, its control, as long again on untrained bodies."""
+    if cfg.control.designer is not None:
+        return f"  its designs, the controller adapted to them ({epochs} epochs on their stream)"
+    return f"  its designs, the controller trained {epochs} more epochs on untrained bodies"
+
+
 def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, episodes: int, out: Path,
-            designed: Path | None = None, pretraining: list[str] | None = None) -> list[dict]:
+            designed: Path | None = None, pretraining: list[str] | None = None,
+            adapted: list[Path] | None = None) -> list[dict]:
     """Every method given against open-loop design RL (module docstring); ``designed``: a design-after-control run,
-    its budget its design epochs' plus the pretraining run's (``pretraining``: that run's app overrides)."""
+    its budget its design epochs' plus the pretraining run's (``pretraining``: that run's app overrides);
+    ``adapted``: control runs started from that controller (``control.controller_init``), whose controllers drive
+    the same designs, their own epochs added to the budget."""
     out.mkdir(parents=True, exist_ok=True)
     rows, metrics, runs = [], [], {}
 
@@ -248,6 +259,15 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         add("open-loop design RL's designs, driven by the same controller", {**ol, "score": driven},
             before + robot_seconds(ol["cfg"], ol["epochs"]), "move in the plane, controlled",
             {"pretraining_robot_seconds": round(before, 3)})
+        for run in adapted or ():
+            from freeform.envs import ControlledLocomotionTask
+
+            cfg, last = _last(run)
+            epochs = int(last["ppo"]["epoch"])
+            task = ControlledLocomotionTask(str(run), sim=dc["cfg"].sim, seed=dc["task"].seed)
+            runs[f"adapted: {run.name}"] = str(run)
+            add(adapted_label(cfg, epochs), {**dc, "score": task.reward(dc["grids"]).numpy(), "epochs": epochs},
+                budget + robot_seconds(cfg, epochs), "move in the plane, controlled")
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))
@@ -309,6 +329,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--pretraining", nargs="+", default=None, metavar="OVERRIDE",
                    help="the app overrides of the control run behind --designed's controller, whose robot-seconds its "
                         "budget includes (e.g. experiment=control_population_cpu seed=0)")
+    p.add_argument("--adapted", type=Path, nargs="+", default=None, metavar="RUN",
+                   help="control runs started from --designed's controller (control.controller_init), e.g. adapted to "
+                        "its designs (control.designer=DESIGNED): their controllers drive --designed's designs")
     p.add_argument("--episodes", type=int, default=256)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--replot", action="store_true", help="redraw the figure from --out's CSVs (no runs needed)")
@@ -320,10 +343,13 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.open_loop is None or (args.codesign is None and args.designed is None):
         p.error("--open-loop and --codesign or --designed are required (or --replot)")
-    for run in (args.codesign, args.open_loop, args.two_stage, args.designed):
+    if args.adapted and args.designed is None:
+        p.error("--adapted drives --designed's designs: give --designed")
+    for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ())):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
-    compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining)
+    compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining,
+            args.adapted)
 
 
 if __name__ == "__main__":

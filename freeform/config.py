@@ -130,6 +130,11 @@ class ControlRunConfig(ControlConfig):
     """``bodies=population``: environments per body (``env.num_envs / copies`` bodies a cohort), each body's copies
     starting from the same settled state: with ``agent.group_baseline`` a copy's rewards are judged against its
     siblings' (``freeform.envs.population``)."""
+    designer: str | None = None
+    """``bodies=population``: a design run's directory (or checkpoint) whose last policy builds the stream's bodies,
+    sampled as in training, instead of an untrained policy: the controller adapts to what a design policy builds
+    (one round of alternating co-design, ``docs/codesign.md``). The run's design sizes must be this run's. None:
+    untrained designs."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -184,6 +189,10 @@ class ControlRunConfig(ControlConfig):
         allowed = head_rule(self.controller, self.head, strokes=self.stroke_periods >= 1)
         require(allowed is None, f"{key}.head", allowed, self.head)
         require(math.isfinite(self.wave_k), f"{key}.wave_k", "a finite wave number (rad per voxel length)", self.wave_k)
+        require(self.designer is None or (isinstance(self.designer, str) and self.designer != ""
+                                          and self.bodies == "population"),
+                f"{key}.designer", "None or a path to a design run or checkpoint (with bodies=population)",
+                self.designer)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",

@@ -262,10 +262,13 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
 
 def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
     """``control.controller_init=RUN``: the co-design run's epoch-0 controller is RUN's trained controller, weight for
-    weight (its design network is fresh); a controller of another width is refused naming the key."""
+    weight (its design network is fresh), and so is one started from its ``controller.pt``; a controller of another
+    width is refused naming the key."""
     from freeform import train as train_mod
+    from freeform.agents.controller_file import read_controller, save_controller
     from freeform.checkpoint import load_checkpoint
     from freeform.config import compose
+    from freeform.run.build import load_controller
 
     size = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "control.duration=0.0375",
             "control.burn_in=0.01", "trainer.render_every=0", "agent.sgd_minibatch_size=8", "control.hidden=4",
@@ -279,6 +282,12 @@ def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
     assert set(trained) == {k[len("controller."):] for k in start if k.startswith("controller.")}
     for name, tensor in trained.items():
         assert torch.equal(start[f"controller.{name}"], tensor), name
+    saved = read_controller(tmp_path / "control")  # the self-contained file of it starts a controller the same way
+    save_controller(tmp_path / "controller.pt", saved.controller, saved.control, saved.sim)
+    fresh = type(saved.controller)(**saved.controller.init_kwargs)
+    load_controller(fresh, str(tmp_path / "controller.pt"))
+    for name, tensor in fresh.state_dict().items():
+        assert torch.equal(tensor, trained[name]), name
     with pytest.raises(ValueError, match="control.controller_init=.*another controller"):
         train_mod.train(compose("experiment=codesign_steering_cpu", "agent.hidden=8", *size, "control.hidden=6",
                                 f"control.controller_init={tmp_path / 'control'}"), tmp_path / "wide")
@@ -327,3 +336,17 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
     driven = rows["open-loop design RL's designs, driven by the same controller"]  # (no training beyond both runs)
     assert float(driven["robot_seconds"]) == pytest.approx(before + 4 * 0.0475, abs=1e-3)
     assert driven["score"] == "move in the plane, controlled" and int(driven["n"]) == 4
+    # a controller adapted to the designs (control.designer): it drives the same designs, its own epochs added
+    adapted = ["experiment=control_population_cpu", "trainer.epochs=1", *common, "control.hidden=4",
+               "control.head=direct", "control.stroke_periods=0", "control.period=0.0125", "control.burn_in=0.01",
+               "control.duration=0.0375", "agent.rollout_steps=3", "control.copies=2", "control.pool=1",
+               "control.refresh_every=0", f"control.designer={tmp_path / 'designed'}",
+               f"control.controller_init={tmp_path / 'controller.pt'}"]
+    train_mod.train(compose(*adapted), tmp_path / "adapted")
+    main(["--designed", str(tmp_path / "designed"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
+          "--out", str(tmp_path / "out2"), "--pretraining", *pretraining, "--adapted", str(tmp_path / "adapted")])
+    rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out2" / "summary.csv"))}
+    row = rows["its designs, the controller adapted to them (1 epochs on their stream)"]
+    assert float(row["robot_seconds"]) == pytest.approx(before + 2 * 4 * 0.0475 + 4 * 0.0375 + 4 * 0.01, abs=1e-3)
+    assert row["score"] == "move in the plane, controlled" and int(row["n"]) == 4
+    assert row["mean"] != designed["mean"]  # (another controller: its trained weights moved)

@@ -186,3 +186,44 @@ def test_the_bandwidth_limits_the_sine_plus_the_correction() -> None:
         assert np.all(np.abs(change) <= rate * period + 1e-12)
         np.testing.assert_allclose(change, np.minimum(rate * period, np.clip(sine + 2.0, -1, 1) - received)[actuated])
         received = total
+
+
+def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy(tmp_path: Path) -> None:
+    """``control.designer=RUN``: the stream's bodies are what RUN's last policy designs — each cohort the largest
+    components of the final grids its own ``DesignEnv.step`` builds when ``PPO.act`` draws from a generator seeded
+    the cohort's way — and a run of the wrong sizes, a control run or a designer without a population are refused."""
+    from freeform import train as train_mod
+    from freeform.agents import PPO
+    from freeform.body import largest_component
+    from freeform.envs.design import DesignEnv
+    from freeform.envs.population import trained_design_bodies
+
+    design = ["experiment=volume_cpu", "env.num_envs=4", "env.resolution=6", "env.steps=6", "env.bundle_size=2",
+              "task.materials=4", "agent.hidden=4", "agent.sgd_minibatch_size=8", "trainer.epochs=2",
+              "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1", "trainer.render_every=0"]
+    train_mod.train(compose(*design), tmp_path / "design")
+    run = str(tmp_path / "design")
+    bodies = trained_design_bodies(run, 5, SIZES, 7)
+    ppo = PPO.load(tmp_path / "design" / "checkpoints" / "last.pt", DesignEnv(4, resolution=6, steps=6))
+    ppo.generator.manual_seed(7)
+    env = DesignEnv(5, resolution=6, materials=4, steps=6, bundle_size=2)
+    obs, done = env.reset(), torch.zeros(5, dtype=torch.bool)
+    while not bool(done.all()):
+        obs, _, done, info = env.step(ppo.act(obs))
+    assert torch.equal(bodies, largest_component(info["final_grids"]))
+    assert not torch.equal(bodies, trained_design_bodies(run, 5, SIZES, 8))  # another draw, other designs
+    designed = DesignBodies(6, 4, 6, 2, designer=run)
+    assert torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(designed, 4, 0, 1))
+    assert not torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(SIZES, 4, 0, 1))  # not untrained ones
+    stream = PopulationControlEnv(designed, 4, pool=1, refresh_every=1, sim=SIM, control=SHORT, seed=1)
+    stream.reset()
+    assert torch.equal(stream.grids, design_cohort(designed, 4, 0, stream.cohort_at(0)))
+    with pytest.raises(ValueError, match=r"designs on a 6\^3 grid .* this run's design sizes"):
+        trained_design_bodies(run, 2, DesignBodies(8, 4, 6, 2), 0)
+    with pytest.raises(ValueError, match="control.designer=.*no such checkpoint"):
+        trained_design_bodies(str(tmp_path / "nothing"), 2, SIZES, 0)
+    with pytest.raises(ValueError, match="control.designer.*with bodies=population"):
+        compose("experiment=control_locomotion_cpu", f"control.designer={run}")
+    train_mod.train(compose(*tiny_population("trainer.epochs=1")), tmp_path / "control")
+    with pytest.raises(ValueError, match="a control run's checkpoint; the designer is a design run"):
+        trained_design_bodies(str(tmp_path / "control"), 2, SIZES, 0)

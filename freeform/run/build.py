@@ -202,7 +202,8 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
         from freeform.envs.population import DesignBodies, PopulationControlEnv
 
         e, c = cfg.env, cfg.control
-        return PopulationControlEnv(DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size),
+        sizes = DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size, c.designer)
+        return PopulationControlEnv(sizes,
                                     e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
                                     copies=c.copies,
                                     sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
@@ -234,17 +235,18 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
 
 
 def load_controller(controller: torch.nn.Module, source: str) -> None:
-    """``control.controller_init``: a trained controller's weights into ``controller`` — from a control run's
-    policy, or a co-design run's ``controller.*`` part; ``source`` a run directory or a checkpoint file."""
-    from freeform.checkpoint import load_checkpoint
+    """``control.controller_init``: a trained controller's weights into ``controller`` — from a ``controller.pt``, a
+    results folder holding one, a control run's policy or a co-design run's controller part (a run's directory or
+    checkpoint file: ``freeform.agents.controller_file.read_controller``)."""
+    from freeform.agents.controller_file import read_controller
 
     path = Path(source)
-    path = path / "checkpoints" / "last.pt" if path.is_dir() else path
-    if not path.is_file():
-        raise ValueError(f"control.controller_init={source!r}: no such checkpoint ({path} is not a file)")
-    weights = load_checkpoint(path)["ppo"]["policy"]
-    if any(k.startswith("controller.") for k in weights):  # a co-design run's actor-critic
-        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+    if not path.exists():
+        raise ValueError(f"control.controller_init={source!r}: no such checkpoint, controller.pt or run folder")
+    try:
+        weights = read_controller(path).controller.state_dict()
+    except ValueError as e:
+        raise ValueError(f"control.controller_init={source!r}: {e}") from e
     try:
         controller.load_state_dict(weights)
     except RuntimeError as e:
