@@ -176,7 +176,7 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
     score = task.reward(grids, bodies=info["bodies"].cpu()).numpy()
     gait, kind = gaits(grids.numpy(), cfg.sim, window)
     return {"score": score, "gaits": gait, "gait_kind": kind, "metrics": _metrics(info),
-            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids}
+            "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids.numpy()}
 
 
 def trained_for(control: Any) -> str:
@@ -185,12 +185,36 @@ def trained_for(control: Any) -> str:
             "random": "move along its heading, controlled"}[control.headings]
 
 
-def adapted_label(cfg: Any, epochs: int) -> str:
-    """What an ``--adapted`` control run did to the controller: trained on the designs' stream (``control.designer``)
-    or, its control, as long again on untrained bodies."""
-    if cfg.control.designer is not None:
-        return f"  its designs, the controller adapted to them ({epochs} epochs on their stream)"
-    return f"  its designs, the controller trained {epochs} more epochs on untrained bodies"
+def _run_of(path: str) -> Path:
+    """A run's directory from its directory or one of its checkpoints."""
+    p = Path(path).resolve()
+    return p.parent.parent if p.is_file() and p.parent.name == "checkpoints" else p
+
+
+def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tuple[str, dict, float]]:
+    """The rows of an ``--adapted`` control run (one started from the frozen controller): its controller driving
+    the designs it was adapted to (``control.designer``: one of ``designs``, name → (result, budget before the
+    adaptation)), or, trained on untrained bodies (its control), every set of designs; the budget adds its own."""
+    from freeform.envs import ControlledLocomotionTask
+
+    cfg, last = _last(run)
+    epochs = int(last["ppo"]["epoch"])
+    adapted = cfg.control.designer
+    chosen = [name for name, (result, _) in designs.items()
+              if adapted is None or _run_of(adapted) == _run_of(str(result["run"]))]
+    if not chosen:
+        raise SystemExit(f"--adapted {run}: adapted to the designs of {adapted}, which is neither --designed nor "
+                         "--open-loop")
+    rows = []
+    for name in chosen:
+        result, budget = designs[name]
+        task = ControlledLocomotionTask(str(run), sim=cfg.sim)
+        how = (f"adapted to them ({epochs} epochs on their stream)" if adapted is not None else
+               f"trained {epochs} more epochs on untrained bodies")
+        rows.append((f"  {name}, the controller {how}", {**result, "score": task.reward(
+            torch.from_numpy(np.asarray(result["grids"]))).numpy(), "epochs": epochs},
+            budget + robot_seconds(cfg, epochs)))
+    return rows
 
 
 def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, episodes: int, out: Path,
@@ -259,15 +283,13 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         add("open-loop design RL's designs, driven by the same controller", {**ol, "score": driven},
             before + robot_seconds(ol["cfg"], ol["epochs"]), "move in the plane, controlled",
             {"pretraining_robot_seconds": round(before, 3)})
+        designs = {"its designs": ({**dc, "run": designed}, budget),
+                   "open-loop design RL's designs": ({**ol, "run": open_loop},
+                                                     before + robot_seconds(ol["cfg"], ol["epochs"]))}
         for run in adapted or ():
-            from freeform.envs import ControlledLocomotionTask
-
-            cfg, last = _last(run)
-            epochs = int(last["ppo"]["epoch"])
-            task = ControlledLocomotionTask(str(run), sim=dc["cfg"].sim, seed=dc["task"].seed)
             runs[f"adapted: {run.name}"] = str(run)
-            add(adapted_label(cfg, epochs), {**dc, "score": task.reward(dc["grids"]).numpy(), "epochs": epochs},
-                budget + robot_seconds(cfg, epochs), "move in the plane, controlled")
+            for method, result, seconds in adapted_rows(run, designs):
+                add(method, result, seconds, "move in the plane, controlled")
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))

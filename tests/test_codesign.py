@@ -343,10 +343,19 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
                "control.refresh_every=0", f"control.designer={tmp_path / 'designed'}",
                f"control.controller_init={tmp_path / 'controller.pt'}"]
     train_mod.train(compose(*adapted), tmp_path / "adapted")
+    train_mod.train(compose(*adapted[:-2], f"control.controller_init={tmp_path / 'controller.pt'}"),
+                    tmp_path / "more")  # (its control: as long again on untrained bodies)
     main(["--designed", str(tmp_path / "designed"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
-          "--out", str(tmp_path / "out2"), "--pretraining", *pretraining, "--adapted", str(tmp_path / "adapted")])
+          "--out", str(tmp_path / "out2"), "--pretraining", *pretraining, "--adapted", str(tmp_path / "adapted"),
+          str(tmp_path / "more")])
     rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out2" / "summary.csv"))}
     row = rows["its designs, the controller adapted to them (1 epochs on their stream)"]
-    assert float(row["robot_seconds"]) == pytest.approx(before + 2 * 4 * 0.0475 + 4 * 0.0375 + 4 * 0.01, abs=1e-3)
+    adapting = 4 * 0.0375 + 4 * 0.01  # (one episode, one cohort settled)
+    assert float(row["robot_seconds"]) == pytest.approx(before + 2 * 4 * 0.0475 + adapting, abs=1e-3)
     assert row["score"] == "move in the plane, controlled" and int(row["n"]) == 4
     assert row["mean"] != designed["mean"]  # (another controller: its trained weights moved)
+    more = "the controller trained 1 more epochs on untrained bodies"
+    assert float(rows[f"its designs, {more}"]["robot_seconds"]) == pytest.approx(float(row["robot_seconds"]))
+    assert float(rows[f"open-loop design RL's designs, {more}"]["robot_seconds"]) == pytest.approx(
+        before + 4 * 0.0475 + adapting, abs=1e-3)
+    assert "open-loop design RL's designs, the controller adapted to them (1 epochs on their stream)" not in rows
