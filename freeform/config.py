@@ -28,6 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from freeform.agents.controller_heads import head_rule
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
+from freeform.agents.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.learner import learner_names
@@ -101,6 +102,10 @@ class AgentConfig(PPOConfig):
 BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
 CONTROLLERS = tuple(CONTROLLER_CLASSES)
 """``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
+CODESIGN_CONTROLLERS = tuple(k for k, c in CONTROLLER_CLASSES.items()
+                             if c.fits_any_box and not issubclass(c, RecurrentPolicy))
+"""The kinds a co-design run's controller may be (``CodesignActorCritic``): the feed-forward ones with one set of
+weights for every cell (each episode's body differs)."""
 
 
 @dataclass
@@ -197,9 +202,9 @@ class ControlRunConfig(ControlConfig):
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
         require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",
                 "false with bodies=codesign (a co-design episode observes its design first)", self.privileged_critic)
-        require(not self.codesign or self.controller == "conv", f"{key}.controller",
-                "conv with bodies=codesign (each episode's body differs: one set of weights for every cell)",
-                self.controller)
+        require(not self.codesign or self.controller in CODESIGN_CONTROLLERS, f"{key}.controller",
+                f"one of {list(CODESIGN_CONTROLLERS)} with bodies=codesign (feed-forward, one set of weights for "
+                "every cell: each episode's body differs)", self.controller)
 
     def episode(self) -> ControlConfig:
         """The env's part (``ControlEnv(control=...)``)."""

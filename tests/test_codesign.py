@@ -112,6 +112,59 @@ def test_the_policy_acts_with_the_design_head_then_the_controller() -> None:
     assert not torch.allclose(value, design_value)  # the controller's critic counts now
 
 
+def test_a_stroke_episode_controls_as_the_control_env_with_the_same_strokes() -> None:
+    """``control.stroke_periods``: a co-design control action is a stroke's a for every grid cell, then its b; the
+    control env given the same strokes on its box (moved onto the grids by ``to_grid``, its inverse) moves the
+    bodies the same, bit for bit."""
+    gen = torch.Generator().manual_seed(1)
+    control = replace(CONTROL_CFG, stroke_periods=1, residual=True)
+    e = env(control=control)
+    n = e.num_envs
+    assert e.action_channels == 2 and e.action_dim == 3 + K + 2 * RHO ** 3
+    e.reset()
+    for a in design_actions(n, gen):
+        obs, *_ = e.step(torch.cat([a, torch.zeros(n, 2 * RHO ** 3)], 1))
+    alive = e._alive
+    ref = ControlEnv(e.controlled.grids, sim=SimConfig(precision="f64"), control=control, seed=2,
+                     first_env=torch.nonzero(alive).flatten().numpy())
+    ref.reset(episode=0)
+    for _ in range(control.steps):
+        strokes = torch.rand(int(alive.sum()), 2, ref.cells, generator=gen) * 2 - 1
+        on_grid = torch.zeros(n, 2 * RHO ** 3)
+        on_grid[alive] = ref.to_grid(strokes.view(-1, 2, *ref.box)).reshape(-1, 2 * RHO ** 3)
+        _, reward, _, _ = e.step(torch.cat([torch.zeros(n, 3 + K), on_grid], 1))
+        _, ref_reward, _, _ = ref.step(strokes.reshape(-1, 2 * ref.cells))
+        torch.testing.assert_close(reward[alive], ref_reward, rtol=0, atol=0)
+    assert float(ref_reward.abs().min()) > 0
+
+
+def test_a_codesign_policy_can_hold_a_population_controller() -> None:
+    """``CodesignActorCritic.for_env(controller="context", head="wave")`` on a stroke episode: while controlling,
+    its action parameters are those of the same controller on the control channels (two numbers a cell, masked to
+    the actuated cells); its ``init_kwargs`` rebuild it."""
+    from freeform.agents.controllers import ContextConvController
+
+    control = replace(CONTROL_CFG, stroke_periods=1, residual=True, headings="any")
+    e = env(n=2, control=control)
+    policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4, controller="context", head="wave")
+    assert isinstance(policy.controller, ContextConvController) and policy.controller.head == "wave"
+    again = CodesignActorCritic(**policy.init_kwargs)
+    again.load_state_dict(policy.state_dict())
+    e.reset()
+    build = torch.zeros(2, e.action_dim)
+    build[:, 3 + 2] = 5.0  # muscle A at the centre, every step
+    for _ in range(T):
+        obs, *_ = e.step(build)
+    mean, log_std, mask, value = policy(obs)
+    assert mean.shape == mask.shape == (2, 3 + K + 2 * RHO ** 3)
+    c_mean, c_log_std, c_mask, c_value = policy.controller(obs[:, slice(*e.control_channels)])
+    torch.testing.assert_close(mean[:, 3 + K:], c_mean, rtol=0, atol=0)
+    torch.testing.assert_close(value, c_value, rtol=0, atol=0)
+    actuated = obs[:, e.control_channels[0] + OBS_CHANNELS.index("actuated")].reshape(2, -1)
+    assert torch.equal(mask[:, 3 + K:], actuated.repeat(1, 2)) and float(mask[:, : 3 + K].abs().max()) == 0.0
+    torch.testing.assert_close(again(obs)[0], mean, rtol=0, atol=0)
+
+
 def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
     e = env(n=4)
     policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4)
@@ -183,8 +236,11 @@ def test_a_recorded_episode_designs_then_drives_the_body() -> None:
 def test_a_codesign_run_refuses_the_mlp_controller() -> None:
     from freeform.config import compose
 
-    with pytest.raises(ValueError, match=r"control\.controller must be conv with bodies=codesign"):
+    with pytest.raises(ValueError, match=r"control\.controller must be one of \['conv', 'context', 'attention'\] "
+                                         r"with bodies=codesign"):
         compose("experiment=codesign_locomotion_cpu", "control.controller=mlp")
+    with pytest.raises(ValueError, match=r"control\.controller must be one of .* with bodies=codesign"):
+        compose("experiment=codesign_locomotion_cpu", "control.controller=context_gru")
 
 
 def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
@@ -359,3 +415,35 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
     assert float(rows[f"open-loop design RL's designs, {more}"]["robot_seconds"]) == pytest.approx(
         before + 4 * 0.0475 + adapting, abs=1e-3)
     assert "open-loop design RL's designs, the controller adapted to them (1 epochs on their stream)" not in rows
+
+
+def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> None:
+    """A co-design run with a population controller's kind, head and strokes (``control.controller=context
+    control.head=wave control.stroke_periods=1``) started from its ``controller.pt``: the epoch-0 controller is the
+    file's, weight for weight, and the run's controller reads back (``read_controller``) as that kind."""
+    from freeform import train as train_mod
+    from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.controllers import build_controller
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import compose
+    from freeform.run.build import control_env
+
+    overrides = ["experiment=codesign_locomotion_cpu", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
+                 "control.duration=0.0375", "control.burn_in=0.01", "control.controller=context", "control.head=wave",
+                 "control.stroke_periods=1", "control.residual=true", "control.headings=any", "control.hidden=4",
+                 "agent.hidden=8", f"agent.rollout_steps={T + 3}", "agent.sgd_minibatch_size=8",
+                 "trainer.render_every=0", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1",
+                 "trainer.epochs=1"]
+    cfg = compose(*overrides)
+    env = control_env(cfg, torch.device("cpu"), (0, 4), 0)
+    net = build_controller("context", env.control_view(), 4, -0.5, "wave", 1.0)
+    with torch.no_grad():
+        for param in net.parameters():
+            param.add_(torch.randn_like(param) * 0.1)  # (not what a fresh controller starts from)
+    save_controller(tmp_path / "controller.pt", net, cfg.control, cfg.sim)
+    train_mod.train(compose(*overrides, f"control.controller_init={tmp_path / 'controller.pt'}"), tmp_path / "run")
+    start = load_checkpoint(tmp_path / "run" / "checkpoints" / "epoch_000000.pt")["ppo"]["policy"]
+    for name, tensor in net.state_dict().items():
+        assert torch.equal(start[f"controller.{name}"], tensor), name
+    saved = read_controller(tmp_path / "run")
+    assert saved.kind == "context" and saved.controller.head == "wave"

@@ -118,10 +118,14 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
         weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
     elif name == "CodesignActorCritic":  # a co-design run: its controller part
         start, stop = kwargs["control_channels"]
-        kind, weights = "conv", {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
-        kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
-                      filled_channel=kwargs["filled_channel"], hidden=kwargs["controller_hidden"],
-                      log_std=kwargs["log_std"])
+        weights = {k[len("controller."):]: v for k, v in weights.items() if k.startswith("controller.")}
+        if "controller_kwargs" in kwargs:  # (a kind or head of its own)
+            kind, kwargs = kwargs["controller"], dict(kwargs["controller_kwargs"])
+        else:
+            kind = "conv"
+            kwargs = dict(channels=stop - start, box=(kwargs["resolution"],) * 3, mask_channel=kwargs["mask_channel"],
+                          filled_channel=kwargs["filled_channel"], hidden=kwargs["controller_hidden"],
+                          log_std=kwargs["log_std"])
     else:
         kind = next((k for k, cls in CONTROLLERS.items() if cls.__name__ == name), None)
         if kind is None:

@@ -27,7 +27,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.controllers import ConvController, MLPController
+from freeform.agents.controllers import CONTROLLERS, ConvController, MLPController
 from freeform.agents.distributions import (
     ActionDistribution,
     DiagGaussian,
@@ -289,19 +289,27 @@ class MLPActorCritic(nn.Module):
 
 class CodesignActorCritic(nn.Module):
     """One actor-critic for a design-then-control episode (``freeform.envs.CodesignEnv``): the paper's design
-    network (:class:`VoxelActorCritic`) on the grid channel while designing, a :class:`ConvController` on the control
-    channels while controlling; the stage channel chooses, per sample, which head acts and which value counts.
+    network (:class:`VoxelActorCritic`) on the grid channel while designing, a controller on the control channels
+    while controlling (a :class:`ConvController` by default; any feed-forward kind of
+    ``freeform.agents.controllers.CONTROLLERS`` with its head, e.g. a population controller's context trunk and
+    wave head); the stage channel chooses, per sample, which head acts and which value counts.
 
     Observations ``[N, C, ρ, ρ, ρ]`` (channel ``stage_channel`` 0 while designing, 1 while controlling; the grid's
     material indices in ``grid_channel``; the control env's channels in ``control_channels = (start, stop)``, whose
     ``mask_channel`` / ``filled_channel`` are counted from ``start``). Outputs a ``MaskedDiagGaussian``'s parameters
-    over ``[3 + k design numbers, ρ³ commands]`` and the value: (mean, log_std, mask, value); the mask is the
-    design part while designing, the actuated cells while controlling.
+    over ``[3 + k design numbers, c·ρ³ control numbers]`` (c = 2 for a stroke head) and the value: (mean, log_std,
+    mask, value); the mask is the design part while designing, the actuated cells while controlling.
+
+    controller, controller_kwargs: the controller's registry kind and ``init_kwargs`` (None: a ``ConvController``
+    ``controller_hidden`` wide, log σ ``log_std``, as before they could be chosen).
     """
 
     def __init__(self, resolution: int, materials: int, stage_channel: int, grid_channel: int,
                  control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5) -> None:
+                 hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
+                 controller_kwargs: dict[str, Any] | None = None) -> None:
+        from freeform.agents.recurrent import RecurrentPolicy
+
         super().__init__()
         start, stop = (int(c) for c in control_channels)
         self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
@@ -309,20 +317,42 @@ class CodesignActorCritic(nn.Module):
                                 filled_channel=filled_channel, hidden=hidden, controller_hidden=controller_hidden,
                                 log_std=log_std)
         self.design = VoxelActorCritic(resolution, materials, hidden)
-        self.controller = ConvController(stop - start, (resolution,) * 3, mask_channel, filled_channel,
-                                         controller_hidden, log_std)
+        if controller_kwargs is None:
+            if controller != "conv":
+                raise ValueError(f"controller {controller!r} needs its controller_kwargs (init_kwargs)")
+            self.controller = ConvController(stop - start, (resolution,) * 3, mask_channel, filled_channel,
+                                             controller_hidden, log_std)
+        else:
+            if controller not in CONTROLLERS or issubclass(CONTROLLERS[controller], RecurrentPolicy):
+                feed_forward = [k for k, c in CONTROLLERS.items() if not issubclass(c, RecurrentPolicy)]
+                raise ValueError(f"a co-design controller is one of the feed-forward kinds {feed_forward}, got "
+                                 f"{controller!r}")
+            self.controller = CONTROLLERS[controller](**controller_kwargs)
+            self.init_kwargs.update(controller=controller, controller_kwargs=dict(controller_kwargs))
+        if tuple(self.controller.box) != (resolution,) * 3:
+            raise ValueError(f"the controller's box {tuple(self.controller.box)} is not the design grid's "
+                             f"{(resolution,) * 3}")
         self.stage_channel, self.grid_channel, self.control_channels = stage_channel, grid_channel, (start, stop)
         self.design_dim = 3 + materials
-        self.distribution = MaskedDiagGaussian(self.design_dim + resolution ** 3)
+        self.distribution = MaskedDiagGaussian(self.design_dim + self.controller.distribution.dim)
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5) -> CodesignActorCritic:
-        """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels)."""
+    def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5,
+                controller: str = "conv", head: str = "direct", wave_k: float = 1.0) -> CodesignActorCritic:
+        """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels): a ``controller`` of that kind
+        with that ``head`` (``freeform.agents.build_controller`` on the env's control stage; the default conv
+        controller with the direct head is built as it always was)."""
+        from freeform.agents.controllers import build_controller
+
+        kwargs = None
+        if (controller, head) != ("conv", "direct"):
+            kwargs = dict(build_controller(controller, env.control_view(), controller_hidden, log_std, head,
+                                           wave_k).init_kwargs)
         return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
-                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std)
+                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + ρ³]``, value ``[N]``)."""
+        """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + c·ρ³]``, value ``[N]``)."""
         controlling = obs[:, self.stage_channel, 0, 0, 0] > 0.5
         grids = obs[:, self.grid_channel].round().to(torch.uint8)
         mean_d, log_std_d, value_d = self.design(grids)

@@ -10,8 +10,9 @@ Everything is on the design grid, so that both stages see one frame and one tens
   ``control.residual`` ``RESIDUAL_CHANNELS``) moved from the body's box to its grid cells (``ControlEnv.to_grid``),
   zero while designing.
 * Actions ``[N, 3 + k + ρ³]``: the design action ``[x, y, z, w_0 … w_{k−1}]`` (the design env's), then one command
-  per grid cell. A design step reads the first part, a control step the second (on the body's voxels: a voxel not
-  in the body's largest component, like an empty cell, has no command). The distribution is a
+  per grid cell (with ``control.stroke_periods``: ``[N, 3 + k + 2ρ³]``, a stroke's a for every cell, then its b).
+  A design step reads the first part, a control step the second (on the body's voxels: a voxel not in the body's
+  largest component, like an empty cell, has no command). The distribution is a
   :class:`~freeform.agents.distributions.MaskedDiagGaussian` over all of it; the policy's mask is the design part
   while designing and the actuated voxels while controlling (``CodesignActorCritic``), so each step's
   log-probability, entropy and KL count the entries that act.
@@ -30,6 +31,7 @@ draw ``first_env + i``, so that the episode count is the env's whole random stat
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -77,7 +79,9 @@ class CodesignEnv:
         self.steps = design_steps + self.control_steps
         """Steps per episode: T design steps, then the control steps."""
         self.design_dim = 3 + materials
-        self.action_dim = self.design_dim + resolution ** 3
+        self.action_channels = 2 if self.control.stroke_periods else 1
+        """Numbers per cell of a control action: a command, or a stroke's (a, b) (``control.stroke_periods``)."""
+        self.action_dim = self.design_dim + self.action_channels * resolution ** 3
         control_channels = RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS
         self.channels = (*CODESIGN_CHANNELS[: CONTROL.start], *control_channels)
         """The observation's channels, in order."""
@@ -94,6 +98,8 @@ class CodesignEnv:
         self.arch = arch
         self.sim = sim or SimConfig()
         self.sim_config = ControlEnv.simulation(self.sim, self.control)
+        self.material_phases = (0.0, *(m.phase for m in self.sim_config.materials))
+        """Each material's actuation phase in cycles (empty: 0), as the control env's."""
         self.simulator = Simulator(self.sim_config, arch=arch)  # one simulator for every episode's control env
         self.episode = -1
         """The index of the current episode (its headings' draw)."""
@@ -139,8 +145,7 @@ class CodesignEnv:
             return obs, reward.to(self.device), done, {}
         controlled, alive = self.controlled, self._alive
         if controlled is not None:
-            commands = controlled.from_grid(a[alive, self.design_dim:].reshape(-1, *(self.rho,) * 3))
-            obs_c, r, _, info_c = controlled.step(commands)
+            obs_c, r, _, info_c = controlled.step(self._box_actions(a[alive]))
             reward[alive] = r.cpu()
             if "final_obs" in info_c:
                 obs_c = info_c["final_obs"]
@@ -154,7 +159,25 @@ class CodesignEnv:
                 "failed": (~alive).to(self.device)}
         return self.reset(), reward.to(self.device), torch.ones(n, dtype=torch.bool, device=self.device), info
 
+    def control_view(self) -> SimpleNamespace:
+        """The control stage as a controller sees it (``freeform.agents.build_controller``): its observation's
+        shape ``[C, ρ, ρ, ρ]`` (the control channels of a co-design observation), those channels and their mask and
+        filled channels, the materials' phases, the episode's ``ControlConfig`` and the numbers per cell of an
+        action."""
+        return SimpleNamespace(observation_shape=(self.control_channels[1] - self.control_channels[0],
+                                                  *(self.rho,) * 3),
+                               channels=self.channels[self._control], mask_channel=self.mask_channel,
+                               filled_channel=self.filled_channel, material_phases=self.material_phases,
+                               control=self.control, action_channels=self.action_channels)
+
     # ------------------------------------------------------------------ stages
+    def _box_actions(self, a: torch.Tensor) -> torch.Tensor:
+        """The control part of the live bodies' actions ``[M, 3 + k + c·ρ³]`` on their grids → the control env's
+        actions ``[M, c·Bx·By·Bz]`` on its box (c numbers per cell, each a block of its own)."""
+        assert self.controlled is not None
+        part = a[:, self.design_dim:].reshape(a.shape[0], self.action_channels, self.rho ** 3)
+        return torch.cat([self.controlled.from_grid(part[:, c]) for c in range(self.action_channels)], dim=1)
+
     def _start_control(self) -> torch.Tensor:
         """The designs are done: their bodies settle in a control env of their own; the first control observation."""
         bodies, metrics = bodies_and_metrics(self.grids)
@@ -204,8 +227,7 @@ class CodesignEnv:
             return None
 
         def act_on_box(obs_c: torch.Tensor) -> torch.Tensor:
-            actions = torch.as_tensor(act(self._observe(obs_c))).cpu()
-            return controlled.from_grid(actions[alive, self.design_dim:].reshape(-1, *(self.rho,) * 3))
+            return self._box_actions(torch.as_tensor(act(self._observe(obs_c))).cpu()[alive])
 
         out = controlled.record(act_on_box, robot=int(alive[:robot].sum()))
         self.reset()

@@ -266,7 +266,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         width = control.hidden if control.hidden is not None else cfg.agent.hidden
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
-                                                 log_std=control.init_log_std)
+                                                 log_std=control.init_log_std, controller=control.controller,
+                                                 head=control.head, wave_k=control.wave_k)
         else:  # (freeform.agents.controllers.CONTROLLERS)
             policy = build_controller(control.controller, env, width, control.init_log_std, control.head,
                                       control.wave_k)
