@@ -235,15 +235,21 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS}})
         print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
 
+    before, what = pretraining_seconds(pretraining) if pretraining else (0.0, "not counted")
     window = None
     if codesign is not None:
         co = controlled(codesign, episodes)
         window = co["cfg"].control.episode()
         runs["codesign"] = str(codesign)
-        add("co-design (one PPO: body, then controller)", co, robot_seconds(co["cfg"], co["epochs"]),
-            trained_for(window))
+        warm = co["cfg"].control.controller_init is not None  # (its controller's training is its budget too)
+        if warm:
+            runs["pretraining"] = what
+        budget = robot_seconds(co["cfg"], co["epochs"]) + (before if warm else 0.0)
+        name = "co-design from the population controller" if warm else "co-design"
+        add(f"{name} (one PPO: body, then controller)", co, budget, trained_for(window),
+            {"pretraining_robot_seconds": round(before, 3)} if warm else None)
         moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
-        add("  its designs, open loop", {**co, "score": moved}, robot_seconds(co["cfg"], co["epochs"]), kind)
+        add("  its designs, open loop", {**co, "score": moved}, budget, kind)
     if window is None:  # (no co-design run: the open-loop run's own window, its settling then its evaluation)
         from freeform.envs.control import ControlConfig
 
@@ -272,7 +278,6 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
 
     if designed is not None:
         dc = designed_for_controller(designed, episodes, window)
-        before, what = pretraining_seconds(pretraining) if pretraining else (0.0, "not counted")
         runs["designed_for_controller"] = str(designed)
         runs["pretraining"] = what
         budget = before + robot_seconds(dc["cfg"], dc["epochs"])

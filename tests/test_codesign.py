@@ -447,3 +447,23 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
         assert torch.equal(start[f"controller.{name}"], tensor), name
     saved = read_controller(tmp_path / "run")
     assert saved.kind == "context" and saved.controller.head == "wave"
+    # the comparison charges the warm start's training to co-design's budget (--pretraining)
+    import csv
+
+    from experiments.codesign import main
+
+    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=1", "+task.options.measure=com",
+                            "sim.burn_in=0.01", "sim.duration=0.0375", "env.num_envs=4", f"env.resolution={RHO}",
+                            f"env.steps={T}", "agent.hidden=8", "trainer.render_every=0", "trainer.progress=false",
+                            "trainer.print_every=0", "trainer.threads=1"), tmp_path / "open_loop")
+    pretraining = ["experiment=control_population_cpu", "trainer.epochs=1", "env.num_envs=8", "control.pool=1",
+                   "control.refresh_every=0"]
+    main(["--codesign", str(tmp_path / "run"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
+          "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
+    rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
+    row = rows["co-design from the population controller (one PPO: body, then controller)"]
+    population = compose(*pretraining)
+    before = (population.agent.rollout_steps // population.control.steps) * 8 * population.control.duration + (
+        8 * population.control.burn_in)  # (one cohort, settled once)
+    assert float(row["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
+    assert float(row["robot_seconds"]) == pytest.approx(before + 4 * (0.01 + 0.0375), abs=1e-3)
