@@ -235,26 +235,30 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS}})
         print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
 
+    from freeform.envs.control import ControlConfig
+
     before, what = pretraining_seconds(pretraining) if pretraining else (0.0, "not counted")
-    window = None
+    ol_cfg, _ = _last(open_loop)
+
+    def sine_window(headings: str) -> ControlConfig:
+        """Where every sine gait moves: the open-loop run's own window (its settling, then its evaluation: what it
+        trained for), along a co-design run's headings where one is given."""
+        return ControlConfig(burn_in=ol_cfg.sim.burn_in, duration=ol_cfg.sim.duration, headings=headings)
+
+    window = sine_window("any")
     if codesign is not None:
         co = controlled(codesign, episodes)
-        window = co["cfg"].control.episode()
+        window = sine_window(co["cfg"].control.headings)
         runs["codesign"] = str(codesign)
         warm = co["cfg"].control.controller_init is not None  # (its controller's training is its budget too)
         if warm:
             runs["pretraining"] = what
         budget = robot_seconds(co["cfg"], co["epochs"]) + (before if warm else 0.0)
         name = "co-design from the population controller" if warm else "co-design"
-        add(f"{name} (one PPO: body, then controller)", co, budget, trained_for(window),
+        add(f"{name} (one PPO: body, then controller)", co, budget, trained_for(co["cfg"].control),
             {"pretraining_robot_seconds": round(before, 3)} if warm else None)
         moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
         add("  its designs, open loop", {**co, "score": moved}, budget, kind)
-    if window is None:  # (no co-design run: the open-loop run's own window, its settling then its evaluation)
-        from freeform.envs.control import ControlConfig
-
-        ol_cfg, _ = _last(open_loop)
-        window = ControlConfig(burn_in=ol_cfg.sim.burn_in, duration=ol_cfg.sim.duration, headings="any")
 
     ol = open_loop_designs(open_loop, episodes, window)
     runs["open_loop"] = str(open_loop)
