@@ -313,38 +313,41 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
 
 
 def figure(rows: list[dict], metrics: list[dict], path: Path, seconds: float) -> None:
-    """The scores with their 99 % bands (controlled: filled; the same bodies' open-loop gaits: hollow), the
-    robot-seconds under each, and the bodies' volume and passive ratio."""
+    """The scores with their 99 % bands, one method a line (controlled: filled; the same bodies' open-loop gaits:
+    hollow; indented names are the line above's bodies), the robot-seconds beside each, and the bodies' volume
+    and passive ratio."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    def short(method: str) -> str:  # the tick labels: a method, or the open-loop gaits of its bodies
-        return method.strip().split(" (")[0].replace(", then ", ",\nthen ").replace("its ", "its\n")
+    def short(method: str) -> str:  # a method, or (indented) another score of the bodies above
+        return ("    " if method.startswith(" ") else "") + method.strip().split(" (")[0]
 
-    fig, (ax, bx) = plt.subplots(1, 2, figsize=(10, 3.8), gridspec_kw={"width_ratios": [3, 2]})
-    x = np.arange(len(rows))
+    fig, (ax, bx) = plt.subplots(2, 1, figsize=(9, 1.2 + 0.42 * len(rows) + 0.3 * len(metrics)),
+                                 gridspec_kw={"height_ratios": [len(rows), max(1, len(metrics))]})
+    y = -np.arange(len(rows))
     for i, row in enumerate(rows):
         hollow = "sine gait" in row["score"]
-        ax.errorbar([i], [float(row["mean"])], yerr=[float(row["band99"])], fmt="o", capsize=4, color="k",
+        ax.errorbar([float(row["mean"])], [y[i]], xerr=[float(row["band99"])], fmt="o", capsize=4, color="k",
                     mfc="white" if hollow else "k")
-    ax.set_xticks(x, [f"{short(r['method'])}\n{float(r['robot_seconds']):,.0f} robot-s" for r in rows], fontsize=6)
-    ax.set_ylabel(f"move in {seconds:g} s (voxel lengths)")
+    ax.set_yticks(y, [f"{short(r['method'])}  ({float(r['robot_seconds']):,.0f} robot-s)" for r in rows], fontsize=7)
+    ax.set_xlabel(f"move in {seconds:g} s (voxel lengths), mean ± 99 % band")
+
     def what(hollow: bool) -> str:
         return " / ".join(sorted({r["score"].split(",")[0].replace("move ", "") for r in rows
                                   if ("sine gait" in r["score"]) == hollow}))
 
     ax.set_title(f"filled: controlled, {what(False)}; hollow: open loop, {what(True)}", fontsize=8)
-    ax.axhline(0, color="0.7", lw=0.8)
-    methods = [m for m in metrics if not m["method"].startswith(" ")]  # (an open-loop row repeats its bodies)
+    ax.axvline(0, color="0.7", lw=0.8)
+    methods = [m for m in metrics if not m["method"].startswith(" ")]  # (an indented row repeats its bodies)
     names = [short(m["method"]) for m in methods]
-    bx.barh(np.arange(len(names)), [float(m["volume"]) for m in methods], color="0.6")
+    bx.barh(-np.arange(len(names)), [float(m["volume"]) for m in methods], color="0.6")
     for i, m in enumerate(methods):
-        bx.text(float(m["volume"]), i, f"  passive {float(m['passive_ratio']):.2f}, "
-                f"largest part {float(m['lcc_ratio']):.2f}", va="center", fontsize=6)
-    bx.set_yticks(np.arange(len(names)), names, fontsize=6)
-    bx.set_xlim(0, 1.6 * max(float(m["volume"]) for m in methods))
+        bx.text(float(m["volume"]), -i, f"  passive {float(m['passive_ratio']):.2f}, "
+                f"largest part {float(m['lcc_ratio']):.2f}", va="center", fontsize=7)
+    bx.set_yticks(-np.arange(len(names)), names, fontsize=7)
+    bx.set_xlim(0, 2.1 * max(float(m["volume"]) for m in methods))
     bx.set_xlabel("body volume (voxels)")
     fig.tight_layout()
     fig.savefig(path, dpi=150)
