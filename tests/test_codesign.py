@@ -373,17 +373,12 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
               "agent.sgd_minibatch_size=8", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1"]
     train_mod.train(compose("experiment=controlled_design_cpu", "trainer.epochs=2",
                             f"task.options.controller={tmp_path / 'controller.pt'}", *common), tmp_path / "designed")
-    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=1", "+task.options.measure=com",
-                            "sim.burn_in=0.01", "sim.duration=0.0375", *common), tmp_path / "open_loop")
-    pretraining = ["experiment=control_population_cpu", "trainer.epochs=3", "env.num_envs=8", "control.pool=1",
-                   "control.refresh_every=0"]
+    tiny_open_loop(tmp_path / "open_loop", *common)
+    pretraining, before = fixed_population(epochs=3)
     main(["--designed", str(tmp_path / "designed"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
           "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
     rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     designed = rows["design after control (frozen population controller)"]
-    population = compose(*pretraining)
-    episodes = 3 * population.agent.rollout_steps // population.control.steps  # every cohort the same: one settle
-    before = episodes * 8 * population.control.duration + 8 * population.control.burn_in
     assert float(designed["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
     assert float(designed["robot_seconds"]) == pytest.approx(before + 2 * 4 * (0.01 + 0.0375), abs=1e-3)
     assert designed["score"] == "move in the plane, controlled" and int(designed["n"]) == 4
@@ -452,18 +447,35 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
 
     from experiments.codesign import main
 
-    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=1", "+task.options.measure=com",
-                            "sim.burn_in=0.01", "sim.duration=0.0375", "env.num_envs=4", f"env.resolution={RHO}",
-                            f"env.steps={T}", "agent.hidden=8", "trainer.render_every=0", "trainer.progress=false",
-                            "trainer.print_every=0", "trainer.threads=1"), tmp_path / "open_loop")
-    pretraining = ["experiment=control_population_cpu", "trainer.epochs=1", "env.num_envs=8", "control.pool=1",
-                   "control.refresh_every=0"]
+    tiny_open_loop(tmp_path / "open_loop", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
+                   "agent.hidden=8", "trainer.render_every=0", "trainer.progress=false", "trainer.print_every=0",
+                   "trainer.threads=1")
+    pretraining, before = fixed_population(epochs=1)
     main(["--codesign", str(tmp_path / "run"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
           "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
     rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
     row = rows["co-design from the population controller (one PPO: body, then controller)"]
-    population = compose(*pretraining)
-    before = (population.agent.rollout_steps // population.control.steps) * 8 * population.control.duration + (
-        8 * population.control.burn_in)  # (one cohort, settled once)
     assert float(row["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
     assert float(row["robot_seconds"]) == pytest.approx(before + 4 * (0.01 + 0.0375), abs=1e-3)
+
+
+def tiny_open_loop(run, *overrides: str) -> None:
+    """A one-epoch open-loop design run in the tiny control window (0.01 s settling, 0.0375 s), the baseline of the
+    comparisons above."""
+    from freeform import train as train_mod
+    from freeform.config import compose
+
+    train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=1", "+task.options.measure=com",
+                            "sim.burn_in=0.01", "sim.duration=0.0375", *overrides), run)
+
+
+def fixed_population(epochs: int) -> tuple[list[str], float]:
+    """The overrides of a population run of one fixed cohort of 8 bodies (settled once) for ``epochs`` epochs, and
+    its robot-seconds counted by hand: every episode's window, one settle."""
+    from freeform.config import compose
+
+    overrides = ["experiment=control_population_cpu", f"trainer.epochs={epochs}", "env.num_envs=8", "control.pool=1",
+                 "control.refresh_every=0"]
+    population = compose(*overrides)
+    episodes = epochs * population.agent.rollout_steps // population.control.steps
+    return overrides, episodes * 8 * population.control.duration + 8 * population.control.burn_in
