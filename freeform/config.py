@@ -26,9 +26,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.controller_heads import head_rule
+from freeform.agents.controllers import CODESIGN_KINDS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
-from freeform.agents.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.learner import learner_names
@@ -102,10 +102,8 @@ class AgentConfig(PPOConfig):
 BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
 CONTROLLERS = tuple(CONTROLLER_CLASSES)
 """``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
-CODESIGN_CONTROLLERS = tuple(k for k, c in CONTROLLER_CLASSES.items()
-                             if c.fits_any_box and not issubclass(c, RecurrentPolicy))
-"""The kinds a co-design run's controller may be (``CodesignActorCritic``): the feed-forward ones with one set of
-weights for every cell (each episode's body differs)."""
+CODESIGN_CONTROLLERS = CODESIGN_KINDS
+"""The kinds a co-design run's controller may be (``freeform.agents.controllers.CODESIGN_KINDS``)."""
 
 
 @dataclass

@@ -402,6 +402,11 @@ CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPCon
 a body changes nothing."""
 
 
+CODESIGN_KINDS = tuple(k for k, c in CONTROLLERS.items() if c.fits_any_box and not issubclass(c, RecurrentPolicy))
+"""The kinds a co-design policy's controller may be (``CodesignActorCritic``, ``control.controller`` with
+``bodies=codesign``): feed-forward, one set of weights for every cell (each episode's body differs)."""
+
+
 class PrivilegedCritic(nn.Module):
     """A controller whose critic also reads privileged state: for an env observing the groups ``{"policy": the
     cells' channels [N, C, Bx, By, Bz], "critic": [N, S]}`` (``ControlConfig.privileged_critic``). The actor is the
@@ -512,6 +517,6 @@ def controller_kind(controller: nn.Module) -> str:
     raise ValueError(f"{type(controller).__name__} is not one of the registered controllers {list(CONTROLLERS)}")
 
 
-__all__ = ["CONTROLLERS", "ContextConvController", "ConvController", "MLPController", "PrivilegedCritic",
+__all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "MLPController", "PrivilegedCritic",
            "RecurrentContextController", "VoxelAttentionController", "build_controller", "controller_kind",
            "controller_step"]

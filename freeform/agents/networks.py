@@ -27,7 +27,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.controllers import CONTROLLERS, ConvController, MLPController
+from freeform.agents.controllers import CODESIGN_KINDS, CONTROLLERS, ConvController, MLPController
 from freeform.agents.distributions import (
     ActionDistribution,
     DiagGaussian,
@@ -308,8 +308,6 @@ class CodesignActorCritic(nn.Module):
                  control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
                  controller_kwargs: dict[str, Any] | None = None) -> None:
-        from freeform.agents.recurrent import RecurrentPolicy
-
         super().__init__()
         start, stop = (int(c) for c in control_channels)
         self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
@@ -323,10 +321,9 @@ class CodesignActorCritic(nn.Module):
             self.controller = ConvController(stop - start, (resolution,) * 3, mask_channel, filled_channel,
                                              controller_hidden, log_std)
         else:
-            if controller not in CONTROLLERS or issubclass(CONTROLLERS[controller], RecurrentPolicy):
-                feed_forward = [k for k, c in CONTROLLERS.items() if not issubclass(c, RecurrentPolicy)]
-                raise ValueError(f"a co-design controller is one of the feed-forward kinds {feed_forward}, got "
-                                 f"{controller!r}")
+            if controller not in CODESIGN_KINDS:
+                raise ValueError(f"a co-design controller is one of {list(CODESIGN_KINDS)} (feed-forward, one set "
+                                 f"of weights for every cell), got {controller!r}: set control.controller")
             self.controller = CONTROLLERS[controller](**controller_kwargs)
             self.init_kwargs.update(controller=controller, controller_kwargs=dict(controller_kwargs))
         if tuple(self.controller.box) != (resolution,) * 3:
