@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.controller_heads import head_rule
 from freeform.agents.controllers import CODESIGN_KINDS
+from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
@@ -86,6 +87,10 @@ class AgentConfig(PPOConfig):
     """Device of the policy and the rollout storage; None = ``trainer.device``."""
     hidden: int = 128
     """h, width of the trunk's output and of both heads (128 volume, 256 locomotion)."""
+    trunk: str = "auto"
+    """The design network's two convolutions (``VoxelActorCritic(trunk=...)``, the same function every way): "auto"
+    (the sparse "fast" form on the CPU, cuDNN's "conv" on a GPU), "fast", "gather" (fixed-shape gathers, no
+    atomics: what a CUDA graph can capture) or "conv"."""
 
     def __post_init__(self) -> None:
         self.validate("agent")
@@ -97,6 +102,7 @@ class AgentConfig(PPOConfig):
         filled.seed = 0 if self.seed is None else self.seed
         PPOConfig.validate(filled, key)
         require(isinstance(self.hidden, int) and self.hidden >= 1, f"{key}.hidden", "an int >= 1", self.hidden)
+        require(self.trunk in TRUNK_IMPLEMENTATIONS, f"{key}.trunk", f"one of {TRUNK_IMPLEMENTATIONS}", self.trunk)
 
 
 BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")

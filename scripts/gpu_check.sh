@@ -11,7 +11,7 @@
 #                                        # .whl/, gathered by ../shared/device/gather-wheels.sh and carried along)
 #   scripts/gpu_check.sh OUTDIR --cpu    # the rehearsal on a CPU machine: every step at small sizes (< 10 min;
 #                                        # --rehearse is the same)
-#   scripts/gpu_check.sh OUTDIR [--cpu] STEP...   # only these steps (environment blocks gpu cuda_tests floor), e.g.
+#   scripts/gpu_check.sh OUTDIR [--cpu] STEP...   # only these steps (environment blocks update gpu cuda_tests floor), e.g.
 #     PYTHON=python3 scripts/gpu_check.sh $OUT/check environment blocks floor   # issue 44: < 4 min on one H100
 #     PYTHON=.venv/bin/python scripts/gpu_check.sh /tmp/check --rehearse environment blocks floor   # ~1-2 min here
 #
@@ -26,9 +26,9 @@ out=${1:?usage: scripts/gpu_check.sh OUTDIR [--cpu|--rehearse] [STEP...]}
 shift
 mode=
 if [ "${1:-}" = "--cpu" ] || [ "${1:-}" = "--rehearse" ]; then mode=--cpu; shift; fi
-steps=${*:-environment blocks gpu cuda_tests floor}
+steps=${*:-environment blocks update gpu cuda_tests floor}
 for s in $steps; do
-  case $s in environment|blocks|gpu|cuda_tests|floor) ;; *) echo "unknown step $s" >&2; exit 2;; esac
+  case $s in environment|blocks|update|gpu|cuda_tests|floor) ;; *) echo "unknown step $s" >&2; exit 2;; esac
 done
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
@@ -63,6 +63,7 @@ $PY -c 'from freeform.sim import runtime; print(runtime.describe()); import free
 git log -1 --format='commit %H %s' 2>/dev/null | cut -c1-120"
 # the new figures first: a step that runs out of time leaves the others theirs
 step blocks 240 $PY -m benchmarks blocks
+step update 300 $PY -m benchmarks update
 step gpu 270 $PY -m benchmarks gpu
 step cuda_tests 260 $PY -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider -p no:warnings
 step floor 60 $PY -m benchmarks floor
@@ -78,9 +79,11 @@ step floor 60 $PY -m benchmarks floor
   grep -vE "^\[|Warning|warn|^ *$|importlib" "$out/floor.log" 2>/dev/null | tail -12 | cut -c1-300
   echo "--- block schedule against flat"
   grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/blocks.log" 2>/dev/null | tail -25 | cut -c1-300
+  echo "--- the update, trunk by trunk"
+  grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/update.log" 2>/dev/null | tail -30 | cut -c1-300
   echo "--- GPU benchmark"
   grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/gpu.log" 2>/dev/null | tail -25 | cut -c1-300
-  for log in blocks cuda_tests floor gpu; do  # a failure's last lines
+  for log in blocks update cuda_tests floor gpu; do  # a failure's last lines
     if [ -f "$out/$log.log" ] && ! grep -q "^$log: exit 0 " "$out/steps.txt"; then
       echo "--- last lines of $log.log"
       tail -n 25 "$out/$log.log" | cut -c1-300

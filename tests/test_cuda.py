@@ -159,7 +159,8 @@ cuda_only = pytest.mark.skipif(ARCH != "cuda", reason="CUDA graphs need a CUDA d
 
 
 @cuda_only
-@pytest.mark.parametrize("agent", [{}, {"grad_clip": 0.5, "advantage_norm": "minibatch", "kl_coeff": 0.0}])
+@pytest.mark.parametrize("agent", [{}, {"grad_clip": 0.5, "advantage_norm": "minibatch", "kl_coeff": 0.0},
+                                   {"trunk": "gather"}])
 def test_graphed_update_follows_the_eager_one(agent: dict) -> None:
     """One epoch of 12 Adam steps (3 eager warm-ups, the capture, 8 replays) on the same rollout: the same statistics
     and weights as the eager update, to float rounding (capturable Adam computes its bias correction on the device,
@@ -180,28 +181,29 @@ def test_graphed_update_follows_the_eager_one(agent: dict) -> None:
 
 
 @cuda_only
-def test_graphed_update_resumes_bit_for_bit() -> None:
+@pytest.mark.parametrize("trunk", ["auto", "gather"])
+def test_graphed_update_resumes_bit_for_bit(trunk: str) -> None:
     """Two epochs straight = one epoch, the state through ``state_dict`` (the checkpoint's format), one more: the
     resumed PPO captures its graph anew, after the eager warm-up steps every update begins with. Under cuDNN's
     deterministic algorithms: its default ones may sum in a varying order (two straight runs are compared first)."""
     with torch.backends.cudnn.flags(enabled=True, benchmark=False, deterministic=True):
         def straight() -> torch.Tensor:
-            ppo = _volume_ppo(True)
+            ppo = _volume_ppo(True, trunk=trunk)
             ppo.train_epoch()
             ppo.train_epoch()
             return ppo.flat.value.detach().clone()
 
         reference = straight()
         assert torch.equal(reference, straight()), "two straight runs differ: a nondeterministic kernel, not resume"
-        first = _volume_ppo(True)
+        first = _volume_ppo(True, trunk=trunk)
         first.train_epoch()
         state = first.state_dict()
         assert isinstance(state["optimizer"]["param_groups"][0]["lr"], float)  # the eager format
-        resumed = _volume_ppo(True)
+        resumed = _volume_ppo(True, trunk=trunk)
         resumed.load_state_dict(state)
         resumed.train_epoch()
         assert torch.equal(reference, resumed.flat.value)
-        eager = _volume_ppo(False)  # and an eager PPO loads the graphed one's state
+        eager = _volume_ppo(False, trunk=trunk)  # and an eager PPO loads the graphed one's state
         eager.load_state_dict(state)
         eager.train_epoch()
         assert (eager.flat.value - resumed.flat.value).abs().max().item() < 1e-4

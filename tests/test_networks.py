@@ -165,10 +165,36 @@ def test_strided_conv_equals_conv3d(rho: int) -> None:
 
 
 @pytest.mark.parametrize("fill", [0.6, 0.005])
-@pytest.mark.parametrize("k,hidden", [(2, 128), (4, 256)])
-def test_fast_network_equals_plain_network(k: int, hidden: int, fill: float) -> None:
+@pytest.mark.parametrize("rho,k", [(20, 4), (7, 3), (6, 2)])
+def test_gather_trunk_layers_equal_conv3d(rho: int, k: int, fill: float) -> None:
+    """The GPU's gather form (``gather_trunk``): both layers = F.conv3d, outputs and every gradient, float64."""
+    from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
+
+    g = torch.Generator().manual_seed(rho + k)
+    grids = random_grids(5, rho, k, seed=rho * k + 1, fill=fill)
+    w1 = torch.randn(1, k, 3, 3, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    b1 = torch.randn(1, generator=g, dtype=torch.float64, requires_grad=True)
+    w2 = torch.randn(1, 1, 5, 5, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    b2 = torch.randn(1, generator=g, dtype=torch.float64, requires_grad=True)
+    one_hot = F.one_hot(grids.long(), k).permute(0, 4, 1, 2, 3).double()
+    h_expected = F.conv3d(one_hot, w1, b1, padding=1)
+    h = onehot_conv3d_gather(grids, w1, b1)
+    torch.testing.assert_close(h, h_expected.reshape(5, rho**3))
+    # the second layer on the first's output (its input gradient reaches the first layer's weights)
+    y_expected = F.conv3d(h_expected.relu(), w2, b2, stride=2, padding=2)
+    y = strided_conv3d_gather(h.relu(), rho, w2, b2)
+    torch.testing.assert_close(y, y_expected.reshape(5, -1))
+    upstream = torch.randn(y.shape, generator=g, dtype=torch.float64)
+    params = (w1, b1, w2, b2)
+    for a, b in zip(torch.autograd.grad(y, params, upstream), torch.autograd.grad(y_expected, params, upstream.view_as(y_expected)), strict=True):
+        torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("fill", [0.6, 0.005])
+@pytest.mark.parametrize("k,hidden,trunk", [(2, 128, "fast"), (4, 256, "fast"), (4, 256, "gather")])
+def test_fast_network_equals_plain_network(k: int, hidden: int, fill: float, trunk: str) -> None:
     """Whole network, float32, the paper's sizes: same outputs and same parameter gradients."""
-    fast = VoxelActorCritic(20, k, hidden, trunk="fast")
+    fast = VoxelActorCritic(20, k, hidden, trunk=trunk)
     _randomise(fast, seed=k)
     plain = VoxelActorCritic(20, k, hidden, trunk="conv")
     plain.load_state_dict(fast.state_dict())

@@ -235,11 +235,13 @@ class OccupiedScatterConv(torch.autograd.Function):
 SCATTER_MAX_DENSITY = 0.035
 
 
-def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor,
+                              dense: bool = False) -> torch.Tensor:
     """Conv3d(k→1, 3³, stride 1, pad 1) of the one-hot of uint8 ``grids [N, ρ, ρ, ρ]`` → float ``[ρ³, N]``.
 
     ``weight [1, k, 3, 3, 3]``, ``bias [1]``; output row = the voxel's C-order index. Sparse grids (the design
-    states) are scattered from their occupied voxels; dense ones go through the CSR product.
+    states) are scattered from their occupied voxels; dense ones go through the CSR product, and so does every grid
+    with ``dense`` (no count read on the host: what a CUDA graph can capture).
     """
     n, rho = grids.shape[0], grids.shape[1]
     k = weight.shape[1]
@@ -251,7 +253,7 @@ def onehot_conv3d_voxel_major(grids: torch.Tensor, weight: torch.Tensor, bias: t
     # conv(inside, w_0) + bias: the same for every grid, a [ρ³, 1] column (taps that read the padding drop out).
     table, valid = neighbour_table(rho, device)
     base = (valid.to(weight.dtype) @ w0.reshape(27) + bias).unsqueeze(1)
-    if int(torch.count_nonzero(grid_t)) <= SCATTER_MAX_DENSITY * (k - 1) * voxels * n:
+    if not dense and int(torch.count_nonzero(grid_t)) <= SCATTER_MAX_DENSITY * (k - 1) * voxels * n:
         target_table, weight_table = scatter_tables(rho, n, k, device)
         flat = grid_t.view(-1).nonzero().squeeze(1)  # occupied entries of [ρ³, N], C order
         voxel = flat // n

@@ -36,8 +36,9 @@ from freeform.agents.distributions import (
     head_distribution,
 )
 from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
+from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
 
-TRUNK_IMPLEMENTATIONS = ("auto", "fast", "conv")
+TRUNK_IMPLEMENTATIONS = ("auto", "fast", "gather", "conv")
 
 
 @runtime_checkable
@@ -97,9 +98,9 @@ class VoxelActorCritic(nn.Module):
 
     ``trunk="fast"`` computes the two convolutions as sparse-matrix products without building the one-hot tensor
     (``freeform.agents.fast_trunk``; its speed against ``nn.Conv3d``: ``python -m benchmarks ppo``, docs/ppo.md);
-    ``trunk="conv"`` runs the plain
-    ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere, where the
-    sparse path's speed was not measured. All read the same parameters (``conv1``, ``conv2``), so state dicts are
+    ``trunk="gather"`` computes them as fixed-shape gathers and dense products, deterministic and free of host
+    synchronisation, so a CUDA graph can capture them (``freeform.agents.gather_trunk``); ``trunk="conv"`` runs the
+    plain ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere. All read the same parameters (``conv1``, ``conv2``), so state dicts are
     interchangeable, and a test pins the two computations equal (outputs and gradients).
 
     ``distribution``: the paper's Gaussian over the design action ``[x, y, z, w_0 … w_{k−1}]`` (None, the default),
@@ -162,6 +163,10 @@ class VoxelActorCritic(nn.Module):
             x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias), inplace=True)
             x = F.relu(strided_conv3d_voxel_major(x, rho, self.conv2.weight, self.conv2.bias), inplace=True)
             return self.trunk_fc(x.t())
+        if self.trunk == "gather":
+            x = F.relu(onehot_conv3d_gather(grids, self.conv1.weight, self.conv1.bias), inplace=True)
+            x = F.relu(strided_conv3d_gather(x, rho, self.conv2.weight, self.conv2.bias))  # (a view: not in place)
+            return self.trunk_fc(x)
         x = F.relu(self.conv1(self.one_hot(grids)))
         x = F.relu(self.conv2(x))
         return self.trunk_fc(x.flatten(1))

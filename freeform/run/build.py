@@ -284,7 +284,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         from freeform.envs import DenseDesignReward
 
         env = DenseDesignReward(env, cfg.env.dense_every)
-    policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden)
+    policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden,
+                              trunk=cfg.agent.trunk)
     eval_env = design_env(cfg, device, envs[1] - envs[0], cfg.seed + 1) if cfg.agent.eval_every else None
     return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
