@@ -61,9 +61,9 @@ def test_command_line_overrides_win_over_the_preset() -> None:
 
 
 def test_agent_section_is_ppo_config() -> None:
-    """One config: the agent section is PPOConfig itself (a subclass adding the network's width), not a copy."""
+    """One config: the agent section is PPOConfig itself (a subclass adding the network's width and trunk), not a copy."""
     assert issubclass(AgentConfig, PPOConfig)
-    assert [f.name for f in dataclasses.fields(AgentConfig)] == [f.name for f in dataclasses.fields(PPOConfig)] + ["hidden"]
+    assert [f.name for f in dataclasses.fields(AgentConfig)] == [f.name for f in dataclasses.fields(PPOConfig)] + ["hidden", "trunk"]
 
 
 
