@@ -2,23 +2,22 @@
 
 The paper_locomotion network and batch (ρ = 20, k = 4, h = 256; 128 × 100 samples, minibatches of 128, 10 passes:
 1,000 minibatch steps) on the volume task, whose rollout needs no simulation. For each form of the trunk's two
-convolutions — cuDNN (``conv``, today's CUDA default), cuDNN on channels-last activations, the CSR product of the
-CPU's sparse trunk (``csr``) and the gather form (``gather``, ``freeform.agents.gather_trunk``) —:
+convolutions (``agent.trunk``, ``FREEFORM_BENCH_UPDATE_VARIANTS``, default "conv gather fast": cuDNN, the gather
+form of ``freeform.agents.gather_trunk``, the sparse trunk's CSR products, what "auto" takes in a CUDA graph):
 
-* agreement with ``conv`` on 128 design states (outputs and every parameter gradient, relative to their scale) and
-  whether two backward passes give the same bits;
+* agreement with ``conv`` on 128 design states (outputs and every parameter gradient, relative to their scale; on
+  a GPU cuDNN's kernels compute in TF32) and whether two backward passes give the same bits;
 * ms per minibatch, eager (2 passes) and as a CUDA graph (``agent.cuda_graph``, 10 passes), and the captured step's
   own GPU time (replays back to back, CUDA events): the rest is what the update spends outside the graph;
 * the update's parts (flattening the rollout, the SGD passes, the statistics).
 
 Then ``paper_locomotion`` epochs in the trainer with the trunks named in ``FREEFORM_BENCH_EPOCH_TRUNKS`` (default
-"conv gather"). ``python -m benchmarks update`` on a CUDA machine (``scripts/gpu_check.sh ... update``); on the CPU
+"auto conv"). ``python -m benchmarks update`` on a CUDA machine (``scripts/gpu_check.sh ... update``); on the CPU
 (``make bench``) the eager figures of the CPU's trunks at a small batch.
 """
 
 from __future__ import annotations
 
-import functools
 import os
 import statistics
 import tempfile
@@ -34,35 +33,12 @@ NETWORK = ["experiment=paper_volume", "agent.hidden=256", "task.materials=4", "e
 SMALL = ["env.num_envs=16", "env.steps=20"]
 
 
-def _patch(policy: torch.nn.Module, variant: str) -> None:
-    """The bench-only forms, on a built policy: channels-last one-hot input for cuDNN; the CSR product always."""
-    if variant == "conv-channels-last":
-        one_hot = policy.one_hot
-        policy.one_hot = lambda grids: one_hot(grids).contiguous(memory_format=torch.channels_last_3d)  # type: ignore[method-assign]
-    elif variant == "csr":
-        from freeform.agents import networks
-        from freeform.agents.fast_trunk import onehot_conv3d_voxel_major
-
-        networks.onehot_conv3d_voxel_major = functools.partial(onehot_conv3d_voxel_major, dense=True)  # type: ignore[assignment]
-
-
-def _unpatch() -> None:
-    from freeform.agents import fast_trunk, networks
-
-    networks.onehot_conv3d_voxel_major = fast_trunk.onehot_conv3d_voxel_major
-
-
-def _trunk(variant: str) -> str:
-    return {"conv-channels-last": "conv", "csr": "fast"}.get(variant, variant)
-
-
 def _build(variant: str, device: str, overrides: list[str]):
     from freeform.config import compose
     from freeform.run.build import build
 
-    cfg = compose(*NETWORK, f"trainer.device={device}", f"agent.trunk={_trunk(variant)}", *overrides)
+    cfg = compose(*NETWORK, f"trainer.device={device}", f"agent.trunk={variant}", *overrides)
     _, ppo = build(cfg, torch.device(device))
-    _patch(ppo.policy, variant)
     return cfg, ppo
 
 
@@ -91,16 +67,13 @@ def agreement(variants: list[str], device: str, grids: torch.Tensor) -> None:
     expected = grads(reference)
     for variant in variants:
         try:
-            net = VoxelActorCritic(20, 4, 256, trunk=_trunk(variant)).to(device)
+            net = VoxelActorCritic(20, 4, 256, trunk=variant).to(device)
             net.load_state_dict(reference.state_dict())
-            _patch(net, variant)
             first, second = grads(net), grads(net)
         except Exception as e:
             _line(f"{variant}: agreement", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue
-        finally:
-            _unpatch()
-        worst = max(float(((a - b).abs().max() / b.abs().max().clamp_min(1.0))) for a, b in zip(first, expected, strict=True))
+        worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1.0)) for a, b in zip(first, expected, strict=True))
         same = all(torch.equal(a, b) for a, b in zip(first, second, strict=True))
         _line(f"{variant} against conv: outputs and gradients (max rel.)", f"{worst:.1e}; twice the same bits: {same}")
 
@@ -165,8 +138,6 @@ def update_figures(variant: str, device: str, rehearsal: bool) -> None:
                       f"{gpu:6.3f} ms; outside it {wall / steps * 1e3 - gpu:.3f} ms a minibatch")
         except Exception as e:  # one variant's failure is a figure too
             _line(f"{variant}, {mode}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
-        finally:
-            _unpatch()
 
 
 def epochs(trunks: list[str], device: str) -> None:
@@ -193,7 +164,7 @@ def main() -> None:
     arch = os.environ.get("FREEFORM_BENCH_ARCH", "cuda" if torch.cuda.is_available() else "cpu")
     device = "cuda" if arch == "cuda" else "cpu"
     rehearsal = device == "cpu"
-    variants = ["conv", "gather"] + ([] if rehearsal else ["conv-channels-last", "csr"]) + (["fast"] if rehearsal else [])
+    variants = os.environ.get("FREEFORM_BENCH_UPDATE_VARIANTS", "conv gather fast").split()
     print(f"  the paper_locomotion network (k = 4, h = 256) on {device}"
           f"{torch.cuda.get_device_name() if device == 'cuda' else ''}", flush=True)
     _, ppo = _build("conv", device, SMALL + ["agent.cuda_graph=false"])
@@ -203,7 +174,7 @@ def main() -> None:
     for variant in variants:
         update_figures(variant, device, rehearsal)
     if not rehearsal:
-        epochs(os.environ.get("FREEFORM_BENCH_EPOCH_TRUNKS", "conv gather").split(), device)
+        epochs(os.environ.get("FREEFORM_BENCH_EPOCH_TRUNKS", "auto conv").split(), device)
 
 
 if __name__ == "__main__":

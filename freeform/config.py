@@ -27,8 +27,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from freeform.agents.controller_heads import head_rule
 from freeform.agents.controllers import CODESIGN_KINDS
-from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
+from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
 from freeform.evolve.config import AlgoConfig
@@ -89,8 +89,9 @@ class AgentConfig(PPOConfig):
     """h, width of the trunk's output and of both heads (128 volume, 256 locomotion)."""
     trunk: str = "auto"
     """The design network's two convolutions (``VoxelActorCritic(trunk=...)``, the same function every way): "auto"
-    (the sparse "fast" form on the CPU, cuDNN's "conv" on a GPU), "fast", "gather" (fixed-shape gathers, no
-    atomics: what a CUDA graph can capture) or "conv"."""
+    (``freeform.agents.networks.resolve_trunk``: the sparse "fast" form on the CPU; on a GPU its CSR products in a
+    CUDA graph, cuDNN eagerly, the deterministic "gather" form when deterministic algorithms are asked for), "fast",
+    "gather" or "conv"."""
 
     def __post_init__(self) -> None:
         self.validate("agent")

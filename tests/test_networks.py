@@ -145,9 +145,24 @@ def test_both_first_layer_paths_are_taken() -> None:
         fast_trunk.SparseConv.apply = lambda *a: calls.append("spmm") or spmm(*a)
         onehot_conv3d(random_grids(40, 8, 2, seed=0, fill=0.005), w, b)
         onehot_conv3d(random_grids(40, 8, 2, seed=0, fill=0.6), w, b)
+        sparse = random_grids(40, 8, 2, seed=0, fill=0.005)  # dense=True (the GPU's): the product, however sparse
+        expected = fast_trunk.onehot_conv3d_voxel_major(sparse, w, b)
+        torch.testing.assert_close(fast_trunk.onehot_conv3d_voxel_major(sparse, w, b, dense=True), expected)
     finally:
         fast_trunk.OccupiedScatterConv.apply, fast_trunk.SparseConv.apply = scatter, spmm
-    assert calls == ["scatter", "spmm"]
+    assert calls == ["scatter", "spmm", "scatter", "spmm"]
+
+
+def test_auto_trunk_rule() -> None:
+    """"auto": the sparse form on the CPU; on a GPU the CSR products inside a CUDA graph, cuDNN eagerly, the gather
+    form whenever deterministic algorithms are asked for (cuSPARSE's and cuDNN's sums vary in order)."""
+    from freeform.agents.networks import resolve_trunk
+
+    assert [resolve_trunk("auto", "cpu"), resolve_trunk("auto", "cpu", graphed=True)] == ["fast", "fast"]
+    assert [resolve_trunk("auto", "cuda"), resolve_trunk("auto", "cuda", graphed=True)] == ["conv", "fast"]
+    with torch.backends.cudnn.flags(enabled=True, deterministic=True):
+        assert resolve_trunk("auto", "cuda", graphed=True) == resolve_trunk("auto", "cuda") == "gather"
+    assert [resolve_trunk(t, "cuda", graphed=True) for t in ("conv", "gather", "fast")] == ["conv", "gather", "fast"]
 
 
 @pytest.mark.parametrize("rho", [20, 7, 6])

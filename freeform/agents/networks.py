@@ -41,6 +41,23 @@ from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_ga
 TRUNK_IMPLEMENTATIONS = ("auto", "fast", "gather", "conv")
 
 
+def resolve_trunk(trunk: str, device: torch.device | str, graphed: bool = False) -> str:
+    """The form ``VoxelActorCritic``'s "auto" trunk takes (the same function every way; measured on one H200,
+    ``docs/physics.md``, "The GPU"): the sparse "fast" form on the CPU; on a GPU the deterministic "gather" form when
+    PyTorch is asked for deterministic algorithms (``torch.use_deterministic_algorithms`` or
+    ``torch.backends.cudnn.deterministic``: cuSPARSE's and cuDNN's products may sum in a varying order), else the
+    "fast" form's CSR products inside a CUDA graph (``graphed``: 0.77 ms a minibatch step against cuDNN's 2.37 and
+    the gather form's 1.65) and cuDNN's "conv" eagerly (4.6 ms against the CSR products' 6.0). Any other name is
+    returned as given."""
+    if trunk != "auto":
+        return trunk
+    if torch.device(device).type == "cpu":
+        return "fast"
+    if torch.are_deterministic_algorithms_enabled() or torch.backends.cudnn.deterministic:
+        return "gather"
+    return "fast" if graphed else "conv"
+
+
 @runtime_checkable
 class ActorCritic(Protocol):
     """``policy(obs [N, ...]) -> (*params, value [N])``: the action distribution's parameters (a Gaussian's
@@ -99,8 +116,9 @@ class VoxelActorCritic(nn.Module):
     ``trunk="fast"`` computes the two convolutions as sparse-matrix products without building the one-hot tensor
     (``freeform.agents.fast_trunk``; its speed against ``nn.Conv3d``: ``python -m benchmarks ppo``, docs/ppo.md);
     ``trunk="gather"`` computes them as fixed-shape gathers and dense products, deterministic and free of host
-    synchronisation, so a CUDA graph can capture them (``freeform.agents.gather_trunk``); ``trunk="conv"`` runs the
-    plain ``nn.Conv3d`` layers; ``"auto"`` (default) picks "fast" for CPU tensors and "conv" (cuDNN) elsewhere. All read the same parameters (``conv1``, ``conv2``), so state dicts are
+    synchronisation (``freeform.agents.gather_trunk``); ``trunk="conv"`` runs the plain ``nn.Conv3d`` layers;
+    ``"auto"`` (default) picks by device (``resolve_trunk``; the trainer resolves it knowing whether the update is a
+    CUDA graph). All read the same parameters (``conv1``, ``conv2``), so state dicts are
     interchangeable, and a test pins the two computations equal (outputs and gradients).
 
     ``distribution``: the paper's Gaussian over the design action ``[x, y, z, w_0 … w_{k−1}]`` (None, the default),
@@ -157,13 +175,16 @@ class VoxelActorCritic(nn.Module):
         rho = self.resolution
         if grids.dim() != 4 or tuple(grids.shape[1:]) != (rho, rho, rho):
             raise ValueError(f"grids must have shape [N, {rho}, {rho}, {rho}], got {tuple(grids.shape)}")
-        if self.trunk == "fast" or (self.trunk == "auto" and grids.device.type == "cpu"):
+        trunk = resolve_trunk(self.trunk, grids.device)
+        if trunk == "fast":
             # Voxel-major activations [voxels, N] throughout; the transpose at the end is free for the matmul.
             # In-place ReLUs: the sparse layers' backward passes do not read their outputs; saves two 4 MB passes.
-            x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias), inplace=True)
+            # Off the CPU always the CSR product: the scatter reads a count on the host and sums with atomics.
+            x = F.relu(onehot_conv3d_voxel_major(grids, self.conv1.weight, self.conv1.bias,
+                                                 dense=grids.device.type != "cpu"), inplace=True)
             x = F.relu(strided_conv3d_voxel_major(x, rho, self.conv2.weight, self.conv2.bias), inplace=True)
             return self.trunk_fc(x.t())
-        if self.trunk == "gather":
+        if trunk == "gather":
             x = F.relu(onehot_conv3d_gather(grids, self.conv1.weight, self.conv1.bias), inplace=True)
             x = F.relu(strided_conv3d_gather(x, rho, self.conv2.weight, self.conv2.bias))  # (a view: not in place)
             return self.trunk_fc(x)

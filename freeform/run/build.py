@@ -260,6 +260,7 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
     """PPO with the paper's actor-critic (a control run: ``control.controller``); ``env.dense_every`` wraps the env
     in dense rewards, ``agent.eval_every`` adds a deterministic evaluation env of its own (seed + 1)."""
     from freeform.agents import PPO, CodesignActorCritic, VoxelActorCritic, build_controller
+    from freeform.agents.networks import resolve_trunk
 
     if cfg.control is not None:
         control = cfg.control
@@ -284,8 +285,11 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         from freeform.envs import DenseDesignReward
 
         env = DenseDesignReward(env, cfg.env.dense_every)
+    # The trunk's fastest form inside a CUDA graph differs from the eager one (resolve_trunk): chosen here, where it
+    # is known; an eager run keeps "auto", resolved by the network per device.
+    trunk = resolve_trunk(cfg.agent.trunk, device, graphed=True) if cfg.agent.cuda_graph else cfg.agent.trunk
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden,
-                              trunk=cfg.agent.trunk)
+                              trunk=trunk)
     eval_env = design_env(cfg, device, envs[1] - envs[0], cfg.seed + 1) if cfg.agent.eval_every else None
     return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
