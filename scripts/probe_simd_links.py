@@ -25,10 +25,10 @@ import re
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from collections.abc import Callable
 
 LANES = 8
 LINKS, VOXELS = 1 << 15, 1 << 14
@@ -50,7 +50,6 @@ def main() -> None:
     ti.init(arch=ti.cpu, cpu_max_num_threads=1, fast_math=True, offline_cache=False, print_kernel_asm=True,
             log_level=ti.WARN)
     f32 = ti.f32
-    V8 = ti.types.vector(LANES, f32)
     # link state columns: L0, k_axial, b1, b2, b3, a2, damp, prev p2 (3), prev a2v (3) -> 13; outputs F_N, M_N, M_P (9)
     IN_COLS, OUT_COLS = 13, 9
 
@@ -167,10 +166,10 @@ def main() -> None:
              out: ti.types.ndarray(dtype=GroupOut, ndim=1)):
         for g in range(poses.shape[0]):
             P = poses[g]
-            pn = PoseRows([[P[i, l] for l in ti.static(range(LANES))] for i in ti.static(range(3))])
-            pp = PoseRows([[P[3 + i, l] for l in ti.static(range(LANES))] for i in ti.static(range(3))])
-            qn = QuatRows([[P[6 + i, l] for l in ti.static(range(LANES))] for i in ti.static(range(4))])
-            qp = QuatRows([[P[10 + i, l] for l in ti.static(range(LANES))] for i in ti.static(range(4))])
+            pn = PoseRows([[P[i, ln] for ln in ti.static(range(LANES))] for i in ti.static(range(3))])
+            pp = PoseRows([[P[3 + i, ln] for ln in ti.static(range(LANES))] for i in ti.static(range(3))])
+            qn = QuatRows([[P[6 + i, ln] for ln in ti.static(range(LANES))] for i in ti.static(range(4))])
+            qp = QuatRows([[P[10 + i, ln] for ln in ti.static(range(LANES))] for i in ti.static(range(4))])
             out[g] = one_link_rows(pn, pp, qn, qp, state[g])
 
     rng = np.random.default_rng(0)
