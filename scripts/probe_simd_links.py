@@ -53,6 +53,16 @@ def main() -> None:
     # link state columns: L0, k_axial, b1, b2, b3, a2, damp, prev p2 (3), prev a2v (3) -> 13; outputs F_N, M_N, M_P (9)
     IN_COLS, OUT_COLS = 13, 9
 
+    @ti.func
+    def rotate(w, x, y, z, f0, f1, f2):
+        """(w, x, y, z) f (w, x, y, z)* in Quat3D::RotateVec3D's arithmetic (quat.rotate's, on components)."""
+        tw = f0 * x + f1 * y + f2 * z
+        tx = f0 * w - f1 * z + f2 * y
+        ty = f0 * z + f1 * w - f2 * x
+        tz = -f0 * y + f1 * x + f2 * w
+        return (w * tx + x * tw + y * tz - z * ty, w * ty - x * tz + y * tw + z * tx,
+                w * tz + x * ty - y * tx + z * tw)
+
     def make_one_link(g: Callable, pack: Callable) -> Callable:
       @ti.func
       def one_link(pn, pp, qn, qp, c):
@@ -61,13 +71,7 @@ def main() -> None:
         w, x, y, z = g(qn, 0), -g(qn, 1), -g(qn, 2), -g(qn, 3)
         f = pp - pn
         f0, f1, f2 = g(f, 0), g(f, 1), g(f, 2)
-        tw = f0 * x + f1 * y + f2 * z
-        tx = f0 * w - f1 * z + f2 * y
-        ty = f0 * z + f1 * w - f2 * x
-        tz = -f0 * y + f1 * x + f2 * w
-        d0 = w * tx + x * tw + y * tz - z * ty
-        d1 = w * ty - x * tz + y * tw + z * tx
-        d2 = w * tz + x * ty - y * tx + z * tw
+        d0, d1, d2 = rotate(w, x, y, z, f0, f1, f2)
         # relative rotation q2 = conj(qn) * qp, its rotation vector by the f32 series (2·atan(|v|/w)/|v| · v)
         a, b, cc, e = g(qp, 0), g(qp, 1), g(qp, 2), g(qp, 3)
         q0 = w * a - x * b - y * cc - z * e
@@ -89,14 +93,7 @@ def main() -> None:
         my = -b2 * d2 - b3 * r1 - damp * (b2 * dp2 + b3 * da1)
         mz = b2 * d1 - b3 * r2 - damp * (-b2 * dp1 + b3 * da2)
         # the positive end's moment, rotated back by conj(q2)
-        vw, vx, vy, vz = q0, -q1, -q2, -q3
-        uw = mx * vx + my * vy + mz * vz
-        ux = mx * vw - my * vz + mz * vy
-        uy = mx * vz + my * vw - mz * vx
-        uz = -mx * vy + my * vx + mz * vw
-        p0 = vw * ux + vx * uw + vy * uz - vz * uy
-        p1 = vw * uy - vx * uz + vy * uw + vz * ux
-        p2 = vw * uz + vx * uy - vy * ux + vz * uw
+        p0, p1, p2 = rotate(q0, -q1, -q2, -q3, mx, my, mz)
         return pack([fx, fy, fz, mx, my, mz, p0, p1, p2])
       return one_link
 
