@@ -1,11 +1,10 @@
-"""The voxel trunk's two convolutions as gathers and dense products: the GPU's form of ``fast_trunk``.
+"""The voxel trunk's two convolutions as gathers and dense products: the deterministic GPU form (``trunk="gather"``).
 
-Why: on a GPU the paper's trunk spends most of a minibatch step in cuDNN's generic kernels for two one-output-
-channel 3-D convolutions (``docs/physics.md``, "The GPU": 44 % of the step in ``convolution_backward``, 0.3 ms a
-forward call), and the CPU's sparse form (``fast_trunk``) does not carry over: it counts the occupied voxels on the
-host (no CUDA graph may wait for the host) and scatters with ``index_add_``, which sums with atomics on CUDA (runs
-would not repeat bit for bit). Here every shape is fixed by the grid, nothing reads a value on the host, and every
-sum is a gather followed by a reduction or a matrix product, in a fixed order on every device:
+Why: on a GPU cuDNN runs the paper's two one-output-channel 3-D convolutions in generic kernels (2.37 ms of a 2.40
+ms minibatch step on an H200, ``docs/physics.md``, "The GPU"); the CPU's sparse trunk (``fast_trunk``) as CSR
+products is 3× faster there, but cuSPARSE's products sum in a varying order, so runs do not repeat bit for bit.
+This form is both: every shape fixed by the grid, nothing read on the host (a CUDA graph captures it), every sum a
+gather followed by a reduction or a matrix product, in a fixed order on every device (1.64 ms a step):
 
 * a one-output-channel convolution reads, for output o and kernel tap t, one input voxel ``window[o, t]`` (or the
   padding): ``cols = x[:, window]``, ``y = cols · w + b``; its input gradient is the transposed gather,
