@@ -47,12 +47,13 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def agreement(variants: list[str], device: str, grids: torch.Tensor) -> None:
-    """Each variant against ``conv`` (or the CPU's ``fast``) on the same weights and grids; repeat bits."""
+def agreement(variants: list[str], device: str, network: torch.nn.Module, grids: torch.Tensor) -> None:
+    """Each variant of ``network`` (a ``VoxelActorCritic``) against its ``conv`` form on the same weights and
+    ``grids``; whether two backward passes repeat their bits."""
     from freeform.agents.networks import VoxelActorCritic
 
     torch.manual_seed(0)
-    reference = VoxelActorCritic(20, 4, 256, trunk="conv").to(device)
+    reference = VoxelActorCritic(**{**network.init_kwargs, "trunk": "conv"}).to(device)
     with torch.no_grad():  # far from the init, so that every ReLU cuts somewhere
         for p in reference.parameters():
             p.copy_(torch.randn_like(p) * 0.3)
@@ -67,7 +68,7 @@ def agreement(variants: list[str], device: str, grids: torch.Tensor) -> None:
     expected = grads(reference)
     for variant in variants:
         try:
-            net = VoxelActorCritic(20, 4, 256, trunk=variant).to(device)
+            net = VoxelActorCritic(**{**network.init_kwargs, "trunk": variant}).to(device)
             net.load_state_dict(reference.state_dict())
             first, second = grads(net), grads(net)
         except Exception as e:
@@ -165,12 +166,13 @@ def main() -> None:
     device = "cuda" if arch == "cuda" else "cpu"
     rehearsal = device == "cpu"
     variants = os.environ.get("FREEFORM_BENCH_UPDATE_VARIANTS", "conv gather fast").split()
-    print(f"  the paper_locomotion network (k = 4, h = 256) on {device}"
-          f"{torch.cuda.get_device_name() if device == 'cuda' else ''}", flush=True)
     _, ppo = _build("conv", device, SMALL + ["agent.cuda_graph=false"])
+    net = ppo.policy
+    print(f"  the paper_locomotion network (ρ = {net.resolution}, k = {net.materials}, h = {net.hidden}) on {device}"
+          f"{f' ({torch.cuda.get_device_name()})' if device == 'cuda' else ''}", flush=True)
     ppo.collect()
-    grids = ppo.rollout.obs.reshape(-1, 20, 20, 20)[-128:].to(device)  # design states, late in their episodes
-    agreement([v for v in variants if v != "conv"], device, grids)
+    grids = ppo.rollout.obs.flatten(0, 1)[-128:].to(device)  # design states, late in their episodes
+    agreement([v for v in variants if v != "conv"], device, net, grids)
     for variant in variants:
         update_figures(variant, device, rehearsal)
     if not rehearsal:

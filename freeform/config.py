@@ -88,10 +88,10 @@ class AgentConfig(PPOConfig):
     hidden: int = 128
     """h, width of the trunk's output and of both heads (128 volume, 256 locomotion)."""
     trunk: str = "auto"
-    """The design network's two convolutions (``VoxelActorCritic(trunk=...)``, the same function every way): "auto"
-    (``freeform.agents.networks.resolve_trunk``: the sparse "fast" form on the CPU; on a GPU its CSR products in a
-    CUDA graph, cuDNN eagerly, the deterministic "gather" form when deterministic algorithms are asked for), "fast",
-    "gather" or "conv"."""
+    """The design network's two convolutions (``VoxelActorCritic(trunk=...)``, a co-design policy's too; the same
+    function every way): "auto" (``freeform.agents.networks.resolve_trunk``: the sparse "fast" form on the CPU; on a
+    GPU its CSR products in a CUDA graph, cuDNN eagerly, the deterministic "gather" form when deterministic
+    algorithms are asked for), "fast", "gather" or "conv"."""
 
     def __post_init__(self) -> None:
         self.validate("agent")

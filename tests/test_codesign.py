@@ -233,6 +233,21 @@ def test_a_recorded_episode_designs_then_drives_the_body() -> None:
     assert e.record(lambda obs: erase) is None
 
 
+def test_a_codesign_run_takes_the_agents_trunk() -> None:
+    """``agent.trunk`` reaches a co-design policy's design network (as the design env's), and its ``init_kwargs``
+    rebuild it; "auto" leaves them as files from before the key hold them."""
+    import torch
+
+    from freeform.config import compose
+    from freeform.run.build import build
+
+    cfg = compose("experiment=codesign_locomotion_cpu", "env.num_envs=4", "agent.trunk=gather")
+    _, ppo = build(cfg, torch.device("cpu"))
+    assert ppo.policy.design.trunk == "gather" and ppo.policy.init_kwargs["trunk"] == "gather"
+    assert CodesignActorCritic(**ppo.policy.init_kwargs).design.trunk == "gather"
+    assert "trunk" not in CodesignActorCritic.for_env(env(n=2), hidden=8, controller_hidden=4).init_kwargs
+
+
 def test_a_codesign_run_refuses_the_mlp_controller() -> None:
     from freeform.config import compose
 

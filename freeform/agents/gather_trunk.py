@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from freeform.agents.fast_trunk import conv_matrix
+from freeform.agents.fast_trunk import conv_matrix, neighbour_table
 
 
 @dataclass(frozen=True)
@@ -33,15 +33,13 @@ class ConvWindows:
 
     ``window [outputs, taps]``: the input voxel output o reads through tap t, or ``inputs`` (an appended zero) where
     it reads the padding. ``readers [inputs, fan]``: the flat ``o·taps + t`` of every (output, tap) reading input j,
-    padded with ``outputs·taps`` (an appended zero). ``by_tap [inputs, taps]``: for stride 1, the output that input
-    j feeds through tap t, or ``outputs`` (an appended zero); None otherwise."""
+    padded with ``outputs·taps`` (an appended zero)."""
 
     inputs: int
     outputs: int
     taps: int
     window: torch.Tensor
     readers: torch.Tensor
-    by_tap: torch.Tensor | None
 
 
 @functools.lru_cache(maxsize=32)
@@ -56,12 +54,15 @@ def conv_windows(size: int, kernel: int, stride: int, padding: int, device: torc
     slot = torch.arange(fan)
     pos = (s.t_crow[:-1, None] + slot[None, :]).clamp(max=len(s.t_col) - 1)
     readers = torch.where(slot[None, :] < counts[:, None], s.t_col[pos] * s.taps + s.t_tap[pos], s.outputs * s.taps)
-    by_tap = None
-    if stride == 1:
-        by_tap = torch.full((s.inputs, s.taps), s.outputs, dtype=torch.int64)
-        by_tap[s.col, s.tap] = rows
-    return ConvWindows(s.inputs, s.outputs, s.taps, window.to(device), readers.to(device),
-                       None if by_tap is None else by_tap.to(device))
+    return ConvWindows(s.inputs, s.outputs, s.taps, window.to(device), readers.to(device))
+
+
+@functools.lru_cache(maxsize=32)
+def fed_through(size: int, device: torch.device) -> torch.Tensor:
+    """For Conv3d(3³, stride 1, pad 1) on a ``size³`` grid, ``[size³, 27]``: the output that input voxel j feeds
+    through tap t (``fast_trunk.neighbour_table``), or ``size³`` (an appended zero) off the grid."""
+    table, _ = neighbour_table(size, device)
+    return torch.where(table >= 0, table, size**3)
 
 
 def _pad(x: torch.Tensor, value: float | int = 0) -> torch.Tensor:
@@ -98,37 +99,38 @@ class WindowConv(torch.autograd.Function):
 
 
 class OneHotWindowConv(torch.autograd.Function):
-    """Conv3d(k → 1) of the one-hot of ``grids [N, inputs]`` (uint8 materials < k) as a table lookup:
-    ``y [N, outputs] = bias + Σ_t kernel[grids[:, window[:, t]], t]`` for ``kernel [k, taps]``, ``bias [1]``."""
+    """Conv3d(k → 1, 3³, stride 1) of the one-hot of ``grids [N, inputs]`` (uint8 materials < k) as a table lookup:
+    ``y [N, outputs] = bias + Σ_t kernel[grids[:, window[:, t]], t]`` for ``kernel [k, taps]``, ``bias [1]``;
+    ``fed [inputs, taps]`` (``fed_through``) routes ∂L/∂y back to the input voxels for the weight gradient."""
 
     @staticmethod
-    def forward(ctx, grids: torch.Tensor, kernel: torch.Tensor, bias: torch.Tensor, w: ConvWindows) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, grids: torch.Tensor, kernel: torch.Tensor, bias: torch.Tensor, w: ConvWindows,  # type: ignore[override]
+                fed: torch.Tensor) -> torch.Tensor:
         n, k = grids.shape[0], kernel.shape[0]
         # material k (a zero row of the table) where a tap reads the padding
         codes = _pad(grids, k).index_select(1, w.window.view(-1)).view(n, w.outputs, w.taps)
         taps = torch.arange(w.taps, device=grids.device, dtype=torch.int32)
         flat = (codes.to(torch.int32) * w.taps + taps).view(-1)
         table = torch.cat([kernel.reshape(-1), kernel.new_zeros(w.taps)])
-        ctx.save_for_backward(grids)
+        ctx.save_for_backward(grids, fed)
         ctx.windows, ctx.materials = w, k
         return table.index_select(0, flat).view(n, w.outputs, w.taps).sum(2) + bias
 
     @staticmethod
     def backward(ctx, grad_y: torch.Tensor) -> tuple[torch.Tensor | None, ...]:  # type: ignore[override]
-        (grids,) = ctx.saved_tensors
+        grids, fed_by = ctx.saved_tensors
         w: ConvWindows = ctx.windows
-        assert w.by_tap is not None
         n, k = grids.shape[0], ctx.materials
         grad_kernel = grad_bias = None
         if ctx.needs_input_grad[1]:
             # what each input voxel's material receives through each tap: ∂L/∂y of the output it feeds there
-            fed = _pad(grad_y.contiguous()).index_select(1, w.by_tap.view(-1)).view(n * w.inputs, w.taps)
+            fed = _pad(grad_y.contiguous()).index_select(1, fed_by.view(-1)).view(n * w.inputs, w.taps)
             materials = torch.arange(k, device=grids.device, dtype=grids.dtype)
             onehot = (grids.reshape(-1, 1) == materials).to(grad_y.dtype)  # [N·inputs, k]
             grad_kernel = onehot.t() @ fed
         if ctx.needs_input_grad[2]:
             grad_bias = grad_y.sum().view(1)
-        return None, grad_kernel, grad_bias, None
+        return None, grad_kernel, grad_bias, None, None
 
 
 def onehot_conv3d_gather(grids: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
@@ -136,7 +138,8 @@ def onehot_conv3d_gather(grids: torch.Tensor, weight: torch.Tensor, bias: torch.
     ``weight [1, k, 3, 3, 3]``, ``bias [1]``."""
     n, rho = grids.shape[0], grids.shape[1]
     windows = conv_windows(rho, 3, 1, 1, grids.device)
-    return OneHotWindowConv.apply(grids.reshape(n, rho**3), weight.reshape(weight.shape[1], 27), bias, windows)
+    return OneHotWindowConv.apply(grids.reshape(n, rho**3), weight.reshape(weight.shape[1], 27), bias, windows,
+                                  fed_through(rho, grids.device))
 
 
 def strided_conv3d_gather(x: torch.Tensor, resolution: int, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:

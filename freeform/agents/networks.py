@@ -333,14 +333,16 @@ class CodesignActorCritic(nn.Module):
     def __init__(self, resolution: int, materials: int, stage_channel: int, grid_channel: int,
                  control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
-                 controller_kwargs: dict[str, Any] | None = None) -> None:
+                 controller_kwargs: dict[str, Any] | None = None, trunk: str = "auto") -> None:
         super().__init__()
         start, stop = (int(c) for c in control_channels)
         self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
                                 grid_channel=grid_channel, control_channels=(start, stop), mask_channel=mask_channel,
                                 filled_channel=filled_channel, hidden=hidden, controller_hidden=controller_hidden,
                                 log_std=log_std)
-        self.design = VoxelActorCritic(resolution, materials, hidden)
+        if trunk != "auto":  # (a file from before the key rebuilds as it was)
+            self.init_kwargs["trunk"] = trunk
+        self.design = VoxelActorCritic(resolution, materials, hidden, trunk=trunk)
         if controller_kwargs is None:
             if controller != "conv":
                 raise ValueError(f"controller {controller!r} needs its controller_kwargs (init_kwargs)")
@@ -361,10 +363,11 @@ class CodesignActorCritic(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5,
-                controller: str = "conv", head: str = "direct", wave_k: float = 1.0) -> CodesignActorCritic:
+                controller: str = "conv", head: str = "direct", wave_k: float = 1.0,
+                trunk: str = "auto") -> CodesignActorCritic:
         """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels): a ``controller`` of that kind
         with that ``head`` (``freeform.agents.build_controller`` on the env's control stage; the default conv
-        controller with the direct head is built as it always was)."""
+        controller with the direct head is built as it always was), the design network's ``trunk``."""
         from freeform.agents.controllers import build_controller
 
         kwargs = None
@@ -372,7 +375,8 @@ class CodesignActorCritic(nn.Module):
             kwargs = dict(build_controller(controller, env.control_view(), controller_hidden, log_std, head,
                                            wave_k).init_kwargs)
         return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
-                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs)
+                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs,
+                   trunk)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + c·ρ³]``, value ``[N]``)."""

@@ -262,13 +262,16 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
     from freeform.agents import PPO, CodesignActorCritic, VoxelActorCritic, build_controller
     from freeform.agents.networks import resolve_trunk
 
+    # The design trunk's fastest form inside a CUDA graph differs from the eager one (resolve_trunk): chosen here,
+    # where it is known; an eager run keeps "auto", resolved by the network per device.
+    trunk = resolve_trunk(cfg.agent.trunk, device, graphed=True) if cfg.agent.cuda_graph else cfg.agent.trunk
     if cfg.control is not None:
         control = cfg.control
         width = control.hidden if control.hidden is not None else cfg.agent.hidden
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std, controller=control.controller,
-                                                 head=control.head, wave_k=control.wave_k)
+                                                 head=control.head, wave_k=control.wave_k, trunk=trunk)
         else:  # (freeform.agents.controllers.CONTROLLERS)
             policy = build_controller(control.controller, env, width, control.init_log_std, control.head,
                                       control.wave_k)
@@ -285,9 +288,6 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         from freeform.envs import DenseDesignReward
 
         env = DenseDesignReward(env, cfg.env.dense_every)
-    # The trunk's fastest form inside a CUDA graph differs from the eager one (resolve_trunk): chosen here, where it
-    # is known; an eager run keeps "auto", resolved by the network per device.
-    trunk = resolve_trunk(cfg.agent.trunk, device, graphed=True) if cfg.agent.cuda_graph else cfg.agent.trunk
     policy = VoxelActorCritic(resolution=cfg.env.resolution, materials=cfg.task.materials, hidden=cfg.agent.hidden,
                               trunk=trunk)
     eval_env = design_env(cfg, device, envs[1] - envs[0], cfg.seed + 1) if cfg.agent.eval_every else None
