@@ -116,7 +116,7 @@ def set_sizes(bodies: Path) -> list[int]:
     return [len(g) for g in held_out_sets(bodies, len(compose("experiment=control_population_steering_cpu").sim.materials)).values()]
 
 
-def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.ndarray]:
+def hand_set_wave(bodies: Path, k: float, variants: int, turn, amplitude: float = 1.0) -> dict[str, np.ndarray]:
     """The steering preset's wave head playing the hand-set wave exactly (its per-cell outputs 0) on every held-out
     body of ``bodies/SET.npy`` (read as ``--evaluate`` reads them), ``variants`` times over, one episode each along
     seed 0's random headings: per set, the move along the heading ``[variants, bodies]``. Before each control step
@@ -125,7 +125,7 @@ def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.n
     ``[N, 2]`` over the step before (None at the first)."""
     import torch
 
-    from freeform.agents.controllers import build_controller, controller_step
+    from freeform.agents.controllers import HandSetWave, build_controller, controller_step
     from freeform.config import compose
     from freeform.envs.control import ControlEnv
 
@@ -135,7 +135,8 @@ def hand_set_wave(bodies: Path, k: float, variants: int, turn) -> dict[str, np.n
     grids = torch.cat([g.repeat(variants, 1, 1, 1) for g in sets.values()])
     first = np.concatenate([np.tile(np.arange(len(g)), variants) for g in sets.values()])
     env = ControlEnv(grids, sim=sim, control=control, seed=0, first_env=first)
-    net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave", wave_k=k).eval()
+    net = build_controller(cfg.control.controller, env, cfg.agent.hidden, head="wave",
+                           wave=HandSetWave(k, amplitude)).eval()
     with torch.no_grad():  # the hand-set wave exactly: no per-cell amplitude, phase or correction, and the wave
         for layer in (net.actor, net.wave_k):  # vector wave_k0 alone, turned per environment below
             layer.weight.zero_()

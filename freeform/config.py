@@ -25,7 +25,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from freeform.agents.controller_heads import head_rule
+from freeform.agents.controller_heads import HandSetWave, head_rule
 from freeform.agents.controllers import CODESIGN_KINDS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
@@ -169,6 +169,9 @@ class ControlRunConfig(ControlConfig):
     """``head=wave``: the wave number the untrained controller plays along x, or along the heading where the task
     has one (rad per voxel length): every voxel receives sin(2πt/T − wave_k·x), x its place along that direction
     from the centre of mass; 0: every voxel in one phase."""
+    wave_amplitude: float = 1.0
+    """``head=wave``: the amplitude of the wave the untrained controller plays (> 0; what a muscle receives stays
+    within [−1, 1] and its bandwidth, so > 1 is a fuller stroke than the sine: ``docs/control.md``, "Steering")."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -182,6 +185,11 @@ class ControlRunConfig(ControlConfig):
     @property
     def codesign(self) -> bool:
         return self.bodies == "codesign"
+
+    @property
+    def hand_set_wave(self) -> HandSetWave:
+        """What a ``head=wave`` controller plays untrained (``wave_k``, ``wave_amplitude``)."""
+        return HandSetWave(self.wave_k, self.wave_amplitude)
 
     def validate(self, key: str = "control") -> None:
         super().validate(key)
@@ -199,6 +207,8 @@ class ControlRunConfig(ControlConfig):
         allowed = head_rule(self.controller, self.head, strokes=self.stroke_periods >= 1)
         require(allowed is None, f"{key}.head", allowed, self.head)
         require(math.isfinite(self.wave_k), f"{key}.wave_k", "a finite wave number (rad per voxel length)", self.wave_k)
+        require(math.isfinite(self.wave_amplitude) and self.wave_amplitude > 0, f"{key}.wave_amplitude",
+                "a finite amplitude > 0", self.wave_amplitude)
         require(self.designer is None or (isinstance(self.designer, str) and self.designer != ""
                                           and self.bodies == "population"),
                 f"{key}.designer", "None or a path to a design run or checkpoint (with bodies=population)",

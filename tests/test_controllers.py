@@ -13,7 +13,7 @@ from torch.distributions import Normal, kl_divergence
 
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.controller_file import read_controller, save_controller
-from freeform.agents.controller_heads import WAVE_KINDS
+from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
 from freeform.agents.distributions import MaskedDiagGaussian, from_spec
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
@@ -299,7 +299,9 @@ def test_the_registry_names_reach_the_config() -> None:
     for bad, match in ((dict(controller="attention", head="wave", stroke_periods=10), "control.head"),
                        (dict(controller="context", head="wave"), "control.head.*stroke_periods >= 1"),
                        (dict(controller="context", head="wave", stroke_periods=10, wave_k=float("nan")),
-                        "control.wave_k")):
+                        "control.wave_k"),
+                       (dict(controller="context", head="wave", stroke_periods=10, wave_amplitude=0.0),
+                        "control.wave_amplitude")):
         with pytest.raises(ValueError, match=match):
             ControlRunConfig(**bad).validate()
 
@@ -338,8 +340,8 @@ def test_a_stroke_head_gives_each_cell_a_and_b_padding_changes_nothing(kind):
 def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, residual, headings, tmp_path):
     """Truth: what the stroke env plays, (1 + a)·sin θ + b·cos θ under residual control (a·sin θ + b·cos θ without),
     θ = 2π(t/T + φ) each voxel's own phase (φ its material's, read from the sim's materials), equals
-    (1 + α)·sin(2πt/T − k·x − ψ) + ca·sin θ + cb·cos θ at every t for the head whose per-cell outputs are the
-    constants (α, ψ, ca, cb): first the untrained wave (all 0, k = (wave_k, 0, 0) from the config), then a wave
+    (A + α)·sin(2πt/T − k·x − ψ) + ca·sin θ + cb·cos θ at every t for the head whose per-cell outputs are the
+    constants (α, ψ, ca, cb): first the untrained wave (all 0, k = (k, 0, 0) and A from the hand-set wave), then a wave
     vector along y set through its layer's bias with every per-cell term set. With random headings both vectors are
     in the heading's frame: the world's k is turned by each body's heading (x along it), so the wave travels where
     the body is sent. Padding changes nothing with the wave vector's weights scaled up (a leak into the pooled
@@ -349,7 +351,7 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
                     for env in two_boxes())
     obs_small, obs_large = small.reset(), large.reset()
     torch.manual_seed(0)
-    net = build_controller(kind, large, hidden=8, head="wave", wave_k=0.8)
+    net = build_controller(kind, large, hidden=8, head="wave", wave=HandSetWave(k=0.8, amplitude=1.4))
     with torch.no_grad():
         net.wave_k.weight.mul_(100.0)
         mean_large, _, mask, _ = run(net, obs_large)
@@ -390,8 +392,12 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
                     theta = 2 * math.pi * (t_over_T + phi)
                     played = (1.0 if residual else 0.0) * math.sin(theta) + a[n, i, j, m] * math.sin(theta) + \
                         b[n, i, j, m] * math.cos(theta)
-                    wave = (1 + alpha) * math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]) - psi)
+                    wave = (1.4 + alpha) * math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]) - psi)
                     assert abs(float(played) - (wave + ca * math.sin(theta) + cb * math.cos(theta))) < 1e-5
+    before = dict(net.init_kwargs, wave={k: v for k, v in net.init_kwargs["wave"].items() if k != "amplitude"})
+    assert type(net)(**before).wave["amplitude"] == 1.0  # (a file from before the amplitude: the sine's)
+    with pytest.raises(ValueError, match="wave amplitude must be finite and > 0"):
+        build_controller(kind, large, hidden=8, head="wave", wave=HandSetWave(amplitude=-1.0))
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):
         build_controller("attention", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):

@@ -5,6 +5,7 @@ rhythm on the actuation clock, a stroke's (a, b), or a travelling wave's stroke.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -90,17 +91,36 @@ def _per_cell_mean(out: torch.Tensor, mask: torch.Tensor, head: str) -> tuple[to
     return out.reshape(n, -1), (mask.repeat(1, 2) if head in STROKE_HEADS else mask)
 
 
+@dataclass(frozen=True)
+class HandSetWave:
+    """The travelling wave a ``wave`` head plays untrained (its per-cell outputs and wave-vector layer then add to
+    it): every voxel receives ``amplitude``·sin(2πt/T − ``k``·x), x its place from the centre of mass along x, or
+    along the heading where the env has one. ``k`` in rad per voxel length (0: every voxel in one phase);
+    ``amplitude`` > 1 asks more than a muscle's range, so what it receives (clipped to [−1, 1], at most its
+    bandwidth's change) is a fuller stroke than the sine: ``docs/control.md``, "Steering"."""
+
+    k: float = 1.0
+    amplitude: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(float(self.k)):
+            raise ValueError(f"wave k (rad per voxel length) must be finite, got {self.k!r}")
+        if not (math.isfinite(float(self.amplitude)) and self.amplitude > 0):
+            raise ValueError(f"wave amplitude must be finite and > 0, got {self.amplitude!r}")
+
+
 def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     """A ``wave`` head's description of the observation, checked: ``pos_channels`` (rel_x, rel_y, rel_z: voxel
     lengths from the centre of mass), ``material_channel`` (material index / (len(phases) − 1)), ``phases`` (each
     material index's open-loop phase in cycles, index 0 empty), ``residual`` (the env adds the open-loop sine to
-    the action) and ``k`` (the wave number the untrained head starts from, rad per voxel length, along x)."""
+    the action), ``k`` (the wave number the untrained head starts from, rad per voxel length, along x) and
+    optionally ``amplitude`` (its amplitude, 1 where absent: the files from before) and ``heading_channels``."""
     if head != "wave":
         return None
     keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
-    if not isinstance(wave, dict) or not keys <= set(wave) <= keys | {"heading_channels"}:
+    if not isinstance(wave, dict) or not keys <= set(wave) <= keys | {"heading_channels", "amplitude"}:
         raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} and optionally "
-                         f"heading_channels (build_controller fills it from the env), got {wave!r}")
+                         f"heading_channels and amplitude (build_controller fills it from the env), got {wave!r}")
     pos = tuple(int(c) for c in wave["pos_channels"])
     if len(pos) != 3:
         raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
@@ -109,10 +129,9 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     phases = tuple(float(p) for p in wave["phases"])
     if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
         raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
-    if not math.isfinite(float(wave["k"])):
-        raise ValueError(f"wave k (rad per voxel length) must be finite, got {wave['k']!r}")
+    start = HandSetWave(float(wave["k"]), float(wave.get("amplitude", 1.0)))
     setup = dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
-                 residual=bool(wave["residual"]), k=float(wave["k"]))
+                 residual=bool(wave["residual"]), k=start.k, amplitude=start.amplitude)
     if wave.get("heading_channels") is not None:  # (a file from before steering has no key: its wave stays along x)
         heading = tuple(int(c) for c in wave["heading_channels"])
         if len(heading) != 2:
@@ -123,12 +142,12 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     return setup
 
 
-def _env_wave(env: Any, head: str, wave_k: float) -> dict[str, Any] | None:
+def _env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
     if head != "wave":
         return None
     wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
                 material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
-                residual=bool(env.control.residual), k=float(wave_k))
+                residual=bool(env.control.residual), k=float(start.k), amplitude=float(start.amplitude))
     if env.control.headings != "any":  # (a heading to follow: the wave's frame turns with it)
         wave["heading_channels"] = (env.channels.index("heading_cos"), env.channels.index("heading_sin"))
     return wave
@@ -154,13 +173,14 @@ def _wave_strokes(out: torch.Tensor, k: torch.Tensor, obs: torch.Tensor, wave: d
     index's phase ``phases`` (cycles, index 0 empty).
 
     The stroke env plays a·sin θ + b·cos θ, θ = 2π(t/T + φ) a voxel's own phase (φ its material's), added under
-    residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (A = 1 + α; x its
+    residual control to its sine sin θ. For the voxel to receive A·sin(2πt/T − δ'), δ' = k·x + ψ (x its
     place relative to the centre of mass), write 2πt/T − δ' = θ − δ, δ = 2πφ + δ': then (1 + a) = A cos δ and
-    b = −A sin δ under residual control (1 + a → a without), plus the corrections."""
+    b = −A sin δ under residual control (1 + a → a without), plus the corrections. A = the hand-set wave's
+    amplitude + α (:class:`HandSetWave`)."""
     index = torch.round(obs[:, wave["material_channel"]] * (len(phases) - 1)).long().clamp(0, len(phases) - 1)
     place = (k[:, :, None, None, None] * obs[:, list(wave["pos_channels"])]).sum(1)
     delta = 2 * math.pi * phases[index] + place + out[:, 1]
-    amplitude = 1.0 + out[:, 0]
+    amplitude = wave["amplitude"] + out[:, 0]
     a = amplitude * torch.cos(delta) - (1.0 if wave["residual"] else 0.0) + out[:, 2]
     b = -amplitude * torch.sin(delta) + out[:, 3]
     return torch.stack([a, b], 1)

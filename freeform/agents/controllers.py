@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from freeform.agents.controller_heads import (
     STROKE_HEADS,
     WAVE_KINDS,
+    HandSetWave,
     _body_controller_setup,
     _cell_means,
     _check_control_input,
@@ -158,7 +159,7 @@ class ContextConvController(nn.Module):
     the zeros it would see at its own box's edge: the same commands. Actor: Conv3d(h→1, 1³) · f, each cell's mean
     command (weights N(0, 0.01²), bias 0; the other heads of ``controller_heads.HEADS``: Conv3d(h→3, 1³), the cell's
     rhythm; Conv3d(h→2, 1³), a stroke's (a, b); Conv3d(h→4, 1³), a wave's amplitude, phase and correction, with the
-    body's wave vector Linear(2h→3)(pool(x)) added to ``wave_k`` along x); one learned log σ. Critic: pool(x) →
+    body's wave vector Linear(2h→3)(pool(x)) added to the hand-set wave's ``k`` along x); one learned log σ. Critic: pool(x) →
     Linear(2h→h) → tanh → Linear(h→1).
 
     One block (the default) is ConvController's two 3³ convolutions plus the body's context, at about its cost on
@@ -186,11 +187,11 @@ class ContextConvController(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
-                wave_k: float = 1.0) -> ContextConvController:
-        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's initial
-        wave number ``wave_k``)."""
+                wave: HandSetWave = HandSetWave()) -> ContextConvController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
+        untrained ``wave``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std, head=head, clock_channels=_env_clock(env, head), wave=_env_wave(env, head, wave_k))
+                   log_std=log_std, head=head, clock_channels=_env_clock(env, head), wave=_env_wave(env, head, wave))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
@@ -248,12 +249,12 @@ class RecurrentContextController(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
-                memory: int = 32, wave_k: float = 1.0) -> RecurrentContextController:
-        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's initial
-        wave number ``wave_k``)."""
+                memory: int = 32, wave: HandSetWave = HandSetWave()) -> RecurrentContextController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
+        untrained ``wave``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
                    memory, log_std=log_std, head=head, clock_channels=_env_clock(env, head),
-                   wave=_env_wave(env, head, wave_k))
+                   wave=_env_wave(env, head, wave))
 
     def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
         """``(zeros [N, 1, memory],)``: the GRU's state at an episode's start."""
@@ -466,11 +467,11 @@ def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor
 
 
 def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
-                     head: str = "direct", wave_k: float = 1.0) -> nn.Module:
+                     head: str = "direct", wave: HandSetWave = HandSetWave()) -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
     ``head`` (``controller_heads.HEADS``; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`~freeform.agents.controller_heads.RHYTHM_KINDS`;
-    ``wave`` for :data:`WAVE_KINDS`, starting from the wave number ``wave_k`` along x).
+    ``wave`` for :data:`WAVE_KINDS`, starting from the hand-set ``wave``).
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
     from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
@@ -483,7 +484,7 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
             raise ValueError(f"controller {kind!r} is recurrent, and PrivilegedCritic wraps feed-forward controllers "
                              "(its critic reads one step): set control.privileged_critic=false")
         view = _PolicyView(env, shape[POLICY])
-        inner = build_controller(kind, view, hidden, log_std, head, wave_k)
+        inner = build_controller(kind, view, hidden, log_std, head, wave)
         return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
@@ -493,7 +494,7 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     width = {} if hidden is None else {"hidden": hidden}
     options = {} if head == "direct" else {"head": head}
     if head == "wave":
-        options["wave_k"] = wave_k
+        options["wave"] = wave
     return CONTROLLERS[kind].for_env(env, log_std=log_std, **width, **options)
 
 

@@ -271,10 +271,10 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         if control.codesign:
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std, controller=control.controller,
-                                                 head=control.head, wave_k=control.wave_k, trunk=trunk)
+                                                 head=control.head, wave=control.hand_set_wave, trunk=trunk)
         else:  # (freeform.agents.controllers.CONTROLLERS)
             policy = build_controller(control.controller, env, width, control.init_log_std, control.head,
-                                      control.wave_k)
+                                      control.hand_set_wave)
         if control.controller_init is not None:
             load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
                             control.controller_init)
