@@ -26,6 +26,12 @@ angle between the heading and the way the body moved over that step (integral fe
 gain and set, the mean move along the heading (``RESULTS/steer_feedback.csv``; ≈ 2 min):
 
     python -m experiments.control_population --steer-feedback --results docs/results/control_population_steering
+
+``--steer-amplitudes``: the hand-set wave along the heading (k = 1.5, 1.0 and 2.0) at amplitudes from the sine's 1 up:
+what a muscle receives stays within [−1, 1] and its bandwidth, so a larger amplitude asks for a fuller stroke, not a
+larger one; per amplitude and set, the mean move along the heading (``RESULTS/steer_amplitudes.csv``; ≈ 3 min):
+
+    python -m experiments.control_population --steer-amplitudes --results docs/results/control_population_steering
 """
 
 from __future__ import annotations
@@ -117,7 +123,7 @@ def set_sizes(bodies: Path) -> list[int]:
 
 
 def hand_set_wave(bodies: Path, k: float, variants: int, turn, amplitude: float = 1.0) -> dict[str, np.ndarray]:
-    """The steering preset's wave head playing the hand-set wave exactly (its per-cell outputs 0) on every held-out
+    """The steering preset's wave head playing the hand-set wave (``amplitude``) exactly (its per-cell outputs 0) on every held-out
     body of ``bodies/SET.npy`` (read as ``--evaluate`` reads them), ``variants`` times over, one episode each along
     seed 0's random headings: per set, the move along the heading ``[variants, bodies]``. Before each control step
     the wave vector is k·(cos o, sin o, 0) in the heading's frame (x along the heading), o = ``turn(step, env,
@@ -205,6 +211,23 @@ def steer_feedback(bodies: Path, k: float = 1.5, gains: tuple[float, ...] = (0.0
     return rows
 
 
+def steer_amplitudes(bodies: Path, waves: tuple[tuple[float, float], ...] = (
+        (1.5, 1.0), (1.5, 1.3), (1.5, 1.6), (1.5, 2.0), (1.5, 3.0), (1.0, 1.6), (2.0, 1.6))) -> list[dict]:
+    """The rows of ``--steer-amplitudes`` (module docstring): per (k, amplitude) of ``waves`` and set (and all
+    sets together), the mean move along the heading of the hand-set wave along it."""
+    zero = np.zeros(sum(set_sizes(bodies)))
+    rows = []
+    for k, amplitude in waves:
+        moves = hand_set_wave(bodies, k, 1, lambda step, env, moved: zero, amplitude=amplitude)
+        for name in [*SETS, "all"]:
+            along = np.concatenate([moves[n][0] for n in SETS]) if name == "all" else moves[name][0]
+            mean, band = mean_band(along)
+            rows.append({"set": name, "k": k, "amplitude": amplitude, "along_heading": float(mean),
+                         "band99": float(band), "bodies": len(along)})
+            print(rows[-1], flush=True)
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--results", default="docs/results/control_population")
@@ -212,6 +235,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="the hand-set wave along headings and at angles to them (steer_waves.csv; module docstring)")
     p.add_argument("--steer-feedback", action="store_true",
                    help="the hand-set wave turned by the heading error after every step (steer_feedback.csv)")
+    p.add_argument("--steer-amplitudes", action="store_true",
+                   help="the hand-set wave along the heading at amplitudes from 1 up (steer_amplitudes.csv)")
     p.add_argument("--bodies", default="docs/results/heldout_bodies", help="the held-out sets' folder")
     p.add_argument("--headings", choices=("any", "random"), default="any",
                    help="what the evaluations scored: the distance in the plane (any) or the move along random "
@@ -223,6 +248,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.steer_feedback:
         write_rows(results / "steer_feedback.csv", steer_feedback(Path(args.bodies)))
+        return
+    if args.steer_amplitudes:
+        write_rows(results / "steer_amplitudes.csv", steer_amplitudes(Path(args.bodies)))
         return
     seeds = seeds_in(results)
     if not seeds:

@@ -109,6 +109,10 @@ class HandSetWave:
             raise ValueError(f"wave amplitude must be finite and > 0, got {self.amplitude!r}")
 
 
+DEFAULT_WAVE = HandSetWave()
+"""k = 1 at the open-loop sine's amplitude: ``ControlConfig``'s defaults."""
+
+
 def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     """A ``wave`` head's description of the observation, checked: ``pos_channels`` (rel_x, rel_y, rel_z: voxel
     lengths from the centre of mass), ``material_channel`` (material index / (len(phases) − 1)), ``phases`` (each

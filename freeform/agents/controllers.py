@@ -35,6 +35,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from freeform.agents.controller_heads import (
+    DEFAULT_WAVE,
     STROKE_HEADS,
     WAVE_KINDS,
     HandSetWave,
@@ -187,7 +188,7 @@ class ContextConvController(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
-                wave: HandSetWave = HandSetWave()) -> ContextConvController:
+                wave: HandSetWave = DEFAULT_WAVE) -> ContextConvController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
@@ -249,7 +250,7 @@ class RecurrentContextController(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 16, log_std: float = 0.0, head: str = "direct",
-                memory: int = 32, wave: HandSetWave = HandSetWave()) -> RecurrentContextController:
+                memory: int = 32, wave: HandSetWave = DEFAULT_WAVE) -> RecurrentContextController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
         return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
@@ -467,7 +468,7 @@ def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor
 
 
 def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: float = 0.0,
-                     head: str = "direct", wave: HandSetWave = HandSetWave()) -> nn.Module:
+                     head: str = "direct", wave: HandSetWave = DEFAULT_WAVE) -> nn.Module:
     """The controller of ``kind`` (a key of :data:`CONTROLLERS`) for a ``ControlEnv``, ``hidden`` wide (None: the
     kind's default; the MLP's two layers are each ``hidden`` wide), its log σ starting at ``log_std``, its actor's
     ``head`` (``controller_heads.HEADS``; ``rhythm`` and ``stroke`` for the kinds with a view of the whole body, :data:`~freeform.agents.controller_heads.RHYTHM_KINDS`;

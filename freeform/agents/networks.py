@@ -27,7 +27,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.controllers import CODESIGN_KINDS, CONTROLLERS, ConvController, HandSetWave, MLPController
+from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
+from freeform.agents.controllers import CODESIGN_KINDS, CONTROLLERS, ConvController, MLPController
 from freeform.agents.distributions import (
     ActionDistribution,
     DiagGaussian,
@@ -363,7 +364,7 @@ class CodesignActorCritic(nn.Module):
 
     @classmethod
     def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5,
-                controller: str = "conv", head: str = "direct", wave: HandSetWave | None = None,
+                controller: str = "conv", head: str = "direct", wave: HandSetWave = DEFAULT_WAVE,
                 trunk: str = "auto") -> CodesignActorCritic:
         """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels): a ``controller`` of that kind
         with that ``head`` (``freeform.agents.build_controller`` on the env's control stage; the default conv
@@ -373,7 +374,7 @@ class CodesignActorCritic(nn.Module):
         kwargs = None
         if (controller, head) != ("conv", "direct"):
             kwargs = dict(build_controller(controller, env.control_view(), controller_hidden, log_std, head,
-                                           wave or HandSetWave()).init_kwargs)
+                                           wave).init_kwargs)
         return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
                    env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs,
                    trunk)
