@@ -446,7 +446,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
                  "trainer.epochs=1"]
     cfg = compose(*overrides)
     env = control_env(cfg, torch.device("cpu"), (0, 4), 0)
-    net = build_controller("context", env.control_view(), 4, -0.5, "wave", 1.0)
+    net = build_controller("context", env.control_view(), 4, -0.5, "wave")
     with torch.no_grad():
         for param in net.parameters():
             param.add_(torch.randn_like(param) * 0.1)  # (not what a fresh controller starts from)
@@ -457,6 +457,10 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
         assert torch.equal(start[f"controller.{name}"], tensor), name
     saved = read_controller(tmp_path / "run")
     assert saved.kind == "context" and saved.controller.head == "wave"
+    with pytest.raises(ValueError, match=r"hand-set wave k = 1.0, amplitude 1.0; this run's is k = 1.0, amplitude "
+                                         r"1.6: set control.wave_k and control.wave_amplitude"):
+        train_mod.train(compose(*overrides, f"control.controller_init={tmp_path / 'controller.pt'}",
+                                "control.wave_amplitude=1.6"), tmp_path / "other_wave")
     # the comparison charges the warm start's training to co-design's budget (--pretraining)
     import csv
 

@@ -244,9 +244,16 @@ def load_controller(controller: torch.nn.Module, source: str) -> None:
     if not path.exists():
         raise ValueError(f"control.controller_init={source!r}: no such checkpoint, controller.pt or run folder")
     try:
-        weights = read_controller(path).controller.state_dict()
+        trained = read_controller(path).controller
     except ValueError as e:
         raise ValueError(f"control.controller_init={source!r}: {e}") from e
+    ours, theirs = getattr(controller, "wave", None), getattr(trained, "wave", None)
+    if ours is not None and theirs is not None and (ours["k"], ours["amplitude"]) != (theirs["k"], theirs["amplitude"]):
+        # (the hand-set wave is no weight: loaded under another, the trained heads would play another gait)
+        raise ValueError(f"control.controller_init={source!r} was trained on the hand-set wave k = {theirs['k']}, "
+                         f"amplitude {theirs['amplitude']}; this run's is k = {ours['k']}, amplitude "
+                         f"{ours['amplitude']}: set control.wave_k and control.wave_amplitude to the file's")
+    weights = trained.state_dict()
     try:
         controller.load_state_dict(weights)
     except RuntimeError as e:
