@@ -204,3 +204,12 @@ def test_run_dir_resolvers(tmp_path: Path) -> None:
     assert Path(_resolver_run_dir(str(run / "checkpoints"), "unused")) == run
     assert _resolver_hydra_subdir(None) == ".hydra"
     assert _resolver_hydra_subdir(str(run)).startswith(".hydra/resume_")
+
+
+def test_every_experiment_preset_composes_and_validates() -> None:
+    """Every ``conf/experiment`` preset composes into a valid config named after its file: a key renamed or a value
+    refused fails here, not in a user's run."""
+    names = sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
+    assert len(names) >= 20
+    for name in names:
+        assert compose(f"experiment={name}").name == name, name
