@@ -1,17 +1,20 @@
-// The link update (spec section 5, Voxelyze's CVX_Link::updateForces) in C++, for scripts/probe_native_links.py:
-// what the CPU simulator's link phase costs when compiled outside Taichi, one link at a time and 16 links per
-// instruction (issue 43; docs/physics.md, "The link phase in C++, probed").
+// One step of the CPU simulator's physics in C++, for scripts/probe_native_step.py: what the link and voxel phases
+// cost when compiled outside Taichi, one item at a time and 16 items per instruction (issue 43; docs/physics.md,
+// "The step in C++, probed").
 //
-// The same arithmetic as freeform/sim/links.py and quat.py on the f32 path (Voxelyze semantics, fixed dt: no
-// rl4design slips, no omega^2 store), on the engine's own packed buffers; the column indices and widths come from
-// freeform/sim/state.py through the generated layout.h (the probe writes it), so this file never spells an offset.
-// The link tables are read column by column (copied so on entry and back on exit: this code's own layout, which
-// makes a column of 16 consecutive links one vector load); the voxel rows are gathered.
+// The same arithmetic as freeform/sim/links.py, voxels.py and quat.py on the f32 path — Voxelyze semantics, fixed
+// dt (no rl4design slips, no omega^2 store), the sine's actuation, the flat floor — on the engine's own packed
+// buffers; the column indices and widths come from freeform/sim/state.py through the generated layout.h (the probe
+// writes it), so this file never spells an offset. The link tables are read column by column (copied so on entry
+// and back on exit: this code's own layout, which makes a column of 16 consecutive links one vector load); the
+// voxel rows stay the engine's and are gathered.
 //
-// link_steps_scalar: every link by `link_update`, with Voxelyze's branches.
-// link_steps_vector: 16 links at once by `link_group` (GCC's vector extensions: one source of the math, templated
-// on the lane type) along the common path — a small-angle link whose end rotation takes atan's series — and every
-// lane off that path again by `link_update`, before anything of it is stored (its old state kept by a blend).
+// *_scalar: every item with Voxelyze's branches (link_update, voxel_update).
+// *_vector: 16 items at once (link_group, voxel_group: GCC's vector extensions, one source of the math templated
+// on the lane type) along the common path, and every lane off it again by the branching update, before anything
+// of that lane is stored. A link's common path: the small angle, its end rotation within atan's series; a
+// voxel's: not held fixed, its rotation within FromRotationVector's Taylor form, its Poisson strain within the
+// series, no snapshot this step.
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
@@ -108,10 +111,10 @@ inline Q4<float> from_angle_to_pos_x(V3<float> p) {
 }
 
 struct Regions {
-  const float* __restrict vr;
+  float* __restrict vr;
   float* __restrict lr;  // column by column: link lk's column c at c·links + lk
   const float *__restrict mt, *__restrict lt;
-  const int32_t* __restrict vi;
+  int32_t* __restrict vi;
   int32_t* __restrict li;  // column by column
   int links;
 };
@@ -205,6 +208,179 @@ inline int link_update(const Regions& s, int lk, float prev_dt, float max_strain
   uint32_t bits;
   std::memcpy(&bits, &strain, 4);
   return strain > max_strain || (bits & 0x7F800000u) == 0x7F800000u;
+}
+
+// ---- one voxel, with Voxelyze's branches (voxels.py:voxel_update, flat floor, the sine's actuation) ----
+
+struct Robot {  // what a voxel reads of its robot and the batch
+  float dt, sin, cos, temp_amp;
+  int events;
+};
+
+inline Q4<float> from_rotation_vector(V3<float> v) {
+  const V3<float> th = 0.5f * v;
+  const float a2 = th.x * th.x + th.y * th.y + th.z * th.z;
+  float w, k;
+  if (a2 * a2 < ROTVEC_SMALL4) {
+    w = 1.0f - a2 / 2.0f;
+    k = 1.0f - a2 / 6.0f;
+  } else {
+    const float a = std::sqrt(a2);
+    w = std::cos(a);
+    k = std::sin(a) / a;
+  }
+  return {w, th.x * k, th.y * k, th.z * k};
+}
+
+inline Q4<float> renormalise(Q4<float> q) {
+  const float n2 = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z;
+  const float k = std::fabs(n2 - 1.0f) < RENORM_NEWTON ? 1.5f - 0.5f * n2 : 1.0f / std::sqrt(n2);
+  return {q.w * k, q.x * k, q.y * k, q.z * k};
+}
+
+// the voxel's strain along each axis from its links' strains (voxels.py:poisson_strain)
+inline V3<float> poisson_strain(const Regions& s, int v, int mat) {
+  const float* m = s.mt + mat * MT_W;
+  const float nu = m[MT_NU];
+  float strain[3] = {0.0f, 0.0f, 0.0f};
+  if (nu == 0.0f) return {0.0f, 0.0f, 0.0f};
+  int tension[3] = {0, 0, 0};
+  const int L = s.links;
+  for (int a = 0; a < 3; ++a) {
+    int cnt = 0;
+    for (int side = 0; side < 2; ++side) {
+      const int lk = s.vi[v * VI_W + VI_SLOT + 2 * a + side];
+      if (lk >= 0) {
+        const float eps = s.lr[lk + LR_STRAIN * L];
+        strain[a] += eps * s.lt[s.li[lk + LI_LMAT * L] * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG)];
+        ++cnt;
+      }
+    }
+    if (cnt == 2) {
+      strain[a] *= 0.5f;
+      tension[a] = 1;
+    }
+  }
+  if (!(tension[0] && tension[1] && tension[2])) {
+    float add = 0.0f;
+    for (int a = 0; a < 3; ++a)
+      if (tension[a]) add += strain[a];
+    float val;
+    if (std::fabs(add) < POISSON_SERIES_X) {
+      float c = m[MT_PB1 + POISSON_SERIES_TERMS - 1];
+      for (int k = POISSON_SERIES_TERMS - 1; k > 0; --k) c = m[MT_PB1 + k - 1] + add * c;
+      val = add * c;
+    } else {
+      val = std::pow(1.0f + add, -nu) - 1.0f;
+    }
+    for (int a = 0; a < 3; ++a)
+      if (!tension[a]) strain[a] = val;
+  }
+  return {strain[0], strain[1], strain[2]};
+}
+
+inline void set3(float* base, int at, V3<float> v) { base[at] = v.x; base[at + 1] = v.y; base[at + 2] = v.z; }
+
+// Voxel v's update (spec sections 6-9); returns 1 if its pose became non-finite.
+inline int voxel_update(const Regions& s, int v, const Robot& rb) {
+  const int row = v * VR_W, L = s.links;
+  const int mat = s.vi[v * VI_W + VI_MAT];
+  int flags = s.vi[v * VI_W + VI_FLAGS];
+  const float* m = s.mt + mat * MT_W;
+  const float minv = m[MT_MINV], iinv = m[MT_IINV], dt = rb.dt;
+  V3<float> pos = get3(s.vr, row + VR_POS), mom = get3(s.vr, row + VR_MOM), amom = get3(s.vr, row + VR_AMOM);
+  Q4<float> q = get4(s.vr, row + VR_ORI);
+  const float size = s.vr[row + VR_SIZE];
+  const V3<float> ps = poisson_strain(s, v, mat);
+  if (flags & FLAG_FIXED) {
+    pos = get3(s.vr, row + VR_POS0);
+    mom = amom = {0.0f, 0.0f, 0.0f};
+    q = {1.0f, 0.0f, 0.0f, 0.0f};
+  } else {
+    V3<float> force = {0.0f, 0.0f, 0.0f}, moment = {0.0f, 0.0f, 0.0f};
+    for (int d = 0; d < 6; ++d) {
+      const int lk = s.vi[v * VI_W + VI_SLOT + d];
+      if (lk >= 0) {
+        const int f = d % 2 == 1 ? LR_FP : LR_FN, mm = d % 2 == 1 ? LR_MP : LR_MN;
+        force = force + V3<float>{s.lr[lk + f * L], s.lr[lk + (f + 1) * L], s.lr[lk + (f + 2) * L]};
+        moment = moment + V3<float>{s.lr[lk + mm * L], s.lr[lk + (mm + 1) * L], s.lr[lk + (mm + 2) * L]};
+      }
+    }
+    const V3<float> vel = minv * mom;
+    force = rotate(q, force) - m[MT_CG] * vel;
+    force.z += m[MT_MG];
+    moment = rotate(q, moment) - m[MT_CGR] * (iinv * amom);
+    bool stat = flags & FLAG_STATIC;
+    // the flat floor (voxels.py:flat_floor_step, floor_force)
+    const float pen = 0.5f * size - 0.5f * m[MT_L] - pos.z;
+    V3<float> fric = {0.0f, 0.0f, 0.0f};
+    if (pen >= 0.0f) {
+      const float normal = m[MT_KPEN] * pen;
+      force.z += normal - m[MT_CC] * vel.z;
+      if (stat) {
+        const float mus = m[MT_MUS] * normal;
+        if (force.x * force.x + force.y * force.y > mus * mus) stat = false;
+      } else {
+        const float vh = std::sqrt(vel.x * vel.x + vel.y * vel.y);
+        if (vh > 0.0f) {
+          const float f = m[MT_MUK] * normal / vh;
+          fric = {-f * vel.x, -f * vel.y, 0.0f};
+          force = force + fric;
+        }
+      }
+    } else {
+      stat = false;
+    }
+    mom = mom + dt * force;
+    V3<float> delta = (dt * minv) * mom;
+    const bool touching = pen >= 0.0f;
+    if (touching) {
+      const float work = fric.x * delta.x + fric.y * delta.y;
+      const float hke = 0.5f * (mom.x * mom.x + mom.y * mom.y) * minv;
+      if (hke + work <= 0.0f) stat = true;
+      if (stat) mom.x = mom.y = delta.x = delta.y = 0.0f;
+    } else {
+      stat = false;
+    }
+    pos = pos + delta;
+    amom = amom + dt * moment;
+    q = renormalise(qmul(from_rotation_vector((dt * iinv) * amom), q));
+    flags = (flags & ~(FLAG_STATIC | FLAG_CONTACT)) | (stat ? FLAG_STATIC : 0) | (touching ? FLAG_CONTACT : 0);
+  }
+  const float norm1 = std::fabs(pos.x) + std::fabs(pos.y) + std::fabs(pos.z) + std::fabs(amom.x) + std::fabs(amom.y) +
+                      std::fabs(amom.z);
+  uint32_t bits;
+  std::memcpy(&bits, &norm1, 4);
+  set3(s.vr, row + VR_POS, pos);
+  set3(s.vr, row + VR_MOM, mom);
+  s.vr[row + VR_ORI] = q.w;
+  set3(s.vr, row + VR_ORI + 1, V3<float>{q.x, q.y, q.z});
+  set3(s.vr, row + VR_AMOM, amom);
+  const float Lm = m[MT_L];
+  V3<float> area = {Lm * Lm, Lm * Lm, Lm * Lm}, ssum = {0.0f, 0.0f, 0.0f};
+  if (m[MT_NU] != 0.0f) {
+    area = {Lm * Lm * (1.0f + ps.y) * (1.0f + ps.z), Lm * Lm * (1.0f + ps.x) * (1.0f + ps.z),
+            Lm * Lm * (1.0f + ps.x) * (1.0f + ps.y)};
+    ssum = {ps.y + ps.z, ps.x + ps.z, ps.x + ps.y};
+  }
+  set3(s.vr, row + VR_TAREA, area);
+  set3(s.vr, row + VR_TSUM, ssum);
+  s.vi[v * VI_W + VI_FLAGS] = flags;
+  // the rest size for the next step's links: L·(1 + T·CTE), T = T_base + A·sin(2π(τ/period + φ))
+  const float temp = s.vr[row + VR_TBASE] + rb.temp_amp * (rb.sin * m[MT_COSPHI] + rb.cos * m[MT_SINPHI]);
+  s.vr[row + VR_SIZE] = Lm * (1.0f + temp * m[MT_CTE]);
+  if (rb.events) {
+    if (rb.events & EV_SAMPLE) set3(s.vr, row + VR_PSAMP, pos);
+    if (rb.events & EV_START) {
+      set3(s.vr, row + VR_PSTART, pos);
+      set3(s.vr, row + VR_PCS, get3(s.vr, row + VR_PSAMP));
+    }
+    if (rb.events & EV_END) {
+      set3(s.vr, row + VR_PEND, pos);
+      set3(s.vr, row + VR_PCE, get3(s.vr, row + VR_PSAMP));
+    }
+  }
+  return (bits & 0x7F800000u) == 0x7F800000u;
 }
 
 // ---- 16 links at once ----
@@ -313,6 +489,135 @@ inline vi link_group(const Regions& s, int lk, float prev_dt, float max_strain, 
   return off;
 }
 
+// a 16-lane select's mask, and a scatter of the lanes on it
+inline __mmask16 lanes_on(vi on) { return _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()); }
+inline void scatter(float* base, vi at, vf v, vi on) {
+  _mm512_mask_i32scatter_ps(base, lanes_on(on), (__m512i)at, (__m512)v, 4);
+}
+inline void scatter(int32_t* base, vi at, vi v, vi on) {
+  _mm512_mask_i32scatter_epi32(base, lanes_on(on), (__m512i)at, (__m512i)v, 4);
+}
+inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+template <class F> inline V3<F> gather3(const float* base, vi at) {
+  return {gather(base, at), gather(base, at + 1), gather(base, at + 2)};
+}
+inline void scatter3(float* base, vi at, V3<vf> v, vi on) {
+  scatter(base, at, v.x, on);
+  scatter(base, at + 1, v.y, on);
+  scatter(base, at + 2, v.z, on);
+}
+
+// Voxels v … v+15 of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
+// and sets `diverged`.
+inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) {
+  const int L = s.links;
+  const vf zero = {}, one = zero + 1.0f;
+  vi v;
+  for (int i = 0; i < LANES; ++i) v[i] = v0 + i;
+  const vi row = v * VR_W, irow = v * VI_W;
+  const vi mat = gather(s.vi, irow + VI_MAT), flags = gather(s.vi, irow + VI_FLAGS), m = mat * MT_W;
+  const vf minv = gather(s.mt, m + MT_MINV), iinv = gather(s.mt, m + MT_IINV), dt = zero + rb.dt;
+  V3<vf> pos = gather3<vf>(s.vr, row + VR_POS), mom = gather3<vf>(s.vr, row + VR_MOM),
+         amom = gather3<vf>(s.vr, row + VR_AMOM);
+  Q4<vf> q = {gather(s.vr, row + VR_ORI), gather(s.vr, row + VR_ORI + 1), gather(s.vr, row + VR_ORI + 2),
+              gather(s.vr, row + VR_ORI + 3)};
+  const vf size = gather(s.vr, row + VR_SIZE), nu = gather(s.mt, m + MT_NU);
+  vi off = (flags & FLAG_FIXED) != 0;
+  if (rb.events) off = off | (vi{} - 1);
+  // Poisson strain, and the link loads, through the six slots
+  vf strain[3], add = zero;
+  vi tension[3];
+  V3<vf> force = {zero, zero, zero}, moment = {zero, zero, zero};
+  for (int a = 0; a < 3; ++a) {
+    strain[a] = zero;
+    vi cnt = vi{};
+    for (int side = 0; side < 2; ++side) {
+      const vi lk = gather(s.vi, irow + VI_SLOT + 2 * a + side), has = lk >= 0, at = sel(has, lk, vi{});
+      const vf eps = gather(s.lr + LR_STRAIN * L, at);
+      const vf coef = gather(s.lt, gather(s.li + LI_LMAT * L, at) * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG));
+      strain[a] += sel(has, eps * coef, zero);
+      cnt -= has;
+      const int f = side == 1 ? LR_FP : LR_FN, mm = side == 1 ? LR_MP : LR_MN;
+      force = force + V3<vf>{sel(has, gather(s.lr + f * L, at), zero), sel(has, gather(s.lr + (f + 1) * L, at), zero),
+                             sel(has, gather(s.lr + (f + 2) * L, at), zero)};
+      moment = moment + V3<vf>{sel(has, gather(s.lr + mm * L, at), zero),
+                               sel(has, gather(s.lr + (mm + 1) * L, at), zero),
+                               sel(has, gather(s.lr + (mm + 2) * L, at), zero)};
+    }
+    tension[a] = cnt == 2;
+    strain[a] = sel(tension[a], 0.5f * strain[a], strain[a]);
+    add += sel(tension[a], strain[a], zero);
+  }
+  const vi all_tension = tension[0] & tension[1] & tension[2];
+  off = off | (~all_tension & (fabs_(add) >= POISSON_SERIES_X) & (nu != 0.0f));  // (powf: the branching update)
+  vf c = gather(s.mt, m + MT_PB1 + POISSON_SERIES_TERMS - 1);
+  for (int k = POISSON_SERIES_TERMS - 1; k > 0; --k) c = gather(s.mt, m + MT_PB1 + k - 1) + add * c;
+  const vf val = add * c;
+  V3<vf> ps;
+  ps.x = sel(nu != 0.0f, sel(tension[0], strain[0], val), zero);
+  ps.y = sel(nu != 0.0f, sel(tension[1], strain[1], val), zero);
+  ps.z = sel(nu != 0.0f, sel(tension[2], strain[2], val), zero);
+  // forces, the flat floor, the update
+  const V3<vf> vel = minv * mom;
+  force = rotate(q, force) - gather(s.mt, m + MT_CG) * vel;
+  force.z += gather(s.mt, m + MT_MG);
+  moment = rotate(q, moment) - gather(s.mt, m + MT_CGR) * (iinv * amom);
+  const vi static0 = (flags & FLAG_STATIC) != 0;
+  const vf pen = 0.5f * size - 0.5f * gather(s.mt, m + MT_L) - pos.z;
+  const vi contact = pen >= 0.0f;
+  const vf normal = gather(s.mt, m + MT_KPEN) * pen;
+  force.z += sel(contact, normal - gather(s.mt, m + MT_CC) * vel.z, zero);
+  const vf mus = gather(s.mt, m + MT_MUS) * normal;
+  vi stat = contact & static0 & ~(force.x * force.x + force.y * force.y > mus * mus);
+  const vf vh = vsqrt(vel.x * vel.x + vel.y * vel.y);
+  const vi kinetic = contact & ~static0 & (vh > 0.0f);
+  const vf f = sel(kinetic, gather(s.mt, m + MT_MUK) * normal / sel(kinetic, vh, one), zero);
+  const V3<vf> fric = {-f * vel.x, -f * vel.y, zero};
+  force.x += fric.x;
+  force.y += fric.y;
+  mom = mom + dt * force;
+  V3<vf> delta = (dt * minv) * mom;
+  const vf work = fric.x * delta.x + fric.y * delta.y, hke = 0.5f * (mom.x * mom.x + mom.y * mom.y) * minv;
+  stat = contact & (stat | (hke + work <= 0.0f));
+  mom.x = sel(stat, zero, mom.x);
+  mom.y = sel(stat, zero, mom.y);
+  delta.x = sel(stat, zero, delta.x);
+  delta.y = sel(stat, zero, delta.y);
+  pos = pos + delta;
+  amom = amom + dt * moment;
+  const V3<vf> th = 0.5f * ((dt * iinv) * amom);
+  const vf a2 = th.x * th.x + th.y * th.y + th.z * th.z;
+  off = off | (a2 * a2 >= ROTVEC_SMALL4);  // (cos and sin: the branching update)
+  const vf w = 1.0f - a2 / 2.0f, k = 1.0f - a2 / 6.0f;
+  q = qmul(Q4<vf>{w, th.x * k, th.y * k, th.z * k}, q);
+  const vf n2 = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z;
+  const vf kq = sel(fabs_(n2 - 1.0f) < RENORM_NEWTON, 1.5f - 0.5f * n2, 1.0f / vsqrt(n2));
+  q = {q.w * kq, q.x * kq, q.y * kq, q.z * kq};
+  const vi new_flags = (flags & ~(FLAG_STATIC | FLAG_CONTACT)) | (stat & FLAG_STATIC) | (contact & FLAG_CONTACT);
+  // store the lanes on the path
+  const vi on = ~off;
+  const vf norm1 = fabs_(pos.x) + fabs_(pos.y) + fabs_(pos.z) + fabs_(amom.x) + fabs_(amom.y) + fabs_(amom.z);
+  const vi bad = on & (((vi)norm1 & 0x7F800000) == 0x7F800000);
+  for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
+  scatter3(s.vr, row + VR_POS, pos, on);
+  scatter3(s.vr, row + VR_MOM, mom, on);
+  scatter(s.vr, row + VR_ORI, q.w, on);
+  scatter3(s.vr, row + VR_ORI + 1, V3<vf>{q.x, q.y, q.z}, on);
+  scatter3(s.vr, row + VR_AMOM, amom, on);
+  const vf Lm = gather(s.mt, m + MT_L), L2 = Lm * Lm;
+  const vi poisson = nu != 0.0f;
+  scatter3(s.vr, row + VR_TAREA, V3<vf>{sel(poisson, L2 * (1.0f + ps.y) * (1.0f + ps.z), L2),
+                                        sel(poisson, L2 * (1.0f + ps.x) * (1.0f + ps.z), L2),
+                                        sel(poisson, L2 * (1.0f + ps.x) * (1.0f + ps.y), L2)}, on);
+  scatter3(s.vr, row + VR_TSUM, V3<vf>{sel(poisson, ps.y + ps.z, zero), sel(poisson, ps.x + ps.z, zero),
+                                       sel(poisson, ps.x + ps.y, zero)}, on);
+  scatter(s.vi, irow + VI_FLAGS, new_flags, on);
+  const vf temp = gather(s.vr, row + VR_TBASE) +
+                  rb.temp_amp * (rb.sin * gather(s.mt, m + MT_COSPHI) + rb.cos * gather(s.mt, m + MT_SINPHI));
+  scatter(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
+  return off;
+}
+
 template <typename T>
 void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
   for (int i = 0; i < items; ++i)
@@ -322,11 +627,12 @@ void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
     }
 }
 
-// n_steps of every robot's link phase, robot by robot (the robots schedule's order, one thread); the voxels stand
-// still, as in scripts/profile_sim.py's `links` segment.
-template <bool VECTOR>
-long link_steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
-  long slow = 0;  // links updated by link_update
+// n_steps of every robot, robot by robot (the robots schedule's order, one thread): its link phase, and with
+// VOXELS its voxel phase (no robot phase: the clock and events stand still, as in scripts/profile_sim.py's
+// `links` and `links+voxels` segments).
+template <bool VECTOR, bool VOXELS>
+long steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
+  long slow = 0;  // items updated by the branching updates
   const int32_t* h = ints;
   const int links = h[HDR_N_LINKS];
   std::vector<float> lr(size_t(links) * LR_W);
@@ -337,14 +643,18 @@ long link_steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
                   li.data(), links};
   int32_t* ri = ints + h[HDR_RI_AT];
   const double* rt = f64s + h[HDR_RT_AT];
-  const float max_strain = float(f64s[h[HDR_GP_AT] + GP_MAX_STRAIN]);
-  for (int step = 0; step < n_steps; ++step)
-    for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
-      const int l0 = ri[r * RI_W + RI_LSTART], l1 = ri[r * RI_W + RI_LEND];
-      const float prev_dt = float(rt[r * RT_W + RT_DTPREV]);
-      int diverged = 0, lk = l0;
+  const double* gp = f64s + h[HDR_GP_AT];
+  const float max_strain = float(gp[GP_MAX_STRAIN]);
+  for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
+    const int* robot = ri + r * RI_W;
+    const double* clock = rt + r * RT_W;
+    const float prev_dt = float(clock[RT_DTPREV]);
+    const Robot rb{float(clock[RT_DT]), float(clock[RT_SIN]), float(clock[RT_COS]), float(gp[GP_TEMP_AMP]),
+                   robot[RI_EVENTS]};
+    for (int step = 0; step < n_steps; ++step) {
+      int diverged = 0, lk = robot[RI_LSTART];
       if (VECTOR)
-        for (; lk + LANES <= l1; lk += LANES) {
+        for (; lk + LANES <= robot[RI_LEND]; lk += LANES) {
           const vi off = link_group(s, lk, prev_dt, max_strain, diverged);
           for (int i = 0; i < LANES; ++i)
             if (off[i]) {
@@ -352,9 +662,23 @@ long link_steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
               ++slow;
             }
         }
-      for (; lk < l1; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
+      for (; lk < robot[RI_LEND]; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
+      if (VOXELS) {
+        int v = robot[RI_VSTART];
+        if (VECTOR)
+          for (; v + LANES <= robot[RI_VEND]; v += LANES) {
+            const vi off = voxel_group(s, v, rb, diverged);
+            for (int i = 0; i < LANES; ++i)
+              if (off[i]) {
+                diverged |= voxel_update(s, v + i, rb);
+                ++slow;
+              }
+          }
+        for (; v < robot[RI_VEND]; ++v, ++slow) diverged |= voxel_update(s, v, rb);
+      }
       if (diverged) ri[r * RI_W + RI_STATUS] = STATUS_DIVERGED;
     }
+  }
   transpose(reals + h[HDR_LR_AT], lr.data(), links, LR_W, false);
   transpose(ints + h[HDR_LI_AT], li.data(), links, LI_W, false);
   return slow;
@@ -362,10 +686,16 @@ long link_steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
 
 }  // namespace
 
-// Each returns how many link-steps went through link_update (all of them for the scalar one).
-extern "C" long link_steps_scalar(float* reals, int32_t* ints, double* f64s, int n) {
-  return link_steps<false>(reals, ints, f64s, n);
+// Each returns how many item-steps went through the branching updates (all of them for the scalar ones).
+extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n) {
+  return steps<false, false>(reals, ints, f64s, n);
 }
-extern "C" long link_steps_vector(float* reals, int32_t* ints, double* f64s, int n) {
-  return link_steps<true>(reals, ints, f64s, n);
+extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n) {
+  return steps<true, false>(reals, ints, f64s, n);
+}
+extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, int n) {
+  return steps<false, true>(reals, ints, f64s, n);
+}
+extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n) {
+  return steps<true, true>(reals, ints, f64s, n);
 }
