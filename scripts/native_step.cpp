@@ -631,7 +631,7 @@ void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
 // VOXELS its voxel phase (no robot phase: the clock and events stand still, as in scripts/profile_sim.py's
 // `links` and `links+voxels` segments).
 template <bool VECTOR, bool VOXELS>
-long steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
+long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) {
   long slow = 0;  // items updated by the branching updates
   const int32_t* h = ints;
   const int links = h[HDR_N_LINKS];
@@ -645,6 +645,8 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
   const double* rt = f64s + h[HDR_RT_AT];
   const double* gp = f64s + h[HDR_GP_AT];
   const float max_strain = float(gp[GP_MAX_STRAIN]);
+  // robots are independent: `threads` workers take them in turn (OpenMP; one: the loop as written)
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads) reduction(+ : slow)
   for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
     const int* robot = ri + r * RI_W;
     const double* clock = rt + r * RT_W;
@@ -687,15 +689,15 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps) {
 }  // namespace
 
 // Each returns how many item-steps went through the branching updates (all of them for the scalar ones).
-extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n) {
-  return steps<false, false>(reals, ints, f64s, n);
+extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
+  return steps<false, false>(reals, ints, f64s, n, threads);
 }
-extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n) {
-  return steps<true, false>(reals, ints, f64s, n);
+extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
+  return steps<true, false>(reals, ints, f64s, n, threads);
 }
-extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, int n) {
-  return steps<false, true>(reals, ints, f64s, n);
+extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
+  return steps<false, true>(reals, ints, f64s, n, threads);
 }
-extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n) {
-  return steps<true, true>(reals, ints, f64s, n);
+extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
+  return steps<true, true>(reals, ints, f64s, n, threads);
 }

@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = Path(__file__).with_name("native_step.cpp")
 # -ffast-math as the simulator's production path; -mtune=native lets g++ use the host's gather instructions
-FLAGS = ["-O3", "-march=native", "-mtune=native", "-ffast-math", "-shared", "-fPIC", "-std=c++17"]
+FLAGS = ["-O3", "-march=native", "-mtune=native", "-ffast-math", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
 # per segment (profile_sim's), the C++ entry points: one item at a time, 16 at once
 SEGMENTS = {"links": ("links_scalar", "links_vector"), "links+voxels": ("links_voxels_scalar", "links_voxels_vector")}
 
@@ -94,7 +94,7 @@ def build(tmp: Path) -> dict:
         fns = []
         for symbol in symbols:
             fn = getattr(so, symbol)
-            fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+            fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, ctypes.c_int]
             fn.restype = ctypes.c_long
             fns.append(fn)
         out[segment] = tuple(fns)
@@ -162,7 +162,7 @@ def main() -> None:
 
     def run_native(fn, n: int) -> tuple[dict, int]:
         state = {k: v.copy() for k, v in start.items()}
-        return state, fn(*(state[k].ctypes.data for k in BUFFERS), n)
+        return state, fn(*(state[k].ctypes.data for k in BUFFERS), n, 1)
 
     print(f"{args.bodies} design bodies: {eng.layout.num_voxels} voxels, {eng.layout.num_links} links; f32, fast-math "
           f"{'on' if runtime.fast_math() else 'off'}; {runtime.describe()}; CPU {runtime.cpu_features()}")
@@ -192,7 +192,7 @@ def main() -> None:
                     else:
                         state = {k: v.copy() for k, v in start.items()}
                         c0 = time.process_time()
-                        fn(*(state[k].ctypes.data for k in BUFFERS), args.steps)
+                        fn(*(state[k].ctypes.data for k in BUFFERS), args.steps, 1)
                     times[segment, how] = min(times.get((segment, how), float("inf")), time.process_time() - c0)
     voxel_steps, link_steps = eng.layout.num_voxels * args.steps, eng.layout.num_links * args.steps
     print(f"  ns per voxel-step (link phase also per link-step), one thread, best of {args.repeat}:")
@@ -202,6 +202,18 @@ def main() -> None:
         print(f"    {how:18s} link phase {1e9 * lk / voxel_steps:6.1f} ({1e9 * lk / link_steps:5.1f} per link, "
               f"x{speed['links']:.2f})  voxel phase {1e9 * (both - lk) / voxel_steps:6.1f}  both "
               f"{1e9 * both / voxel_steps:6.1f} (x{speed['links+voxels']:.2f})")
+    # the whole batch on every core: wall-clock M voxel-steps/s of the 16-lane step by 1 and 2 workers (OpenMP over
+    # robots), against what one of Taichi's threads does (x the cores: its robots schedule scales so, docs/physics.md)
+    wall = {}
+    for _ in range(args.repeat):
+        for threads in (1, 2):
+            state = {k: v.copy() for k, v in start.items()}
+            w0 = time.perf_counter()
+            native["links+voxels"][1](*(state[k].ctypes.data for k in BUFFERS), args.steps, threads)
+            wall[threads] = min(wall.get(threads, float("inf")), time.perf_counter() - w0)
+    print("  C++ 16 at once, whole batch, wall clock: " + ", ".join(
+        f"{threads} thread{'s' if threads > 1 else ''} {voxel_steps / t / 1e6:.1f} M voxel-steps/s"
+        for threads, t in wall.items()) + f"; Taichi one thread {voxel_steps / times['links+voxels', 'Taichi'] / 1e6:.1f}")
 
 
 if __name__ == "__main__":
