@@ -30,7 +30,7 @@ SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_phy
 
 test: install
 	$(PYTEST) tests
-	FREEFORM_FAST_MATH=1 $(PYTEST) $(SIM_TESTS)
+	FREEFORM_FAST_MATH=1 $(PYTEST) $(SIM_TESTS) tests/test_native.py
 	FREEFORM_BACKEND=quadrants $(PYTEST) $(SIM_TESTS) tests/test_sim_command.py
 
 train: install

@@ -1,5 +1,5 @@
 """What the CPU simulator's step costs compiled outside Taichi (issue 43, docs/physics.md "The step in C++,
-probed"): ``scripts/native_step.cpp`` — the same link and voxel updates as ``freeform/sim/links.py`` and
+probed"): ``freeform/sim/native_step.cpp`` (the native schedule's step) — the same link and voxel updates as ``freeform/sim/links.py`` and
 ``voxels.py`` on the f32 path (Voxelyze semantics, fixed dt, the flat floor, the sine's actuation), on the engine's
 own packed buffers — built with g++ for this host and run two ways: one item at a time with Voxelyze's branches,
 and 16 items per AVX-512 instruction along the common path (the lanes off it through the branching updates). Each
@@ -20,85 +20,25 @@ scale a difference of successive poses, which magnifies rounding).
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)
 
 import argparse
-import ctypes
 import os
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = Path(__file__).with_name("native_step.cpp")
-# -ffast-math as the simulator's production path; -mtune=native lets g++ use the host's gather instructions
-FLAGS = ["-O3", "-march=native", "-mtune=native", "-ffast-math", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-# per segment (profile_sim's), the C++ entry points: one item at a time, 16 at once
+# per segment (profile_sim's), the C++ entry points (freeform/sim/native_step.cpp): one item at a time, 16 at once
 SEGMENTS = {"links": ("links_scalar", "links_vector"), "links+voxels": ("links_voxels_scalar", "links_voxels_vector")}
 
 
-def layout_header() -> str:
-    """``layout.h``: every column index and width of ``freeform/sim/state.py``'s tables, the header's offsets, the
-    flags and the model's thresholds, as the C++ reads them (one source of the layout: state.py)."""
-    from freeform.sim import config, links, quat, voxels
-    from freeform.sim.state import (
-        CONTACT,
-        DIVERGED,
-        EV_END,
-        EV_SAMPLE,
-        EV_START,
-        FIXED,
-        GP,
-        HDR,
-        LI,
-        LR,
-        LT,
-        MT,
-        RI,
-        RT,
-        SMALL,
-        STATIC,
-        VALID,
-        VI,
-        VR,
-    )
+def build() -> dict:
+    """The native schedule's library (``freeform.sim.native.library``: compiled for this host on first use):
+    {segment: (one at a time, 16 at once) ctypes functions}."""
+    from freeform.sim import native
 
-    lines = ["#pragma once"]
-    for prefix, table in (("VR", VR), ("VI", VI), ("LR", LR), ("LI", LI), ("RT", RT), ("RI", RI), ("MT", MT),
-                          ("LT", LT), ("GP", GP), ("HDR", HDR)):
-        lines.append(f"constexpr int {prefix}_W = {table.width};")
-        lines += [f"constexpr int {prefix}_{col} = {getattr(table, col)};" for col in table.columns]
-    lines += [f"constexpr int FLAG_SMALL = {SMALL}, FLAG_VALID = {VALID}, STATUS_DIVERGED = {DIVERGED};",
-              f"constexpr float SA_BEND = {links.SA_BOND_BEND_RAD}f, SA_EXT = {links.SA_BOND_EXT_PERC}f, "
-              f"HYST = {links.HYSTERESIS_FACTOR}f;",
-              f"constexpr float ATAN_SERIES_X2 = {quat.ATAN_SERIES_X2}f, POSX_SMALL = {quat.POSX_SMALL}f;",
-              f"constexpr double POSX_PI_EPS = {quat.POSX_PI_EPS};",
-              f"constexpr int FLAG_STATIC = {STATIC}, FLAG_FIXED = {FIXED}, FLAG_CONTACT = {CONTACT};",
-              f"constexpr int EV_SAMPLE = {EV_SAMPLE}, EV_START = {EV_START}, EV_END = {EV_END};",
-              f"constexpr float RENORM_NEWTON = {voxels.RENORM_NEWTON}f, POISSON_SERIES_X = {voxels.POISSON_SERIES_X}f, "
-              f"ROTVEC_SMALL4 = {quat.ROTVEC_SMALL4}f;",
-              f"constexpr int POISSON_SERIES_TERMS = {config.POISSON_SERIES_TERMS};"]
-    return "\n".join(lines) + "\n"
-
-
-def build(tmp: Path) -> dict:
-    """``native_step.cpp`` compiled (g++, this host's instruction set): {segment: (scalar, vector) ctypes
-    functions}."""
-    (tmp / "layout.h").write_text(layout_header())
-    lib = tmp / "native_step.so"
-    subprocess.run(["g++", *FLAGS, f"-I{tmp}", "-o", str(lib), str(SOURCE)], check=True)
-    so = ctypes.CDLL(str(lib))
-    out = {}
-    for segment, symbols in SEGMENTS.items():
-        fns = []
-        for symbol in symbols:
-            fn = getattr(so, symbol)
-            fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, ctypes.c_int]
-            fn.restype = ctypes.c_long
-            fns.append(fn)
-        out[segment] = tuple(fns)
-    return out
+    lib = native.library()
+    return {segment: tuple(getattr(lib, symbol) for symbol in symbols) for segment, symbols in SEGMENTS.items()}
 
 
 def compared(native: dict[str, np.ndarray], truth: dict[str, np.ndarray], voxels: bool) -> dict[str, float]:
@@ -166,34 +106,33 @@ def main() -> None:
 
     print(f"{args.bodies} design bodies: {eng.layout.num_voxels} voxels, {eng.layout.num_links} links; f32, fast-math "
           f"{'on' if runtime.fast_math() else 'off'}; {runtime.describe()}; CPU {runtime.cpu_features()}")
-    with tempfile.TemporaryDirectory() as tmp:
-        native = build(Path(tmp))
+    native = build()
+    for segment, fns in native.items():
+        run_taichi(segment, 1)
+        truth = {name: runtime.to_numpy(eng._buffers[name]).copy() for name in BUFFERS}
+        items = eng.layout.num_links + (eng.layout.num_voxels if segment != "links" else 0)
+        for how, fn in zip(("one at a time", "16 at once"), fns, strict=True):
+            state, slow = run_native(fn, 1)
+            worst = compared(state, truth, voxels=segment != "links")
+            print(f"  {segment}, C++ {how}, against Taichi after one step ({slow} of {items} items by the branching "
+                  "updates): " + ", ".join(f"{k} {v:.1e}" if "differ" not in k else f"{k} {int(v)}"
+                                           for k, v in worst.items()))
+    times: dict[tuple[str, str], float] = {}
+    for _ in range(args.repeat):  # (alternated, best of each)
         for segment, fns in native.items():
-            run_taichi(segment, 1)
-            truth = {name: runtime.to_numpy(eng._buffers[name]).copy() for name in BUFFERS}
-            items = eng.layout.num_links + (eng.layout.num_voxels if segment != "links" else 0)
-            for how, fn in zip(("one at a time", "16 at once"), fns, strict=True):
-                state, slow = run_native(fn, 1)
-                worst = compared(state, truth, voxels=segment != "links")
-                print(f"  {segment}, C++ {how}, against Taichi after one step ({slow} of {items} items by the branching "
-                      "updates): " + ", ".join(f"{k} {v:.1e}" if "differ" not in k else f"{k} {int(v)}"
-                                               for k, v in worst.items()))
-        times: dict[tuple[str, str], float] = {}
-        for _ in range(args.repeat):  # (alternated, best of each)
-            for segment, fns in native.items():
-                for how, fn in (("Taichi", None), ("C++ one at a time", fns[0]), ("C++ 16 at once", fns[1])):
-                    if fn is None:
-                        eng.restore(saved)
-                        runtime.sync()
+            for how, fn in (("Taichi", None), ("C++ one at a time", fns[0]), ("C++ 16 at once", fns[1])):
+                if fn is None:
+                    eng.restore(saved)
+                    runtime.sync()
+                c0 = time.process_time()
+                if fn is None:
+                    taichi[segment](*buffers, args.steps)
+                    runtime.sync()
+                else:
+                    state = {k: v.copy() for k, v in start.items()}
                     c0 = time.process_time()
-                    if fn is None:
-                        taichi[segment](*buffers, args.steps)
-                        runtime.sync()
-                    else:
-                        state = {k: v.copy() for k, v in start.items()}
-                        c0 = time.process_time()
-                        fn(*(state[k].ctypes.data for k in BUFFERS), args.steps, 1)
-                    times[segment, how] = min(times.get((segment, how), float("inf")), time.process_time() - c0)
+                    fn(*(state[k].ctypes.data for k in BUFFERS), args.steps, 1)
+                times[segment, how] = min(times.get((segment, how), float("inf")), time.process_time() - c0)
     voxel_steps, link_steps = eng.layout.num_voxels * args.steps, eng.layout.num_links * args.steps
     print(f"  ns per voxel-step (link phase also per link-step), one thread, best of {args.repeat}:")
     for how in ("Taichi", "C++ one at a time", "C++ 16 at once"):

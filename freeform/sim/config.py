@@ -20,6 +20,8 @@ REWARDS = ("max_voxel", "com")
 SEMANTICS = ("voxelyze", "rl4design")
 ACTUATIONS = ("sine", "command", "residual")
 PRECISIONS = ("f32", "f64")
+# how the steps are run (``Engine``): "auto" (the CPU's "robots", CUDA's choice), "robots", "flat", "native"
+SCHEDULES = ("auto", "robots", "flat", "native")
 # the least step cap accepted: a fixed-dt robot needs floor(T/dt) + 1 steps, and the clock's rounding may add one
 MIN_STEP_CAP = 1.5
 
@@ -79,6 +81,10 @@ class SimConfig:
     backend: "taichi" (Taichi 1.7.4) | "quadrants" (its maintained fork, the ``quadrants`` extra) | None (the
         environment's ``FREEFORM_BACKEND``, else taichi). One backend per process: it must be chosen before the
         process's first simulation (``freeform.sim.runtime``). Not physics: both run the same kernels.
+    schedule: how the steps run (``freeform.sim.Engine``): "auto" | "robots" | "flat" | "native" (the CPU's step
+        compiled by the host's C++ compiler, ≈ 2.8× the robots schedule per thread, for the f32 path with Voxelyze
+        semantics, a fixed dt and the flat floor: docs/physics.md, "The native schedule"). Not physics beyond
+        rounding: native agrees with robots as closely as fast-math with the strict path.
     """
 
     voxel_size: float = 0.01
@@ -104,6 +110,7 @@ class SimConfig:
     graph_launches: int = 64
     step_cap: float = 3.0
     backend: str | None = None
+    schedule: str = "auto"
 
     def validate(self, key: str = "SimConfig") -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its allowed values
@@ -129,6 +136,7 @@ class SimConfig:
         # Times the protocol's steps; less could stop healthy robots whose dt dips for a while.
         require(self.step_cap >= MIN_STEP_CAP, f"{key}.step_cap", f">= {MIN_STEP_CAP}", self.step_cap)
         require(self.backend in (None, *BACKENDS), f"{key}.backend", f"None or one of {BACKENDS}", self.backend)
+        require(self.schedule in SCHEDULES, f"{key}.schedule", f"one of {SCHEDULES}", self.schedule)
         self.terrain.validate(f"{key}.terrain")
         if self.terrain.kind == "steps" or (self.terrain.kind == "heightmap" and not self.terrain.smooth):
             # a voxel's contact looks at its own cell and the nearest neighbours only

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from freeform.sim import runtime
+from freeform.sim import native, runtime
 from freeform.sim.access import make_transfers
 from freeform.sim.config import SimConfig, material_table
 from freeform.sim.initial import initial_state, recommended_dt
@@ -145,7 +145,9 @@ class Engine:
     """A batch of robots in Taichi ndarrays. ``advance(n)`` runs n steps of every still-running robot.
 
     schedule: "robots" (one worker per CPU thread taking whole robots from a queue, many steps per launch;
-    the CPU default; arrays in "aos" order) or "flat" (one thread per link/voxel/robot; the CUDA default; "soa").
+    the CPU default; arrays in "aos" order), "flat" (one thread per link/voxel/robot; the CUDA default; "soa") or
+    "native" (the robots schedule's steps compiled by the host's C++ compiler, 16 items per vector instruction:
+    ``native.py``; the f32 production path, Voxelyze semantics, a fixed dt, the flat floor; refused otherwise).
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
     block_dim: the robots schedule's lanes per robot (``schedules.make_kernels``); None = 1 on the CPU, on CUDA
@@ -173,6 +175,12 @@ class Engine:
         self.counts = initial.counts
         self.dt0, self.max_steps = initial.dt0, initial.max_steps
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
+        if self.schedule == "native":  # (refused before anything is built; compiled now, not at the first step)
+            why = native.unsupported(config.precision, self.switches)
+            if why is not None:
+                raise ValueError(f"schedule='native' does not run {why}: use schedule='robots' (docs/physics.md, "
+                                 "\"The native schedule\")")
+            native.library()
         simt = self.arch == "cuda" and self.schedule == "robots"
         if block_dim is None:
             block_dim = block_dim_for(max_links, layout.num_robots) if simt else 1
@@ -278,6 +286,11 @@ class Engine:
         k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
         if self.schedule == "robots":
             k.run_robots(*buffers, n_steps, self._workers)
+        elif self.schedule == "native":  # the C++ step on host copies of the buffers (native.py)
+            host = [runtime.to_numpy(b) for b in buffers]
+            native.advance(*host, n_steps, self._workers, self.switches)
+            for b, h in zip(buffers, host, strict=True):
+                runtime.upload(b, h)
         else:
             left = n_steps
             launches = self.config.graph_launches
@@ -365,6 +378,10 @@ class Engine:
         elif self.schedule == "robots":
             k.control_robots(*(args[name] for name in CONTROL_ARGS[:-1]), n, self._workers)
             self.steps_done += n
+        elif self.schedule == "native":
+            k.command(*(args[name] for name in COMMAND_ARGS))
+            self._advance(n)
+            k.sense(*(args[name] for name in (*BUFFERS, "out")))
         elif self.config.graph_launches and launches * UNROLL >= n and (graph := k.control_graph(launches)) is not None:
             graph.run({**args, "n_steps": UNROLL})  # (every launch UNROLL steps: the last ones idle)
             self.steps_done += launches * UNROLL

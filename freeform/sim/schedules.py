@@ -30,6 +30,7 @@ from types import SimpleNamespace
 
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.clock import make_clock
+from freeform.sim.config import SCHEDULES
 from freeform.sim.links import make_links
 from freeform.sim.quat import make_quat
 from freeform.sim.runtime import ti
@@ -38,9 +39,9 @@ from freeform.sim.state import BUFFERS, HDR, LI, RI, RT, RUNNING, VI, VR, Switch
 from freeform.sim.summaries import make_summaries
 from freeform.sim.voxels import make_voxels
 
-SCHEDULES = ("auto", "robots", "flat")
-# the memory order each schedule reads best (access.py)
-ORDER_OF = {"robots": "aos", "flat": "soa"}
+# the memory order each schedule reads best (access.py); "native" steps the robots schedule's buffers in C++
+# (native.py)
+ORDER_OF = {"robots": "aos", "flat": "soa", "native": "aos"}
 UNROLL = 2  # steps per launch of the flat schedule
 # run_flat's arguments by name, in order: what a compute graph binds (flat_graph; Engine.advance)
 FLAT_ARGS = (*BUFFERS, "n_steps")
@@ -106,6 +107,8 @@ def resolve_schedule(schedule: str, arch: str, max_links: int | None = None) -> 
     if arch not in ("cpu", "cuda"):
         raise ValueError(f"arch must be 'cpu' or 'cuda' here (the arch Taichi runs on), got {arch!r}")
     flag = cuda_robots_flag() if arch == "cuda" else ""
+    if schedule == "native" and arch != "cpu":
+        raise ValueError(f"schedule='native' is the CPU's (a C++ step on host memory), not {arch!r}'s: use 'auto'")
     if schedule != "auto":
         return schedule
     if arch == "cpu":

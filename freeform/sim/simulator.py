@@ -125,14 +125,15 @@ class Simulator:
     """Voxelyze-model simulator of a batch of voxel bodies.
 
     ``arch``: "auto" (CUDA if present, else CPU with a warning) | "cpu" | "cuda"; Taichi is initialised once
-    per process, on the first Simulator run. ``schedule``: "auto" | "robots" | "flat" (see ``Engine``; "robots"
-    is refused on CUDA). Every batch reuses the Simulator's device arrays (``arrays``), grown only when a batch
+    per process, on the first Simulator run. ``schedule``: "auto" | "robots" | "flat" | "native" (see ``Engine``;
+    "native" is refused on CUDA); None: the config's (``SimConfig.schedule``, ``sim.schedule`` in a run). Every batch reuses the Simulator's device arrays (``arrays``), grown only when a batch
     outgrows them; so one Engine of a Simulator is live at a time.
     """
 
-    def __init__(self, config: SimConfig | None = None, arch: str = "auto", schedule: str = "auto"):
+    def __init__(self, config: SimConfig | None = None, arch: str = "auto", schedule: str | None = None):
         self.config = config if config is not None else SimConfig()
         self.config.validate()
+        schedule = self.config.schedule if schedule is None else schedule
         if arch not in runtime.ARCHS:
             raise ValueError(f"arch must be one of {runtime.ARCHS}, got {arch!r}")
         if schedule not in SCHEDULES:

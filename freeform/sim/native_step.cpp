@@ -19,7 +19,9 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#ifdef __AVX512F__
 #include <immintrin.h>
+#endif
 #include <vector>
 
 #include "layout.h"
@@ -212,9 +214,13 @@ inline int link_update(const Regions& s, int lk, float prev_dt, float max_strain
 
 // ---- one voxel, with Voxelyze's branches (voxels.py:voxel_update, flat floor, the sine's actuation) ----
 
-struct Robot {  // what a voxel reads of its robot and the batch
+struct Robot {  // what a voxel reads of its robot and the batch, this step
   float dt, sin, cos, temp_amp;
   int events;
+  int floor;    // Switches.floor: contact with the ground on
+  int command;  // Switches.command: 0 the sine, 1 each voxel's command, 2 the sine plus the command (clipped)
+  int ramping;  // a command ramp in progress (RT.RAMP): the command moves from CMD0 to CMD, `blend` of the way
+  float blend;
 };
 
 inline Q4<float> from_rotation_vector(V3<float> v) {
@@ -281,6 +287,16 @@ inline V3<float> poisson_strain(const Regions& s, int v, int mat) {
 
 inline void set3(float* base, int at, V3<float> v) { base[at] = v.x; base[at + 1] = v.y; base[at + 2] = v.z; }
 
+// What drives a voxel's temperature (voxels.py:temperature): the sine, its command, or the sine corrected by the
+// command and kept in the sine's range; a ramping command moves from the one before (voxels.py's arithmetic)
+template <class F> inline F wave(const Robot& rb, F cmd, F cmd0, F sine) {
+  if (rb.command == 0) return sine;
+  const F command = rb.ramping ? cmd0 + (cmd - cmd0) * rb.blend : cmd;
+  if (rb.command == 1) return command;
+  const F w = sine + command;
+  return w < -1.0f ? F{} - 1.0f : (w > 1.0f ? F{} + 1.0f : w);
+}
+
 // Voxel v's update (spec sections 6-9); returns 1 if its pose became non-finite.
 inline int voxel_update(const Regions& s, int v, const Robot& rb) {
   const int row = v * VR_W, L = s.links;
@@ -314,7 +330,9 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
     // the flat floor (voxels.py:flat_floor_step, floor_force)
     const float pen = 0.5f * size - 0.5f * m[MT_L] - pos.z;
     V3<float> fric = {0.0f, 0.0f, 0.0f};
-    if (pen >= 0.0f) {
+    if (!rb.floor) {
+      // (no ground: no contact force, and static is cleared below)
+    } else if (pen >= 0.0f) {
       const float normal = m[MT_KPEN] * pen;
       force.z += normal - m[MT_CC] * vel.z;
       if (stat) {
@@ -333,7 +351,7 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
     }
     mom = mom + dt * force;
     V3<float> delta = (dt * minv) * mom;
-    const bool touching = pen >= 0.0f;
+    const bool touching = rb.floor && pen >= 0.0f;
     if (touching) {
       const float work = fric.x * delta.x + fric.y * delta.y;
       const float hke = 0.5f * (mom.x * mom.x + mom.y * mom.y) * minv;
@@ -367,7 +385,8 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
   set3(s.vr, row + VR_TSUM, ssum);
   s.vi[v * VI_W + VI_FLAGS] = flags;
   // the rest size for the next step's links: L·(1 + T·CTE), T = T_base + A·sin(2π(τ/period + φ))
-  const float temp = s.vr[row + VR_TBASE] + rb.temp_amp * (rb.sin * m[MT_COSPHI] + rb.cos * m[MT_SINPHI]);
+  const float temp = s.vr[row + VR_TBASE] + rb.temp_amp * wave(rb, s.vr[row + VR_CMD], s.vr[row + VR_CMD0],
+                                                              rb.sin * m[MT_COSPHI] + rb.cos * m[MT_SINPHI]);
   s.vr[row + VR_SIZE] = Lm * (1.0f + temp * m[MT_CTE]);
   if (rb.events) {
     if (rb.events & EV_SAMPLE) set3(s.vr, row + VR_PSAMP, pos);
@@ -489,15 +508,33 @@ inline vi link_group(const Regions& s, int lk, float prev_dt, float max_strain, 
   return off;
 }
 
-// a 16-lane select's mask, and a scatter of the lanes on it
-inline __mmask16 lanes_on(vi on) { return _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()); }
+// a scatter of the lanes on `on`, and a square root (the host's AVX-512 instructions where it has them)
 inline void scatter(float* base, vi at, vf v, vi on) {
-  _mm512_mask_i32scatter_ps(base, lanes_on(on), (__m512i)at, (__m512)v, 4);
+#ifdef __AVX512F__
+  _mm512_mask_i32scatter_ps(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at, (__m512)v, 4);
+#else
+  for (int i = 0; i < LANES; ++i)
+    if (on[i]) base[at[i]] = v[i];
+#endif
 }
 inline void scatter(int32_t* base, vi at, vi v, vi on) {
-  _mm512_mask_i32scatter_epi32(base, lanes_on(on), (__m512i)at, (__m512i)v, 4);
+#ifdef __AVX512F__
+  _mm512_mask_i32scatter_epi32(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at,
+                               (__m512i)v, 4);
+#else
+  for (int i = 0; i < LANES; ++i)
+    if (on[i]) base[at[i]] = v[i];
+#endif
 }
-inline vf vsqrt(vf x) { return (vf)_mm512_sqrt_ps((__m512)x); }
+inline vf vsqrt(vf x) {
+#ifdef __AVX512F__
+  return (vf)_mm512_sqrt_ps((__m512)x);
+#else
+  vf r;
+  for (int i = 0; i < LANES; ++i) r[i] = std::sqrt(x[i]);
+  return r;
+#endif
+}
 template <class F> inline V3<F> gather3(const float* base, vi at) {
   return {gather(base, at), gather(base, at + 1), gather(base, at + 2)};
 }
@@ -564,7 +601,7 @@ inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) 
   moment = rotate(q, moment) - gather(s.mt, m + MT_CGR) * (iinv * amom);
   const vi static0 = (flags & FLAG_STATIC) != 0;
   const vf pen = 0.5f * size - 0.5f * gather(s.mt, m + MT_L) - pos.z;
-  const vi contact = pen >= 0.0f;
+  const vi contact = (pen >= 0.0f) & (vi{} - rb.floor);
   const vf normal = gather(s.mt, m + MT_KPEN) * pen;
   force.z += sel(contact, normal - gather(s.mt, m + MT_CC) * vel.z, zero);
   const vf mus = gather(s.mt, m + MT_MUS) * normal;
@@ -613,7 +650,8 @@ inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) 
                                        sel(poisson, ps.x + ps.y, zero)}, on);
   scatter(s.vi, irow + VI_FLAGS, new_flags, on);
   const vf temp = gather(s.vr, row + VR_TBASE) +
-                  rb.temp_amp * (rb.sin * gather(s.mt, m + MT_COSPHI) + rb.cos * gather(s.mt, m + MT_SINPHI));
+                  rb.temp_amp * wave(rb, gather(s.vr, row + VR_CMD), gather(s.vr, row + VR_CMD0),
+                                     rb.sin * gather(s.mt, m + MT_COSPHI) + rb.cos * gather(s.mt, m + MT_SINPHI));
   scatter(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
   return off;
 }
@@ -652,7 +690,7 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
     const double* clock = rt + r * RT_W;
     const float prev_dt = float(clock[RT_DTPREV]);
     const Robot rb{float(clock[RT_DT]), float(clock[RT_SIN]), float(clock[RT_COS]), float(gp[GP_TEMP_AMP]),
-                   robot[RI_EVENTS]};
+                   robot[RI_EVENTS], 1, 0, 0, 1.0f};
     for (int step = 0; step < n_steps; ++step) {
       int diverged = 0, lk = robot[RI_LSTART];
       if (VECTOR)
@@ -686,9 +724,166 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
   return slow;
 }
 
+// ---- the robot phase (clock.py:robot_advance with a fixed dt; schedules.py:trace_sample) ----
+
+struct Batch {  // the buffers' regions as the robot phase reads them
+  const int32_t* h;
+  int32_t* ri;
+  double *rt, *tr;
+  const double* gp;
+  int floor, command;
+};
+
+// What robot r's voxels read of it this step (voxels.py:temperature's ramp, in its f64 clock arithmetic).
+inline Robot robot_now(const Batch& b, int r) {
+  const double* rt = b.rt + r * RT_W;
+  Robot rb{float(rt[RT_DT]), float(rt[RT_SIN]), float(rt[RT_COS]), float(b.gp[GP_TEMP_AMP]), b.ri[r * RI_W + RI_EVENTS],
+           b.floor, b.command, 0, 1.0f};
+  if (b.command != 0 && rt[RT_RAMP] > 0.0 && rt[RT_UNTIL] < NO_LIMIT) {
+    const double frac = 1.0 - (rt[RT_UNTIL] - (rt[RT_T] + rt[RT_DT])) / rt[RT_RAMP];  // (t + dt: Voxelyze's time)
+    if (frac < 1.0) {
+      rb.ramping = 1;
+      rb.blend = float(frac > 0.0 ? frac : 0.0);
+    }
+  }
+  return rb;
+}
+
+// The trace's frame f of robot r (summaries.py:summarise_robot), its sums in f64 in the voxels' order.
+inline void summarise_robot(const Regions& s, const Batch& b, int r, int f) {
+  const int v0 = b.ri[r * RI_W + RI_VSTART], v1 = b.ri[r * RI_W + RI_VEND];
+  double mx[3] = {0.0, 0.0, 0.0}, lo[3], hi[3], q[4] = {0.0, 0.0, 0.0, 0.0}, m = 0.0;
+  int contacts = 0;
+  for (int k = 0; k < 3; ++k) lo[k] = hi[k] = double(s.vr[v0 * VR_W + VR_POS + k]);
+  for (int v = v0; v < v1; ++v) {
+    const double mass = double(s.mt[s.vi[v * VI_W + VI_MAT] * MT_W + MT_MASS]);
+    for (int k = 0; k < 3; ++k) {
+      const double p = double(s.vr[v * VR_W + VR_POS + k]);
+      mx[k] += mass * p;
+      lo[k] = p < lo[k] ? p : lo[k];
+      hi[k] = p > hi[k] ? p : hi[k];
+    }
+    m += mass;
+    if (s.vi[v * VI_W + VI_FLAGS] & FLAG_CONTACT) ++contacts;
+    const double sign = s.vr[v * VR_W + VR_ORI] < 0.0f ? -1.0 : 1.0;
+    for (int k = 0; k < 4; ++k) q[k] += sign * double(s.vr[v * VR_W + VR_ORI + k]);
+  }
+  const int stride = b.h[HDR_TR_STRIDE];
+  auto put = [&](int c, double x) { b.tr[(f * SUMMARY_W + c) * stride + r] = x; };
+  put(SUMMARY_T, b.rt[r * RT_W + RT_T]);
+  put(SUMMARY_STATUS, double(b.ri[r * RI_W + RI_STATUS]));
+  put(SUMMARY_M, m);
+  put(SUMMARY_CONTACTS, double(contacts));
+  for (int k = 0; k < 3; ++k) {
+    put(SUMMARY_MX + k, mx[k]);
+    put(SUMMARY_LO + k, lo[k]);
+    put(SUMMARY_HI + k, hi[k]);
+  }
+  for (int k = 0; k < 4; ++k) put(SUMMARY_Q + k, q[k]);
+}
+
+// The end of robot r's step: its clock, status, the next step's actuation phase and snapshots, the trace.
+inline void robot_advance(const Regions& s, const Batch& b, int r) {
+  double* rt = b.rt + r * RT_W;
+  int32_t* ri = b.ri + r * RI_W;
+  rt[RT_DTPREV] = rt[RT_DT];
+  rt[RT_T] = rt[RT_T] + rt[RT_DT];
+  const int step = ri[RI_STEP] + 1;
+  ri[RI_STEP] = step;
+  if (rt[RT_T] > b.gp[GP_T_END] && ri[RI_STATUS] == STATUS_RUNNING) ri[RI_STATUS] = STATUS_DONE;
+  if (step >= ri[RI_MAXSTEP] && ri[RI_STATUS] == STATUS_RUNNING) ri[RI_STATUS] = STATUS_STALLED;
+  const double a = TWO_PI * (rt[RT_T] + rt[RT_DT]) / b.gp[GP_TEMP_PERIOD];
+  rt[RT_SIN] = std::sin(a);
+  rt[RT_COS] = std::cos(a);
+  const double t_before = rt[RT_T], t_after = t_before + rt[RT_DT];
+  int events = 0;
+  if ((step + 1) % ri[RI_PERIOD] == 0) events |= EV_SAMPLE;
+  if (t_before <= b.gp[GP_BURN_IN] && t_after > b.gp[GP_BURN_IN]) events |= EV_START;
+  if (t_before <= b.gp[GP_T_END] && t_after > b.gp[GP_T_END]) events |= EV_END;
+  ri[RI_EVENTS] = events;
+  const int every = b.h[HDR_TRACE_STEPS];
+  if (every > 0 && step % every == 0 && step / every < b.h[HDR_TRACE_FRAMES]) summarise_robot(s, b, r, step / every);
+}
+
+// The link tables column by column for the advance, and back.
+struct Columns {
+  std::vector<float> lr;
+  std::vector<int32_t> li;
+  float* lr_rows;
+  int32_t* li_rows;
+  int links;
+  Columns(float* reals, int32_t* ints) : links(ints[HDR_N_LINKS]) {
+    lr.resize(size_t(links) * LR_W);
+    li.resize(size_t(links) * LI_W);
+    lr_rows = reals + ints[HDR_LR_AT];
+    li_rows = ints + ints[HDR_LI_AT];
+    transpose(lr_rows, lr.data(), links, LR_W, true);
+    transpose(li_rows, li.data(), links, LI_W, true);
+  }
+  ~Columns() {
+    transpose(lr_rows, lr.data(), links, LR_W, false);
+    transpose(li_rows, li.data(), links, LI_W, false);
+  }
+};
+
 }  // namespace
 
-// Each returns how many item-steps went through the branching updates (all of them for the scalar ones).
+// Engine.advance on the native schedule: n_steps steps of every robot still stepping (running, its clock before its
+// limit RT.UNTIL), each robot's links, then voxels, then its clock (schedules.py:robot_steps with one lane), the
+// robots shared among `threads` OpenMP workers. floor, command: Switches.floor, Switches.command. Returns how many
+// item-steps went through the branching updates.
+extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
+  const int32_t* h = ints;
+  Columns cols(reals, ints);
+  const Regions s{reals + h[HDR_VR_AT], cols.lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
+                  cols.li.data(), cols.links};
+  const Batch b{h, ints + h[HDR_RI_AT], f64s + h[HDR_RT_AT], f64s + h[HDR_TR_AT], f64s + h[HDR_GP_AT], floor, command};
+  const float max_strain = float(b.gp[GP_MAX_STRAIN]);
+  long slow = 0;
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads) reduction(+ : slow)
+  for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
+    int32_t* robot = b.ri + r * RI_W;
+    const double* clock = b.rt + r * RT_W;
+    for (int step = 0; step < n_steps; ++step) {
+      if (!(robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL])) break;
+      const float prev_dt = float(clock[RT_DTPREV]);
+      int diverged = 0, lk = robot[RI_LSTART];
+      for (; lk + LANES <= robot[RI_LEND]; lk += LANES) {
+        const vi off = link_group(s, lk, prev_dt, max_strain, diverged);
+        for (int i = 0; i < LANES; ++i)
+          if (off[i]) {
+            diverged |= link_update(s, lk + i, prev_dt, max_strain);
+            ++slow;
+          }
+      }
+      for (; lk < robot[RI_LEND]; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
+      if (diverged) {  // (a diverged link aborts the step, as in VX)
+        robot[RI_STATUS] = STATUS_DIVERGED;
+        break;
+      }
+      const Robot rb = robot_now(b, r);
+      int v = robot[RI_VSTART];
+      for (; v + LANES <= robot[RI_VEND]; v += LANES) {
+        const vi off = voxel_group(s, v, rb, diverged);
+        for (int i = 0; i < LANES; ++i)
+          if (off[i]) {
+            diverged |= voxel_update(s, v + i, rb);
+            ++slow;
+          }
+      }
+      for (; v < robot[RI_VEND]; ++v, ++slow) diverged |= voxel_update(s, v, rb);
+      if (diverged) {
+        robot[RI_STATUS] = STATUS_DIVERGED;
+        break;
+      }
+      robot_advance(s, b, r);
+    }
+  }
+  return slow;
+}
+
+// For scripts/probe_native_step.py: steps of the link phase alone, or of the link and voxel phases without the robot
+// phase (the clock stands still), as scripts/profile_sim.py's segments; each returns how many item-steps went through the branching updates (all of them for the scalar ones).
 extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
   return steps<false, false>(reals, ints, f64s, n, threads);
 }

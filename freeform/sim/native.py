@@ -1,0 +1,144 @@
+"""The CPU step compiled by the host's C++ compiler: the ``native`` schedule (docs/physics.md, "The native schedule").
+
+Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD across links, probed"); the same
+link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: 16 links or voxels per
+AVX-512 instruction along the common path, Voxelyze's branches for the rest) run ≈ 2.8× as fast per thread. The
+engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses, snapshots); only the
+stepping runs here, on a host copy of the three buffers (``Engine._advance``).
+
+What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
+actuation (the sine, commands, residual commands with their ramps), traces. Anything else is refused by
+``unsupported``, naming the setting; ``schedule="robots"`` runs it.
+
+The library is compiled on first use (g++, or ``$CXX``; ``-march=native``) into ``$FREEFORM_NATIVE_CACHE``
+(default ``~/.cache/freeform/native``), one file per source, layout, flags, compiler and CPU, so a later process
+loads it at once.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SOURCE = Path(__file__).with_name("native_step.cpp")
+# -ffast-math: the simulator's production path (the strict path stays Taichi's); -mtune=native lets g++ use the
+# host's gather instructions; OpenMP shares the robots among the threads
+FLAGS = ("-O3", "-march=native", "-mtune=native", "-ffast-math", "-fopenmp", "-shared", "-fPIC", "-std=c++17")
+CACHE_ENV_VAR = "FREEFORM_NATIVE_CACHE"
+COMPILER_ENV_VAR = "CXX"
+ENTRY_POINTS = ("advance", "links_scalar", "links_vector", "links_voxels_scalar", "links_voxels_vector")
+
+
+def unsupported(precision: str, switches: Any) -> str | None:
+    """Why the native step cannot run a batch of this ``precision`` and these ``state.Switches`` (None: it can)."""
+    from freeform.sim import runtime
+    from freeform.sim.terrain import FLAT
+
+    if precision != "f32":
+        return f"precision={precision!r} (the native step is the f32 path's)"
+    if not runtime.fast_math():
+        return "FREEFORM_FAST_MATH=0 (the strict path's bits are Taichi's)"
+    if switches.rl4design:  # (its slips, and its dynamic dt)
+        return "semantics='rl4design'"
+    if switches.terrain != FLAT:
+        return "a terrain (sim.terrain)"
+    return None
+
+
+def compiler() -> str | None:
+    """The C++ compiler's path ($CXX, else g++), None where there is none."""
+    return shutil.which(os.environ.get(COMPILER_ENV_VAR, "g++"))
+
+
+def layout_header() -> str:
+    """``layout.h``: every column index and width of ``state.py``'s tables, the header's offsets, the flags, the
+    statuses and the model's thresholds, as the C++ reads them (one source of the layout: state.py)."""
+    from freeform.sim import clock, config, links, quat, voxels
+    from freeform.sim import state as S
+
+    lines = ["#pragma once"]
+    for prefix, table in (("VR", S.VR), ("VI", S.VI), ("LR", S.LR), ("LI", S.LI), ("RT", S.RT), ("RI", S.RI),
+                          ("MT", S.MT), ("LT", S.LT), ("GP", S.GP), ("HDR", S.HDR), ("SUMMARY", S.SUMMARY)):
+        lines.append(f"constexpr int {prefix}_W = {table.width};")
+        lines += [f"constexpr int {prefix}_{col} = {getattr(table, col)};" for col in table.columns]
+    lines += [f"constexpr int FLAG_SMALL = {S.SMALL}, FLAG_VALID = {S.VALID};",
+              f"constexpr int FLAG_STATIC = {S.STATIC}, FLAG_FIXED = {S.FIXED}, FLAG_CONTACT = {S.CONTACT};",
+              f"constexpr int STATUS_RUNNING = {S.RUNNING}, STATUS_DONE = {S.DONE}, STATUS_DIVERGED = {S.DIVERGED}, "
+              f"STATUS_STALLED = {S.STALLED};",
+              f"constexpr int EV_SAMPLE = {S.EV_SAMPLE}, EV_START = {S.EV_START}, EV_END = {S.EV_END};",
+              f"constexpr double NO_LIMIT = {S.NO_LIMIT!r}, TWO_PI = {clock.TWO_PI!r};",
+              f"constexpr float SA_BEND = {links.SA_BOND_BEND_RAD}f, SA_EXT = {links.SA_BOND_EXT_PERC}f, "
+              f"HYST = {links.HYSTERESIS_FACTOR}f;",
+              f"constexpr float ATAN_SERIES_X2 = {quat.ATAN_SERIES_X2}f, POSX_SMALL = {quat.POSX_SMALL}f, "
+              f"ROTVEC_SMALL4 = {quat.ROTVEC_SMALL4}f;",
+              f"constexpr double POSX_PI_EPS = {quat.POSX_PI_EPS};",
+              f"constexpr float RENORM_NEWTON = {voxels.RENORM_NEWTON}f, POISSON_SERIES_X = {voxels.POISSON_SERIES_X}f;",
+              f"constexpr int POISSON_SERIES_TERMS = {config.POISSON_SERIES_TERMS};"]
+    return "\n".join(lines) + "\n"
+
+
+@functools.cache
+def library() -> ctypes.CDLL:
+    """The compiled step, loaded (compiled first where the cache has no build of this source, layout, flags,
+    compiler and CPU). Raises RuntimeError naming what is missing or what the compiler said."""
+    from freeform.sim import runtime
+
+    cxx = compiler()
+    if cxx is None:
+        raise RuntimeError(f"schedule='native' needs a C++ compiler: no {os.environ.get(COMPILER_ENV_VAR, 'g++')} on "
+                           "PATH (set $CXX, or use schedule='robots')")
+    header, source = layout_header(), SOURCE.read_text()
+    version = subprocess.run([cxx, "--version"], capture_output=True, text=True).stdout
+    key = hashlib.sha256("\0".join((source, header, " ".join(FLAGS), version, platform.machine(),
+                                    runtime.cpu_features())).encode()).hexdigest()[:16]
+    cache = Path(os.environ.get(CACHE_ENV_VAR) or Path.home() / ".cache" / "freeform" / "native")
+    lib = cache / f"native_step_{key}.so"
+    if not lib.is_file():
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:
+            (Path(tmp) / "layout.h").write_text(header)
+            built = Path(tmp) / "native_step.so"
+            done = subprocess.run([cxx, *FLAGS, f"-I{tmp}", "-o", str(built), str(SOURCE)], capture_output=True,
+                                  text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"schedule='native': {cxx} could not compile {SOURCE.name}:\n{done.stderr[-3000:]}")
+            os.replace(built, lib)  # (atomic: processes building at once each put a whole file)
+    so = ctypes.CDLL(str(lib))
+    pointers = [ctypes.c_void_p] * 3
+    so.advance.argtypes = [*pointers, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int]
+    so.advance.restype = ctypes.c_long
+    for name in ENTRY_POINTS[1:]:
+        getattr(so, name).argtypes = [*pointers, ctypes.c_int, ctypes.c_int]
+        getattr(so, name).restype = ctypes.c_long
+    return so
+
+
+def available() -> bool:
+    """Whether the native step can be compiled and loaded here."""
+    try:
+        library()
+    except (RuntimeError, OSError):
+        return False
+    return True
+
+
+def advance(reals: np.ndarray, ints: np.ndarray, f64s: np.ndarray, n_steps: int, threads: int, switches: Any) -> int:
+    """``n_steps`` steps of every robot still stepping, in place on host copies of the engine's three buffers
+    (``state.BUFFERS``: f32, i32, f64, C-contiguous), the robots shared among ``threads`` workers. Returns the
+    item-steps that left the vector path (the branching updates': a measure of its coverage)."""
+    for name, a, dtype in (("reals", reals, np.float32), ("ints", ints, np.int32), ("f64s", f64s, np.float64)):
+        if a.dtype != dtype or not a.flags.c_contiguous:
+            raise ValueError(f"native.advance: {name} must be a C-contiguous {np.dtype(dtype).name} array, got "
+                             f"{a.dtype} (contiguous: {a.flags.c_contiguous})")
+    return int(library().advance(reals.ctypes.data, ints.ctypes.data, f64s.ctypes.data, int(n_steps), int(threads),
+                                 int(switches.floor), int(switches.command)))
