@@ -20,7 +20,10 @@ so that both see the same machine load; the load average is printed with each ro
 is installed), ``FREEFORM_BENCH_SCALE=0.2`` shortens every run (a quick look; launch overheads then weigh more),
 ``FREEFORM_BENCH_TREES=before=/tmp/ff-before,after=.`` runs every row on each named checkout of freeform too (a
 worker per checkout and backend, alternated like the backends: a before/after comparison in one run; make the
-"before" checkout with ``git archive REF | tar -x -C DIR``).
+"before" checkout with ``git archive REF | tar -x -C DIR``). The native schedule (``sim.schedule=native``: the
+step compiled by the host's C++ compiler, ``freeform/sim/native.py``) gets a column beside the robots schedule where
+a compiler is found (on the first backend); ``FREEFORM_BENCH_SCHEDULES=robots,native`` runs every backend on each
+(rows it does not run, f64 and terrains, print nan).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from pathlib import Path
 import torch
 
 from freeform.evolve import untrained_design_bodies
-from freeform.sim import SimConfig, Simulator, Terrain
+from freeform.sim import SimConfig, Simulator, Terrain, native
 
 RHO, K, T_ACTIONS, BUNDLE = 20, 4, 100, 2  # the paper's locomotion design setting (design.md)
 DT = 1.1785e-4  # the recommended step of the paper's materials × 0.95 (every robot with links gets this)
@@ -123,6 +126,7 @@ def worker() -> None:
     from freeform.sim import runtime
 
     bodies = random_design_bodies(512, seed=0)
+    schedule = os.environ.get("FREEFORM_BENCH_SCHEDULE", "auto")
     sims: dict[tuple[str, str], Simulator] = {}
     real_stdout = sys.stdout
     sys.stdout = sys.stderr  # the backends' banners and anything else printed stay off the answer channel
@@ -135,10 +139,18 @@ def worker() -> None:
             continue
         key = (req["p"], req.get("terrain", "flat"))
         if key not in sims:
-            sims[key] = Simulator(SimConfig(precision=req["p"], terrain=TERRAINS[key[1]]), arch="auto")
-            throughput(sims[key], bodies[:2])  # compile (or load from the offline cache) outside the timings
-            engine_throughput(sims[key], bodies[:2], 20)
+            sims[key] = Simulator(SimConfig(precision=req["p"], terrain=TERRAINS[key[1]], schedule=schedule),
+                                  arch="auto")
+            try:
+                throughput(sims[key], bodies[:2])  # compile (or load from the offline cache) outside the timings
+                engine_throughput(sims[key], bodies[:2], 20)
+            except ValueError:  # (what this schedule does not run: native's f64 and terrains)
+                sims[key] = None
         sim = sims[key]
+        if sim is None:
+            print(json.dumps({"wall": float("nan"), "cpu": float("nan"), "voxels": 0, "steps": 0}), file=real_stdout,
+                  flush=True)
+            continue
         grids = bodies[:req["bodies"]] if "bodies" in req else cubes(*req["cubes"])
         if req["kind"] == "simulate":
             rate, crate, nv, st = throughput(sim, grids)
@@ -151,12 +163,13 @@ def worker() -> None:
 
 
 class Worker:
-    """A worker subprocess on one backend, running the freeform of checkout ``tree`` (default: this one)."""
+    """A worker subprocess on one backend and schedule, running the freeform of checkout ``tree`` (default: this
+    one)."""
 
-    def __init__(self, backend: str, tree: str | None = None):
+    def __init__(self, backend: str, tree: str | None = None, schedule: str = "auto"):
         root = Path(tree).resolve() if tree else Path(__file__).resolve().parents[1]
         path = os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)
-        env = {**os.environ, "FREEFORM_BACKEND": backend, "PYTHONPATH": path}
+        env = {**os.environ, "FREEFORM_BACKEND": backend, "PYTHONPATH": path, "FREEFORM_BENCH_SCHEDULE": schedule}
         self.proc = subprocess.Popen([sys.executable, "-m", "benchmarks.bench_sim", "--worker"], env=env, text=True,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
                                      cwd=root)
@@ -180,9 +193,14 @@ def main() -> None:
     default = "taichi,quadrants" if importlib.util.find_spec("quadrants") is not None else "taichi"
     names = os.environ.get("FREEFORM_BENCH_BACKENDS", default).split(",")
     trees = [t.split("=", 1) for t in os.environ.get("FREEFORM_BENCH_TREES", "").split(",") if t]
-    # a column per backend, or per (checkout, backend) with FREEFORM_BENCH_TREES
-    columns = {f"{b}@{label}": (b, tree) for label, tree in trees for b in names} if trees else \
-        {b: (b, None) for b in names}
+    # a column per backend, or per (checkout, backend) with FREEFORM_BENCH_TREES; and per schedule
+    columns = {f"{b}@{label}": (b, tree, "auto") for label, tree in trees for b in names} if trees else \
+        {b: (b, None, "auto") for b in names}
+    if "FREEFORM_BENCH_SCHEDULES" in os.environ:
+        columns = {f"{c}/{s}": (b, tree, s) for c, (b, tree, _) in columns.items()
+                   for s in os.environ["FREEFORM_BENCH_SCHEDULES"].split(",")}
+    elif native.compiler() is not None and not trees:
+        columns[f"{names[0]}/native"] = (names[0], None, "native")
     backends = list(columns)
     workers = {c: Worker(*columns[c]) for c in backends}
     try:
