@@ -428,12 +428,42 @@ inline vi load(const int32_t* p) { vi r; std::memcpy(&r, p, sizeof r); return r;
 inline void store(float* p, vf v) { std::memcpy(p, &v, sizeof v); }
 inline void store(int32_t* p, vi v) { std::memcpy(p, &v, sizeof v); }
 
-// Links lk … lk+15 along the common path; returns the lanes off it (a large-angle link, a regime switch into the
-// large angle, an end rotation beyond atan's series), whose state it leaves as it was, and sets `diverged`.
-inline vi link_group(const Regions& s, int lk, float prev_dt, float max_strain, int& diverged) {
+// The lanes 0 … count−1 of a group (a robot's last group may be short).
+inline vi first_lanes(int count) {
+  vi lane;
+  for (int i = 0; i < LANES; ++i) lane[i] = i;
+  return lane < count;
+}
+// a lane's int where it is active, else lane 0's (so that every index a short group gathers with is a valid one)
+inline vi or_first(vi active, vi x) { return sel(active, x, vi{} + x[0]); }
+// the lanes `on` of v into p … p+15 (a masked store: the lanes beyond a short group belong to the next robot, which
+// another thread may be writing)
+inline void store_on(float* p, vf v, vi on) {
+#ifdef __AVX512F__
+  _mm512_mask_storeu_ps(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512)v);
+#else
+  for (int i = 0; i < LANES; ++i)
+    if (on[i]) p[i] = v[i];
+#endif
+}
+inline void store_on(int32_t* p, vi v, vi on) {
+#ifdef __AVX512F__
+  _mm512_mask_storeu_epi32(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)v);
+#else
+  for (int i = 0; i < LANES; ++i)
+    if (on[i]) p[i] = v[i];
+#endif
+}
+
+// Links lk … lk+count−1 (count ≤ 16) along the common path; returns the lanes off it (a large-angle link, a regime
+// switch into the large angle, an end rotation beyond atan's series), whose state it leaves as it was, and sets
+// `diverged`.
+inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float max_strain, int& diverged) {
   const int L = s.links;
-  const vi n = load(s.li + lk + LI_NEG * L), p = load(s.li + lk + LI_POS * L), axis = load(s.li + lk + LI_AXIS * L);
-  const vi flags = load(s.li + lk + LI_FLAGS * L), vn = n * VR_W, vp = p * VR_W, lt = load(s.li + lk + LI_LMAT * L) * LT_W;
+  const vi active = first_lanes(count);
+  const vi n = or_first(active, load(s.li + lk + LI_NEG * L)), p = or_first(active, load(s.li + lk + LI_POS * L));
+  const vi axis = or_first(active, load(s.li + lk + LI_AXIS * L)), flags = load(s.li + lk + LI_FLAGS * L);
+  const vi vn = n * VR_W, vp = p * VR_W, lt = or_first(active, load(s.li + lk + LI_LMAT * L)) * LT_W;
   const vi ay = axis == 1, az = axis == 2;
   const vi small0 = (flags & FLAG_SMALL) != 0, valid0 = (flags & FLAG_VALID) != 0;
   const vf L0 = 0.5f * (gather(s.vr, vn + VR_SIZE) + gather(s.vr, vp + VR_SIZE));
@@ -454,7 +484,7 @@ inline vi link_group(const Regions& s, int lk, float prev_dt, float max_strain, 
   const vi leave = small0 & ((small_turn > HYST * SA_BEND) | (extend > HYST * SA_EXT));
   const vi enter = ~small0 & (small_turn < SA_BEND) & (extend < SA_EXT);
   const vi small = enter | (small0 & ~leave), valid = valid0 & ~enter & ~leave;
-  const vi off = ~(small & series_applies(q2));
+  const vi off = ~(small & series_applies(q2)) & active, on = ~off & active;
   // the small angle: p.x −= L0, the offsets act as shear, q1 the identity (a1v = 0)
   pos2.x = pos2.x - L0;
   const V3<vf> a2v = rotation_vector_series(q2);
@@ -498,12 +528,12 @@ inline vi link_group(const Regions& s, int lk, float prev_dt, float max_strain, 
   for (int j = 0; j < 7; ++j)
     for (int k = 0; k < 3; ++k) {
       float* at = s.lr + lk + (col[j] + k) * L;
-      store(at, sel(off, load(at), k == 0 ? out[j].x : (k == 1 ? out[j].y : out[j].z)));
+      store_on(at, k == 0 ? out[j].x : (k == 1 ? out[j].y : out[j].z), on);
     }
-  store(s.lr + lk + LR_STRAIN * L, sel(off, load(s.lr + lk + LR_STRAIN * L), strain));
-  store(s.li + lk + LI_FLAGS * L, sel(off, flags, vi{} + (FLAG_SMALL | FLAG_VALID)));
+  store_on(s.lr + lk + LR_STRAIN * L, strain, on);
+  store_on(s.li + lk + LI_FLAGS * L, vi{} + (FLAG_SMALL | FLAG_VALID), on);
   // 8. divergence on the path's lanes (NaN and inf by the exponent bits, as link_update)
-  const vi bad = ~off & ((strain > max_strain) | (((vi)strain & 0x7F800000) == 0x7F800000));
+  const vi bad = on & ((strain > max_strain) | (((vi)strain & 0x7F800000) == 0x7F800000));
   for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
   return off;
 }
@@ -544,13 +574,14 @@ inline void scatter3(float* base, vi at, V3<vf> v, vi on) {
   scatter(base, at + 2, v.z, on);
 }
 
-// Voxels v … v+15 of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
+// Voxels v … v+count−1 (count ≤ 16) of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
 // and sets `diverged`.
-inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) {
+inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int& diverged) {
   const int L = s.links;
   const vf zero = {}, one = zero + 1.0f;
+  const vi active = first_lanes(count);
   vi v;
-  for (int i = 0; i < LANES; ++i) v[i] = v0 + i;
+  for (int i = 0; i < LANES; ++i) v[i] = v0 + (i < count ? i : 0);
   const vi row = v * VR_W, irow = v * VI_W;
   const vi mat = gather(s.vi, irow + VI_MAT), flags = gather(s.vi, irow + VI_FLAGS), m = mat * MT_W;
   const vf minv = gather(s.mt, m + MT_MINV), iinv = gather(s.mt, m + MT_IINV), dt = zero + rb.dt;
@@ -632,7 +663,8 @@ inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) 
   q = {q.w * kq, q.x * kq, q.y * kq, q.z * kq};
   const vi new_flags = (flags & ~(FLAG_STATIC | FLAG_CONTACT)) | (stat & FLAG_STATIC) | (contact & FLAG_CONTACT);
   // store the lanes on the path
-  const vi on = ~off;
+  off = off & active;
+  const vi on = ~off & active;
   const vf norm1 = fabs_(pos.x) + fabs_(pos.y) + fabs_(pos.z) + fabs_(amom.x) + fabs_(amom.y) + fabs_(amom.z);
   const vi bad = on & (((vi)norm1 & 0x7F800000) == 0x7F800000);
   for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
@@ -656,6 +688,31 @@ inline vi voxel_group(const Regions& s, int v0, const Robot& rb, int& diverged) 
   return off;
 }
 
+// A group of up to 16 links from lk (to `end`) at once, the lanes off the common path by link_update; returns how
+// many those were.
+inline int links_at_once(const Regions& s, int lk, int end, float prev_dt, float max_strain, int& diverged) {
+  const int count = end - lk < LANES ? end - lk : LANES;
+  const vi off = link_group(s, lk, count, prev_dt, max_strain, diverged);
+  int slow = 0;
+  for (int i = 0; i < count; ++i)
+    if (off[i]) {
+      diverged |= link_update(s, lk + i, prev_dt, max_strain);
+      ++slow;
+    }
+  return slow;
+}
+inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int& diverged) {
+  const int count = end - v < LANES ? end - v : LANES;
+  const vi off = voxel_group(s, v, count, rb, diverged);
+  int slow = 0;
+  for (int i = 0; i < count; ++i)
+    if (off[i]) {
+      diverged |= voxel_update(s, v + i, rb);
+      ++slow;
+    }
+  return slow;
+}
+
 template <typename T>
 void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
   for (int i = 0; i < items; ++i)
@@ -673,8 +730,8 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
   long slow = 0;  // items updated by the branching updates
   const int32_t* h = ints;
   const int links = h[HDR_N_LINKS];
-  std::vector<float> lr(size_t(links) * LR_W);
-  std::vector<int32_t> li(size_t(links) * LI_W);
+  std::vector<float> lr(size_t(links) * LR_W + LANES);  // (+ a group: a short group's full-width loads)
+  std::vector<int32_t> li(size_t(links) * LI_W + LANES);
   transpose(reals + h[HDR_LR_AT], lr.data(), links, LR_W, true);
   transpose(ints + h[HDR_LI_AT], li.data(), links, LI_W, true);
   const Regions s{reals + h[HDR_VR_AT], lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
@@ -694,26 +751,13 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
     for (int step = 0; step < n_steps; ++step) {
       int diverged = 0, lk = robot[RI_LSTART];
       if (VECTOR)
-        for (; lk + LANES <= robot[RI_LEND]; lk += LANES) {
-          const vi off = link_group(s, lk, prev_dt, max_strain, diverged);
-          for (int i = 0; i < LANES; ++i)
-            if (off[i]) {
-              diverged |= link_update(s, lk + i, prev_dt, max_strain);
-              ++slow;
-            }
-        }
+        for (; lk < robot[RI_LEND]; lk += LANES)
+          slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
       for (; lk < robot[RI_LEND]; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
       if (VOXELS) {
         int v = robot[RI_VSTART];
         if (VECTOR)
-          for (; v + LANES <= robot[RI_VEND]; v += LANES) {
-            const vi off = voxel_group(s, v, rb, diverged);
-            for (int i = 0; i < LANES; ++i)
-              if (off[i]) {
-                diverged |= voxel_update(s, v + i, rb);
-                ++slow;
-              }
-          }
+          for (; v < robot[RI_VEND]; v += LANES) slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
         for (; v < robot[RI_VEND]; ++v, ++slow) diverged |= voxel_update(s, v, rb);
       }
       if (diverged) ri[r * RI_W + RI_STATUS] = STATUS_DIVERGED;
@@ -813,8 +857,8 @@ struct Columns {
   int32_t* li_rows;
   int links;
   Columns(float* reals, int32_t* ints) : links(ints[HDR_N_LINKS]) {
-    lr.resize(size_t(links) * LR_W);
-    li.resize(size_t(links) * LI_W);
+    lr.resize(size_t(links) * LR_W + LANES);  // (+ a group: a short group's full-width loads)
+    li.resize(size_t(links) * LI_W + LANES);
     lr_rows = reals + ints[HDR_LR_AT];
     li_rows = ints + ints[HDR_LI_AT];
     transpose(lr_rows, lr.data(), links, LR_W, true);
@@ -847,31 +891,16 @@ extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, 
     for (int step = 0; step < n_steps; ++step) {
       if (!(robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL])) break;
       const float prev_dt = float(clock[RT_DTPREV]);
-      int diverged = 0, lk = robot[RI_LSTART];
-      for (; lk + LANES <= robot[RI_LEND]; lk += LANES) {
-        const vi off = link_group(s, lk, prev_dt, max_strain, diverged);
-        for (int i = 0; i < LANES; ++i)
-          if (off[i]) {
-            diverged |= link_update(s, lk + i, prev_dt, max_strain);
-            ++slow;
-          }
-      }
-      for (; lk < robot[RI_LEND]; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
+      int diverged = 0;
+      for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += LANES)
+        slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
       if (diverged) {  // (a diverged link aborts the step, as in VX)
         robot[RI_STATUS] = STATUS_DIVERGED;
         break;
       }
       const Robot rb = robot_now(b, r);
-      int v = robot[RI_VSTART];
-      for (; v + LANES <= robot[RI_VEND]; v += LANES) {
-        const vi off = voxel_group(s, v, rb, diverged);
-        for (int i = 0; i < LANES; ++i)
-          if (off[i]) {
-            diverged |= voxel_update(s, v + i, rb);
-            ++slow;
-          }
-      }
-      for (; v < robot[RI_VEND]; ++v, ++slow) diverged |= voxel_update(s, v, rb);
+      for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += LANES)
+        slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
       if (diverged) {
         robot[RI_STATUS] = STATUS_DIVERGED;
         break;
