@@ -13,8 +13,8 @@
 // *_vector: 16 items at once (link_group, voxel_group: GCC's vector extensions, one source of the math templated
 // on the lane type) along the common path, and every lane off it again by the branching update, before anything
 // of that lane is stored. A link's common path: the small angle, its end rotation within atan's series; a
-// voxel's: not held fixed, its rotation within FromRotationVector's Taylor form, its Poisson strain within the
-// series, no snapshot this step.
+// voxel's: not held fixed, no snapshot this step (its rotation's cos and sin, and its Poisson strain's pow, are
+// glibc's vector maths where a lane needs them).
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
@@ -565,6 +565,37 @@ inline vf vsqrt(vf x) {
   return r;
 #endif
 }
+inline bool any(vi m) {
+  int r = 0;
+  for (int i = 0; i < LANES; ++i) r |= m[i];
+  return r != 0;
+}
+// cos, sin and pow lane by lane, in loops g++ hands to glibc's vector maths (libmvec) under -ffast-math
+inline vf vcos(vf x) {
+  float a[LANES], r[LANES];
+  std::memcpy(a, &x, sizeof a);
+#pragma omp simd
+  for (int i = 0; i < LANES; ++i) r[i] = std::cos(a[i]);
+  std::memcpy(&x, r, sizeof r);
+  return x;
+}
+inline vf vsin(vf x) {
+  float a[LANES], r[LANES];
+  std::memcpy(a, &x, sizeof a);
+#pragma omp simd
+  for (int i = 0; i < LANES; ++i) r[i] = std::sin(a[i]);
+  std::memcpy(&x, r, sizeof r);
+  return x;
+}
+inline vf vpow(vf x, vf y) {
+  float a[LANES], b[LANES], r[LANES];
+  std::memcpy(a, &x, sizeof a);
+  std::memcpy(b, &y, sizeof b);
+#pragma omp simd
+  for (int i = 0; i < LANES; ++i) r[i] = std::pow(a[i], b[i]);
+  std::memcpy(&x, r, sizeof r);
+  return x;
+}
 template <class F> inline V3<F> gather3(const float* base, vi at) {
   return {gather(base, at), gather(base, at + 1), gather(base, at + 2)};
 }
@@ -617,10 +648,11 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
     add += sel(tension[a], strain[a], zero);
   }
   const vi all_tension = tension[0] & tension[1] & tension[2];
-  off = off | (~all_tension & (fabs_(add) >= POISSON_SERIES_X) & (nu != 0.0f));  // (powf: the branching update)
   vf c = gather(s.mt, m + MT_PB1 + POISSON_SERIES_TERMS - 1);
   for (int k = POISSON_SERIES_TERMS - 1; k > 0; --k) c = gather(s.mt, m + MT_PB1 + k - 1) + add * c;
-  const vf val = add * c;
+  vf val = add * c;
+  const vi powed = ~all_tension & (fabs_(add) >= POISSON_SERIES_X) & (nu != 0.0f);  // (beyond the series: powf)
+  if (any(powed)) val = sel(powed, vpow(1.0f + add, -nu) - 1.0f, val);
   V3<vf> ps;
   ps.x = sel(nu != 0.0f, sel(tension[0], strain[0], val), zero);
   ps.y = sel(nu != 0.0f, sel(tension[1], strain[1], val), zero);
@@ -655,8 +687,13 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
   amom = amom + dt * moment;
   const V3<vf> th = 0.5f * ((dt * iinv) * amom);
   const vf a2 = th.x * th.x + th.y * th.y + th.z * th.z;
-  off = off | (a2 * a2 >= ROTVEC_SMALL4);  // (cos and sin: the branching update)
-  const vf w = 1.0f - a2 / 2.0f, k = 1.0f - a2 / 6.0f;
+  vf w = 1.0f - a2 / 2.0f, k = 1.0f - a2 / 6.0f;  // (FromRotationVector's Taylor form, and cos, sin beyond it)
+  const vi turned = a2 * a2 >= ROTVEC_SMALL4;
+  if (any(turned)) {
+    const vf a = vsqrt(a2);
+    w = sel(turned, vcos(a), w);
+    k = sel(turned, vsin(a) / sel(turned, a, one), k);
+  }
   q = qmul(Q4<vf>{w, th.x * k, th.y * k, th.z * k}, q);
   const vf n2 = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z;
   const vf kq = sel(fabs_(n2 - 1.0f) < RENORM_NEWTON, 1.5f - 0.5f * n2, 1.0f / vsqrt(n2));
