@@ -18,10 +18,13 @@
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
+#include <algorithm>
+#include <atomic>
 #include <cstring>
 #ifdef __AVX512F__
 #include <immintrin.h>
 #endif
+#include <thread>
 #include <vector>
 
 #include "layout.h"
@@ -750,6 +753,23 @@ inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int
   return slow;
 }
 
+// fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; plain threads,
+// not an OpenMP runtime beside torch's); the sum of what fn returned.
+template <class Fn> long for_each_robot(int robots, int threads, Fn fn) {
+  std::atomic<int> next{0};
+  std::atomic<long> total{0};
+  auto work = [&] {
+    long sum = 0;
+    for (int r; (r = next.fetch_add(1)) < robots;) sum += fn(r);
+    total += sum;
+  };
+  std::vector<std::thread> pool;
+  for (int i = 1; i < std::min(threads, robots); ++i) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+  return total;
+}
+
 template <typename T>
 void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
   for (int i = 0; i < items; ++i)
@@ -777,9 +797,8 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
   const double* rt = f64s + h[HDR_RT_AT];
   const double* gp = f64s + h[HDR_GP_AT];
   const float max_strain = float(gp[GP_MAX_STRAIN]);
-  // robots are independent: `threads` workers take them in turn (OpenMP; one: the loop as written)
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads) reduction(+ : slow)
-  for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
+  slow += for_each_robot(h[HDR_N_ROBOTS], threads, [&](int r) {
+    long slow = 0;
     const int* robot = ri + r * RI_W;
     const double* clock = rt + r * RT_W;
     const float prev_dt = float(clock[RT_DTPREV]);
@@ -799,7 +818,8 @@ long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) 
       }
       if (diverged) ri[r * RI_W + RI_STATUS] = STATUS_DIVERGED;
     }
-  }
+    return slow;
+  });
   transpose(reals + h[HDR_LR_AT], lr.data(), links, LR_W, false);
   transpose(ints + h[HDR_LI_AT], li.data(), links, LI_W, false);
   return slow;
@@ -911,7 +931,7 @@ struct Columns {
 
 // Engine.advance on the native schedule: n_steps steps of every robot still stepping (running, its clock before its
 // limit RT.UNTIL), each robot's links, then voxels, then its clock (schedules.py:robot_steps with one lane), the
-// robots shared among `threads` OpenMP workers. floor, command: Switches.floor, Switches.command. Returns how many
+// robots shared among `threads` workers. floor, command: Switches.floor, Switches.command. Returns how many
 // item-steps went through the branching updates.
 extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
   const int32_t* h = ints;
@@ -920,9 +940,8 @@ extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, 
                   cols.li.data(), cols.links};
   const Batch b{h, ints + h[HDR_RI_AT], f64s + h[HDR_RT_AT], f64s + h[HDR_TR_AT], f64s + h[HDR_GP_AT], floor, command};
   const float max_strain = float(b.gp[GP_MAX_STRAIN]);
-  long slow = 0;
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads) reduction(+ : slow)
-  for (int r = 0; r < h[HDR_N_ROBOTS]; ++r) {
+  return for_each_robot(h[HDR_N_ROBOTS], threads, [&](int r) {
+    long slow = 0;
     int32_t* robot = b.ri + r * RI_W;
     const double* clock = b.rt + r * RT_W;
     for (int step = 0; step < n_steps; ++step) {
@@ -944,8 +963,8 @@ extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, 
       }
       robot_advance(s, b, r);
     }
-  }
-  return slow;
+    return slow;
+  });
 }
 
 // For scripts/probe_native_step.py: steps of the link phase alone, or of the link and voxel phases without the robot
