@@ -138,3 +138,13 @@ def test_sixteen_at_once_equals_one_at_a_time_and_takes_most_items():
             scale = max(np.abs(y).max(), 1e-30)
             assert np.abs(x - y).max() <= 1e-4 * scale, f"{region}.{col}: {np.abs(x - y).max() / scale:.1e}"
         assert not np.array_equal(a, before)  # (the step changed the state)
+
+
+def test_auto_takes_the_native_step_on_the_cpu_where_it_runs():
+    """``schedule="auto"`` on the CPU: the native step for what it runs (the fast-math f32 path, with a compiler),
+    the robots schedule for the rest (f64 here; the strict path in make test's first stage)."""
+    grids = design_bodies(1)
+    runs = runtime.fast_math() and native.compiler() is not None
+    for cfg, expected in ((SimConfig(), "native" if runs else "robots"), (SimConfig(precision="f64"), "robots")):
+        sim = Simulator(cfg, arch="cpu")
+        assert sim.engine(sim.layout(grids)).schedule == expected, cfg.precision

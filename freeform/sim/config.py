@@ -82,9 +82,10 @@ class SimConfig:
         environment's ``FREEFORM_BACKEND``, else taichi). One backend per process: it must be chosen before the
         process's first simulation (``freeform.sim.runtime``). Not physics: both run the same kernels.
     schedule: how the steps run (``freeform.sim.Engine``): "auto" | "robots" | "flat" | "native" (the CPU's step
-        compiled by the host's C++ compiler, ≈ 2.8× the robots schedule per thread, for the f32 path with Voxelyze
-        semantics, a fixed dt and the flat floor: docs/physics.md, "The native schedule"). Not physics beyond
-        rounding: native agrees with robots as closely as fast-math with the strict path.
+        compiled by the host's C++ compiler, ≈ 2.2× the robots schedule on 2 cores, for the f32 fast-math path
+        with Voxelyze semantics, a fixed dt and the flat floor: docs/physics.md, "The native schedule"; "auto"
+        takes it on the CPU where it runs the batch). Not physics beyond rounding: native agrees with robots as
+        closely as fast-math with the strict path.
     """
 
     voxel_size: float = 0.01

@@ -148,6 +148,7 @@ class Engine:
     the CPU default; arrays in "aos" order), "flat" (one thread per link/voxel/robot; the CUDA default; "soa") or
     "native" (the robots schedule's steps compiled by the host's C++ compiler, 16 items per vector instruction:
     ``native.py``; the f32 production path, Voxelyze semantics, a fixed dt, the flat floor; refused otherwise).
+    "auto" on the CPU is "native" where it runs the batch and a compiler built it, else "robots".
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
     block_dim: the robots schedule's lanes per robot (``schedules.make_kernels``); None = 1 on the CPU, on CUDA
@@ -175,6 +176,8 @@ class Engine:
         self.counts = initial.counts
         self.dt0, self.max_steps = initial.dt0, initial.max_steps
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
+        if schedule == "auto" and self.arch == "cpu" and native.usable(config.precision, self.switches):
+            self.schedule = "native"  # (the same buffers and order as "robots": only the stepping differs)
         if self.schedule == "native":  # (refused before anything is built; compiled now, not at the first step)
             why = native.unsupported(config.precision, self.switches)
             if why is not None:

@@ -134,6 +134,12 @@ def available() -> bool:
     return True
 
 
+def usable(precision: str, switches: Any) -> bool:
+    """Whether ``schedule="auto"`` takes the native step on the CPU for a batch of this ``precision`` and these
+    switches: it runs them (``unsupported``) and a compiler built it here (else the robots schedule, silently)."""
+    return unsupported(precision, switches) is None and available()
+
+
 def advance(reals: np.ndarray, ints: np.ndarray, f64s: np.ndarray, n_steps: int, threads: int, switches: Any) -> int:
     """``n_steps`` steps of every robot still stepping, in place on host copies of the engine's three buffers
     (``state.BUFFERS``: f32, i32, f64, C-contiguous), the robots shared among ``threads`` workers. Returns the

@@ -98,7 +98,8 @@ def block_dim_for(max_links: int, num_robots: int = 1) -> int:
 
 
 def resolve_schedule(schedule: str, arch: str, max_links: int | None = None) -> str:
-    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "robots" on the CPU; on CUDA "robots" (a
+    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "robots" on the CPU (the Engine then takes
+    "native" where the native step runs the batch: ``native.usable``); on CUDA "robots" (a
     thread block per robot) when the batch's largest robot has at most ``CUDA_AUTO_MAX_LINKS`` links (``max_links``;
     None: not known yet, as for a Simulator before its first batch) and ``$FREEFORM_CUDA_ROBOTS`` is not "0",
     else "flat"."""
