@@ -779,52 +779,6 @@ void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
     }
 }
 
-// n_steps of every robot, robot by robot (the robots schedule's order, one thread): its link phase, and with
-// VOXELS its voxel phase (no robot phase: the clock and events stand still, as in scripts/profile_sim.py's
-// `links` and `links+voxels` segments).
-template <bool VECTOR, bool VOXELS>
-long steps(float* reals, int32_t* ints, double* f64s, int n_steps, int threads) {
-  long slow = 0;  // items updated by the branching updates
-  const int32_t* h = ints;
-  const int links = h[HDR_N_LINKS];
-  std::vector<float> lr(size_t(links) * LR_W + LANES);  // (+ a group: a short group's full-width loads)
-  std::vector<int32_t> li(size_t(links) * LI_W + LANES);
-  transpose(reals + h[HDR_LR_AT], lr.data(), links, LR_W, true);
-  transpose(ints + h[HDR_LI_AT], li.data(), links, LI_W, true);
-  const Regions s{reals + h[HDR_VR_AT], lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
-                  li.data(), links};
-  int32_t* ri = ints + h[HDR_RI_AT];
-  const double* rt = f64s + h[HDR_RT_AT];
-  const double* gp = f64s + h[HDR_GP_AT];
-  const float max_strain = float(gp[GP_MAX_STRAIN]);
-  slow += for_each_robot(h[HDR_N_ROBOTS], threads, [&](int r) {
-    long slow = 0;
-    const int* robot = ri + r * RI_W;
-    const double* clock = rt + r * RT_W;
-    const float prev_dt = float(clock[RT_DTPREV]);
-    const Robot rb{float(clock[RT_DT]), float(clock[RT_SIN]), float(clock[RT_COS]), float(gp[GP_TEMP_AMP]),
-                   robot[RI_EVENTS], 1, 0, 0, 1.0f};
-    for (int step = 0; step < n_steps; ++step) {
-      int diverged = 0, lk = robot[RI_LSTART];
-      if (VECTOR)
-        for (; lk < robot[RI_LEND]; lk += LANES)
-          slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
-      for (; lk < robot[RI_LEND]; ++lk, ++slow) diverged |= link_update(s, lk, prev_dt, max_strain);
-      if (VOXELS) {
-        int v = robot[RI_VSTART];
-        if (VECTOR)
-          for (; v < robot[RI_VEND]; v += LANES) slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
-        for (; v < robot[RI_VEND]; ++v, ++slow) diverged |= voxel_update(s, v, rb);
-      }
-      if (diverged) ri[r * RI_W + RI_STATUS] = STATUS_DIVERGED;
-    }
-    return slow;
-  });
-  transpose(reals + h[HDR_LR_AT], lr.data(), links, LR_W, false);
-  transpose(ints + h[HDR_LI_AT], li.data(), links, LI_W, false);
-  return slow;
-}
-
 // ---- the robot phase (clock.py:robot_advance with a fixed dt; schedules.py:trace_sample) ----
 
 struct Batch {  // the buffers' regions as the robot phase reads them
@@ -927,13 +881,13 @@ struct Columns {
   }
 };
 
-}  // namespace
-
-// Engine.advance on the native schedule: n_steps steps of every robot still stepping (running, its clock before its
-// limit RT.UNTIL), each robot's links, then voxels, then its clock (schedules.py:robot_steps with one lane), the
-// robots shared among `threads` workers. floor, command: Switches.floor, Switches.command. Returns how many
-// item-steps went through the branching updates.
-extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
+// n_steps of every robot still stepping (running, its clock before its limit RT.UNTIL), the robots shared among
+// `threads` workers: each robot's links, then (VOXELS) its voxels, then (CLOCK) its clock and trace —
+// schedules.py:robot_steps with one lane. VECTOR: 16 items at once along the common path (else every item by the
+// branching updates). floor, command: Switches.floor, Switches.command. Returns how many item-steps went through
+// the branching updates.
+template <bool VECTOR, bool VOXELS, bool CLOCK>
+long run(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
   const int32_t* h = ints;
   Columns cols(reals, ints);
   const Regions s{reals + h[HDR_VR_AT], cols.lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
@@ -948,36 +902,57 @@ extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, 
       if (!(robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL])) break;
       const float prev_dt = float(clock[RT_DTPREV]);
       int diverged = 0;
-      for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += LANES)
-        slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
+      for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += VECTOR ? LANES : 1) {
+        if (VECTOR) {
+          slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
+        } else {
+          diverged |= link_update(s, lk, prev_dt, max_strain);
+          ++slow;
+        }
+      }
       if (diverged) {  // (a diverged link aborts the step, as in VX)
         robot[RI_STATUS] = STATUS_DIVERGED;
         break;
       }
+      if (!VOXELS) continue;
       const Robot rb = robot_now(b, r);
-      for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += LANES)
-        slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
+      for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += VECTOR ? LANES : 1) {
+        if (VECTOR) {
+          slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
+        } else {
+          diverged |= voxel_update(s, v, rb);
+          ++slow;
+        }
+      }
       if (diverged) {
         robot[RI_STATUS] = STATUS_DIVERGED;
         break;
       }
-      robot_advance(s, b, r);
+      if (CLOCK) robot_advance(s, b, r);
     }
     return slow;
   });
 }
 
-// For scripts/probe_native_step.py: steps of the link phase alone, or of the link and voxel phases without the robot
-// phase (the clock stands still), as scripts/profile_sim.py's segments; each returns how many item-steps went through the branching updates (all of them for the scalar ones).
+}  // namespace
+
+// Engine.advance on the native schedule (every phase, 16 items at once).
+extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
+  return run<true, true, true>(reals, ints, f64s, n_steps, threads, floor, command);
+}
+
+// For scripts/probe_native_step.py and the tests: the link phase alone, or the link and voxel phases without the
+// robot phase (the clock stands still: scripts/profile_sim.py's segments), one item at a time or 16 at once, with
+// the floor and the sine's actuation.
 extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return steps<false, false>(reals, ints, f64s, n, threads);
+  return run<false, false, false>(reals, ints, f64s, n, threads, 1, 0);
 }
 extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return steps<true, false>(reals, ints, f64s, n, threads);
+  return run<true, false, false>(reals, ints, f64s, n, threads, 1, 0);
 }
 extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return steps<false, true>(reals, ints, f64s, n, threads);
+  return run<false, true, false>(reals, ints, f64s, n, threads, 1, 0);
 }
 extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return steps<true, true>(reals, ints, f64s, n, threads);
+  return run<true, true, false>(reals, ints, f64s, n, threads, 1, 0);
 }
