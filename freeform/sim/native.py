@@ -3,9 +3,8 @@
 Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD across links, probed"); the same
 link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: 16 links or voxels per
 AVX-512 instruction along the common path, Voxelyze's branches for the rest) run 3.3× as fast per thread, 2.2–2.4×
-on 2 cores. The
-engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses, snapshots); only the
-stepping runs here, on a host copy of the three buffers (``Engine._advance``).
+on 2 cores. The engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses,
+snapshots); only the stepping runs here, on a host copy of the three buffers (``Engine._advance``).
 
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
