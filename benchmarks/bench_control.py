@@ -6,7 +6,8 @@ period (0.0125 s ≈ 100 steps at the default dt). Then the engine's own part of
 and period two ways, alternated: ``set_commands`` + ``advance_time`` + ``sense`` (a call each, and the column
 writes and clock reads between them) against ``Engine.control_step`` (one call to the device).
 
-``python -m benchmarks control``; ``FREEFORM_BENCH_QUICK=1`` uses 32 bodies.
+``python -m benchmarks control``; ``FREEFORM_BENCH_QUICK=1`` uses 32 bodies; ``FREEFORM_BENCH_SCHEDULE=robots`` (or
+``native``) runs that schedule instead of the CPU's default (``sim.schedule``, docs/physics.md).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.sim import SimConfig, Simulator
 
 DT = 1e-4  # fixed, so that a period is a whole number of steps
+SCHEDULE = os.environ.get("FREEFORM_BENCH_SCHEDULE", "auto")
 EVERY = (1, 10, 100)
 ROUNDS = {1: 40, 10: 20, 100: 6}
 
@@ -35,7 +37,7 @@ def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
     runs the period and senses)."""
     n = grids.shape[0]
     control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
-    env = ControlEnv(grids, sim=SimConfig(dt=DT), control=control, arch=arch, device=device)
+    env = ControlEnv(grids, sim=SimConfig(dt=DT, schedule=SCHEDULE), control=control, arch=arch, device=device)
     env.reset()
     actions = torch.zeros((n, env.action_dim), device=device)
     env.step(actions)  # compile (or load the kernel cache) what a step runs, and what advance_time runs
@@ -66,7 +68,7 @@ def measure_engine(grids: torch.Tensor, every: int, rounds: int, arch: str = "cp
     """Seconds per control period of the engine alone on ``grids`` (f32, fixed dt, zero commands): stepwise
     (set_commands, advance_time, sense) and in one call (control_step), alternated round by round."""
     period = every * DT
-    config = SimConfig(dt=DT, actuation="command", burn_in=0.0, duration=1000 * period)
+    config = SimConfig(dt=DT, actuation="command", burn_in=0.0, duration=1000 * period, schedule=SCHEDULE)
     engines = []
     for _ in range(2):
         sim = Simulator(config, arch=arch)
@@ -91,7 +93,7 @@ def main() -> None:
     n = 32 if os.environ.get("FREEFORM_BENCH_QUICK") else 128
     grids = random_design_bodies(n)
     print(f"{n} design bodies, {int((grids > 0).sum()) / n:.0f} voxels each on average, ρ = {grids.shape[1]}; "
-          f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads)")
+          f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads), schedule {SCHEDULE}")
     print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}"
           f" {'env host ms':>12s} {'host/sim':>9s}")
     for every in EVERY:
