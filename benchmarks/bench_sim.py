@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import os
 import subprocess
 import sys
@@ -162,6 +163,17 @@ def worker() -> None:
               flush=True)
 
 
+def cell(wall: float, cpu: float) -> str:
+    """A row's figures for one column, or that the column's schedule does not run the row (NaN from the worker:
+    native's f64 and terrains), never a number that was not measured."""
+    return f"  {'not run':>15s}" if math.isnan(wall) else f"  {wall:6.2f} | {cpu:6.2f}"
+
+
+def best_of(old: tuple[float, float] | None, wall: float, cpu: float) -> tuple[float, float]:
+    """The best of alternated rounds so far (a row its column does not run stays NaN)."""
+    return (wall, cpu) if old is None or math.isnan(old[0]) else (max(old[0], wall), max(old[1], cpu))
+
+
 class Worker:
     """A worker subprocess on one backend and schedule, running the freeform of checkout ``tree`` (default: this
     one)."""
@@ -225,20 +237,18 @@ def main() -> None:
             got = {b: got[b] for b in backends}
             if "terrain" in req:
                 for b, g in got.items():
-                    old = best.get((sec, label, b), (0.0, 0.0))
-                    best[(sec, label, b)] = (max(old[0], g["wall"]), max(old[1], g["cpu"]))
+                    best[(sec, label, b)] = best_of(best.get((sec, label, b)), g["wall"], g["cpu"])
                 if label != list(TERRAINS)[-1] or req["round"] != TERRAIN_ROUNDS - 1:
                     continue
                 for name in TERRAINS:
-                    cells = "".join(f"  {best[(sec, name, b)][0]:6.2f} | {best[(sec, name, b)][1]:6.2f}"
-                                    for b in backends)
+                    cells = "".join(cell(*best[(sec, name, b)]) for b in backends)
                     flat = best[(sec, "flat", backends[0])][1]
                     cost = 100 * (flat / best[(sec, name, backends[0])][1] - 1)
                     print(f"  {name:<34s} {f'({cost:+5.1f} % time vs flat)':>23s}{cells}"
                           f"  (load {os.getloadavg()[0]:.1f})", flush=True)
                 continue
             g0 = got[backends[0]]
-            cells = "".join(f"  {g['wall']:6.2f} | {g['cpu']:6.2f}" for g in got.values())
+            cells = "".join(cell(g["wall"], g["cpu"]) for g in got.values())
             print(f"  {label:<34s} voxels={g0['voxels']:6d} steps={g0['steps']:5d}{cells}"
                   f"  (load {os.getloadavg()[0]:.1f})", flush=True)
         print(f"load average {os.getloadavg()[0]:.1f} at the end")
