@@ -8,8 +8,10 @@ which is the unchanged single-process algorithm. The environment count (5) does 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -290,17 +292,33 @@ def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(tmp_pa
 TINY = tiny(f"env.num_envs={NUM_ENVS}", f"env.steps={STEPS}", "agent.sgd_minibatch_size=6", "trainer.print_every=1")
 
 
+def finished_then_aborted(output: str, run: Path) -> bool:
+    """Whether a failed torchrun run failed only at its end: a rank's C++ runtime aborted (SIGABRT, "terminate
+    called without an active exception") after rank 0 had written its last checkpoint and logged "done"."""
+    return ("terminate called without an active exception" in output and "(SIGABRT)" in output
+            and "done: 1 epochs" in output and (run / "checkpoints" / "epoch_000001.pt").is_file())
+
+
 def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     torchrun = Path(sys.executable).parent / "torchrun"
     if not torchrun.exists():
         pytest.skip("torchrun is not installed beside this python")
     two = tmp_path / "two"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    out = subprocess.run(
-        [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "freeform.train", *TINY, "trainer.epochs=1",
-         f"hydra.run.dir={two}"],
-        capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path,
-    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONFAULTHANDLER": "1"}  # (an abort prints where it happened)
+    for attempt in range(2):
+        out = subprocess.run(
+            [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "freeform.train", *TINY, "trainer.epochs=1",
+             f"hydra.run.dir={two}"],
+            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path,
+        )
+        if attempt == 0 and out.returncode != 0 and finished_then_aborted(out.stdout + out.stderr, two):
+            # Seen once in CI and once in ~180 local runs: a secondary rank aborts in gloo's teardown after the run
+            # completed (every checkpoint written, rank 0 past shutdown). Kept visible, run once more from scratch.
+            warnings.warn("torchrun: a rank aborted at teardown after a completed run (retried once): "
+                          + (out.stdout + out.stderr)[-3000:], stacklevel=1)
+            shutil.rmtree(two)
+            continue
+        break
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     one = tmp_path / "one"
     cli(monkeypatch, *TINY, "trainer.epochs=2", f"hydra.run.dir={one}")
