@@ -179,6 +179,15 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids.numpy()}
 
 
+def warm_start_task(cfg: Any) -> Any:
+    """The controller a co-design run started from (``control.controller_init``), frozen, as a task that scores
+    designs by its mean command in its own episode, along the run's headings (fresh draws where they are random)."""
+    from freeform.envs.tasks import ControlledLocomotionTask
+
+    return ControlledLocomotionTask(str(cfg.control.controller_init), sim=cfg.sim, headings=cfg.control.headings,
+                                    seed=cfg.seed + 20_000)
+
+
 def trained_for(control: Any) -> str:
     """What a controller's score is, from its run's ``control.headings``."""
     return {"fixed": "move along +x, controlled", "any": "move in the plane, controlled",
@@ -246,6 +255,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         return ControlConfig(burn_in=ol_cfg.sim.burn_in, duration=ol_cfg.sim.duration, headings=headings)
 
     window = sine_window("any")
+    frozen = None  # a warm-started co-design run's first controller, as a task
     if codesign is not None:
         co = controlled(codesign, episodes)
         window = sine_window(co["cfg"].control.headings)
@@ -259,11 +269,22 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
             {"pretraining_robot_seconds": round(before, 3)} if warm else None)
         moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
         add("  its designs, open loop", {**co, "score": moved}, budget, kind)
+        if warm:  # what the joint update added to the controller: the same designs under the warm start, frozen
+            frozen = warm_start_task(co["cfg"])
+            add("  its designs, driven by the warm-start controller (frozen)",
+                {**co, "score": frozen.reward(torch.as_tensor(co["bodies"])).numpy()}, budget,
+                trained_for(co["cfg"].control))
 
     ol = open_loop_designs(open_loop, episodes, window)
     runs["open_loop"] = str(open_loop)
     add("open-loop design RL (the paper's)", ol, robot_seconds(ol["cfg"], ol["epochs"]), ol["kind"],
         {"along_x_mean": float(ol["along_x"].mean())})
+
+    if frozen is not None and designed is None:  # (--designed adds this row for its own controller)
+        add("open-loop design RL's designs, driven by the warm-start controller (frozen)",
+            {**ol, "score": frozen.reward(torch.from_numpy(ol["grids"])).numpy()},
+            before + robot_seconds(ol["cfg"], ol["epochs"]), trained_for(co["cfg"].control),
+            {"pretraining_robot_seconds": round(before, 3)})
 
     if two_stage is not None:
         ts = controlled(two_stage, episodes)

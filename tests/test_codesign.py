@@ -476,6 +476,12 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     row = rows["co-design from the population controller (one PPO: body, then controller)"]
     assert float(row["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
     assert float(row["robot_seconds"]) == pytest.approx(before + 4 * (0.01 + 0.0375), abs=1e-3)
+    # ... and what its joint update added: its designs, and the paper's at their budget plus the warm start's,
+    # driven by the warm start, frozen
+    assert int(rows["its designs, driven by the warm-start controller (frozen)"]["n"]) == 4
+    paper = float(rows["open-loop design RL (the paper's)"]["robot_seconds"])
+    driven = rows["open-loop design RL's designs, driven by the warm-start controller (frozen)"]
+    assert float(driven["robot_seconds"]) == pytest.approx(before + paper, abs=1e-3)
 
 
 def tiny_open_loop(run, *overrides: str) -> None:
