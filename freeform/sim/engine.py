@@ -117,15 +117,16 @@ class DeviceArrays:
                 self._capacity[kind] = max(1, math.ceil(CAPACITY_HEADROOM * n))
         return {kind: self._capacity[kind] for kind in items}
 
-    def buffer(self, name: str, dtype: np.dtype, length: int, keep: bool = False):
+    def buffer(self, name: str, dtype: np.dtype, length: int, keep: bool = False, host: bool = False):
         """The 1-D ndarray ``name`` of ``dtype`` with at least ``length`` elements, made or grown as needed (keep:
-        a grown one starts with the old one's contents): (ndarray, its length)."""
-        key = (name, np.dtype(dtype).name)
+        a grown one starts with the old one's contents): (ndarray, its length). ``host``: a numpy array instead,
+        which the CPU's kernels take in place (the native step's buffers: no copy around each advance)."""
+        key = (name, np.dtype(dtype).name) + (("host",) if host else ())
         arr, have = self._arrays.get(key, (None, 0))
         if arr is None or length > have:
             old = runtime.to_numpy(arr) if (keep and arr is not None) else None
             have = max(length, math.ceil(CAPACITY_HEADROOM * have), 1)
-            arr = runtime.ndarray(np.dtype(dtype), (have,))
+            arr = np.zeros(have, np.dtype(dtype)) if host else runtime.ndarray(np.dtype(dtype), (have,))
             if old is not None:
                 runtime.upload(arr, np.concatenate([old, np.zeros(have - old.size, dtype=old.dtype)]))
             self.allocations += 1
@@ -198,9 +199,10 @@ class Engine:
         host = {**initial.tables, "gp": initial.globals[:, None], "hf": grid[None, :],
                 "hdr": self.packing.header(self.counts)}
         self._buffers: dict[str, object] = {}
+        self._host = self.schedule == "native"  # (its state in host memory, where the C++ step and kernels meet)
         for buffer, names in BUFFERS.items():
             dtype = buffer_dtype(buffer, self.precision)
-            arr, length = self._arrays.buffer(buffer, dtype, self.packing.lengths[buffer])
+            arr, length = self._arrays.buffer(buffer, dtype, self.packing.lengths[buffer], host=self._host)
             runtime.upload(arr, self.packing.image(buffer, {n: host[n] for n in names if n in host}, dtype, length))
             self._buffers[buffer] = arr
         # robots schedule: one worker per CPU thread
@@ -289,11 +291,8 @@ class Engine:
         k, buffers = self.kernels, tuple(self._buffers[name] for name in BUFFERS)
         if self.schedule == "robots":
             k.run_robots(*buffers, n_steps, self._workers)
-        elif self.schedule == "native":  # the C++ step on host copies of the buffers (native.py)
-            host = [runtime.to_numpy(b) for b in buffers]
-            native.advance(*host, n_steps, self._workers, self.switches)
-            for b, h in zip(buffers, host, strict=True):
-                runtime.upload(b, h)
+        elif self.schedule == "native":  # the C++ step on the buffers themselves, host memory (native.py)
+            native.advance(*buffers, n_steps, self._workers, self.switches)
         else:
             left = n_steps
             launches = self.config.graph_launches
@@ -556,7 +555,8 @@ class Engine:
         # the trace is the last region of "f64s": room for it moves nothing else, so the clocks stay where they are
         self.packing = self.packing.with_trace(frames, max(R, 1))
         dtype = buffer_dtype("f64s", self.precision)
-        self._buffers["f64s"], _ = self._arrays.buffer("f64s", dtype, self.packing.lengths["f64s"], keep=True)
+        self._buffers["f64s"], _ = self._arrays.buffer("f64s", dtype, self.packing.lengths["f64s"], keep=True,
+                                                       host=self._host)
         self.trace_steps = every
         self._upload("hdr", self.packing.header(self.counts, every))
         self._summarise(0)

@@ -182,9 +182,13 @@ def ndarray(dtype: np.dtype, shape: tuple[int, ...], rows_as_vectors: bool = Fal
     return ti.ndarray(ti_dtype, shape)
 
 
-def upload(arr: ti.Ndarray, a: np.ndarray) -> None:
+def upload(arr: ti.Ndarray | np.ndarray, a: np.ndarray) -> None:
     """Copy host array ``a`` into the existing ndarray ``arr`` (same shape; a vector ndarray ``[n]`` of c-vectors
-    takes ``[n, c]``). No new device array is made."""
+    takes ``[n, c]``; a numpy array, which the CPU's kernels also take, is written in place). No new device array
+    is made."""
+    if isinstance(arr, np.ndarray):
+        arr[...] = a
+        return
     with _quiet_unrolling():
         arr.from_numpy(np.ascontiguousarray(a))  # (a transposed view is copied into C order here)
 
@@ -199,8 +203,11 @@ def from_numpy(a: np.ndarray, rows_as_vectors: bool = False) -> ti.Ndarray:
     return arr
 
 
-def to_numpy(arr: ti.Ndarray) -> np.ndarray:
-    """Host copy of a Taichi ndarray (a vector ndarray ``[n]`` of c-vectors comes back as ``[n, c]``)."""
+def to_numpy(arr: ti.Ndarray | np.ndarray) -> np.ndarray:
+    """Host copy of a Taichi ndarray (a vector ndarray ``[n]`` of c-vectors comes back as ``[n, c]``), or of a
+    numpy array standing in for one."""
+    if isinstance(arr, np.ndarray):
+        return arr.copy()
     with _quiet_unrolling():
         return arr.to_numpy()
 
