@@ -200,10 +200,11 @@ def _run_of(path: str) -> Path:
     return p.parent.parent if p.is_file() and p.parent.name == "checkpoints" else p
 
 
-def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tuple[str, dict, float]]:
+def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tuple[str, dict, float, str]]:
     """The rows of an ``--adapted`` control run (one started from the frozen controller): its controller driving
     the designs it was adapted to (``control.designer``: one of ``designs``, name → (result, budget before the
-    adaptation)), or, trained on untrained bodies (its control), every set of designs; the budget adds its own."""
+    adaptation)), or, trained on untrained bodies (its control), every set of designs, along its own headings;
+    the budget adds its own. Rows: (method, result, robot-seconds, what the score is)."""
     from freeform.envs import ControlledLocomotionTask
 
     cfg, last = _last(run)
@@ -212,17 +213,17 @@ def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tupl
     chosen = [name for name, (result, _) in designs.items()
               if adapted is None or _run_of(adapted) == _run_of(str(result["run"]))]
     if not chosen:
-        raise SystemExit(f"--adapted {run}: adapted to the designs of {adapted}, which is neither --designed nor "
-                         "--open-loop")
+        raise SystemExit(f"--adapted {run}: adapted to the designs of {adapted}, which are not among this "
+                         f"comparison's ({', '.join(designs)})")
     rows = []
     for name in chosen:
         result, budget = designs[name]
-        task = ControlledLocomotionTask(str(run), sim=cfg.sim)
+        task = ControlledLocomotionTask(str(run), sim=cfg.sim, headings=cfg.control.headings, seed=cfg.seed + 20_000)
         how = (f"adapted to them ({epochs} epochs on their stream)" if adapted is not None else
                f"trained {epochs} more epochs on untrained bodies")
         rows.append((f"  {name}, the controller {how}", {**result, "score": task.reward(
             torch.from_numpy(np.asarray(result["grids"]))).numpy(), "epochs": epochs},
-            budget + robot_seconds(cfg, epochs)))
+            budget + robot_seconds(cfg, epochs), trained_for(cfg.control)))
     return rows
 
 
@@ -280,6 +281,9 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
     add("open-loop design RL (the paper's)", ol, robot_seconds(ol["cfg"], ol["epochs"]), ol["kind"],
         {"along_x_mean": float(ol["along_x"].mean())})
 
+    # the designs a control run started from the frozen controller may drive (--adapted), with their budgets
+    designs = {"open-loop design RL's designs": ({**ol, "run": open_loop},
+                                                 before + robot_seconds(ol["cfg"], ol["epochs"]))}
     if frozen is not None and designed is None:  # (--designed adds this row for its own controller)
         add("open-loop design RL's designs, driven by the warm-start controller (frozen)",
             {**ol, "score": frozen.reward(torch.from_numpy(ol["grids"])).numpy()},
@@ -313,13 +317,11 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         add("open-loop design RL's designs, driven by the same controller", {**ol, "score": driven},
             before + robot_seconds(ol["cfg"], ol["epochs"]), "move in the plane, controlled",
             {"pretraining_robot_seconds": round(before, 3)})
-        designs = {"its designs": ({**dc, "run": designed}, budget),
-                   "open-loop design RL's designs": ({**ol, "run": open_loop},
-                                                     before + robot_seconds(ol["cfg"], ol["epochs"]))}
-        for run in adapted or ():
-            runs[f"adapted: {run.name}"] = str(run)
-            for method, result, seconds in adapted_rows(run, designs):
-                add(method, result, seconds, "move in the plane, controlled")
+        designs = {"its designs": ({**dc, "run": designed}, budget), **designs}
+    for run in adapted or ():
+        runs[f"adapted: {run.name}"] = str(run)
+        for method, result, seconds, score in adapted_rows(run, designs):
+            add(method, result, seconds, score)
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
         fields = list(dict.fromkeys(k for row in table for k in row))
@@ -382,11 +384,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--designed", type=Path, default=None,
                    help="a design-after-control run (experiment=controlled_design_cpu): designs for a frozen controller")
     p.add_argument("--pretraining", nargs="+", default=None, metavar="OVERRIDE",
-                   help="the app overrides of the control run behind --designed's controller, whose robot-seconds its "
-                        "budget includes (e.g. experiment=control_population_cpu seed=0)")
+                   help="the app overrides of the control run behind --designed's controller (or --codesign's warm "
+                        "start), whose robot-seconds its budget includes (e.g. experiment=control_population_cpu "
+                        "seed=0)")
     p.add_argument("--adapted", type=Path, nargs="+", default=None, metavar="RUN",
-                   help="control runs started from --designed's controller (control.controller_init), e.g. adapted to "
-                        "its designs (control.designer=DESIGNED): their controllers drive --designed's designs")
+                   help="control runs started from the frozen controller (--designed's, or --codesign's warm start: "
+                        "control.controller_init), e.g. adapted to designs (control.designer=DESIGNED or the "
+                        "--open-loop run): their controllers drive those designs")
     p.add_argument("--episodes", type=int, default=256)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--replot", action="store_true", help="redraw the figure from --out's CSVs (no runs needed)")
@@ -398,8 +402,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.open_loop is None or (args.codesign is None and args.designed is None):
         p.error("--open-loop and --codesign or --designed are required (or --replot)")
-    if args.adapted and args.designed is None:
-        p.error("--adapted drives --designed's designs: give --designed")
+    if args.adapted and args.designed is None and args.pretraining is None:
+        p.error("--adapted starts from a frozen controller: give --designed, or --codesign with --pretraining")
     for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ())):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
