@@ -4,6 +4,7 @@
     python scripts/profile_sim.py                  # re-runs itself under valgrind's callgrind, one thread
     python scripts/profile_sim.py --native         # the same segments timed natively (ns per voxel-step)
     FREEFORM_FAST_MATH=0 python scripts/profile_sim.py   # the strict path
+    python scripts/profile_sim.py --schedule native       # the native step (native.py), built for x86-64-v3
 
 The workload: ``--bodies`` untrained design bodies (``benchmarks.bench_sim.random_design_bodies``, seed 0: the
 sim benchmark's bodies), f32 unless ``--precision f64``, the paper's fixed dt, ``--warm`` steps first (natively
@@ -12,6 +13,11 @@ uninstrumented under valgrind), then three segments of ``--steps`` steps from th
 * ``step``: the production kernel (``run_robots``, one worker): what ``Engine.advance`` runs;
 * ``links``: the same robots and steps, every link's ``link_update`` only (the voxels stand still);
 * ``links+voxels``: each step every link's ``link_update`` then every voxel's ``voxel_update``, no robot phase.
+
+With ``--schedule native`` the segments are the native step's entry points (``advance``, ``links_vector``,
+``links_voxels_vector``: 16 items at once, one thread), on the fast-math path; valgrind presents AVX2 and no
+AVX-512, so the library is built for x86-64-v3 (``$FREEFORM_NATIVE_ARCH``, also for ``--native`` timings, so that
+both measure one program); a host's AVX-512 build runs fewer instructions.
 
 voxel phase = ``links+voxels`` − ``links``; bookkeeping (robot phase: clock, status, actuation phase, events, the
 queue and the per-step checks) = ``step`` − ``links+voxels``. Callgrind counts instructions exactly, whatever the
@@ -96,14 +102,23 @@ def measure(args, cg) -> dict[str, float]:
 
     bodies = random_design_bodies(args.bodies, seed=0)
     cfg = SimConfig(precision=args.precision, dt=DT, burn_in=0.0, duration=1e9)
-    eng = Simulator(cfg, arch="cpu", schedule="robots").engine(Simulator(cfg, arch="cpu").layout(bodies))
-    links, links_voxels = phase_kernels(args.precision, eng.switches)
+    eng = Simulator(cfg, arch="cpu", schedule=args.schedule).engine(Simulator(cfg, arch="cpu").layout(bodies))
     buffers = tuple(eng._buffers[name] for name in BUFFERS)
+    if args.schedule == "native":
+        from freeform.sim import native
+
+        lib, at = native.library(), tuple(b.ctypes.data for b in buffers)
+        floor, command = int(eng.switches.floor), int(eng.switches.command)
+        segments = {"step": lambda n: lib.advance(*at, n, 1, floor, command),
+                    "links": lambda n: lib.links_vector(*at, n, 1),
+                    "links+voxels": lambda n: lib.links_voxels_vector(*at, n, 1)}
+    else:
+        links, links_voxels = phase_kernels(args.precision, eng.switches)
+        segments = {"step": lambda n: eng.kernels.run_robots(*buffers, n, 1),
+                    "links": lambda n: links(*buffers, n),
+                    "links+voxels": lambda n: links_voxels(*buffers, n)}
     eng.advance(args.warm)
     saved = eng.snapshot()
-    segments = {"step": lambda n: eng.kernels.run_robots(*buffers, n, 1),
-                "links": lambda n: links(*buffers, n),
-                "links+voxels": lambda n: links_voxels(*buffers, n)}
     for run in segments.values():  # compile outside the counts
         run(1)
         eng.restore(saved)
@@ -151,7 +166,8 @@ def report(values: dict[str, float], unit: str, scale: float, args) -> None:
     parts = {"link phase": lk, "voxel phase": lv - lk, "bookkeeping (robot phase)": step - lv}
     from freeform.sim import runtime
 
-    print(f"{args.bodies} design bodies, {args.precision}, {args.steps} steps after {args.warm}: {vs / args.steps:.0f} "
+    target = f"native step for {os.environ['FREEFORM_NATIVE_ARCH']}" if args.schedule == "native" else "robots"
+    print(f"{target}: {args.bodies} design bodies, {args.precision}, {args.steps} steps after {args.warm}: {vs / args.steps:.0f} "
           f"voxels, {ls / vs:.2f} links per voxel; {runtime.describe()}, fast-math "
           f"{'on' if runtime.fast_math() else 'off'}, CPU {runtime.cpu_features()}")
     print(f"  {'whole step':28s} {step * scale / vs:9.1f} {unit} per voxel-step")
@@ -166,12 +182,17 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--warm", type=int, default=300, help="steps run before the segments (uncounted)")
     parser.add_argument("--precision", default="f32", choices=("f32", "f64"))
+    parser.add_argument("--schedule", default="robots", choices=("robots", "native"),
+                        help="the robots schedule's Taichi kernels, or the native step (built for x86-64-v3)")
     parser.add_argument("--native", action="store_true", help="time the segments natively instead")
     parser.add_argument("--repeat", type=int, default=3, help="native: best of this many")
     parser.add_argument("--annotate", action="store_true", help="print callgrind's top functions of the step")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     os.environ.setdefault("TI_CPU_MAX_NUM_THREADS", "1")
+    if args.schedule == "native":
+        os.environ.setdefault("FREEFORM_NATIVE_ARCH", "x86-64-v3")  # (what valgrind runs: AVX2 + FMA)
+        os.environ.setdefault("FREEFORM_FAST_MATH", "1")  # (the native step's path)
     if args.native:
         values = measure(args, None)
         report(values, "ns", 1e9, args)

@@ -148,3 +148,33 @@ def test_auto_takes_the_native_step_on_the_cpu_where_it_runs():
     for cfg, expected in ((SimConfig(), "native" if runs else "robots"), (SimConfig(precision="f64"), "robots")):
         sim = Simulator(cfg, arch="cpu")
         assert sim.engine(sim.layout(grids)).schedule == expected, cfg.precision
+
+
+@fast_math_only
+@needs_compiler
+@pytest.mark.skipif("AVX2" not in runtime.cpu_features(), reason="the x86-64-v3 build needs an AVX2 host")
+def test_a_build_for_another_instruction_set_agrees(tmp_path):
+    """``$FREEFORM_NATIVE_ARCH=x86-64-v3`` (AVX2 + FMA: the 16-lane code in two halves, what an AVX2-only host and
+    valgrind run): 0.5 s of six design bodies in a process of its own (the library is built once per process)
+    against the robots schedule here, to the agreement test's tolerances."""
+    import json
+    import os
+    import subprocess
+
+    script = ("import json, sys; sys.path.insert(0, sys.argv[1]); from dataclasses import replace\n"
+              "from freeform.sim import SimConfig, Simulator, native\n"
+              "from tests.test_native import design_bodies\n"
+              "r = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule='native'), arch='cpu')"
+              ".simulate(design_bodies())\n"
+              "print(json.dumps({'flags': native.flags(), 'steps': r.steps.tolist(), "
+              "'displacement': r.displacement.tolist(), 'com': r.com_end.tolist()}))\n")
+    env = {**os.environ, "FREEFORM_NATIVE_ARCH": "x86-64-v3", "FREEFORM_NATIVE_CACHE": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", script, str(ROOT)], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    theirs = json.loads(done.stdout.strip().splitlines()[-1])
+    assert "-march=x86-64-v3" in theirs["flags"] and len(list(tmp_path.glob("native_step_*.so"))) == 1
+    robots = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule="robots"), arch="cpu").simulate(design_bodies())
+    np.testing.assert_array_equal(theirs["steps"], robots.steps.numpy())
+    np.testing.assert_allclose(theirs["displacement"], robots.displacement.numpy(), atol=ATOL_DISPLACEMENT)
+    np.testing.assert_allclose(theirs["com"], robots.com_end.numpy(), atol=ATOL_COM_M)

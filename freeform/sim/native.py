@@ -4,7 +4,8 @@ Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD a
 link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: 16 links or voxels per
 AVX-512 instruction along the common path, Voxelyze's branches for the rest) run 3.3× as fast per thread, 2.2–2.4×
 on 2 cores. The engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses,
-snapshots); only the stepping runs here, on a host copy of the three buffers (``Engine._advance``).
+snapshots); only the stepping runs here, on the three buffers themselves, which this schedule keeps in host
+memory (numpy arrays the CPU's kernels take in place: ``Engine._advance``).
 
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
@@ -32,13 +33,21 @@ from typing import Any
 import numpy as np
 
 SOURCE = Path(__file__).with_name("native_step.cpp")
-# -ffast-math: the simulator's production path (the strict path stays Taichi's); -mtune=native lets g++ use the
-# host's gather instructions; -fopenmp-simd hands the `omp simd` loops of cos, sin and pow to glibc's vector maths
-# (no OpenMP runtime: plain threads share the robots)
-FLAGS = ("-O3", "-march=native", "-mtune=native", "-ffast-math", "-fopenmp-simd", "-pthread", "-shared", "-fPIC",
-         "-std=c++17")
+# -ffast-math: the simulator's production path (the strict path stays Taichi's); -mtune lets g++ use the target's
+# gather instructions; -fopenmp-simd hands the `omp simd` loops of cos, sin and pow to glibc's vector maths (no
+# OpenMP runtime: plain threads share the robots)
+FLAGS = ("-O3", "-ffast-math", "-fopenmp-simd", "-pthread", "-shared", "-fPIC", "-std=c++17")
 CACHE_ENV_VAR = "FREEFORM_NATIVE_CACHE"
 COMPILER_ENV_VAR = "CXX"
+# the instruction set compiled for: this host's by default; another (e.g. x86-64-v3, what valgrind presents:
+# scripts/profile_sim.py --schedule native; or a cluster's oldest node) through this variable
+ARCH_ENV_VAR = "FREEFORM_NATIVE_ARCH"
+
+
+def flags() -> tuple[str, ...]:
+    """The compiler's flags: ``FLAGS`` and the target (``$FREEFORM_NATIVE_ARCH``, default this host's)."""
+    arch = os.environ.get(ARCH_ENV_VAR) or "native"
+    return (*FLAGS, f"-march={arch}", f"-mtune={'generic' if arch.startswith('x86-64') else arch}")
 ENTRY_POINTS = ("advance", "links_scalar", "links_vector", "links_voxels_scalar", "links_voxels_vector")
 
 
@@ -102,7 +111,7 @@ def library() -> ctypes.CDLL:
                            "PATH (set $CXX, or use schedule='robots')")
     header, source = layout_header(), SOURCE.read_text()
     version = subprocess.run([cxx, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join((source, header, " ".join(FLAGS), version, platform.machine(),
+    key = hashlib.sha256("\0".join((source, header, " ".join(flags()), version, platform.machine(),
                                     runtime.cpu_features())).encode()).hexdigest()[:16]
     cache = Path(os.environ.get(CACHE_ENV_VAR) or Path.home() / ".cache" / "freeform" / "native")
     lib = cache / f"native_step_{key}.so"
@@ -111,7 +120,7 @@ def library() -> ctypes.CDLL:
         with tempfile.TemporaryDirectory(dir=cache) as tmp:
             (Path(tmp) / "layout.h").write_text(header)
             built = Path(tmp) / "native_step.so"
-            done = subprocess.run([cxx, *FLAGS, f"-I{tmp}", "-o", str(built), str(SOURCE)], capture_output=True,
+            done = subprocess.run([cxx, *flags(), f"-I{tmp}", "-o", str(built), str(SOURCE)], capture_output=True,
                                   text=True)
             if done.returncode != 0:
                 raise RuntimeError(f"schedule='native': {cxx} could not compile {SOURCE.name}:\n{done.stderr[-3000:]}")
