@@ -149,7 +149,8 @@ class Engine:
     the CPU default; arrays in "aos" order), "flat" (one thread per link/voxel/robot; the CUDA default; "soa") or
     "native" (the robots schedule's steps compiled by the host's C++ compiler, 16 items per vector instruction:
     ``native.py``; the f32 production path, Voxelyze semantics, a fixed dt, the flat floor; refused otherwise).
-    "auto" on the CPU is "native" where it runs the batch and a compiler built it, else "robots".
+    "auto" on the CPU is "native" where it runs the batch on an AVX-512 host and a compiler built it, else
+    "robots".
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
     block_dim: the robots schedule's lanes per robot (``schedules.make_kernels``); None = 1 on the CPU, on CUDA

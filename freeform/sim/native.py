@@ -9,7 +9,8 @@ memory (numpy arrays the CPU's kernels take in place: ``Engine._advance``).
 
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
-for every such batch when a compiler is found (``usable``), the robots schedule otherwise; ``schedule="native"``
+for every such batch on an AVX-512 host when a compiler is found (``usable``; built for AVX2 it is slower than
+Taichi's kernels), the robots schedule otherwise; ``schedule="native"``
 refuses anything else naming the setting (``unsupported``).
 
 The library is compiled on first use (g++, or ``$CXX``; ``-march=native``) into ``$FREEFORM_NATIVE_CACHE``
@@ -144,14 +145,24 @@ def available() -> bool:
     return True
 
 
+def faster_here() -> bool:
+    """Whether the native step is measured faster than Taichi's here: an AVX-512 host, built for it (its 16 lanes
+    are one instruction). Built for AVX2 (x86-64-v3, two instructions a lane group, gathers that cost more) it ran
+    1.8x *slower* than the robots schedule on one thread (docs/physics.md, "The native schedule")."""
+    from freeform.sim import runtime
+
+    return "AVX512F" in runtime.cpu_features() and (os.environ.get(ARCH_ENV_VAR) or "native") == "native"
+
+
 def usable(precision: str, switches: Any) -> bool:
     """Whether ``schedule="auto"`` takes the native step on the CPU for a batch of this ``precision`` and these
-    switches: it runs them (``unsupported``) and a compiler built it here (else the robots schedule, silently)."""
-    return unsupported(precision, switches) is None and available()
+    switches: it runs them (``unsupported``), it is faster here (``faster_here``) and a compiler built it (else the
+    robots schedule, silently)."""
+    return unsupported(precision, switches) is None and faster_here() and available()
 
 
 def advance(reals: np.ndarray, ints: np.ndarray, f64s: np.ndarray, n_steps: int, threads: int, switches: Any) -> int:
-    """``n_steps`` steps of every robot still stepping, in place on host copies of the engine's three buffers
+    """``n_steps`` steps of every robot still stepping, in place on the engine's three host buffers
     (``state.BUFFERS``: f32, i32, f64, C-contiguous), the robots shared among ``threads`` workers. Returns the
     item-steps that left the vector path (the branching updates': a measure of its coverage)."""
     for name, a, dtype in (("reals", reals, np.float32), ("ints", ints, np.int32), ("f64s", f64s, np.float64)):
