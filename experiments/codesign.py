@@ -179,13 +179,17 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids.numpy()}
 
 
+# a frozen controller's episodes (its fresh headings) are seeded apart from the evaluation episodes' (seed + 10_000)
+FROZEN_EPISODES_SEED = 20_000
+
+
 def warm_start_task(cfg: Any) -> Any:
     """The controller a co-design run started from (``control.controller_init``), frozen, as a task that scores
     designs by its mean command in its own episode, along the run's headings (fresh draws where they are random)."""
     from freeform.envs.tasks import ControlledLocomotionTask
 
     return ControlledLocomotionTask(str(cfg.control.controller_init), sim=cfg.sim, headings=cfg.control.headings,
-                                    seed=cfg.seed + 20_000)
+                                    seed=cfg.seed + FROZEN_EPISODES_SEED)
 
 
 def trained_for(control: Any) -> str:
@@ -215,10 +219,11 @@ def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tupl
     if not chosen:
         raise SystemExit(f"--adapted {run}: adapted to the designs of {adapted}, which are not among this "
                          f"comparison's ({', '.join(designs)})")
+    task = ControlledLocomotionTask(str(run), sim=cfg.sim, headings=cfg.control.headings,
+                                    seed=cfg.seed + FROZEN_EPISODES_SEED)
     rows = []
     for name in chosen:
         result, budget = designs[name]
-        task = ControlledLocomotionTask(str(run), sim=cfg.sim, headings=cfg.control.headings, seed=cfg.seed + 20_000)
         how = (f"adapted to them ({epochs} epochs on their stream)" if adapted is not None else
                f"trained {epochs} more epochs on untrained bodies")
         rows.append((f"  {name}, the controller {how}", {**result, "score": task.reward(

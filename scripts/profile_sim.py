@@ -164,11 +164,11 @@ def report(values: dict[str, float], unit: str, scale: float, args) -> None:
     vs, ls = values["voxel_steps"], values["link_steps"]
     step, lk, lv = values["step"], values["links"], values["links+voxels"]
     parts = {"link phase": lk, "voxel phase": lv - lk, "bookkeeping (robot phase)": step - lv}
-    from freeform.sim import runtime
+    from freeform.sim import native, runtime
 
-    target = f"native step for {os.environ['FREEFORM_NATIVE_ARCH']}" if args.schedule == "native" else "robots"
-    print(f"{target}: {args.bodies} design bodies, {args.precision}, {args.steps} steps after {args.warm}: {vs / args.steps:.0f} "
-          f"voxels, {ls / vs:.2f} links per voxel; {runtime.describe()}, fast-math "
+    target = f"native step for {native.target()}" if args.schedule == "native" else "robots"
+    print(f"{target}: {args.bodies} design bodies, {args.precision}, {args.steps} steps after {args.warm}: "
+          f"{vs / args.steps:.0f} voxels, {ls / vs:.2f} links per voxel; {runtime.describe()}, fast-math "
           f"{'on' if runtime.fast_math() else 'off'}, CPU {runtime.cpu_features()}")
     print(f"  {'whole step':28s} {step * scale / vs:9.1f} {unit} per voxel-step")
     for name, v in parts.items():

@@ -162,7 +162,7 @@ def test_a_build_for_another_instruction_set_agrees(tmp_path):
     import os
     import subprocess
 
-    script = ("import json, sys; sys.path.insert(0, sys.argv[1]); from dataclasses import replace\n"
+    script = ("import json, sys; sys.path.insert(0, sys.argv[1])\n"
               "from freeform.sim import SimConfig, Simulator, native\n"
               "from tests.test_native import design_bodies\n"
               "r = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule='native'), arch='cpu')"

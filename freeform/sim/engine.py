@@ -200,10 +200,9 @@ class Engine:
         host = {**initial.tables, "gp": initial.globals[:, None], "hf": grid[None, :],
                 "hdr": self.packing.header(self.counts)}
         self._buffers: dict[str, object] = {}
-        self._host = self.schedule == "native"  # (its state in host memory, where the C++ step and kernels meet)
         for buffer, names in BUFFERS.items():
             dtype = buffer_dtype(buffer, self.precision)
-            arr, length = self._arrays.buffer(buffer, dtype, self.packing.lengths[buffer], host=self._host)
+            arr, length = self._arrays.buffer(buffer, dtype, self.packing.lengths[buffer], host=self._host_memory)
             runtime.upload(arr, self.packing.image(buffer, {n: host[n] for n in names if n in host}, dtype, length))
             self._buffers[buffer] = arr
         # robots schedule: one worker per CPU thread
@@ -216,6 +215,12 @@ class Engine:
         self._commands, self._ramp = np.zeros(layout.num_voxels), 0.0  # the host's copies of VR.CMD and RT.RAMP
 
     # ------------------------------------------------------------------ host <-> device, one region at a time
+    @property
+    def _host_memory(self) -> bool:
+        """Whether the state buffers are host (numpy) arrays: the native schedule's, where the C++ step and the
+        CPU's kernels meet without copies."""
+        return self.schedule == "native"
+
     @property
     def current(self) -> bool:
         """Whether this engine still owns its device arrays (a later Engine of the same Simulator takes them)."""
@@ -557,7 +562,7 @@ class Engine:
         self.packing = self.packing.with_trace(frames, max(R, 1))
         dtype = buffer_dtype("f64s", self.precision)
         self._buffers["f64s"], _ = self._arrays.buffer("f64s", dtype, self.packing.lengths["f64s"], keep=True,
-                                                       host=self._host)
+                                                       host=self._host_memory)
         self.trace_steps = every
         self._upload("hdr", self.packing.header(self.counts, every))
         self._summarise(0)

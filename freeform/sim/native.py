@@ -10,8 +10,8 @@ memory (numpy arrays the CPU's kernels take in place: ``Engine._advance``).
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
 for every such batch on an AVX-512 host when a compiler is found (``usable``; built for AVX2 it is slower than
-Taichi's kernels), the robots schedule otherwise; ``schedule="native"``
-refuses anything else naming the setting (``unsupported``).
+Taichi's kernels), the robots schedule otherwise; ``schedule="native"`` refuses anything else naming the setting
+(``unsupported``).
 
 The library is compiled on first use (g++, or ``$CXX``; ``-march=native``) into ``$FREEFORM_NATIVE_CACHE``
 (default ``~/.cache/freeform/native``), one file per source, layout, flags, compiler and CPU, so a later process
@@ -45,9 +45,14 @@ COMPILER_ENV_VAR = "CXX"
 ARCH_ENV_VAR = "FREEFORM_NATIVE_ARCH"
 
 
+def target() -> str:
+    """The instruction set the step is built for: ``$FREEFORM_NATIVE_ARCH``, default "native" (this host's)."""
+    return os.environ.get(ARCH_ENV_VAR) or "native"
+
+
 def flags() -> tuple[str, ...]:
-    """The compiler's flags: ``FLAGS`` and the target (``$FREEFORM_NATIVE_ARCH``, default this host's)."""
-    arch = os.environ.get(ARCH_ENV_VAR) or "native"
+    """The compiler's flags: ``FLAGS`` and the target's ``-march``/``-mtune``."""
+    arch = target()
     return (*FLAGS, f"-march={arch}", f"-mtune={'generic' if arch.startswith('x86-64') else arch}")
 ENTRY_POINTS = ("advance", "links_scalar", "links_vector", "links_voxels_scalar", "links_voxels_vector")
 
@@ -151,7 +156,7 @@ def faster_here() -> bool:
     1.8x *slower* than the robots schedule on one thread (docs/physics.md, "The native schedule")."""
     from freeform.sim import runtime
 
-    return "AVX512F" in runtime.cpu_features() and (os.environ.get(ARCH_ENV_VAR) or "native") == "native"
+    return "AVX512F" in runtime.cpu_features() and target() == "native"
 
 
 def usable(precision: str, switches: Any) -> bool:
