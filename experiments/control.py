@@ -297,7 +297,8 @@ whose bands leave out the across-body spread), and ``out/run.json``.
                                    planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
     open_loop = along.mean(1)
     filled = obs[: m * n : n, env.filled_channel].flatten(1).sum(1)  # (the next episode's: the same bodies)
-    actuated = env.action_mask[: m * n : n].sum(1)
+    # (voxels, not action channels: a stroke's mask holds each muscle twice, once per (a, b))
+    actuated = obs[: m * n : n, env.channels.index("actuated")].flatten(1).sum(1)
     rows = []
     for i in range(m):
         mean, band = mean_band(returns[0, i])

@@ -213,3 +213,20 @@ def test_the_app_refuses_design_after_control_without_a_controller() -> None:
     cfg = compose("experiment=controlled_design_cpu", "~task.options.controller")
     with pytest.raises(ValueError, match="task.options.controller"):
         build_task(cfg, torch.device("cpu"))
+
+
+def test_bodies_csv_counts_actuated_voxels_not_a_strokes_action_channels(tmp_path) -> None:
+    """A stroke controller acts on two channels per muscle, (a, b); ``bodies.csv``'s ``actuated`` still counts the
+    muscles (the voxels counted by hand: 2, 2, 2), not 4, 4, 4."""
+    from dataclasses import replace
+
+    control = replace(SHORT, stroke_periods=1)
+    torch.manual_seed(0)
+    net = ContextConvController(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0,
+                                head="stroke")
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
+          "--eval-episodes", "1", "--out", str(tmp_path / "eval")])
+    rows = read_csv(tmp_path / "eval" / "bodies.csv")
+    assert [(int(r["voxels"]), int(r["actuated"])) for r in rows] == [(2, 2), (3, 2), (2, 2)]
