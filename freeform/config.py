@@ -145,6 +145,12 @@ class ControlRunConfig(ControlConfig):
     sampled as in training, instead of an untrained policy: the controller adapts to what a design policy builds
     (one round of alternating co-design, ``docs/codesign.md``). The run's design sizes must be this run's. None:
     untrained designs."""
+    teachers: int = 0
+    """A bank of per-body controllers (``freeform.agents.teachers``, issue 56): M >= 1 trains M controllers at
+    once, one per body, each with its own weights, all starting from the same controller (``controller_init`` where
+    given): the first M bodies of ``bodies`` (``untrained_designs``, a ``.npy`` or a record; not ``population`` or
+    ``codesign``), environment i driving body i mod M (``env.num_envs`` a multiple of M). 0: one controller for
+    every body."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -202,6 +208,10 @@ class ControlRunConfig(ControlConfig):
                 "an integer >= 0 (0: a fixed pool)", self.refresh_every)
         require(isinstance(self.copies, int) and self.copies >= 1 and (self.copies == 1 or self.bodies == "population"),
                 f"{key}.copies", "an integer >= 1 (> 1 with bodies=population)", self.copies)
+        require(isinstance(self.teachers, int) and self.teachers >= 0
+                and (self.teachers == 0 or self.bodies not in ("population", "codesign")), f"{key}.teachers",
+                "an integer >= 0 (> 0: one controller per body, on fixed bodies: not population or codesign)",
+                self.teachers)
         require(self.controller in CONTROLLERS, f"{key}.controller", f"one of {list(CONTROLLERS)}", self.controller)
         require(self.hidden is None or self.hidden >= 1, f"{key}.hidden", "None or an integer >= 1", self.hidden)
         allowed = head_rule(self.controller, self.head, strokes=self.stroke_periods >= 1)
@@ -323,6 +333,8 @@ def _validate_control(cfg: TrainConfig) -> None:
     require(cfg.algo.name == "ppo", "algo.name", "ppo in a control run (a controller is trained by PPO)", cfg.algo.name)
     require(not cfg.env.dense_every, "env.dense_every", "0 in a control run (design rewards have no design here)",
             cfg.env.dense_every)
+    require(not control.teachers or cfg.env.num_envs % control.teachers == 0, "env.num_envs",
+            f"a multiple of control.teachers = {control.teachers} (environment i drives body i mod M)", cfg.env.num_envs)
     steps = episode_steps(cfg)
     rollout = cfg.agent.rollout_steps
     what = (f"{steps} steps ({cfg.env.steps} design + {control.steps} control)" if control.codesign

@@ -154,7 +154,7 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
     elif source == "untrained_designs":  # (the rare empty body is dropped, and the others repeat in its place)
         from freeform.evolve import untrained_design_bodies
 
-        grids = untrained_design_bodies(n, *sizes)
+        grids = untrained_design_bodies(max(n, control.teachers + control.teachers // 8 + 1), *sizes)
         grids = grids[(grids.flatten(1) > 0).any(dim=1)]
     else:
         from pathlib import Path
@@ -181,6 +181,11 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
         empty = (~(grids.flatten(1) > 0).any(dim=1)).nonzero().flatten().tolist()
         if empty:
             raise ValueError(f"control.bodies: {source!r} has empty grids (no voxel) at {empty[:5]}")
+    if control.teachers:  # (one teacher per body: the first M, environment i driving body i mod M)
+        if len(grids) < control.teachers:
+            raise ValueError(f"control.teachers={control.teachers}: control.bodies={source!r} gives only "
+                             f"{len(grids)} bodies")
+        grids = grids[: control.teachers]
     return grids[torch.arange(n) % len(grids)].contiguous()
 
 
@@ -209,8 +214,13 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
                                     sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
                                     box=box)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
-    return ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
-                      first_env=envs[0], box=box)
+    env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
+                     first_env=envs[0], box=box)
+    if cfg.control.teachers:  # (each environment's observation names its body's teacher)
+        from freeform.agents.teachers import TeacherIndex
+
+        env = TeacherIndex(env, torch.arange(envs[0], envs[1]) % cfg.control.teachers)
+    return env
 
 
 def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None = None) -> tuple[VecEnv, Learner]:
@@ -279,12 +289,16 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std, controller=control.controller,
                                                  head=control.head, wave=control.hand_set_wave, trunk=trunk)
-        else:  # (freeform.agents.controllers.CONTROLLERS)
-            policy = build_controller(control.controller, env, width, control.init_log_std, control.head,
-                                      control.hand_set_wave)
+        else:  # (freeform.agents.controllers.CONTROLLERS; a bank's teachers are built for the env it wraps)
+            policy = build_controller(control.controller, env.env if control.teachers else env, width,
+                                      control.init_log_std, control.head, control.hand_set_wave)
         if control.controller_init is not None:
             load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
                             control.controller_init)
+        if control.teachers:
+            from freeform.agents.teachers import TeacherBank
+
+            policy = TeacherBank.from_template(policy, control.teachers)
         # (a control run's evaluation: this rank's bodies again, not searched again)
         own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
         eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (

@@ -262,9 +262,10 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
     from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
     from freeform.agents.observation_groups import GroupedMLPActorCritic
     from freeform.agents.recurrent import RecurrentActorCritic
+    from freeform.agents.teachers import TeacherBank
 
     return (VoxelActorCritic, MLPActorCritic, CodesignActorCritic, GroupedMLPActorCritic, RecurrentActorCritic,
-            PrivilegedCritic, *CONTROLLERS.values())
+            PrivilegedCritic, TeacherBank, *CONTROLLERS.values())
 
 
 def moved_policies() -> dict[str, type[nn.Module]]:

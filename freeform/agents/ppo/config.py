@@ -13,7 +13,7 @@ import torch
 
 from freeform.validation import is_int, is_number, require
 
-ADVANTAGE_NORMS = ("batch", "minibatch", "none")
+ADVANTAGE_NORMS = ("batch", "minibatch", "group", "none")
 VALUE_CLIP_MODES = ("squared", "ppo2")
 LR_SCHEDULES = ("constant", "linear")
 
@@ -59,7 +59,9 @@ class PPOConfig:
     device: str | None = None
     """Device of the policy and the rollout storage; None = the env's device."""
     advantage_norm: str = "batch"
-    """"batch": standardise advantages once over the train batch (paper); "minibatch": per minibatch; "none"."""
+    """"batch": standardise advantages once over the train batch (paper); "minibatch": per minibatch; "group": each
+    group of environments (``env.reward_groups``, e.g. a teacher bank's bodies) by its own statistics over the
+    batch, so that a body whose returns spread widely does not set every other's step size; "none"."""
     value_clip: str = "squared"
     """"squared": min((V − G)², vf_clip_param) (RLlib); "ppo2": max of the plain and the clipped-V squared error."""
     lr_schedule: str = "constant"

@@ -114,6 +114,19 @@ def standardize(x: torch.Tensor, min_std: float = 1e-4) -> torch.Tensor:
     return (x - x.mean()) / x.std(correction=0).clamp_min(min_std)
 
 
+def standardize_groups(x: torch.Tensor, groups: torch.Tensor, min_std: float = 1e-4) -> torch.Tensor:
+    """Each group's entries standardised by their own mean and population std (:func:`standardize` per group):
+    ``x [T, N]``, ``groups [N]`` int64 in ``0 … G−1`` naming each column's group (a group pools its columns over
+    every row)."""
+    g = groups.expand_as(x).reshape(-1)
+    flat = x.reshape(-1)
+    count = torch.bincount(g).to(x.dtype)
+    mean = torch.zeros_like(count).index_add_(0, g, flat) / count
+    centred = flat - mean[g]
+    std = (torch.zeros_like(count).index_add_(0, g, centred * centred) / count).sqrt()
+    return (centred / std.clamp_min(min_std)[g]).reshape(x.shape)
+
+
 def clipped_surrogate(ratio: torch.Tensor, advantages: torch.Tensor, clip_param: float) -> torch.Tensor:
     """PPO's per-sample objective (to maximise): min(A·ρ, A·clip(ρ, 1 − ε, 1 + ε))."""
     return torch.minimum(advantages * ratio, advantages * ratio.clamp(1.0 - clip_param, 1.0 + clip_param))

@@ -108,8 +108,10 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
             raise ValueError(f"this env observes the groups {GROUPS}, of which the actor may read only 'policy': "
                              f"{type(policy).__name__} must run its actor apart from its critic (action_params(obs) "
                              "and value(obs), as MLPActorCritic.for_env(env)'s GroupedMLPActorCritic does)")
-        self.reward_groups = _reward_groups(env, self.device) if config.group_baseline else None
-        """``group_baseline``: each env's group (``env.reward_groups``), int64 ``[N]`` on the policy's device."""
+        grouped = config.group_baseline or config.advantage_norm == "group"
+        self.reward_groups = _reward_groups(env, self.device) if grouped else None
+        """``group_baseline``, ``advantage_norm="group"``: each env's group (``env.reward_groups``), int64 ``[N]``
+        on the policy's device."""
         self.flat = FlatParameters(self.policy.parameters())
         """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
         clipping and zeroing are one operation each (``flat_params.py``)."""

@@ -23,6 +23,7 @@ from freeform.agents.ppo.losses import (
     explained_variance,
     sequence_minibatch_loss,
     standardize,
+    standardize_groups,
     update_kl_coeff,
 )
 from freeform.agents.ppo.rollout import Observation, Rollout, minibatch_samples, obs_map
@@ -121,7 +122,13 @@ class MinibatchUpdate:
         obs = obs_map(lambda x: x.reshape(size, *x.shape[2:]), buf.obs)
         samples = minibatch_samples(buf.actions.reshape(size, -1), [p.reshape(size, -1) for p in buf.params],
                                     buf.logprobs.reshape(-1), buf.values.reshape(-1), buf.returns.reshape(-1))
-        advantages = dp.gather_envs(buf.advantages, dim=1).reshape(-1)
+        own = buf.advantages
+        if self.config.advantage_norm == "group":  # (a group's environments lie on one rank: its own statistics)
+            if not bool(buf.valid.all()):
+                raise ValueError("agent.advantage_norm=group: an env that autoresets (samples outside the loss) is "
+                                 "not supported; use batch or minibatch")
+            own = standardize_groups(own, self.reward_groups)
+        advantages = dp.gather_envs(own, dim=1).reshape(-1)
         # Samples where an env only reset (Gymnasium's next-step autoreset) are no transitions: they are left out of
         # the minibatches and the batch statistics. ``kept`` = the global indices of the others (None: all of them).
         valid = dp.gather_envs(buf.valid, dim=1).reshape(-1)

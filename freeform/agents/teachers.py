@@ -1,0 +1,216 @@
+"""A bank of teachers: M controllers of one kind, each with its own weights, trained and run as one batch (issue 56).
+
+Per-body control learns where one controller for many bodies does not (``docs/control.md``): a body's own PPO
+controller moves it several times what the population controller does. The bank trains one such controller per
+body in one process, and is what a student is distilled from (``freeform.agents.distill``).
+
+The weights are the template controller's, stacked: parameter ``p`` of shape ``S`` becomes ``[M, *S]``, so that
+the optimiser's per-element moments are each teacher's own and the loss's sum over samples splits into each
+teacher's loss. A forward pass sorts its samples by teacher, pads each teacher's block to the largest one, and runs
+the template once under ``torch.func.vmap`` over the teachers (a convolution of M weight sets becomes one grouped
+convolution): no Python loop over teachers, and a teacher's outputs are what its weights give alone (the batch
+invariance test). The observation names each sample's teacher: the group ``"teacher"`` (int64 ``[N]``), which
+:class:`TeacherIndex` adds to any ``VecEnv``'s observation; the other groups are the template's input
+(``"policy"`` alone, or ``"policy"`` and ``"critic"`` for a controller with a privileged critic).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+import torch.nn as nn
+from torch.func import functional_call, stack_module_state, vmap
+
+from freeform.agents.observation_groups import POLICY
+from freeform.agents.recurrent import RecurrentPolicy
+
+LOOPED_KINDS = ("attention",)
+"""Controllers whose forward pass depends on the data's sizes (the attention controller's token count is its
+bodies' largest voxel count, read with ``.item()``), which ``vmap`` cannot batch: the bank runs their teachers one
+after the other on their own samples."""
+TEACHER = "teacher"
+"""The observation group naming each sample's teacher: int64 ``[N]`` in ``0 … M−1``."""
+
+
+def _key(name: str) -> str:
+    return name.replace(".", "__")
+
+
+class TeacherBank(nn.Module):
+    """``teachers`` controllers of kind ``kind`` (a key of ``freeform.agents.controllers.CONTROLLERS``, built from
+    ``controller``, its ``init_kwargs``; with ``critic_dim`` each inside a ``PrivilegedCritic``), each its own
+    weights. ``forward({"teacher": [N] int64, "policy": [N, ...], ...})`` returns what each sample's teacher returns
+    on it: ``(*params [N, ...], value [N])``. :meth:`from_template` starts every teacher from one controller."""
+
+    def __init__(self, teachers: int, kind: str, controller: dict[str, Any], critic_dim: int | None = None) -> None:
+        super().__init__()
+        from freeform.agents.controllers import CONTROLLERS
+
+        if not isinstance(teachers, int) or teachers < 1:
+            raise ValueError(f"teachers must be a positive int, got {teachers!r}")
+        if kind not in CONTROLLERS:
+            raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
+        if issubclass(CONTROLLERS[kind], RecurrentPolicy):
+            raise ValueError(f"controller {kind!r} is recurrent; a teacher bank holds feed-forward controllers")
+        self.teachers = teachers
+        self.init_kwargs = {"teachers": teachers, "kind": kind, "controller": dict(controller),
+                            "critic_dim": critic_dim}
+        self.template = self._new_controller()
+        stacked, _ = stack_module_state([self.template] * teachers)
+        self.stacked = nn.ParameterDict({_key(k): nn.Parameter(v.detach().clone()) for k, v in stacked.items()})
+        self._names = {_key(k): k for k in stacked}
+        for name, p in list(self.template.named_parameters()):  # (the template lends its structure; the weights
+            owner, _, leaf = name.rpartition(".")                # are the bank's: its own become constants)
+            module = self.template.get_submodule(owner)
+            delattr(module, leaf)
+            module.register_buffer(leaf, p.detach(), persistent=False)
+        self.distribution = getattr(self.template, "distribution", None)
+        self.fits_any_box = getattr(self.template, "fits_any_box", False)
+        self.padding_invariant = getattr(self.template, "padding_invariant", False)
+
+    def _new_controller(self) -> nn.Module:
+        """A fresh controller of the teachers' kind (its own weights, untrained)."""
+        from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic
+
+        k = self.init_kwargs
+        if k["critic_dim"] is None:
+            return CONTROLLERS[k["kind"]](**k["controller"])
+        return PrivilegedCritic(k["kind"], k["controller"], k["critic_dim"])
+
+    @classmethod
+    def from_template(cls, template: nn.Module, teachers: int) -> TeacherBank:
+        """A bank whose every teacher starts as ``template`` (a registered controller, or a ``PrivilegedCritic``)."""
+        from freeform.agents.controllers import PrivilegedCritic, controller_kind
+
+        if isinstance(template, PrivilegedCritic):
+            kwargs = template.init_kwargs
+            bank = cls(teachers, kwargs["kind"], kwargs["controller"], kwargs["critic_dim"])
+        else:
+            bank = cls(teachers, controller_kind(template), template.init_kwargs)
+        state = template.state_dict()
+        for m in range(teachers):
+            bank.load_member(m, state)
+        return bank
+
+    def member_state(self, teacher: int) -> dict[str, torch.Tensor]:
+        """Teacher ``teacher``'s weights as the template's ``state_dict`` (buffers the template's)."""
+        if not 0 <= teacher < self.teachers:
+            raise ValueError(f"teacher must be in 0 … {self.teachers - 1}, got {teacher}")
+        return {self._names[k]: v[teacher].detach().clone() for k, v in self.stacked.items()}
+
+    def member(self, teacher: int) -> nn.Module:
+        """A controller (the template's class) holding teacher ``teacher``'s weights: runs alone what the bank runs
+        for that teacher."""
+        alone = self._new_controller().to(next(iter(self.stacked.values())).device)
+        alone.load_state_dict(self.member_state(teacher))
+        return alone
+
+    def load_member(self, teacher: int, state: Mapping[str, torch.Tensor]) -> None:
+        """Set teacher ``teacher``'s weights from a template ``state_dict`` (e.g. a body's controller trained
+        alone)."""
+        with torch.no_grad():
+            for k, p in self.stacked.items():
+                p[teacher].copy_(state[self._names[k]])
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """``obs``: the groups, ``"teacher"`` int64 ``[N]`` among them → each sample's teacher's outputs
+        ``(*params, value)``, each ``[N, ...]``."""
+        if not isinstance(obs, Mapping) or TEACHER not in obs:
+            raise ValueError(f"a TeacherBank reads the observation group {TEACHER!r} (each sample's teacher: "
+                             "TeacherIndex adds it)")
+        teacher = obs[TEACHER].long().reshape(-1)
+        inputs = {k: v for k, v in obs.items() if k != TEACHER}
+        if self.init_kwargs["kind"] in LOOPED_KINDS:
+            return self._looped(teacher, inputs)
+        slots, valid = self._slots(teacher)
+        blocks = {k: v[slots] for k, v in inputs.items()}  # [M, W, ...]
+        x = blocks[POLICY] if set(blocks) == {POLICY} else blocks
+        params = {self._names[k]: v for k, v in self.stacked.items()}
+
+        def one(p: dict[str, torch.Tensor], block: Any) -> tuple[torch.Tensor, ...]:
+            return tuple(functional_call(self.template, p, (block,)))
+
+        outs = vmap(one)(params, x)
+        back = torch.argsort(slots[valid])  # (sample i sits at row back[i] of the valid slots)
+        return tuple(out[valid][back] for out in outs)
+
+    def _looped(self, teacher: torch.Tensor, inputs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """:data:`LOOPED_KINDS`: each teacher that has samples runs on them alone; the outputs back in order."""
+        parts, rows = [], []
+        for m in torch.unique(teacher).tolist():
+            idx = (teacher == m).nonzero().flatten()
+            part = {k: v[idx] for k, v in inputs.items()}
+            params = {self._names[k]: v[m] for k, v in self.stacked.items()}
+            parts.append(functional_call(self.template, params, (part[POLICY] if set(part) == {POLICY} else part,)))
+            rows.append(idx)
+        back = torch.argsort(torch.cat(rows))
+        return tuple(torch.cat(out)[back] for out in zip(*parts, strict=True))
+
+    def _slots(self, teacher: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``slots [M, W]``: the samples of each teacher in order, each block padded to the largest one (W samples)
+        with the teacher's first sample (or sample 0 for a teacher with none: those rows are computed, then
+        dropped); ``valid [M, W]``: the slots that are samples of their own."""
+        n = teacher.numel()
+        if n and (int(teacher.min()) < 0 or int(teacher.max()) >= self.teachers):
+            raise ValueError(f"teacher indices must be in 0 … {self.teachers - 1}, got {int(teacher.min())} … "
+                             f"{int(teacher.max())}")
+        order = torch.argsort(teacher, stable=True)
+        counts = torch.bincount(teacher, minlength=self.teachers)
+        width = max(1, int(counts.max()))
+        starts = torch.cumsum(counts, 0) - counts
+        j = torch.arange(width, device=teacher.device)
+        valid = j[None, :] < counts[:, None]
+        pos = starts[:, None] + torch.minimum(j[None, :], (counts[:, None] - 1).clamp_min(0))
+        return order[pos.clamp(0, max(n - 1, 0))], valid
+
+
+class TeacherIndex:
+    """A ``VecEnv`` whose observation also names each environment's teacher: ``{"teacher": teacher [N] int64,
+    "policy": the env's observation}`` (an env observing groups keeps them, and gains ``"teacher"``).
+
+    env: any ``VecEnv``; teacher: int64 ``[num_envs]`` in ``0 … M−1`` (a control env of M bodies repeated in turn:
+    ``arange(N) % M``). ``reward_groups`` is ``teacher``, so that PPO's ``group_baseline`` and ``advantage_norm=
+    "group"`` judge each teacher's samples among its own; everything else is the env's.
+    """
+
+    def __init__(self, env: Any, teacher: torch.Tensor) -> None:
+        teacher = torch.as_tensor(teacher, dtype=torch.long).reshape(-1)
+        if teacher.numel() != env.num_envs:
+            raise ValueError(f"teacher must name one teacher per environment ({env.num_envs}), got {teacher.numel()}")
+        if teacher.numel() and int(teacher.min()) < 0:
+            raise ValueError("teacher indices must be >= 0")
+        self.env = env
+        self.teacher = teacher.to(env.device)
+        self.reward_groups = self.teacher
+        self.num_envs, self.action_dim, self.device = env.num_envs, env.action_dim, env.device
+        shape = env.observation_shape
+        groups = dict(shape) if isinstance(shape, Mapping) else {POLICY: tuple(shape)}
+        self.observation_shape = {TEACHER: (), **groups}
+
+    def __getattr__(self, name: str) -> Any:  # (everything else is the env's: its bodies, box, distribution ...)
+        if name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def observe(self, obs: Any) -> dict[str, torch.Tensor]:
+        """The env's observation with the ``"teacher"`` group."""
+        groups = dict(obs) if isinstance(obs, Mapping) else {POLICY: obs}
+        return {TEACHER: self.teacher.clone(), **groups}
+
+    def reset(self, seed: int | None = None) -> dict[str, torch.Tensor]:
+        return self.observe(self.env.reset(seed))
+
+    def record(self, act: Any, robot: int = 0) -> Any:
+        """The env's ``record`` (a control env's episode for looking at) under ``act``, which reads the groups."""
+        return self.env.record(lambda obs: act(self.observe(obs)), robot)
+
+    def step(self, actions: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, dict[str, Any]]:
+        obs, reward, done, info = self.env.step(actions)
+        if "final_obs" in info:
+            info = {**info, "final_obs": self.observe(info["final_obs"])}
+        return self.observe(obs), reward, done, info
+
+
+__all__ = ["TEACHER", "TeacherBank", "TeacherIndex"]

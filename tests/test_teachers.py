@@ -1,0 +1,146 @@
+"""The teacher bank (issue 56): M controllers with their own weights run as one batch give what each gives alone,
+learn apart, and train through the app (``control.teachers``) with exact resume."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from helpers import straight_and_resumed
+from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
+
+from freeform.agents.controllers import ContextConvController, VoxelAttentionController
+from freeform.agents.ppo.losses import standardize, standardize_groups
+from freeform.agents.teachers import TEACHER, TeacherBank, TeacherIndex
+from freeform.checkpoint import load_checkpoint
+from freeform.config import compose
+from freeform.envs.control import OBS_CHANNELS
+
+BOX = (3, 2, 2)
+
+
+def observations(n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` observations of bodies in BOX: random channels, the filled and actuated cells random (>= 1 filled)."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(n, len(OBS_CHANNELS), *BOX, generator=g)
+    filled = (torch.rand(n, *BOX, generator=g) < 0.6).float()
+    filled[:, 0, 0, 0] = 1.0
+    obs[:, OBS_CHANNELS.index("filled")] = filled
+    obs[:, OBS_CHANNELS.index("actuated")] = filled * (torch.rand(n, *BOX, generator=g) < 0.5).float()
+    return obs * filled[:, None]
+
+
+def perturbed_bank(template: torch.nn.Module, teachers: int) -> TeacherBank:
+    bank = TeacherBank.from_template(template, teachers)
+    with torch.no_grad():
+        for p in bank.stacked.values():
+            p.add_(0.3 * torch.randn_like(p))
+    return bank
+
+
+@pytest.mark.parametrize("kind", ["context", "attention"])
+def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> None:
+    """Batch invariance: 4 teachers with different weights, 13 samples in a shuffled order (teacher 2 has none),
+    each sample's outputs equal its teacher's weights run alone on its samples (float rounding apart)."""
+    torch.manual_seed(0)
+    cls = ContextConvController if kind == "context" else VoxelAttentionController
+    template = cls(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=8, log_std=-1.0)
+    bank = perturbed_bank(template, 4)
+    teacher = torch.tensor([3, 0, 1, 1, 3, 3, 0, 0, 1, 3, 3, 0, 1])
+    obs = observations(len(teacher))
+    outs = bank({TEACHER: teacher, "policy": obs})
+    assert len(outs) == 4 and outs[0].shape == (13, int(np.prod(BOX)))
+    for m in (0, 1, 3):
+        alone = bank.member(m)(obs[teacher == m])
+        for a, b in zip(outs, alone, strict=True):
+            torch.testing.assert_close(a[teacher == m], b, rtol=1e-5, atol=1e-5)
+    # and the members differ (the check above could not pass by every teacher being one)
+    assert not torch.allclose(bank.member(0)(obs)[0], bank.member(1)(obs)[0])
+
+
+def test_a_teachers_loss_moves_its_own_weights_only() -> None:
+    torch.manual_seed(1)
+    template = ContextConvController(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=4)
+    bank = perturbed_bank(template, 3)
+    teacher = torch.tensor([0, 1, 2, 1, 0, 2])
+    mean, log_std, _, value = bank({TEACHER: teacher, "policy": observations(6)})
+    ((mean[teacher == 1] ** 2).sum() + value[teacher == 1].sum()).backward()
+    for name, p in bank.stacked.items():
+        if p.grad is None:
+            continue
+        assert p.grad[0].abs().max() == 0 and p.grad[2].abs().max() == 0, name
+    assert any(p.grad is not None and p.grad[1].abs().max() > 0 for p in bank.stacked.values())
+    assert all(not p.requires_grad for p in bank.template.buffers())
+    assert {n for n, _ in bank.named_parameters()} == {f"stacked.{k}" for k in bank.stacked}
+
+
+def test_the_bank_refuses_an_observation_without_teachers_or_out_of_range() -> None:
+    template = ContextConvController(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=4)
+    bank = TeacherBank.from_template(template, 2)
+    with pytest.raises(ValueError, match="teacher"):
+        bank(observations(2))
+    with pytest.raises(ValueError, match=r"0 … 1"):
+        bank({TEACHER: torch.tensor([0, 2]), "policy": observations(2)})
+
+
+def test_standardize_groups_is_standardize_within_each_group() -> None:
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(5, 6, generator=g) * torch.tensor([1.0, 10.0, 1.0, 10.0, 100.0, 100.0])
+    groups = torch.tensor([0, 1, 0, 1, 2, 2])
+    out = standardize_groups(x, groups)
+    for k in range(3):
+        cols = (groups == k).nonzero().flatten()
+        torch.testing.assert_close(out[:, cols].reshape(-1), standardize(x[:, cols].reshape(-1)))
+
+
+class _Counter:
+    """A two-environment VecEnv whose observation is the step count (and the last episode's at its end)."""
+
+    num_envs, observation_shape, action_dim, device = 2, (1,), 1, torch.device("cpu")
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        self.t = 0
+        return torch.zeros(2, 1)
+
+    def step(self, actions: torch.Tensor):  # noqa: ANN201
+        self.t += 1
+        done = torch.full((2,), self.t % 2 == 0)
+        return torch.full((2, 1), float(self.t)), torch.ones(2), done, {"final_obs": torch.full((2, 1), -1.0)}
+
+
+def test_teacher_index_adds_the_group_to_observations_and_final_observations() -> None:
+    env = TeacherIndex(_Counter(), torch.tensor([1, 0]))
+    assert env.observation_shape == {TEACHER: (), "policy": (1,)} and env.reward_groups.tolist() == [1, 0]
+    obs = env.reset()
+    assert obs[TEACHER].tolist() == [1, 0] and obs["policy"].shape == (2, 1)
+    obs, _, _, info = env.step(torch.zeros(2, 1))
+    assert info["final_obs"][TEACHER].tolist() == [1, 0] and info["final_obs"]["policy"].tolist() == [[-1.0]] * 2
+    with pytest.raises(ValueError, match="one teacher per environment"):
+        TeacherIndex(_Counter(), torch.tensor([0, 1, 2]))
+
+
+def test_the_app_trains_a_bank_of_teachers_and_resumes_it_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
+    """control.teachers=2 on the two tiny bodies (4 environments: body i mod 2, two copies each, leave-one-out
+    baseline, advantages standardised per body): two epochs equal one plus a resumed one; the checkpoint names the
+    bank, and the two teachers, started alike, have learnt apart."""
+    overrides = ("control.teachers=2", "control.controller=context", "seed=2", "agent.group_baseline=true",
+                 "agent.advantage_norm=group", "control.headings=any")
+    straight_and_resumed(compose(*tiny_control(bodies, *overrides)), tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    assert a["policy_class"].endswith(":TeacherBank") and a["policy_kwargs"]["teachers"] == 2
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    actor = a["ppo"]["policy"]["stacked.actor__weight"]
+    assert not torch.equal(actor[0], actor[1])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("control.teachers=3", "env.num_envs"),
+    ("control.bodies=population", "control.teachers"),
+])
+def test_a_bad_bank_is_refused_naming_the_key(bodies: Path, override: str, message: str) -> None:  # noqa: F811
+    with pytest.raises(ValueError, match=message):
+        compose(*tiny_control(bodies, "control.teachers=2", override))
