@@ -330,7 +330,14 @@ def _validate_control(cfg: TrainConfig) -> None:
     control = cfg.control
     assert control is not None
     control.validate("control")
-    require(cfg.algo.name == "ppo", "algo.name", "ppo in a control run (a controller is trained by PPO)", cfg.algo.name)
+    require(cfg.algo.name in ("ppo", "distill"), "algo.name",
+            "ppo or distill in a control run (a controller is trained by PPO, or distilled from teachers)", cfg.algo.name)
+    require(cfg.algo.name != "distill" or control.teachers > 0, "control.teachers",
+            "the teacher run's M with algo.name=distill (environment i is taught by teacher i mod M)", control.teachers)
+    if cfg.algo.name == "distill":
+        from freeform.agents.distill import DistillConfig
+
+        DistillConfig.from_algo(cfg.algo).validate("algo")
     require(not cfg.env.dense_every, "env.dense_every", "0 in a control run (design rewards have no design here)",
             cfg.env.dense_every)
     require(not control.teachers or cfg.env.num_envs % control.teachers == 0, "env.num_envs",

@@ -195,7 +195,7 @@ def test_two_generations_equal_one_plus_resume_one_bit_for_bit(algo: str, tmp_pa
 def test_bad_algo_config_fails_naming_the_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     bad = {
-        "algo.name=nes": r"algo\.name must be one of \['ppo', 'ga', 'cmaes', 'grid_ga'\], got 'nes'",
+        "algo.name=nes": r"algo\.name must be one of \['ppo', 'ga', 'cmaes', 'grid_ga', 'distill'\], got 'nes'",
         "algo.mutation_rate=1.5": r"algo\.mutation_rate must be a probability in \[0, 1\], got 1\.5",
         "algo.elite=6": r"algo\.elite must be an integer in \[0, env\.num_envs - 1 = 5\], got 6",
         "algo.tournament=0": r"algo\.tournament must be an integer >= 1, got 0",

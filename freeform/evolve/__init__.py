@@ -35,7 +35,8 @@ def build_evolution(algo: AlgoConfig, env: Any, seed: int) -> Evolution:
         optimizer = GridGA(n, steps, dim, env.materials, lambda actions: design_grids(env, actions), elite=algo.elite,
                            tournament=algo.tournament, mutation_voxels=algo.mutation_voxels, seed=seed)
     else:
-        raise ValueError(f"algo.name must be one of {[a for a in ALGORITHMS if a != 'ppo']} here, got {algo.name!r}")
+        raise ValueError(f"algo.name must be one of {[a for a in ALGORITHMS if a not in ('ppo', 'distill')]} here, "
+                         f"got {algo.name!r}")
     return Evolution(env, optimizer, algo.name)
 
 

@@ -2,7 +2,8 @@
 
 ``algo.name``: ``ppo`` (the default: the policy of ``freeform.agents``, configured by the ``agent`` section),
 ``ga`` (a genetic algorithm over the T design actions), ``cmaes`` (CMA-ES over the same sequences, through the
-``cmaes`` library) or ``grid_ga`` (a genetic algorithm over voxel grids, the classic evosoro-style baseline). The
+``cmaes`` library) or ``grid_ga`` (a genetic algorithm over voxel grids, the classic evosoro-style baseline); in a
+control run, ``distill`` (DAgger from a bank of per-body teachers into one controller, ``freeform.agents.distill``). The
 population of every evolutionary optimiser is ``env.num_envs`` designs, evaluated as one batch: a generation costs
 what one PPO epoch costs in scored designs (one per environment).
 """
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 
 from freeform.validation import is_int, is_number, require
 
-ALGORITHMS = ("ppo", "ga", "cmaes", "grid_ga")
+ALGORITHMS = ("ppo", "ga", "cmaes", "grid_ga", "distill")
 """The built-in values of ``algo.name``."""
 
 CMA_VARIANTS = ("sep", "full")
@@ -26,7 +27,7 @@ class AlgoConfig:
     ``ppo``, whose settings are the ``agent`` section)."""
 
     name: str = "ppo"
-    """``ppo`` | ``ga`` | ``cmaes`` | ``grid_ga``."""
+    """``ppo`` | ``ga`` | ``cmaes`` | ``grid_ga`` | ``distill``."""
     elite: int = 2
     """ga, grid_ga: the best designs of a generation copied unchanged into the next (re-scored with it)."""
     tournament: int = 3
@@ -41,6 +42,18 @@ class AlgoConfig:
     """cmaes: initial step size; the search starts at mean 0, so generation 0 samples N(0, σ²I) like the others."""
     variant: str = "sep"
     """cmaes: ``sep`` (diagonal covariance, linear in T·(3+k): 500 dims at the paper's volume size) or ``full``."""
+    teacher: str | None = None
+    """distill (``freeform.agents.distill``): the teacher run's directory or checkpoint (a control run with
+    ``control.teachers`` = M, on this run's bodies and episode settings), whose teacher i mod M labels environment
+    i's observations."""
+    loss: str = "kl"
+    """distill: ``kl`` (KL(teacher ‖ student) of the action distributions) or ``mse`` (the means' squared error)."""
+    beta: float = 1.0
+    """distill: round 0's probability that a step takes the teacher's action instead of the student's."""
+    beta_decay: float = 0.5
+    """distill: β of round r = beta · beta_decay^r."""
+    buffer: int = 4
+    """distill: rounds (epochs) of labelled observations the dataset aggregates."""
 
     def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
@@ -58,6 +71,9 @@ class AlgoConfig:
         require(is_int(self.mutation_voxels, 1), f"{key}.mutation_voxels", "an integer >= 1", self.mutation_voxels)
         require(is_number(self.sigma) and self.sigma > 0, f"{key}.sigma", "> 0", self.sigma)
         require(self.variant in CMA_VARIANTS, f"{key}.variant", f"one of {list(CMA_VARIANTS)}", self.variant)
+        require(self.name != "distill" or (isinstance(self.teacher, str) and self.teacher != ""), f"{key}.teacher",
+                "a teacher run's directory or checkpoint with algo.name=distill (train one with control.teachers=M)",
+                self.teacher)
         if self.name == "cmaes" and num_envs is not None:
             require(num_envs >= 2, "env.num_envs", "an integer >= 2 with algo.name=cmaes (the population)", num_envs)
 

@@ -315,6 +315,49 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
     return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
 
+@register_learner("distill")
+def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
+    """DAgger from the teacher run ``algo.teacher`` (a bank of per-body controllers on this run's bodies) into the
+    controller ``control.controller`` / ``control.head`` (``freeform.agents.distill``)."""
+    from freeform.agents import build_controller
+    from freeform.agents.distill import BankTeacher, Distillation, DistillConfig
+
+    control = cfg.control
+    assert control is not None and control.teachers
+    bank = teacher_bank(cfg, device)
+    width = control.hidden if control.hidden is not None else cfg.agent.hidden
+    student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
+                               control.hand_set_wave)
+    if control.controller_init is not None:
+        load_controller(student, control.controller_init)
+    return Distillation(env.env, student, BankTeacher(bank, env.teacher), ppo_config(cfg, device=str(device)),
+                        DistillConfig.from_algo(cfg.algo), first_env=envs[0], total_envs=cfg.env.num_envs)
+
+
+def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
+    """``algo.teacher``'s bank of per-body controllers, checked against this run: the same bodies, the same number
+    of teachers and the same episode settings (each field that differs named)."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import from_container
+
+    source = Path(str(cfg.algo.teacher))
+    path = source / "checkpoints" / "last.pt" if source.is_dir() else source
+    if not path.is_file():
+        raise ValueError(f"algo.teacher={source}: no such teacher run or checkpoint ({path} is not a file)")
+    payload = load_checkpoint(path)
+    bank = bank_from_checkpoint(payload, str(source))
+    theirs, mine = from_container(payload["config"]).control, cfg.control
+    assert mine is not None
+    keys = ("teachers", "bodies", "body_seed", "top", *vars(mine.episode()))
+    differ = [k for k in keys if getattr(theirs, k) != getattr(mine, k)]
+    if differ:
+        raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
+                         + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
+                                     for k in differ))
+    return bank.to(device)
+
+
 @register_learner("ga", "cmaes", "grid_ga")
 def _evolution(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]) -> Learner:
     """An evolutionary optimiser over the same env, task and simulator; one process."""

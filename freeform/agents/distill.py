@@ -1,0 +1,298 @@
+"""Distillation (issue 56): DAgger from teachers per environment into one student policy.
+
+DAgger (Ross, Gordon & Bagnell 2011; rsl_rl's ``Distillation``): each epoch is a round. The student acts — in round
+r each environment's step takes its teacher's action instead with probability β_r = ``beta`` · ``beta_decay``^r
+(the teachers lead early, the student alone later) — and every observation the student visits is labelled with the
+teacher's action distribution on it. The labelled samples join a dataset that aggregates the last ``buffer``
+rounds, and the student regresses onto the labels: ``kl`` minimises KL(teacher ‖ student) of the action
+distributions (the student's σ learns the teacher's), ``mse`` the squared error of the means (σ is left as it is).
+The student's critic regresses onto the teacher's value (weight ``agent.vf_loss_coeff``), so that a PPO fine-tune
+from the student's weights (``control.controller_init=<this run>``) starts with a critic.
+
+A teacher is any policy per environment index (:class:`Teacher`): ``teacher(obs [N, ...], envs [N]) -> (*params,
+value)`` in the student's distribution — a bank of per-body controllers (:class:`BankTeacher`), or any callable, so
+distillation works for any ``VecEnv``. Collection, episodes, checkpoints, resume, data parallelism and logging are
+PPO's (the learner is a :class:`~freeform.agents.PPO` whose update is the regression); the dataset is
+per-environment state (``per_env``), so a checkpoint resumes it exactly, on any number of ranks.
+
+Shapes: ``T`` = ``rollout_steps``, ``N`` = environments, ``K`` = ``buffer · T`` samples kept per environment.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import torch
+import torch.nn as nn
+
+from freeform.agents.distributed import PER_ENV
+from freeform.agents.distributions import ActionDistribution, DiagGaussian
+from freeform.agents.ppo import PPO, PPOConfig
+from freeform.agents.ppo.rollout import Observation, obs_map
+from freeform.agents.teachers import TEACHER, TeacherBank
+
+LOSSES = ("kl", "mse")
+
+
+@dataclass
+class DistillConfig:
+    """DAgger's settings (``algo.*`` of a run with ``algo.name=distill``); the student's SGD is the ``agent``
+    section's (``lr``, ``num_sgd_iter`` passes over the dataset each round, ``sgd_minibatch_size``,
+    ``grad_clip``, ``vf_loss_coeff``)."""
+
+    loss: str = "kl"
+    """``kl``: KL(teacher ‖ student) of the action distributions; ``mse``: the means' squared error."""
+    beta: float = 1.0
+    """Round 0's probability that a step takes the teacher's action (its mean) instead of the student's."""
+    beta_decay: float = 0.5
+    """β_r = beta · beta_decay^r."""
+    buffer: int = 4
+    """Rounds (epochs) of labelled samples the dataset keeps (the oldest leave first)."""
+
+    def validate(self, key: str = "algo") -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"{key}.loss must be one of {LOSSES}, got {self.loss!r}")
+        for name in ("beta", "beta_decay"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
+                raise ValueError(f"{key}.{name} must be a probability in [0, 1], got {value!r}")
+        if not (isinstance(self.buffer, int) and self.buffer >= 1):
+            raise ValueError(f"{key}.buffer must be an integer >= 1 (rounds kept), got {self.buffer!r}")
+
+    @classmethod
+    def from_algo(cls, algo: Any) -> DistillConfig:
+        """The fields of a run's ``algo`` section (``freeform.evolve.config.AlgoConfig``) that are DAgger's."""
+        return cls(loss=algo.loss, beta=algo.beta, beta_decay=algo.beta_decay, buffer=algo.buffer)
+
+    def beta_at(self, round_: int) -> float:
+        return float(self.beta * self.beta_decay ** round_)
+
+
+class Teacher(Protocol):
+    """A policy per environment: ``(obs [N, ...], envs [N] int64, each sample's environment) -> (*params, value)``,
+    ``params`` the student's distribution's (``value`` ``[N]``, or None where the teacher has no critic)."""
+
+    def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]: ...
+
+
+class BankTeacher:
+    """A :class:`~freeform.agents.teachers.TeacherBank` as a :class:`Teacher`: environment i is taught by teacher
+    ``of_env[i]`` (a control run of M bodies repeated in turn: ``i mod M``)."""
+
+    def __init__(self, bank: TeacherBank, of_env: torch.Tensor) -> None:
+        self.bank, self.of_env = bank.eval(), torch.as_tensor(of_env, dtype=torch.long)
+
+    @torch.no_grad()
+    def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        groups = dict(obs) if isinstance(obs, Mapping) else {"policy": obs}
+        return tuple(self.bank({TEACHER: self.of_env.to(envs.device)[envs], **groups}))
+
+
+class TeacherMixing:
+    """A ``VecEnv`` whose step takes, for each environment with probability ``beta``, its teacher's action (the
+    mean) instead of the one given: DAgger's mixture policy. The draws are a function of ``(seed, step, global
+    environment index)`` — ``step`` counts this env's steps since the start, set by the learner from its own step
+    count — so a resumed or data-parallel run draws what one process would. ``first_env``, ``total_envs``: this
+    slice's place among all environments. Everything else is the env's."""
+
+    def __init__(self, env: Any, teacher: Teacher, distribution: ActionDistribution, seed: int,
+                 first_env: int = 0, total_envs: int | None = None) -> None:
+        self.env, self.teacher, self.distribution = env, teacher, distribution
+        self.num_envs, self.action_dim, self.device = env.num_envs, env.action_dim, env.device
+        self.observation_shape = env.observation_shape
+        self.seed, self.first_env = seed, first_env
+        self.total_envs = total_envs if total_envs is not None else env.num_envs
+        self.beta, self.step_count = 0.0, 0
+        self.mixed = 0.0
+        """The fraction of the last rollout's steps that took the teacher's action (a statistic)."""
+        self._obs: Observation | None = None
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def reset(self, seed: int | None = None) -> Observation:
+        self._obs = self.env.reset(seed)
+        return self._obs
+
+    def resume(self, obs: Observation) -> None:
+        """The observation the next step acts on (a restored run's: it does not reset)."""
+        self._obs = obs
+
+    def step(self, actions: torch.Tensor) -> tuple[Observation, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        if self.beta > 0.0 and self._obs is not None:
+            g = torch.Generator().manual_seed(int(self.seed) * 1_000_003 + self.step_count)
+            take = torch.rand(self.total_envs, generator=g)[self.first_env: self.first_env + self.num_envs] < self.beta
+            if bool(take.any()):
+                envs = torch.arange(self.num_envs, device=self.device)
+                *params, _ = self.teacher(self._obs, envs)
+                taught = self.distribution.env_actions(self.distribution.mode(tuple(params))).to(actions.device)
+                actions = torch.where(take.to(actions.device)[:, None], taught.to(actions.dtype), actions)
+            self.mixed += float(take.float().mean())
+        self.step_count += 1
+        obs, reward, done, info = self.env.step(actions)
+        self._obs = obs
+        return obs, reward, done, info
+
+
+def distill_loss(student: tuple[torch.Tensor, ...], teacher: tuple[torch.Tensor, ...],
+                 teacher_value: torch.Tensor, dist: ActionDistribution, loss: str, vf_coeff: float,
+                 reduce: Callable[[torch.Tensor], torch.Tensor] = torch.mean) -> tuple[torch.Tensor, torch.Tensor]:
+    """The regression's loss on M samples and its statistics ``[4]`` (detached: the action loss, KL(teacher ‖
+    student), the means' squared error, the value loss). ``student``: the student's ``(*params, value)``;
+    ``teacher``: the teacher's params; ``teacher_value [M]`` (NaN where the teacher has no critic: no value
+    loss); ``reduce``: the minibatch mean (``Collectives.minibatch_mean``)."""
+    *params, value = student
+    kl = reduce(dist.kl(tuple(teacher), tuple(params)))
+    mse = reduce((dist.mode(tuple(params)) - dist.mode(tuple(teacher))).pow(2).mean(-1))
+    taught = ~torch.isnan(teacher_value)
+    value_loss = reduce(torch.where(taught, value - teacher_value.nan_to_num(), 0.0).pow(2))
+    action = kl if loss == "kl" else mse
+    return action + vf_coeff * value_loss, torch.stack([action, kl, mse, value_loss]).detach()
+
+
+class Distillation(PPO):
+    """DAgger into ``student`` (any policy PPO trains: ``forward(obs) -> (*params, value)``) from ``teacher``
+    (module docstring). ``config``: the student's SGD (PPO's fields that apply); ``distill``: DAgger's.
+    ``first_env``, ``total_envs``: a data-parallel rank's slice (the teacher's draws and indices are global)."""
+
+    def __init__(self, env: Any, student: nn.Module, teacher: Teacher, config: PPOConfig,
+                 distill: DistillConfig | None = None, logger: Any = None, first_env: int = 0,
+                 total_envs: int | None = None) -> None:
+        self.distill = distill or DistillConfig()
+        self.distill.validate()
+        if config.obs_norm:
+            raise ValueError("distillation labels the observations a teacher sees: set agent.obs_norm=false")
+        mixing = TeacherMixing(env, teacher, getattr(student, "distribution", None) or DiagGaussian(env.action_dim),
+                               config.seed, first_env, total_envs)
+        # (what PPO's own update reads of rewards and advantages plays no part in a regression)
+        super().__init__(mixing, student, replace(config, group_baseline=False, advantage_norm="none"), logger=logger)
+        if self.recurrent:
+            raise ValueError("distillation regresses single steps; the student must be feed-forward")
+        if self.distill.loss == "mse" and not isinstance(self.distribution, DiagGaussian):
+            raise ValueError(f"algo.loss=mse regresses a Gaussian's means; this student's actions are a "
+                             f"{self.distribution}: use algo.loss=kl")
+        mixing.distribution = self.distribution
+        self.teacher = teacher
+        self.dataset: dict[str, Any] = {}
+        """Per environment: ``obs [N, K, ...]``, the teacher's ``params`` (each ``[N, K, ...]``) and ``value
+        [N, K]`` (empty before the first round); ``filled`` the samples held per environment."""
+        self.filled = 0
+
+    def train_epoch(self) -> dict[str, float]:
+        """One DAgger round: collect with the mixture policy, label, aggregate, regress."""
+        mixing = self.env
+        mixing.beta, mixing.step_count, mixing.mixed = (self.distill.beta_at(self.epoch),
+                                                        self.global_step // max(self.num_envs, 1), 0.0)
+        mixing.resume(self.obs)
+        stats = super().train_epoch()
+        stats.update(beta=mixing.beta, teacher_steps=mixing.mixed / self.config.rollout_steps)
+        return stats
+
+    def update(self) -> dict[str, float]:
+        """Label the rollout's observations, add them to the dataset, then ``num_sgd_iter`` shuffled passes of
+        minibatch Adam steps on the regression (:func:`distill_loss`). Minibatches are drawn from the global
+        dataset (``K · N`` samples, sample ``g = k·N + n``) as PPO draws them from its batch: data-parallel, each
+        rank computes the samples it holds and the gradients are summed."""
+        self._aggregate(*self._labels())
+        cfg, dp, flat = self.config, self.dp, self.flat
+        obs, params, value = self._flat_dataset()
+        size = self.filled * self.num_envs
+        minibatch = min(cfg.sgd_minibatch_size, size)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.current_lr()
+
+        def reduce(x: torch.Tensor) -> torch.Tensor:
+            return dp.minibatch_mean(x, minibatch)
+
+        totals, steps = torch.zeros(4, device=self.device), cfg.num_sgd_iter * (size // minibatch)
+        self.policy.train()
+        for _ in range(cfg.num_sgd_iter):
+            order = torch.randperm(size, generator=self.generator, device=self.device)
+            for i in range(size // minibatch):
+                (idx,) = dp.local_share(order[i * minibatch: (i + 1) * minibatch])
+                flat.zero_grad()
+                if idx.numel():  # (a rank may hold none of a minibatch; it then adds zero gradients)
+                    student = self.policy(obs_map(lambda x, i=idx: x.index_select(0, i), obs))
+                    loss, stats = distill_loss(tuple(student), tuple(p.index_select(0, idx) for p in params),
+                                               value.index_select(0, idx), self.distribution, self.distill.loss,
+                                               cfg.vf_loss_coeff, reduce)
+                    loss.backward()
+                    totals += stats
+                self._step(flat)
+        means = (dp.sum_(totals) / max(steps, 1)).tolist()
+        return {"distill_loss": means[0], "distill_kl": means[1], "distill_action_mse": means[2],
+                "distill_value_loss": means[3], "dataset_samples": float(size), "lr": self.current_lr()}
+
+    def _flat_dataset(self) -> tuple[Observation, list[torch.Tensor], torch.Tensor]:
+        """The dataset's samples in the order ``k·n_local + n`` (``[K·n_local, ...]``), as ``local_share`` indexes
+        a rollout."""
+        def flat(x: torch.Tensor) -> torch.Tensor:
+            return x.transpose(0, 1).reshape(-1, *x.shape[2:])
+
+        d = self.dataset
+        return obs_map(flat, d["obs"]), [flat(p) for p in d["params"]], flat(d["value"])
+
+    @torch.no_grad()
+    def _labels(self) -> tuple[Observation, list[torch.Tensor], torch.Tensor]:
+        """The rollout's observations ``[N, T, ...]`` and the teacher's params and value on them (``[N, T, ...]``)."""
+        buf = self.rollout
+        t, n = buf.rewards.shape
+        flat = obs_map(lambda x: x.reshape(t * n, *x.shape[2:]), buf.obs)
+        envs = torch.arange(n, device=self.device).repeat(t)
+        *params, value = self.teacher(flat, envs)
+        value = value if value is not None else torch.full((t * n,), float("nan"), device=self.device)
+
+        def per_env(x: torch.Tensor) -> torch.Tensor:
+            return x.reshape(t, n, *x.shape[1:]).transpose(0, 1).contiguous()
+
+        return obs_map(per_env, flat), [per_env(p.to(self.device)) for p in params], per_env(value.to(self.device))
+
+    def _aggregate(self, obs: Observation, params: list[torch.Tensor], value: torch.Tensor) -> None:
+        """Append a round's samples ``[N, T, ...]``; keep the last ``buffer`` rounds' (``K = buffer · T``)."""
+        capacity = self.distill.buffer * self.config.rollout_steps
+        d, first = self.dataset, not self.dataset
+
+        def keep(old: torch.Tensor | None, new: torch.Tensor) -> torch.Tensor:
+            return (new if old is None else torch.cat([old, new], 1))[:, -capacity:]
+
+        if isinstance(obs, Mapping):
+            d["obs"] = {k: keep(None if first else d["obs"][k], v) for k, v in obs.items()}
+        else:
+            d["obs"] = keep(None if first else d["obs"], obs)
+        d["params"] = [keep(None if first else d["params"][i], p) for i, p in enumerate(params)]
+        d["value"] = keep(None if first else d["value"], value)
+        self.filled = int(d["value"].shape[1])
+
+    def state_dict(self) -> dict[str, Any]:
+        state = super().state_dict()
+        data = {"obs": self.dataset["obs"], "value": self.dataset["value"],
+                **{f"params_{i}": p for i, p in enumerate(self.dataset["params"])}} if self.dataset else {}
+        state["distill"] = self.dp.gather_state({"filled": self.filled, PER_ENV: data})
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        part = self.dp.shard_state(state["distill"])
+        self.filled = int(part["filled"])
+        data = part[PER_ENV]
+        self.dataset = {} if not data else {
+            "obs": obs_map(lambda x: x.to(self.device), data["obs"]), "value": data["value"].to(self.device),
+            "params": [data[f"params_{i}"].to(self.device) for i in range(sum(k.startswith("params_") for k in data))]}
+
+
+def bank_from_checkpoint(payload: Mapping[str, Any], source: str) -> TeacherBank:
+    """The teacher bank of a teacher run's checkpoint (``control.teachers`` > 0), weights loaded."""
+    if not str(payload.get("policy_class", "")).endswith(":TeacherBank"):
+        raise ValueError(f"algo.teacher={source}: not a teacher run's checkpoint (its policy is "
+                         f"{payload.get('policy_class')!r}, not a TeacherBank: train one with control.teachers=M)")
+    bank = TeacherBank(**payload["policy_kwargs"])
+    bank.load_state_dict(payload["ppo"]["policy"])
+    return bank
+
+
+__all__ = ["LOSSES", "BankTeacher", "DistillConfig", "Distillation", "Teacher", "TeacherMixing",
+           "bank_from_checkpoint", "distill_loss"]

@@ -1,0 +1,111 @@
+"""Distillation (``algo=distill``, ``freeform.agents.distill``): DAgger's labels are the teacher's on the
+observations the student visited, a student learns its teacher's skill on a Gymnasium task, and the app's run
+resumes bit for bit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from helpers import straight_and_resumed
+from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
+
+from freeform.agents import MLPActorCritic
+from freeform.agents.distill import Distillation, DistillConfig, distill_loss
+from freeform.agents.distributions import Categorical, DiagGaussian
+from freeform.agents.ppo import PPOConfig
+from freeform.checkpoint import load_checkpoint
+from freeform.config import compose
+from freeform.envs import from_gymnasium
+
+
+def balancer(obs: torch.Tensor, envs: torch.Tensor) -> tuple[torch.Tensor, None]:
+    """CartPole's textbook rule as a near-deterministic categorical teacher: push towards where the pole falls
+    (θ + 0.5·θ'); environment i's logits scaled by 1 + i (a teacher per index, all of them the same rule)."""
+    s = (obs[:, 2] + 0.5 * obs[:, 3]) * 20.0 * (1.0 + envs.float())
+    return torch.stack([-s, s], 1), None
+
+
+def cartpoles(n: int) -> object:
+    return from_gymnasium(gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * n), seed=0)
+
+
+def test_the_labels_are_the_teachers_on_the_visited_observations() -> None:
+    """After a round, every sample of the dataset is an observation the env returned during the rollout and its
+    label is the teacher's distribution on it, for that sample's environment (the teacher differs per index)."""
+    torch.manual_seed(0)
+    env = cartpoles(4)
+    student = MLPActorCritic.for_env(env, hidden=(16,))
+    learner = Distillation(env, student, balancer, PPOConfig(rollout_steps=8, num_sgd_iter=1, sgd_minibatch_size=16),
+                           DistillConfig(beta=0.5, buffer=2))
+    learner.train_epoch()
+    obs, labels, value = learner.dataset["obs"], learner.dataset["params"], learner.dataset["value"]
+    assert obs.shape == (4, 8, 4) and labels[0].shape == (4, 8, 2) and torch.isnan(value).all()
+    torch.testing.assert_close(obs.transpose(0, 1), learner.rollout.obs)  # the visited observations, in order
+    for n in range(4):
+        expected, _ = balancer(obs[n], torch.full((8,), n))
+        torch.testing.assert_close(labels[0][n], expected)
+    learner.train_epoch()
+    learner.train_epoch()  # three rounds, two kept
+    assert learner.dataset["obs"].shape == (4, 16, 4)
+    torch.testing.assert_close(learner.dataset["obs"][:, 8:].transpose(0, 1), learner.rollout.obs)
+
+
+def test_a_student_learns_to_balance_the_pole_from_its_teacher() -> None:
+    """The teacher balances CartPole for the whole 500 steps; a fresh student gets near nothing (~20 steps). After
+    eight DAgger rounds (β from 1 halving) the student alone, acting on its mode, balances >= 400 steps."""
+    torch.manual_seed(0)
+    env = cartpoles(8)
+    student = MLPActorCritic.for_env(env, hidden=(32,))
+    learner = Distillation(env, student, balancer,
+                           PPOConfig(rollout_steps=64, num_sgd_iter=8, sgd_minibatch_size=128, lr=3e-3),
+                           DistillConfig(loss="kl", beta=1.0, beta_decay=0.5, buffer=8))
+    before = learner.evaluate(cartpoles(4), episodes=4)["eval_return"]
+    stats = [learner.train_epoch() for _ in range(8)]
+    after = learner.evaluate(cartpoles(4), episodes=4)["eval_return"]
+    assert before < 100 and after >= 400, (before, after)
+    assert stats[-1]["distill_kl"] < 0.2 * stats[0]["distill_kl"]
+    assert stats[0]["teacher_steps"] == pytest.approx(1.0) and stats[-1]["teacher_steps"] < 0.05
+
+
+def test_the_loss_is_kl_or_the_means_squared_error() -> None:
+    """By hand: one sample, a 2-D Gaussian; KL(N(0, 1) ‖ N(1, e)) per entry = log σ1 − log σ0 + (σ0² + Δ²)/(2σ1²)
+    − 1/2; mse the means' squared error averaged over the entries; the value's squared error."""
+    dist = DiagGaussian(2)
+    teacher = (torch.zeros(1, 2), torch.zeros(1, 2))
+    student = (torch.ones(1, 2), torch.ones(1, 2), torch.tensor([3.0]))
+    kl_entry = 1.0 + (1.0 + 1.0) / (2 * np.e ** 2) - 0.5
+    loss, stats = distill_loss(student, teacher, torch.tensor([1.0]), dist, "kl", 0.5)
+    torch.testing.assert_close(stats, torch.tensor([2 * kl_entry, 2 * kl_entry, 1.0, 4.0]))
+    torch.testing.assert_close(loss, torch.tensor(2 * kl_entry + 2.0))
+    loss, stats = distill_loss(student, teacher, torch.tensor([float("nan")]), dist, "mse", 0.5)
+    torch.testing.assert_close(loss, torch.tensor(1.0))
+    with pytest.raises(ValueError, match="algo.loss=kl"):
+        Distillation(cartpoles(2), MLPActorCritic.for_env(cartpoles(2)), balancer, PPOConfig(),
+                     DistillConfig(loss="mse"))
+    assert isinstance(MLPActorCritic.for_env(cartpoles(2)).distribution, Categorical)
+
+
+def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
+    """A teacher bank trained one epoch through the app, then algo=distill from it: two rounds straight equal one
+    plus a resumed one (the student, the optimiser, the aggregated dataset)."""
+    from freeform.train import train
+
+    teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
+             "agent.advantage_norm=group", "seed=4")
+    cfg = compose(*tiny_control(bodies, *teach, "trainer.epochs=1"))
+    train(cfg, tmp_path / "teachers")
+    distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                    "algo.beta=0.5", "agent.num_sgd_iter=2"))
+    straight_and_resumed(distill, tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    assert a["policy_class"].endswith(":ContextConvController")
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    for key, tensor in a["ppo"]["distill"]["per_env"].items():
+        assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
+    assert a["ppo"]["distill"]["per_env"]["obs"].shape[:2] == (4, 8)  # 4 envs, 2 rounds of 4 steps
