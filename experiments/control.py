@@ -25,7 +25,9 @@ Zero-shot, on bodies of your own (``evaluate_bodies``)::
 
 PATH a control run's directory, a results folder holding ``controller.pt``, or that file; BODIES a ``.npy`` of
 uint8 grids ``[M, ρ, ρ, ρ]`` (0 empty, 1 passive, 2 and 3 muscles in anti-phase). Writes ``DIR/bodies.csv`` and
-``DIR/summary.csv``: open loop, the controller, the controller with its sensed channels zeroed, an untrained one.
+``DIR/summary.csv``: open loop, the controller, the controller with its sensed channels zeroed, an untrained one,
+the hand-set travelling wave; ``--per-body N`` adds each of the first N bodies' own controller (per-body control,
+trained once and cached) and the fraction of it the controller reaches.
 
 Writes ``curve.csv`` (per epoch: wall seconds, training return, the update's statistics), ``summary.csv``,
 ``control_walker.png``, ``walker.npy`` and ``controller.pt`` into ``--out``. ``--gait DIR`` replays DIR's controller
@@ -38,9 +40,10 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +53,8 @@ import torch
 from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, controller_for, read_controller, save_controller
-from freeform.agents.controllers import CONTROLLERS, controller_step
+from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
+from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -232,26 +236,102 @@ def read_bodies(path: Path, materials: int) -> torch.Tensor:
     return largest_component(torch.from_numpy(grids.astype(np.uint8)))
 
 
+@dataclass
+class PerBody:
+    """``--per-body N``: per-body controllers for the first ``n`` bodies, trained by ``freeform-train
+    experiment=<preset>`` (a bank: ``control.teachers=n``, ``copies`` environments per body, the evaluated
+    controller's episode settings) or read from ``cache`` (a run directory named by the bodies and settings, resumed
+    where a run stopped early)."""
+
+    n: int
+    preset: str = "control_teachers_cpu"
+    copies: int = 4
+    overrides: tuple[str, ...] = ()
+    cache: Path = Path("runs/per_body")
+
+
+def _hydra_value(value: Any) -> str:
+    return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim: SimConfig) -> Any:
+    """The bank of per-body controllers for ``grids[:per.n]`` (:class:`PerBody`), trained or read from the cache;
+    its run's physics must be ``sim`` (the evaluated controller's)."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import compose, from_container
+    from freeform.train import train
+
+    if not 1 <= per.n <= len(grids):
+        raise ValueError(f"--per-body {per.n}: must be in 1 … {len(grids)} (the bodies given)")
+    bodies = grids[: per.n].numpy()
+    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items() if k != "privileged_critic"]
+    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
+    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
+    run = per.cache / f"{per.preset}_{per.n}_{key}"
+    run.mkdir(parents=True, exist_ok=True)
+    np.save(run / "bodies.npy", bodies)
+    cfg = compose(f"experiment={per.preset}", f"control.bodies={run / 'bodies.npy'}", *overrides,
+                  "trainer.render_every=0", "trainer.progress=false")
+    last = run / "checkpoints" / "last.pt"
+    if not last.is_file() or int(load_checkpoint(last)["epoch"]) < cfg.trainer.epochs:
+        print(f"per-body controllers: training {per.n} in {run} ({cfg.trainer.epochs} epochs)", flush=True)
+        with torch.enable_grad():  # (called from the evaluation, which computes no gradients)
+            train(cfg, run)  # (trainer.resume=auto continues a run that stopped early)
+    payload = load_checkpoint(last)
+    if ControlEnv.simulation(from_container(payload["config"]).sim, control) != ControlEnv.simulation(sim, control):
+        raise ValueError(f"--per-body: the per-body controllers in {run} were trained with another sim section than "
+                         "the evaluated controller's: give its sim.* values with --per-body-set")
+    return bank_from_checkpoint(payload, str(run))
+
+
+class _BankOnBodies(torch.nn.Module):
+    """A bank of per-body controllers acting on an evaluation env's rows: row r is body ``rows_body[r]``'s."""
+
+    def __init__(self, bank: Any, teacher: torch.Tensor, box: tuple[int, ...]) -> None:
+        super().__init__()
+        from freeform.agents.teachers import TeacherBank
+
+        k = bank.init_kwargs  # (built for the evaluation's box: the kinds that fit any box)
+        self.bank = TeacherBank(k["teachers"], k["kind"], {**k["controller"], "box": tuple(box)}, k["critic_dim"])
+        self.bank.load_state_dict(bank.state_dict())
+        self.teacher, self.distribution = teacher, self.bank.distribution
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return tuple(self.bank({"teacher": self.teacher, "policy": obs}))
+
+
+def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWave | None) -> torch.nn.Module:
+    """An untrained wave-head context controller for ``env`` (whose actions are strokes): its mean command is the
+    hand-set travelling wave — ``wave``, else the controller's own wave, else the default."""
+    own = getattr(controller, "wave", None)
+    start = wave or (HandSetWave(own["k"], own.get("amplitude", 1.0)) if own else DEFAULT_WAVE)
+    return ContextConvController.for_env(env, head="wave", wave=start).eval()
+
+
 @torch.no_grad()
 def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
-                    seed: int = 0) -> tuple[list[dict], list[dict]]:
+                    seed: int = 0, per_body: PerBody | None = None,
+                    wave: HandSetWave | None = None) -> tuple[list[dict], list[dict]]:
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
     control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
     each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
-    body × episode five times over, the groups with the same headings (the same draws): the controller, the
-    controller's mean command (deterministic: what it learned, without its exploration noise), the
-    controller with its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses
-    nothing), and an untrained controller of the same architecture (seeded ``seed``), stochastic and its mean
-    command (what the architecture does before learning: the open-loop gait for most heads, the hand-set
-    travelling wave for a ``wave`` head). The box is the one the
+    body × episode once per group, the groups with the same headings (the same draws): the controller, the
+    controller's mean command (deterministic: what it learned, without its exploration noise), the controller with
+    its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses nothing), an untrained
+    controller of the same architecture (seeded ``seed``), stochastic and its mean command (what the architecture
+    does before learning: the open-loop gait for most heads, the hand-set travelling wave for a ``wave`` head), the
+    hand-set wave's mean command whatever the controller's head (:func:`hand_set_wave`; with strokes), and with
+    ``per_body`` each of the first N bodies' own controller (:class:`PerBody`, stochastic). The box is the one the
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
-    the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean command's
-and the untrained controller's means, stochastic and mean command) and
-    ``out/summary.csv`` (the six means over the bodies, with 99 % bands across bodies, then three paired differences
-per body — mean command minus open loop, stochastic minus untrained, mean command minus the untrained mean command —
-whose bands leave out the across-body spread), and ``out/run.json``.
+    the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean
+    command's, the untrained controller's, the hand-set wave's and the per-body controller's means) and
+    ``out/summary.csv`` (the means over the bodies with 99 % bands across bodies, then paired differences per body
+    — mean command minus open loop, stochastic minus untrained, mean command minus the untrained mean command —
+    whose bands leave out the across-body spread; with ``per_body`` the controller and its own per-body controllers
+    on the first N bodies, and the fraction of per-body control the controller reaches), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
     saved = read_controller(source)
     sim = saved.sim or SimConfig()
@@ -264,74 +344,118 @@ whose bands leave out the across-body spread), and ``out/run.json``.
     controller = saved.controller.eval()
     torch.manual_seed(seed)
     untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
+    bank = per_body_bank(grids, per_body, saved.control, sim) if per_body is not None else None
+    groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
+              ("zeroed", controller, True, True), ("untrained", untrained, False, True),
+              ("untrained_mean_command", untrained, False, False)]
+    blocks = len(groups) + (control.stroke_periods >= 1) + (bank is not None)  # (one block of rows per group)
+    env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=seed,
+                     box=box, first_env=np.tile(np.arange(m * n), blocks))
+    if control.stroke_periods >= 1:
+        groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
+    if bank is not None:
+        rows_body = torch.arange(m).repeat_interleave(n)
+        groups.append(("per_body", _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box),
+                       False, True))
+    returns, obs, heading = _play(env, groups, control.steps, seed)
+    moves = open_loop_moves(grids, sim, control)  # [M, 2]
+    along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
+                                   planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
+    per_group = {name: returns[g].reshape(m, n) for g, (name, *_) in enumerate(groups)}
+    if bank is not None:
+        per_group["per_body"][per_body.n:] = np.nan
+    rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
+    summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0)
+    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies),
+                                "body_count": m, "episodes_per_body": n, "box": list(box), "trained_box": list(trained),
+                                "seed": seed, "control": vars(control),
+                                "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
+    return rows, summary
 
-    per_episode = grids.repeat_interleave(n, 0)  # body i's episodes are rows i·n … i·n + n − 1
-    env = ControlEnv(per_episode.repeat(5, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
-                     first_env=np.tile(np.arange(m * n), 5))
+
+def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+    """One episode of every group ``(name, net, sensed channels zeroed, stochastic)`` on its block of ``env``'s
+    rows. Returns the returns ``[G, rows]``, the last observation and the episode's headings."""
     sensed = [env.channels.index(c) for c in SENSED]
 
-    def zeroed(obs: torch.Tensor) -> torch.Tensor:
+    def view(obs: torch.Tensor, zeroed: bool) -> torch.Tensor:
+        if not zeroed:
+            return obs
         obs = obs.clone()
         obs[:, sensed] = 0.0
         return obs
 
     generator = torch.Generator().manual_seed(seed)
-    groups = ((controller, lambda o: o, True), (controller, lambda o: o, False), (controller, zeroed, True),
-              (untrained, lambda o: o, True), (untrained, lambda o: o, False))
     obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
     states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
-    for _ in range(control.steps):
+    for _ in range(steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         actions = []
-        for g, ((net, view, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
-            outputs, states[g] = controller_step(net, view(part), states[g])
+        for g, ((_, net, zeroed, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
+            outputs, states[g] = controller_step(net, view(part, zeroed), states[g])
             params = outputs[:3]
             noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
         total += reward.double()
-    returns = total.numpy().reshape(len(groups), m, n)
+    return total.numpy().reshape(len(groups), -1), obs, heading
 
-    moves = open_loop_moves(grids, sim, control)  # [M, 2]
-    along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
-                                   planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
-    open_loop = along.mean(1)
-    filled = obs[: m * n : n, env.filled_channel].flatten(1).sum(1)  # (the next episode's: the same bodies)
+
+def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs: torch.Tensor,
+               env: ControlEnv) -> list[dict]:
+    """``bodies.csv``'s rows: a body's voxels and muscles as simulated (from an observation of its first episode's
+    row), its open-loop gait and every group's mean over its episodes (the controller's with its 99 % band)."""
+    filled = last_obs[:, env.filled_channel].flatten(1).sum(1)  # (the next episode's: the same bodies)
     # (voxels, not action channels: a stroke's mask holds each muscle twice, once per (a, b))
-    actuated = obs[: m * n : n, env.channels.index("actuated")].flatten(1).sum(1)
+    actuated = last_obs[:, env.channels.index("actuated")].flatten(1).sum(1)
     rows = []
-    for i in range(m):
-        mean, band = mean_band(returns[0, i])
-        rows.append({"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
-                     "controller": float(mean), "band99": float(band),
-                     "mean_command": float(returns[1, i].mean()), "untrained": float(returns[3, i].mean()),
-                     "untrained_mean_command": float(returns[4, i].mean())})
-    per_body = returns.mean(2)
-    # paired: each body against itself (same headings, same noise streams), so the across-body spread cancels
+    for i in range(len(open_loop)):
+        mean, band = mean_band(per_group["controller"][i])
+        row = {"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
+               "controller": float(mean), "band99": float(band)}
+        row.update({name: float(v[i].mean()) for name, v in per_group.items() if name not in ("controller", "zeroed")})
+        rows.append(row)
+    return rows
+
+
+def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int) -> list[dict]:
+    """``summary.csv``: the means over the bodies (99 % bands across bodies), then the paired differences per body
+    (each body against itself: same headings, same noise streams, so the across-body spread cancels), and with
+    per-body controllers on the first ``n_own`` bodies the controller and theirs there and the fraction reached."""
+    body = {name: v.mean(1) for name, v in per_group.items()}
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
-               summary_row(f"controller ({saved.kind}, stochastic)", per_body[0]),
-               summary_row(f"controller ({saved.kind}, mean command)", per_body[1]),
-               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", per_body[2]),
-               summary_row(f"untrained controller ({saved.kind}, seed {seed}, stochastic)", per_body[3]),
-               summary_row(f"untrained controller ({saved.kind}, seed {seed}, mean command)", per_body[4]),
-               summary_row("paired per body: controller (mean command) minus open loop", per_body[1] - open_loop),
+               summary_row(f"controller ({kind}, stochastic)", body["controller"]),
+               summary_row(f"controller ({kind}, mean command)", body["mean_command"]),
+               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", body["zeroed"]),
+               summary_row(f"untrained controller ({kind}, seed {seed}, stochastic)", body["untrained"]),
+               summary_row(f"untrained controller ({kind}, seed {seed}, mean command)", body["untrained_mean_command"]),
+               summary_row("paired per body: controller (mean command) minus open loop",
+                           body["mean_command"] - open_loop),
                summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
-                           per_body[0] - per_body[3]),
+                           body["controller"] - body["untrained"]),
                summary_row("paired per body: controller (mean command) minus untrained (mean command)",
-                           per_body[1] - per_body[4])]
+                           body["mean_command"] - body["untrained_mean_command"])]
+    if "hand_set_wave" in body:
+        summary.append(summary_row("hand-set travelling wave (mean command)", body["hand_set_wave"]))
+    if n_own:
+        own, mine = body["per_body"][:n_own], body["controller"][:n_own]
+        summary += [summary_row(f"per-body controllers (stochastic; the first {n_own} bodies)", own),
+                    summary_row(f"controller (stochastic) on those {n_own} bodies", mine),
+                    {**summary_row(f"fraction of per-body control: controller mean / per-body mean ({n_own} bodies)",
+                                   np.array([mine.mean() / own.mean()])), "band99": float("nan")}]
+    return summary
+
+
+def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
         with open(out / name, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(table[0]))
             writer.writeheader()
             writer.writerows(table)
-    (out / "run.json").write_text(json.dumps({
-        "controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies), "body_count": m,
-        "episodes_per_body": n, "box": list(box), "trained_box": list(trained), "seed": seed,
-        "control": vars(control)}, indent=1))
+    (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
     for row in summary:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
-    return rows, summary
 
 
 def summary_row(name: str, values: np.ndarray) -> dict:
@@ -367,12 +491,29 @@ def main(argv: list[str] | None = None) -> None:
                         "writes bodies.csv and summary.csv into --out (--eval-episodes episodes per body)")
     p.add_argument("--headings", choices=HEADINGS, default=None,
                    help="with --bodies: the heading task (default: the controller's own)")
+    p.add_argument("--per-body", type=int, default=0, metavar="N",
+                   help="with --bodies: also each of the first N bodies' own controller (trained by freeform-train "
+                        "experiment=--per-body-preset as a bank of N teachers, or read from --per-body-cache): "
+                        "bodies.csv gains per_body, the summary the fraction of per-body control reached")
+    p.add_argument("--per-body-preset", default="control_teachers_cpu")
+    p.add_argument("--per-body-copies", type=int, default=4, help="environments per body in the per-body training")
+    p.add_argument("--per-body-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an override of the per-body training (repeatable), e.g. trainer.epochs=40")
+    p.add_argument("--per-body-cache", default="runs/per_body")
+    p.add_argument("--wave-k", type=float, default=None,
+                   help="with --bodies: the hand-set wave's k (default: the controller's own wave, else 1.0)")
+    p.add_argument("--wave-amplitude", type=float, default=1.0)
     args = p.parse_args(argv)
     if args.bodies and not args.evaluate:
         p.error("--bodies needs --evaluate PATH (the controller to evaluate)")
+    if args.per_body and not args.bodies:
+        p.error("--per-body needs --evaluate PATH --bodies BODIES.npy")
     if args.evaluate and args.bodies:
+        per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
+                      Path(args.per_body_cache)) if args.per_body else None
+        wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
         evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
-                        args.seed)
+                        args.seed, per, wave)
         return
     if args.evaluate:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))

@@ -230,3 +230,32 @@ def test_bodies_csv_counts_actuated_voxels_not_a_strokes_action_channels(tmp_pat
           "--eval-episodes", "1", "--out", str(tmp_path / "eval")])
     rows = read_csv(tmp_path / "eval" / "bodies.csv")
     assert [(int(r["voxels"]), int(r["actuated"])) for r in rows] == [(2, 2), (3, 2), (2, 2)]
+
+
+def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_reached(tmp_path) -> None:
+    """--per-body 2 on three bodies: per-body controllers for the first two are trained by the app (a bank of two
+    teachers with the controller's episode settings) into the cache, read back (not trained again) on a second
+    call; bodies.csv's per_body is finite for bodies 0 and 1 and empty for body 2, and the summary's fraction is the
+    controller's mean over those two bodies divided by theirs, recomputed from bodies.csv."""
+    torch.manual_seed(0)
+    net = ContextConvController(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0)
+    save_controller(tmp_path / "controller.pt", net, SHORT, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    cache = tmp_path / "cache"
+    args = ["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "any",
+            "--eval-episodes", "2", "--per-body", "2", "--per-body-cache", str(cache),
+            *[f"--per-body-set={o}" for o in ("control.controller_init=null", "control.head=direct",
+                                              "agent.hidden=4", "trainer.epochs=1", "agent.rollout_steps=4",
+                                              "trainer.threads=1")]]
+    main([*args, "--out", str(tmp_path / "eval")])
+    (run,) = cache.iterdir()
+    stamp = (run / "checkpoints" / "last.pt").stat().st_mtime_ns
+    main([*args, "--out", str(tmp_path / "again")])
+    assert (run / "checkpoints" / "last.pt").stat().st_mtime_ns == stamp  # read from the cache
+    rows = read_csv(tmp_path / "eval" / "bodies.csv")
+    assert [r["per_body"] for r in rows][2] == "nan" and all(np.isfinite(float(r["per_body"])) for r in rows[:2])
+    summary = {r["what"]: r for r in read_csv(tmp_path / "eval" / "summary.csv")}
+    fraction = next(v for k, v in summary.items() if k.startswith("fraction of per-body control"))
+    expected = np.mean([float(r["controller"]) for r in rows[:2]]) / np.mean([float(r["per_body"]) for r in rows[:2]])
+    np.testing.assert_allclose(float(fraction["mean"]), expected, rtol=1e-6)
+    assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
