@@ -248,6 +248,8 @@ class PerBody:
     copies: int = 4
     overrides: tuple[str, ...] = ()
     cache: Path = Path("runs/per_body")
+    run: Path | None = None
+    """A teacher run to read instead (``control.teachers`` = n, its bodies the first n given: checked)."""
 
 
 def _hydra_value(value: Any) -> str:
@@ -265,6 +267,8 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     if not 1 <= per.n <= len(grids):
         raise ValueError(f"--per-body {per.n}: must be in 1 … {len(grids)} (the bodies given)")
     bodies = grids[: per.n].numpy()
+    if per.run is not None:
+        return _teacher_run(per.run, bodies)
     episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items() if k != "privileged_critic"]
     overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
     key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
@@ -283,6 +287,24 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
         raise ValueError(f"--per-body: the per-body controllers in {run} were trained with another sim section than "
                          "the evaluated controller's: give its sim.* values with --per-body-set")
     return bank_from_checkpoint(payload, str(run))
+
+
+def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
+    """The bank of the teacher run ``run``, whose bodies (environment i's, for i < M: its first record's) must be
+    ``bodies``."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.body import largest_component
+    from freeform.checkpoint import load_checkpoint
+    from freeform.records import read_record
+
+    payload = load_checkpoint(run / "checkpoints" / "last.pt")
+    bank = bank_from_checkpoint(payload, str(run))
+    record = read_record(sorted((run / "records").glob("epoch_*.npz"))[0])
+    theirs = largest_component(torch.from_numpy(record.final_grids[: bank.teachers])).numpy()
+    if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
+        raise ValueError(f"--per-body-run {run}: its {bank.teachers} teachers' bodies are not the first {len(bodies)} "
+                         "bodies given (save them from its records: final_grids[:M])")
+    return bank
 
 
 class _BankOnBodies(torch.nn.Module):
@@ -500,6 +522,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--per-body-set", action="append", default=[], metavar="KEY=VALUE",
                    help="an override of the per-body training (repeatable), e.g. trainer.epochs=40")
     p.add_argument("--per-body-cache", default="runs/per_body")
+    p.add_argument("--per-body-run", default=None, metavar="RUN",
+                   help="read the per-body controllers from this teacher run (control.teachers=N) instead")
     p.add_argument("--wave-k", type=float, default=None,
                    help="with --bodies: the hand-set wave's k (default: the controller's own wave, else 1.0)")
     p.add_argument("--wave-amplitude", type=float, default=1.0)
@@ -510,7 +534,7 @@ def main(argv: list[str] | None = None) -> None:
         p.error("--per-body needs --evaluate PATH --bodies BODIES.npy")
     if args.evaluate and args.bodies:
         per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
-                      Path(args.per_body_cache)) if args.per_body else None
+                      Path(args.per_body_cache), args.per_body_run and Path(args.per_body_run)) if args.per_body else None
         wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
         evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
                         args.seed, per, wave)

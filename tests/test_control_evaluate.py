@@ -259,3 +259,8 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     expected = np.mean([float(r["controller"]) for r in rows[:2]]) / np.mean([float(r["per_body"]) for r in rows[:2]])
     np.testing.assert_allclose(float(fraction["mean"]), expected, rtol=1e-6)
     assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
+    main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named
+    assert read_csv(tmp_path / "from_run" / "bodies.csv") == rows
+    np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
+    with pytest.raises(ValueError, match="not the first 2 bodies given"):
+        main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])
