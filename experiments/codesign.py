@@ -186,9 +186,10 @@ FROZEN_EPISODES_SEED = 20_000
 def warm_start_task(cfg: Any) -> Any:
     """The controller a co-design run started from (``control.controller_init``), frozen, as a task that scores
     designs by its mean command in its own episode, along the run's headings (fresh draws where they are random)."""
+    from freeform.agents.controller_file import read_controller
     from freeform.envs.tasks import ControlledLocomotionTask
 
-    return ControlledLocomotionTask(str(cfg.control.controller_init), sim=cfg.sim, headings=cfg.control.headings,
+    return ControlledLocomotionTask(read_controller(cfg.control.controller_init), sim=cfg.sim, headings=cfg.control.headings,
                                     seed=cfg.seed + FROZEN_EPISODES_SEED)
 
 
@@ -209,6 +210,7 @@ def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tupl
     the designs it was adapted to (``control.designer``: one of ``designs``, name → (result, budget before the
     adaptation)), or, trained on untrained bodies (its control), every set of designs, along its own headings;
     the budget adds its own. Rows: (method, result, robot-seconds, what the score is)."""
+    from freeform.agents.controller_file import read_controller
     from freeform.envs import ControlledLocomotionTask
 
     cfg, last = _last(run)
@@ -219,7 +221,7 @@ def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tupl
     if not chosen:
         raise SystemExit(f"--adapted {run}: adapted to the designs of {adapted}, which are not among this "
                          f"comparison's ({', '.join(designs)})")
-    task = ControlledLocomotionTask(str(run), sim=cfg.sim, headings=cfg.control.headings,
+    task = ControlledLocomotionTask(read_controller(run), sim=cfg.sim, headings=cfg.control.headings,
                                     seed=cfg.seed + FROZEN_EPISODES_SEED)
     rows = []
     for name in chosen:

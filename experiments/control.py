@@ -61,8 +61,8 @@ from freeform.envs.control import (
     ControlEnv,
     open_loop_displacement,
     open_loop_moves,
-    untrained_walker,
 )
+from freeform.envs.untrained import DesignBodies, untrained_walker
 from freeform.sim import SimConfig, Simulator
 
 RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
@@ -551,7 +551,8 @@ def main(argv: list[str] | None = None) -> None:
     sim, control = SimConfig(), ControlConfig(burn_in=args.burn_in, command_rate=args.command_rate, ramp=args.ramp)
 
     t0 = time.perf_counter()
-    body, scores = untrained_walker(args.candidates, RHO, MATERIALS, DESIGN_STEPS, BUNDLE, args.seed, sim, control)
+    body, scores = untrained_walker(args.candidates, DesignBodies(RHO, MATERIALS, DESIGN_STEPS, BUNDLE), args.seed, sim,
+                                    control)
     print(f"walker: {int((body > 0).sum())} voxels, open loop {scores.max():.3f} voxel lengths over "
           f"{control.duration} s (best of {len(scores)}; median {np.median(scores):.3f}) [{time.perf_counter() - t0:.0f} s]")
     np.save(out / "walker.npy", body.numpy())

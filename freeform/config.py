@@ -31,6 +31,7 @@ from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control import ControlConfig
+from freeform.envs.design import EnvConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.learner import learner_names
 from freeform.sim import SimConfig
@@ -47,30 +48,6 @@ class TaskConfig:
     """k, material count including 0 = empty: 2 for volume (empty, passive), 4 for locomotion."""
     options: dict[str, Any] = field(default_factory=dict)
     """Extra keyword arguments for the task's constructor (e.g. the locomotion reward's variant)."""
-
-
-@dataclass
-class EnvConfig:
-    """The batched design environment, ``freeform.envs.DesignEnv`` (``conf/env/``)."""
-
-    num_envs: int = 256
-    """N, environments stepped in lock-step (one robot designed per environment and episode)."""
-    resolution: int = 20
-    """ρ, edge of the design grid in voxels (even: the network halves it)."""
-    steps: int = 100
-    """T, actions per episode."""
-    bundle_size: int = 2
-    """b, edge of the cube of voxels one action paints (even: the bundle is centred between voxels)."""
-    action_bound: float = 2.0
-    """B, every action component is clipped to [−B, B] and mapped to [0, 1] (spec: 2)."""
-    dense_every: int = 0
-    """k > 0: dense design rewards — the partial body is scored by the task every k design steps and the
-    improvement is the reward (``freeform.envs.DenseDesignReward``; an episode's rewards still sum to the terminal
-    reward); 0 = the paper's sparse terminal reward."""
-    mirror_y: bool = False
-    """Bilateral symmetry: every bundle is placed with its mirror image across the grid's x–z mid-plane, so designs
-    are left-right symmetric and travel along ±x on y-symmetric ground (``DesignEnv(mirror_y=...)``); off in the
-    paper."""
 
 
 @dataclass

@@ -60,10 +60,13 @@ class Learner(Protocol):
         ...
 
 
+ALGORITHMS = ("ppo", "ga", "cmaes", "grid_ga", "distill")
+"""freeform's own learners (``algo.name``): PPO and the evolutionary baselines (``freeform.evolve``)."""
+
 LearnerBuilder = Callable[[Any, Any, Any, tuple[int, int]], Learner]
 """``(cfg: TrainConfig, env, device: torch.device, envs: (lo, hi)) -> Learner``."""
 LEARNERS: dict[str, LearnerBuilder] = {}
-"""``algo.name`` -> its builder. freeform's own (``freeform.evolve.config.ALGORITHMS``) are registered by
+"""``algo.name`` -> its builder. freeform's own (:data:`ALGORITHMS`) are registered by
 ``freeform.run.build``; add one with :func:`register_learner`."""
 
 
@@ -81,9 +84,7 @@ def register_learner(*names: str) -> Callable[[LearnerBuilder], LearnerBuilder]:
 def learner_names() -> list[str]:
     """Every ``algo.name`` a run may give: freeform's own and every registered one (what ``freeform.config``
     validates against)."""
-    from freeform.evolve.config import ALGORITHMS
-
     return list(dict.fromkeys([*ALGORITHMS, *LEARNERS]))
 
 
-__all__ = ["LEARNERS", "Episodes", "Learner", "LearnerBuilder", "learner_names", "register_learner"]
+__all__ = ["ALGORITHMS", "LEARNERS", "Episodes", "Learner", "LearnerBuilder", "learner_names", "register_learner"]

@@ -183,6 +183,7 @@ def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_
     simulation — and an empty body by 0; the run's sim must have the controller's materials."""
     from dataclasses import replace
 
+    from freeform.agents.controller_file import read_controller
     from freeform.envs import ControlledLocomotionTask
     from freeform.envs.control import RESIDUAL_CHANNELS
 
@@ -193,7 +194,7 @@ def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_
         for p in net.actor.parameters():
             p.zero_()
     save_controller(tmp_path / "controller.pt", net, control, SimConfig())
-    task = ControlledLocomotionTask(str(tmp_path), headings="fixed")
+    task = ControlledLocomotionTask(read_controller(tmp_path), headings="fixed")
     grids = np.concatenate([tiny_bodies(), np.zeros((1, 3, 3, 3), np.uint8)])
     reward = task.reward(torch.from_numpy(grids))
     as_simulated = tiny_bodies()
@@ -203,7 +204,7 @@ def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_
     assert np.abs(expected).min() > 1e-4  # (the gaits move: a score of 0 would not pass for them)
     np.testing.assert_allclose(reward[:3].numpy(), expected, rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="materials"):
-        ControlledLocomotionTask(str(tmp_path), sim=SimConfig(materials=SimConfig().materials[:2]))
+        ControlledLocomotionTask(read_controller(tmp_path), sim=SimConfig(materials=SimConfig().materials[:2]))
 
 
 def test_the_app_refuses_design_after_control_without_a_controller() -> None:

@@ -15,8 +15,8 @@ from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, 
 from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
-from freeform.agents.distributions import MaskedDiagGaussian, from_spec
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
+from freeform.distributions import MaskedDiagGaussian, from_spec
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig
 

@@ -15,10 +15,10 @@ from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture an
 
 from freeform.agents import MLPActorCritic
 from freeform.agents.distill import Distillation, DistillConfig, distill_loss
-from freeform.agents.distributions import Categorical, DiagGaussian
 from freeform.agents.ppo import PPOConfig
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
+from freeform.distributions import Categorical, DiagGaussian
 from freeform.envs import from_gymnasium
 
 

@@ -196,7 +196,7 @@ def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy
     from freeform.agents import PPO
     from freeform.body import largest_component
     from freeform.envs.design import DesignEnv
-    from freeform.envs.population import trained_design_bodies
+    from freeform.run.designer import TrainedDesigner, trained_design_bodies
 
     design = ["experiment=volume_cpu", "env.num_envs=4", "env.resolution=6", "env.steps=6", "env.bundle_size=2",
               "task.materials=4", "agent.hidden=4", "agent.sgd_minibatch_size=8", "trainer.epochs=2",
@@ -212,7 +212,7 @@ def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy
         obs, _, done, info = env.step(ppo.act(obs))
     assert torch.equal(bodies, largest_component(info["final_grids"]))
     assert not torch.equal(bodies, trained_design_bodies(run, 5, SIZES, 8))  # another draw, other designs
-    designed = DesignBodies(6, 4, 6, 2, designer=run)
+    designed = DesignBodies(6, 4, 6, 2, designer=TrainedDesigner(run))
     assert torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(designed, 4, 0, 1))
     assert not torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(SIZES, 4, 0, 1))  # not untrained ones
     stream = PopulationControlEnv(designed, 4, pool=1, refresh_every=1, sim=SIM, control=SHORT, seed=1)

@@ -14,8 +14,8 @@ import torch.nn as nn
 from helpers import learned_straight_and_resumed
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic
-from freeform.agents.distributions import Categorical
 from freeform.agents.ppo import ppo_loss, sequence_minibatch_loss
+from freeform.distributions import Categorical
 
 pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
 

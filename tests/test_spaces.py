@@ -21,7 +21,8 @@ from torch.distributions import Categorical as TorchCategorical
 from torch.distributions import kl_divergence
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig, VoxelActorCritic
-from freeform.agents.distributions import (
+from freeform.agents.ppo import update_kl_coeff
+from freeform.distributions import (
     Bernoulli,
     Categorical,
     DiagGaussian,
@@ -30,7 +31,6 @@ from freeform.agents.distributions import (
     for_space,
     from_spec,
 )
-from freeform.agents.ppo import update_kl_coeff
 from freeform.envs import from_gymnasium, to_gymnasium
 from freeform.envs.adapters import ActionDecoder, ObservationEncoder
 

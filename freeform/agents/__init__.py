@@ -6,6 +6,7 @@ over uint8 voxel grids, ``MLPActorCritic`` serves flat observations; the control
 (``save_controller`` / ``read_controller``).
 """
 
+from freeform.agents.codesign_network import CodesignActorCritic
 from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controllers import (
     CONTROLLERS,
@@ -15,8 +16,7 @@ from freeform.agents.controllers import (
     VoxelAttentionController,
     build_controller,
 )
-from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
-from freeform.agents.observation_groups import GroupedMLPActorCritic
+from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.recurrent import RecurrentActorCritic
 

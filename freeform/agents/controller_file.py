@@ -10,9 +10,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 import torch.nn as nn
 
-from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind
+from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind, controller_step
+from freeform.body import bounding_box
+from freeform.checkpoint import load_checkpoint, save_checkpoint
+from freeform.envs.control import ControlConfig
+from freeform.sim import SimConfig
 
 CONTROLLER_FILE = "controller.pt"
 
@@ -29,15 +34,36 @@ class SavedController:
     sim: Any
     path: Path
 
+    def policy_for(self, bodies: Any) -> MeanPolicy:
+        """This controller built for a box that holds ``bodies`` (:func:`controller_for`), acting by its mean
+        command: what a task that scores designs under it drives them with (``freeform.envs.tasks.
+        FrozenController``)."""
+        return MeanPolicy(controller_for(self.path, bodies).controller.eval())
+
+
+@dataclass
+class MeanPolicy:
+    """A controller acting by its mean command, deterministically: ``policy(obs [N, C, Bx, By, Bz], state) ->
+    (actions [N, Bx·By·Bz], state)`` (``state`` None at an episode's start; a feed-forward controller keeps None)."""
+
+    net: nn.Module
+
+    @property
+    def box(self) -> tuple[int, int, int]:
+        return tuple(int(b) for b in self.net.box)  # type: ignore[return-value]
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...] | None
+                 ) -> tuple[torch.Tensor, tuple[torch.Tensor, ...] | None]:
+        outputs, state = controller_step(self.net, obs, state)
+        return self.net.distribution.mode(outputs[:3]), state
+
 
 def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: Any = None) -> Path:
     """Write ``controller.pt``, self-contained: ``{"controller": {"kind", "init_kwargs", "weights"}, "control":
     the ControlConfig's fields, "sim": the SimConfig as a dict or None}``, atomically through
     ``freeform.checkpoint.save_checkpoint`` (read with ``weights_only``). ``control`` may be a ``ControlRunConfig``
     (its episode's fields are kept). Returns the path written."""
-    from freeform.checkpoint import save_checkpoint
-    from freeform.envs.control import ControlConfig
-
     episode = {f.name: getattr(control, f.name) for f in dataclasses.fields(ControlConfig)}
     episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
     if isinstance(controller, PrivilegedCritic):
@@ -54,8 +80,6 @@ def read_controller(source: str | Path, box: tuple[int, int, int] | None = None)
     co-design run's directory (its ``checkpoints/last.pt``; a co-design run's controller part). ``box``: build it for
     this box instead of the one it trained in — any box for the kinds that fit any box, refused with the reason for
     the MLP."""
-    from freeform.checkpoint import load_checkpoint
-
     path = Path(source)
     if path.is_dir():
         candidates = (path / CONTROLLER_FILE, path / "checkpoints" / "last.pt")
@@ -79,8 +103,6 @@ def read_controller(source: str | Path, box: tuple[int, int, int] | None = None)
 def body_box(grids: Any) -> tuple[int, int, int]:
     """The box that holds every body of ``grids`` (uint8 ``[M, X, Y, Z]``) cropped to its bounding box: the
     ``ControlEnv``'s ``box`` for them."""
-    from freeform.body import bounding_box
-
     lo, hi = bounding_box(grids)
     return tuple(int(b) for b in (hi - lo).amax(0))  # type: ignore[return-value]
 
@@ -99,15 +121,9 @@ def controller_for(source: str | Path, grids: Any) -> SavedController:
 def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, Any], dict[str, Any], Any, Any]:
     """(kind, init_kwargs, weights, ControlConfig, SimConfig or None) from any of the files
     :func:`read_controller` reads."""
-    from omegaconf import OmegaConf
-
-    from freeform.envs.control import ControlConfig
-    from freeform.sim import SimConfig
-
     if "controller" in payload:  # save_controller's
         part = payload["controller"]
-        sim = payload.get("sim")
-        sim = OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(SimConfig), sim)) if sim is not None else None
+        sim = _structured(SimConfig, payload["sim"]) if payload.get("sim") is not None else None
         return part["kind"], dict(part["init_kwargs"]), part["weights"], ControlConfig(**payload["control"]), sim
     if "policy_class" not in payload:
         raise ValueError(f"{path}: neither a controller.pt nor a PPO or run checkpoint")
@@ -130,13 +146,14 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
         kind = next((k for k, cls in CONTROLLERS.items() if cls.__name__ == name), None)
         if kind is None:
             raise ValueError(f"{path}: its policy {name} is no controller (one of {list(CONTROLLERS)})")
-    if "config" in payload:  # a run's checkpoint
-        from freeform.config import from_container
-
-        cfg = from_container(payload["config"])
-        if cfg.control is None:
+    if "config" in payload:  # a run's checkpoint: its control and sim sections
+        run = payload["config"]
+        if run.get("control") is None:
             raise ValueError(f"{path}: a run without a control section (a design run) has no controller")
-        return kind, kwargs, weights, dataclasses.replace(cfg.control.episode(), privileged_critic=False), cfg.sim
+        episode = {k: v for k, v in run["control"].items() if k in {f.name for f in dataclasses.fields(ControlConfig)}}
+        control = _structured(ControlConfig, {**episode, "privileged_critic": False})
+        control.validate()
+        return kind, kwargs, weights, control, _structured(SimConfig, run.get("sim") or {})
     args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
     if not args.is_file():
         raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
@@ -146,4 +163,12 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
     return kind, kwargs, weights, control, SimConfig()
 
 
-__all__ = ["CONTROLLER_FILE", "SavedController", "body_box", "controller_for", "read_controller", "save_controller"]
+def _structured(schema: type, data: dict[str, Any]) -> Any:
+    """``data`` (a section of a saved config) as the dataclass ``schema``: its defaults where ``data`` has none, the
+    types checked (OmegaConf's structured merge)."""
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(schema), data))
+
+
+__all__ = ["CONTROLLER_FILE", "MeanPolicy", "SavedController", "body_box", "controller_for", "read_controller", "save_controller"]

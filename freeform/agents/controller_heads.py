@@ -11,7 +11,7 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import MaskedDiagGaussian
+from freeform.distributions import MaskedDiagGaussian
 
 
 def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:

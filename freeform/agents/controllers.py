@@ -51,8 +51,10 @@ from freeform.agents.controller_heads import (
     _rhythm,
     head_rule,
 )
-from freeform.agents.distributions import MaskedDiagGaussian
+from freeform.agents.networks import MLPActorCritic
+from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
 from freeform.agents.recurrent import RecurrentPolicy, run_rnn
+from freeform.distributions import MaskedDiagGaussian
 
 
 class ConvController(nn.Module):
@@ -121,7 +123,6 @@ class MLPController(nn.Module):
 
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int,
                  hidden: tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> None:
-        from freeform.agents.networks import MLPActorCritic  # (networks imports this module)
 
         super().__init__()
         box = _check_control_input(channels, box, mask_channel=mask_channel)
@@ -475,7 +476,6 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     ``wave`` for :data:`WAVE_KINDS`, starting from the hand-set ``wave``).
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
-    from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
 
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")

@@ -28,10 +28,10 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.distributed import PER_ENV
-from freeform.agents.distributions import ActionDistribution, DiagGaussian
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.ppo.rollout import Observation, obs_map
 from freeform.agents.teachers import TEACHER, TeacherBank
+from freeform.distributions import ActionDistribution, DiagGaussian
 
 LOSSES = ("kl", "mse")
 

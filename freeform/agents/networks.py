@@ -1,13 +1,13 @@
 """Actor-critic networks: the contracts PPO relies on, declared (:class:`ActorCritic`, :class:`SplitActorCritic`,
 :class:`DeclaresDistribution`, :class:`Rebuildable`, :class:`GroupedActions`), and the paper's voxel network, a
-small MLP for flat observations and the co-design actor-critic. The control env's controllers live in
-``freeform.agents.controllers`` (``ConvController`` and ``MLPController`` are re-exported here under their old
-names).
+small MLP for flat observations (and its observation-group form). The networks are leaves: the control env's
+controllers (``freeform.agents.controllers``) and the co-design actor-critic (``freeform.agents.codesign_network``)
+build on them, never the other way.
 
 A policy is an ``nn.Module`` whose ``forward(obs)`` returns its action distribution's parameters, then the critic's
 V(obs) ``[N]``: for Box actions ``(mean [N, A], log_std [N, A], value [N])``, the Gaussian policy
 π = Normal(mean, exp(log_std)) over raw actions; for discrete ones ``(logits, value)``
-(``freeform.agents.distributions`` lists them). A policy that keeps its
+(``freeform.distributions`` lists them). A policy that keeps its
 constructor arguments in ``init_kwargs`` can be rebuilt by a checkpoint from the file alone, and one that names
 groups of action dimensions in ``action_groups`` gets the mean σ of each group logged.
 
@@ -27,17 +27,16 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
-from freeform.agents.controllers import CODESIGN_KINDS, CONTROLLERS, ConvController, MLPController
-from freeform.agents.distributions import (
+from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
+from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
+from freeform.agents.observation_groups import CRITIC, GROUPS, POLICY, is_grouped
+from freeform.distributions import (
     ActionDistribution,
     DiagGaussian,
     MaskedDiagGaussian,
     from_spec,
     head_distribution,
 )
-from freeform.agents.fast_trunk import onehot_conv3d_voxel_major, strided_conv3d_voxel_major
-from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
 
 TRUNK_IMPLEMENTATIONS = ("auto", "fast", "gather", "conv")
 
@@ -269,10 +268,8 @@ class MLPActorCritic(nn.Module):
         """The network for a ``VecEnv``: its flattened observation size and its ``action_distribution`` (a
         Gaussian over ``action_dim`` where it declares none). An env observing the groups ``"policy"`` and
         ``"critic"`` gets the grouped network (``freeform.agents.observation_groups``)."""
-        from freeform.agents import observation_groups
-
-        if observation_groups.is_grouped(env.observation_shape):
-            return observation_groups.GroupedMLPActorCritic.for_env(env, hidden)
+        if is_grouped(env.observation_shape):
+            return GroupedMLPActorCritic.for_env(env, hidden)
         if isinstance(env.observation_shape, Mapping):
             raise ValueError(f"MLPActorCritic reads one flat observation, and this env observes a dict of them "
                              f"{dict(env.observation_shape)}: flatten them (from_gymnasium's default) or write a "
@@ -314,83 +311,41 @@ class MLPActorCritic(nn.Module):
         return (*self.action_params(obs), self.value(obs))
 
 
-class CodesignActorCritic(nn.Module):
-    """One actor-critic for a design-then-control episode (``freeform.envs.CodesignEnv``): the paper's design
-    network (:class:`VoxelActorCritic`) on the grid channel while designing, a controller on the control channels
-    while controlling (a :class:`ConvController` by default; any feed-forward kind of
-    ``freeform.agents.controllers.CONTROLLERS`` with its head, e.g. a population controller's context trunk and
-    wave head); the stage channel chooses, per sample, which head acts and which value counts.
+class GroupedMLPActorCritic(MLPActorCritic):
+    """:class:`~freeform.agents.MLPActorCritic` over observation groups: the actor's MLP reads ``obs["policy"]``
+    only, the critic's the two groups side by side (``[policy, critic]``, each flattened). Otherwise CleanRL's nets
+    as there (orthogonal init, state-independent log σ, any of the discrete heads)."""
 
-    Observations ``[N, C, ρ, ρ, ρ]`` (channel ``stage_channel`` 0 while designing, 1 while controlling; the grid's
-    material indices in ``grid_channel``; the control env's channels in ``control_channels = (start, stop)``, whose
-    ``mask_channel`` / ``filled_channel`` are counted from ``start``). Outputs a ``MaskedDiagGaussian``'s parameters
-    over ``[3 + k design numbers, c·ρ³ control numbers]`` (c = 2 for a stroke head) and the value: (mean, log_std,
-    mask, value); the mask is the design part while designing, the actuated cells while controlling.
-
-    controller, controller_kwargs: the controller's registry kind and ``init_kwargs`` (None: a ``ConvController``
-    ``controller_hidden`` wide, log σ ``log_std``, as before they could be chosen).
-    """
-
-    def __init__(self, resolution: int, materials: int, stage_channel: int, grid_channel: int,
-                 control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
-                 controller_kwargs: dict[str, Any] | None = None, trunk: str = "auto") -> None:
-        super().__init__()
-        start, stop = (int(c) for c in control_channels)
-        self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
-                                grid_channel=grid_channel, control_channels=(start, stop), mask_channel=mask_channel,
-                                filled_channel=filled_channel, hidden=hidden, controller_hidden=controller_hidden,
-                                log_std=log_std)
-        if trunk != "auto":  # (a file from before the key rebuilds as it was)
-            self.init_kwargs["trunk"] = trunk
-        self.design = VoxelActorCritic(resolution, materials, hidden, trunk=trunk)
-        if controller_kwargs is None:
-            if controller != "conv":
-                raise ValueError(f"controller {controller!r} needs its controller_kwargs (init_kwargs)")
-            self.controller = ConvController(stop - start, (resolution,) * 3, mask_channel, filled_channel,
-                                             controller_hidden, log_std)
-        else:
-            if controller not in CODESIGN_KINDS:
-                raise ValueError(f"a co-design controller is one of {list(CODESIGN_KINDS)} (feed-forward, one set "
-                                 f"of weights for every cell), got {controller!r}: set control.controller")
-            self.controller = CONTROLLERS[controller](**controller_kwargs)
-            self.init_kwargs.update(controller=controller, controller_kwargs=dict(controller_kwargs))
-        if tuple(self.controller.box) != (resolution,) * 3:
-            raise ValueError(f"the controller's box {tuple(self.controller.box)} is not the design grid's "
-                             f"{(resolution,) * 3}")
-        self.stage_channel, self.grid_channel, self.control_channels = stage_channel, grid_channel, (start, stop)
-        self.design_dim = 3 + materials
-        self.distribution = MaskedDiagGaussian(self.design_dim + self.controller.distribution.dim)
+    def __init__(self, policy_dim: int, critic_dim: int, action_dim: int | None = None,
+                 hidden: tuple[int, ...] | list[int] = (64, 64),
+                 distribution: ActionDistribution | dict[str, Any] | None = None) -> None:
+        super().__init__(policy_dim, action_dim, hidden, distribution)
+        if not isinstance(critic_dim, int) or critic_dim < 1:
+            raise ValueError(f"critic_dim must be a positive int, got {critic_dim!r}")
+        first = self.critic[0]  # the critic's first layer reads both groups
+        self.critic[0] = self._orthogonal(nn.Linear(policy_dim + critic_dim, first.out_features), math.sqrt(2.0))
+        self._critic_linears = tuple(self.critic[::2])
+        self.init_kwargs = {"policy_dim": policy_dim, "critic_dim": critic_dim,
+                            **{k: v for k, v in self.init_kwargs.items() if k != "obs_dim"}}
+        self.critic_dim = critic_dim
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5,
-                controller: str = "conv", head: str = "direct", wave: HandSetWave = DEFAULT_WAVE,
-                trunk: str = "auto") -> CodesignActorCritic:
-        """The actor-critic for a ``CodesignEnv`` (its grid, materials and channels): a ``controller`` of that kind
-        with that ``head`` (``freeform.agents.build_controller`` on the env's control stage; the default conv
-        controller with the direct head is built as it always was), the design network's ``trunk``."""
-        from freeform.agents.controllers import build_controller
+    def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64)) -> GroupedMLPActorCritic:  # type: ignore[override]
+        """The network for a ``VecEnv`` observing the two groups (each part's size flattened)."""
+        shape = env.observation_shape
+        if not is_grouped(shape):
+            raise ValueError(f"GroupedMLPActorCritic needs observations with the groups {GROUPS}, got {shape}")
+        return cls(int(math.prod(shape[POLICY])), int(math.prod(shape[CRITIC])), int(env.action_dim), hidden,
+                   getattr(env, "action_distribution", None))
 
-        kwargs = None
-        if (controller, head) != ("conv", "direct"):
-            kwargs = dict(build_controller(controller, env.control_view(), controller_hidden, log_std, head,
-                                           wave).init_kwargs)
-        return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
-                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs,
-                   trunk)
+    def action_params(self, obs: Mapping[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:  # type: ignore[override]
+        """``obs["policy"] [N, P]`` → the distribution's parameters; the critic group is never read."""
+        return super().action_params(obs[POLICY])
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + c·ρ³]``, value ``[N]``)."""
-        controlling = obs[:, self.stage_channel, 0, 0, 0] > 0.5
-        grids = obs[:, self.grid_channel].round().to(torch.uint8)
-        mean_d, log_std_d, value_d = self.design(grids)
-        start, stop = self.control_channels
-        mean_c, log_std_c, mask_c, value_c = self.controller(obs[:, start:stop])
-        designing = (~controlling).to(mean_d.dtype)[:, None]
-        mask = torch.cat([designing.expand_as(mean_d), mask_c * (1.0 - designing)], dim=1)
-        return (torch.cat([mean_d, mean_c], dim=1), torch.cat([log_std_d, log_std_c], dim=1), mask,
-                torch.where(controlling, value_c, value_d))
+    def value(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:  # type: ignore[override]
+        """``obs["policy"] [N, P]``, ``obs["critic"] [N, C]`` → V ``[N]``."""
+        return super().value(torch.cat([self._flat(obs[POLICY]), self._flat(obs[CRITIC])], dim=1))
 
 
-__all__ = ["ActorCritic", "CodesignActorCritic", "ConvController", "DeclaresDistribution", "GroupedActions", "MLPActorCritic",
-           "MLPController", "Rebuildable", "SplitActorCritic", "VoxelActorCritic"]
+__all__ = ["ActorCritic", "DeclaresDistribution", "GroupedActions", "GroupedMLPActorCritic", "MLPActorCritic",
+           "Rebuildable", "SplitActorCritic", "TRUNK_IMPLEMENTATIONS", "VoxelActorCritic", "resolve_trunk"]

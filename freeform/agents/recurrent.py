@@ -22,7 +22,8 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import (
+from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
+from freeform.distributions import (
     ActionDistribution,
     DiagGaussian,
     head_distribution,
@@ -151,8 +152,6 @@ class RecurrentActorCritic(nn.Module):
     def for_env(cls, env: Any, hidden: tuple[int, ...] | list[int] = (64, 64), rnn: str = "lstm",
                 rnn_hidden: int = 256, rnn_layers: int = 1) -> RecurrentActorCritic:
         """The network for a ``VecEnv``: flat observations, or the groups ``"policy"``/``"critic"``."""
-        from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
-
         shape = env.observation_shape
         if is_grouped(shape):
             sizes = (int(math.prod(shape[POLICY])), int(math.prod(shape[CRITIC])))

@@ -129,7 +129,7 @@ class ActionDecoder:
     shifted by the space's ``start``; ``MultiBinary`` bits. ``distribution``: the one PPO trains for the space."""
 
     def __init__(self, space: gym.spaces.Space) -> None:
-        from freeform.agents.distributions import (
+        from freeform.distributions import (
             for_space,  # (agents do not import envs; this direction is free)
         )
 
@@ -191,7 +191,7 @@ class GymnasiumVecEnv:
         self.num_envs = int(vector_env.num_envs)
         self.observation_shape = self.encoder.shape
         self.action_distribution = self.decoder.distribution
-        """What PPO trains for the action space (``freeform.agents.distributions``)."""
+        """What PPO trains for the action space (``freeform.distributions``)."""
         self.action_dim = self.decoder.dim
         self.device = torch.device(device)
         self.seed = seed
@@ -381,7 +381,7 @@ def _default_observation_space(env: Any) -> gym.spaces.Box:
 
 
 def _default_action_space(env: Any) -> gym.spaces.Space:
-    from freeform.agents.distributions import Bernoulli, Categorical, MultiCategorical
+    from freeform.distributions import Bernoulli, Categorical, MultiCategorical
 
     dist = getattr(env, "action_distribution", None)  # an env with discrete actions says so
     if isinstance(dist, Categorical):

@@ -24,7 +24,7 @@ class VecEnv(Protocol):
     whatever describes the finished episode travels in ``info``: every tensor in ``info`` is per environment,
     ``[num_envs, ...]`` (a data-parallel run gathers them over ranks for its records).
 
-    Optional attribute: ``action_distribution``, the ``freeform.agents.distributions.ActionDistribution`` its actions
+    Optional attribute: ``action_distribution``, the ``freeform.distributions.ActionDistribution`` its actions
     need (a categorical for discrete actions, a masked Gaussian for a control env; none: a Gaussian over
     ``action_dim`` floats).
 

@@ -13,7 +13,7 @@ Everything is on the design grid, so that both stages see one frame and one tens
   per grid cell (with ``control.stroke_periods``: ``[N, 3 + k + 2ρ³]``, a stroke's a for every cell, then its b).
   A design step reads the first part, a control step the second (on the body's voxels: a voxel not in the body's
   largest component, like an empty cell, has no command). The distribution is a
-  :class:`~freeform.agents.distributions.MaskedDiagGaussian` over all of it; the policy's mask is the design part
+  :class:`~freeform.distributions.MaskedDiagGaussian` over all of it; the policy's mask is the design part
   while designing and the actuated voxels while controlling (``CodesignActorCritic``), so each step's
   log-probability, entropy and KL count the entries that act.
 * Rewards: 0 for a design step; a control step's is the control env's, the body's centre of mass's move along its
@@ -32,19 +32,16 @@ draw ``first_env + i``, so that the episode count is the env's whole random stat
 from __future__ import annotations
 
 from types import SimpleNamespace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
-from freeform.agents.distributions import MaskedDiagGaussian
 from freeform.body import bodies_and_metrics, serial_on_cpu
+from freeform.distributions import MaskedDiagGaussian
 from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig, ControlEnv, same_config
-from freeform.envs.design import DesignEnv
+from freeform.envs.design import DesignEnv, EnvConfig
 from freeform.sim import SimConfig, Simulator
-
-if TYPE_CHECKING:
-    from freeform.config import EnvConfig
 
 CODESIGN_CHANNELS = ("stage", "design_progress", "grid", *OBS_CHANNELS)
 STAGE, DESIGN_PROGRESS, GRID = 0, 1, 2
@@ -54,7 +51,7 @@ CONTROL = slice(3, 3 + len(OBS_CHANNELS))
 
 class CodesignEnv:
     """``num_envs`` design-then-control episodes (module docstring), from the config objects a run has: ``design``,
-    the design env's setting (a run's ``env`` section, ``freeform.config.EnvConfig``: ``resolution``, ``steps``
+    the design env's setting (a run's ``env`` section, ``freeform.envs.design.EnvConfig``: ``resolution``, ``steps``
     design steps, ``bundle_size``, ``action_bound``, ``mirror_y``; its ``num_envs`` is not read — a data-parallel
     rank holds ``num_envs`` of them, from ``first_env`` on), ``materials`` (``task.materials``, k incl. empty),
     ``sim`` and ``control``: the control env's (``control.headings`` "fixed": +x, "random": steering)."""
@@ -62,8 +59,6 @@ class CodesignEnv:
     def __init__(self, num_envs: int, design: EnvConfig | None = None, materials: int = 4,
                  sim: SimConfig | None = None, control: ControlConfig | None = None, *, arch: str = "cpu",
                  seed: int = 0, device: str | torch.device = "cpu", first_env: int = 0) -> None:
-        from freeform.config import EnvConfig  # (freeform.config imports the envs)
-
         if design is None:  # the CPU co-design setting
             design = EnvConfig(resolution=8, steps=20, bundle_size=2, action_bound=2.0, mirror_y=False)
         resolution, design_steps = design.resolution, design.steps

@@ -37,7 +37,7 @@ actuated voxel's actuation is its material's sine, computed every simulator step
 (clipped to [−2, 2]), the sum kept in the sine's range; the observation gains the sine at the coming period's
 midpoint as a last channel, ``open_loop`` (``RESIDUAL_CHANNELS``). Zero actions are the body's open-loop gait, bit
 for bit, so a controller starts from what the body already does and learns what to add to it. PPO's distribution is a
-:class:`~freeform.agents.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
+:class:`~freeform.distributions.MaskedDiagGaussian` (``action_distribution``): the policy reads the
 ``actuated`` channel (``mask_channel``) as the mask, so log-probabilities, entropy and KL count the entries that act.
 """
 
@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from freeform.agents.distributions import MaskedDiagGaussian
+from freeform.distributions import MaskedDiagGaussian
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.engine import Engine, Readout
@@ -543,19 +543,4 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     return moves[:, 0] * np.cos(heading) + moves[:, 1] * np.sin(heading)
 
 
-def untrained_walker(candidates: int, resolution: int, materials: int, steps: int, bundle_size: int, seed: int = 0,
-                     sim: SimConfig | None = None, control: ControlConfig | None = None,
-                     arch: str = "cpu") -> tuple[torch.Tensor, np.ndarray]:
-    """The walker: of ``candidates`` bodies an untrained design policy builds (``freeform.evolve.
-    untrained_design_bodies``; the rare empty one dropped), the one whose open-loop gait goes furthest along +x in
-    a control episode's window (:func:`open_loop_displacement`). Returns it ``[1, ρ, ρ, ρ]`` and every kept
-    candidate's score."""
-    from freeform.evolve import untrained_design_bodies
-
-    grids = untrained_design_bodies(candidates, resolution, materials, steps, bundle_size, seed)
-    grids = grids[(grids.flatten(1) > 0).any(dim=1)]
-    scores = open_loop_displacement(grids, sim, control, arch)
-    return grids[int(np.argmax(scores))][None], scores
-
-
-__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "open_loop_moves", "untrained_walker"]
+__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "open_loop_moves"]

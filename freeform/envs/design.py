@@ -9,6 +9,7 @@ score of the final grid, and the environment starts again from an empty grid.
 from __future__ import annotations
 
 import inspect
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -17,7 +18,31 @@ from freeform.body import bodies_and_metrics, check_grids, largest_component, se
 from freeform.envs.base import ReportsPlacement, Task
 from freeform.envs.tasks import VolumeTask
 
-__all__ = ["DesignEnv"]
+__all__ = ["DesignEnv", "EnvConfig"]
+
+
+@dataclass
+class EnvConfig:
+    """The batched design environment, ``freeform.envs.DesignEnv`` (``conf/env/``)."""
+
+    num_envs: int = 256
+    """N, environments stepped in lock-step (one robot designed per environment and episode)."""
+    resolution: int = 20
+    """ρ, edge of the design grid in voxels (even: the network halves it)."""
+    steps: int = 100
+    """T, actions per episode."""
+    bundle_size: int = 2
+    """b, edge of the cube of voxels one action paints (even: the bundle is centred between voxels)."""
+    action_bound: float = 2.0
+    """B, every action component is clipped to [−B, B] and mapped to [0, 1] (spec: 2)."""
+    dense_every: int = 0
+    """k > 0: dense design rewards — the partial body is scored by the task every k design steps and the
+    improvement is the reward (``freeform.envs.DenseDesignReward``; an episode's rewards still sum to the terminal
+    reward); 0 = the paper's sparse terminal reward."""
+    mirror_y: bool = False
+    """Bilateral symmetry: every bundle is placed with its mirror image across the grid's x–z mid-plane, so designs
+    are left-right symmetric and travel along ±x on y-symmetric ground (``DesignEnv(mirror_y=...)``); off in the
+    paper."""
 
 
 class DesignEnv:

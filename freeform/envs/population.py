@@ -25,15 +25,13 @@ given: every body of the design env fits it), so the rollout's shapes never chan
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from freeform.envs.control import ControlConfig, ControlEnv, same_config
+from freeform.envs.untrained import DesignBodies, untrained_design_bodies
 from freeform.sim import SimConfig, Simulator
 
 
@@ -54,33 +52,16 @@ def robot_seconds(episodes: int, num_envs: int, control: Any, seed: int) -> floa
     return episodes * num_envs * control.duration + len(played) * num_envs * control.burn_in
 
 
-@dataclass(frozen=True)
-class DesignBodies:
-    """The design env's sizes, for bodies an untrained design policy builds (``freeform.evolve.
-    untrained_design_bodies``): grid ``resolution`` ρ, ``materials`` k (with empty: 4 = empty, passive and two
-    muscles in anti-phase), ``steps`` design actions of ``bundle_size``³ bundles (locomotion_cpu's by default).
-    ``designer``: a design run's directory or checkpoint whose last policy builds the bodies instead
-    (:func:`trained_design_bodies`; its sizes must be these)."""
-
-    resolution: int = 8
-    materials: int = 4
-    steps: int = 20
-    bundle_size: int = 2
-    designer: str | None = None
-
-
 def design_cohort(sizes: DesignBodies, n: int, body_seed: int, cohort: int) -> torch.Tensor:
     """Cohort ``cohort`` of the stream ``body_seed``: ``n`` non-empty bodies, uint8 ``[n, ρ, ρ, ρ]`` (each the
-    largest component an untrained design policy builds, or ``sizes.designer``'s policy; the rare empty design is
+    largest component an untrained design policy builds, or ``sizes.designer``'s bodies; the rare empty design is
     replaced by the next draw)."""
-    from freeform.evolve import untrained_design_bodies
-
     found: list[torch.Tensor] = []
     draw = 0
     while sum(len(g) for g in found) < n:
         seed = int(np.random.SeedSequence([body_seed, cohort, draw]).generate_state(1)[0])
         if sizes.designer is not None:
-            grids = trained_design_bodies(sizes.designer, n + n // 8 + 1, sizes, seed)
+            grids = sizes.designer(n + n // 8 + 1, sizes, seed)
         else:
             grids = untrained_design_bodies(n + n // 8 + 1, sizes.resolution, sizes.materials, sizes.steps,
                                             sizes.bundle_size, seed)
@@ -89,62 +70,6 @@ def design_cohort(sizes: DesignBodies, n: int, body_seed: int, cohort: int) -> t
         if draw > 100:
             raise RuntimeError(f"design_cohort: fewer than {n} non-empty bodies in {draw} draws of {sizes}")
     return torch.cat(found)[:n].contiguous()
-
-
-@functools.lru_cache(maxsize=4)
-def _designer(path: str) -> tuple[Any, Any]:
-    """The design run's last PPO (on a design env of its own sizes, no task) and its config, read once."""
-    from freeform.agents import PPO
-    from freeform.checkpoint import load_checkpoint
-    from freeform.config import from_container
-    from freeform.envs.design import DesignEnv
-
-    payload = load_checkpoint(path)
-    if "config" not in payload:
-        raise ValueError(f"control.designer={path}: not a run's checkpoint (no run config)")
-    cfg = from_container(payload["config"])
-    if cfg.control is not None:
-        raise ValueError(f"control.designer={path}: a control run's checkpoint; the designer is a design run "
-                         "(a run without a control section), whose policy builds bodies")
-    e = cfg.env
-    env = DesignEnv(e.num_envs, resolution=e.resolution, materials=cfg.task.materials, steps=e.steps,
-                    bundle_size=e.bundle_size, action_bound=e.action_bound, mirror_y=e.mirror_y,
-                    compute_metrics=False)
-    with torch.random.fork_rng(devices=[]):  # (building the network draws: the caller's stream stays as it was)
-        ppo = PPO.load(path, env, device="cpu")
-    return ppo, env
-
-
-@torch.no_grad()
-def trained_design_bodies(designer: str, n: int, sizes: DesignBodies, seed: int) -> torch.Tensor:
-    """``n`` bodies a trained design policy builds, uint8 ``[n, ρ, ρ, ρ]`` (each design's largest component):
-    ``designer`` a design run's directory (its ``checkpoints/last.pt``) or a checkpoint, its actions sampled as in
-    training from a generator seeded ``seed``, so the bodies are a function of ``(designer, n, seed)``. The run's
-    design sizes must be ``sizes``' (the stream's box is built from them)."""
-    from freeform.body import largest_component, serial_on_cpu
-    from freeform.envs.design import DesignEnv
-
-    path = Path(designer)
-    path = path / "checkpoints" / "last.pt" if path.is_dir() else path
-    if not path.is_file():
-        raise ValueError(f"control.designer={designer!r}: no such checkpoint ({path} is not a file)")
-    ppo, env = _designer(str(path.resolve()))
-    theirs = (env.resolution, env.materials, env.steps, env.bundle_size)
-    ours = (sizes.resolution, sizes.materials, sizes.steps, sizes.bundle_size)
-    if theirs != ours:
-        raise ValueError(f"control.designer={designer!r} designs on a {theirs[0]}^3 grid with {theirs[1]} materials "
-                         f"and {theirs[2]} steps of {theirs[3]}^3 bundles, and this run's design sizes (env.resolution, "
-                         f"task.materials, env.steps, env.bundle_size) are {ours}: give the run the designer's sizes")
-    sampler = DesignEnv(n, resolution=env.resolution, materials=env.materials, steps=env.steps,
-                        bundle_size=env.bundle_size, action_bound=env.action_bound, mirror_y=env.mirror_y,
-                        compute_metrics=False)
-    ppo.generator.manual_seed(seed)
-    grids = torch.zeros((n, *sampler.observation_shape), dtype=torch.uint8)
-    for _ in range(env.steps):  # (the design env's steps, without its scoring)
-        actions = ppo.act(grids).cpu()
-        with serial_on_cpu("cpu"):
-            grids = sampler.place_bundles(grids, actions)
-    return largest_component(grids)
 
 
 class PopulationControlEnv:
@@ -271,9 +196,9 @@ class PopulationControlEnv:
                              "run resumes with the body_seed and design sizes it was trained with")
 
     def _config(self) -> dict[str, Any]:
-        return {"control": vars(self.control).copy(), "box": list(self.box), "sizes": vars(self.sizes).copy(),
+        return {"control": vars(self.control).copy(), "box": list(self.box), "sizes": self.sizes.config(),
                 "total": self.total, **({"copies": self.copies} if self.copies > 1 else {}), "pool": self.pool, "refresh_every": self.refresh_every,
                 "body_seed": self.body_seed}
 
 
-__all__ = ["DesignBodies", "PopulationControlEnv", "design_cohort", "trained_design_bodies"]
+__all__ = ["DesignBodies", "PopulationControlEnv", "design_cohort"]

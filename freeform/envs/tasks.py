@@ -11,13 +11,13 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 
 from freeform.body import check_grids, largest_component, serial_on_cpu
 
-__all__ = ["ControlledLocomotionTask", "LocomotionTask", "SimulatedTask", "VolumeTask"]
+__all__ = ["ControlledLocomotionTask", "FrozenController", "LocomotionTask", "SimulatedTask", "VolumeTask"]
 
 
 @dataclass
@@ -173,10 +173,24 @@ class LocomotionTask(SimulatedTask):
         return torch.where(displacement < self.min_reward, 0.0, displacement)  # NaN stays NaN: counted as failed
 
 
+class FrozenController(Protocol):
+    """A trained controller, read once by the layer that builds the task (``freeform.agents.controller_file.
+    read_controller`` gives one): the episode it was trained under (``control``, a ``ControlConfig``), its physics
+    (``sim``, a ``SimConfig``; None: the default), where it came from (``path``), and ``policy_for(bodies
+    [M, ρ, ρ, ρ] uint8)``, the controller built for a box that holds those bodies acting by its mean command:
+    ``policy.box``, and ``policy(obs, state) -> (actions, state)`` (``state`` None at the episode's start)."""
+
+    control: Any
+    sim: Any
+    path: Any
+
+    def policy_for(self, bodies: torch.Tensor) -> Any: ...
+
+
 class ControlledLocomotionTask:
-    """Locomotion under a trained controller: each body is driven for one control episode by the controller in
-    ``controller`` (a ``controller.pt``, a folder holding one, or a control run's directory:
-    :func:`freeform.agents.controller_file.read_controller`), and its reward is how far it moves, in voxel lengths:
+    """Locomotion under a trained controller: each body is driven for one control episode by ``controller`` (a
+    :class:`FrozenController`: ``freeform.agents.controller_file.read_controller`` of a ``controller.pt``, a folder
+    holding one, or a control run's directory), and its reward is how far it moves, in voxel lengths:
     the control env's return under ``headings`` (default "any": the distance moved in the plane, the locomotion
     score; "fixed": along +x). The episode is the controller's own (its ``ControlConfig``: settling, window,
     residual control, strokes, the muscles' bandwidth) in its own physics (its ``SimConfig``), and the controller
@@ -187,14 +201,13 @@ class ControlledLocomotionTask:
     Empty bodies score 0 and are not simulated; a body that fails in simulation (diverged) scores what it moved up
     to then. ``stats`` as :class:`SimulatedTask`'s (``perf/sim_seconds``: the episode's wall time)."""
 
-    def __init__(self, controller: str, sim: Any = None, device: str | torch.device | None = None, arch: str = "cpu",
-                 headings: str = "any", seed: int = 0) -> None:
+    def __init__(self, controller: FrozenController, sim: Any = None, device: str | torch.device | None = None,
+                 arch: str = "cpu", headings: str = "any", seed: int = 0) -> None:
         """``sim``: the run's ``SimConfig``, checked to have the controller's materials (the physics is the
         controller's own); ``arch``: "cpu" | "cuda" | "auto"; ``seed``: the episodes' headings where they are
         drawn (``headings="random"``)."""
         from dataclasses import replace
 
-        from freeform.agents.controller_file import read_controller
         from freeform.envs.control import HEADINGS, ControlEnv
         from freeform.sim import SimConfig, Simulator
 
@@ -202,13 +215,12 @@ class ControlledLocomotionTask:
             raise ValueError(f"arch must be one of {ARCHS}, got {arch!r}")
         if headings not in HEADINGS:
             raise ValueError(f"headings must be one of {HEADINGS}, got {headings!r}")
-        saved = read_controller(controller)
-        self.sim = saved.sim or SimConfig()
+        self.sim = controller.sim or SimConfig()
         if sim is not None and len(sim.materials) != len(self.sim.materials):
-            raise ValueError(f"the controller {saved.path} was trained with {len(self.sim.materials)} materials and "
-                             f"the run's sim has {len(sim.materials)}: design with the materials it knows")
-        self.source, self.seed = saved.path, int(seed)
-        self.control = replace(saved.control, headings=headings)
+            raise ValueError(f"the controller {controller.path} was trained with {len(self.sim.materials)} materials "
+                             f"and the run's sim has {len(sim.materials)}: design with the materials it knows")
+        self.controller, self.source, self.seed = controller, controller.path, int(seed)
+        self.control = replace(controller.control, headings=headings)
         self.control.validate()
         self.device = torch.device(device) if device is not None else None
         # one simulator for every call, its device arrays reused: the control env's physics (commanded actuation)
@@ -218,8 +230,6 @@ class ControlledLocomotionTask:
     def reward(self, final_grids: torch.Tensor, bodies: torch.Tensor | None = None) -> torch.Tensor:
         """``final_grids`` ``[N, ρ, ρ, ρ] uint8`` (``bodies`` optional: their largest components) -> each body's
         move under the controller ``[N] float32``."""
-        from freeform.agents.controller_file import controller_for
-        from freeform.agents.controllers import controller_step
         from freeform.envs.control import ControlEnv
 
         if bodies is None:
@@ -233,14 +243,14 @@ class ControlledLocomotionTask:
         if live.numel() == 0:
             return reward.to(device)
         t0 = time.perf_counter()
-        net = controller_for(self.source, bodies[live]).controller.eval()
-        env = ControlEnv(bodies[live], sim=self.sim, control=self.control, seed=self.seed, box=tuple(net.box),
+        policy = self.controller.policy_for(bodies[live])
+        env = ControlEnv(bodies[live], sim=self.sim, control=self.control, seed=self.seed, box=tuple(policy.box),
                          simulator=self.simulator)
         obs, total, state = env.reset(), torch.zeros(len(live), dtype=torch.float64), None
         with torch.no_grad():
             for _ in range(self.control.steps):
-                outputs, state = controller_step(net, obs, state)
-                obs, step_reward, _, _ = env.step(net.distribution.mode(outputs[:3]))
+                actions, state = policy(obs, state)
+                obs, step_reward, _, _ = env.step(actions)
                 total += step_reward.double()
         reward[live] = total.float()
         self.stats["perf/sim_seconds"] = time.perf_counter() - t0

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 from typing import Any
 
+from freeform.envs.untrained import design_grids, untrained_design_bodies, untrained_design_grids
 from freeform.evolve.cma import CMAES
 from freeform.evolve.config import ALGORITHMS, AlgoConfig
 from freeform.evolve.ga import SequenceGA
 from freeform.evolve.grid_ga import GridGA
-from freeform.evolve.runner import Evolution, design_grids, untrained_design_bodies, untrained_design_grids
+from freeform.evolve.runner import Evolution
 
 
 def build_evolution(algo: AlgoConfig, env: Any, seed: int) -> Evolution:

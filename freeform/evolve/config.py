@@ -13,10 +13,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from freeform.learner import ALGORITHMS
 from freeform.validation import is_int, is_number, require
-
-ALGORITHMS = ("ppo", "ga", "cmaes", "grid_ga", "distill")
-"""The built-in values of ``algo.name``."""
 
 CMA_VARIANTS = ("sep", "full")
 

@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from freeform.body import serial_on_cpu
+from freeform.envs.untrained import design_grids
 from freeform.learner import Episodes
 
 
@@ -37,36 +37,6 @@ class Optimizer(Protocol):
     def state_dict(self) -> dict[str, Any]: ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
-
-
-def design_grids(env: Any, actions: torch.Tensor) -> torch.Tensor:
-    """The final grids ``[N, ρ, ρ, ρ] uint8`` that ``actions [N, T, A]`` design in ``env`` (no task, no cost)."""
-    actions = actions.to(env.device, torch.float32)
-    grids = torch.zeros((actions.shape[0], *env.observation_shape), dtype=torch.uint8, device=env.device)
-    with serial_on_cpu(env.device):
-        for t in range(actions.shape[1]):
-            grids = env.place_bundles(grids, actions[:, t])
-    return grids
-
-
-def untrained_design_grids(env: Any, seed: int) -> torch.Tensor:
-    """The final grids ``[N, ρ, ρ, ρ] uint8`` of an untrained policy in ``env``: a ~ N(0, I) at each of its steps,
-    drawn step by step (``[N, A]`` at a time) from a generator seeded ``seed``."""
-    generator = torch.Generator().manual_seed(seed)
-    actions = [torch.randn(env.num_envs, env.action_dim, generator=generator) for _ in range(env.steps)]
-    return design_grids(env, torch.stack(actions, dim=1))
-
-
-def untrained_design_bodies(n: int, resolution: int, materials: int, steps: int, bundle_size: int,
-                            seed: int = 0) -> torch.Tensor:
-    """Bodies of an untrained policy: uint8 ``[n, ρ, ρ, ρ]``, the largest 6-connected component of each grid that a
-    ``DesignEnv`` of these sizes builds from ``steps`` actions drawn from N(0, I) (benchmarks, scripts, demos)."""
-    from freeform.body import largest_component
-    from freeform.envs.design import DesignEnv
-
-    env = DesignEnv(n, resolution=resolution, materials=materials, steps=steps, bundle_size=bundle_size, seed=seed,
-                    compute_metrics=False)
-    return largest_component(untrained_design_grids(env, seed))
 
 
 def _np(x: torch.Tensor) -> np.ndarray:

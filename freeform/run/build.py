@@ -64,12 +64,14 @@ def _locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
 
 @register_task("controlled_locomotion")
 def _controlled_locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
+    from freeform.agents.controller_file import read_controller
     from freeform.envs import ControlledLocomotionTask
 
     if "controller" not in cfg.task.options:
         raise ValueError("task.name=controlled_locomotion needs task.options.controller=PATH (a controller.pt, a "
                          "folder holding one, or a control run's directory)")
-    return ControlledLocomotionTask(**_simulator_options(cfg, device))
+    options = _simulator_options(cfg, device)
+    return ControlledLocomotionTask(**{**options, "controller": read_controller(options["controller"])})
 
 
 def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
@@ -146,15 +148,17 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
     assert control is not None
     source = control.bodies
 
-    sizes = (cfg.env.resolution, cfg.task.materials, cfg.env.steps, cfg.env.bundle_size, control.body_seed)
+    sizes = (cfg.env.resolution, cfg.task.materials, cfg.env.steps, cfg.env.bundle_size)
     if source == "walker":
-        from freeform.envs.control import untrained_walker
+        from freeform.envs.untrained import DesignBodies, untrained_walker
 
-        grids, _ = untrained_walker(control.candidates, *sizes, sim=cfg.sim, control=control.episode(), arch=arch)
+        grids, _ = untrained_walker(control.candidates, DesignBodies(*sizes), control.body_seed, sim=cfg.sim,
+                                    control=control.episode(), arch=arch)
     elif source == "untrained_designs":  # (the rare empty body is dropped, and the others repeat in its place)
-        from freeform.evolve import untrained_design_bodies
+        from freeform.envs.untrained import untrained_design_bodies
 
-        grids = untrained_design_bodies(max(n, control.teachers + control.teachers // 8 + 1), *sizes)
+        grids = untrained_design_bodies(max(n, control.teachers + control.teachers // 8 + 1), *sizes,
+                                        control.body_seed)
         grids = grids[(grids.flatten(1) > 0).any(dim=1)]
     else:
         from pathlib import Path
@@ -205,9 +209,11 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
                            seed=seed, device=device, first_env=envs[0])
     if cfg.control.bodies == "population" and bodies is None:  # fresh bodies every few episodes
         from freeform.envs.population import DesignBodies, PopulationControlEnv
+        from freeform.run.designer import TrainedDesigner
 
         e, c = cfg.env, cfg.control
-        sizes = DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size, c.designer)
+        designer = TrainedDesigner(c.designer) if c.designer is not None else None
+        sizes = DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size, designer)
         return PopulationControlEnv(sizes,
                                     e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
                                     copies=c.copies,

@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Self
 
 import torch
 import torch.nn as nn
@@ -25,7 +25,6 @@ from freeform.envs.base import VecEnv
 from freeform.records import EpisodeCollector
 
 if TYPE_CHECKING:  # (the TensorBoard writer is not imported with PPO)
-    from freeform.agents.ppo.ppo import PPO
     from freeform.logger import ScalarSink
 
 
@@ -193,7 +192,7 @@ class Checkpoints:
         logger: ScalarSink | None = None,
         device: str | None = None,
         policy_classes: Sequence[type[nn.Module]] = (),
-    ) -> PPO:
+    ) -> Self:
         """Rebuild a PPO (policy, config, full training state) from a file of :meth:`save` or a run's checkpoint.
 
         The file names its policy class; it is built only if it is one of freeform's networks or in
@@ -258,9 +257,9 @@ def policy_class_name(cls: type) -> str:
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
     """The networks any checkpoint may name (freeform's own: every controller of the registry included)."""
+    from freeform.agents.codesign_network import CodesignActorCritic
     from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic
-    from freeform.agents.networks import CodesignActorCritic, MLPActorCritic, VoxelActorCritic
-    from freeform.agents.observation_groups import GroupedMLPActorCritic
+    from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
     from freeform.agents.recurrent import RecurrentActorCritic
     from freeform.agents.teachers import TeacherBank
 
@@ -270,10 +269,14 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
 
 def moved_policies() -> dict[str, type[nn.Module]]:
     """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now)."""
+    from freeform.agents.codesign_network import CodesignActorCritic
     from freeform.agents.controllers import ConvController, MLPController
+    from freeform.agents.networks import GroupedMLPActorCritic
 
     return {"freeform.agents.networks:ConvController": ConvController,
-            "freeform.agents.networks:MLPController": MLPController}
+            "freeform.agents.networks:MLPController": MLPController,
+            "freeform.agents.networks:CodesignActorCritic": CodesignActorCritic,
+            "freeform.agents.observation_groups:GroupedMLPActorCritic": GroupedMLPActorCritic}
 
 
 __all__ = ["Checkpoints", "builtin_policies", "policy_class_name"]

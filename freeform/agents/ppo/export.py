@@ -23,18 +23,15 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import ActionDistribution
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.observation_groups import CRITIC
 from freeform.agents.recurrent import RecurrentPolicy, SplitRecurrentPolicy
-
-if TYPE_CHECKING:
-    from freeform.agents.ppo.ppo import PPO
+from freeform.distributions import ActionDistribution
 
 
 class DeterministicActor(nn.Module):
@@ -78,8 +75,8 @@ class DeterministicActor(nn.Module):
         return (action, *state)
 
 
-def export_onnx(ppo: PPO, path: str | os.PathLike, opset: int | None = None) -> str:
-    """Write ``ppo``'s deterministic actor to ``path`` as ONNX (module docstring); returns the path. Raises
+def export_onnx(ppo: Any, path: str | os.PathLike, opset: int | None = None) -> str:
+    """Write ``ppo``'s (a ``freeform.agents.PPO``, taken as an argument: this module imports nothing back) deterministic actor to ``path`` as ONNX (module docstring); returns the path. Raises
     ``ImportError`` without the ``export`` extra and ``ValueError`` naming what cannot be exported."""
     try:
         import onnx  # noqa: F401

@@ -25,11 +25,11 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import ActionDistribution
 from freeform.agents.flat_params import FlatParameters
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.losses import minibatch_loss
 from freeform.agents.ppo.rollout import Observation, obs_map
+from freeform.distributions import ActionDistribution
 
 WARMUP = 3
 """Eager steps before the capture (PyTorch's recipe: autograd's and cuBLAS's first calls allocate)."""

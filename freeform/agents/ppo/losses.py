@@ -3,7 +3,7 @@
 the whole minibatch loss (:func:`minibatch_loss`, which ``PPOConfig.compile`` hands to
 ``torch.compile``).
 
-The action distributions' log-probabilities, entropies and KLs live in ``freeform.agents.distributions`` (the
+The action distributions' log-probabilities, entropies and KLs live in ``freeform.distributions`` (the
 Gaussian's are re-exported here, where they were first).
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = environments, ``A`` = action size, ``M`` = a minibatch's samples.
@@ -16,9 +16,9 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from freeform.agents.distributions import ActionDistribution, gaussian_entropy, gaussian_kl, gaussian_log_prob
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.rollout import sample_columns
+from freeform.distributions import ActionDistribution, gaussian_entropy, gaussian_kl, gaussian_log_prob
 
 
 def leave_one_out(rewards: torch.Tensor, groups: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ adapts after every epoch, Adam without gradient clipping. Common variants are sw
 
 Shapes: ``T`` = ``rollout_steps``, ``N`` = ``env.num_envs``, ``A`` = ``env.action_dim``, ``B`` = ``T·N``.
 
-The action distribution (``freeform.agents.distributions``: a Gaussian for Box actions, categoricals or bits for
+The action distribution (``freeform.distributions``: a Gaussian for Box actions, categoricals or bits for
 discrete ones) is decided once, at construction, from the policy or the env (:func:`choose_distribution`); below,
 ``self.distribution`` samples, scores and compares actions, and only the logged σ (a Gaussian's own figure) asks
 which one it is.
@@ -31,7 +31,6 @@ import torch
 import torch.nn as nn
 
 from freeform.agents import distributed
-from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import DeclaresDistribution, SplitActorCritic
 from freeform.agents.normalization import RunningMeanStd
@@ -44,6 +43,7 @@ from freeform.agents.ppo.losses import minibatch_loss
 from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map, obs_shapes
 from freeform.agents.ppo.update import MinibatchUpdate, _own_code
 from freeform.agents.recurrent import RecurrentPolicy
+from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
 from freeform.records import EpisodeCollector
@@ -405,7 +405,7 @@ def choose_distribution(policy: nn.Module, env: VecEnv) -> ActionDistribution:
         raise ValueError(f"the policy outputs a {declared} but the env's actions need a {offered}")
     dist = declared or offered or DiagGaussian(int(env.action_dim))
     if not isinstance(dist, ActionDistribution):
-        raise ValueError(f"an action distribution must be a freeform.agents.distributions.ActionDistribution, got {dist!r}")
+        raise ValueError(f"an action distribution must be a freeform.distributions.ActionDistribution, got {dist!r}")
     if dist.action_dim != env.action_dim:
         raise ValueError(f"the {dist} gives {dist.action_dim} numbers per action but the env takes {env.action_dim}")
     return dist

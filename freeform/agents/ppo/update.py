@@ -14,7 +14,6 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.distributed import Collectives
-from freeform.agents.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import GroupedActions
 from freeform.agents.ppo.config import PPOConfig
@@ -27,6 +26,7 @@ from freeform.agents.ppo.losses import (
     update_kl_coeff,
 )
 from freeform.agents.ppo.rollout import Observation, Rollout, minibatch_samples, obs_map
+from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 
 
 class _TrainBatch(NamedTuple):
