@@ -51,6 +51,7 @@ from experiments.common import mean_band
 from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, controller_for, read_controller, save_controller
 from freeform.agents.controllers import CONTROLLERS, controller_step
+from freeform.agents.networks import rebuild
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -263,7 +264,7 @@ whose bands leave out the across-body spread), and ``out/run.json``.
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
-    untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
+    untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
 
     per_episode = grids.repeat_interleave(n, 0)  # body i's episodes are rows i·n … i·n + n − 1
     env = ControlEnv(per_episode.repeat(5, 1, 1, 1), sim=sim, control=control, seed=seed, box=box,
