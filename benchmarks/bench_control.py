@@ -28,8 +28,7 @@ EVERY = (1, 10, 100)
 ROUNDS = {1: 40, 10: 20, 100: 6}
 
 
-def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
-            device: str = "cpu") -> tuple[float, float, float, float]:
+def measure(grids: torch.Tensor, every: int, rounds: int, device: str = "cpu") -> tuple[float, float, float, float]:
     """(control steps per second, simulator seconds per control step, seconds outside it, seconds of the env's own
     host work) of ``ControlEnv`` on ``grids`` with a period of ``every`` simulator steps (fixed dt), zero actions,
     after one step that compiles. "Outside" is a step less ``advance_time`` alone (so it counts writing the commands
@@ -37,7 +36,7 @@ def measure(grids: torch.Tensor, every: int, rounds: int, arch: str = "cpu",
     runs the period and senses)."""
     n = grids.shape[0]
     control = ControlConfig(period=every * DT, duration=1000 * every * DT, burn_in=0.0)
-    env = ControlEnv(grids, sim=SimConfig(dt=DT, schedule=SCHEDULE), control=control, arch=arch, device=device)
+    env = ControlEnv(grids, sim=SimConfig(dt=DT, schedule=SCHEDULE), control=control, device=device)
     env.reset()
     actions = torch.zeros((n, env.action_dim), device=device)
     env.step(actions)  # compile (or load the kernel cache) what a step runs, and what advance_time runs

@@ -30,11 +30,11 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str, epochs: int) ->
         dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
     from freeform.agents import PPO, PPOConfig, VoxelActorCritic
     from freeform.agents.distributed import env_slice
-    from freeform.envs import DesignEnv, VolumeTask
+    from freeform.envs import DesignEnv, EnvConfig, VolumeTask
 
     lo, hi = env_slice(NUM_ENVS, world, rank)
     torch.manual_seed(0)
-    env = DesignEnv(num_envs=hi - lo, resolution=RHO, materials=2, steps=STEPS, task=VolumeTask())
+    env = DesignEnv(hi - lo, EnvConfig(resolution=RHO, steps=STEPS), materials=2, task=VolumeTask())
     policy = VoxelActorCritic(resolution=RHO, materials=2, hidden=HIDDEN)
     cfg = PPOConfig(rollout_steps=STEPS, num_sgd_iter=SGD_ITERS, sgd_minibatch_size=MINIBATCH, seed=0, lr=1e-3)
     ppo = PPO(env, policy, cfg)

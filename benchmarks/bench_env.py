@@ -17,7 +17,7 @@ import time
 import torch
 
 from freeform.body import bodies_and_metrics, largest_component
-from freeform.envs import DesignEnv
+from freeform.envs import DesignEnv, EnvConfig
 
 NUM_ENVS = 256
 RESOLUTION = 20
@@ -33,7 +33,8 @@ def design_steps_per_second(
     materials: int, device: torch.device, compute_metrics: bool = True
 ) -> tuple[float, float]:
     """(wall, cpu) design steps/s over EPISODES whole episodes (after one warm-up episode)."""
-    env = DesignEnv(NUM_ENVS, RESOLUTION, materials, STEPS, device=device, compute_metrics=compute_metrics)
+    env = DesignEnv(NUM_ENVS, EnvConfig(resolution=RESOLUTION, steps=STEPS),
+                    materials=materials, device=device, compute_metrics=compute_metrics)
     g = torch.Generator(device=device).manual_seed(0)
     actions = torch.randn(EPISODES + 1, STEPS, NUM_ENVS, 3 + materials, generator=g, device=device)
     env.reset()
@@ -51,7 +52,8 @@ def design_steps_per_second(
 
 
 def final_grids(materials: int, device: torch.device) -> torch.Tensor:
-    env = DesignEnv(NUM_ENVS, RESOLUTION, materials, STEPS, device=device, compute_metrics=False)
+    env = DesignEnv(NUM_ENVS, EnvConfig(resolution=RESOLUTION, steps=STEPS),
+                    materials=materials, device=device, compute_metrics=False)
     g = torch.Generator(device=device).manual_seed(1)
     env.reset()
     for _ in range(STEPS):

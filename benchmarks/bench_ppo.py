@@ -19,14 +19,14 @@ import time
 import torch
 
 from freeform.agents import PPO, PPOConfig, VoxelActorCritic
-from freeform.envs import DesignEnv, VolumeTask
+from freeform.envs import DesignEnv, EnvConfig, VolumeTask
 
 
 def update_benchmark(repeats: int) -> dict[str, float]:
     """One SGD pass over a real rollout (16 envs × T = 100 of the untrained policy on DesignEnv, k = 4) with the
     locomotion network, for the fast and the plain trunk from the same state: samples/s (best of ``repeats`` for
     the fast one; a shared machine only ever adds time) and the parameters' largest difference afterwards."""
-    env = DesignEnv(num_envs=16, resolution=20, materials=4, steps=100, compute_metrics=False)
+    env = DesignEnv(16, EnvConfig(resolution=20, steps=100), materials=4, compute_metrics=False)
     torch.manual_seed(0)
     policy = VoxelActorCritic(resolution=20, materials=4, hidden=256, trunk="fast")
     cfg = PPOConfig(rollout_steps=100, num_sgd_iter=1, sgd_minibatch_size=128, seed=0)
@@ -54,7 +54,7 @@ def update_benchmark(repeats: int) -> dict[str, float]:
 def volume_epoch(epochs: int) -> list[dict[str, float]]:
     """Stats of ``epochs`` volume-task epochs at 64 envs × T = 100, 4 SGD passes, minibatch 128."""
     torch.manual_seed(0)
-    env = DesignEnv(num_envs=64, resolution=20, materials=2, steps=100, task=VolumeTask())
+    env = DesignEnv(64, EnvConfig(resolution=20, steps=100), materials=2, task=VolumeTask())
     cfg = PPOConfig(rollout_steps=100, num_sgd_iter=4, sgd_minibatch_size=128, seed=0)
     ppo = PPO(env, VoxelActorCritic(resolution=20, materials=2, hidden=128), cfg)
     return ppo.learn(epochs)

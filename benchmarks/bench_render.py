@@ -45,10 +45,11 @@ def _median_time(fn: Callable[[], object], repeats: int) -> float:
 def _designs(n: int, resolution: int, steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Final grids and bodies of an untrained (a ~ N(0, I)) policy, k = 4."""
     from freeform.body import largest_component
-    from freeform.envs.design import DesignEnv
+    from freeform.envs.design import DesignEnv, EnvConfig
     from freeform.evolve import untrained_design_grids
 
-    grids = untrained_design_grids(DesignEnv(n, resolution=resolution, materials=4, steps=steps, compute_metrics=False), seed)
+    grids = untrained_design_grids(DesignEnv(n, EnvConfig(resolution=resolution, steps=steps),
+                                             materials=4, compute_metrics=False), seed)
     return grids.numpy(), largest_component(grids).numpy()
 
 
@@ -78,9 +79,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         writer = SummaryWriter(log_dir=tmp)
         rewards = np.arange(len(grids), dtype=np.float64)
-        t_log = _median_time(lambda: log_epoch_renders(writer, grids, bodies, rewards, 0, rng=0), 5)
+        t_log = _median_time(lambda: log_epoch_renders(writer, grids, rewards, 0, rng=0), 5)
         writer.close()
-    print(f"log_epoch_renders, 3 images into TensorBoard (no video): {1e3 * t_log:.1f} ms")
+    print(f"log_epoch_renders, bodies + 3 images into TensorBoard (no video): {1e3 * t_log:.1f} ms")
 
     # Locomotion: the CPU demo's designs (ρ = 8, T = 20), its epoch time, and the gait video of its best robot.
     from freeform.config import TrainConfig
@@ -116,7 +117,7 @@ def main() -> None:
         writer = SummaryWriter(log_dir=tmp)
         r = (demo_bodies > 0).sum(axis=(1, 2, 3)).astype(np.float64)
         t_full = _median_time(
-            lambda: log_epoch_renders(writer, demo_grids, demo_bodies, r, 0, rng=0, simulator=simulator), 3
+            lambda: log_epoch_renders(writer, demo_grids, r, 0, rng=0, simulator=simulator), 3
         )
         writer.close()
     print(f"log_epoch_renders, locomotion demo (3 images + gait GIF): {1e3 * t_full:.0f} ms")

@@ -13,7 +13,7 @@ import time
 import torch
 
 from freeform.config import compose
-from freeform.envs import DesignEnv
+from freeform.envs import DesignEnv, EnvConfig
 from freeform.evolve import untrained_design_grids
 from freeform.train import build_task
 
@@ -35,8 +35,8 @@ def main() -> None:
     cpu = torch.device("cpu")
     configs = {name: compose(*overrides, "trainer.device=cpu") for name, overrides in PRESETS.items()}
     demo = configs["locomotion_cpu (no trace)"]
-    env = DesignEnv(n, resolution=demo.env.resolution, materials=demo.task.materials, steps=demo.env.steps,
-                    compute_metrics=False)
+    env = DesignEnv(n, EnvConfig(resolution=demo.env.resolution, steps=demo.env.steps),
+                    materials=demo.task.materials, compute_metrics=False)
     grids = untrained_design_grids(env, seed=0)
     tasks = {name: build_task(cfg, cpu) for name, cfg in configs.items()}
     for task in tasks.values():

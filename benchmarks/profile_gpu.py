@@ -38,7 +38,7 @@ def control_host(n: int = 1024) -> None:
     from freeform.sim import SimConfig
 
     control = ControlConfig(period=100 * DT, duration=1000 * 100 * DT, burn_in=0.0)
-    env = ControlEnv(random_design_bodies(n), sim=SimConfig(dt=DT), control=control, arch="cuda", device="cuda")
+    env = ControlEnv(random_design_bodies(n), sim=SimConfig(dt=DT), control=control, device="cuda")
     env.reset()
     actions = torch.zeros((n, env.action_dim), device="cuda")
     env.step(actions)

@@ -55,6 +55,7 @@ from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, controller_for, read_controller, save_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
+from freeform.agents.networks import rebuild
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -365,7 +366,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
-    untrained = CONTROLLERS[saved.kind](**controller.init_kwargs).eval()
+    untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
     bank = per_body_bank(grids, per_body, saved.control, sim) if per_body is not None else None
     groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
               ("zeroed", controller, True, True), ("untrained", untrained, False, True),

@@ -39,13 +39,12 @@ def run_train_config(run: Path, overrides: Sequence[str] = ()) -> Any:
 def replay(cfg: Any, actions: np.ndarray, device: torch.device) -> torch.Tensor:
     """Partial designs after each action: ``actions [E, T, A]`` -> uint8 ``[T, E, ρ, ρ, ρ]`` (index t-1 = after t
     actions), through the run's design rule (``DesignEnv.place_bundles``)."""
-    from freeform.envs import DesignEnv
+    from freeform.envs import DesignEnv, EnvConfig
 
     e, steps, _ = actions.shape
-    env = DesignEnv(num_envs=e, resolution=cfg.env.resolution, materials=cfg.task.materials, steps=steps,
-                    bundle_size=cfg.env.bundle_size, device=device,
-                    action_bound=getattr(cfg.env, "action_bound", 2.0), compute_metrics=False,
-                    mirror_y=getattr(cfg.env, "mirror_y", False))
+    design = EnvConfig(resolution=cfg.env.resolution, steps=steps, bundle_size=cfg.env.bundle_size,
+                       action_bound=getattr(cfg.env, "action_bound", 2.0), mirror_y=getattr(cfg.env, "mirror_y", False))
+    env = DesignEnv(e, design, materials=cfg.task.materials, device=device, compute_metrics=False)
     grids = env.reset()
     acts = torch.as_tensor(actions, dtype=torch.float32, device=device)
     out = []

@@ -140,19 +140,27 @@ def dry_run(argv: Sequence[str], config_dir: str | os.PathLike[str] | None = Non
             else:
                 out.extend(split)
             previous = split
-    clean = _strip_dry_run(overrides)
-    target = str(launcher.get("_target_", ""))
     out.append("")
+    out.extend(_launch_lines(launcher, launched, len(jobs), multirun, _strip_dry_run(overrides)))
+    return "\n".join(out)
+
+
+def _launch_lines(launcher: dict[str, Any], launched: dict[str, Any] | None, jobs: int, multirun: bool,
+                  clean: list[str]) -> list[str]:
+    """How the dry run's ``jobs`` would be launched: through the submitit ``launcher`` (SLURM or local), under
+    torchrun (``launched``: its environment), or as one ``freeform-train``; ``clean`` the overrides."""
+    out: list[str] = []
+    target = str(launcher.get("_target_", ""))
     if target == SLURM_LAUNCHER:
-        out.append(f"launch: {len(jobs)} SLURM job(s) as one array through submitit; each task runs the Hydra job:")
+        out.append(f"launch: {jobs} SLURM job(s) as one array through submitit; each task runs the Hydra job:")
         try:
-            out.append(_sbatch_script(launcher, len(jobs)))
+            out.append(_sbatch_script(launcher, jobs))
         except Exception as exc:  # a submitit version without the helper: list the parameters instead
             out.append(f"(sbatch text unavailable: {type(exc).__name__}: {exc})")
             out.extend(f"  {k}: {v}" for k, v in launcher.items())
         out.append("submit for real: freeform-train " + " ".join(["-m"] * multirun + clean))
     elif target == LOCAL_LAUNCHER:
-        out.append(f"launch: {len(jobs)} local submitit job(s), each a subprocess with these resources:")
+        out.append(f"launch: {jobs} local submitit job(s), each a subprocess with these resources:")
         out.extend(f"  {k}: {v}" for k, v in launcher.items() if k != "_target_")
         out.append("run for real: freeform-train " + " ".join(["-m"] * multirun + clean))
     else:
@@ -165,7 +173,7 @@ def dry_run(argv: Sequence[str], config_dir: str | os.PathLike[str] | None = Non
         else:
             out.append(f"launch: freeform-train {args}".rstrip())
             out.append(f"  one run on G GPUs of a node: torchrun --standalone --nproc_per_node=G -m freeform.train {args}".rstrip())
-    return "\n".join(out)
+    return out
 
 
 __all__ = ["describe_split", "dry_run"]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -146,10 +146,11 @@ def random_designs(n: int, materials: int, resolution: int, seed: int) -> tuple[
     """``n`` final grids of DesignEnv driven by actions a ~ N(0, I) (an untrained policy), and their volumes as
     rewards (the volume task's reward: the body's voxel count)."""
     from freeform.body import largest_component
-    from freeform.envs.design import DesignEnv
+    from freeform.envs.design import DesignEnv, EnvConfig
     from freeform.evolve import untrained_design_grids
 
-    grids = untrained_design_grids(DesignEnv(n, resolution=resolution, materials=materials, compute_metrics=False), seed)
+    grids = untrained_design_grids(DesignEnv(n, EnvConfig(resolution=resolution),
+                                             materials=materials, compute_metrics=False), seed)
     volumes = (largest_component(grids) > 0).flatten(1).sum(dim=1)
     return grids.numpy(), volumes.numpy().astype(np.float64)
 
@@ -190,9 +191,22 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _run(args: argparse.Namespace) -> int:
-    from freeform.body import largest_component
+@dataclass
+class _Designs:
+    """The designs one invocation shows: ``grids`` and their ``bodies`` (largest components) ``[E, ρ, ρ, ρ]``
+    uint8, what is drawn of them (``shown``), ``rewards [E]``, the record's ``epoch`` (None: ``--random``), where
+    the files go (``out``) and the run's ``SimConfig`` (None: the defaults)."""
 
+    grids: np.ndarray
+    bodies: np.ndarray
+    shown: np.ndarray
+    rewards: np.ndarray
+    epoch: int | None
+    out: Path
+    sim_config: Any
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.size < 16:
         raise ValueError(f"--size must be >= 16 pixels, got {args.size}")
     if len(args.run) > 1:
@@ -202,13 +216,28 @@ def _run(args: argparse.Namespace) -> int:
     unknown = sorted(set(exports) - set(EXPORTS))
     if unknown:
         raise ValueError(f"--export formats must be among {EXPORTS}, got {unknown}")
+    designs = _designs(args)
+    cfg = RenderConfig(size=args.size, frame=args.frame, azimuth=args.azimuth, elevation=args.elevation)
+    picks = pick(args.bodies, designs.rewards, args.seed)
+    written = _pictures(args, designs, cfg, picks)
+    written += _exports(exports, designs, picks)
+    if args.video or args.history:
+        written += _gait(args, designs, cfg, picks[0])
+    for path in written:
+        print(path)
+    return 0
+
+
+def _designs(args: argparse.Namespace) -> _Designs:
+    """The run's (or ``--random``'s) designs, their bodies and where their files go."""
+    from freeform.body import largest_component
+
     if args.random:
         if args.run:
             raise ValueError("give either a run or --random N, not both")
         grids, rewards = random_designs(args.random, args.materials, args.resolution, args.seed)
-        epoch, run_dir = None, None
+        epoch, sim_config = None, None
         out = args.out if args.out is not None else Path("renders") / "random"
-        sim_config = None
     elif args.run:
         grids, rewards, epoch, run_dir = read_designs(args.run, args.epoch)
         out = args.out if args.out is not None else run_dir / "renders" / f"epoch_{epoch:06d}"
@@ -219,59 +248,68 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("the record holds no designs")
     bodies = largest_component(torch.from_numpy(np.ascontiguousarray(grids))).numpy()
     shown = grids if not args.no_removed else bodies
-    cfg = RenderConfig(size=args.size, frame=args.frame, azimuth=args.azimuth, elevation=args.elevation)
-    written: list[Path] = []
-    where = f"epoch {epoch}" if epoch is not None else "random policy"
-    score = "reward" if epoch is not None else "volume"  # --random designs are scored by their body volume
+    return _Designs(grids, bodies, shown, rewards, epoch, out, sim_config)
 
-    picks = pick(args.bodies, rewards, args.seed)
+
+def _pictures(args: argparse.Namespace, d: _Designs, cfg: RenderConfig, picks: list[tuple[str, int]]) -> list[Path]:
+    """A PNG of each picked body, and the sheet of ``--grid`` bodies."""
+    where = f"epoch {d.epoch}" if d.epoch is not None else "random policy"
+    score = "reward" if d.epoch is not None else "volume"  # --random designs are scored by their body volume
+    written = []
     for label, i in picks:
-        volume = int((bodies[i] > 0).sum())
-        caption = [f"{where}, {label} #{i}", f"{score} {rewards[i]:.4g}", f"{volume} voxels"]
-        written.append(write_png(out / f"{label}_{i}.png", render_grid(shown[i], bodies[i], cfg, caption)))
-
+        volume = int((d.bodies[i] > 0).sum())
+        caption = [f"{where}, {label} #{i}", f"{score} {d.rewards[i]:.4g}", f"{volume} voxels"]
+        written.append(write_png(d.out / f"{label}_{i}.png", render_grid(d.shown[i], d.bodies[i], cfg, caption)))
     if args.grid:
-        n = min(args.grid, len(grids))
+        n = min(args.grid, len(d.grids))
         if args.grid_order == "best":
-            idx = np.argsort(-rewards, kind="stable")[:n]
+            idx = np.argsort(-d.rewards, kind="stable")[:n]
         elif args.grid_order == "random":
-            idx = np.sort(np.random.default_rng(args.seed).choice(len(grids), n, replace=False))
+            idx = np.sort(np.random.default_rng(args.seed).choice(len(d.grids), n, replace=False))
         else:
             idx = np.arange(n)
         small = replace(cfg, size=max(96, min(args.size, 256)), caption_size=11)
-        images = render_grids(shown[idx], bodies[idx], small, [[f"#{i}  {score} {rewards[i]:.3g}"] for i in idx])
-        written.append(write_png(out / "sheet.png", contact_sheet(images, args.columns)))
+        captions = [[f"#{i}  {score} {d.rewards[i]:.3g}"] for i in idx]
+        images = render_grids(d.shown[idx], d.bodies[idx], small, captions)
+        written.append(write_png(d.out / "sheet.png", contact_sheet(images, args.columns)))
+    return written
 
-    first_label, first = picks[0]
+
+def _exports(exports: list[str], d: _Designs, picks: list[tuple[str, int]]) -> list[Path]:
+    """Each picked body in each of the ``--export`` formats (a VXD with the run's base VXA)."""
+    written: list[Path] = []
+    first = picks[0][1]
     for fmt in exports:
         from freeform.io import export_body, write_vxa
 
-        if not (bodies[first] > 0).any():
+        if not (d.bodies[first] > 0).any():
             raise ValueError(f"body #{first} is empty: nothing to export")
         for label, i in picks:
-            written.append(export_body(out / f"{label}_{i}.{fmt}", bodies[i], sim_config))
+            written.append(export_body(d.out / f"{label}_{i}.{fmt}", d.bodies[i], d.sim_config))
         if fmt == "vxd":
-            written.append(write_vxa(out / "base.vxa", sim_config))
+            written.append(write_vxa(d.out / "base.vxa", d.sim_config))
+    return written
 
-    if args.video or args.history:
-        if not (bodies[first] > 0).any():
-            raise ValueError(f"body #{first} is empty: nothing to simulate")
-        from freeform.sim import SimConfig
 
-        base = sim_config if sim_config is not None else SimConfig()
-        simulator = gait_simulator(base, args.seconds, args.arch)
-        recording = simulate_gait(simulator, bodies[first], args.fps)
-        if args.video:
-            frames = render_recording(recording, 0, replace(cfg, frame="grid"))
-            written.append(write_video(out / f"{first_label}_{first}_gait.{args.video_format}", frames, args.fps))
-        if args.history:
-            from freeform.io import write_history
+def _gait(args: argparse.Namespace, d: _Designs, cfg: RenderConfig, first_pick: tuple[str, int]) -> list[Path]:
+    """The first picked body's simulated gait: its video (``--video``) and voxcraft-viz history (``--history``)."""
+    from freeform.sim import SimConfig
 
-            written.append(write_history(out / f"{first_label}_{first}.history", recording))
+    first_label, first = first_pick
+    if not (d.bodies[first] > 0).any():
+        raise ValueError(f"body #{first} is empty: nothing to simulate")
+    base = d.sim_config if d.sim_config is not None else SimConfig()
+    simulator = gait_simulator(base, args.seconds, args.arch)
+    recording = simulate_gait(simulator, d.bodies[first], args.fps)
+    written = []
+    if args.video:
+        frames = render_recording(recording, 0, replace(cfg, frame="grid"))
+        written.append(write_video(d.out / f"{first_label}_{first}_gait.{args.video_format}", frames, args.fps))
+    if args.history:
+        from freeform.io import write_history
 
-    for path in written:
-        print(path)
-    return 0
+        written.append(write_history(d.out / f"{first_label}_{first}.history", recording))
+    return written
 
 
 def _runs_sheet(args: argparse.Namespace) -> int:

@@ -30,6 +30,15 @@ PAPER_COLORS: tuple[RGB, ...] = (
 )
 
 
+MATERIAL_NAMES = ("Passive", "MuscleA", "MuscleB")
+"""Palette names of materials 1-3 in exported files (the paper's passive tissue and two muscles)."""
+
+
+def material_name(m: int) -> str:
+    """The name of material index ``m`` (>= 1) in an exported file."""
+    return MATERIAL_NAMES[m - 1] if m - 1 < len(MATERIAL_NAMES) else f"Material{m}"
+
+
 def material_rgb(materials: np.ndarray | int, palette: tuple[RGB, ...] = PAPER_COLORS) -> np.ndarray:
     """Colours of material indices (>= 1) ``[...]``: float64 ``[..., 3]``; the palette repeats past its end."""
     p = np.asarray(palette, dtype=np.float64)
@@ -103,5 +112,7 @@ __all__ = [
     "as_grid",
     "check_recording",
     "exposed",
+    "material_name",
     "material_rgb",
+    "MATERIAL_NAMES",
 ]

@@ -8,6 +8,9 @@ a residual controller's base uses, ``ControlConfig.residual``: no half-period la
 open-loop engine's, robot by robot.
 
     python scripts/control_convergence.py            # 16 design bodies, f64, 1 s; ≈ 2 min on 2 cores
+
+Run again by whoever changes the command path (``ControlEnv``'s commands, ``Engine.control_step``, the actuation's
+hold or ramp): the convergence is what says a controller can play the open-loop gait at all.
 """
 
 from __future__ import annotations

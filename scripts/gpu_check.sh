@@ -1,4 +1,7 @@
 #!/usr/bin/env bash
+# Run again on every GPU a session is lent, by whoever changed the CUDA path or needs the GPU's figures (README,
+# docs/physics.md): the one script a device session runs.
+#
 # The GPU check in one call: the block schedule against flat (benchmarks/bench_blocks.py, issue 44), the CUDA
 # tests (the device against the CPU on fixed bodies, f32/f64, both semantics; a planted NaN; compute graph =
 # Python launches; many batches of random size), the host floor, and the GPU benchmark (compile times, µs per

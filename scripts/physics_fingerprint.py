@@ -9,6 +9,9 @@ across hosts (docs/physics.md, "Host independence").
 Each case's final state is hashed (the bits) and saved. The cases: Voxelyze's 8³ settling cube (f64, the spec's
 most rounding-sensitive reference: static friction locks in the transient's path), and 0.5 s of six actuated
 design bodies on flat and rough ground, f32 and f64, on both schedules.
+
+Run again by whoever touches a kernel, the engine or a compiler flag (before and after: the strict path must keep
+the same bits), and on a new host or CPU to show host independence.
 """
 
 from __future__ import annotations

@@ -1,5 +1,8 @@
 """Where a block-schedule step's time goes on CUDA (issue 44 diagnostic): µs a step of 128 design bodies under
-switches that each drop one part of the step (rl4design's ω² max, dynamic dt, the floor, B)."""
+switches that each drop one part of the step (rl4design's ω² max, dynamic dt, the floor, B).
+
+Run again on a GPU by whoever works on the block schedule (issue 59 reads its table: docs/physics.md):
+``python scripts/probe_block_step.py`` from the repository root."""
 import os
 import sys
 

@@ -23,6 +23,9 @@ voxel phase = ``links+voxels`` − ``links``; bookkeeping (robot phase: clock, s
 queue and the per-step checks) = ``step`` − ``links+voxels``. Callgrind counts instructions exactly, whatever the
 machine's load; the counts are the JIT code's (the segments are cut with callgrind's client requests around each
 kernel call, so Python and compilation are outside them; one launch's host cost, ~1e5 instructions, is inside).
+
+Run again by whoever changes the CPU step (a kernel, the access layer, the native step, the Taichi or quadrants
+version): the instructions per voxel-step are the CPU's figure of merit, exact whatever the machine's load.
 """
 
 # (no `from __future__ import annotations` here: Taichi reads the annotations of kernel arguments)

@@ -12,6 +12,8 @@ import pytest
 import torch
 
 from freeform.agents import PPO, CodesignActorCritic, PPOConfig
+from freeform.agents.controller_heads import ControlInputs
+from freeform.agents.networks import rebuild
 from freeform.body import largest_component
 from freeform.config import EnvConfig
 from freeform.envs import CodesignEnv, DesignEnv
@@ -45,7 +47,7 @@ def test_an_episode_designs_as_the_design_env_and_controls_as_the_control_env(re
     channels = len(CODESIGN_CHANNELS) + residual  # residual control: the open-loop sine's channel last
     assert tuple(obs.shape) == (n, channels, RHO, RHO, RHO) and width == 3 + K + RHO ** 3
     assert e.control_channels == (CONTROL.start, channels)
-    design = DesignEnv(n, resolution=RHO, materials=K, steps=T, compute_metrics=False)
+    design = DesignEnv(n, EnvConfig(resolution=RHO, steps=T), materials=K, compute_metrics=False)
     design.reset()
     acts = design_actions(n, gen)
     for a in acts:
@@ -148,7 +150,7 @@ def test_a_codesign_policy_can_hold_a_population_controller() -> None:
     e = env(n=2, control=control)
     policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4, controller="context", head="wave")
     assert isinstance(policy.controller, ContextConvController) and policy.controller.head == "wave"
-    again = CodesignActorCritic(**policy.init_kwargs)
+    again = rebuild(CodesignActorCritic, policy.init_kwargs)
     again.load_state_dict(policy.state_dict())
     e.reset()
     build = torch.zeros(2, e.action_dim)
@@ -244,7 +246,7 @@ def test_a_codesign_run_takes_the_agents_trunk() -> None:
     cfg = compose("experiment=codesign_locomotion_cpu", "env.num_envs=4", "agent.trunk=gather")
     _, ppo = build(cfg, torch.device("cpu"))
     assert ppo.policy.design.trunk == "gather" and ppo.policy.init_kwargs["trunk"] == "gather"
-    assert CodesignActorCritic(**ppo.policy.init_kwargs).design.trunk == "gather"
+    assert rebuild(CodesignActorCritic, ppo.policy.init_kwargs).design.trunk == "gather"
     assert "trunk" not in CodesignActorCritic.for_env(env(n=2), hidden=8, controller_hidden=4).init_kwargs
 
 
@@ -355,7 +357,7 @@ def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
         assert torch.equal(start[f"controller.{name}"], tensor), name
     saved = read_controller(tmp_path / "control")  # the self-contained file of it starts a controller the same way
     save_controller(tmp_path / "controller.pt", saved.controller, saved.control, saved.sim)
-    fresh = type(saved.controller)(**saved.controller.init_kwargs)
+    fresh = rebuild(type(saved.controller), saved.controller.init_kwargs)
     load_controller(fresh, str(tmp_path / "controller.pt"))
     for name, tensor in fresh.state_dict().items():
         assert torch.equal(tensor, trained[name]), name
@@ -382,7 +384,8 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
     from freeform.envs.control import RESIDUAL_CHANNELS
 
     episode = ControlConfig(burn_in=0.01, duration=0.0375, headings="any", residual=True)
-    net = ContextConvController(len(RESIDUAL_CHANNELS), (RHO,) * 3, RESIDUAL_CHANNELS.index("actuated"), hidden=4)
+    net = ContextConvController(ControlInputs(len(RESIDUAL_CHANNELS), (RHO,) * 3, RESIDUAL_CHANNELS.index("actuated")),
+                                hidden=4)
     save_controller(tmp_path / "controller.pt", net, episode, SimConfig())
     common = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "trainer.render_every=0", "agent.hidden=8",
               "agent.sgd_minibatch_size=8", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1"]

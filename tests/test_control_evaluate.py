@@ -12,6 +12,7 @@ import torch
 
 from experiments.control import main, read_bodies
 from freeform.agents.controller_file import save_controller
+from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.controllers import ContextConvController, MLPController
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, open_loop_displacement
 from freeform.sim import SimConfig
@@ -40,7 +41,8 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     scores it on the bodies as simulated), finite controller figures; the summary's six rows and three paired
     differences."""
     torch.manual_seed(0)
-    net = ContextConvController(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0)
+    net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated")), hidden=4,
+                               log_std=-1.0)
     save_controller(tmp_path / "controller.pt", net, SHORT, SimConfig())
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
@@ -103,7 +105,7 @@ def test_a_recurrent_controller_without_memory_evaluates_as_its_feed_forward_twi
     from freeform.agents.controllers import RecurrentContextController
 
     torch.manual_seed(0)
-    args = dict(channels=len(OBS_CHANNELS), box=(2, 1, 1), mask_channel=OBS_CHANNELS.index("actuated"), hidden=4,
+    args = dict(inputs=ControlInputs(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated")), hidden=4,
                 log_std=-1.0)
     twin = ContextConvController(**args)
     net = RecurrentContextController(**args, memory=3)
@@ -188,8 +190,8 @@ def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_
     from freeform.envs.control import RESIDUAL_CHANNELS
 
     control = replace(SHORT, residual=True)
-    net = ContextConvController(len(RESIDUAL_CHANNELS), (2, 2, 1), RESIDUAL_CHANNELS.index("actuated"), hidden=4,
-                                log_std=-1.0)
+    net = ContextConvController(ControlInputs(len(RESIDUAL_CHANNELS), (2, 2, 1), RESIDUAL_CHANNELS.index("actuated")),
+                                hidden=4, log_std=-1.0)
     with torch.no_grad():
         for p in net.actor.parameters():
             p.zero_()
@@ -223,7 +225,7 @@ def test_bodies_csv_counts_actuated_voxels_not_a_strokes_action_channels(tmp_pat
 
     control = replace(SHORT, stroke_periods=1)
     torch.manual_seed(0)
-    net = ContextConvController(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0,
+    net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated")), hidden=4, log_std=-1.0,
                                 head="stroke")
     save_controller(tmp_path / "controller.pt", net, control, SimConfig())
     np.save(tmp_path / "bodies.npy", tiny_bodies())
@@ -239,7 +241,7 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     call; bodies.csv's per_body is finite for bodies 0 and 1 and empty for body 2, and the summary's fraction is the
     controller's mean over those two bodies divided by theirs, recomputed from bodies.csv."""
     torch.manual_seed(0)
-    net = ContextConvController(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated"), hidden=4, log_std=-1.0)
+    net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated")), hidden=4, log_std=-1.0)
     save_controller(tmp_path / "controller.pt", net, SHORT, SimConfig())
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     cache = tmp_path / "cache"

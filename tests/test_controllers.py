@@ -15,6 +15,7 @@ from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, 
 from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
+from freeform.agents.networks import rebuild
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.distributions import MaskedDiagGaussian, from_spec
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
@@ -238,7 +239,7 @@ def test_a_controller_built_for_one_box_runs_on_another_and_reads_back_for_it(tm
         saved = read_controller(tmp_path / f"{kind}.pt", box=large.box)
         assert saved.kind == kind and saved.controller.box == large.box and saved.control.duration == 0.05
         assert saved.sim == SimConfig()
-        by_hand = CONTROLLERS[kind](**{**net.init_kwargs, "box": large.box})
+        by_hand = rebuild(CONTROLLERS[kind], {**net.init_kwargs, "box": large.box})
         by_hand.load_state_dict(net.state_dict())
         with torch.no_grad():
             for a, b in zip(run(saved.controller, obs), run(by_hand, obs), strict=True):
@@ -395,7 +396,7 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
                     wave = (1.4 + alpha) * math.sin(2 * math.pi * t_over_T - float(place[n, i, j, m]) - psi)
                     assert abs(float(played) - (wave + ca * math.sin(theta) + cb * math.cos(theta))) < 1e-5
     before = dict(net.init_kwargs, wave={k: v for k, v in net.init_kwargs["wave"].items() if k != "amplitude"})
-    assert type(net)(**before).wave["amplitude"] == 1.0  # (a file from before the amplitude: the sine's)
+    assert rebuild(type(net), before).wave["amplitude"] == 1.0  # (a file from before the amplitude: the sine's)
     with pytest.raises(ValueError, match="wave amplitude must be finite and > 0"):
         build_controller(kind, large, hidden=8, head="wave", wave=HandSetWave(amplitude=-1.0))
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from freeform.body import largest_component
-from freeform.envs import DesignEnv, VolumeTask
+from freeform.envs import DesignEnv, EnvConfig, VolumeTask
 from freeform.envs.dense import DenseDesignReward
 
 
@@ -17,7 +17,7 @@ def volume(grids: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("every", [1, 3])
 def test_dense_rewards_are_score_improvements_and_sum_to_the_terminal_reward(every):
-    env = DesignEnv(num_envs=4, resolution=6, materials=2, steps=7, task=VolumeTask(), seed=0)
+    env = DesignEnv(4, EnvConfig(resolution=6, steps=7), materials=2, task=VolumeTask(), seed=0)
     dense = DenseDesignReward(env, every=every)
     obs = dense.reset(seed=0)
     gen = torch.Generator().manual_seed(1)
@@ -40,6 +40,6 @@ def test_dense_rewards_are_score_improvements_and_sum_to_the_terminal_reward(eve
 
 
 def test_dense_reward_rejects_a_bad_interval():
-    env = DesignEnv(num_envs=1, resolution=4, materials=2, steps=2, task=VolumeTask())
+    env = DesignEnv(1, EnvConfig(resolution=4, steps=2), materials=2, task=VolumeTask())
     with pytest.raises(ValueError, match="every"):
         DenseDesignReward(env, every=0)

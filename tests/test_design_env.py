@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from freeform.body import largest_component
-from freeform.envs import DesignEnv, Task, VecEnv, VolumeTask
+from freeform.envs import DesignEnv, EnvConfig, Task, VecEnv, VolumeTask
 
 
 def act(n: int, xyz, weights) -> torch.Tensor:
@@ -80,7 +80,7 @@ def test_placement_matches_literal_spec(rho, k, b):
     rng = np.random.default_rng(rho * 100 + k * 10 + b)
     n, steps = 16, 12
     actions = (rng.standard_normal((n, steps, 3 + k)) * 1.5).astype(np.float32)
-    env = DesignEnv(n, resolution=rho, materials=k, steps=steps, bundle_size=b, compute_metrics=False)
+    env = DesignEnv(n, EnvConfig(resolution=rho, steps=steps, bundle_size=b), materials=k, compute_metrics=False)
     env.reset()
     for t in range(steps):
         obs, _, done, info = env.step(torch.from_numpy(actions[:, t]))
@@ -95,7 +95,8 @@ def test_mirrored_designs_are_the_literal_rule_with_each_bundle_reflected_in_y(r
     rng = np.random.default_rng(7 + rho)
     n, steps = 16, 12
     actions = (rng.standard_normal((n, steps, 3 + k)) * 1.5).astype(np.float32)
-    env = DesignEnv(n, resolution=rho, materials=k, steps=steps, bundle_size=b, compute_metrics=False, mirror_y=True)
+    env = DesignEnv(n, EnvConfig(resolution=rho, steps=steps, bundle_size=b, mirror_y=True),
+                    materials=k, compute_metrics=False)
     env.reset()
     for t in range(steps):
         _, _, done, info = env.step(torch.from_numpy(actions[:, t]))
@@ -105,9 +106,10 @@ def test_mirrored_designs_are_the_literal_rule_with_each_bundle_reflected_in_y(r
     assert not np.array_equal(grids.numpy(), literal_reference(actions, rho, k, b))  # the reflection mattered
     assert env.state_dict()["config"]["mirror_y"] is True
     with pytest.raises(ValueError, match="does not match"):  # a mirrored state does not load into a plain env
-        DesignEnv(n, resolution=rho, materials=k, steps=steps, bundle_size=b).load_state_dict(env.state_dict())
+        DesignEnv(n, EnvConfig(resolution=rho, steps=steps, bundle_size=b),
+                  materials=k).load_state_dict(env.state_dict())
     with pytest.raises(ValueError, match="mirror_y must be true or false"):
-        DesignEnv(n, resolution=rho, materials=k, mirror_y="yes")
+        DesignEnv(n, EnvConfig(resolution=rho, mirror_y="yes"), materials=k)
 
 
 def test_material_argmax_and_ties_to_lowest_index():
@@ -128,7 +130,7 @@ def test_material_argmax_and_ties_to_lowest_index():
 
 
 def test_overwrite_and_removal_latest_action_wins():
-    env = DesignEnv(1, materials=4, steps=10)
+    env = DesignEnv(1, EnvConfig(steps=10), materials=4)
     env.reset()
     obs, *_ = env.step(act(1, (0.0, 0.0, 0.0), (0, 0, 1, 0)))  # material 2 on {9,10}³
     assert int((obs == 2).sum()) == 8
@@ -151,7 +153,7 @@ def test_grids_step_independently():
 
 # ------------------------------------------------------------------------------------------- episode contract
 def test_protocol_and_shapes():
-    env = DesignEnv(4, materials=4, resolution=10)
+    env = DesignEnv(4, EnvConfig(resolution=10), materials=4)
     assert isinstance(env, VecEnv)
     assert callable(VolumeTask().reward) and Task.reward  # Task is a plain Protocol: reward(final_grids)
     assert env.observation_shape == (10, 10, 10) and env.action_dim == 7 and env.device == torch.device("cpu")
@@ -161,7 +163,7 @@ def test_protocol_and_shapes():
 
 def test_episode_rewards_done_reset_and_info():
     n, steps = 6, 5
-    env = DesignEnv(n, resolution=10, materials=3, steps=steps)
+    env = DesignEnv(n, EnvConfig(resolution=10, steps=steps), materials=3)
     g = torch.Generator().manual_seed(0)
     obs = env.reset()
     kept = []
@@ -200,7 +202,7 @@ def test_without_metrics_and_custom_task():
             return (final_grids != 0).sum(dim=(1, 2, 3)).float()
 
     task = Counting()
-    env = DesignEnv(2, resolution=6, materials=2, steps=2, task=task, compute_metrics=False)
+    env = DesignEnv(2, EnvConfig(resolution=6, steps=2), materials=2, task=task, compute_metrics=False)
     env.reset()
     env.step(act(2, (0, 0, 0), (0, 1)))
     _, reward, done, info = env.step(act(2, (-2, -2, -2), (0, 1)))
@@ -213,7 +215,7 @@ def test_task_returning_the_wrong_shape_raises():
         def reward(self, final_grids: torch.Tensor) -> torch.Tensor:
             return torch.tensor(1.0)
 
-    env = DesignEnv(2, resolution=4, materials=2, steps=1, task=Scalar())
+    env = DesignEnv(2, EnvConfig(resolution=4, steps=1), materials=2, task=Scalar())
     env.reset()
     with pytest.raises(ValueError, match="task.reward"):
         env.step(torch.zeros(2, 5))
@@ -222,12 +224,12 @@ def test_task_returning_the_wrong_shape_raises():
 def test_results_do_not_depend_on_batch_size():
     g = torch.Generator().manual_seed(1)
     actions = torch.randn(20, 7, 6, generator=g)
-    big = DesignEnv(7, resolution=12, materials=3, steps=20)
+    big = DesignEnv(7, EnvConfig(resolution=12, steps=20), materials=3)
     big.reset()
     for t in range(20):
         _, big_reward, _, big_info = big.step(actions[t])
     for i in (0, 3, 6):
-        one = DesignEnv(1, resolution=12, materials=3, steps=20)
+        one = DesignEnv(1, EnvConfig(resolution=12, steps=20), materials=3)
         one.reset()
         for t in range(20):
             _, reward, _, info = one.step(actions[t, i : i + 1])
@@ -240,13 +242,13 @@ def test_results_do_not_depend_on_batch_size():
 def test_state_dict_resumes_mid_episode_bit_for_bit():
     g = torch.Generator().manual_seed(2)
     actions = torch.randn(10, 4, 7, generator=g)
-    env = DesignEnv(4, resolution=10, materials=4, steps=10, seed=5)
+    env = DesignEnv(4, EnvConfig(resolution=10, steps=10), materials=4, seed=5)
     env.reset()
     for t in range(6):
         env.step(actions[t])
     state = env.state_dict()
     rest = [env.step(actions[t]) for t in range(6, 10)]
-    resumed = DesignEnv(4, resolution=10, materials=4, steps=10)
+    resumed = DesignEnv(4, EnvConfig(resolution=10, steps=10), materials=4)
     resumed.load_state_dict(state)
     assert resumed.t == 6 and resumed.seed == 5
     for t, (obs, reward, done, info) in zip(range(6, 10), rest, strict=True):
@@ -259,7 +261,7 @@ def test_state_dict_resumes_mid_episode_bit_for_bit():
     # The state is a copy: stepping does not change it.
     assert int(state["t"]) == 6
     with pytest.raises(ValueError, match="config"):
-        DesignEnv(4, resolution=12, materials=4, steps=10).load_state_dict(state)
+        DesignEnv(4, EnvConfig(resolution=12, steps=10), materials=4).load_state_dict(state)
 
 
 # ---------------------------------------------------------------------------------------------------- bad input
@@ -280,8 +282,9 @@ def test_state_dict_resumes_mid_episode_bit_for_bit():
 )
 def test_bad_config_raises(kwargs, match):
     args = {"num_envs": 2, **kwargs}
+    env_args = {k: args.pop(k) for k in ("num_envs", "materials") if k in args}
     with pytest.raises(ValueError, match=match):
-        DesignEnv(**args)
+        DesignEnv(design=EnvConfig(**args), **env_args)
 
 
 def test_bad_actions_raise():
@@ -303,7 +306,7 @@ def test_bad_actions_raise():
 def untrained_bodies(materials: int, episodes: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Volume and non-empty count of `episodes` designs from N(0, I) actions (ρ = 20, T = 100)."""
     n = 512
-    env = DesignEnv(n, resolution=20, materials=materials, steps=100, compute_metrics=False)
+    env = DesignEnv(n, EnvConfig(resolution=20, steps=100), materials=materials, compute_metrics=False)
     g = torch.Generator().manual_seed(seed)
     volumes, nonempty = [], []
     env.reset()

@@ -25,7 +25,7 @@ from helpers import scalars, tiny
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic, VoxelActorCritic
 from freeform.agents.distributed import Collectives, DataParallel, env_slice
-from freeform.envs import DesignEnv
+from freeform.envs import DesignEnv, EnvConfig
 from freeform.records import read_record
 
 pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
@@ -50,7 +50,7 @@ CASES = {
 def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), case: str = "batch") -> PPO:
     """Environments ``[lo, hi)`` of the run (the caller's rank slice); every rank builds the same policy."""
     torch.manual_seed(0)
-    env = DesignEnv(num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS)
+    env = DesignEnv(envs[1] - envs[0], EnvConfig(resolution=RHO, steps=STEPS), materials=2)
     if case == "mlp_normalised":
         policy = MLPActorCritic(RHO**3, env.action_dim, hidden=(16,))
     elif case == "recurrent":
@@ -79,8 +79,8 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str, case: str) -> N
         actions = ppo.dp.gather_envs(ppo.rollout.actions, dim=1)
         ppo.save(Path(out_dir) / "two_ranks_epoch1.pt")  # collective; rank 0 writes
         second = ppo.train_epoch()
-        resumed = PPO.load(Path(out_dir) / "one_process_epoch1.pt", DesignEnv(
-            num_envs=envs[1] - envs[0], resolution=RHO, materials=2, steps=STEPS))
+        resumed = PPO.load(Path(out_dir) / "one_process_epoch1.pt", DesignEnv(envs[1] - envs[0], EnvConfig(resolution=RHO, steps=STEPS),
+                                                                              materials=2))
         resumed_stats = resumed.train_epoch()
         torch.save(
             {
@@ -137,7 +137,8 @@ def test_two_gloo_ranks_match_one_process(tmp_path: Path, case: str) -> None:
         assert ranks[0]["resumed_stats"][key] == pytest.approx(want, rel=1e-4, abs=1e-6, nan_ok=True), key
     torch.testing.assert_close(ranks[0]["resumed_params"], flat_params(single), rtol=1e-4, atol=1e-5)
     # ... and 1 process continuing the 2-rank checkpoint too.
-    back = PPO.load(tmp_path / "two_ranks_epoch1.pt", DesignEnv(num_envs=NUM_ENVS, resolution=RHO, materials=2, steps=STEPS))
+    back = PPO.load(tmp_path / "two_ranks_epoch1.pt", DesignEnv(NUM_ENVS, EnvConfig(resolution=RHO, steps=STEPS),
+                                                                materials=2))
     assert back.global_step == NUM_ENVS * STEPS
     stats = back.train_epoch()
     for key, want in comparable(second).items():

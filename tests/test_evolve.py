@@ -15,7 +15,7 @@ from helpers import scalars, straight_and_resumed, tiny
 
 from freeform.body import largest_component
 from freeform.checkpoint import load_checkpoint
-from freeform.envs import DesignEnv
+from freeform.envs import DesignEnv, EnvConfig
 from freeform.evolve import CMAES, Evolution, GridGA, SequenceGA, design_grids
 from freeform.evolve.grid_ga import touching
 from freeform.records import iter_records, read_record
@@ -36,7 +36,7 @@ class TargetGrid:
 def _target_env(num_envs: int = 16) -> DesignEnv:
     target = torch.zeros((6, 6, 6), dtype=torch.uint8)
     target[1:5, 1:4, 0:2] = 1  # a 4 x 3 x 2 slab, 24 voxels: one body, reachable by set/clear mutations
-    return DesignEnv(num_envs=num_envs, resolution=6, materials=2, steps=6, task=TargetGrid(target))
+    return DesignEnv(num_envs, EnvConfig(resolution=6, steps=6), materials=2, task=TargetGrid(target))
 
 
 def _evolve(make, generations: int) -> list[float]:
@@ -51,7 +51,7 @@ def test_genetic_algorithms_approach_a_target_grid_deterministically(kind: str) 
     def make(env: DesignEnv, seed: int = 0):
         if kind == "ga":
             return SequenceGA(16, 6, env.action_dim, elite=2, tournament=3, crossover=0.5, mutation_rate=0.2, seed=seed)
-        return GridGA(16, 6, env.action_dim, 2, lambda a: design_grids(env, a), elite=2, mutation_voxels=2, seed=seed)
+        return GridGA(16, (6, env.action_dim), 2, lambda a: design_grids(env, a), elite=2, mutation_voxels=2, seed=seed)
 
     best = _evolve(make, 25)
     assert best == _evolve(make, 25)  # the same seed, the same search, number for number
@@ -87,7 +87,7 @@ def test_grid_ga_starts_from_the_designs_of_the_sequence_ga() -> None:
     """With the same seed, generation 0 of both GAs is the same N(0, I) designs: they start level."""
     env = _target_env(8)
     ga = SequenceGA(8, 6, env.action_dim, seed=3)
-    grid = GridGA(8, 6, env.action_dim, 2, lambda a: design_grids(env, a), seed=3)
+    grid = GridGA(8, (6, env.action_dim), 2, lambda a: design_grids(env, a), seed=3)
     assert torch.equal(design_grids(env, ga.ask()), grid.ask())
 
 
@@ -113,7 +113,7 @@ def test_grid_ga_child_is_its_parents_body_with_mutation_voxels_cells_changed_ne
         grids[i, 1, 1, 0] = 1 + i % (materials - 1)
         grids[i, 3, 2 + i % 2, 5] = 1
     m, elite = 3, 2
-    ga = GridGA(8, 1, 5, materials, lambda a: grids, elite=elite, mutation_voxels=m, seed=0)
+    ga = GridGA(8, (1, 5), materials, lambda a: grids, elite=elite, mutation_voxels=m, seed=0)
     fitness = torch.arange(8, dtype=torch.float32)
     ga.tell(fitness)
     children = ga.ask()
@@ -155,7 +155,7 @@ def test_every_baseline_runs_through_the_training_app(algo: str, tmp_path: Path,
         assert rec.actions.shape == ((6, 0, 5) if algo == "grid_ga" else (6, 5, 5))
         assert np.isnan(rec.values).all()  # no critic
     if algo != "grid_ga":  # the recorded actions design the recorded grids (the robustness replay's promise)
-        env = DesignEnv(num_envs=6, resolution=6, materials=2, steps=5)
+        env = DesignEnv(6, EnvConfig(resolution=6, steps=5), materials=2)
         grids = design_grids(env, torch.from_numpy(records[-1].actions))
         np.testing.assert_array_equal(grids.numpy(), records[-1].final_grids)
     ckpt = load_checkpoint(run / "checkpoints" / "last.pt")  # weights_only: tensors and numbers only

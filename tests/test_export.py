@@ -55,10 +55,11 @@ def test_exported_discrete_policy_returns_the_same_indices(tmp_path: Any) -> Non
 
 
 def test_exported_voxel_policy_reads_uint8_grids(tmp_path: Any) -> None:
-    from freeform.envs import DesignEnv, VolumeTask
+    from freeform.envs import DesignEnv, EnvConfig, VolumeTask
 
     torch.manual_seed(0)
-    env = DesignEnv(num_envs=4, resolution=6, materials=3, steps=4, task=VolumeTask(), compute_metrics=False, seed=0)
+    env = DesignEnv(4, EnvConfig(resolution=6, steps=4),
+                    materials=3, task=VolumeTask(), compute_metrics=False, seed=0)
     ppo = PPO(env, VoxelActorCritic(resolution=6, materials=3, hidden=8),
               PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8))
     ppo.learn(1)

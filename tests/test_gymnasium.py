@@ -20,7 +20,7 @@ from helpers import SingleView  # noqa: E402  (tests/helpers.py)
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig  # noqa: E402
 from freeform.agents.ppo import CLEANRL_PRESET, compute_advantages  # noqa: E402
-from freeform.envs import DesignEnv, VecEnv, VolumeTask, from_gymnasium, to_gymnasium  # noqa: E402
+from freeform.envs import DesignEnv, EnvConfig, VecEnv, VolumeTask, from_gymnasium, to_gymnasium  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
 
@@ -423,14 +423,15 @@ def test_evaluation_runs_deterministic_episodes_on_its_own_env() -> None:
 def test_to_gymnasium_design_env_passes_gymnasiums_checker() -> None:
     from gymnasium.utils.env_checker import check_env
 
-    vec = to_gymnasium(DesignEnv(num_envs=1, resolution=4, materials=2, steps=3, task=VolumeTask(), compute_metrics=False))
+    vec = to_gymnasium(DesignEnv(1, EnvConfig(resolution=4, steps=3),
+                                 materials=2, task=VolumeTask(), compute_metrics=False))
     assert vec.single_observation_space == gym.spaces.Box(0, 1, (4, 4, 4), np.uint8)
     assert vec.single_action_space.shape == (5,) and vec.single_action_space.high[0] == 2.0
     check_env(SingleView(vec), skip_render_check=True)
 
 
 def test_to_gymnasium_vector_semantics() -> None:
-    env = DesignEnv(num_envs=3, resolution=4, materials=2, steps=2, task=VolumeTask(), compute_metrics=False)
+    env = DesignEnv(3, EnvConfig(resolution=4, steps=2), materials=2, task=VolumeTask(), compute_metrics=False)
     vec = to_gymnasium(env)
     assert vec.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
     obs, _ = vec.reset(seed=0)

@@ -13,7 +13,7 @@ import torch
 
 from freeform.body import largest_component
 from freeform.config import compose
-from freeform.envs import DesignEnv, LocomotionTask
+from freeform.envs import DesignEnv, EnvConfig, LocomotionTask
 from freeform.sim import SimConfig, Simulator
 
 PASSIVE, MUSCLE_A, MUSCLE_B = 1, 2, 3
@@ -143,7 +143,7 @@ def test_bad_arguments_are_named():
 
 def test_design_env_gives_the_task_reward_at_the_last_step(simulator):
     """End to end through DesignEnv: T actions, the last step's reward is the task's reward of the final grids."""
-    env = DesignEnv(num_envs=3, resolution=8, materials=4, steps=4, task=LocomotionTask(simulator=simulator))
+    env = DesignEnv(3, EnvConfig(resolution=8, steps=4), materials=4, task=LocomotionTask(simulator=simulator))
     env.reset()
     g = torch.Generator().manual_seed(0)
     for t in range(4):
@@ -220,7 +220,8 @@ def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over()
     from freeform.train import build_task
 
     cfg = compose("experiment=locomotion_cpu")
-    env = DesignEnv(32, resolution=cfg.env.resolution, materials=4, steps=cfg.env.steps, compute_metrics=False)
+    env = DesignEnv(32, EnvConfig(resolution=cfg.env.resolution, steps=cfg.env.steps),
+                    materials=4, compute_metrics=False)
     noise = torch.randn((env.steps, 32, env.action_dim), generator=torch.Generator().manual_seed(0))  # step-major
     passive = (design_grids(env, noise.transpose(0, 1)) != 0).to(torch.uint8)  # untrained shapes, all passive tissue
     demo = build_task(cfg, torch.device("cpu")).reward(passive)

@@ -16,7 +16,7 @@ from helpers import straight_and_resumed
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
 from freeform.envs.control import ControlConfig, ControlEnv
-from freeform.envs.population import DesignBodies, PopulationControlEnv, design_cohort
+from freeform.envs.population import DesignBodies, PopulationControlEnv, Stream, design_cohort
 from freeform.records import read_record
 from freeform.sim import SimConfig
 
@@ -34,7 +34,7 @@ def test_cohorts_are_fresh_non_empty_bodies_and_a_function_of_their_index() -> N
 
 
 def test_the_pool_slides_along_the_stream_and_a_redrawn_cohort_restores_its_settled_state() -> None:
-    env = PopulationControlEnv(SIZES, 4, pool=2, refresh_every=2, sim=SIM, control=SHORT, seed=5)
+    env = PopulationControlEnv(SIZES, Stream(4, pool=2, refresh_every=2), sim=SIM, control=SHORT, seed=5)
     seen: dict[int, torch.Tensor] = {}
     obs = env.reset()
     for episode in range(8):
@@ -67,7 +67,7 @@ def test_a_streams_robot_seconds_count_one_settle_per_cohort_it_builds(monkeypat
         original(self, grids, *args, **kwargs)
 
     monkeypatch.setattr(ControlEnv, "__init__", counting)
-    env = PopulationControlEnv(SIZES, 4, pool=2, refresh_every=2, sim=SIM, control=SHORT, seed=7)
+    env = PopulationControlEnv(SIZES, Stream(4, pool=2, refresh_every=2), sim=SIM, control=SHORT, seed=7)
     env.reset()
     run = SimpleNamespace(burn_in=SHORT.burn_in, duration=SHORT.duration, pool=2, refresh_every=2)
     for episodes in range(1, 9):  # (the last step's reset settles the next episode's cohort: counted)
@@ -79,8 +79,8 @@ def test_a_streams_robot_seconds_count_one_settle_per_cohort_it_builds(monkeypat
 
 
 def test_a_rank_holds_its_slice_of_every_cohort() -> None:
-    whole = PopulationControlEnv(SIZES, 4, pool=3, refresh_every=1, sim=SIM, control=SHORT, seed=2)
-    part = PopulationControlEnv(SIZES, 4, pool=3, refresh_every=1, sim=SIM, control=SHORT, seed=2, envs=(2, 4))
+    whole = PopulationControlEnv(SIZES, Stream(4, pool=3, refresh_every=1), sim=SIM, control=SHORT, seed=2)
+    part = PopulationControlEnv(SIZES, Stream(4, pool=3, refresh_every=1), sim=SIM, control=SHORT, seed=2, envs=(2, 4))
     for _ in range(3):
         a, b = whole.reset(), part.reset()
         assert torch.equal(whole.grids[2:], part.grids) and torch.equal(a[2:], b)
@@ -88,16 +88,16 @@ def test_a_rank_holds_its_slice_of_every_cohort() -> None:
 
 def test_bad_streams_are_refused_with_the_reason() -> None:
     with pytest.raises(ValueError, match="pool must be an int >= 1"):
-        PopulationControlEnv(SIZES, 4, pool=0)
+        PopulationControlEnv(SIZES, Stream(4, pool=0))
     with pytest.raises(ValueError, match="refresh_every must be an int >= 0"):
-        PopulationControlEnv(SIZES, 4, refresh_every=-1)
+        PopulationControlEnv(SIZES, Stream(4, refresh_every=-1))
     with pytest.raises(ValueError, match="envs must be"):
-        PopulationControlEnv(SIZES, 4, envs=(3, 6))
+        PopulationControlEnv(SIZES, Stream(4), envs=(3, 6))
 
 
 def test_copies_of_a_body_start_alike_and_are_named_as_one_group() -> None:
     steer = ControlConfig(burn_in=0.02, duration=0.025, headings="random", residual=True, ramp=True)
-    env = PopulationControlEnv(SIZES, 6, pool=1, copies=3, sim=SIM, control=steer, seed=4)
+    env = PopulationControlEnv(SIZES, Stream(6, pool=1, copies=3), sim=SIM, control=steer, seed=4)
     obs = env.reset()
     assert env.reward_groups.tolist() == [0, 0, 0, 1, 1, 1]
     assert torch.equal(env.grids[0], env.grids[2]) and not torch.equal(env.grids[0], env.grids[3])
@@ -107,13 +107,13 @@ def test_copies_of_a_body_start_alike_and_are_named_as_one_group() -> None:
     actions[1] = 0.5  # one copy acts otherwise: only its reward moves
     _, reward, _, _ = env.step(actions)
     assert reward[0] == reward[2] and reward[0] != reward[1] and reward[3] == reward[4] == reward[5]
-    part = PopulationControlEnv(SIZES, 6, pool=1, copies=3, sim=SIM, control=steer, seed=4, envs=(3, 6))
+    part = PopulationControlEnv(SIZES, Stream(6, pool=1, copies=3), sim=SIM, control=steer, seed=4, envs=(3, 6))
     assert torch.equal(part.reset(), obs[3:]) and part.reward_groups.tolist() == [0, 0, 0]
     with pytest.raises(ValueError, match="copies = 4 must divide"):
-        PopulationControlEnv(SIZES, 6, copies=4)
+        PopulationControlEnv(SIZES, Stream(6, copies=4))
     with pytest.raises(ValueError, match="copies = 3 must divide the cohort's 6 environments and this process's "
                                          "slice 2..6"):
-        PopulationControlEnv(SIZES, 6, copies=3, envs=(2, 6))
+        PopulationControlEnv(SIZES, Stream(6, copies=3), envs=(2, 6))
 
 
 def test_the_group_baseline_subtracts_the_siblings_mean_and_needs_groups() -> None:
@@ -195,7 +195,7 @@ def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy
     from freeform import train as train_mod
     from freeform.agents import PPO
     from freeform.body import largest_component
-    from freeform.envs.design import DesignEnv
+    from freeform.envs.design import DesignEnv, EnvConfig
     from freeform.run.designer import TrainedDesigner, trained_design_bodies
 
     design = ["experiment=volume_cpu", "env.num_envs=4", "env.resolution=6", "env.steps=6", "env.bundle_size=2",
@@ -204,9 +204,9 @@ def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy
     train_mod.train(compose(*design), tmp_path / "design")
     run = str(tmp_path / "design")
     bodies = trained_design_bodies(run, 5, SIZES, 7)
-    ppo = PPO.load(tmp_path / "design" / "checkpoints" / "last.pt", DesignEnv(4, resolution=6, steps=6))
+    ppo = PPO.load(tmp_path / "design" / "checkpoints" / "last.pt", DesignEnv(4, EnvConfig(resolution=6, steps=6)))
     ppo.generator.manual_seed(7)
-    env = DesignEnv(5, resolution=6, materials=4, steps=6, bundle_size=2)
+    env = DesignEnv(5, EnvConfig(resolution=6, steps=6, bundle_size=2), materials=4)
     obs, done = env.reset(), torch.zeros(5, dtype=torch.bool)
     while not bool(done.all()):
         obs, _, done, info = env.step(ppo.act(obs))
@@ -215,7 +215,7 @@ def test_a_designers_stream_is_the_bodies_its_design_env_builds_under_its_policy
     designed = DesignBodies(6, 4, 6, 2, designer=TrainedDesigner(run))
     assert torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(designed, 4, 0, 1))
     assert not torch.equal(design_cohort(designed, 4, 0, 1), design_cohort(SIZES, 4, 0, 1))  # not untrained ones
-    stream = PopulationControlEnv(designed, 4, pool=1, refresh_every=1, sim=SIM, control=SHORT, seed=1)
+    stream = PopulationControlEnv(designed, Stream(4, pool=1, refresh_every=1), sim=SIM, control=SHORT, seed=1)
     stream.reset()
     assert torch.equal(stream.grids, design_cohort(designed, 4, 0, stream.cohort_at(0)))
     with pytest.raises(ValueError, match=r"designs on a 6\^3 grid .* this run's design sizes"):

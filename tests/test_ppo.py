@@ -523,7 +523,7 @@ def test_resume_is_bit_for_bit_on_the_design_env(tmp_path: Any) -> None:
 
     def build() -> PPO:
         torch.manual_seed(7)
-        env = design.DesignEnv(num_envs=8, resolution=8, materials=4, steps=6, compute_metrics=False)
+        env = design.DesignEnv(8, design.EnvConfig(resolution=8, steps=6), materials=4, compute_metrics=False)
         cfg = PPOConfig(rollout_steps=4, num_sgd_iter=2, sgd_minibatch_size=8, lr=1e-3, seed=7)  # episodes cut
         return PPO(env, VoxelActorCritic(resolution=8, materials=4, hidden=16), cfg)
 
@@ -532,8 +532,8 @@ def test_resume_is_bit_for_bit_on_the_design_env(tmp_path: Any) -> None:
     first = build()
     first.learn(2)
     first.save(tmp_path / "design.pt")
-    resumed = PPO.load(tmp_path / "design.pt", design.DesignEnv(num_envs=8, resolution=8, materials=4, steps=6,
-                                                                 compute_metrics=False))
+    resumed = PPO.load(tmp_path / "design.pt", design.DesignEnv(8, design.EnvConfig(resolution=8, steps=6),
+                                                                materials=4, compute_metrics=False))
     resumed.train_epoch()
     for a, b in zip(straight.policy.parameters(), resumed.policy.parameters(), strict=True):
         assert torch.equal(a, b)
@@ -576,7 +576,8 @@ def test_ppo_improves_the_volume_reward_of_the_design_env() -> None:
     from freeform.envs.tasks import VolumeTask
 
     torch.manual_seed(0)
-    env = design.DesignEnv(num_envs=32, resolution=8, materials=2, steps=10, task=VolumeTask(), compute_metrics=False)
+    env = design.DesignEnv(32, design.EnvConfig(resolution=8, steps=10),
+                           materials=2, task=VolumeTask(), compute_metrics=False)
     cfg = PPOConfig(rollout_steps=10, num_sgd_iter=10, sgd_minibatch_size=64, lr=3e-4, seed=0)
     ppo = PPO(env, VoxelActorCritic(resolution=8, materials=2, hidden=32), cfg)
     history = ppo.learn(18)

@@ -38,10 +38,11 @@ def flat(ppo: PPO) -> torch.Tensor:
 
 
 def design_run() -> torch.Tensor:
-    from freeform.envs import DesignEnv, VolumeTask
+    from freeform.envs import DesignEnv, EnvConfig, VolumeTask
 
     torch.manual_seed(3)
-    env = DesignEnv(num_envs=8, resolution=8, materials=2, steps=6, task=VolumeTask(), compute_metrics=False, seed=3)
+    env = DesignEnv(8, EnvConfig(resolution=8, steps=6),
+                    materials=2, task=VolumeTask(), compute_metrics=False, seed=3)
     cfg = PPOConfig(rollout_steps=8, num_sgd_iter=3, sgd_minibatch_size=16, lr=1e-3, seed=3)  # episodes cut
     ppo = PPO(env, VoxelActorCritic(resolution=8, materials=2, hidden=16), cfg)
     ppo.learn(3)

@@ -15,6 +15,7 @@ from helpers import learned_straight_and_resumed
 
 from freeform.agents import PPO, MLPActorCritic, PPOConfig, RecurrentActorCritic
 from freeform.agents.ppo import ppo_loss, sequence_minibatch_loss
+from freeform.agents.ppo.rollout import Sequences
 from freeform.distributions import Categorical
 
 pytestmark = pytest.mark.usefixtures("one_thread", "keep_global_rng")  # tests/conftest.py
@@ -123,9 +124,10 @@ def test_a_sequence_minibatchs_loss_equals_the_loss_recomputed_step_by_step(rnn:
     idx = torch.tensor([1, 6, 11])  # sequences: chunk c of env n is c·4 + n — (0, 1), (1, 2), (2, 3) the padded one
     kl = torch.tensor(0.2)
     with torch.no_grad():
+        part = Sequences(seqs.obs[:, idx], tuple(s[idx] for s in seqs.state), seqs.starts[:, idx], seqs.mask[:, idx])
         loss, stats = sequence_minibatch_loss(
-            policy, ppo.distribution, cfg, seqs.obs[:, idx], tuple(s[idx] for s in seqs.state), seqs.starts[:, idx],
-            seqs.mask[:, idx], seqs.samples[:, idx].reshape(12, -1), seqs.advantages[:, idx].reshape(-1), kl)
+            policy, ppo.distribution, cfg, part, seqs.samples[:, idx].reshape(12, -1),
+            seqs.advantages[:, idx].reshape(-1), kl)
         rows = [(t, n) for c, n in ((0, 1), (1, 2), (2, 3)) for t in range(4 * c, min(4 * c + 4, 11))]
         step_params = tuple(torch.stack([params[t][i][n] for t, n in rows]) for i in range(len(params[0])))
         step_values = torch.stack([values[t][n] for t, n in rows])

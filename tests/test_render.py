@@ -301,7 +301,7 @@ def test_log_epoch_renders_writes_best_median_random(tmp_path) -> None:
     grids[2, 5, 5, 5] = 3  # a removed voxel (not connected)
     rewards = np.array([1.0, 2.0, 3.0, 4.0])
     writer = SummaryWriter(log_dir=str(tmp_path))
-    chosen = log_epoch_renders(writer, grids, None, rewards, step=3, rng=0, config=RenderConfig(size=64))
+    chosen = log_epoch_renders(writer, grids, rewards, step=3, rng=0, config=RenderConfig(size=64))
     writer.close()
     assert chosen["best"] == 3 and chosen["median"] == 1
     acc = EventAccumulator(str(tmp_path), size_guidance={"images": 0})
@@ -312,7 +312,7 @@ def test_log_epoch_renders_writes_best_median_random(tmp_path) -> None:
     assert best.shape == (64, 64, 3)
     assert (best[..., 2].astype(int) - best[..., 0] > 100).sum() > 10  # the blue passive body is visible
     with pytest.raises(ValueError, match="rewards"):
-        log_epoch_renders(writer, grids, None, rewards[:2], step=0)
+        log_epoch_renders(writer, grids, rewards[:2], step=0)
 
 
 def test_gait_video_from_the_simulator(tmp_path) -> None:
@@ -329,7 +329,7 @@ def test_gait_video_from_the_simulator(tmp_path) -> None:
     grids[0, 2:4, :2, 1] = 3
     grids[1, 0, 0, 0] = 1
     writer = SummaryWriter(log_dir=str(tmp_path))
-    log_epoch_renders(writer, grids, None, np.array([2.0, 1.0]), step=1, rng=0, simulator=simulator,
+    log_epoch_renders(writer, grids, np.array([2.0, 1.0]), step=1, rng=0, simulator=simulator,
                       config=RenderConfig(size=64), video=VideoConfig(fps=20, size=48))
     writer.close()
     acc = EventAccumulator(str(tmp_path), size_guidance={"images": 0})

@@ -57,7 +57,7 @@ def test_cost_of_dense_rewards_counts_the_partial_bodies() -> None:
     DenseDesignReward's own calls to the task, counted."""
     import torch
 
-    from freeform.envs import DesignEnv, VolumeTask
+    from freeform.envs import DesignEnv, EnvConfig, VolumeTask
     from freeform.envs.dense import DenseDesignReward
 
     class Counting(VolumeTask):
@@ -69,7 +69,8 @@ def test_cost_of_dense_rewards_counts_the_partial_bodies() -> None:
 
     for steps, every in ((10, 3), (10, 5), (7, 1), (5, 10)):
         Counting.calls = 0
-        env = DenseDesignReward(DesignEnv(num_envs=2, resolution=6, materials=2, steps=steps, task=Counting()), every)
+        env = DenseDesignReward(DesignEnv(2, EnvConfig(resolution=6, steps=steps),
+                                          materials=2, task=Counting()), every)
         env.reset()
         for _ in range(steps):
             env.step(torch.randn(2, env.action_dim))

@@ -1,4 +1,5 @@
-"""The package's shape, read from its source with ``ast`` alone (nothing is imported): layers that point one way.
+"""The package's shape, read from its source with ``ast`` alone (nothing is imported): layers that point one way,
+and short pieces.
 
 **Layers.** Every module of ``freeform/`` belongs to one layer of :data:`LAYERS` (the most specific prefix names
 it); a module may import modules of its own layer or of a lower one, never of a higher one, and the module import
@@ -7,6 +8,16 @@ a circle is still an arrow), under ``TYPE_CHECKING``. ``from freeform.x import y
 where that is a module, else to ``freeform.x``. The implicit import of a parent package (importing
 ``freeform.sim.config`` runs ``freeform/sim/__init__.py``) is not an arrow: a package's ``__init__`` re-exports
 its own modules.
+
+**Short pieces.** No function of ``freeform/`` over :data:`MAX_FUNCTION_LINES` lines (from its ``def`` to its last
+line, docstring and blank lines included), none with more than :data:`MAX_PARAMETERS` parameters (``self``/``cls``
+not counted; ``*args``/``**kwargs`` counted), no module over :data:`MAX_MODULE_LINES` lines. A nested function
+(a Taichi kernel factory's kernels and funcs, a local helper) is measured as its own function, and its lines do
+not count for the function that encloses it; what remains of the enclosing function must itself be short.
+Functions decorated ``@ti.func`` or ``@ti.kernel`` are exempt from the parameter rule only: a Taichi func is
+inlined and takes the values its caller holds in registers — bundling them (a struct, a vector) or re-reading them
+inside would cost instructions in the hottest loop, which ``scripts/profile_sim.py`` counts per voxel-step — and a
+kernel's arguments are the ndarrays and scalars Taichi launches it with.
 """
 
 from __future__ import annotations
@@ -15,13 +26,20 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "freeform"
+MAX_FUNCTION_LINES = 60
+MAX_PARAMETERS = 8
+MAX_MODULE_LINES = 600
+LONG_MODULES = {
+    "sim/engine.py",  # issue 58's branch splits it; removed at merge
+}
+TAICHI_DECORATORS = ("func", "kernel")
 
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     # what everything may use: files and checkpoints, records, the logger, argument checks, action distributions
     ("foundation", ("freeform", "freeform._conf_dir", "freeform.validation", "freeform.files", "freeform.checkpoint",
                     "freeform.records", "freeform.logger", "freeform.preemption", "freeform.distributions")),
     ("sim", ("freeform.sim",)),  # grids and actuation in, states and displacements out; knows nothing of RL
-    ("body", ("freeform.body", "freeform.surface", "freeform.io")),  # bodies of grids, their metrics and files
+    ("body", ("freeform.body", "freeform.surface", "freeform.mesh", "freeform.io")),  # bodies, metrics, files
     ("render", ("freeform.render",)),  # images and videos of grids and recordings
     ("envs", ("freeform.envs",)),  # VecEnvs and tasks: join the body and the simulation through a reward
     ("learner", ("freeform.learner",)),  # the protocol every trainer-driven algorithm implements
@@ -154,3 +172,68 @@ def test_the_checks_see_a_circle_and_an_arrow_up(tmp_path: Path) -> None:
     planted = tmp_path / "planted.py"
     planted.write_text(source)
     assert imports("freeform.sim.planted", planted, known) == {"freeform.agents", "freeform.sim.config"}
+
+
+FUNCTIONS = (ast.FunctionDef, ast.AsyncFunctionDef)
+
+
+def functions() -> list[tuple[str, ast.FunctionDef | ast.AsyncFunctionDef]]:
+    """Every function of the package, nested ones included: ``(path:line name, node)``."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, FUNCTIONS):
+                found.append((f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name}", node))
+    return found
+
+
+def own_lines(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    """The lines from ``def`` to the function's end, less those of the functions nested in it (with their
+    decorators)."""
+    lines = set(range(function.lineno, function.end_lineno + 1))  # type: ignore[operator]
+    for node in ast.walk(function):
+        if node is not function and isinstance(node, FUNCTIONS):
+            start = min([d.lineno for d in node.decorator_list] + [node.lineno])
+            lines -= set(range(start, node.end_lineno + 1))  # type: ignore[operator]
+    return len(lines)
+
+
+def parameters(function: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = function.args
+    names = [p.arg for p in (*a.posonlyargs, *a.args, *a.kwonlyargs)] + [p.arg for p in (a.vararg, a.kwarg) if p]
+    return len([n for n in names if n not in ("self", "cls")])
+
+
+def is_taichi(function: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    return any(isinstance(d, ast.Attribute) and d.attr in TAICHI_DECORATORS and getattr(d.value, "id", "") == "ti"
+               for d in function.decorator_list)
+
+
+def test_no_function_is_long() -> None:
+    long = {name: n for name, f in functions() if (n := own_lines(f)) > MAX_FUNCTION_LINES}
+    assert long == {}
+
+
+def test_no_function_takes_many_parameters() -> None:
+    many = {name: n for name, f in functions() if (n := parameters(f)) > MAX_PARAMETERS and not is_taichi(f)}
+    assert many == {}
+
+
+def test_no_module_is_long() -> None:
+    lengths = {str(p.relative_to(PACKAGE)): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
+    assert {name: n for name, n in lengths.items() if n > MAX_MODULE_LINES and name not in LONG_MODULES} == {}
+    assert all(name in lengths for name in LONG_MODULES)  # (an exception outlives its module: remove it)
+
+
+def test_the_size_rules_measure_what_they_say() -> None:
+    """A nested function's lines count for itself, not its factory; parameters skip self; Taichi funcs are seen."""
+    source = ("def factory(a, b):\n"
+              "    x = 1\n"
+              "    @ti.func\n"
+              "    def inner(self, c, d, e):\n"
+              "        return c\n"
+              "    return inner\n")
+    factory, inner = [n for n in ast.walk(ast.parse(source)) if isinstance(n, FUNCTIONS)]
+    assert (own_lines(factory), own_lines(inner)) == (3, 2)
+    assert (parameters(factory), parameters(inner)) == (2, 3)
+    assert (is_taichi(factory), is_taichi(inner)) == (False, True)

@@ -11,6 +11,7 @@ import torch
 from helpers import straight_and_resumed
 from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
 
+from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.controllers import ContextConvController, VoxelAttentionController
 from freeform.agents.ppo.losses import standardize, standardize_groups
 from freeform.agents.teachers import TEACHER, TeacherBank, TeacherIndex
@@ -19,6 +20,7 @@ from freeform.config import compose
 from freeform.envs.control import OBS_CHANNELS
 
 BOX = (3, 2, 2)
+INPUTS = ControlInputs(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"))
 
 
 def observations(n: int, seed: int = 0) -> torch.Tensor:
@@ -46,7 +48,7 @@ def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> N
     each sample's outputs equal its teacher's weights run alone on its samples (float rounding apart)."""
     torch.manual_seed(0)
     cls = ContextConvController if kind == "context" else VoxelAttentionController
-    template = cls(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=8, log_std=-1.0)
+    template = cls(INPUTS, hidden=8, log_std=-1.0)
     bank = perturbed_bank(template, 4)
     teacher = torch.tensor([3, 0, 1, 1, 3, 3, 0, 0, 1, 3, 3, 0, 1])
     obs = observations(len(teacher))
@@ -62,7 +64,7 @@ def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> N
 
 def test_a_teachers_loss_moves_its_own_weights_only() -> None:
     torch.manual_seed(1)
-    template = ContextConvController(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=4)
+    template = ContextConvController(INPUTS, hidden=4)
     bank = perturbed_bank(template, 3)
     teacher = torch.tensor([0, 1, 2, 1, 0, 2])
     mean, log_std, _, value = bank({TEACHER: teacher, "policy": observations(6)})
@@ -77,7 +79,7 @@ def test_a_teachers_loss_moves_its_own_weights_only() -> None:
 
 
 def test_the_bank_refuses_an_observation_without_teachers_or_out_of_range() -> None:
-    template = ContextConvController(len(OBS_CHANNELS), BOX, OBS_CHANNELS.index("actuated"), hidden=4)
+    template = ContextConvController(INPUTS, hidden=4)
     bank = TeacherBank.from_template(template, 2)
     with pytest.raises(ValueError, match="teacher"):
         bank(observations(2))

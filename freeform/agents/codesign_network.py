@@ -4,6 +4,7 @@ nothing of it."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
@@ -11,8 +12,23 @@ import torch.nn as nn
 
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
 from freeform.agents.controllers import CODESIGN_KINDS, CONTROLLERS, ConvController, build_controller
-from freeform.agents.networks import VoxelActorCritic
+from freeform.agents.networks import VoxelActorCritic, rebuild
 from freeform.distributions import MaskedDiagGaussian
+
+
+@dataclass(frozen=True)
+class CodesignObservation:
+    """A co-design observation's layout ``[N, C, ρ, ρ, ρ]``: the grid's ``resolution`` ρ, the ``stage_channel`` (0
+    while designing, 1 while controlling), the ``grid_channel`` (the grid's material indices), the control env's
+    channels ``control_channels = (start, stop)``, and their ``mask_channel`` / ``filled_channel``, counted from
+    ``start``. A ``CodesignActorCritic``'s ``init_kwargs`` hold them by these names."""
+
+    resolution: int
+    stage_channel: int
+    grid_channel: int
+    control_channels: Any
+    mask_channel: int
+    filled_channel: int = 0
 
 
 class CodesignActorCritic(nn.Module):
@@ -22,9 +38,7 @@ class CodesignActorCritic(nn.Module):
     ``freeform.agents.controllers.CONTROLLERS`` with its head, e.g. a population controller's context trunk and
     wave head); the stage channel chooses, per sample, which head acts and which value counts.
 
-    Observations ``[N, C, ρ, ρ, ρ]`` (channel ``stage_channel`` 0 while designing, 1 while controlling; the grid's
-    material indices in ``grid_channel``; the control env's channels in ``control_channels = (start, stop)``, whose
-    ``mask_channel`` / ``filled_channel`` are counted from ``start``). Outputs a ``MaskedDiagGaussian``'s parameters
+    Observations ``[N, C, ρ, ρ, ρ]`` laid out as ``observation`` (:class:`CodesignObservation`). Outputs a ``MaskedDiagGaussian``'s parameters
     over ``[3 + k design numbers, c·ρ³ control numbers]`` (c = 2 for a stroke head) and the value: (mean, log_std,
     mask, value); the mask is the design part while designing, the actuated cells while controlling.
 
@@ -32,12 +46,14 @@ class CodesignActorCritic(nn.Module):
     ``controller_hidden`` wide, log σ ``log_std``, as before they could be chosen).
     """
 
-    def __init__(self, resolution: int, materials: int, stage_channel: int, grid_channel: int,
-                 control_channels: tuple[int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 64, controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
+    def __init__(self, observation: CodesignObservation, materials: int, hidden: int = 64,
+                 controller_hidden: int = 16, log_std: float = -0.5, controller: str = "conv",
                  controller_kwargs: dict[str, Any] | None = None, trunk: str = "auto") -> None:
         super().__init__()
-        start, stop = (int(c) for c in control_channels)
+        o = observation
+        resolution, stage_channel, grid_channel = o.resolution, o.stage_channel, o.grid_channel
+        mask_channel, filled_channel = o.mask_channel, o.filled_channel
+        start, stop = (int(c) for c in o.control_channels)
         self.init_kwargs = dict(resolution=resolution, materials=materials, stage_channel=stage_channel,
                                 grid_channel=grid_channel, control_channels=(start, stop), mask_channel=mask_channel,
                                 filled_channel=filled_channel, hidden=hidden, controller_hidden=controller_hidden,
@@ -54,7 +70,7 @@ class CodesignActorCritic(nn.Module):
             if controller not in CODESIGN_KINDS:
                 raise ValueError(f"a co-design controller is one of {list(CODESIGN_KINDS)} (feed-forward, one set "
                                  f"of weights for every cell), got {controller!r}: set control.controller")
-            self.controller = CONTROLLERS[controller](**controller_kwargs)
+            self.controller = rebuild(CONTROLLERS[controller], controller_kwargs)
             self.init_kwargs.update(controller=controller, controller_kwargs=dict(controller_kwargs))
         if tuple(self.controller.box) != (resolution,) * 3:
             raise ValueError(f"the controller's box {tuple(self.controller.box)} is not the design grid's "
@@ -74,9 +90,16 @@ class CodesignActorCritic(nn.Module):
         if (controller, head) != ("conv", "direct"):
             kwargs = dict(build_controller(controller, env.control_view(), controller_hidden, log_std, head,
                                            wave).init_kwargs)
-        return cls(env.rho, env.materials, env.stage_channel, env.grid_channel, env.control_channels,
-                   env.mask_channel, env.filled_channel, hidden, controller_hidden, log_std, controller, kwargs,
-                   trunk)
+        observation = CodesignObservation(env.rho, env.stage_channel, env.grid_channel, env.control_channels,
+                                          env.mask_channel, env.filled_channel)
+        return cls(observation, env.materials, hidden, controller_hidden, log_std, controller, kwargs, trunk)
+
+    @classmethod
+    def from_init_kwargs(cls, init_kwargs: dict[str, Any]) -> CodesignActorCritic:
+        """Rebuilt from its (flat) ``init_kwargs`` (``freeform.agents.networks.rebuild``)."""
+        names = {f.name for f in fields(CodesignObservation)}
+        observation = CodesignObservation(**{k: v for k, v in init_kwargs.items() if k in names})
+        return cls(observation, **{k: v for k, v in init_kwargs.items() if k not in names})
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, ρ, ρ, ρ]`` → (mean, log_std, mask ``[N, 3 + k + c·ρ³]``, value ``[N]``)."""
@@ -91,4 +114,4 @@ class CodesignActorCritic(nn.Module):
                 torch.where(controlling, value_c, value_d))
 
 
-__all__ = ["CodesignActorCritic"]
+__all__ = ["CodesignActorCritic", "CodesignObservation"]

@@ -14,6 +14,7 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind, controller_step
+from freeform.agents.networks import rebuild
 from freeform.body import bounding_box
 from freeform.checkpoint import load_checkpoint, save_checkpoint
 from freeform.envs.control import ControlConfig
@@ -95,7 +96,7 @@ def read_controller(source: str | Path, box: tuple[int, int, int] | None = None)
             raise ValueError(f"{path}: its {kind!r} controller learnt each cell of its box {saved_box} apart and runs "
                              f"on that box only, and these bodies need the box {tuple(box)}")
         kwargs = {**kwargs, "box": tuple(int(b) for b in box)}
-    controller = CONTROLLERS[kind](**kwargs)
+    controller = rebuild(CONTROLLERS[kind], kwargs)
     controller.load_state_dict(weights)
     return SavedController(controller, kind, control, sim, path)
 

@@ -5,13 +5,50 @@ rhythm on the actuation clock, a stroke's (a, b), or a travelling wave's stroke.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
 import torch.nn as nn
 
 from freeform.distributions import MaskedDiagGaussian
+
+
+@dataclass(frozen=True)
+class ControlInputs:
+    """What a controller reads of a control env's observation ``[N, C, Bx, By, Bz]``: its ``channels`` C, the
+    ``box`` (Bx, By, Bz), the ``mask_channel`` (the actuated cells, whose command acts), the ``filled_channel`` (the
+    body's cells) and a rhythm head's ``clock_channels`` (clock_sin, clock_cos). A controller's ``init_kwargs`` hold
+    them by these names, beside its own sizes."""
+
+    channels: int
+    box: Any
+    mask_channel: int
+    filled_channel: int = 0
+    clock_channels: Any = None
+
+    @classmethod
+    def of(cls, env: Any, head: str = "direct") -> ControlInputs:
+        """A ``ControlEnv``'s (its box, channels, mask and filled channels; the clock for a ``rhythm`` head)."""
+        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel,
+                   _env_clock(env, head))
+
+    @staticmethod
+    def split(init_kwargs: dict[str, Any]) -> tuple[ControlInputs, dict[str, Any]]:
+        """A controller's ``init_kwargs`` as (its inputs, the rest: its own constructor arguments)."""
+        names = {f.name for f in fields(ControlInputs)}
+        inputs = ControlInputs(**{k: v for k, v in init_kwargs.items() if k in names})
+        return inputs, {k: v for k, v in init_kwargs.items() if k not in names}
+
+
+class FromInputs:
+    """A controller built from :class:`ControlInputs` and its own sizes: :meth:`from_init_kwargs` rebuilds it from
+    its (flat) ``init_kwargs`` (``freeform.agents.networks.rebuild``)."""
+
+    @classmethod
+    def from_init_kwargs(cls, init_kwargs: dict[str, Any]) -> Any:
+        inputs, rest = ControlInputs.split(init_kwargs)
+        return cls(inputs, **rest)
 
 
 def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
@@ -210,19 +247,20 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
     return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
 
 
-def _body_controller_setup(net: nn.Module, channels: int, box: Any, mask_channel: int, filled_channel: int,
-                           head: str, clock_channels: Any, log_std: float, wave: Any = None, **sizes: int) -> int:
+def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_std: float, wave: Any = None,
+                           **sizes: int) -> int:
     """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
     channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
     body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
     wave's initial k along x, ``net.wave_k0``) and the materials' phases (``net.wave_phases``; both buffers, out of
     the state dict, made once so that a forward pass copies nothing to the device: a CUDA graph can capture it).
     Returns the actor head's outputs per cell."""
-    box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+    channels, mask_channel, filled_channel = inputs.channels, inputs.mask_channel, inputs.filled_channel
+    box = _check_control_input(channels, inputs.box, mask_channel=mask_channel, filled_channel=filled_channel)
     for name, value in sizes.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
-    outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+    outputs, net.clock = _head_outputs(head), _clock_channels(channels, head, inputs.clock_channels)
     net.wave = _wave_setup(channels, head, wave)
     net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                            **sizes, log_std=log_std, head=head, clock_channels=net.clock)

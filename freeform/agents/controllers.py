@@ -38,12 +38,13 @@ from freeform.agents.controller_heads import (
     DEFAULT_WAVE,
     STROKE_HEADS,
     WAVE_KINDS,
+    ControlInputs,
+    FromInputs,
     HandSetWave,
     _body_controller_setup,
     _cell_means,
     _check_control_input,
     _clock_channels,
-    _env_clock,
     _env_wave,
     _head_outputs,
     _masked_pool,
@@ -51,7 +52,7 @@ from freeform.agents.controller_heads import (
     _rhythm,
     head_rule,
 )
-from freeform.agents.networks import MLPActorCritic
+from freeform.agents.networks import MLPActorCritic, rebuild
 from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
 from freeform.agents.recurrent import RecurrentPolicy, run_rnn
 from freeform.distributions import MaskedDiagGaussian
@@ -147,7 +148,7 @@ class MLPController(nn.Module):
         return mean, log_std, obs[:, self.mask_channel].reshape(obs.shape[0], -1), value
 
 
-class ContextConvController(nn.Module):
+class ContextConvController(FromInputs, nn.Module):
     """A masked convolutional controller with a view of the whole body: each cell's command reads its 5³
     neighbourhood and the body's pooled features, and the padding around a body changes nothing.
 
@@ -171,13 +172,11 @@ class ContextConvController(nn.Module):
     fits_any_box = True
     padding_invariant = True
 
-    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 16, blocks: int = 1, log_std: float = 0.0, head: str = "direct",
-                 clock_channels: tuple[int, int] | None = None, wave: dict[str, Any] | None = None) -> None:
+    def __init__(self, inputs: ControlInputs, hidden: int = 16, blocks: int = 1, log_std: float = 0.0,
+                 head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
-                                         log_std, wave, hidden=hidden, blocks=blocks)
-        self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
+        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, blocks=blocks)
+        self.conv_in = nn.Conv3d(inputs.channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
         self.actor = nn.Conv3d(hidden, outputs, 1)
@@ -192,8 +191,7 @@ class ContextConvController(nn.Module):
                 wave: HandSetWave = DEFAULT_WAVE) -> ContextConvController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std, head=head, clock_channels=_env_clock(env, head), wave=_env_wave(env, head, wave))
+        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=_env_wave(env, head, wave))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
@@ -207,7 +205,7 @@ class ContextConvController(nn.Module):
         return mean, self.log_std.expand_as(mean), mask, value
 
 
-class RecurrentContextController(nn.Module):
+class RecurrentContextController(FromInputs, nn.Module):
     """:class:`ContextConvController` with a memory of how this body has moved: a GRU over the body's pooled
     features, step after step of the episode, whose state joins the body's context in every cell's command and in
     the critic. A controller meeting a body it never saw can then tell, from the body's answers to its last
@@ -231,14 +229,12 @@ class RecurrentContextController(nn.Module):
     padding_invariant = True
     actor_state_size = 1  # the GRU's state is the actor's (the critic reads it): an exported actor carries it all
 
-    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 16, memory: int = 32, log_std: float = 0.0, head: str = "direct",
-                 clock_channels: tuple[int, int] | None = None, wave: dict[str, Any] | None = None) -> None:
+    def __init__(self, inputs: ControlInputs, hidden: int = 16, memory: int = 32, log_std: float = 0.0,
+                 head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        outputs = _body_controller_setup(self, channels, box, mask_channel, filled_channel, head, clock_channels,
-                                         log_std, wave, hidden=hidden, memory=memory)
+        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, memory=memory)
         self.memory = memory
-        self.conv_in = nn.Conv3d(channels, hidden, 3, padding=1)
+        self.conv_in = nn.Conv3d(inputs.channels, hidden, 3, padding=1)
         self.gru = nn.GRU(2 * hidden, memory)
         self.conv = nn.Conv3d(hidden, hidden, 3, padding=1)
         self.context = nn.Linear(2 * hidden + memory, hidden)
@@ -254,8 +250,7 @@ class RecurrentContextController(nn.Module):
                 memory: int = 32, wave: HandSetWave = DEFAULT_WAVE) -> RecurrentContextController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   memory, log_std=log_std, head=head, clock_channels=_env_clock(env, head),
+        return cls(ControlInputs.of(env, head), hidden, memory, log_std=log_std, head=head,
                    wave=_env_wave(env, head, wave))
 
     def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
@@ -314,7 +309,7 @@ class _AttentionBlock(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
-class VoxelAttentionController(nn.Module):
+class VoxelAttentionController(FromInputs, nn.Module):
     """Attention over a body's voxels: every filled cell is a token, every token attends to every other, and the
     padding (empty cells, a larger box) is no token at all.
 
@@ -331,11 +326,11 @@ class VoxelAttentionController(nn.Module):
     fits_any_box = True
     padding_invariant = True
 
-    def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
-                 hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0, head: str = "direct",
-                 clock_channels: tuple[int, int] | None = None) -> None:
+    def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
+                 head: str = "direct") -> None:
         super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        channels, mask_channel, filled_channel = inputs.channels, inputs.mask_channel, inputs.filled_channel
+        box = _check_control_input(channels, inputs.box, mask_channel=mask_channel, filled_channel=filled_channel)
         for name, value in (("hidden", hidden), ("heads", heads), ("layers", layers)):
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -343,7 +338,7 @@ class VoxelAttentionController(nn.Module):
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
         if head == "wave":
             raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not the attention controller")
-        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, clock_channels)
+        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, inputs.clock_channels)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                                 hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
                                 clock_channels=self.clock)
@@ -362,8 +357,7 @@ class VoxelAttentionController(nn.Module):
     @classmethod
     def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0, head: str = "direct") -> VoxelAttentionController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
-        return cls(env.observation_shape[0], env.observation_shape[1:], env.mask_channel, env.filled_channel, hidden,
-                   log_std=log_std, head=head, clock_channels=_env_clock(env, head))
+        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head)
 
     def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
@@ -427,7 +421,7 @@ class PrivilegedCritic(nn.Module):
             raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
         if not isinstance(critic_dim, int) or critic_dim < 1:
             raise ValueError(f"critic_dim must be a positive int, got {critic_dim!r}")
-        self.controller = CONTROLLERS[kind](**controller)
+        self.controller = rebuild(CONTROLLERS[kind], controller)
         self.critic_head = nn.Sequential(nn.Linear(critic_dim + 1, hidden), nn.Tanh(), nn.Linear(hidden, 1))
         nn.init.zeros_(self.critic_head[-1].weight)
         nn.init.zeros_(self.critic_head[-1].bias)

@@ -99,6 +99,14 @@ class GroupedActions(Protocol):
     action_groups: dict[str, slice]
 
 
+def rebuild(cls: type[nn.Module], init_kwargs: dict[str, Any]) -> nn.Module:
+    """The network ``cls`` rebuilt from its ``init_kwargs`` (what a checkpoint holds): ``cls(**init_kwargs)``, or
+    ``cls.from_init_kwargs(init_kwargs)`` for a network whose constructor takes some of them grouped (the
+    controllers' ``ControlInputs``, the co-design network's ``CodesignObservation``)."""
+    from_kwargs = getattr(cls, "from_init_kwargs", None)
+    return from_kwargs(dict(init_kwargs)) if from_kwargs is not None else cls(**init_kwargs)
+
+
 def _xavier_zero(layer: nn.Linear) -> nn.Linear:
     """Xavier-uniform weights, zero bias: the spec's head init, which makes the untrained policy ≈ N(0, I)."""
     nn.init.xavier_uniform_(layer.weight)
@@ -348,4 +356,4 @@ class GroupedMLPActorCritic(MLPActorCritic):
 
 
 __all__ = ["ActorCritic", "DeclaresDistribution", "GroupedActions", "GroupedMLPActorCritic", "MLPActorCritic",
-           "Rebuildable", "SplitActorCritic", "TRUNK_IMPLEMENTATIONS", "VoxelActorCritic", "resolve_trunk"]
+           "Rebuildable", "SplitActorCritic", "TRUNK_IMPLEMENTATIONS", "VoxelActorCritic", "rebuild", "resolve_trunk"]

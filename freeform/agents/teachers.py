@@ -73,10 +73,11 @@ class TeacherBank(nn.Module):
     def _new_controller(self) -> nn.Module:
         """A fresh controller of the teachers' kind (its own weights, untrained)."""
         from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic
+        from freeform.agents.networks import rebuild
 
         k = self.init_kwargs
         if k["critic_dim"] is None:
-            return CONTROLLERS[k["kind"]](**k["controller"])
+            return rebuild(CONTROLLERS[k["kind"]], k["controller"])
         return PrivilegedCritic(k["kind"], k["controller"], k["critic_dim"])
 
     @classmethod

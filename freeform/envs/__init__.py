@@ -12,13 +12,13 @@ from freeform.envs.base import ReportsPlacement, ReportsStats, StatefulVecEnv, T
 from freeform.envs.codesign import CodesignEnv
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.dense import DenseDesignReward
-from freeform.envs.design import DesignEnv
+from freeform.envs.design import DesignEnv, EnvConfig
 from freeform.envs.population import PopulationControlEnv
 from freeform.envs.tasks import ControlledLocomotionTask, LocomotionTask, VolumeTask
 from freeform.envs.trajectory import TrajectoryTask, trajectory_reward
 
 __all__ = [
-    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "VolumeTask", "LocomotionTask", "ControlledLocomotionTask",
+    "VecEnv", "StatefulVecEnv", "Task", "ReportsStats", "ReportsPlacement", "DesignEnv", "EnvConfig", "VolumeTask", "LocomotionTask", "ControlledLocomotionTask",
     "TrajectoryTask", "trajectory_reward", "DenseDesignReward", "ControlEnv", "ControlConfig", "CodesignEnv",
     "PopulationControlEnv",
     "from_gymnasium",

@@ -39,7 +39,14 @@ import torch
 
 from freeform.body import bodies_and_metrics, serial_on_cpu
 from freeform.distributions import MaskedDiagGaussian
-from freeform.envs.control import OBS_CHANNELS, RESIDUAL_CHANNELS, ControlConfig, ControlEnv, same_config
+from freeform.envs.control import (
+    OBS_CHANNELS,
+    RESIDUAL_CHANNELS,
+    ControlConfig,
+    ControlEnv,
+    arch_for,
+    same_config,
+)
 from freeform.envs.design import DesignEnv, EnvConfig
 from freeform.sim import SimConfig, Simulator
 
@@ -57,14 +64,12 @@ class CodesignEnv:
     ``sim`` and ``control``: the control env's (``control.headings`` "fixed": +x, "random": steering)."""
 
     def __init__(self, num_envs: int, design: EnvConfig | None = None, materials: int = 4,
-                 sim: SimConfig | None = None, control: ControlConfig | None = None, *, arch: str = "cpu",
-                 seed: int = 0, device: str | torch.device = "cpu", first_env: int = 0) -> None:
+                 sim: SimConfig | None = None, control: ControlConfig | None = None, *, seed: int = 0,
+                 device: str | torch.device = "cpu", first_env: int = 0) -> None:
         if design is None:  # the CPU co-design setting
             design = EnvConfig(resolution=8, steps=20, bundle_size=2, action_bound=2.0, mirror_y=False)
         resolution, design_steps = design.resolution, design.steps
-        self.design = DesignEnv(num_envs, resolution=resolution, materials=materials, steps=design_steps,
-                                bundle_size=design.bundle_size, device="cpu", action_bound=design.action_bound,
-                                compute_metrics=False, mirror_y=design.mirror_y)
+        self.design = DesignEnv(num_envs, design, materials=materials, device="cpu", compute_metrics=False)
         self.control = control or ControlConfig()
         self.control.validate()
         if not (isinstance(first_env, int) and first_env >= 0):
@@ -90,12 +95,11 @@ class CodesignEnv:
         channels' start."""
         self.device = torch.device(device)
         self.seed, self.first_env = int(seed), first_env
-        self.arch = arch
         self.sim = sim or SimConfig()
         self.sim_config = ControlEnv.simulation(self.sim, self.control)
         self.material_phases = (0.0, *(m.phase for m in self.sim_config.materials))
         """Each material's actuation phase in cycles (empty: 0), as the control env's."""
-        self.simulator = Simulator(self.sim_config, arch=arch)  # one simulator for every episode's control env
+        self.simulator = Simulator(self.sim_config, arch=arch_for(self.device))  # one for every episode's control env
         self.episode = -1
         """The index of the current episode (its headings' draw)."""
         self.t = 0
@@ -181,7 +185,7 @@ class CodesignEnv:
         self.controlled = None
         if bool(self._alive.any()):
             draws = self.first_env + torch.nonzero(self._alive).flatten().numpy()
-            self.controlled = ControlEnv(bodies[self._alive], sim=self.sim, control=self.control, arch=self.arch,
+            self.controlled = ControlEnv(bodies[self._alive], sim=self.sim, control=self.control,
                                          seed=self.seed, first_env=draws, simulator=self.simulator)
             obs_c = self.controlled.reset(episode=self.episode)
             return self._observe(obs_c)

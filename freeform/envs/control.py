@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from freeform.body import metrics
 from freeform.distributions import MaskedDiagGaussian
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
@@ -152,6 +153,12 @@ def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
+def arch_for(device: torch.device) -> str:
+    """The simulator's backend for an env whose tensors live on ``device``: the physics runs where the observations
+    are wanted (CUDA for a CUDA device, else the CPU)."""
+    return "cuda" if device.type == "cuda" else "cpu"
+
+
 class ControlEnv:
     """``num_envs`` bodies (uint8 grids ``[N, ρ, ρ, ρ]``, every one non-empty) under closed-loop control: a
     :class:`freeform.envs.VecEnv` whose action is one command per cell of the bodies' box (``action_dim`` =
@@ -159,24 +166,25 @@ class ControlEnv:
     ``control.residual`` ``RESIDUAL_CHANNELS``). ``action_mask [N, Bx·By·Bz]``
     marks the cells whose command acts (actuated voxels), as the observation's ``actuated`` channel does.
 
-    sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``).
+    sim: the simulation (its ``actuation`` is set to "command"; burn_in and duration come from ``control``), run
+        on the CPU, or on CUDA for a CUDA ``device``.
     box: pad every body's box to this one (default: the largest body's), e.g. to run a controller trained on other
         bodies whose box it was built for; a body larger than it is refused.
     seed, first_env: episode e's headings are drawn from ``numpy.random.default_rng([seed, e])``, environment i
         taking draw ``first_env + i`` — so a data-parallel rank holding environments ``first_env …`` draws what
         one process would, and the episode count is the env's whole random state (:meth:`state_dict`). An array
         ``[N]`` gives each environment's draw (a co-design env's bodies that are not empty).
-    simulator: the ``Simulator`` to run on (its config must be this env's ``sim_config``): a co-design env builds
-        one control env per episode on one simulator.
+    simulator: the ``Simulator`` to run on (its config must be this env's ``sim_config``; any backend): a co-design
+        env builds one control env per episode on one simulator.
 
     At the end of every episode ``info`` holds, besides ``truncated`` and ``final_obs``, the episode records'
     ``final_grids`` (the bodies' grids, as given) and ``metrics`` (their body metrics, ``freeform.body``).
     """
 
     def __init__(self, grids: torch.Tensor | np.ndarray, sim: SimConfig | None = None,
-                 control: ControlConfig | None = None, arch: str = "cpu", seed: int = 0,
-                 device: str | torch.device = "cpu", first_env: int | np.ndarray = 0,
-                 box: tuple[int, int, int] | None = None, simulator: Simulator | None = None):
+                 control: ControlConfig | None = None, seed: int = 0, device: str | torch.device = "cpu",
+                 first_env: int | np.ndarray = 0, box: tuple[int, int, int] | None = None,
+                 simulator: Simulator | None = None):
         grids = torch.as_tensor(np.asarray(grids)).to(torch.uint8)
         if grids.dim() != 4 or not (grids.shape[1] == grids.shape[2] == grids.shape[3]):
             raise ValueError(f"grids must be uint8 [N, ρ, ρ, ρ], got shape {tuple(grids.shape)}")
@@ -191,14 +199,31 @@ class ControlEnv:
         if simulator is not None and simulator.config != self.sim_config:
             raise ValueError("simulator: its config is not this control env's (SimConfig with actuation='command', "
                              "burn_in 0 and the episode's duration: ControlEnv.sim_config)")
-        self.simulator = simulator if simulator is not None else Simulator(self.sim_config, arch=arch)
+        self.simulator = simulator if simulator is not None else Simulator(self.sim_config, arch=arch_for(self.device))
         self.layout = self.simulator.layout(self.grids)
+        self._place_in_box(box)
+        self._index_cells()
+        self._body_features()
+        draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
+        if draws.shape != (self.num_envs,) or (draws < 0).any():
+            raise ValueError(f"first_env must be an int >= 0 or [{self.num_envs}] ints >= 0, got {first_env!r}")
+        self.seed, self._draws = int(seed), draws
+        self.episode = -1
+        """Episodes started so far − 1: the index of the current episode (its headings' draw)."""
+        self._metrics = {k: v.float().to(self.device) for k, v in metrics(self.grids).items()}  # (the records')
+        self._final_grids = self.grids.to(self.device)
+        self.engine: Engine | None = None
+        self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
+        self.t = self._periods = 0
+        self.heading = np.zeros(self.num_envs)
+        self._com = self._start = np.zeros((self.num_envs, 3))
+
+    def _place_in_box(self, box: tuple[int, int, int] | None) -> None:
+        """Each body in its box (the largest body's, or ``box``) and the observation's and action's shapes."""
         lay = self.layout
-        mt = material_table(self.sim_config)
-        robot = lay.voxel_robot.astype(np.int64)
-        self._robot = robot
-        lattice = lay.lattice.astype(np.int64)  # each voxel's cell in its robot's box
-        need = tuple(int(b) for b in lattice.max(0) + 1)
+        self._robot = lay.voxel_robot.astype(np.int64)
+        self._lattice = lay.lattice.astype(np.int64)  # each voxel's cell in its robot's box
+        need = tuple(int(b) for b in self._lattice.max(0) + 1)
         if box is not None:
             box = tuple(int(b) for b in box)
             if len(box) != 3 or any(b < n for b, n in zip(box, need, strict=True)):
@@ -220,6 +245,10 @@ class ControlEnv:
         self.action_channels = 2 if self.control.stroke_periods else 1
         """Numbers per cell of an action: a command, or a stroke's (a, b) (``stroke_periods``)."""
         self.action_dim = self.cells * self.action_channels
+
+    def _index_cells(self) -> None:
+        """Each voxel's cell in its body's box, in the flat observation and in its grid; the action mask."""
+        lay, robot, lattice = self.layout, self._robot, self._lattice
         body = lay.body_of_robot[robot]
         self._body = body
         self._cell = (lattice[:, 0] * self.box[1] + lattice[:, 1]) * self.box[2] + lattice[:, 2]  # C order in the box
@@ -230,41 +259,31 @@ class ControlEnv:
         # copied over every control step — at N = 1,024 bodies of ρ = 20 that was 0.5 GB a step, 50 of its 72 ms)
         self._flat_t = torch.from_numpy(self._flat).to(self.device)
         self._body_t, self._cell_t = torch.from_numpy(body).to(self.device), torch.from_numpy(self._cell).to(self.device)
-        actuated = mt[MT.CTE][lay.material] != 0
+        self._actuated = material_table(self.sim_config)[MT.CTE][lay.material] != 0
         self.action_mask = torch.zeros(self.num_envs * self.cells, dtype=torch.bool)
-        self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(actuated)
+        self.action_mask[torch.from_numpy(self._flat)] = torch.from_numpy(self._actuated)
         self.action_mask = self.action_mask.view(self.num_envs, self.cells).repeat(1, self.action_channels).to(self.device)
         self.action_distribution = MaskedDiagGaussian(self.action_dim)
         """What PPO trains: a Gaussian per cell, counted where the ``actuated`` channel (``mask_channel``) is 1."""
         self.mask_channel = OBS_CHANNELS.index("actuated")
         self.filled_channel = OBS_CHANNELS.index("filled")
+
+    def _body_features(self) -> None:
+        """What the sensing reads of each voxel that does not change: its rest offset from its body's centre, its
+        material, whether it is actuated, its open-loop phase; the physics' length and speed scales."""
+        lay, robot, lattice = self.layout, self._robot, self._lattice
         centre = np.zeros((self.num_envs, 3))
         np.add.at(centre, robot, lattice.astype(np.float64))
         centre /= np.bincount(robot, minlength=self.num_envs)[:, None]
         self._rest = lattice - centre[robot]  # each voxel's rest offset from its body's centre (voxel lengths)
         self._material = lay.material.astype(np.float64) / len(self.sim_config.materials)
-        self._actuated = actuated.astype(np.float64)
+        self._actuated = self._actuated.astype(np.float64)
         self.material_phases = (0.0, *(m.phase for m in self.sim_config.materials))
         """Each material index's open-loop phase in cycles (index 0: empty), as the simulator plays it."""
         self._phase = np.array(self.material_phases)[lay.material]  # cycles
         self._open_loop = np.zeros(lay.num_voxels)  # the sine mid-way through the coming period (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
-        draws = np.asarray(first_env, dtype=np.int64) + (np.arange(self.num_envs) if np.ndim(first_env) == 0 else 0)
-        if draws.shape != (self.num_envs,) or (draws < 0).any():
-            raise ValueError(f"first_env must be an int >= 0 or [{self.num_envs}] ints >= 0, got {first_env!r}")
-        self.seed, self._draws = int(seed), draws
-        self.episode = -1
-        """Episodes started so far − 1: the index of the current episode (its headings' draw)."""
-        from freeform.body import metrics  # (the records' body metrics, computed once per env)
-
-        self._metrics = {k: v.float().to(self.device) for k, v in metrics(self.grids).items()}
-        self._final_grids = self.grids.to(self.device)
-        self.engine: Engine | None = None
-        self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
-        self.t = self._periods = 0
-        self.heading = np.zeros(self.num_envs)
-        self._com = self._start = np.zeros((self.num_envs, 3))
 
     @staticmethod
     def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
@@ -543,4 +562,4 @@ def open_loop_displacement(grids: torch.Tensor | np.ndarray, sim: SimConfig | No
     return moves[:, 0] * np.cos(heading) + moves[:, 1] * np.sin(heading)
 
 
-__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "open_loop_displacement", "open_loop_moves"]
+__all__ = ["HEADINGS", "OBS_CHANNELS", "RESIDUAL_CHANNELS", "ControlConfig", "ControlEnv", "arch_for", "open_loop_displacement", "open_loop_moves"]

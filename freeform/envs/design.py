@@ -70,49 +70,34 @@ class DesignEnv:
     def __init__(
         self,
         num_envs: int,
-        resolution: int = 20,
+        design: EnvConfig | None = None,
         materials: int = 4,
-        steps: int = 100,
-        bundle_size: int = 2,
         task: Task | None = None,
         device: str | torch.device = "cpu",
         seed: int | None = None,
-        action_bound: float = 2.0,
         compute_metrics: bool = True,
-        mirror_y: bool = False,
     ) -> None:
         """
         Args:
-            num_envs: N, environments stepped together.
-            resolution: ρ, grid edge in voxels (a positive even integer; spec: 20).
+            num_envs: N, environments stepped together (``design.num_envs`` is not read: a data-parallel rank
+                holds its share).
+            design: the design process (:class:`EnvConfig`, default the spec's): ``resolution`` ρ (a positive even
+                integer), ``steps`` T, ``bundle_size`` b (a positive even integer <= ρ), ``action_bound`` B of the
+                clip mapping (spec: 2, so ~95 % of N(0, 1) centres fall inside the grid) and ``mirror_y``:
+                bilateral symmetry — every bundle is also placed at its mirror image across the grid's x–z
+                mid-plane (y ↦ ρ − 1 − y), so every design is left-right symmetric. Such a body cannot turn or
+                drift sideways on ground that is itself symmetric in y (flat, an x-slope, x-stairs): it travels
+                along ±x. Off in the paper.
             materials: k, material count including empty (>= 2; volume task 2, locomotion 4).
-            steps: T, actions per episode (spec: 100).
-            bundle_size: b, bundle edge in voxels (a positive even integer <= ρ; spec: 2).
             task: scores the final grids; default :class:`VolumeTask`.
             device: where the grids live and every step runs.
             seed: unused by the (deterministic) design process; kept for the protocol and the state.
-            action_bound: B of the clip mapping (spec: 2, so ~95 % of N(0, 1) centres fall inside the grid).
             compute_metrics: put the body metrics in ``info`` at the end of each episode.
-            mirror_y: bilateral symmetry — every bundle is also placed at its mirror image across the grid's
-                x–z mid-plane (y ↦ ρ − 1 − y), so every design is left-right symmetric. Such a body cannot turn
-                or drift sideways on ground that is itself symmetric in y (flat, an x-slope, x-stairs): it
-                travels along ±x. Off in the paper.
         """
-        _check_int("num_envs", num_envs, "a positive integer")
-        _check_int("resolution", resolution, "a positive even integer")
-        if resolution % 2:
-            raise ValueError(f"resolution must be a positive even integer, got {resolution}")
-        _check_int("materials", materials, "an integer >= 2", minimum=2)
-        if materials > 256:
-            raise ValueError(f"materials must be <= 256 (grids are uint8), got {materials}")
-        _check_int("steps", steps, "a positive integer")
-        _check_int("bundle_size", bundle_size, f"a positive even integer <= resolution ({resolution})")
-        if bundle_size % 2 or bundle_size > resolution:
-            raise ValueError(
-                f"bundle_size must be a positive even integer <= resolution ({resolution}), got {bundle_size}"
-            )
-        if not action_bound > 0:
-            raise ValueError(f"action_bound must be > 0, got {action_bound}")
+        design = design if design is not None else EnvConfig()
+        _check_design(num_envs, design, materials)
+        resolution, steps, bundle_size = design.resolution, design.steps, design.bundle_size
+        action_bound, mirror_y = design.action_bound, design.mirror_y
         self.num_envs = num_envs
         self.resolution = resolution
         self.materials = materials
@@ -120,8 +105,6 @@ class DesignEnv:
         self.bundle_size = bundle_size
         self.action_bound = float(action_bound)
         self.compute_metrics = compute_metrics
-        if not isinstance(mirror_y, bool):
-            raise ValueError(f"mirror_y must be true or false, got {mirror_y!r}")
         self.mirror_y = mirror_y
         self.task: Task = task if task is not None else VolumeTask()
         self.device = torch.device(device)
@@ -284,6 +267,28 @@ class DesignEnv:
     def __repr__(self) -> str:
         cfg = ", ".join(f"{k}={v}" for k, v in {"num_envs": self.num_envs, **self._config()}.items())
         return f"DesignEnv({cfg}, task={type(self.task).__name__}, device={self.device})"
+
+
+def _check_design(num_envs: int, design: EnvConfig, materials: int) -> None:
+    """Refuse a design env's sizes that are not what :class:`DesignEnv` documents, naming the first wrong one."""
+    resolution, bundle_size = design.resolution, design.bundle_size
+    _check_int("num_envs", num_envs, "a positive integer")
+    _check_int("resolution", resolution, "a positive even integer")
+    if resolution % 2:
+        raise ValueError(f"resolution must be a positive even integer, got {resolution}")
+    _check_int("materials", materials, "an integer >= 2", minimum=2)
+    if materials > 256:
+        raise ValueError(f"materials must be <= 256 (grids are uint8), got {materials}")
+    _check_int("steps", design.steps, "a positive integer")
+    _check_int("bundle_size", bundle_size, f"a positive even integer <= resolution ({resolution})")
+    if bundle_size % 2 or bundle_size > resolution:
+        raise ValueError(
+            f"bundle_size must be a positive even integer <= resolution ({resolution}), got {bundle_size}"
+        )
+    if not design.action_bound > 0:
+        raise ValueError(f"action_bound must be > 0, got {design.action_bound}")
+    if not isinstance(design.mirror_y, bool):
+        raise ValueError(f"mirror_y must be true or false, got {design.mirror_y!r}")
 
 
 def _check_int(name: str, value: Any, allowed: str, minimum: int = 1) -> None:

@@ -25,12 +25,13 @@ given: every body of the design env fits it), so the rollout's shapes never chan
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-from freeform.envs.control import ControlConfig, ControlEnv, same_config
+from freeform.envs.control import ControlConfig, ControlEnv, arch_for, same_config
 from freeform.envs.untrained import DesignBodies, untrained_design_bodies
 from freeform.sim import SimConfig, Simulator
 
@@ -72,24 +73,40 @@ def design_cohort(sizes: DesignBodies, n: int, body_seed: int, cohort: int) -> t
     return torch.cat(found)[:n].contiguous()
 
 
+@dataclass(frozen=True)
+class Stream:
+    """The stream of cohorts a :class:`PopulationControlEnv` plays (module docstring).
+
+    total, copies: environments of each cohort, and environments per body (``total`` holds whole groups of copies).
+    pool, refresh_every: cohorts an episode may draw from, and episodes between two steps of the pool along the
+        stream (0: the pool never moves).
+    body_seed: which stream (:func:`design_cohort`).
+    box: the control box of every cohort (None: the design grid's ρ³, which every body of the design env fits).
+    """
+
+    total: int
+    pool: int = 4
+    refresh_every: int = 1
+    body_seed: int = 0
+    copies: int = 1
+    box: tuple[int, int, int] | None = None
+
+
 class PopulationControlEnv:
     """``ControlEnv`` episodes over cohorts of fresh bodies (module docstring): a :class:`freeform.envs.VecEnv`
     with the control env's observations and actions on a fixed ``box``.
 
-    sizes, body_seed: the stream (:func:`design_cohort`); envs = (lo, hi): this env's environments of each cohort
-        of ``num_envs`` = hi − lo + lo… (a data-parallel rank holds a slice of every cohort; ``total`` the cohort's
-        full size).
-    pool, refresh_every: cohorts an episode may draw from, and episodes between two steps of the pool along the
-        stream (0: the pool never moves).
-    copies: environments per body (module docstring); ``total``, and a rank's ``envs``, hold whole groups of copies.
-    sim, control, arch, seed, device: as :class:`ControlEnv` (episode e's headings and cohort are drawn from
+    sizes, stream: the bodies (:func:`design_cohort`) and the stream of cohorts (:class:`Stream`).
+    envs = (lo, hi): this env's environments of each cohort of ``stream.total`` (a data-parallel rank holds a slice
+        of every cohort), whole groups of copies.
+    sim, control, seed, device: as :class:`ControlEnv` (episode e's headings and cohort are drawn from
         ``default_rng([seed, e])``).
     """
 
-    def __init__(self, sizes: DesignBodies, total: int, pool: int = 4, refresh_every: int = 1, body_seed: int = 0,
-                 sim: SimConfig | None = None, control: ControlConfig | None = None, arch: str = "cpu",
-                 seed: int = 0, device: str | torch.device = "cpu", envs: tuple[int, int] | None = None,
-                 box: tuple[int, int, int] | None = None, copies: int = 1) -> None:
+    def __init__(self, sizes: DesignBodies, stream: Stream, sim: SimConfig | None = None,
+                 control: ControlConfig | None = None, seed: int = 0, device: str | torch.device = "cpu",
+                 envs: tuple[int, int] | None = None) -> None:
+        total, copies, pool, refresh_every = stream.total, stream.copies, stream.pool, stream.refresh_every
         lo, hi = envs if envs is not None else (0, total)
         if not (isinstance(total, int) and 0 <= lo < hi <= total):
             raise ValueError(f"envs must be (lo, hi) with 0 <= lo < hi <= total = {total!r}, got {envs!r}")
@@ -103,14 +120,14 @@ class PopulationControlEnv:
         if not (isinstance(refresh_every, int) and refresh_every >= 0):
             raise ValueError(f"refresh_every must be an int >= 0 (episodes; 0: a fixed pool), got {refresh_every!r}")
         self.sizes, self.total, self.envs, self.copies = sizes, total, (lo, hi), copies
-        self.pool, self.refresh_every, self.body_seed = pool, refresh_every, int(body_seed)
+        self.pool, self.refresh_every, self.body_seed = pool, refresh_every, int(stream.body_seed)
         self.control, self._sim = control or ControlConfig(), sim or SimConfig()
         self.control.validate()
         self.sim_config = ControlEnv.simulation(self._sim, self.control)
-        self.simulator = Simulator(self.sim_config, arch=arch)
-        self.arch, self.seed, self.device = arch, int(seed), torch.device(device)
+        self.seed, self.device = int(seed), torch.device(device)
+        self.simulator = Simulator(self.sim_config, arch=arch_for(self.device))
         self.num_envs = hi - lo
-        self.box = tuple(int(b) for b in box) if box is not None else (sizes.resolution,) * 3
+        self.box = tuple(int(b) for b in stream.box) if stream.box is not None else (sizes.resolution,) * 3
         self.reward_groups = torch.arange(lo, hi, device=self.device) // copies - lo // copies
         """Each environment's body within this process, int64 ``[num_envs]``: environments of one group are copies."""
         self._cohorts: dict[int, ControlEnv] = {}
@@ -137,7 +154,7 @@ class PopulationControlEnv:
             m = self.copies
             grids = design_cohort(self.sizes, self.total // m, self.body_seed, c).repeat_interleave(m, 0)[lo:hi]
             draws = np.arange(lo, hi) // m if m > 1 else lo  # (copies share their heading's draw)
-            self._cohorts[c] = ControlEnv(grids, sim=self._sim, control=self.control, arch=self.arch, seed=self.seed,
+            self._cohorts[c] = ControlEnv(grids, sim=self._sim, control=self.control, seed=self.seed,
                                           device=self.device, first_env=draws, box=self.box, simulator=self.simulator)
         return self._cohorts[c]
 
@@ -201,4 +218,4 @@ class PopulationControlEnv:
                 "body_seed": self.body_seed}
 
 
-__all__ = ["DesignBodies", "PopulationControlEnv", "design_cohort"]
+__all__ = ["DesignBodies", "PopulationControlEnv", "Stream", "design_cohort"]

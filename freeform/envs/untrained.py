@@ -17,7 +17,7 @@ import torch
 
 from freeform.body import largest_component, serial_on_cpu
 from freeform.envs.control import ControlConfig, open_loop_displacement
-from freeform.envs.design import DesignEnv
+from freeform.envs.design import DesignEnv, EnvConfig
 from freeform.sim import SimConfig
 
 
@@ -72,8 +72,8 @@ def untrained_design_bodies(n: int, resolution: int, materials: int, steps: int,
                             seed: int = 0) -> torch.Tensor:
     """Bodies of an untrained policy: uint8 ``[n, ρ, ρ, ρ]``, the largest 6-connected component of each grid that a
     ``DesignEnv`` of these sizes builds from ``steps`` actions drawn from N(0, I) (benchmarks, scripts, demos)."""
-    env = DesignEnv(n, resolution=resolution, materials=materials, steps=steps, bundle_size=bundle_size, seed=seed,
-                    compute_metrics=False)
+    env = DesignEnv(n, EnvConfig(resolution=resolution, steps=steps, bundle_size=bundle_size),
+                    materials=materials, seed=seed, compute_metrics=False)
     return largest_component(untrained_design_grids(env, seed))
 
 

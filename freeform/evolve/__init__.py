@@ -33,7 +33,7 @@ def build_evolution(algo: AlgoConfig, env: Any, seed: int) -> Evolution:
     elif algo.name == "cmaes":
         optimizer = CMAES(n, steps, dim, sigma=algo.sigma, variant=algo.variant, seed=seed)
     elif algo.name == "grid_ga":
-        optimizer = GridGA(n, steps, dim, env.materials, lambda actions: design_grids(env, actions), elite=algo.elite,
+        optimizer = GridGA(n, (steps, dim), env.materials, lambda actions: design_grids(env, actions), elite=algo.elite,
                            tournament=algo.tournament, mutation_voxels=algo.mutation_voxels, seed=seed)
     else:
         raise ValueError(f"algo.name must be one of {[a for a in ALGORITHMS if a not in ('ppo', 'distill')]} here, "

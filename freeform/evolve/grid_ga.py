@@ -32,10 +32,12 @@ class GridGA(Population):
 
     genome = "grids"
 
-    def __init__(self, population: int, steps: int, action_dim: int, materials: int,
+    def __init__(self, population: int, actions: tuple[int, int], materials: int,
                  design: Callable[[torch.Tensor], torch.Tensor], *, elite: int = 2, tournament: int = 3,
                  mutation_voxels: int = 4, seed: int = 0) -> None:
-        """``design(actions [N, T, A]) -> final grids [N, ρ, ρ, ρ] uint8`` makes generation 0 (no scoring)."""
+        """``design(actions [N, T, A]) -> final grids [N, ρ, ρ, ρ] uint8`` makes generation 0 (no scoring) from
+        action sequences of ``actions = (T, A)`` drawn from N(0, I)."""
+        steps, action_dim = actions
         super().__init__(population, elite, seed)
         self.materials, self.tournament, self.mutation_voxels = materials, tournament, mutation_voxels
         first = torch.randn((population, steps, action_dim), generator=self.generator)  # as SequenceGA's generation 0

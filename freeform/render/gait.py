@@ -72,6 +72,35 @@ def _breaks(lo: float, hi: float, tile: float, sub: int, cells: np.ndarray | Non
     return cuts
 
 
+def _risers(top: np.ndarray, xs: np.ndarray, ys: np.ndarray, towards: np.ndarray, colour: np.ndarray
+            ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The vertical faces between columns of tops ``top [nx-1, ny-1]`` (cut at ``xs``, ``ys``) where neighbouring
+    tops differ, each on the shared edge facing the lower top, the faces turned away from the camera (``towards``)
+    left out: per axis, (corners ``[Q, 4, 3]``, colours ``[Q, 3]`` — the quad's own ``colour [nx-1, ny-1, 3]`` —,
+    normals ``[Q, 3]``)."""
+    out = []
+    for axis in (0, 1):
+        a, b = (top[:-1], top[1:]) if axis == 0 else (top[:, :-1], top[:, 1:])
+        facing = np.sign(a - b)  # +1: the face looks towards +axis (the lower top lies there)
+        seen = facing * towards[axis] > 0  # faces turned away from the camera are hidden behind a tread
+        i, j = np.nonzero(seen)
+        if not len(i):
+            continue
+        lo_z, hi_z = np.minimum(a, b)[i, j], np.maximum(a, b)[i, j]
+        if axis == 0:  # the face at x = xs[i + 1] spanning the quad's y range
+            p, q0, q1 = xs[i + 1], ys[j], ys[j + 1]
+            face = [np.stack([p, q0, lo_z], -1), np.stack([p, q1, lo_z], -1), np.stack([p, q1, hi_z], -1),
+                    np.stack([p, q0, hi_z], -1)]
+        else:
+            p, q0, q1 = ys[j + 1], xs[i], xs[i + 1]
+            face = [np.stack([q0, p, lo_z], -1), np.stack([q1, p, lo_z], -1), np.stack([q1, p, hi_z], -1),
+                    np.stack([q0, p, hi_z], -1)]
+        normal = np.zeros((len(i), 3))
+        normal[:, axis] = facing[i, j]
+        out.append((np.stack(face, axis=1), colour[i, j], normal))
+    return out
+
+
 def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: float,
                  cfg: RenderConfig) -> tuple[np.ndarray, np.ndarray]:
     """The terrain over the (x, y) box ``lo``..``hi`` as quads ``[Q, 4, 3]`` and colours ``[Q, 3]``, in drawing
@@ -106,26 +135,9 @@ def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: floa
     n = np.cross(corners[0][:, 2] - corners[0][:, 0], corners[0][:, 3] - corners[0][:, 1])
     normals = [n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)]
     if columns:  # risers: where neighbouring tops differ, a vertical face on their shared edge, facing the lower
-        for axis in (0, 1):
-            a, b = (top[:-1], top[1:]) if axis == 0 else (top[:, :-1], top[:, 1:])
-            facing = np.sign(a - b)  # +1: the face looks towards +axis (the lower top lies there)
-            seen = facing * towards[axis] > 0  # faces turned away from the camera are hidden behind a tread
-            i, j = np.nonzero(seen)
-            if not len(i):
-                continue
-            lo_z, hi_z = np.minimum(a, b)[i, j], np.maximum(a, b)[i, j]
-            if axis == 0:  # the face at x = xs[i + 1] spanning the quad's y range
-                p, q0, q1 = xs[i + 1], ys[j], ys[j + 1]
-                face = [np.stack([p, q0, lo_z], -1), np.stack([p, q1, lo_z], -1), np.stack([p, q1, hi_z], -1),
-                        np.stack([p, q0, hi_z], -1)]
-            else:
-                p, q0, q1 = ys[j + 1], xs[i], xs[i + 1]
-                face = [np.stack([q0, p, lo_z], -1), np.stack([q1, p, lo_z], -1), np.stack([q1, p, hi_z], -1),
-                        np.stack([q0, p, hi_z], -1)]
-            corners.append(np.stack(face, axis=1))
-            colours.append(np.asarray(cfg.floor_colors)[checker[i, j]])
-            normal = np.zeros((len(i), 3))
-            normal[:, axis] = facing[i, j]
+        for part, rgb, normal in _risers(top, xs, ys, towards, np.asarray(cfg.floor_colors)[checker]):
+            corners.append(part)
+            colours.append(rgb)
             normals.append(normal)
     corners_all, rgb, normal_all = np.concatenate(corners), np.concatenate(colours), np.concatenate(normals)
     # relief: each quad's Lambert factor over level ground's, so level ground keeps the floor's colours exactly
@@ -134,6 +146,28 @@ def ground_quads(ground: HeightField, lo: np.ndarray, hi: np.ndarray, tile: floa
     depth = corners_all.mean(axis=1) @ towards
     order = np.argsort(depth, kind="stable") if np.ptp(corners_all[..., 2]) > 0 else np.arange(len(depth))
     return corners_all[order], np.clip(rgb * relief, 0.0, 1.0)[order]
+
+
+@dataclass
+class _Scene:
+    """What every frame of one robot's recording draws from: its poses ``pos [F, n, 3]``, ``ori [F, n, 4]``, centre
+    of mass ``com [F, 3]`` and its path's height on the ground ``path_z [F]``, each voxel's covered faces ``[n, 6]``
+    and colour ``[n, 3]``, the ground, the framing (``radius`` around the centre of mass, or around ``centre`` for a
+    fixed camera; ``top``, the highest point), the voxel size ``L``, the camera and the config."""
+
+    pos: np.ndarray
+    ori: np.ndarray
+    com: np.ndarray
+    path_z: np.ndarray
+    covered: np.ndarray
+    base: np.ndarray
+    ground: HeightField
+    radius: float
+    top: float
+    centre: np.ndarray | None
+    L: float
+    camera: Camera
+    cfg: RenderConfig
 
 
 def render_recording(
@@ -154,76 +188,83 @@ def render_recording(
     cfg = config if config is not None else RenderConfig()
     cfg.validate()
     check_recording(recording, robot)
-    L = float(recording.voxel_size)
-    pos = recording.positions[robot].astype(np.float64)  # [F, n, 3]
-    ori = recording.orientations[robot].astype(np.float64)  # [F, n, 4]
     n_frames = len(recording.times)
     chosen = np.arange(n_frames) if frames is None else np.asarray(frames, dtype=np.int64)
     if chosen.size and (chosen.min() < -n_frames or chosen.max() >= n_frames):
         raise ValueError(f"frames must index 0..{n_frames - 1}, got {chosen.tolist()}")
-    covered = _covered_faces(np.asarray(recording.lattice[robot]))  # [n, 6]
-    base = material_rgb(np.asarray(recording.materials[robot]), cfg.material_colors)  # [n, 3]
-    camera = Camera.from_config(cfg)
-    com = pos.mean(axis=1)  # [F, 3]
-    start = com[0]
-    ground = recording.ground if recording.ground is not None else Terrain.flat().field(L)
-    path_z = ground.height(com[:, 0], com[:, 1])  # the path lies on the ground (drawn after it, so never hidden)
+    scene = _scene(recording, robot, cfg)
+    out = np.empty((len(chosen), cfg.size, cfg.size, 3), dtype=np.uint8)
+    for i, f in enumerate(chosen.tolist()):  # frames are independent images; the work inside is vectorised
+        lines: list[str] = []
+        if caption:
+            disp = float(np.linalg.norm(scene.com[f, :2] - scene.com[0, :2])) / scene.L
+            lines = [f"t = {recording.times[f]:.2f} s", f"COM moved {disp:.2f} voxels"]
+        out[i] = _draw_frame(scene, f).finish(lines)
+    return out
 
-    # One framing for the whole video (so the scale does not breathe): the robot's largest half-extent plus a view
-    # radius, around its centre of mass (follow) or around the whole trajectory (fixed).
+
+def _scene(recording: Recording, robot: int, cfg: RenderConfig) -> _Scene:
+    """Robot ``robot``'s recording made ready to draw, with one framing for the whole video (so the scale does not
+    breathe): the robot's largest half-extent plus a view radius, around its centre of mass (follow) or around
+    the whole trajectory (fixed)."""
+    L = float(recording.voxel_size)
+    pos = recording.positions[robot].astype(np.float64)  # [F, n, 3]
+    com = pos.mean(axis=1)  # [F, 3]
+    ground = recording.ground if recording.ground is not None else Terrain.flat().field(L)
     half = float(np.max(np.abs(pos - com[:, None, :]))) + L
     radius = half + cfg.view_radius * L
-    top = float(pos[..., 2].max()) + L
+    centre = None
     if not cfg.follow:
         lo_xy, hi_xy = com[:, :2].min(axis=0), com[:, :2].max(axis=0)
         radius = max(radius, float(np.max(hi_xy - lo_xy)) / 2.0 + half + 2 * L)
-        fixed_centre = np.array([(lo_xy[0] + hi_xy[0]) / 2, (lo_xy[1] + hi_xy[1]) / 2])
+        centre = np.array([(lo_xy[0] + hi_xy[0]) / 2, (lo_xy[1] + hi_xy[1]) / 2])
+    return _Scene(pos=pos, ori=recording.orientations[robot].astype(np.float64), com=com,
+                  path_z=ground.height(com[:, 0], com[:, 1]),  # the path lies on the ground (drawn after it)
+                  covered=_covered_faces(np.asarray(recording.lattice[robot])),
+                  base=material_rgb(np.asarray(recording.materials[robot]), cfg.material_colors), ground=ground,
+                  radius=radius, top=float(pos[..., 2].max()) + L, centre=centre, L=L,
+                  camera=Camera.from_config(cfg), cfg=cfg)
 
-    out = np.empty((len(chosen), cfg.size, cfg.size, 3), dtype=np.uint8)
-    light_normals = FACE_NORMALS.astype(np.float64)
-    for i, f in enumerate(chosen.tolist()):  # frames are independent images; the work inside is vectorised
-        centre_xy = com[f, :2] if cfg.follow else fixed_centre
-        # the ground under the framed square sets its lowest and highest point
-        gx, gy = np.meshgrid(*(np.linspace(c - radius, c + radius, 9) for c in centre_xy), indexing="ij")
-        heights = ground.height(gx, gy)
-        ground_lo, ground_hi = float(heights.min()), float(heights.max())
-        box = np.array([[centre_xy[0] + sx * radius, centre_xy[1] + sy * radius, z]
-                        for sx in (-1, 1) for sy in (-1, 1) for z in (ground_lo, max(top, ground_hi))])
-        canvas = Canvas(cfg, camera, box)
 
-        # Ground: world-aligned checker tiles covering the view (drawn first: nothing is ever below it).
-        tile = cfg.floor_tile * L
-        seen = [b for b in (canvas.floor_bounds(z) for z in (ground_lo, ground_hi)) if b is not None]
-        if seen:
-            lo_f, hi_f = np.min([b[0] for b in seen], axis=0), np.max([b[1] for b in seen], axis=0)
-        else:
-            lo_f, hi_f = centre_xy - 1.5 * radius, centre_xy + 1.5 * radius
-        lo_f, hi_f = np.maximum(lo_f, centre_xy - 10 * radius), np.minimum(hi_f, centre_xy + 10 * radius)  # grazing
-        corners_g, rgb_g = ground_quads(ground, lo_f, hi_f, tile, cfg)
-        canvas.quads(corners_g, rgb_g, np.ones(len(corners_g)), outline=False)
+def _draw_frame(scene: _Scene, f: int) -> Canvas:
+    """Frame ``f`` of ``scene`` drawn on a canvas (to be finished with its caption): the ground, the path of the
+    centre of mass on it, and the robot."""
+    cfg, radius, ground, com = scene.cfg, scene.radius, scene.ground, scene.com
+    centre_xy = com[f, :2] if scene.centre is None else scene.centre
+    # the ground under the framed square sets its lowest and highest point
+    gx, gy = np.meshgrid(*(np.linspace(c - radius, c + radius, 9) for c in centre_xy), indexing="ij")
+    heights = ground.height(gx, gy)
+    ground_lo, ground_hi = float(heights.min()), float(heights.max())
+    box = np.array([[centre_xy[0] + sx * radius, centre_xy[1] + sy * radius, z]
+                    for sx in (-1, 1) for sy in (-1, 1) for z in (ground_lo, max(scene.top, ground_hi))])
+    canvas = Canvas(cfg, scene.camera, box)
 
-        # Trace of the centre of mass, on the ground.
-        path = np.concatenate([com[: f + 1, :2], path_z[: f + 1, None]], axis=1)
-        canvas.polyline(path, cfg.trace_color, cfg.trace_width)
-        canvas.dot(np.array([start[0], start[1], path_z[0]]), cfg.trace_color, cfg.trace_width * 1.5)
+    # Ground: world-aligned checker tiles covering the view (drawn first: nothing is ever below it).
+    seen = [b for b in (canvas.floor_bounds(z) for z in (ground_lo, ground_hi)) if b is not None]
+    if seen:
+        lo_f, hi_f = np.min([b[0] for b in seen], axis=0), np.max([b[1] for b in seen], axis=0)
+    else:
+        lo_f, hi_f = centre_xy - 1.5 * radius, centre_xy + 1.5 * radius
+    lo_f, hi_f = np.maximum(lo_f, centre_xy - 10 * radius), np.minimum(hi_f, centre_xy + 10 * radius)  # grazing
+    corners_g, rgb_g = ground_quads(ground, lo_f, hi_f, cfg.floor_tile * scene.L, cfg)
+    canvas.quads(corners_g, rgb_g, np.ones(len(corners_g)), outline=False)
 
-        # Robot: each voxel a cube at its pose; faces bonded to a neighbour or turned away are skipped.
-        rot = quat_to_matrix(ori[f])  # [n, 3, 3]
-        normals = np.einsum("nij,dj->ndi", rot, light_normals)  # [n, 6, 3]
-        visible = ~covered & (normals @ camera.towards > 1e-9)
-        vi, di = np.nonzero(visible)
-        local = FACE_CORNERS[di] * (L / 2.0)  # [q, 4, 3]
-        corners = pos[f][vi][:, None, :] + np.einsum("qij,qkj->qki", rot[vi], local)
-        rgb = shade(normals[vi, di], base[vi], cfg)
-        order = np.argsort(corners.mean(axis=1) @ camera.towards, kind="stable")
-        canvas.quads(corners[order], rgb[order], np.ones(len(order)))
+    # Trace of the centre of mass, on the ground.
+    path = np.concatenate([com[: f + 1, :2], scene.path_z[: f + 1, None]], axis=1)
+    canvas.polyline(path, cfg.trace_color, cfg.trace_width)
+    canvas.dot(np.array([com[0, 0], com[0, 1], scene.path_z[0]]), cfg.trace_color, cfg.trace_width * 1.5)
 
-        lines: list[str] = []
-        if caption:
-            disp = float(np.linalg.norm(com[f, :2] - start[:2])) / L
-            lines = [f"t = {recording.times[f]:.2f} s", f"COM moved {disp:.2f} voxels"]
-        out[i] = canvas.finish(lines)
-    return out
+    # Robot: each voxel a cube at its pose; faces bonded to a neighbour or turned away are skipped.
+    rot = quat_to_matrix(scene.ori[f])  # [n, 3, 3]
+    normals = np.einsum("nij,dj->ndi", rot, FACE_NORMALS.astype(np.float64))  # [n, 6, 3]
+    visible = ~scene.covered & (normals @ scene.camera.towards > 1e-9)
+    vi, di = np.nonzero(visible)
+    local = FACE_CORNERS[di] * (scene.L / 2.0)  # [q, 4, 3]
+    corners = scene.pos[f][vi][:, None, :] + np.einsum("qij,qkj->qki", rot[vi], local)
+    rgb = shade(normals[vi, di], scene.base[vi], cfg)
+    order = np.argsort(corners.mean(axis=1) @ scene.camera.towards, kind="stable")
+    canvas.quads(corners[order], rgb[order], np.ones(len(order)))
+    return canvas
 
 
 @dataclass

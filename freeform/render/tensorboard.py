@@ -60,30 +60,27 @@ def _bodies_of(final_grids: np.ndarray) -> np.ndarray:
 def log_epoch_renders(
     writer: SummaryWriter,
     final_grids: torch.Tensor | np.ndarray,
-    bodies: torch.Tensor | np.ndarray | None,
     rewards: torch.Tensor | np.ndarray,
     step: int,
     rng: np.random.Generator | int | None = None,
     simulator: Simulator | None = None,
     config: RenderConfig | None = None,
     video: VideoConfig | None = None,
-    prefix: str = "bodies",
 ) -> dict[str, int]:
     """Log one epoch's designs to TensorBoard at global step ``step``.
 
-    Images ``<prefix>/best``, ``<prefix>/median``, ``<prefix>/random`` (each captioned with its reward) and, when
-    a ``simulator`` is given (locomotion: one configured for a short run, e.g. burn_in 0 and duration
-    ``video.seconds``), a GIF ``<prefix>/best_gait`` of the best robot. ``final_grids`` / ``bodies``: uint8
-    ``[E, ρ, ρ, ρ]`` (bodies None: computed with ``freeform.body``); ``rewards [E]``. Returns the chosen indices.
+    Images ``bodies/best``, ``bodies/median``, ``bodies/random`` (each captioned with its reward) and, when a
+    ``simulator`` is given (locomotion: one configured for a short run, e.g. burn_in 0 and duration
+    ``video.seconds``), a GIF ``bodies/best_gait`` of the best robot. ``final_grids``: uint8 ``[E, ρ, ρ, ρ]`` (their
+    bodies computed with ``freeform.body``); ``rewards [E]``. Returns the chosen indices.
     """
+    prefix = "bodies"
     grids = as_grid(final_grids, "final_grids", 4)
     r = rewards.detach().to("cpu").numpy() if isinstance(rewards, torch.Tensor) else np.asarray(rewards)
     r = r.astype(np.float64).reshape(-1)
     if len(r) != len(grids):
         raise ValueError(f"rewards must hold one value per grid ({len(grids)}), got {len(r)}")
-    b = _bodies_of(grids) if bodies is None else as_grid(bodies, "bodies", 4)
-    if b.shape != grids.shape:
-        raise ValueError(f"bodies must have the grids' shape {grids.shape}, got {b.shape}")
+    b = _bodies_of(grids)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     chosen = pick_bodies(r, gen)
     cfg = config if config is not None else RenderConfig()
@@ -112,7 +109,7 @@ def log_bodies(writer: SummaryWriter, final_grids: Any, rewards: Any, step: int,
     if getattr(task, "name", None) == "locomotion":
         arch = str((getattr(task, "options", None) or {}).get("arch", "auto"))  # the task's own simulator device
         simulator = gait_simulator(cfg.sim, VideoConfig().seconds, arch)
-    return log_epoch_renders(writer, final_grids, None, rewards, step, rng, simulator)
+    return log_epoch_renders(writer, final_grids, rewards, step, rng, simulator)
 
 
 def log_controlled_gait(writer: SummaryWriter, env: Any, act: Any, step: int, video: VideoConfig | None = None) -> float:

@@ -133,9 +133,8 @@ def design_env(cfg: TrainConfig, device: torch.device, num_envs: int, seed: int)
     """The run's ``DesignEnv`` of ``num_envs`` environments seeded ``seed``, scoring with a task of its own."""
     from freeform.envs import DesignEnv
 
-    return DesignEnv(num_envs=num_envs, resolution=cfg.env.resolution, materials=cfg.task.materials,
-                     steps=cfg.env.steps, bundle_size=cfg.env.bundle_size, task=build_task(cfg, device),
-                     device=device, seed=seed, action_bound=cfg.env.action_bound, mirror_y=cfg.env.mirror_y)
+    return DesignEnv(num_envs, cfg.env,
+                     materials=cfg.task.materials, task=build_task(cfg, device), device=device, seed=seed)
 
 
 def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
@@ -205,22 +204,21 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     if cfg.control.codesign:  # each episode designs its bodies
         from freeform.envs.codesign import CodesignEnv
 
-        return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), arch=arch,
-                           seed=seed, device=device, first_env=envs[0])
+        return CodesignEnv(envs[1] - envs[0], cfg.env, cfg.task.materials, cfg.sim, cfg.control.episode(), seed=seed,
+                           device=device, first_env=envs[0])
     if cfg.control.bodies == "population" and bodies is None:  # fresh bodies every few episodes
-        from freeform.envs.population import DesignBodies, PopulationControlEnv
+        from freeform.envs.population import DesignBodies, PopulationControlEnv, Stream
         from freeform.run.designer import TrainedDesigner
 
         e, c = cfg.env, cfg.control
         designer = TrainedDesigner(c.designer) if c.designer is not None else None
         sizes = DesignBodies(e.resolution, cfg.task.materials, e.steps, e.bundle_size, designer)
-        return PopulationControlEnv(sizes,
-                                    e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
-                                    copies=c.copies,
-                                    sim=cfg.sim, control=c.episode(), arch=arch, seed=seed, device=device, envs=envs,
-                                    box=box)
+        stream = Stream(e.num_envs, pool=c.pool, refresh_every=c.refresh_every, body_seed=c.body_seed,
+                        copies=c.copies, box=box)
+        return PopulationControlEnv(sizes, stream, sim=cfg.sim, control=c.episode(), seed=seed, device=device,
+                                    envs=envs)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
-    env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), arch=arch, seed=seed, device=device,
+    env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
                      first_env=envs[0], box=box)
     if cfg.control.teachers:  # (each environment's observation names its body's teacher)
         from freeform.agents.teachers import TeacherIndex

@@ -31,8 +31,9 @@ class TrainedDesigner:
 
 
 @functools.lru_cache(maxsize=4)
-def _designer(path: str) -> tuple[Any, Any]:
-    """The design run's last PPO (on a design env of its own sizes, no task) and its config, read once."""
+def _designer(path: str) -> tuple[Any, Any, Any]:
+    """The design run's last PPO (on a design env of its own sizes, no task), that env and its config (the run's
+    ``env`` section), read once."""
     payload = load_checkpoint(path)
     if "config" not in payload:
         raise ValueError(f"control.designer={path}: not a run's checkpoint (no run config)")
@@ -41,12 +42,10 @@ def _designer(path: str) -> tuple[Any, Any]:
         raise ValueError(f"control.designer={path}: a control run's checkpoint; the designer is a design run "
                          "(a run without a control section), whose policy builds bodies")
     e = cfg.env
-    env = DesignEnv(e.num_envs, resolution=e.resolution, materials=cfg.task.materials, steps=e.steps,
-                    bundle_size=e.bundle_size, action_bound=e.action_bound, mirror_y=e.mirror_y,
-                    compute_metrics=False)
+    env = DesignEnv(e.num_envs, e, materials=cfg.task.materials, compute_metrics=False)
     with torch.random.fork_rng(devices=[]):  # (building the network draws: the caller's stream stays as it was)
         ppo = PPO.load(path, env, device="cpu")
-    return ppo, env
+    return ppo, env, e
 
 
 @torch.no_grad()
@@ -59,16 +58,14 @@ def trained_design_bodies(designer: str, n: int, sizes: DesignBodies, seed: int)
     path = path / "checkpoints" / "last.pt" if path.is_dir() else path
     if not path.is_file():
         raise ValueError(f"control.designer={designer!r}: no such checkpoint ({path} is not a file)")
-    ppo, env = _designer(str(path.resolve()))
+    ppo, env, e = _designer(str(path.resolve()))
     theirs = (env.resolution, env.materials, env.steps, env.bundle_size)
     ours = (sizes.resolution, sizes.materials, sizes.steps, sizes.bundle_size)
     if theirs != ours:
         raise ValueError(f"control.designer={designer!r} designs on a {theirs[0]}^3 grid with {theirs[1]} materials "
                          f"and {theirs[2]} steps of {theirs[3]}^3 bundles, and this run's design sizes (env.resolution, "
                          f"task.materials, env.steps, env.bundle_size) are {ours}: give the run the designer's sizes")
-    sampler = DesignEnv(n, resolution=env.resolution, materials=env.materials, steps=env.steps,
-                        bundle_size=env.bundle_size, action_bound=env.action_bound, mirror_y=env.mirror_y,
-                        compute_metrics=False)
+    sampler = DesignEnv(n, e, materials=env.materials, compute_metrics=False)
     ppo.generator.manual_seed(seed)
     grids = torch.zeros((n, *sampler.observation_shape), dtype=torch.uint8)
     for _ in range(env.steps):  # (the design env's steps, without its scoring)

@@ -90,7 +90,7 @@ def render_callback(every: int) -> EpochCallback:
         # a control run: the bodies' images, and the policy's mode driving a body (co-design: designing it first)
         from freeform.render import log_controlled_gait, log_epoch_renders
 
-        log_epoch_renders(ctx.logger.writer, grids, None, ctx.episodes["rewards"], ctx.global_step,
+        log_epoch_renders(ctx.logger.writer, grids, ctx.episodes["rewards"], ctx.global_step,
                           np.random.default_rng([ctx.cfg.seed, ctx.global_step]))
         learner, cfg = ctx.learner, ctx.cfg
         if cfg.control.codesign:  # the policy's mode designs a body and drives it

@@ -86,6 +86,31 @@ def validate_grids(grids: torch.Tensor | np.ndarray, num_materials: int) -> torc
     return grids
 
 
+def _face_links(cells: tuple[torch.Tensor, ...], dims: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+    """The links between face neighbours among the occupied ``cells = (b, x, y, z)`` (each ``[n]``, in C order) of
+    grids ``[B, *dims]``: (negative voxel, positive voxel, axis) ``[m]`` each, by axis, then in C order of their
+    negative voxel.
+
+    Face neighbours are found by binary search in the sorted flat indices of the occupied cells (no dense
+    ``[B, X, Y, Z]`` index grid: the batch's voxels are a few percent of its cells). nonzero() lists cells in C
+    order, so ``flat`` is sorted and the links of each axis come out in C order of their negative voxel."""
+    b, x, y, z = cells
+    n = int(b.numel())
+    strides = (dims[1] * dims[2], dims[2], 1)
+    flat = ((b * dims[0] + x) * dims[1] + y) * dims[2] + z
+    negs, poss, axes = [], [], []
+    for axis, coord in enumerate((x, y, z)):
+        has_next = coord < dims[axis] - 1
+        cand = torch.nonzero(has_next).flatten()
+        target = flat[cand] + strides[axis]
+        at = torch.searchsorted(flat, target).clamp_max(max(n - 1, 0))
+        hit = flat[at] == target if n else torch.zeros(0, dtype=torch.bool)
+        negs.append(cand[hit])
+        poss.append(at[hit])
+        axes.append(torch.full((int(hit.sum()),), axis, dtype=torch.int64))
+    return torch.cat(negs), torch.cat(poss), torch.cat(axes)
+
+
 def build_layout(grids: torch.Tensor | np.ndarray, num_materials: int) -> Layout:
     """Flatten a batch of bodies (uint8 ``[B, X, Y, Z]``, 0 = empty) into a ``Layout``."""
     grids = validate_grids(grids, num_materials)
@@ -107,23 +132,7 @@ def build_layout(grids: torch.Tensor | np.ndarray, num_materials: int) -> Layout
     lo = lo.scatter_reduce(0, voxel_robot[:, None].expand(-1, 3), xyz, reduce="amin", include_self=True)
     lattice = xyz - lo[voxel_robot]
 
-    # face neighbours by binary search in the sorted flat indices of the occupied cells (no dense [B, X, Y, Z]
-    # index grid: the batch's voxels are a few percent of its cells). nonzero() lists cells in C order, so
-    # `flat` is sorted and the links of each axis come out in C order of their negative voxel.
-    dims = tuple(grids.shape[1:])
-    strides = (dims[1] * dims[2], dims[2], 1)
-    flat = ((b * dims[0] + x) * dims[1] + y) * dims[2] + z
-    negs, poss, axes = [], [], []
-    for axis, coord in enumerate((x, y, z)):
-        has_next = coord < dims[axis] - 1
-        cand = torch.nonzero(has_next).flatten()
-        target = flat[cand] + strides[axis]
-        at = torch.searchsorted(flat, target).clamp_max(max(n - 1, 0))
-        hit = flat[at] == target if n else torch.zeros(0, dtype=torch.bool)
-        negs.append(cand[hit])
-        poss.append(at[hit])
-        axes.append(torch.full((int(hit.sum()),), axis, dtype=torch.int64))
-    link_neg, link_pos, link_axis = torch.cat(negs), torch.cat(poss), torch.cat(axes)
+    link_neg, link_pos, link_axis = _face_links((b, x, y, z), tuple(grids.shape[1:]))
     # group links by robot (stable, so axis-major order inside a robot is kept)
     link_robot = voxel_robot[link_neg] if n else torch.zeros(0, dtype=torch.int64)
     order = torch.sort(link_robot, stable=True).indices

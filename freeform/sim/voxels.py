@@ -350,6 +350,32 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
         pos += delta
         return pos, mom, static, touching
 
+    @ti.func
+    def rl4design_spin(s: ti.template(), mat, size, pos, static, amom):
+        """rl4design zeroes the spin of a voxel in static contact with the ground (at its new position).
+        -> amom."""
+        if ti.static(s.sw.terrain == FLAT):
+            if static and 0.5 * size - 0.5 * ld(s.mt, MT.L, mat) - pos[2] >= 0.0:
+                amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
+        elif static:  # (the distance only matters for a static voxel: skip the terrain lookup else)
+            dist_new, _n = ground(s, pos, s.sw.terrain)
+            if 0.5 * size - dist_new >= 0.0:
+                amom = vec3(0.0, 0.0, 0.0)
+        return amom
+
+    @ti.func
+    def store_pose(v, s: ti.template(), r, pos, mom, q, amom):
+        """Voxel ``v``'s new pose written back; its robot ``r`` marked DIVERGED if the pose is not finite."""
+        # NaN or inf anywhere makes the L1 norm non-finite, and so does a finite state beyond the float range
+        if nonfinite(ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
+                     + ti.abs(amom[2])):
+            st(s.ri, RI.STATUS, r, DIVERGED)
+
+        set3(s.vr, VR.POS, v, pos)
+        set3(s.vr, VR.MOM, v, mom)
+        set4(s.vr, VR.ORI, v, q)
+        set3(s.vr, VR.AMOM, v, amom)
+
     # ------------------------------------------------------------ the voxel update (spec section 9)
     @ti.func
     def voxel_update(v, s: ti.template()):
@@ -393,24 +419,10 @@ def make_voxels(precision: str, order: str) -> SimpleNamespace:
             if ti.static(not exact_vx):
                 q = renormalise(q)
             if ti.static(s.sw.rl4design != 0 and s.sw.floor != 0):
-                if ti.static(s.sw.terrain == FLAT):
-                    if static and 0.5 * size - 0.5 * ld(s.mt, MT.L, mat) - pos[2] >= 0.0:
-                        amom = vec3(0.0, 0.0, 0.0)  # rl4design zeroes spin in static floor contact
-                elif static:  # (the distance only matters for a static voxel: skip the terrain lookup else)
-                    dist_new, _n = ground(s, pos, s.sw.terrain)
-                    if 0.5 * size - dist_new >= 0.0:
-                        amom = vec3(0.0, 0.0, 0.0)
+                amom = rl4design_spin(s, mat, size, pos, static, amom)
             flags = (flags & ~(STATIC | CONTACT)) | (STATIC if static else 0) | (CONTACT if touching else 0)
 
-        # NaN or inf anywhere makes the L1 norm non-finite, and so does a finite state beyond the float range
-        if nonfinite(ti.abs(pos[0]) + ti.abs(pos[1]) + ti.abs(pos[2]) + ti.abs(amom[0]) + ti.abs(amom[1])
-                     + ti.abs(amom[2])):
-            st(s.ri, RI.STATUS, r, DIVERGED)
-
-        set3(s.vr, VR.POS, v, pos)
-        set3(s.vr, VR.MOM, v, mom)
-        set4(s.vr, VR.ORI, v, q)
-        set3(s.vr, VR.AMOM, v, amom)
+        store_pose(v, s, r, pos, mom, q, amom)
         area, ssum = transverse(s, mat, ps)
         set3(s.vr, VR.TAREA, v, area)
         set3(s.vr, VR.TSUM, v, ssum)

@@ -15,7 +15,7 @@ import torch.nn as nn
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV, Collectives
 from freeform.agents.flat_params import FlatParameters
-from freeform.agents.networks import Rebuildable
+from freeform.agents.networks import Rebuildable, rebuild
 from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
@@ -211,7 +211,7 @@ class Checkpoints:
                     f"{path}: its policy class {name!r} is not one of freeform's networks; pass "
                     f"policy_classes=[<that class>] to PPO.load to build it"
                 )
-            policy = allowed[name](**payload["policy_kwargs"])
+            policy = rebuild(allowed[name], payload["policy_kwargs"])
             config_dict = dict(payload["ppo_config"])
             if device is not None:
                 config_dict["device"] = device

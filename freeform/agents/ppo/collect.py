@@ -185,56 +185,78 @@ class RolloutCollection:
                 action, value, step_params = self._sample(x, noise=noise[t])
             for store, item in ((seen, x), (actions, action), (values, value), (params, step_params)):
                 store.append(item)  # (values: None when the critic runs apart, after the loop)
-            to_env = dist.env_actions(action)  # (a Gaussian's: the same tensor)
-            t0 = time.perf_counter()
-            next_obs, reward, done, info = self.env.step(to_env if here else to_env.to(env_device))
-            time_env += time.perf_counter() - t0
-            if not here or reward.dtype != torch.float32:
-                reward = reward.to(self.device, torch.float32)
-            if not here or done.dtype != torch.bool:
-                done = done.to(self.device, torch.bool)
-            if not here:
-                next_obs = self._here(next_obs)
-            if obs_first(next_obs).data_ptr() == obs_first(self.obs).data_ptr():
-                raise ValueError("env.step returned the observation tensor of the previous step, written in place: a "
-                                 "VecEnv must return new tensors (PPO keeps every step's until the rollout ends)")
-            self._update_obs_rms(next_obs)
+            next_obs, reward, done, info, seconds = self._step_env(dist.env_actions(action), here)
+            time_env += seconds
             rewards.append(reward)
             dones.append(done)
             if "autoreset" in info:  # the env only reset (Gymnasium's next-step autoreset): not a transition
                 buf.valid[t] = ~info["autoreset"].to(self.device, torch.bool)
             if done.any():
-                self.episode_infos.append(info)
-                if "task_reward" in info:  # shaped rewards (dense_every): the return is what the task scored
-                    scored.append((t, info["task_reward"]))
-                if "truncated" in info and cfg.bootstrap_truncated:  # a time limit: bootstrap with V(last observation)
-                    truncated = info["truncated"].to(self.device, torch.bool)
-                    if truncated.any():
-                        any_truncated = True
-                        buf.truncated[t] = truncated
-                        final = self.normalize_obs(self._here(info["final_obs"]))
-                        final_value = (self._recurrent_value(final, self.policy_state, torch.zeros_like(truncated))
-                                       if self.recurrent else self._value(final))  # the state before the reset
-                        buf.final_values[t] = torch.where(truncated, final_value, 0.0)
+                any_truncated |= self._episodes_ended(t, info, scored)
             self.obs = next_obs
             if self.recurrent:  # the next observation begins an episode (Gymnasium's next-step reset: the new one's)
                 self.episode_start = done | buf.valid[t].logical_not() if "autoreset" in info else done
-        for name, steps in (("actions", actions), ("rewards", rewards), ("dones", dones)):
-            torch.stack(steps, out=buf[name])
+        self._stack_steps({"actions": actions, "rewards": rewards, "dones": dones, "obs": seen, "params": params,
+                           "values": values, "states": states, "starts": starts})
+        return time_env, scored, any_truncated
+
+    def _step_env(self, to_env: torch.Tensor, here: bool
+                  ) -> tuple[Observation, torch.Tensor, torch.Tensor, dict[str, Any], float]:
+        """``env.step`` on the env's actions ``[N, A]`` (moved to the env's device unless ``here``): the next
+        observation, reward ``[N]`` float32 and done ``[N]`` bool on PPO's device, the info, and the seconds the
+        step took. The env's tensors are moved or cast only where they need it: even a no-op .to() is an operation."""
+        t0 = time.perf_counter()
+        next_obs, reward, done, info = self.env.step(to_env if here else to_env.to(self.env.device))
+        seconds = time.perf_counter() - t0
+        if not here or reward.dtype != torch.float32:
+            reward = reward.to(self.device, torch.float32)
+        if not here or done.dtype != torch.bool:
+            done = done.to(self.device, torch.bool)
+        if not here:
+            next_obs = self._here(next_obs)
+        if obs_first(next_obs).data_ptr() == obs_first(self.obs).data_ptr():
+            raise ValueError("env.step returned the observation tensor of the previous step, written in place: a "
+                             "VecEnv must return new tensors (PPO keeps every step's until the rollout ends)")
+        self._update_obs_rms(next_obs)
+        return next_obs, reward, done, info, seconds
+
+    def _episodes_ended(self, t: int, info: dict[str, Any], scored: list[tuple[int, torch.Tensor]]) -> bool:
+        """Step ``t`` ended episodes: keep its ``info``, its task score (``scored``) and, for a time limit, the
+        bootstrap value V(last observation) in ``final_values``. Returns whether any episode was truncated."""
+        self.episode_infos.append(info)
+        if "task_reward" in info:  # shaped rewards (dense_every): the return is what the task scored
+            scored.append((t, info["task_reward"]))
+        if "truncated" not in info or not self.config.bootstrap_truncated:
+            return False
+        truncated = info["truncated"].to(self.device, torch.bool)
+        if not truncated.any():
+            return False
+        buf = self.rollout
+        buf.truncated[t] = truncated
+        final = self.normalize_obs(self._here(info["final_obs"]))
+        final_value = (self._recurrent_value(final, self.policy_state, torch.zeros_like(truncated))
+                       if self.recurrent else self._value(final))  # the state before the reset
+        buf.final_values[t] = torch.where(truncated, final_value, 0.0)
+        return True
+
+    def _stack_steps(self, steps: dict[str, list[Any]]) -> None:
+        """Each step's tensors (lists over the rollout's T steps, by column) stacked into the rollout's buffers."""
+        buf = self.rollout
+        for name in ("actions", "rewards", "dones"):
+            torch.stack(steps[name], out=buf[name])
         if isinstance(buf.obs, torch.Tensor):
-            torch.stack(seen, out=buf.obs)
+            torch.stack(steps["obs"], out=buf.obs)
         else:
             for key, stored in buf.obs.items():
-                torch.stack([x[key] for x in seen], out=stored)
+                torch.stack([x[key] for x in steps["obs"]], out=stored)
         for i, stored in enumerate(buf.params):
-            torch.stack([p[i] for p in params], out=stored)
+            torch.stack([p[i] for p in steps["params"]], out=stored)
         if not self.critic_apart:
-            torch.stack(values, out=buf.values)
+            torch.stack(steps["values"], out=buf.values)
         for i, stored in enumerate(buf.states):
-            torch.stack([s[i] for s in states], out=stored)
-        if starts:
-            torch.stack(starts, out=buf.episode_starts)
-        return time_env, scored, any_truncated
+            torch.stack([s[i] for s in steps["states"]], out=stored)
+        if steps["starts"]:
+            torch.stack(steps["starts"], out=buf.episode_starts)
 
     def _complete_rollout(self) -> torch.Tensor:
         """What the rollout needs no per-step policy for, at once: the critic's values (when it runs apart) and the

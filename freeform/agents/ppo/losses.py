@@ -17,7 +17,7 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.ppo.config import PPOConfig
-from freeform.agents.ppo.rollout import sample_columns
+from freeform.agents.ppo.rollout import Sequences, sample_columns
 from freeform.distributions import ActionDistribution, gaussian_entropy, gaussian_kl, gaussian_log_prob
 
 
@@ -187,10 +187,7 @@ def sequence_minibatch_loss(
     policy: nn.Module,
     dist: ActionDistribution,
     cfg: PPOConfig,
-    obs: torch.Tensor | dict[str, torch.Tensor],
-    state: tuple[torch.Tensor, ...],
-    episode_start: torch.Tensor,
-    mask: torch.Tensor,
+    sequences: Sequences,
     samples: torch.Tensor,
     advantages: torch.Tensor,
     kl_coeff: torch.Tensor | None,
@@ -198,14 +195,13 @@ def sequence_minibatch_loss(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`minibatch_loss` for a recurrent policy, on S sequences of L steps (truncated BPTT).
 
-    ``obs [L, S, ...]``; ``state`` the policy's state at each sequence's first step (``[S, ...]`` each);
-    ``episode_start [L, S]`` bool (the state is reset before such a step); ``mask [L, S]`` bool, the steps that count
-    (False: padding past the rollout's end, or a step where the env only reset); ``samples [L·S, A + P + 3]`` and
-    ``advantages [L·S]`` in the same (time-major) order. The means are over the masked steps: sums divided by
-    ``count``, the masked steps of the whole minibatch (None: these; data-parallel, every rank's)."""
-    *params, value, _ = policy(obs, state, episode_start)
+    ``sequences`` the observations ``[L, S, ...]``, the policy's state at each sequence's start, the episode starts
+    and the mask of the steps that count (``rollout.Sequences``); ``samples [L·S, A + P + 3]`` and ``advantages
+    [L·S]`` in the same (time-major) order. The means are over the masked steps: sums divided by ``count``, the
+    masked steps of the whole minibatch (None: these; data-parallel, every rank's)."""
+    *params, value, _ = policy(sequences.obs, sequences.state, sequences.episode_start)
     flat = tuple(p.reshape(-1, p.shape[-1]) for p in params)
-    weight = mask.reshape(-1)
+    weight = sequences.mask.reshape(-1)
     count = (weight.sum() if count is None else count).clamp_min(1).to(value.dtype)
 
     def reduce(x: torch.Tensor) -> torch.Tensor:

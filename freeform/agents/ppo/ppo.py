@@ -75,16 +75,29 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         logger: ScalarSink | None = None,
         eval_env: VecEnv | None = None,
     ):
-        self.config = config = config if config is not None else PPOConfig()
-        if not isinstance(config, PPOConfig):
-            raise ValueError(f"config must be a PPOConfig, got {type(config).__name__}")
-        for attr in ("num_envs", "observation_shape", "action_dim", "reset", "step"):
-            if not hasattr(env, attr):
-                raise ValueError(f"env must follow freeform.envs.VecEnv; it has no {attr!r}")
+        self.config = config = _checked(config, env)
         self.env = env
         self.device = torch.device(config.device) if config.device is not None else torch.device(env.device)
-        self.policy = policy.to(self.device)
         self.logger = logger
+        self._take_policy(policy)
+        self._build_optimizer()
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(config.seed)
+        self.kl_coeff = float(config.kl_coeff)
+        self.epoch = 0
+        self.global_step = 0
+
+        self.eval_env = eval_env
+        """Where ``evaluate`` runs (every ``config.eval_every`` epochs); None = no evaluation."""
+        self._eval_seeded = False
+        self._build_normalizers()
+        self._start_rollouts()
+
+    def _take_policy(self, policy: nn.Module) -> None:
+        """The policy on the device (the same weights on every rank), the distribution it parameterises, and what
+        kind of policy it is (recurrent, actor apart from critic, reading observation groups)."""
+        config, env = self.config, self.env
+        self.policy = policy.to(self.device)
         self.dp = distributed.collectives(env.num_envs, self.device)
         self.dp.broadcast_module_(self.policy)  # identical starting weights, whatever each rank's RNG did
         self.num_envs = self.dp.num_envs
@@ -112,6 +125,11 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         self.reward_groups = _reward_groups(env, self.device) if grouped else None
         """``group_baseline``, ``advantage_norm="group"``: each env's group (``env.reward_groups``), int64 ``[N]``
         on the policy's device."""
+
+    def _build_optimizer(self) -> None:
+        """Adam over the policy's parameters as one flat tensor, the minibatch loss (compiled where asked) and the
+        minibatch step's CUDA graph (``agent.cuda_graph``)."""
+        config = self.config
         self.flat = FlatParameters(self.policy.parameters())
         """The policy's trainable parameters as views of one tensor (``flat.value``), gradients of another: Adam,
         clipping and zeroing are one operation each (``flat_params.py``)."""
@@ -129,17 +147,10 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         self._graphed = (GraphedMinibatchStep(self.policy, self.distribution, config, self.flat, self.optimizer,
                                               self._minibatch_mean, self.device) if config.cuda_graph else None)
         """The minibatch step as a CUDA graph (``agent.cuda_graph``), else None: the eager step in ``_sgd``."""
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(config.seed)
-        self.kl_coeff = float(config.kl_coeff)
-        self.epoch = 0
-        self.global_step = 0
 
-        self.eval_env = eval_env
-        """Where ``evaluate`` runs (every ``config.eval_every`` epochs); None = no evaluation."""
-        self._eval_seeded = False
-        # Running statistics of the optional normalisations (None when off, the paper's case).
-        obs_shape = env.observation_shape
+    def _build_normalizers(self) -> None:
+        """Running statistics of the optional normalisations (None when off, the paper's case)."""
+        config, obs_shape = self.config, self.env.observation_shape
         self.obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None = None
         """``obs_norm``'s running statistics: one, or one per part of a dict observation (per group)."""
         if config.obs_norm:
@@ -147,10 +158,13 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
                             if isinstance(obs_shape, Mapping) else RunningMeanStd(tuple(obs_shape), self.device))
         self.return_rms = RunningMeanStd((), self.device) if config.reward_norm else None
         # float64 as the statistics (Gymnasium's too); only with reward_norm, as no float64 may exist (MPS)
-        self.discounted_return = torch.zeros(env.num_envs, dtype=torch.float64 if config.reward_norm else torch.float32,
-                                             device=self.device)
+        self.discounted_return = torch.zeros(self.env.num_envs, device=self.device,
+                                             dtype=torch.float64 if config.reward_norm else torch.float32)
         """Each env's discounted return of raw rewards, whose running std scales the rewards (``reward_norm``)."""
 
+    def _start_rollouts(self) -> None:
+        """The env reset (seeded), the policy checked against it, and the rollout storage and episode counters."""
+        config, env = self.config, self.env
         self.obs = self._here(env.reset(seed=config.seed))
         self._update_obs_rms(self.obs)
         self.policy_state: tuple[torch.Tensor, ...] = ()
@@ -382,6 +396,17 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         if episodes is not None:
             episodes["infos"] = infos
         return episodes
+
+
+def _checked(config: PPOConfig | None, env: VecEnv) -> PPOConfig:
+    """``config`` (None: the defaults), refused unless a ``PPOConfig``; ``env`` refused unless a ``VecEnv``."""
+    config = config if config is not None else PPOConfig()
+    if not isinstance(config, PPOConfig):
+        raise ValueError(f"config must be a PPOConfig, got {type(config).__name__}")
+    for attr in ("num_envs", "observation_shape", "action_dim", "reset", "step"):
+        if not hasattr(env, attr):
+            raise ValueError(f"env must follow freeform.envs.VecEnv; it has no {attr!r}")
+    return config
 
 
 def _refuse_for_recurrent(config: PPOConfig) -> None:

@@ -67,6 +67,18 @@ def sample_columns(samples: torch.Tensor, action_dim: int) -> Samples:
     return Samples(actions, old_params, old_logprobs.squeeze(1), old_values.squeeze(1), returns.squeeze(1))
 
 
+
+class Sequences(NamedTuple):
+    """A recurrent minibatch's S sequences of L steps (truncated BPTT): ``obs [L, S, ...]``; ``state`` the policy's
+    state at each sequence's first step (``[S, ...]`` each); ``episode_start [L, S]`` bool (the state is reset
+    before such a step); ``mask [L, S]`` bool, the steps that count (False: padding past the rollout's end, or a step
+    where the env only reset)."""
+
+    obs: Observation
+    state: tuple[torch.Tensor, ...]
+    episode_start: torch.Tensor
+    mask: torch.Tensor
+
 @dataclass
 class Rollout:
     """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
@@ -157,5 +169,5 @@ class Rollout:
         )
 
 
-__all__ = ["Observation", "Rollout", "Samples", "minibatch_samples", "obs_first", "obs_map", "obs_shapes",
+__all__ = ["Sequences", "Observation", "Rollout", "Samples", "minibatch_samples", "obs_first", "obs_map", "obs_shapes",
            "sample_columns"]

@@ -25,7 +25,7 @@ from freeform.agents.ppo.losses import (
     standardize_groups,
     update_kl_coeff,
 )
-from freeform.agents.ppo.rollout import Observation, Rollout, minibatch_samples, obs_map
+from freeform.agents.ppo.rollout import Observation, Rollout, Sequences, minibatch_samples, obs_map
 from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 
 
@@ -236,9 +236,10 @@ class MinibatchUpdate:
                     adv = adv[:, mine]
                 flat.zero_grad()
                 if local.numel():  # a rank may hold none of a minibatch; it then adds zero gradients
+                    part = Sequences(obs_map(lambda x, i=local: x[:, i], batch.obs),
+                                     tuple(s[local] for s in batch.state), batch.starts[:, local], batch.mask[:, local])
                     loss, stats = sequence_minibatch_loss(
-                        self.policy, self.distribution, cfg, obs_map(lambda x, i=local: x[:, i], batch.obs),
-                        tuple(s[local] for s in batch.state), batch.starts[:, local], batch.mask[:, local],
+                        self.policy, self.distribution, cfg, part,
                         batch.samples[:, local].reshape(length * local.numel(), -1), adv.reshape(-1), kl_weight,
                         counted.sum())
                     loss.backward()
