@@ -329,7 +329,12 @@ def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWav
     hand-set travelling wave — ``wave``, else the controller's own wave, else the default."""
     own = getattr(controller, "wave", None)
     start = wave or (HandSetWave(own["k"], own.get("amplitude", 1.0)) if own else DEFAULT_WAVE)
-    return ContextConvController.for_env(env, head="wave", wave=start).eval()
+    net = ContextConvController.for_env(env, head="wave", wave=start).eval()
+    with torch.no_grad():  # (the learnt parts at zero: the wave exactly, not the wave plus an init's small noise)
+        for layer in (net.actor, net.wave_k):
+            layer.weight.zero_()
+            layer.bias.zero_()
+    return net
 
 
 @torch.no_grad()

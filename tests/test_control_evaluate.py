@@ -14,7 +14,7 @@ from experiments.control import main, read_bodies
 from freeform.agents.controller_file import save_controller
 from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.controllers import ContextConvController, MLPController
-from freeform.envs.control import OBS_CHANNELS, ControlConfig, open_loop_displacement
+from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv, open_loop_displacement
 from freeform.sim import SimConfig
 
 SHORT = ControlConfig(burn_in=0.01, duration=0.05)  # four control steps (open_loop_moves refuses a burn-in of 0)
@@ -267,3 +267,27 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
     with pytest.raises(ValueError, match="not the first 2 bodies given"):
         main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])
+
+
+def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> None:
+    """A wave-head controller whose learnt parts are zero is the hand-set wave itself: its mean command's column
+    equals the hand-set wave's, body by body (deterministic episodes of the same bodies)."""
+    from dataclasses import replace
+
+    from freeform.agents.controller_heads import HandSetWave
+
+    control = replace(SHORT, stroke_periods=1)
+    env = ControlEnv(tiny_bodies(), control=control)
+    net = ContextConvController.for_env(env, hidden=4, log_std=-1.0, head="wave", wave=HandSetWave(1.5, 1.2))
+    with torch.no_grad():
+        for layer in (net.actor, net.wave_k):
+            layer.weight.zero_()
+            layer.bias.zero_()
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
+          "--eval-episodes", "1", "--out", str(tmp_path / "eval")])
+    rows = read_csv(tmp_path / "eval" / "bodies.csv")
+    assert any(abs(float(r["mean_command"])) > 1e-4 for r in rows)  # (the wave moves them: 0 = 0 would pass)
+    np.testing.assert_allclose([float(r["hand_set_wave"]) for r in rows], [float(r["mean_command"]) for r in rows],
+                               rtol=1e-5, atol=1e-7)
