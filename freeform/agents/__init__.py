@@ -17,10 +17,12 @@ from freeform.agents.controllers import (
     build_controller,
 )
 from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
+from freeform.agents.distill import Distillation, DistillConfig
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.recurrent import RecurrentActorCritic
+from freeform.agents.teachers import TeacherBank
 
 __all__ = ["CONTROLLERS", "PPO", "CodesignActorCritic", "ContextConvController", "ConvController", "MLPActorCritic",
            "MLPController", "PPOConfig", "VoxelActorCritic", "VoxelAttentionController", "build_controller",
            "read_controller", "save_controller"]
-__all__ += ["GroupedMLPActorCritic", "RecurrentActorCritic"]
+__all__ += ["DistillConfig", "Distillation", "GroupedMLPActorCritic", "RecurrentActorCritic", "TeacherBank"]
