@@ -316,7 +316,7 @@ class _BankOnBodies(torch.nn.Module):
         from freeform.agents.teachers import TeacherBank
 
         k = bank.init_kwargs  # (built for the evaluation's box: the kinds that fit any box)
-        self.bank = TeacherBank(k["teachers"], k["kind"], {**k["controller"], "box": tuple(box)}, k["critic_dim"])
+        self.bank = TeacherBank(**{**k, "controller": {**k["controller"], "box": tuple(box)}})
         self.bank.load_state_dict(bank.state_dict())
         self.teacher, self.distribution = teacher, self.bank.distribution
 

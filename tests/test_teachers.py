@@ -146,3 +146,20 @@ def test_the_app_trains_a_bank_of_teachers_and_resumes_it_bit_for_bit(bodies: Pa
 def test_a_bad_bank_is_refused_naming_the_key(bodies: Path, override: str, message: str) -> None:  # noqa: F811
     with pytest.raises(ValueError, match=message):
         compose(*tiny_control(bodies, "control.teachers=2", override))
+
+
+def test_a_bank_of_controllers_with_a_privileged_critic_reads_both_groups() -> None:
+    """Teachers may read privileged observations: a bank of PrivilegedCritics (an 8-wide critic MLP, kept) gives
+    each sample its teacher's value from the "policy" and "critic" groups, as the member alone does."""
+    from freeform.agents.controllers import PrivilegedCritic
+
+    torch.manual_seed(3)
+    template = PrivilegedCritic("context", ContextConvController(INPUTS, hidden=4).init_kwargs, critic_dim=5, hidden=8)
+    bank = perturbed_bank(template, 2)
+    assert bank.member(0).critic_head[0].out_features == 8
+    teacher = torch.tensor([1, 0, 1])
+    obs = {"policy": observations(3), "critic": torch.randn(3, 5)}
+    outs = bank({TEACHER: teacher, **obs})
+    for m in (0, 1):
+        alone = bank.member(m)({k: v[teacher == m] for k, v in obs.items()})
+        torch.testing.assert_close(outs[-1][teacher == m], alone[-1], rtol=1e-5, atol=1e-5)

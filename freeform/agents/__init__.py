@@ -16,8 +16,8 @@ from freeform.agents.controllers import (
     VoxelAttentionController,
     build_controller,
 )
-from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
 from freeform.agents.distill import Distillation, DistillConfig
+from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.recurrent import RecurrentActorCritic
 from freeform.agents.teachers import TeacherBank

@@ -40,11 +40,13 @@ def _key(name: str) -> str:
 
 class TeacherBank(nn.Module):
     """``teachers`` controllers of kind ``kind`` (a key of ``freeform.agents.controllers.CONTROLLERS``, built from
-    ``controller``, its ``init_kwargs``; with ``critic_dim`` each inside a ``PrivilegedCritic``), each its own
+    ``controller``, its ``init_kwargs``; with ``critic_dim`` each inside a ``PrivilegedCritic`` whose MLP is
+    ``critic_hidden`` wide), each its own
     weights. ``forward({"teacher": [N] int64, "policy": [N, ...], ...})`` returns what each sample's teacher returns
     on it: ``(*params [N, ...], value [N])``. :meth:`from_template` starts every teacher from one controller."""
 
-    def __init__(self, teachers: int, kind: str, controller: dict[str, Any], critic_dim: int | None = None) -> None:
+    def __init__(self, teachers: int, kind: str, controller: dict[str, Any], critic_dim: int | None = None,
+                 critic_hidden: int = 64) -> None:
         super().__init__()
         from freeform.agents.controllers import CONTROLLERS
 
@@ -56,7 +58,7 @@ class TeacherBank(nn.Module):
             raise ValueError(f"controller {kind!r} is recurrent; a teacher bank holds feed-forward controllers")
         self.teachers = teachers
         self.init_kwargs = {"teachers": teachers, "kind": kind, "controller": dict(controller),
-                            "critic_dim": critic_dim}
+                            "critic_dim": critic_dim, "critic_hidden": critic_hidden}
         self.template = self._new_controller()
         stacked, _ = stack_module_state([self.template] * teachers)
         self.stacked = nn.ParameterDict({_key(k): nn.Parameter(v.detach().clone()) for k, v in stacked.items()})
@@ -78,7 +80,7 @@ class TeacherBank(nn.Module):
         k = self.init_kwargs
         if k["critic_dim"] is None:
             return rebuild(CONTROLLERS[k["kind"]], k["controller"])
-        return PrivilegedCritic(k["kind"], k["controller"], k["critic_dim"])
+        return PrivilegedCritic(k["kind"], k["controller"], k["critic_dim"], k["critic_hidden"])
 
     @classmethod
     def from_template(cls, template: nn.Module, teachers: int) -> TeacherBank:
@@ -87,7 +89,7 @@ class TeacherBank(nn.Module):
 
         if isinstance(template, PrivilegedCritic):
             kwargs = template.init_kwargs
-            bank = cls(teachers, kwargs["kind"], kwargs["controller"], kwargs["critic_dim"])
+            bank = cls(teachers, kwargs["kind"], kwargs["controller"], kwargs["critic_dim"], kwargs["hidden"])
         else:
             bank = cls(teachers, controller_kind(template), template.init_kwargs)
         state = template.state_dict()
@@ -96,7 +98,7 @@ class TeacherBank(nn.Module):
         return bank
 
     def member_state(self, teacher: int) -> dict[str, torch.Tensor]:
-        """Teacher ``teacher``'s weights as the template's ``state_dict`` (buffers the template's)."""
+        """Teacher ``teacher``'s weights, named as in the template's ``state_dict``."""
         if not 0 <= teacher < self.teachers:
             raise ValueError(f"teacher must be in 0 … {self.teachers - 1}, got {teacher}")
         return {self._names[k]: v[teacher].detach().clone() for k, v in self.stacked.items()}
