@@ -21,7 +21,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cstring>
-#ifdef __AVX512F__
+#if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 #include <thread>
@@ -31,7 +31,25 @@
 
 namespace {
 
-constexpr int LANES = 16;
+// The lanes of a group follow the target's vector registers: 16 floats in AVX-512's, 8 in AVX2's, 4 otherwise (SSE,
+// NEON: GCC's generic vectors, plain loops where x86 has an instruction). -DNATIVE_LANES=n overrides (a group wider
+// than the registers runs in pieces: the AVX2 build did so before it had its own width, 1.8x slower than Taichi's
+// step; docs/notes/2026-11-28-native-avx2.md).
+#if defined(NATIVE_LANES)
+#define LANE_COUNT NATIVE_LANES
+#elif defined(__AVX512F__)
+#define LANE_COUNT 16
+#elif defined(__AVX2__)
+#define LANE_COUNT 8
+#else
+#define LANE_COUNT 4
+#endif
+#if defined(__AVX512F__) && LANE_COUNT == 16
+#define ISA_AVX512 1
+#elif defined(__AVX2__) && LANE_COUNT == 8
+#define ISA_AVX2 1
+#endif
+constexpr int LANES = LANE_COUNT;
 typedef float vf __attribute__((vector_size(4 * LANES)));
 typedef int32_t vi __attribute__((vector_size(4 * LANES)));
 
@@ -407,10 +425,16 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
 
 // ---- 16 links at once ----
 
-// (the host's gather instruction where it has one: g++ builds a gather from 16 loads and inserts otherwise)
+// The host's gather instruction (AVX2's vgatherdps: one instruction where lane-by-lane loads take a load and an
+// insert per lane; -DNATIVE_GATHER=0 builds those instead, for hosts whose gathers are microcoded), else a loop.
+#ifndef NATIVE_GATHER
+#define NATIVE_GATHER 1
+#endif
 inline vf gather(const float* base, vi at) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vf)_mm512_i32gather_ps((__m512i)at, base, 4);
+#elif defined(ISA_AVX2) && NATIVE_GATHER
+  return (vf)_mm256_i32gather_ps(base, (__m256i)at, 4);
 #else
   vf r;
   for (int i = 0; i < LANES; ++i) r[i] = base[at[i]];
@@ -418,8 +442,10 @@ inline vf gather(const float* base, vi at) {
 #endif
 }
 inline vi gather(const int32_t* base, vi at) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vi)_mm512_i32gather_epi32((__m512i)at, base, 4);
+#elif defined(ISA_AVX2) && NATIVE_GATHER
+  return (vi)_mm256_i32gather_epi32(base, (__m256i)at, 4);
 #else
   vi r;
   for (int i = 0; i < LANES; ++i) r[i] = base[at[i]];
@@ -439,22 +465,38 @@ inline vi first_lanes(int count) {
 }
 // a lane's int where it is active, else lane 0's (so that every index a short group gathers with is a valid one)
 inline vi or_first(vi active, vi x) { return sel(active, x, vi{} + x[0]); }
-// the lanes `on` of v into p … p+15 (a masked store: the lanes beyond a short group belong to the next robot, which
-// another thread may be writing)
+// the lanes `on` of v into p … p+LANES−1 (a masked store: the lanes beyond a short group belong to the next robot,
+// which another thread may be writing)
 inline void store_on(float* p, vf v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_storeu_ps(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512)v);
+#elif defined(ISA_AVX2)
+  _mm256_maskstore_ps(p, (__m256i)on, (__m256)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
 #endif
 }
 inline void store_on(int32_t* p, vi v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_storeu_epi32(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)v);
+#elif defined(ISA_AVX2)
+  _mm256_maskstore_epi32(p, (__m256i)on, (__m256i)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
+#endif
+}
+// whether any lane of a mask is set
+inline bool any(vi m) {
+#if defined(ISA_AVX512)
+  return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0;
+#elif defined(ISA_AVX2)
+  return !_mm256_testz_si256((__m256i)m, (__m256i)m);
+#else
+  int r = 0;
+  for (int i = 0; i < LANES; ++i) r |= m[i];
+  return r != 0;
 #endif
 }
 
@@ -537,13 +579,14 @@ inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float m
   store_on(s.li + lk + LI_FLAGS * L, vi{} + (FLAG_SMALL | FLAG_VALID), on);
   // 8. divergence on the path's lanes (NaN and inf by the exponent bits, as link_update)
   const vi bad = on & ((strain > max_strain) | (((vi)strain & 0x7F800000) == 0x7F800000));
-  for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
+  diverged |= any(bad);
   return off;
 }
 
-// a scatter of the lanes on `on`, and a square root (the host's AVX-512 instructions where it has them)
+// a scatter of the lanes on `on` (AVX-512's instruction; lane by lane elsewhere: AVX2 has no scatter), and a square
+// root (the target's instruction)
 inline void scatter(float* base, vi at, vf v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_i32scatter_ps(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at, (__m512)v, 4);
 #else
   for (int i = 0; i < LANES; ++i)
@@ -551,7 +594,7 @@ inline void scatter(float* base, vi at, vf v, vi on) {
 #endif
 }
 inline void scatter(int32_t* base, vi at, vi v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_i32scatter_epi32(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at,
                                (__m512i)v, 4);
 #else
@@ -560,18 +603,15 @@ inline void scatter(int32_t* base, vi at, vi v, vi on) {
 #endif
 }
 inline vf vsqrt(vf x) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vf)_mm512_sqrt_ps((__m512)x);
+#elif defined(ISA_AVX2)
+  return (vf)_mm256_sqrt_ps((__m256)x);
 #else
   vf r;
   for (int i = 0; i < LANES; ++i) r[i] = std::sqrt(x[i]);
   return r;
 #endif
-}
-inline bool any(vi m) {
-  int r = 0;
-  for (int i = 0; i < LANES; ++i) r |= m[i];
-  return r != 0;
 }
 // cos, sin and pow lane by lane, in loops g++ hands to glibc's vector maths (libmvec) under -ffast-math
 inline vf vcos(vf x) {
@@ -707,7 +747,7 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
   const vi on = ~off & active;
   const vf norm1 = fabs_(pos.x) + fabs_(pos.y) + fabs_(pos.z) + fabs_(amom.x) + fabs_(amom.y) + fabs_(amom.z);
   const vi bad = on & (((vi)norm1 & 0x7F800000) == 0x7F800000);
-  for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
+  diverged |= any(bad);
   scatter3(s.vr, row + VR_POS, pos, on);
   scatter3(s.vr, row + VR_MOM, mom, on);
   scatter(s.vr, row + VR_ORI, q.w, on);
