@@ -996,3 +996,15 @@ extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, i
 extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
   return run<true, true, false>(reals, ints, f64s, n, threads, 1, 0);
 }
+
+// What this build runs a group on (native.built_for: benchmarks and profile_sim print it beside their figures).
+extern "C" int lanes() { return LANES; }
+extern "C" const char* instruction_set() {
+#if defined(ISA_AVX512)
+  return "AVX-512";
+#elif defined(ISA_AVX2)
+  return "AVX2";
+#else
+  return "generic vectors";
+#endif
+}
