@@ -20,7 +20,10 @@
 #include <cstdint>
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
 #include <cstring>
+#include <functional>
+#include <mutex>
 #if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
 #endif
@@ -676,7 +679,10 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
     for (int side = 0; side < 2; ++side) {
       const vi lk = gather(s.vi, irow + VI_SLOT + 2 * a + side), has = lk >= 0, at = sel(has, lk, vi{});
       const vf eps = gather(s.lr + LR_STRAIN * L, at);
-      const vf coef = gather(s.lt, gather(s.li + LI_LMAT * L, at) * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG));
+      // (a lane without a link reads link 0's columns, another robot's, maybe never copied in this call: its
+      // material is taken as 0, a valid index, and what it reads is discarded)
+      const vi lmat = sel(has, gather(s.li + LI_LMAT * L, at), vi{});
+      const vf coef = gather(s.lt, lmat * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG));
       strain[a] += sel(has, eps * coef, zero);
       cnt -= has;
       const int f = side == 1 ? LR_FP : LR_FN, mm = side == 1 ? LR_MP : LR_MN;
@@ -793,30 +799,74 @@ inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int
   return slow;
 }
 
-// fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; plain threads,
-// not an OpenMP runtime beside torch's); the sum of what fn returned.
+// Workers kept between calls (a control period of one step is a call: starting threads per call cost as much as
+// the step), woken for each call's robots. Calls are serialised (one pool per process).
+class Pool {
+ public:
+  // fn() on `threads` threads at once, this one among them; returns when all have returned
+  void run(int threads, const std::function<void()>& fn) {
+    std::lock_guard<std::mutex> one_call(call_);
+    std::unique_lock<std::mutex> lock(m_);
+    while (int(workers_.size()) < threads - 1) {
+      const int id = int(workers_.size());
+      workers_.emplace_back([this, id] { serve(id); });
+    }
+    job_ = &fn;
+    wanted_ = pending_ = threads - 1;
+    ++generation_;
+    lock.unlock();
+    wake_.notify_all();
+    fn();
+    lock.lock();
+    done_.wait(lock, [&] { return pending_ == 0; });
+  }
+  ~Pool() {
+    {
+      std::lock_guard<std::mutex> lock(m_);
+      stop_ = true;
+    }
+    wake_.notify_all();
+    for (auto& t : workers_) t.join();
+  }
+
+ private:
+  void serve(int id) {
+    long seen = 0;
+    std::unique_lock<std::mutex> lock(m_);
+    for (;;) {
+      wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
+      if (stop_) return;
+      seen = generation_;
+      if (id >= wanted_) continue;  // (this call wants fewer threads)
+      const std::function<void()>* job = job_;
+      lock.unlock();
+      (*job)();
+      lock.lock();
+      if (--pending_ == 0) done_.notify_one();
+    }
+  }
+  std::mutex call_, m_;
+  std::condition_variable wake_, done_;
+  std::vector<std::thread> workers_;
+  const std::function<void()>* job_ = nullptr;
+  long generation_ = 0;
+  int wanted_ = 0, pending_ = 0;
+  bool stop_ = false;
+};
+
+// fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; the pool's
+// threads, not an OpenMP runtime beside torch's); the sum of what fn returned.
 template <class Fn> long for_each_robot(int robots, int threads, Fn fn) {
+  static Pool pool;
   std::atomic<int> next{0};
   std::atomic<long> total{0};
-  auto work = [&] {
+  const std::function<void()> work = [&] {
     long sum = 0;
     for (int r; (r = next.fetch_add(1)) < robots;) sum += fn(r);
     total += sum;
   };
-  std::vector<std::thread> pool;
-  for (int i = 1; i < std::min(threads, robots); ++i) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
+  pool.run(std::max(1, std::min(threads, robots)), work);
   return total;
-}
-
-template <typename T>
-void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
-  for (int i = 0; i < items; ++i)
-    for (int c = 0; c < width; ++c) {
-      if (into_columns) columns[c * items + i] = rows[i * width + c];
-      else rows[i * width + c] = columns[c * items + i];
-    }
 }
 
 // ---- the robot phase (clock.py:robot_advance with a fixed dt; schedules.py:trace_sample) ----
@@ -900,76 +950,103 @@ inline void robot_advance(const Regions& s, const Batch& b, int r) {
   if (every > 0 && step % every == 0 && step / every < b.h[HDR_TRACE_FRAMES]) summarise_robot(s, b, r, step / every);
 }
 
-// The link tables column by column for the advance, and back.
+// The link tables column by column (this code's layout: LANES consecutive links' column is one vector load), kept
+// between calls (grown, never shrunk: nothing allocated per control period). Each robot's links are copied in
+// before its first step of a call (what the link phase reads: the last pose, rotation vectors, the ints) and back
+// after its last (what it writes: every column but OMEGA2, the flags), by the thread that steps it: in its cache,
+// on every thread at once, and not at all for a robot that does not step.
 struct Columns {
   std::vector<float> lr;
   std::vector<int32_t> li;
-  float* lr_rows;
-  int32_t* li_rows;
-  int links;
-  Columns(float* reals, int32_t* ints) : links(ints[HDR_N_LINKS]) {
-    lr.resize(size_t(links) * LR_W + LANES);  // (+ a group: a short group's full-width loads)
-    li.resize(size_t(links) * LI_W + LANES);
-    lr_rows = reals + ints[HDR_LR_AT];
-    li_rows = ints + ints[HDR_LI_AT];
-    transpose(lr_rows, lr.data(), links, LR_W, true);
-    transpose(li_rows, li.data(), links, LI_W, true);
-  }
-  ~Columns() {
-    transpose(lr_rows, lr.data(), links, LR_W, false);
-    transpose(li_rows, li.data(), links, LI_W, false);
+  void fit(int links) {  // (+ a group: a short group's full-width loads)
+    if (lr.size() < size_t(links) * LR_W + LANES) lr.resize(size_t(links) * LR_W + LANES);
+    if (li.size() < size_t(links) * LI_W + LANES) li.resize(size_t(links) * LI_W + LANES);
   }
 };
+constexpr int LR_READ = LR_A2 + 3, LR_WRITTEN = LR_MP + 3;  // (P2, A1, A2 first; OMEGA2, rl4design's, last)
+static_assert(LR_P2 == 0 && LR_A1 == 3 && LR_A2 == 6 && LR_OMEGA2 == LR_W - 1, "the link columns' order");
+
+struct LinkRows {  // the engine's link tables, row by row
+  float* lr;
+  int32_t* li;
+};
+inline void links_in(const Regions& s, const LinkRows& rows, int l0, int l1) {
+  const int L = s.links;
+  for (int lk = l0; lk < l1; ++lk) {
+    for (int c = 0; c < LR_READ; ++c) s.lr[c * L + lk] = rows.lr[lk * LR_W + c];
+    for (int c = 0; c < LI_W; ++c) s.li[c * L + lk] = rows.li[lk * LI_W + c];
+  }
+}
+inline void links_out(const Regions& s, const LinkRows& rows, int l0, int l1) {
+  const int L = s.links;
+  for (int lk = l0; lk < l1; ++lk) {
+    for (int c = 0; c < LR_WRITTEN; ++c) rows.lr[lk * LR_W + c] = s.lr[c * L + lk];
+    rows.li[lk * LI_W + LI_FLAGS] = s.li[LI_FLAGS * L + lk];
+  }
+}
+
+// One step of robot r: each link, then (VOXELS) each voxel, then (CLOCK) its clock and trace — schedules.py:
+// robot_steps with one lane. VECTOR: a group of lanes at once along the common path (else every item by the
+// branching updates). Returns false where a link or voxel diverged (the robot is marked so); counts into `slow` the
+// item-steps that went through the branching updates.
+template <bool VECTOR, bool VOXELS, bool CLOCK>
+inline bool robot_step(const Regions& s, const Batch& b, int r, float max_strain, long& slow) {
+  int32_t* robot = b.ri + r * RI_W;
+  const float prev_dt = float(b.rt[r * RT_W + RT_DTPREV]);
+  int diverged = 0;
+  for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += VECTOR ? LANES : 1) {
+    if (VECTOR) {
+      slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
+    } else {
+      diverged |= link_update(s, lk, prev_dt, max_strain);
+      ++slow;
+    }
+  }
+  if (!diverged && VOXELS) {  // (a diverged link aborts the step, as in VX)
+    const Robot rb = robot_now(b, r);
+    for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += VECTOR ? LANES : 1) {
+      if (VECTOR) {
+        slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
+      } else {
+        diverged |= voxel_update(s, v, rb);
+        ++slow;
+      }
+    }
+  }
+  if (diverged) {
+    robot[RI_STATUS] = STATUS_DIVERGED;
+    return false;
+  }
+  if (CLOCK) robot_advance(s, b, r);
+  return true;
+}
 
 // n_steps of every robot still stepping (running, its clock before its limit RT.UNTIL), the robots shared among
-// `threads` workers: each robot's links, then (VOXELS) its voxels, then (CLOCK) its clock and trace —
-// schedules.py:robot_steps with one lane. VECTOR: 16 items at once along the common path (else every item by the
-// branching updates). floor, command: Switches.floor, Switches.command. Returns how many item-steps went through
-// the branching updates.
+// `threads` workers (robot_step). floor, command: Switches.floor, Switches.command. Returns how many item-steps
+// went through the branching updates.
 template <bool VECTOR, bool VOXELS, bool CLOCK>
 long run(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
+  static Columns cols;  // (calls are serialised by the pool)
   const int32_t* h = ints;
-  Columns cols(reals, ints);
+  cols.fit(h[HDR_N_LINKS]);
   const Regions s{reals + h[HDR_VR_AT], cols.lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
-                  cols.li.data(), cols.links};
+                  cols.li.data(), h[HDR_N_LINKS]};
+  const LinkRows rows{reals + h[HDR_LR_AT], ints + h[HDR_LI_AT]};
   const Batch b{h, ints + h[HDR_RI_AT], f64s + h[HDR_RT_AT], f64s + h[HDR_TR_AT], f64s + h[HDR_GP_AT], floor, command};
   const float max_strain = float(b.gp[GP_MAX_STRAIN]);
   return for_each_robot(h[HDR_N_ROBOTS], threads, [&](int r) {
     long slow = 0;
-    int32_t* robot = b.ri + r * RI_W;
+    const int32_t* robot = b.ri + r * RI_W;
     const double* clock = b.rt + r * RT_W;
-    for (int step = 0; step < n_steps; ++step) {
-      if (!(robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL])) break;
-      const float prev_dt = float(clock[RT_DTPREV]);
-      int diverged = 0;
-      for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += VECTOR ? LANES : 1) {
-        if (VECTOR) {
-          slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
-        } else {
-          diverged |= link_update(s, lk, prev_dt, max_strain);
-          ++slow;
-        }
-      }
-      if (diverged) {  // (a diverged link aborts the step, as in VX)
-        robot[RI_STATUS] = STATUS_DIVERGED;
+    int step = 0;
+    for (; step < n_steps && robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL]; ++step) {
+      if (step == 0) links_in(s, rows, robot[RI_LSTART], robot[RI_LEND]);
+      if (!robot_step<VECTOR, VOXELS, CLOCK>(s, b, r, max_strain, slow)) {
+        ++step;
         break;
       }
-      if (!VOXELS) continue;
-      const Robot rb = robot_now(b, r);
-      for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += VECTOR ? LANES : 1) {
-        if (VECTOR) {
-          slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
-        } else {
-          diverged |= voxel_update(s, v, rb);
-          ++slow;
-        }
-      }
-      if (diverged) {
-        robot[RI_STATUS] = STATUS_DIVERGED;
-        break;
-      }
-      if (CLOCK) robot_advance(s, b, r);
     }
+    if (step > 0) links_out(s, rows, robot[RI_LSTART], robot[RI_LEND]);
     return slow;
   });
 }
