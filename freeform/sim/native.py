@@ -54,7 +54,7 @@ def flags() -> tuple[str, ...]:
     """The compiler's flags: ``FLAGS`` and the target's ``-march``/``-mtune``."""
     arch = target()
     return (*FLAGS, f"-march={arch}", f"-mtune={'generic' if arch.startswith('x86-64') else arch}")
-ENTRY_POINTS = ("advance", "links_scalar", "links_vector", "links_voxels_scalar", "links_voxels_vector")
+ENTRY_POINTS = ("advance", "links_vector", "links_voxels_scalar", "links_voxels_vector")
 # the lanes of the builds measured faster than Taichi's step: AVX2's 8 and AVX-512's 16 (docs/physics.md)
 MEASURED_LANES = (8, 16)
 

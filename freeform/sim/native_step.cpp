@@ -1,20 +1,20 @@
-// One step of the CPU simulator's physics in C++, for scripts/probe_native_step.py: what the link and voxel phases
-// cost when compiled outside Taichi, one item at a time and 16 items per instruction (issue 43; docs/physics.md,
-// "The step in C++, probed").
+// The CPU simulator's step in C++: the native schedule (freeform/sim/native.py; docs/physics.md, "The native
+// schedule"; issues 43 and 58).
 //
 // The same arithmetic as freeform/sim/links.py, voxels.py and quat.py on the f32 path — Voxelyze semantics, fixed
-// dt (no rl4design slips, no omega^2 store), the sine's actuation, the flat floor — on the engine's own packed
-// buffers; the column indices and widths come from freeform/sim/state.py through the generated layout.h (the probe
-// writes it), so this file never spells an offset. The link tables are read column by column (copied so on entry
-// and back on exit: this code's own layout, which makes a column of 16 consecutive links one vector load); the
-// voxel rows stay the engine's and are gathered.
+// dt (no rl4design slips, no omega^2 store), any actuation, the flat floor or none — on the engine's own packed
+// buffers; the column indices and widths come from freeform/sim/state.py through the generated layout.h
+// (native.layout_header), so this file never spells an offset. The link tables are read column by column (copied
+// so around each robot's steps: this code's own layout, which makes a column of a group's consecutive links one
+// vector load); the voxel rows stay the engine's and are gathered.
 //
 // *_scalar: every item with Voxelyze's branches (link_update, voxel_update).
-// *_vector: 16 items at once (link_group, voxel_group: GCC's vector extensions, one source of the math templated
-// on the lane type) along the common path, and every lane off it again by the branching update, before anything
-// of that lane is stored. A link's common path: the small angle, its end rotation within atan's series; a
-// voxel's: not held fixed, no snapshot this step (its rotation's cos and sin, and its Poisson strain's pow, are
-// glibc's vector maths where a lane needs them).
+// *_vector: a group of LANES items at once (link_group, voxel_group: GCC's vector extensions, one source of the
+// math templated on the lane type, LANES following the target) along the common path, and every lane off it again
+// by the branching update, before anything of that lane is stored. A link's common path: the small angle, its end
+// rotation within atan's series; a voxel's: not held fixed, no snapshot this step (its rotation's cos and sin, and
+// its Poisson strain's pow, are glibc's vector maths where a lane needs them: libmvec's _ZGVeN16v_ / _ZGVdN8v_
+// variants).
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
@@ -28,6 +28,7 @@
 #include <immintrin.h>
 #endif
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include "layout.h"
@@ -426,7 +427,7 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
   return (bits & 0x7F800000u) == 0x7F800000u;
 }
 
-// ---- 16 links at once ----
+// ---- a group of links at once ----
 
 // The host's gather instruction (AVX2's vgatherdps: one instruction where lane-by-lane loads take a load and an
 // insert per lane; -DNATIVE_GATHER=0 builds those instead, for hosts whose gathers are microcoded), else a loop.
@@ -468,13 +469,24 @@ inline vi first_lanes(int count) {
 }
 // a lane's int where it is active, else lane 0's (so that every index a short group gathers with is a valid one)
 inline vi or_first(vi active, vi x) { return sel(active, x, vi{} + x[0]); }
+// whether every lane of a mask is set
+inline bool all(vi m) {
+#if defined(ISA_AVX2)
+  return _mm256_movemask_ps((__m256)m) == 0xFF;
+#else
+  int r = -1;
+  for (int i = 0; i < LANES; ++i) r &= m[i];
+  return r != 0;
+#endif
+}
 // the lanes `on` of v into p … p+LANES−1 (a masked store: the lanes beyond a short group belong to the next robot,
 // which another thread may be writing)
 inline void store_on(float* p, vf v, vi on) {
 #if defined(ISA_AVX512)
   _mm512_mask_storeu_ps(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512)v);
-#elif defined(ISA_AVX2)
-  _mm256_maskstore_ps(p, (__m256i)on, (__m256)v);
+#elif defined(ISA_AVX2)  // (a plain store where every lane is on: a masked store costs more, on AMD's cores most)
+  if (all(on)) _mm256_storeu_ps(p, (__m256)v);
+  else _mm256_maskstore_ps(p, (__m256i)on, (__m256)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
@@ -484,7 +496,8 @@ inline void store_on(int32_t* p, vi v, vi on) {
 #if defined(ISA_AVX512)
   _mm512_mask_storeu_epi32(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)v);
 #elif defined(ISA_AVX2)
-  _mm256_maskstore_epi32(p, (__m256i)on, (__m256i)v);
+  if (all(on)) _mm256_storeu_si256((__m256i*)p, (__m256i)v);
+  else _mm256_maskstore_epi32(p, (__m256i)on, (__m256i)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
@@ -503,7 +516,7 @@ inline bool any(vi m) {
 #endif
 }
 
-// Links lk … lk+count−1 (count ≤ 16) along the common path; returns the lanes off it (a large-angle link, a regime
+// Links lk … lk+count−1 (count ≤ LANES) along the common path; returns the lanes off it (a large-angle link, a regime
 // switch into the large angle, an end rotation beyond atan's series), whose state it leaves as it was, and sets
 // `diverged`.
 inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float max_strain, int& diverged) {
@@ -586,23 +599,22 @@ inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float m
   return off;
 }
 
-// a scatter of the lanes on `on` (AVX-512's instruction; lane by lane elsewhere: AVX2 has no scatter), and a square
-// root (the target's instruction)
-inline void scatter(float* base, vi at, vf v, vi on) {
+// v's lanes `on` into base[at[i]], where lane i's index is lane 0's + i·W (a group's consecutive rows of width W:
+// the lanes `on` are among them): AVX-512's scatter; elsewhere (AVX2 has no scatter) lane by lane at fixed offsets
+// from lane 0's, and without a test per lane when every lane is on (as good as always).
+template <int W, class T, class TV> inline void scatter_rows(T* base, vi at, TV v, vi on) {
 #if defined(ISA_AVX512)
-  _mm512_mask_i32scatter_ps(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at, (__m512)v, 4);
+  const __mmask16 k = _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512());
+  if constexpr (std::is_floating_point_v<T>) _mm512_mask_i32scatter_ps(base, k, (__m512i)at, (__m512)v, 4);
+  else _mm512_mask_i32scatter_epi32(base, k, (__m512i)at, (__m512i)v, 4);
 #else
-  for (int i = 0; i < LANES; ++i)
-    if (on[i]) base[at[i]] = v[i];
-#endif
-}
-inline void scatter(int32_t* base, vi at, vi v, vi on) {
-#if defined(ISA_AVX512)
-  _mm512_mask_i32scatter_epi32(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at,
-                               (__m512i)v, 4);
-#else
-  for (int i = 0; i < LANES; ++i)
-    if (on[i]) base[at[i]] = v[i];
+  T* p = base + at[0];
+  if (all(on)) {
+    for (int i = 0; i < LANES; ++i) p[i * W] = v[i];
+  } else {
+    for (int i = 0; i < LANES; ++i)
+      if (on[i]) p[i * W] = v[i];
+  }
 #endif
 }
 inline vf vsqrt(vf x) {
@@ -646,12 +658,12 @@ template <class F> inline V3<F> gather3(const float* base, vi at) {
   return {gather(base, at), gather(base, at + 1), gather(base, at + 2)};
 }
 inline void scatter3(float* base, vi at, V3<vf> v, vi on) {
-  scatter(base, at, v.x, on);
-  scatter(base, at + 1, v.y, on);
-  scatter(base, at + 2, v.z, on);
+  scatter_rows<VR_W>(base, at, v.x, on);
+  scatter_rows<VR_W>(base, at + 1, v.y, on);
+  scatter_rows<VR_W>(base, at + 2, v.z, on);
 }
 
-// Voxels v … v+count−1 (count ≤ 16) of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
+// Voxels v … v+count−1 (count ≤ LANES) of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
 // and sets `diverged`.
 inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int& diverged) {
   const int L = s.links;
@@ -756,7 +768,7 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
   diverged |= any(bad);
   scatter3(s.vr, row + VR_POS, pos, on);
   scatter3(s.vr, row + VR_MOM, mom, on);
-  scatter(s.vr, row + VR_ORI, q.w, on);
+  scatter_rows<VR_W>(s.vr, row + VR_ORI, q.w, on);
   scatter3(s.vr, row + VR_ORI + 1, V3<vf>{q.x, q.y, q.z}, on);
   scatter3(s.vr, row + VR_AMOM, amom, on);
   const vf Lm = gather(s.mt, m + MT_L), L2 = Lm * Lm;
@@ -766,15 +778,15 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
                                         sel(poisson, L2 * (1.0f + ps.x) * (1.0f + ps.y), L2)}, on);
   scatter3(s.vr, row + VR_TSUM, V3<vf>{sel(poisson, ps.y + ps.z, zero), sel(poisson, ps.x + ps.z, zero),
                                        sel(poisson, ps.x + ps.y, zero)}, on);
-  scatter(s.vi, irow + VI_FLAGS, new_flags, on);
+  scatter_rows<VI_W>(s.vi, irow + VI_FLAGS, new_flags, on);
   const vf temp = gather(s.vr, row + VR_TBASE) +
                   rb.temp_amp * wave(rb, gather(s.vr, row + VR_CMD), gather(s.vr, row + VR_CMD0),
                                      rb.sin * gather(s.mt, m + MT_COSPHI) + rb.cos * gather(s.mt, m + MT_SINPHI));
-  scatter(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
+  scatter_rows<VR_W>(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
   return off;
 }
 
-// A group of up to 16 links from lk (to `end`) at once, the lanes off the common path by link_update; returns how
+// A group of up to LANES links from lk (to `end`) at once, the lanes off the common path by link_update; returns how
 // many those were.
 inline int links_at_once(const Regions& s, int lk, int end, float prev_dt, float max_strain, int& diverged) {
   const int count = end - lk < LANES ? end - lk : LANES;
@@ -1053,17 +1065,14 @@ long run(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, in
 
 }  // namespace
 
-// Engine.advance on the native schedule (every phase, 16 items at once).
+// Engine.advance on the native schedule (every phase, LANES items at once).
 extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
   return run<true, true, true>(reals, ints, f64s, n_steps, threads, floor, command);
 }
 
-// For scripts/probe_native_step.py and the tests: the link phase alone, or the link and voxel phases without the
-// robot phase (the clock stands still: scripts/profile_sim.py's segments), one item at a time or 16 at once, with
-// the floor and the sine's actuation.
-extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return run<false, false, false>(reals, ints, f64s, n, threads, 1, 0);
-}
+// For the tests and scripts/profile_sim.py's segments: the link phase alone, or the link and voxel phases without
+// the robot phase (the clock stands still), one item at a time or LANES at once, with the floor and the sine's
+// actuation.
 extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
   return run<true, false, false>(reals, ints, f64s, n, threads, 1, 0);
 }
