@@ -469,6 +469,18 @@ inline vi first_lanes(int count) {
 }
 // a lane's int where it is active, else lane 0's (so that every index a short group gathers with is a valid one)
 inline vi or_first(vi active, vi x) { return sel(active, x, vi{} + x[0]); }
+// a mask's lanes as the bits of an int (lane i: bit i)
+inline unsigned lane_bits(vi m) {
+#if defined(ISA_AVX512)
+  return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
+#elif defined(ISA_AVX2)
+  return unsigned(_mm256_movemask_ps((__m256)m));
+#else
+  unsigned r = 0;
+  for (int i = 0; i < LANES; ++i) r |= unsigned(m[i] != 0) << i;
+  return r;
+#endif
+}
 // whether every lane of a mask is set
 inline bool all(vi m) {
 #if defined(ISA_AVX2)
@@ -792,22 +804,20 @@ inline int links_at_once(const Regions& s, int lk, int end, float prev_dt, float
   const int count = end - lk < LANES ? end - lk : LANES;
   const vi off = link_group(s, lk, count, prev_dt, max_strain, diverged);
   int slow = 0;
-  for (int i = 0; i < count; ++i)
-    if (off[i]) {
-      diverged |= link_update(s, lk + i, prev_dt, max_strain);
-      ++slow;
-    }
+  for (unsigned lanes = lane_bits(off); lanes; lanes &= lanes - 1, ++slow) {  // (each lane off, lowest first)
+    const int i = __builtin_ctz(lanes);
+    diverged |= link_update(s, lk + i, prev_dt, max_strain);
+  }
   return slow;
 }
 inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int& diverged) {
   const int count = end - v < LANES ? end - v : LANES;
   const vi off = voxel_group(s, v, count, rb, diverged);
   int slow = 0;
-  for (int i = 0; i < count; ++i)
-    if (off[i]) {
-      diverged |= voxel_update(s, v + i, rb);
-      ++slow;
-    }
+  for (unsigned lanes = lane_bits(off); lanes; lanes &= lanes - 1, ++slow) {  // (each lane off, lowest first)
+    const int i = __builtin_ctz(lanes);
+    diverged |= voxel_update(s, v + i, rb);
+  }
   return slow;
 }
 
