@@ -29,6 +29,7 @@
 #endif
 #include <thread>
 #include <type_traits>
+#include <unistd.h>
 #include <vector>
 
 #include "layout.h"
@@ -822,7 +823,7 @@ inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int
 }
 
 // Workers kept between calls (a control period of one step is a call: starting threads per call cost as much as
-// the step), woken for each call's robots. Calls are serialised (one pool per process).
+// the step), woken for each call's robots. Calls are serialised (one pool per process: this_process_pool).
 class Pool {
  public:
   // fn() on `threads` threads at once, this one among them; returns when all have returned
@@ -842,22 +843,12 @@ class Pool {
     lock.lock();
     done_.wait(lock, [&] { return pending_ == 0; });
   }
-  ~Pool() {
-    {
-      std::lock_guard<std::mutex> lock(m_);
-      stop_ = true;
-    }
-    wake_.notify_all();
-    for (auto& t : workers_) t.join();
-  }
-
  private:
   void serve(int id) {
     long seen = 0;
     std::unique_lock<std::mutex> lock(m_);
     for (;;) {
-      wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
-      if (stop_) return;
+      wake_.wait(lock, [&] { return generation_ != seen; });
       seen = generation_;
       if (id >= wanted_) continue;  // (this call wants fewer threads)
       const std::function<void()>* job = job_;
@@ -873,13 +864,23 @@ class Pool {
   const std::function<void()>* job_ = nullptr;
   long generation_ = 0;
   int wanted_ = 0, pending_ = 0;
-  bool stop_ = false;
 };
+
+// This process's pool, never destroyed (its idle workers end with the process). A process forked from one that
+// had a pool gets a new one: the copy's workers are not there (the old one is left untouched).
+Pool& this_process_pool() {
+  static Pool* pool = nullptr;
+  static pid_t owner = 0;
+  if (pool == nullptr || owner != getpid()) {
+    pool = new Pool;
+    owner = getpid();
+  }
+  return *pool;
+}
 
 // fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; the pool's
 // threads, not an OpenMP runtime beside torch's); the sum of what fn returned.
 template <class Fn> long for_each_robot(int robots, int threads, Fn fn) {
-  static Pool pool;
   std::atomic<int> next{0};
   std::atomic<long> total{0};
   const std::function<void()> work = [&] {
@@ -887,7 +888,7 @@ template <class Fn> long for_each_robot(int robots, int threads, Fn fn) {
     for (int r; (r = next.fetch_add(1)) < robots;) sum += fn(r);
     total += sum;
   };
-  pool.run(std::max(1, std::min(threads, robots)), work);
+  this_process_pool().run(std::max(1, std::min(threads, robots)), work);
   return total;
 }
 
