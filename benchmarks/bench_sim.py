@@ -232,7 +232,7 @@ def main() -> None:
             for p in precisions:
                 for terrain in TERRAINS:
                     workers[b].ask({"p": p, "kind": "kernels", "bodies": 2, "terrain": terrain})
-        print(", ".join(f"{b}: {i['backend']} ({i['arch']}, {i['threads']} threads{i['native']})"
+        print(", ".join(f"{b}: {i['backend']} ({i['arch']}, {i['threads']} threads{i.get('native', '')})"
                         for b, i in infos.items())
               + f" on {os.cpu_count()} CPU cores; load average {os.getloadavg()[0]:.1f} at the start")
         print("M voxel-steps/s per wall second | per CPU second (wall is pessimistic on a shared machine); each row "
