@@ -3,9 +3,10 @@
 Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD across links, probed"); the same
 link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: a group of links or voxels
 per vector instruction along the common path, as many as the target's registers hold — 16 with AVX-512, 8 with AVX2
-— Voxelyze's branches for the rest) run 2.3–3.3× as fast per thread as Taichi's. The engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses,
-snapshots); only the stepping runs here, on the three buffers themselves, which this schedule keeps in host
-memory (numpy arrays the CPU's kernels take in place: ``Engine._advance``).
+— Voxelyze's branches for the rest) run 2.4–3.3× as fast per thread as Taichi's. The engine keeps its Taichi
+buffers and every other kernel (layout, transfers, commands, senses, snapshots); only the stepping runs here, on
+the three buffers themselves, which this schedule keeps in host memory (numpy arrays the CPU's kernels take in
+place: ``Engine._advance``).
 
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
@@ -161,7 +162,7 @@ def built_for() -> str:
 
 def faster_here() -> bool:
     """Whether the native step is measured faster than Taichi's for the instruction set it is built for here: AVX2
-    (8 lanes; 2.3x per thread) and AVX-512 (16; 3.3x). A build of another width (4: SSE or NEON) is unmeasured, so
+    (8 lanes; 2.4x per thread) and AVX-512 (16; 3.3x). A build of another width (4: SSE or NEON) is unmeasured, so
     Taichi's step stays (docs/physics.md, "The native schedule")."""
     return library().lanes() in MEASURED_LANES
 

@@ -676,8 +676,8 @@ inline void scatter3(float* base, vi at, V3<vf> v, vi on) {
   scatter_rows<VR_W>(base, at + 2, v.z, on);
 }
 
-// Voxels v … v+count−1 (count ≤ LANES) of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
-// and sets `diverged`.
+// Voxels v … v+count−1 (count ≤ LANES) of one robot along the common path; returns the lanes off it, whose state it
+// leaves as it was, and sets `diverged`.
 inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int& diverged) {
   const int L = s.links;
   const vf zero = {}, one = zero + 1.0f;
