@@ -1049,7 +1049,9 @@ inline bool robot_step(const Regions& s, const Batch& b, int r, float max_strain
 // went through the branching updates.
 template <bool VECTOR, bool VOXELS, bool CLOCK>
 long run(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
-  static Columns cols;  // (calls are serialised by the pool)
+  static std::mutex one_call;  // (the columns are kept between calls: Python threads calling at once take turns)
+  static Columns cols;
+  std::lock_guard<std::mutex> turn(one_call);
   const int32_t* h = ints;
   cols.fit(h[HDR_N_LINKS]);
   const Regions s{reals + h[HDR_VR_AT], cols.lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
