@@ -18,7 +18,7 @@ import time
 import numpy as np
 import torch
 
-from benchmarks.bench_sim import random_design_bodies
+from benchmarks.bench_sim import built_for, random_design_bodies
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.sim import SimConfig, Simulator
 
@@ -92,7 +92,8 @@ def main() -> None:
     n = 32 if os.environ.get("FREEFORM_BENCH_QUICK") else 128
     grids = random_design_bodies(n)
     print(f"{n} design bodies, {int((grids > 0).sum()) / n:.0f} voxels each on average, ρ = {grids.shape[1]}; "
-          f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads), schedule {SCHEDULE}")
+          f"fixed dt = {DT} s; f32, CPU ({torch.get_num_threads()} torch threads), schedule {SCHEDULE}"
+          f"{built_for(SCHEDULE)}")
     print(f"  {'period':>16s} {'control steps/s':>16s} {'sim ms/step':>12s} {'outside ms/step':>16s} {'outside/sim':>12s}"
           f" {'env host ms':>12s} {'host/sim':>9s}")
     for every in EVERY:

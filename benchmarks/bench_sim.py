@@ -23,7 +23,8 @@ worker per checkout and backend, alternated like the backends: a before/after co
 "before" checkout with ``git archive REF | tar -x -C DIR``). The native schedule (``sim.schedule=native``: the
 step compiled by the host's C++ compiler, ``freeform/sim/native.py``) gets a column beside the robots schedule where
 a compiler is found (on the first backend); ``FREEFORM_BENCH_SCHEDULES=robots,native`` runs every backend on each
-(rows it does not run, f64 and terrains, print nan).
+(rows it does not run, f64 and terrains, print nan); the first line names the instruction set and lanes the native
+step was built for (``FREEFORM_NATIVE_ARCH=x86-64-v3``: the AVX2 build, whatever the host).
 """
 
 from __future__ import annotations
@@ -121,6 +122,15 @@ def rows(precisions: list[str]) -> list[tuple[str, str, dict]]:
     return out
 
 
+def built_for(schedule: str) -> str:
+    """What the native step is built for (instruction set, lanes, -march) where a worker on ``schedule`` may run it
+    ("auto", "native"; $FREEFORM_NATIVE_ARCH chooses another build), as its column's header says; else ""."""
+    if schedule not in ("auto", "native") or not native.available():
+        return ""
+    taken = schedule == "native" or native.faster_here()
+    return f"; native step {'' if taken else 'not taken, '}built for {native.built_for()}"
+
+
 def worker() -> None:
     """A backend's worker (``FREEFORM_BACKEND`` set by ``main``): one JSON request per line on stdin, one JSON
     answer per line on stdout: (wall, cpu) M voxel-steps/s, voxels, steps."""
@@ -135,7 +145,8 @@ def worker() -> None:
         req = json.loads(line)
         if req.get("kind") == "info":
             runtime.ensure("auto")
-            ans = {"backend": runtime.describe(), "arch": runtime.ensure("auto"), "threads": runtime.num_threads()}
+            ans = {"backend": runtime.describe(), "arch": runtime.ensure("auto"), "threads": runtime.num_threads(),
+                   "native": built_for(schedule)}
             print(json.dumps(ans), file=real_stdout, flush=True)
             continue
         key = (req["p"], req.get("terrain", "flat"))
@@ -221,7 +232,8 @@ def main() -> None:
             for p in precisions:
                 for terrain in TERRAINS:
                     workers[b].ask({"p": p, "kind": "kernels", "bodies": 2, "terrain": terrain})
-        print(", ".join(f"{i['backend']} ({i['arch']}, {i['threads']} threads)" for i in infos.values())
+        print(", ".join(f"{b}: {i['backend']} ({i['arch']}, {i['threads']} threads{i.get('native', '')})"
+                        for b, i in infos.items())
               + f" on {os.cpu_count()} CPU cores; load average {os.getloadavg()[0]:.1f} at the start")
         print("M voxel-steps/s per wall second | per CPU second (wall is pessimistic on a shared machine); each row "
               "runs on every backend in turn (who goes first alternates); the last column is the load average")

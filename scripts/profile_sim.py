@@ -15,9 +15,9 @@ uninstrumented under valgrind), then three segments of ``--steps`` steps from th
 * ``links+voxels``: each step every link's ``link_update`` then every voxel's ``voxel_update``, no robot phase.
 
 With ``--schedule native`` the segments are the native step's entry points (``advance``, ``links_vector``,
-``links_voxels_vector``: 16 items at once, one thread), on the fast-math path; valgrind presents AVX2 and no
-AVX-512, so the library is built for x86-64-v3 (``$FREEFORM_NATIVE_ARCH``, also for ``--native`` timings, so that
-both measure one program); a host's AVX-512 build runs fewer instructions.
+``links_voxels_vector``: a group of lanes at once, one thread), on the fast-math path; valgrind presents AVX2 and no
+AVX-512, so the library is built for x86-64-v3 (8 lanes; ``$FREEFORM_NATIVE_ARCH``, also for ``--native`` timings,
+so that both measure one program: ``FREEFORM_NATIVE_ARCH=native --native`` times the host's own build).
 
 voxel phase = ``links+voxels`` − ``links``; bookkeeping (robot phase: clock, status, actuation phase, events, the
 queue and the per-step checks) = ``step`` − ``links+voxels``. Callgrind counts instructions exactly, whatever the
@@ -169,7 +169,7 @@ def report(values: dict[str, float], unit: str, scale: float, args) -> None:
     parts = {"link phase": lk, "voxel phase": lv - lk, "bookkeeping (robot phase)": step - lv}
     from freeform.sim import native, runtime
 
-    target = f"native step for {native.target()}" if args.schedule == "native" else "robots"
+    target = f"native step built for {native.built_for()}" if args.schedule == "native" else "robots"
     print(f"{target}: {args.bodies} design bodies, {args.precision}, {args.steps} steps after {args.warm}: "
           f"{vs / args.steps:.0f} voxels, {ls / vs:.2f} links per voxel; {runtime.describe()}, fast-math "
           f"{'on' if runtime.fast_math() else 'off'}, CPU {runtime.cpu_features()}")

@@ -105,14 +105,11 @@ def test_native_control_steps_agree_with_the_robots_schedule(actuation):
     np.testing.assert_allclose(readouts["native"].voxels, readouts["robots"].voxels, atol=1e-3)
 
 
-@fast_math_only
-@needs_compiler
-def test_sixteen_at_once_equals_one_at_a_time_and_takes_most_items():
-    """The vector path (``link_group``, ``voxel_group``: 16 items per instruction) against the branching updates
-    that mirror Taichi's (``link_update``, ``voxel_update``), on a walking batch's state: one step of every link
-    and voxel each way agrees to rounding, and most item-steps take the vector path (it is what makes the
-    schedule fast; a path that silently fell back would pass every other test). Measured: the end loads within
-    1.2e-5 of their largest (the damping scales a difference of successive poses), positions 3e-8."""
+def lanes_against_scalar() -> dict:
+    """One step of every link and voxel of a walking batch (24 design bodies after 300 steps) from one state by the
+    vector path (``link_group``, ``voxel_group``: a group of lanes per instruction) and by the branching updates that
+    mirror Taichi's (``link_update``, ``voxel_update``): {"slow": item-steps off the vector path, "items",
+    "worst": {column: max |vector − scalar| / max |scalar|}, "changed": whether the step changed the state}."""
     sim = Simulator(SimConfig(dt=1.1785e-4, burn_in=0.0, duration=10.0, schedule="native"), arch="cpu")
     engine = sim.engine(sim.layout(design_bodies(24, seed=0)))
     engine.advance(300)
@@ -123,61 +120,91 @@ def test_sixteen_at_once_equals_one_at_a_time_and_takes_most_items():
         state = {k: v.copy() for k, v in start.items()}
         slow = getattr(lib, how)(*(state[k].ctypes.data for k in BUFFERS), 1, 1)
         out[how] = state, slow
-    (one, _), (sixteen, slow) = out["links_voxels_scalar"], out["links_voxels_vector"]
+    (one, _), (lanes, slow) = out["links_voxels_scalar"], out["links_voxels_vector"]
     h = start["ints"]
-    items = h[HDR.N_LINKS] + h[HDR.N_VOXELS]
-    assert slow < 0.4 * items, f"{slow} of {items} item-steps left the vector path"
+    worst, changed = {}, True
     for region, table, n, columns in (("lr", LR, h[HDR.N_LINKS], ("FN", "FP", "MN", "MP", "P2", "A1", "A2", "STRAIN")),
                                       ("vr", VR, h[HDR.N_VOXELS], ("POS", "MOM", "ORI", "AMOM", "TAREA", "TSUM",
                                                                    "SIZE"))):
         at = h[getattr(HDR, f"{region.upper()}_AT")]
-        a, b = (s["reals"][at: at + n * table.width].reshape(n, table.width) for s in (sixteen, one))
-        before = start["reals"][at: at + n * table.width].reshape(n, table.width)
+        a, b, before = (s["reals"][at: at + n * table.width].reshape(n, table.width) for s in (lanes, one, start))
         for col in columns:
-            x, y, x0 = (m[:, table.span(col)].astype(np.float64) for m in (a, b, before))
-            scale = max(np.abs(y).max(), 1e-30)
-            assert np.abs(x - y).max() <= 1e-4 * scale, f"{region}.{col}: {np.abs(x - y).max() / scale:.1e}"
-        assert not np.array_equal(a, before)  # (the step changed the state)
+            x, y = (m[:, table.span(col)].astype(np.float64) for m in (a, b))
+            worst[f"{region}.{col}"] = float(np.abs(x - y).max() / max(np.abs(y).max(), 1e-30))
+        changed &= not np.array_equal(a, before)
+    return {"slow": int(slow), "items": int(h[HDR.N_LINKS] + h[HDR.N_VOXELS]), "worst": worst, "changed": changed}
 
 
-def test_auto_takes_the_native_step_on_the_cpu_where_it_runs():
-    """``schedule="auto"`` on the CPU: the native step for what it runs (the fast-math f32 path, with a compiler)
-    where it is the faster (an AVX-512 host), the robots schedule for the rest (f64 here; the strict path in make
-    test's first stage; an AVX2 host, or a build for another instruction set)."""
-    grids = design_bodies(1)
-    runs = runtime.fast_math() and native.compiler() is not None and "AVX512F" in runtime.cpu_features()
-    for cfg, expected in ((SimConfig(), "native" if runs else "robots"), (SimConfig(precision="f64"), "robots")):
-        sim = Simulator(cfg, arch="cpu")
-        assert sim.engine(sim.layout(grids)).schedule == expected, cfg.precision
+def check_lanes_against_scalar(got: dict) -> None:
+    """The vector path agrees with the scalar one to rounding (measured: the end loads within 1.2e-5 of their
+    largest, the damping scaling a difference of successive poses; positions 3e-8) and takes most item-steps (it is
+    what makes the schedule fast; a path that silently fell back would pass every other test)."""
+    assert got["slow"] < 0.4 * got["items"], f"{got['slow']} of {got['items']} item-steps left the vector path"
+    for col, worst in got["worst"].items():
+        assert worst <= 1e-4, f"{col}: {worst:.1e}"
+    assert got["changed"]
 
 
 @fast_math_only
 @needs_compiler
-@pytest.mark.skipif("AVX2" not in runtime.cpu_features(), reason="the x86-64-v3 build needs an AVX2 host")
-def test_a_build_for_another_instruction_set_agrees(tmp_path):
-    """``$FREEFORM_NATIVE_ARCH=x86-64-v3`` (AVX2 + FMA: the 16-lane code in two halves, what an AVX2-only host and
-    valgrind run): 0.5 s of six design bodies in a process of its own (the library is built once per process)
-    against the robots schedule here, to the agreement test's tolerances."""
+def test_a_group_of_lanes_equals_one_at_a_time_and_takes_most_items():
+    """This host's build (``native.built_for``): the vector path against the scalar one (``lanes_against_scalar``)."""
+    check_lanes_against_scalar(lanes_against_scalar())
+
+
+def test_auto_takes_the_native_step_on_the_cpu_where_it_runs():
+    """``schedule="auto"`` on the CPU (``resolve_schedule``, the one place that decides): the native step for what
+    it runs (the fast-math f32 path, with a compiler) where its build is measured the faster (an AVX2 or AVX-512
+    host), the robots schedule for the rest (f64 here; the strict path in make test's first stage)."""
+    grids = design_bodies(1)
+    runs = runtime.fast_math() and native.compiler() is not None and "AVX2" in runtime.cpu_features()
+    for cfg, expected in ((SimConfig(), "native" if runs else "robots"), (SimConfig(precision="f64"), "robots")):
+        sim = Simulator(cfg, arch="cpu")
+        assert sim.engine(sim.layout(grids)).schedule == expected, cfg.precision
+    assert resolve_schedule("auto", "cpu") == "robots"  # (no batch known yet: nothing chosen)
+
+
+def other_builds() -> list[str]:
+    """The instruction sets this host runs besides its own build's: AVX2 (x86-64-v3, 8 lanes) on an AVX-512 host,
+    and everywhere x86-64-v2 (SSE4.2: 4 lanes of GCC's generic vectors, what a NEON build compiles to)."""
+    features = runtime.cpu_features()
+    return (["x86-64-v3"] if "AVX512F" in features else []) + (["x86-64-v2"] if "SSE42" in features else [])
+
+
+CHILD = """import json, sys; sys.path.insert(0, sys.argv[1])
+from freeform.sim import SimConfig, Simulator, native
+from tests.test_native import design_bodies, lanes_against_scalar
+r = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule='native'), arch='cpu').simulate(design_bodies())
+print(json.dumps({'built_for': native.built_for(), 'auto_native': native.faster_here(), 'steps': r.steps.tolist(),
+                  'displacement': r.displacement.tolist(), 'com': r.com_end.tolist(), 'lanes': lanes_against_scalar()}))
+"""
+
+
+@fast_math_only
+@needs_compiler
+def test_builds_for_other_instruction_sets_agree():
+    """Every build this host runs besides its own (``other_builds``; $FREEFORM_NATIVE_ARCH), each in a process of
+    its own (the library is built once per process; cached as any build is, so a later run loads it), the processes
+    at once: 0.5 s of six design bodies against the robots schedule here, to the agreement test's tolerances, and
+    its vector path against its scalar one."""
     import json
     import os
     import subprocess
 
-    script = ("import json, sys; sys.path.insert(0, sys.argv[1])\n"
-              "from freeform.sim import SimConfig, Simulator, native\n"
-              "from tests.test_native import design_bodies\n"
-              "r = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule='native'), arch='cpu')"
-              ".simulate(design_bodies())\n"
-              "print(json.dumps({'flags': native.flags(), 'auto_native': native.faster_here(), "
-              "'steps': r.steps.tolist(), "
-              "'displacement': r.displacement.tolist(), 'com': r.com_end.tolist()}))\n")
-    env = {**os.environ, "FREEFORM_NATIVE_ARCH": "x86-64-v3", "FREEFORM_NATIVE_CACHE": str(tmp_path)}
-    done = subprocess.run([sys.executable, "-c", script, str(ROOT)], capture_output=True, text=True, env=env,
-                          timeout=300)
-    assert done.returncode == 0, done.stderr[-3000:]
-    theirs = json.loads(done.stdout.strip().splitlines()[-1])
-    assert "-march=x86-64-v3" in theirs["flags"] and len(list(tmp_path.glob("native_step_*.so"))) == 1
-    assert not theirs["auto_native"]  # (auto keeps Taichi's step for a build measured slower than it)
+    children = {}
+    for arch in other_builds():
+        env = {**os.environ, "FREEFORM_NATIVE_ARCH": arch}
+        children[arch] = subprocess.Popen([sys.executable, "-c", CHILD, str(ROOT)], stdout=subprocess.PIPE,
+                                          stderr=subprocess.PIPE, text=True, env=env)
     robots = Simulator(SimConfig(burn_in=0.1, duration=0.4, schedule="robots"), arch="cpu").simulate(design_bodies())
-    np.testing.assert_array_equal(theirs["steps"], robots.steps.numpy())
-    np.testing.assert_allclose(theirs["displacement"], robots.displacement.numpy(), atol=ATOL_DISPLACEMENT)
-    np.testing.assert_allclose(theirs["com"], robots.com_end.numpy(), atol=ATOL_COM_M)
+    for arch, child in children.items():
+        out, err = child.communicate(timeout=300)
+        assert child.returncode == 0, err[-3000:]
+        theirs = json.loads(out.strip().splitlines()[-1])
+        lanes = {"x86-64-v3": 8, "x86-64-v2": 4}[arch]
+        assert f"-march={arch}" in theirs["built_for"], theirs["built_for"]
+        assert f"{lanes} lanes" in theirs["built_for"] and theirs["auto_native"] == (lanes == 8), theirs["built_for"]
+        np.testing.assert_array_equal(theirs["steps"], robots.steps.numpy())
+        np.testing.assert_allclose(theirs["displacement"], robots.displacement.numpy(), atol=ATOL_DISPLACEMENT)
+        np.testing.assert_allclose(theirs["com"], robots.com_end.numpy(), atol=ATOL_COM_M)
+        check_lanes_against_scalar(theirs["lanes"])

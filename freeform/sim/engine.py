@@ -147,10 +147,10 @@ class Engine:
 
     schedule: "robots" (one worker per CPU thread taking whole robots from a queue, many steps per launch;
     the CPU default; arrays in "aos" order), "flat" (one thread per link/voxel/robot; the CUDA default; "soa") or
-    "native" (the robots schedule's steps compiled by the host's C++ compiler, 16 items per vector instruction:
+    "native" (the robots schedule's steps compiled by the host's C++ compiler, 8 or 16 items per vector instruction:
     ``native.py``; the f32 production path, Voxelyze semantics, a fixed dt, the flat floor; refused otherwise).
-    "auto" on the CPU is "native" where it runs the batch on an AVX-512 host and a compiler built it, else
-    "robots".
+    "auto": ``schedules.resolve_schedule`` decides (on the CPU "native" where it runs the batch and is measured the
+    faster, else "robots").
     Both compute the same physics (bit for bit in f64 up to fast-math reassociation, see docs/physics.md).
     arrays: the ``DeviceArrays`` to use (a Simulator passes its own, reused across batches); None = fresh ones.
     block_dim: the robots schedule's lanes per robot (``schedules.make_kernels``); None = 1 on the CPU, on CUDA
@@ -161,11 +161,10 @@ class Engine:
     def __init__(self, layout: Layout, config: SimConfig, arch: str = "auto", schedule: str = "auto",
                  arrays: DeviceArrays | None = None, block_dim: int | None = None):
         config.validate()
-        if schedule not in SCHEDULES:
-            raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
         self.arch = runtime.ensure(arch, config.backend)
         max_links = int(np.diff(layout.link_start).max()) if layout.num_robots else 0
-        self.schedule = resolve_schedule(schedule, self.arch, max_links)
+        initial = initial_state(layout, config)
+        self.schedule = resolve_schedule(schedule, self.arch, max_links, config.precision, initial.switches)
         self.layout, self.config = layout, config
         # one thread per robot walks its own voxels and links: keep each item's columns together ("aos", one
         # voxel = a few cache lines); one thread per item (GPU): neighbouring threads read neighbouring addresses
@@ -173,19 +172,9 @@ class Engine:
         self.order = "soa" if self.arch == "cuda" else ORDER_OF[self.schedule]
         self.precision = config.precision
         self.np_real = np.float64 if config.precision == "f64" else np.float32
-        initial = initial_state(layout, config)
         self.rl4design = initial.switches.rl4design
-        self.counts = initial.counts
-        self.dt0, self.max_steps = initial.dt0, initial.max_steps
+        self.counts, self.dt0, self.max_steps = initial.counts, initial.dt0, initial.max_steps
         self.terrain, self.offset, self.switches = initial.terrain, initial.offset, initial.switches
-        if schedule == "auto" and self.arch == "cpu" and native.usable(config.precision, self.switches):
-            self.schedule = "native"  # (the same buffers and order as "robots": only the stepping differs)
-        if self.schedule == "native":  # (refused before anything is built; compiled now, not at the first step)
-            why = native.unsupported(config.precision, self.switches)
-            if why is not None:
-                raise ValueError(f"schedule='native' does not run {why}: use schedule='robots' (docs/physics.md, "
-                                 "\"The native schedule\")")
-            native.library()
         simt = self.arch == "cuda" and self.schedule == "robots"
         if block_dim is None:
             block_dim = block_dim_for(max_links, layout.num_robots) if simt else 1
@@ -386,14 +375,11 @@ class Engine:
         elif self.schedule == "robots":
             k.control_robots(*(args[name] for name in CONTROL_ARGS[:-1]), n, self._workers)
             self.steps_done += n
-        elif self.schedule == "native":
-            k.command(*(args[name] for name in COMMAND_ARGS))
-            self._advance(n)
-            k.sense(*(args[name] for name in (*BUFFERS, "out")))
-        elif self.config.graph_launches and launches * UNROLL >= n and (graph := k.control_graph(launches)) is not None:
+        elif (self.schedule == "flat" and self.config.graph_launches and launches * UNROLL >= n
+              and (graph := k.control_graph(launches)) is not None):
             graph.run({**args, "n_steps": UNROLL})  # (every launch UNROLL steps: the last ones idle)
             self.steps_done += launches * UNROLL
-        else:
+        else:  # (native; flat without a graph)
             k.command(*(args[name] for name in COMMAND_ARGS))
             self._advance(n)
             k.sense(*(args[name] for name in (*BUFFERS, "out")))

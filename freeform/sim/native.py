@@ -1,16 +1,17 @@
 """The CPU step compiled by the host's C++ compiler: the ``native`` schedule (docs/physics.md, "The native schedule").
 
 Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD across links, probed"); the same
-link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: 16 links or voxels per
-AVX-512 instruction along the common path, Voxelyze's branches for the rest) run 3.3× as fast per thread, 2.2–2.4×
-on 2 cores. The engine keeps its Taichi buffers and every other kernel (layout, transfers, commands, senses,
-snapshots); only the stepping runs here, on the three buffers themselves, which this schedule keeps in host
-memory (numpy arrays the CPU's kernels take in place: ``Engine._advance``).
+link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: a group of links or voxels
+per vector instruction along the common path, as many as the target's registers hold — 16 with AVX-512, 8 with AVX2
+— Voxelyze's branches for the rest) run 2.4–3.3× as fast per thread as Taichi's. The engine keeps its Taichi
+buffers and every other kernel (layout, transfers, commands, senses, snapshots); only the stepping runs here, on
+the three buffers themselves, which this schedule keeps in host memory (numpy arrays the CPU's kernels take in
+place: ``Engine._advance``).
 
 What it runs is the f32 production path: fast-math, Voxelyze semantics, a fixed dt, the flat floor (or none), any
 actuation (the sine, commands, residual commands with their ramps), traces. ``schedule="auto"`` takes it on the CPU
-for every such batch on an AVX-512 host when a compiler is found (``usable``; built for AVX2 it is slower than
-Taichi's kernels), the robots schedule otherwise; ``schedule="native"`` refuses anything else naming the setting
+for every such batch where a compiler built it for AVX2 or AVX-512 (``usable``; ``schedules.resolve_schedule``
+decides), the robots schedule otherwise; ``schedule="native"`` refuses anything else naming the setting
 (``unsupported``).
 
 The library is compiled on first use (g++, or ``$CXX``; ``-march=native``) into ``$FREEFORM_NATIVE_CACHE``
@@ -54,7 +55,9 @@ def flags() -> tuple[str, ...]:
     """The compiler's flags: ``FLAGS`` and the target's ``-march``/``-mtune``."""
     arch = target()
     return (*FLAGS, f"-march={arch}", f"-mtune={'generic' if arch.startswith('x86-64') else arch}")
-ENTRY_POINTS = ("advance", "links_scalar", "links_vector", "links_voxels_scalar", "links_voxels_vector")
+ENTRY_POINTS = ("advance", "links_vector", "links_voxels_scalar", "links_voxels_vector")
+# the lanes of the builds measured faster than Taichi's step: AVX2's 8 and AVX-512's 16 (docs/physics.md)
+MEASURED_LANES = (8, 16)
 
 
 def unsupported(precision: str, switches: Any) -> str | None:
@@ -138,6 +141,7 @@ def library() -> ctypes.CDLL:
     for name in ENTRY_POINTS[1:]:
         getattr(so, name).argtypes = [*pointers, ctypes.c_int, ctypes.c_int]
         getattr(so, name).restype = ctypes.c_long
+    so.lanes.restype, so.instruction_set.restype = ctypes.c_int, ctypes.c_char_p
     return so
 
 
@@ -150,20 +154,24 @@ def available() -> bool:
     return True
 
 
-def faster_here() -> bool:
-    """Whether the native step is measured faster than Taichi's here: an AVX-512 host, built for it (its 16 lanes
-    are one instruction). Built for AVX2 (x86-64-v3, two instructions a lane group, gathers that cost more) it ran
-    1.8x *slower* than the robots schedule on one thread (docs/physics.md, "The native schedule")."""
-    from freeform.sim import runtime
+def built_for() -> str:
+    """The instruction set the library was built for and its lanes, e.g. "AVX2, 8 lanes (-march=x86-64-v3)"."""
+    so = library()
+    return f"{so.instruction_set().decode()}, {so.lanes()} lanes (-march={target()})"
 
-    return "AVX512F" in runtime.cpu_features() and target() == "native"
+
+def faster_here() -> bool:
+    """Whether the native step is measured faster than Taichi's for the instruction set it is built for here: AVX2
+    (8 lanes; 2.4x per thread) and AVX-512 (16; 3.3x). A build of another width (4: SSE or NEON) is unmeasured, so
+    Taichi's step stays (docs/physics.md, "The native schedule")."""
+    return library().lanes() in MEASURED_LANES
 
 
 def usable(precision: str, switches: Any) -> bool:
     """Whether ``schedule="auto"`` takes the native step on the CPU for a batch of this ``precision`` and these
-    switches: it runs them (``unsupported``), it is faster here (``faster_here``) and a compiler built it (else the
-    robots schedule, silently)."""
-    return unsupported(precision, switches) is None and faster_here() and available()
+    switches: it runs them (``unsupported``), a compiler built it and it is faster here (``faster_here``); else the
+    robots schedule, silently."""
+    return unsupported(precision, switches) is None and available() and faster_here()
 
 
 def advance(reals: np.ndarray, ints: np.ndarray, f64s: np.ndarray, n_steps: int, threads: int, switches: Any) -> int:

@@ -1,37 +1,60 @@
-// One step of the CPU simulator's physics in C++, for scripts/probe_native_step.py: what the link and voxel phases
-// cost when compiled outside Taichi, one item at a time and 16 items per instruction (issue 43; docs/physics.md,
-// "The step in C++, probed").
+// The CPU simulator's step in C++: the native schedule (freeform/sim/native.py; docs/physics.md, "The native
+// schedule"; issues 43 and 58).
 //
 // The same arithmetic as freeform/sim/links.py, voxels.py and quat.py on the f32 path — Voxelyze semantics, fixed
-// dt (no rl4design slips, no omega^2 store), the sine's actuation, the flat floor — on the engine's own packed
-// buffers; the column indices and widths come from freeform/sim/state.py through the generated layout.h (the probe
-// writes it), so this file never spells an offset. The link tables are read column by column (copied so on entry
-// and back on exit: this code's own layout, which makes a column of 16 consecutive links one vector load); the
-// voxel rows stay the engine's and are gathered.
+// dt (no rl4design slips, no omega^2 store), any actuation, the flat floor or none — on the engine's own packed
+// buffers; the column indices and widths come from freeform/sim/state.py through the generated layout.h
+// (native.layout_header), so this file never spells an offset. The link tables are read column by column (copied
+// so around each robot's steps: this code's own layout, which makes a column of a group's consecutive links one
+// vector load); the voxel rows stay the engine's and are gathered.
 //
 // *_scalar: every item with Voxelyze's branches (link_update, voxel_update).
-// *_vector: 16 items at once (link_group, voxel_group: GCC's vector extensions, one source of the math templated
-// on the lane type) along the common path, and every lane off it again by the branching update, before anything
-// of that lane is stored. A link's common path: the small angle, its end rotation within atan's series; a
-// voxel's: not held fixed, no snapshot this step (its rotation's cos and sin, and its Poisson strain's pow, are
-// glibc's vector maths where a lane needs them).
+// *_vector: a group of LANES items at once (link_group, voxel_group: GCC's vector extensions, one source of the
+// math templated on the lane type, LANES following the target) along the common path, and every lane off it again
+// by the branching update, before anything of that lane is stored. A link's common path: the small angle, its end
+// rotation within atan's series; a voxel's: not held fixed, no snapshot this step (its rotation's cos and sin, and
+// its Poisson strain's pow, are glibc's vector maths where a lane needs them: libmvec's _ZGVeN16v_ / _ZGVdN8v_
+// variants).
 #include <cfloat>
 #include <cmath>
 #include <cstdint>
 #include <algorithm>
 #include <atomic>
+#include <condition_variable>
 #include <cstring>
-#ifdef __AVX512F__
+#include <functional>
+#include <mutex>
+#if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 #include <thread>
+#include <type_traits>
+#include <unistd.h>
 #include <vector>
 
 #include "layout.h"
 
 namespace {
 
-constexpr int LANES = 16;
+// The lanes of a group follow the target's vector registers: 16 floats in AVX-512's, 8 in AVX2's, 4 otherwise (SSE,
+// NEON: GCC's generic vectors, plain loops where x86 has an instruction). -DNATIVE_LANES=n overrides (a group wider
+// than the registers runs in pieces: the AVX2 build did so before it had its own width, 1.8x slower than Taichi's
+// step; docs/notes/2026-11-28-native-avx2.md).
+#if defined(NATIVE_LANES)
+#define LANE_COUNT NATIVE_LANES
+#elif defined(__AVX512F__)
+#define LANE_COUNT 16
+#elif defined(__AVX2__)
+#define LANE_COUNT 8
+#else
+#define LANE_COUNT 4
+#endif
+#if defined(__AVX512F__) && LANE_COUNT == 16
+#define ISA_AVX512 1
+#elif defined(__AVX2__) && LANE_COUNT == 8
+#define ISA_AVX2 1
+#endif
+constexpr int LANES = LANE_COUNT;
 typedef float vf __attribute__((vector_size(4 * LANES)));
 typedef int32_t vi __attribute__((vector_size(4 * LANES)));
 
@@ -405,12 +428,18 @@ inline int voxel_update(const Regions& s, int v, const Robot& rb) {
   return (bits & 0x7F800000u) == 0x7F800000u;
 }
 
-// ---- 16 links at once ----
+// ---- a group of links at once ----
 
-// (the host's gather instruction where it has one: g++ builds a gather from 16 loads and inserts otherwise)
+// The host's gather instruction (AVX2's vgatherdps: one instruction where lane-by-lane loads take a load and an
+// insert per lane; -DNATIVE_GATHER=0 builds those instead, for hosts whose gathers are microcoded), else a loop.
+#ifndef NATIVE_GATHER
+#define NATIVE_GATHER 1
+#endif
 inline vf gather(const float* base, vi at) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vf)_mm512_i32gather_ps((__m512i)at, base, 4);
+#elif defined(ISA_AVX2) && NATIVE_GATHER
+  return (vf)_mm256_i32gather_ps(base, (__m256i)at, 4);
 #else
   vf r;
   for (int i = 0; i < LANES; ++i) r[i] = base[at[i]];
@@ -418,8 +447,10 @@ inline vf gather(const float* base, vi at) {
 #endif
 }
 inline vi gather(const int32_t* base, vi at) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vi)_mm512_i32gather_epi32((__m512i)at, base, 4);
+#elif defined(ISA_AVX2) && NATIVE_GATHER
+  return (vi)_mm256_i32gather_epi32(base, (__m256i)at, 4);
 #else
   vi r;
   for (int i = 0; i < LANES; ++i) r[i] = base[at[i]];
@@ -439,26 +470,66 @@ inline vi first_lanes(int count) {
 }
 // a lane's int where it is active, else lane 0's (so that every index a short group gathers with is a valid one)
 inline vi or_first(vi active, vi x) { return sel(active, x, vi{} + x[0]); }
-// the lanes `on` of v into p … p+15 (a masked store: the lanes beyond a short group belong to the next robot, which
-// another thread may be writing)
+// a mask's lanes as the bits of an int (lane i: bit i)
+inline unsigned lane_bits(vi m) {
+#if defined(ISA_AVX512)
+  return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
+#elif defined(ISA_AVX2)
+  return unsigned(_mm256_movemask_ps((__m256)m));
+#else
+  unsigned r = 0;
+  for (int i = 0; i < LANES; ++i) r |= unsigned(m[i] != 0) << i;
+  return r;
+#endif
+}
+// whether every lane of a mask is set
+inline bool all(vi m) {
+#if defined(ISA_AVX2)
+  return _mm256_movemask_ps((__m256)m) == 0xFF;
+#else
+  int r = -1;
+  for (int i = 0; i < LANES; ++i) r &= m[i];
+  return r != 0;
+#endif
+}
+// the lanes `on` of v into p … p+LANES−1 (a masked store: the lanes beyond a short group belong to the next robot,
+// which another thread may be writing)
 inline void store_on(float* p, vf v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_storeu_ps(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512)v);
+#elif defined(ISA_AVX2)  // (a plain store where every lane is on: a masked store costs more, on AMD's cores most)
+  if (all(on)) _mm256_storeu_ps(p, (__m256)v);
+  else _mm256_maskstore_ps(p, (__m256i)on, (__m256)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
 #endif
 }
 inline void store_on(int32_t* p, vi v, vi on) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   _mm512_mask_storeu_epi32(p, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)v);
+#elif defined(ISA_AVX2)
+  if (all(on)) _mm256_storeu_si256((__m256i*)p, (__m256i)v);
+  else _mm256_maskstore_epi32(p, (__m256i)on, (__m256i)v);
 #else
   for (int i = 0; i < LANES; ++i)
     if (on[i]) p[i] = v[i];
 #endif
 }
+// whether any lane of a mask is set
+inline bool any(vi m) {
+#if defined(ISA_AVX512)
+  return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0;
+#elif defined(ISA_AVX2)
+  return !_mm256_testz_si256((__m256i)m, (__m256i)m);
+#else
+  int r = 0;
+  for (int i = 0; i < LANES; ++i) r |= m[i];
+  return r != 0;
+#endif
+}
 
-// Links lk … lk+count−1 (count ≤ 16) along the common path; returns the lanes off it (a large-angle link, a regime
+// Links lk … lk+count−1 (count ≤ LANES) along the common path; returns the lanes off it (a large-angle link, a regime
 // switch into the large angle, an end rotation beyond atan's series), whose state it leaves as it was, and sets
 // `diverged`.
 inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float max_strain, int& diverged) {
@@ -537,41 +608,38 @@ inline vi link_group(const Regions& s, int lk, int count, float prev_dt, float m
   store_on(s.li + lk + LI_FLAGS * L, vi{} + (FLAG_SMALL | FLAG_VALID), on);
   // 8. divergence on the path's lanes (NaN and inf by the exponent bits, as link_update)
   const vi bad = on & ((strain > max_strain) | (((vi)strain & 0x7F800000) == 0x7F800000));
-  for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
+  diverged |= any(bad);
   return off;
 }
 
-// a scatter of the lanes on `on`, and a square root (the host's AVX-512 instructions where it has them)
-inline void scatter(float* base, vi at, vf v, vi on) {
-#ifdef __AVX512F__
-  _mm512_mask_i32scatter_ps(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at, (__m512)v, 4);
+// v's lanes `on` into base[at[i]], where lane i's index is lane 0's + i·W (a group's consecutive rows of width W:
+// the lanes `on` are among them): AVX-512's scatter; elsewhere (AVX2 has no scatter) lane by lane at fixed offsets
+// from lane 0's, and without a test per lane when every lane is on (as good as always).
+template <int W, class T, class TV> inline void scatter_rows(T* base, vi at, TV v, vi on) {
+#if defined(ISA_AVX512)
+  const __mmask16 k = _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512());
+  if constexpr (std::is_floating_point_v<T>) _mm512_mask_i32scatter_ps(base, k, (__m512i)at, (__m512)v, 4);
+  else _mm512_mask_i32scatter_epi32(base, k, (__m512i)at, (__m512i)v, 4);
 #else
-  for (int i = 0; i < LANES; ++i)
-    if (on[i]) base[at[i]] = v[i];
-#endif
-}
-inline void scatter(int32_t* base, vi at, vi v, vi on) {
-#ifdef __AVX512F__
-  _mm512_mask_i32scatter_epi32(base, _mm512_cmpneq_epi32_mask((__m512i)on, _mm512_setzero_si512()), (__m512i)at,
-                               (__m512i)v, 4);
-#else
-  for (int i = 0; i < LANES; ++i)
-    if (on[i]) base[at[i]] = v[i];
+  T* p = base + at[0];
+  if (all(on)) {
+    for (int i = 0; i < LANES; ++i) p[i * W] = v[i];
+  } else {
+    for (int i = 0; i < LANES; ++i)
+      if (on[i]) p[i * W] = v[i];
+  }
 #endif
 }
 inline vf vsqrt(vf x) {
-#ifdef __AVX512F__
+#if defined(ISA_AVX512)
   return (vf)_mm512_sqrt_ps((__m512)x);
+#elif defined(ISA_AVX2)
+  return (vf)_mm256_sqrt_ps((__m256)x);
 #else
   vf r;
   for (int i = 0; i < LANES; ++i) r[i] = std::sqrt(x[i]);
   return r;
 #endif
-}
-inline bool any(vi m) {
-  int r = 0;
-  for (int i = 0; i < LANES; ++i) r |= m[i];
-  return r != 0;
 }
 // cos, sin and pow lane by lane, in loops g++ hands to glibc's vector maths (libmvec) under -ffast-math
 inline vf vcos(vf x) {
@@ -603,13 +671,13 @@ template <class F> inline V3<F> gather3(const float* base, vi at) {
   return {gather(base, at), gather(base, at + 1), gather(base, at + 2)};
 }
 inline void scatter3(float* base, vi at, V3<vf> v, vi on) {
-  scatter(base, at, v.x, on);
-  scatter(base, at + 1, v.y, on);
-  scatter(base, at + 2, v.z, on);
+  scatter_rows<VR_W>(base, at, v.x, on);
+  scatter_rows<VR_W>(base, at + 1, v.y, on);
+  scatter_rows<VR_W>(base, at + 2, v.z, on);
 }
 
-// Voxels v … v+count−1 (count ≤ 16) of one robot along the common path; returns the lanes off it, whose state it leaves as it was,
-// and sets `diverged`.
+// Voxels v … v+count−1 (count ≤ LANES) of one robot along the common path; returns the lanes off it, whose state it
+// leaves as it was, and sets `diverged`.
 inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int& diverged) {
   const int L = s.links;
   const vf zero = {}, one = zero + 1.0f;
@@ -636,7 +704,10 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
     for (int side = 0; side < 2; ++side) {
       const vi lk = gather(s.vi, irow + VI_SLOT + 2 * a + side), has = lk >= 0, at = sel(has, lk, vi{});
       const vf eps = gather(s.lr + LR_STRAIN * L, at);
-      const vf coef = gather(s.lt, gather(s.li + LI_LMAT * L, at) * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG));
+      // (a lane without a link reads link 0's columns, another robot's, maybe never copied in this call: its
+      // material is taken as 0, a valid index, and what it reads is discarded)
+      const vi lmat = sel(has, gather(s.li + LI_LMAT * L, at), vi{});
+      const vf coef = gather(s.lt, lmat * LT_W + (side == 1 ? LT_PSPOS : LT_PSNEG));
       strain[a] += sel(has, eps * coef, zero);
       cnt -= has;
       const int f = side == 1 ? LR_FP : LR_FN, mm = side == 1 ? LR_MP : LR_MN;
@@ -707,10 +778,10 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
   const vi on = ~off & active;
   const vf norm1 = fabs_(pos.x) + fabs_(pos.y) + fabs_(pos.z) + fabs_(amom.x) + fabs_(amom.y) + fabs_(amom.z);
   const vi bad = on & (((vi)norm1 & 0x7F800000) == 0x7F800000);
-  for (int i = 0; i < LANES; ++i) diverged |= bad[i] != 0;
+  diverged |= any(bad);
   scatter3(s.vr, row + VR_POS, pos, on);
   scatter3(s.vr, row + VR_MOM, mom, on);
-  scatter(s.vr, row + VR_ORI, q.w, on);
+  scatter_rows<VR_W>(s.vr, row + VR_ORI, q.w, on);
   scatter3(s.vr, row + VR_ORI + 1, V3<vf>{q.x, q.y, q.z}, on);
   scatter3(s.vr, row + VR_AMOM, amom, on);
   const vf Lm = gather(s.mt, m + MT_L), L2 = Lm * Lm;
@@ -720,63 +791,105 @@ inline vi voxel_group(const Regions& s, int v0, int count, const Robot& rb, int&
                                         sel(poisson, L2 * (1.0f + ps.x) * (1.0f + ps.y), L2)}, on);
   scatter3(s.vr, row + VR_TSUM, V3<vf>{sel(poisson, ps.y + ps.z, zero), sel(poisson, ps.x + ps.z, zero),
                                        sel(poisson, ps.x + ps.y, zero)}, on);
-  scatter(s.vi, irow + VI_FLAGS, new_flags, on);
+  scatter_rows<VI_W>(s.vi, irow + VI_FLAGS, new_flags, on);
   const vf temp = gather(s.vr, row + VR_TBASE) +
                   rb.temp_amp * wave(rb, gather(s.vr, row + VR_CMD), gather(s.vr, row + VR_CMD0),
                                      rb.sin * gather(s.mt, m + MT_COSPHI) + rb.cos * gather(s.mt, m + MT_SINPHI));
-  scatter(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
+  scatter_rows<VR_W>(s.vr, row + VR_SIZE, Lm * (1.0f + temp * gather(s.mt, m + MT_CTE)), on);
   return off;
 }
 
-// A group of up to 16 links from lk (to `end`) at once, the lanes off the common path by link_update; returns how
+// A group of up to LANES links from lk (to `end`) at once, the lanes off the common path by link_update; returns how
 // many those were.
 inline int links_at_once(const Regions& s, int lk, int end, float prev_dt, float max_strain, int& diverged) {
   const int count = end - lk < LANES ? end - lk : LANES;
   const vi off = link_group(s, lk, count, prev_dt, max_strain, diverged);
   int slow = 0;
-  for (int i = 0; i < count; ++i)
-    if (off[i]) {
-      diverged |= link_update(s, lk + i, prev_dt, max_strain);
-      ++slow;
-    }
+  for (unsigned lanes = lane_bits(off); lanes; lanes &= lanes - 1, ++slow) {  // (each lane off, lowest first)
+    const int i = __builtin_ctz(lanes);
+    diverged |= link_update(s, lk + i, prev_dt, max_strain);
+  }
   return slow;
 }
 inline int voxels_at_once(const Regions& s, int v, int end, const Robot& rb, int& diverged) {
   const int count = end - v < LANES ? end - v : LANES;
   const vi off = voxel_group(s, v, count, rb, diverged);
   int slow = 0;
-  for (int i = 0; i < count; ++i)
-    if (off[i]) {
-      diverged |= voxel_update(s, v + i, rb);
-      ++slow;
-    }
+  for (unsigned lanes = lane_bits(off); lanes; lanes &= lanes - 1, ++slow) {  // (each lane off, lowest first)
+    const int i = __builtin_ctz(lanes);
+    diverged |= voxel_update(s, v + i, rb);
+  }
   return slow;
 }
 
-// fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; plain threads,
-// not an OpenMP runtime beside torch's); the sum of what fn returned.
+// Workers kept between calls (a control period of one step is a call: starting threads per call cost as much as
+// the step), woken for each call's robots. Calls are serialised (one pool per process: this_process_pool).
+class Pool {
+ public:
+  // fn() on `threads` threads at once, this one among them; returns when all have returned
+  void run(int threads, const std::function<void()>& fn) {
+    std::lock_guard<std::mutex> one_call(call_);
+    std::unique_lock<std::mutex> lock(m_);
+    while (int(workers_.size()) < threads - 1) {
+      const int id = int(workers_.size());
+      workers_.emplace_back([this, id] { serve(id); });
+    }
+    job_ = &fn;
+    wanted_ = pending_ = threads - 1;
+    ++generation_;
+    lock.unlock();
+    wake_.notify_all();
+    fn();
+    lock.lock();
+    done_.wait(lock, [&] { return pending_ == 0; });
+  }
+ private:
+  void serve(int id) {
+    long seen = 0;
+    std::unique_lock<std::mutex> lock(m_);
+    for (;;) {
+      wake_.wait(lock, [&] { return generation_ != seen; });
+      seen = generation_;
+      if (id >= wanted_) continue;  // (this call wants fewer threads)
+      const std::function<void()>* job = job_;
+      lock.unlock();
+      (*job)();
+      lock.lock();
+      if (--pending_ == 0) done_.notify_one();
+    }
+  }
+  std::mutex call_, m_;
+  std::condition_variable wake_, done_;
+  std::vector<std::thread> workers_;
+  const std::function<void()>* job_ = nullptr;
+  long generation_ = 0;
+  int wanted_ = 0, pending_ = 0;
+};
+
+// This process's pool, never destroyed (its idle workers end with the process). A process forked from one that
+// had a pool gets a new one: the copy's workers are not there (the old one is left untouched).
+Pool& this_process_pool() {
+  static Pool* pool = nullptr;
+  static pid_t owner = 0;
+  if (pool == nullptr || owner != getpid()) {
+    pool = new Pool;
+    owner = getpid();
+  }
+  return *pool;
+}
+
+// fn(r) for every robot r, `threads` workers taking the next robot in turn (robots are independent; the pool's
+// threads, not an OpenMP runtime beside torch's); the sum of what fn returned.
 template <class Fn> long for_each_robot(int robots, int threads, Fn fn) {
   std::atomic<int> next{0};
   std::atomic<long> total{0};
-  auto work = [&] {
+  const std::function<void()> work = [&] {
     long sum = 0;
     for (int r; (r = next.fetch_add(1)) < robots;) sum += fn(r);
     total += sum;
   };
-  std::vector<std::thread> pool;
-  for (int i = 1; i < std::min(threads, robots); ++i) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
+  this_process_pool().run(std::max(1, std::min(threads, robots)), work);
   return total;
-}
-
-template <typename T>
-void transpose(T* rows, T* columns, int items, int width, bool into_columns) {
-  for (int i = 0; i < items; ++i)
-    for (int c = 0; c < width; ++c) {
-      if (into_columns) columns[c * items + i] = rows[i * width + c];
-      else rows[i * width + c] = columns[c * items + i];
-    }
 }
 
 // ---- the robot phase (clock.py:robot_advance with a fixed dt; schedules.py:trace_sample) ----
@@ -860,93 +973,119 @@ inline void robot_advance(const Regions& s, const Batch& b, int r) {
   if (every > 0 && step % every == 0 && step / every < b.h[HDR_TRACE_FRAMES]) summarise_robot(s, b, r, step / every);
 }
 
-// The link tables column by column for the advance, and back.
+// The link tables column by column (this code's layout: LANES consecutive links' column is one vector load), kept
+// between calls (grown, never shrunk: nothing allocated per control period). Each robot's links are copied in
+// before its first step of a call (what the link phase reads: the last pose, rotation vectors, the ints) and back
+// after its last (what it writes: every column but OMEGA2, the flags), by the thread that steps it: in its cache,
+// on every thread at once, and not at all for a robot that does not step.
 struct Columns {
   std::vector<float> lr;
   std::vector<int32_t> li;
-  float* lr_rows;
-  int32_t* li_rows;
-  int links;
-  Columns(float* reals, int32_t* ints) : links(ints[HDR_N_LINKS]) {
-    lr.resize(size_t(links) * LR_W + LANES);  // (+ a group: a short group's full-width loads)
-    li.resize(size_t(links) * LI_W + LANES);
-    lr_rows = reals + ints[HDR_LR_AT];
-    li_rows = ints + ints[HDR_LI_AT];
-    transpose(lr_rows, lr.data(), links, LR_W, true);
-    transpose(li_rows, li.data(), links, LI_W, true);
-  }
-  ~Columns() {
-    transpose(lr_rows, lr.data(), links, LR_W, false);
-    transpose(li_rows, li.data(), links, LI_W, false);
+  void fit(int links) {  // (+ a group: a short group's full-width loads)
+    if (lr.size() < size_t(links) * LR_W + LANES) lr.resize(size_t(links) * LR_W + LANES);
+    if (li.size() < size_t(links) * LI_W + LANES) li.resize(size_t(links) * LI_W + LANES);
   }
 };
+constexpr int LR_READ = LR_A2 + 3, LR_WRITTEN = LR_MP + 3;  // (P2, A1, A2 first; OMEGA2, rl4design's, last)
+static_assert(LR_P2 == 0 && LR_A1 == 3 && LR_A2 == 6 && LR_OMEGA2 == LR_W - 1, "the link columns' order");
+
+struct LinkRows {  // the engine's link tables, row by row
+  float* lr;
+  int32_t* li;
+};
+inline void links_in(const Regions& s, const LinkRows& rows, int l0, int l1) {
+  const int L = s.links;
+  for (int lk = l0; lk < l1; ++lk) {
+    for (int c = 0; c < LR_READ; ++c) s.lr[c * L + lk] = rows.lr[lk * LR_W + c];
+    for (int c = 0; c < LI_W; ++c) s.li[c * L + lk] = rows.li[lk * LI_W + c];
+  }
+}
+inline void links_out(const Regions& s, const LinkRows& rows, int l0, int l1) {
+  const int L = s.links;
+  for (int lk = l0; lk < l1; ++lk) {
+    for (int c = 0; c < LR_WRITTEN; ++c) rows.lr[lk * LR_W + c] = s.lr[c * L + lk];
+    rows.li[lk * LI_W + LI_FLAGS] = s.li[LI_FLAGS * L + lk];
+  }
+}
+
+// One step of robot r: each link, then (VOXELS) each voxel, then (CLOCK) its clock and trace — schedules.py:
+// robot_steps with one lane. VECTOR: a group of lanes at once along the common path (else every item by the
+// branching updates). Returns false where a link or voxel diverged (the robot is marked so); counts into `slow` the
+// item-steps that went through the branching updates.
+template <bool VECTOR, bool VOXELS, bool CLOCK>
+inline bool robot_step(const Regions& s, const Batch& b, int r, float max_strain, long& slow) {
+  int32_t* robot = b.ri + r * RI_W;
+  const float prev_dt = float(b.rt[r * RT_W + RT_DTPREV]);
+  int diverged = 0;
+  for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += VECTOR ? LANES : 1) {
+    if (VECTOR) {
+      slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
+    } else {
+      diverged |= link_update(s, lk, prev_dt, max_strain);
+      ++slow;
+    }
+  }
+  if (!diverged && VOXELS) {  // (a diverged link aborts the step, as in VX)
+    const Robot rb = robot_now(b, r);
+    for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += VECTOR ? LANES : 1) {
+      if (VECTOR) {
+        slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
+      } else {
+        diverged |= voxel_update(s, v, rb);
+        ++slow;
+      }
+    }
+  }
+  if (diverged) {
+    robot[RI_STATUS] = STATUS_DIVERGED;
+    return false;
+  }
+  if (CLOCK) robot_advance(s, b, r);
+  return true;
+}
 
 // n_steps of every robot still stepping (running, its clock before its limit RT.UNTIL), the robots shared among
-// `threads` workers: each robot's links, then (VOXELS) its voxels, then (CLOCK) its clock and trace —
-// schedules.py:robot_steps with one lane. VECTOR: 16 items at once along the common path (else every item by the
-// branching updates). floor, command: Switches.floor, Switches.command. Returns how many item-steps went through
-// the branching updates.
+// `threads` workers (robot_step). floor, command: Switches.floor, Switches.command. Returns how many item-steps
+// went through the branching updates.
 template <bool VECTOR, bool VOXELS, bool CLOCK>
 long run(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
+  static std::mutex one_call;  // (the columns are kept between calls: Python threads calling at once take turns)
+  static Columns cols;
+  std::lock_guard<std::mutex> turn(one_call);
   const int32_t* h = ints;
-  Columns cols(reals, ints);
+  cols.fit(h[HDR_N_LINKS]);
   const Regions s{reals + h[HDR_VR_AT], cols.lr.data(), reals + h[HDR_MT_AT], reals + h[HDR_LT_AT], ints + h[HDR_VI_AT],
-                  cols.li.data(), cols.links};
+                  cols.li.data(), h[HDR_N_LINKS]};
+  const LinkRows rows{reals + h[HDR_LR_AT], ints + h[HDR_LI_AT]};
   const Batch b{h, ints + h[HDR_RI_AT], f64s + h[HDR_RT_AT], f64s + h[HDR_TR_AT], f64s + h[HDR_GP_AT], floor, command};
   const float max_strain = float(b.gp[GP_MAX_STRAIN]);
   return for_each_robot(h[HDR_N_ROBOTS], threads, [&](int r) {
     long slow = 0;
-    int32_t* robot = b.ri + r * RI_W;
+    const int32_t* robot = b.ri + r * RI_W;
     const double* clock = b.rt + r * RT_W;
-    for (int step = 0; step < n_steps; ++step) {
-      if (!(robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL])) break;
-      const float prev_dt = float(clock[RT_DTPREV]);
-      int diverged = 0;
-      for (int lk = robot[RI_LSTART]; lk < robot[RI_LEND]; lk += VECTOR ? LANES : 1) {
-        if (VECTOR) {
-          slow += links_at_once(s, lk, robot[RI_LEND], prev_dt, max_strain, diverged);
-        } else {
-          diverged |= link_update(s, lk, prev_dt, max_strain);
-          ++slow;
-        }
-      }
-      if (diverged) {  // (a diverged link aborts the step, as in VX)
-        robot[RI_STATUS] = STATUS_DIVERGED;
+    int step = 0;
+    for (; step < n_steps && robot[RI_STATUS] == STATUS_RUNNING && clock[RT_T] < clock[RT_UNTIL]; ++step) {
+      if (step == 0) links_in(s, rows, robot[RI_LSTART], robot[RI_LEND]);
+      if (!robot_step<VECTOR, VOXELS, CLOCK>(s, b, r, max_strain, slow)) {
+        ++step;
         break;
       }
-      if (!VOXELS) continue;
-      const Robot rb = robot_now(b, r);
-      for (int v = robot[RI_VSTART]; v < robot[RI_VEND]; v += VECTOR ? LANES : 1) {
-        if (VECTOR) {
-          slow += voxels_at_once(s, v, robot[RI_VEND], rb, diverged);
-        } else {
-          diverged |= voxel_update(s, v, rb);
-          ++slow;
-        }
-      }
-      if (diverged) {
-        robot[RI_STATUS] = STATUS_DIVERGED;
-        break;
-      }
-      if (CLOCK) robot_advance(s, b, r);
     }
+    if (step > 0) links_out(s, rows, robot[RI_LSTART], robot[RI_LEND]);
     return slow;
   });
 }
 
 }  // namespace
 
-// Engine.advance on the native schedule (every phase, 16 items at once).
+// Engine.advance on the native schedule (every phase, LANES items at once).
 extern "C" long advance(float* reals, int32_t* ints, double* f64s, int n_steps, int threads, int floor, int command) {
   return run<true, true, true>(reals, ints, f64s, n_steps, threads, floor, command);
 }
 
-// For scripts/probe_native_step.py and the tests: the link phase alone, or the link and voxel phases without the
-// robot phase (the clock stands still: scripts/profile_sim.py's segments), one item at a time or 16 at once, with
-// the floor and the sine's actuation.
-extern "C" long links_scalar(float* reals, int32_t* ints, double* f64s, int n, int threads) {
-  return run<false, false, false>(reals, ints, f64s, n, threads, 1, 0);
-}
+// For the tests and scripts/profile_sim.py's segments: the link phase alone, or the link and voxel phases without
+// the robot phase (the clock stands still), one item at a time or LANES at once, with the floor and the sine's
+// actuation.
 extern "C" long links_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
   return run<true, false, false>(reals, ints, f64s, n, threads, 1, 0);
 }
@@ -955,4 +1094,16 @@ extern "C" long links_voxels_scalar(float* reals, int32_t* ints, double* f64s, i
 }
 extern "C" long links_voxels_vector(float* reals, int32_t* ints, double* f64s, int n, int threads) {
   return run<true, true, false>(reals, ints, f64s, n, threads, 1, 0);
+}
+
+// What this build runs a group on (native.built_for: benchmarks and profile_sim print it beside their figures).
+extern "C" int lanes() { return LANES; }
+extern "C" const char* instruction_set() {
+#if defined(ISA_AVX512)
+  return "AVX-512";
+#elif defined(ISA_AVX2)
+  return "AVX2";
+#else
+  return "generic vectors";
+#endif
 }

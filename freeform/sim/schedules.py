@@ -28,6 +28,7 @@ import os
 import warnings
 from types import SimpleNamespace
 
+from freeform.sim import native
 from freeform.sim.access import make_access, make_numbers
 from freeform.sim.clock import make_clock
 from freeform.sim.config import SCHEDULES
@@ -97,12 +98,15 @@ def block_dim_for(max_links: int, num_robots: int = 1) -> int:
     return b
 
 
-def resolve_schedule(schedule: str, arch: str, max_links: int | None = None) -> str:
-    """The schedule to run on ``arch`` ("cpu" | "cuda"): "auto" picks "robots" on the CPU (the Engine then takes
-    "native" where the native step runs the batch: ``native.usable``); on CUDA "robots" (a
-    thread block per robot) when the batch's largest robot has at most ``CUDA_AUTO_MAX_LINKS`` links (``max_links``;
-    None: not known yet, as for a Simulator before its first batch) and ``$FREEFORM_CUDA_ROBOTS`` is not "0",
-    else "flat"."""
+def resolve_schedule(schedule: str, arch: str, max_links: int | None = None, precision: str | None = None,
+                     switches: Switches | None = None) -> str:
+    """The schedule to run on ``arch`` ("cpu" | "cuda"), the one place that decides it. "auto" on the CPU: "native"
+    for a batch it runs (``precision`` and ``switches``, ``state.Switches``, given: a batch is known) where it is
+    measured faster than Taichi's step for the instruction set it is built for and a compiler built it
+    (``native.usable``), else "robots". On CUDA "robots" (a thread block per robot) when the batch's largest robot
+    has at most ``CUDA_AUTO_MAX_LINKS`` links (``max_links``; None: not known yet, as for a Simulator before its
+    first batch) and ``$FREEFORM_CUDA_ROBOTS`` is not "0", else "flat". "native" for a batch it does not run is
+    refused naming the setting (``native.unsupported``); for one it runs, compiled now (not at the first step)."""
     if schedule not in SCHEDULES:
         raise ValueError(f"schedule must be one of {SCHEDULES}, got {schedule!r}")
     if arch not in ("cpu", "cuda"):
@@ -110,10 +114,16 @@ def resolve_schedule(schedule: str, arch: str, max_links: int | None = None) -> 
     flag = cuda_robots_flag() if arch == "cuda" else ""
     if schedule == "native" and arch != "cpu":
         raise ValueError(f"schedule='native' is the CPU's (a C++ step on host memory), not {arch!r}'s: use 'auto'")
+    batch = switches is not None
+    if schedule == "native" and batch:  # (refused, or compiled, before anything of the batch is built)
+        if (why := native.unsupported(precision, switches)) is not None:
+            raise ValueError(f"schedule='native' does not run {why}: use schedule='robots' (docs/physics.md, "
+                             "\"The native schedule\")")
+        native.library()
     if schedule != "auto":
         return schedule
     if arch == "cpu":
-        return "robots"
+        return "native" if batch and native.usable(precision, switches) else "robots"
     small = max_links is not None and max_links <= CUDA_AUTO_MAX_LINKS
     return "robots" if small and flag != "0" else "flat"
 
