@@ -97,7 +97,7 @@ class TeacherMixing:
     count — so a resumed or data-parallel run draws what one process would. ``first_env``, ``total_envs``: this
     slice's place among all environments. Everything else is the env's."""
 
-    def __init__(self, env: Any, teacher: Teacher, distribution: ActionDistribution, seed: int,
+    def __init__(self, env: Any, teacher: Teacher, distribution: ActionDistribution | None, seed: int,
                  first_env: int = 0, total_envs: int | None = None) -> None:
         self.env, self.teacher, self.distribution = env, teacher, distribution
         self.num_envs, self.action_dim, self.device = env.num_envs, env.action_dim, env.device
@@ -166,8 +166,8 @@ class Distillation(PPO):
         self.distill.validate()
         if config.obs_norm:
             raise ValueError("distillation labels the observations a teacher sees: set agent.obs_norm=false")
-        mixing = TeacherMixing(env, teacher, getattr(student, "distribution", None) or DiagGaussian(env.action_dim),
-                               config.seed, first_env, total_envs)
+        # (the mixture's distribution is the one PPO decides below; PPO's construction only resets the env)
+        mixing = TeacherMixing(env, teacher, None, config.seed, first_env, total_envs)
         # (what PPO's own update reads of rewards and advantages plays no part in a regression)
         super().__init__(mixing, student, replace(config, group_baseline=False, advantage_norm="none"), logger=logger)
         if self.recurrent:
@@ -179,8 +179,9 @@ class Distillation(PPO):
         self.teacher = teacher
         self.dataset: dict[str, Any] = {}
         """Per environment: ``obs [N, K, ...]``, the teacher's ``params`` (each ``[N, K, ...]``) and ``value
-        [N, K]`` (empty before the first round); ``filled`` the samples held per environment."""
+        [N, K]`` (empty before the first round)."""
         self.filled = 0
+        """Samples the dataset holds per environment (K)."""
 
     def train_epoch(self) -> dict[str, float]:
         """One DAgger round: collect with the mixture policy, label, aggregate, regress."""

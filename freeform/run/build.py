@@ -358,7 +358,8 @@ def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
     if differ:
         raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
-                                     for k in differ))
+                                     for k in differ)
+                         + " (give this run the teacher run's values, or train teachers with these)")
     return bank.to(device)
 
 
