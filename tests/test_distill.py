@@ -90,8 +90,9 @@ def test_the_loss_is_kl_or_the_means_squared_error() -> None:
 
 
 def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
-    """A teacher bank trained one epoch through the app, then algo=distill from it: two rounds straight equal one
-    plus a resumed one (the student, the optimiser, the aggregated dataset)."""
+    """A teacher bank trained one epoch through the app, then algo=distill from it (each sample turned by the
+    ground's symmetries: their draws resume too): two rounds straight equal one plus a resumed one (the student,
+    the optimiser, the aggregated dataset)."""
     from freeform.train import train
 
     teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
@@ -99,7 +100,7 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     cfg = compose(*tiny_control(bodies, *teach, "trainer.epochs=1"))
     train(cfg, tmp_path / "teachers")
     distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
-                                    "algo.beta=0.5", "agent.num_sgd_iter=2"))
+                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=true"))
     straight_and_resumed(distill, tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")

@@ -50,6 +50,10 @@ class DistillConfig:
     """β_r = beta · beta_decay^r."""
     buffer: int = 4
     """Rounds (epochs) of labelled samples the dataset keeps (the oldest leave first)."""
+    symmetry: bool = False
+    """Each regression sample turned by a random element of the env's symmetry group (its observation and its
+    label alike: :class:`Symmetry`, a control env's ``freeform.envs.symmetry.PlanarSymmetry``), so that one
+    labelled body teaches its turned and mirrored selves too."""
 
     def validate(self, key: str = "algo") -> None:
         if self.loss not in LOSSES:
@@ -60,11 +64,14 @@ class DistillConfig:
                 raise ValueError(f"{key}.{name} must be a probability in [0, 1], got {value!r}")
         if not (isinstance(self.buffer, int) and self.buffer >= 1):
             raise ValueError(f"{key}.buffer must be an integer >= 1 (rounds kept), got {self.buffer!r}")
+        if not isinstance(self.symmetry, bool):
+            raise ValueError(f"{key}.symmetry must be true or false, got {self.symmetry!r}")
 
     @classmethod
     def from_algo(cls, algo: Any) -> DistillConfig:
         """The fields of a run's ``algo`` section (``freeform.evolve.config.AlgoConfig``) that are DAgger's."""
-        return cls(loss=algo.loss, beta=algo.beta, beta_decay=algo.beta_decay, buffer=algo.buffer)
+        return cls(loss=algo.loss, beta=algo.beta, beta_decay=algo.beta_decay, buffer=algo.buffer,
+                   symmetry=algo.symmetry)
 
     def beta_at(self, round_: int) -> float:
         return float(self.beta * self.beta_decay ** round_)
@@ -75,6 +82,19 @@ class Teacher(Protocol):
     ``params`` the student's distribution's (``value`` ``[N]``, or None where the teacher has no critic)."""
 
     def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]: ...
+
+
+class Symmetry(Protocol):
+    """A group of transformations under which the task is unchanged (``DistillConfig.symmetry``): ``size``
+    elements, element 0 the identity; ``observations(obs [N, ...], g [N])`` turns sample n by element ``g[n]``,
+    ``cells(x [N, A], g)`` a distribution parameter's entries the same way (a control env's:
+    ``freeform.envs.symmetry.PlanarSymmetry``)."""
+
+    size: int
+
+    def observations(self, obs: torch.Tensor, g: torch.Tensor) -> torch.Tensor: ...
+
+    def cells(self, x: torch.Tensor, g: torch.Tensor) -> torch.Tensor: ...
 
 
 class BankTeacher:
@@ -157,13 +177,18 @@ def distill_loss(student: tuple[torch.Tensor, ...], teacher: tuple[torch.Tensor,
 class Distillation(PPO):
     """DAgger into ``student`` (any policy PPO trains: ``forward(obs) -> (*params, value)``) from ``teacher``
     (module docstring). ``config``: the student's SGD (PPO's fields that apply); ``distill``: DAgger's.
-    ``first_env``, ``total_envs``: a data-parallel rank's slice (the teacher's draws and indices are global)."""
+    ``first_env``, ``total_envs``: a data-parallel rank's slice (the teacher's draws and indices are global). With
+    ``distill.symmetry`` the env declares its group as ``env.symmetry`` (:class:`Symmetry`; a control env's)."""
 
     def __init__(self, env: Any, student: nn.Module, teacher: Teacher, config: PPOConfig,
                  distill: DistillConfig | None = None, logger: Any = None, first_env: int = 0,
                  total_envs: int | None = None) -> None:
         self.distill = distill or DistillConfig()
         self.distill.validate()
+        self.symmetry: Symmetry | None = getattr(env, "symmetry", None) if self.distill.symmetry else None
+        if self.distill.symmetry and self.symmetry is None:
+            raise ValueError(f"algo.symmetry=true needs an env that declares its symmetry group (env.symmetry, as a "
+                             f"control env does); {type(env).__name__} has none")
         if config.obs_norm:
             raise ValueError("distillation labels the observations a teacher sees: set agent.obs_norm=false")
         # (the mixture's distribution is the one PPO decides below; PPO's construction only resets the env)
@@ -214,19 +239,38 @@ class Distillation(PPO):
         for _ in range(cfg.num_sgd_iter):
             order = torch.randperm(size, generator=self.generator, device=self.device)
             for i in range(size // minibatch):
-                (idx,) = dp.local_share(order[i * minibatch: (i + 1) * minibatch])
+                idx, g = dp.local_share(order[i * minibatch: (i + 1) * minibatch], self._elements(minibatch))
                 flat.zero_grad()
                 if idx.numel():  # (a rank may hold none of a minibatch; it then adds zero gradients)
-                    student = self.policy(obs_map(lambda x, i=idx: x.index_select(0, i), obs))
-                    loss, stats = distill_loss(tuple(student), tuple(p.index_select(0, idx) for p in params),
-                                               value.index_select(0, idx), self.distribution, self.distill.loss,
-                                               cfg.vf_loss_coeff, reduce)
+                    batch, labels = self._turned(obs, params, idx, g)
+                    loss, stats = distill_loss(tuple(self.policy(batch)), labels, value.index_select(0, idx),
+                                               self.distribution, self.distill.loss, cfg.vf_loss_coeff, reduce)
                     loss.backward()
                     totals += stats
                 self._step(flat)
         means = (dp.sum_(totals) / max(steps, 1)).tolist()
         return {"distill_loss": means[0], "distill_kl": means[1], "distill_action_mse": means[2],
                 "distill_value_loss": means[3], "dataset_samples": float(size), "lr": self.current_lr()}
+
+    def _elements(self, minibatch: int) -> torch.Tensor:
+        """The symmetry's element for each sample of a global minibatch ``[minibatch]`` (all 0 without one); drawn
+        for the whole minibatch from the shared generator, so every rank and a resumed run draw the same."""
+        if self.symmetry is None:
+            return torch.zeros(minibatch, dtype=torch.long, device=self.device)
+        return torch.randint(self.symmetry.size, (minibatch,), generator=self.generator, device=self.device)
+
+    def _turned(self, obs: Observation, params: list[torch.Tensor], idx: torch.Tensor, g: torch.Tensor
+                ) -> tuple[Observation, tuple[torch.Tensor, ...]]:
+        """The samples ``idx`` of the dataset and their labels, each turned by its element ``g`` (the value, a
+        scalar of the task, is unchanged)."""
+        batch = obs_map(lambda x: x.index_select(0, idx), obs)
+        labels = tuple(p.index_select(0, idx) for p in params)
+        if self.symmetry is None:
+            return batch, labels
+        if isinstance(batch, Mapping):
+            raise ValueError("algo.symmetry turns a single observation tensor; this env observes groups "
+                             f"{sorted(batch)}")
+        return self.symmetry.observations(batch, g), tuple(self.symmetry.cells(p, g) for p in labels)
 
     def _flat_dataset(self) -> tuple[Observation, list[torch.Tensor], torch.Tensor]:
         """The dataset's samples in the order ``k·n_local + n`` (``[K·n_local, ...]``), as ``local_share`` indexes
@@ -295,5 +339,5 @@ def bank_from_checkpoint(payload: Mapping[str, Any], source: str) -> TeacherBank
     return bank
 
 
-__all__ = ["LOSSES", "BankTeacher", "DistillConfig", "Distillation", "Teacher", "TeacherMixing",
+__all__ = ["LOSSES", "BankTeacher", "DistillConfig", "Distillation", "Symmetry", "Teacher", "TeacherMixing",
            "bank_from_checkpoint", "distill_loss"]

@@ -52,6 +52,7 @@ import torch
 
 from freeform.body import metrics
 from freeform.distributions import MaskedDiagGaussian
+from freeform.envs.symmetry import PlanarSymmetry
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.engine import Engine, Readout
@@ -329,6 +330,12 @@ class ControlEnv:
         obs, self._com = self._observe()
         self._start = self._com.copy()  # (headings "any": the distance is from here)
         return obs
+
+    @property
+    def symmetry(self) -> PlanarSymmetry:
+        """The ground's turns and mirrors that map this env's box onto itself (``freeform.envs.symmetry``): by
+        these a distillation turns its samples (``algo.symmetry``)."""
+        return PlanarSymmetry.of(self)
 
     def to_grid(self, values: torch.Tensor) -> torch.Tensor:
         """Per-cell values of the box, ``[N, Bx·By·Bz]`` or ``[N, C, Bx, By, Bz]`` (actions, observations), on the

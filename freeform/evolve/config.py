@@ -52,6 +52,9 @@ class AlgoConfig:
     """distill: β of round r = beta · beta_decay^r."""
     buffer: int = 4
     """distill: rounds (epochs) of labelled observations the dataset aggregates."""
+    symmetry: bool = False
+    """distill: each regression sample turned about the vertical or mirrored at random, its label alike (a body
+    turned is as good a body: ``freeform.envs.symmetry``)."""
 
     def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
