@@ -297,7 +297,8 @@ def test_the_registry_names_reach_the_config() -> None:
     with pytest.raises(ValueError, match="controller kind must be one of"):
         build_controller("unet", None)
     ControlRunConfig(controller="context", head="wave", stroke_periods=10).validate()
-    for bad, match in ((dict(controller="attention", head="wave", stroke_periods=10), "control.head"),
+    ControlRunConfig(controller="attention", head="wave", stroke_periods=10).validate()
+    for bad, match in ((dict(controller="mlp", head="wave", stroke_periods=10), "control.head"),
                        (dict(controller="context", head="wave"), "control.head.*stroke_periods >= 1"),
                        (dict(controller="context", head="wave", stroke_periods=10, wave_k=float("nan")),
                         "control.wave_k"),
@@ -346,7 +347,7 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
     vector along y set through its layer's bias with every per-cell term set. With random headings both vectors are
     in the heading's frame: the world's k is turned by each body's heading (x along it), so the wave travels where
     the body is sent. Padding changes nothing with the wave vector's weights scaled up (a leak into the pooled
-    features would move k); a controller.pt gives the same means; the attention controller and a period env are
+    features would move k); a controller.pt gives the same means; the conv controller and a period env are
     refused."""
     small, large = (replace_control(env, stroke_periods=2, residual=residual, headings=headings)
                     for env in two_boxes())
@@ -399,8 +400,6 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
     assert rebuild(type(net), before).wave["amplitude"] == 1.0  # (a file from before the amplitude: the sine's)
     with pytest.raises(ValueError, match="wave amplitude must be finite and > 0"):
         build_controller(kind, large, hidden=8, head="wave", wave=HandSetWave(amplitude=-1.0))
-    with pytest.raises(ValueError, match="head='wave' is for the controllers"):
-        build_controller("attention", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="head='wave' is for the controllers"):
         build_controller("conv", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="exactly when control.stroke_periods >= 1"):

@@ -68,7 +68,7 @@ def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tup
 RHYTHM_KINDS = ("context", "attention", "context_gru")
 """The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
-WAVE_KINDS = ("context", "context_gru")
+WAVE_KINDS = ("context", "attention", "context_gru")
 """The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
 
 

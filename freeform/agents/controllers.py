@@ -36,20 +36,18 @@ import torch.nn.functional as F
 
 from freeform.agents.controller_heads import (
     DEFAULT_WAVE,
-    STROKE_HEADS,
-    WAVE_KINDS,
     ControlInputs,
     FromInputs,
     HandSetWave,
     _body_controller_setup,
     _cell_means,
     _check_control_input,
-    _clock_channels,
     _env_wave,
-    _head_outputs,
     _masked_pool,
     _per_cell_mean,
     _rhythm,
+    _wave_strokes,
+    _wave_vector,
     head_rule,
 )
 from freeform.agents.networks import MLPActorCritic, rebuild
@@ -327,37 +325,27 @@ class VoxelAttentionController(FromInputs, nn.Module):
     padding_invariant = True
 
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
-                 head: str = "direct") -> None:
+                 head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        channels, mask_channel, filled_channel = inputs.channels, inputs.mask_channel, inputs.filled_channel
-        box = _check_control_input(channels, inputs.box, mask_channel=mask_channel, filled_channel=filled_channel)
-        for name, value in (("hidden", hidden), ("heads", heads), ("layers", layers)):
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if hidden % heads:
+        if isinstance(hidden, int) and isinstance(heads, int) and heads > 0 and hidden % heads:
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
-        if head == "wave":
-            raise ValueError(f"head='wave' is for the controllers {list(WAVE_KINDS)}, not the attention controller")
-        outputs, self.clock = _head_outputs(head), _clock_channels(channels, head, inputs.clock_channels)
-        self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
-                                hidden=hidden, heads=heads, layers=layers, log_std=log_std, head=head,
-                                clock_channels=self.clock)
-        self.box, self.mask_channel, self.filled_channel, self.head = box, mask_channel, filled_channel, head
-        self.distribution = MaskedDiagGaussian(math.prod(box) * (2 if head in STROKE_HEADS else 1))
-        self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
+        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, heads=heads, layers=layers)
+        self.embed = nn.Sequential(nn.Linear(inputs.channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
         self.norm = nn.LayerNorm(hidden)
         self.actor = nn.Linear(hidden, outputs)
-        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0
+        nn.init.normal_(self.actor.weight, std=0.01)  # the untrained controller commands ≈ 0 (or plays its wave)
         nn.init.zeros_(self.actor.bias)
         self.log_std = nn.Parameter(torch.tensor(float(log_std)))
         self.critic_fc = nn.Linear(hidden, hidden)
         self.critic_out = nn.Linear(hidden, 1)
 
     @classmethod
-    def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0, head: str = "direct") -> VoxelAttentionController:
-        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels)."""
-        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head)
+    def for_env(cls, env: Any, hidden: int = 32, log_std: float = 0.0, head: str = "direct",
+                wave: HandSetWave = DEFAULT_WAVE) -> VoxelAttentionController:
+        """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
+        description of the observation and its hand-set wave)."""
+        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=_env_wave(env, head, wave))
 
     def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
@@ -385,8 +373,14 @@ class VoxelAttentionController(FromInputs, nn.Module):
         per_token = out * valid[:, None]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
         cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
-        mean, mask = _per_cell_mean(cells, obs[:, self.mask_channel].reshape(n, -1), self.head)
         pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+        if self.wave is not None:  # the body's wave vector from its tokens' mean and max
+            filled = obs[:, self.filled_channel: self.filled_channel + 1]
+            top = x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(0.0, neginf=0.0)
+            k = _wave_vector(self.wave_k(torch.cat([pooled, top], 1)) + self.wave_k0, obs, filled, self.wave)
+            box = _wave_strokes(cells.view(n, -1, *obs.shape[2:]), k, obs, self.wave, self.wave_phases)
+            cells = (box * filled).flatten(2)
+        mean, mask = _per_cell_mean(cells, obs[:, self.mask_channel].reshape(n, -1), self.head)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 
