@@ -376,22 +376,22 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
               ("zeroed", controller, True, True), ("untrained", untrained, False, True),
               ("untrained_mean_command", untrained, False, False)]
-    blocks = len(groups) + (control.stroke_periods >= 1) + (bank is not None)  # (one block of rows per group)
+    blocks = len(groups) + (control.stroke_periods >= 1) + 2 * (bank is not None)  # (one block of rows a group)
     env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=seed,
                      box=box, first_env=np.tile(np.arange(m * n), blocks))
     if control.stroke_periods >= 1:
         groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
     if bank is not None:
         rows_body = torch.arange(m).repeat_interleave(n)
-        groups.append(("per_body", _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box),
-                       False, True))
+        own = _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
+        groups += [("per_body", own, False, True), ("per_body_mean_command", own, False, False)]
     returns, obs, heading = _play(env, groups, control.steps, seed)
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
     along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
                                    planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
     per_group = {name: returns[g].reshape(m, n) for g, (name, *_) in enumerate(groups)}
     if bank is not None:
-        per_group["per_body"][per_body.n:] = np.nan
+        per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
     rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
     summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0)
     _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies),
@@ -465,12 +465,15 @@ def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str,
                            body["mean_command"] - body["untrained_mean_command"])]
     if "hand_set_wave" in body:
         summary.append(summary_row("hand-set travelling wave (mean command)", body["hand_set_wave"]))
-    if n_own:
-        own, mine = body["per_body"][:n_own], body["controller"][:n_own]
-        summary += [summary_row(f"per-body controllers (stochastic; the first {n_own} bodies)", own),
-                    summary_row(f"controller (stochastic) on those {n_own} bodies", mine),
-                    {**summary_row(f"fraction of per-body control: controller mean / per-body mean ({n_own} bodies)",
-                                   np.array([mine.mean() / own.mean()])), "band99": float("nan")}]
+    for how, theirs, mine in (("stochastic", "per_body", "controller"), ("mean command", "per_body_mean_command",
+                                                                           "mean_command")):
+        if n_own:
+            own, yours = body[theirs][:n_own], body[mine][:n_own]
+            summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
+                        summary_row(f"controller ({how}) on those {n_own} bodies", yours),
+                        {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
+                                       f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
+                         "band99": float("nan"), "n": n_own}]
     return summary
 
 

@@ -258,9 +258,12 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     rows = read_csv(tmp_path / "eval" / "bodies.csv")
     assert [r["per_body"] for r in rows][2] == "nan" and all(np.isfinite(float(r["per_body"])) for r in rows[:2])
     summary = {r["what"]: r for r in read_csv(tmp_path / "eval" / "summary.csv")}
-    fraction = next(v for k, v in summary.items() if k.startswith("fraction of per-body control"))
-    expected = np.mean([float(r["controller"]) for r in rows[:2]]) / np.mean([float(r["per_body"]) for r in rows[:2]])
-    np.testing.assert_allclose(float(fraction["mean"]), expected, rtol=1e-6)
+    for how, mine, theirs in (("stochastic", "controller", "per_body"),
+                              ("mean command", "mean_command", "per_body_mean_command")):
+        fraction = next(v for k, v in summary.items() if k.startswith(f"fraction of per-body control ({how})"))
+        expected = np.mean([float(r[mine]) for r in rows[:2]]) / np.mean([float(r[theirs]) for r in rows[:2]])
+        np.testing.assert_allclose(float(fraction["mean"]), expected, rtol=1e-6)
+        assert fraction["n"] == "2"
     assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
     main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named
     assert read_csv(tmp_path / "from_run" / "bodies.csv") == rows
