@@ -100,7 +100,7 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     cfg = compose(*tiny_control(bodies, *teach, "trainer.epochs=1"))
     train(cfg, tmp_path / "teachers")
     distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
-                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=true"))
+                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground"))
     straight_and_resumed(distill, tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")

@@ -54,6 +54,10 @@ def test_the_cells_move_as_numpy_moves_them_and_the_vectors_turn() -> None:
         sym.cells(torch.zeros(2, 17), torch.zeros(2, dtype=torch.long))
     with pytest.raises(ValueError, match="element must be in"):
         PlanarSymmetry((3, 2, 2), ()).element(4)
+    mirror = PlanarSymmetry((3, 3, 2), ((1, 2),), "mirror")  # the identity and y -> -y: a direction along x kept
+    assert mirror.size == 2 and mirror.element(1) == (False, False, True)
+    with pytest.raises(ValueError, match="symmetry group must be one of"):
+        PlanarSymmetry((3, 3, 2), (), "turns")
 
 
 def turned_episode(g: int, steps: int = 6) -> tuple[list[float], list[float], float, float]:
@@ -138,9 +142,9 @@ def test_distillation_regresses_turned_samples_onto_turned_labels(monkeypatch: p
     net, inputs = build_controller("context", env), []
     net.register_forward_pre_hook(lambda _, args: inputs.append(args[0]))
     monkeypatch.setattr(distill_module, "distill_loss", spy)
-    sym = env.symmetry
+    sym = env.symmetry()
     learner = Distillation(env, net, teacher, PPOConfig(rollout_steps=2, num_sgd_iter=2, sgd_minibatch_size=4),
-                           DistillConfig(symmetry=True))
+                           DistillConfig(symmetry="ground"))
     learner.train_epoch()
     obs = learner.dataset["obs"].reshape(-1, *env.observation_shape)
     label = learner.dataset["params"][0].reshape(obs.shape[0], -1)
@@ -153,6 +157,6 @@ def test_distillation_regresses_turned_samples_onto_turned_labels(monkeypatch: p
             assert any(torch.equal(sym.cells(label[i:i + 1], torch.tensor([g]))[0], y) for g, i in hits)
             elements.append(hits[0][0])
     assert len(elements) == 8 and len(set(elements)) > 1
-    with pytest.raises(ValueError, match="declares its symmetry group"):  # an env without one is refused
+    with pytest.raises(ValueError, match="declares its symmetry"):  # an env without one is refused
         Distillation(cartpole(), build_controller("context", env), teacher, PPOConfig(rollout_steps=2),
-                     DistillConfig(symmetry=True))
+                     DistillConfig(symmetry="ground"))

@@ -50,10 +50,11 @@ class DistillConfig:
     """β_r = beta · beta_decay^r."""
     buffer: int = 4
     """Rounds (epochs) of labelled samples the dataset keeps (the oldest leave first)."""
-    symmetry: bool = False
-    """Each regression sample turned by a random element of the env's symmetry group (its observation and its
-    label alike: :class:`Symmetry`, a control env's ``freeform.envs.symmetry.PlanarSymmetry``), so that one
-    labelled body teaches its turned and mirrored selves too."""
+    symmetry: str = "none"
+    """``none``, or the name of a group of the env's symmetries (a control env's: ``ground`` — its turns and
+    mirrors —, ``mirror`` — y → −y alone; ``freeform.envs.symmetry.GROUPS``): each regression sample turned by a
+    random element of it, its observation and its label alike (:class:`Symmetry`), so that one labelled body
+    teaches its turned and mirrored selves too."""
 
     def validate(self, key: str = "algo") -> None:
         if self.loss not in LOSSES:
@@ -64,8 +65,9 @@ class DistillConfig:
                 raise ValueError(f"{key}.{name} must be a probability in [0, 1], got {value!r}")
         if not (isinstance(self.buffer, int) and self.buffer >= 1):
             raise ValueError(f"{key}.buffer must be an integer >= 1 (rounds kept), got {self.buffer!r}")
-        if not isinstance(self.symmetry, bool):
-            raise ValueError(f"{key}.symmetry must be true or false, got {self.symmetry!r}")
+        if not (isinstance(self.symmetry, str) and self.symmetry):
+            raise ValueError(f"{key}.symmetry must be 'none' or a group of the env's symmetries (a control env's: "
+                             f"'ground', 'mirror'), got {self.symmetry!r}")
 
     @classmethod
     def from_algo(cls, algo: Any) -> DistillConfig:
@@ -178,17 +180,20 @@ class Distillation(PPO):
     """DAgger into ``student`` (any policy PPO trains: ``forward(obs) -> (*params, value)``) from ``teacher``
     (module docstring). ``config``: the student's SGD (PPO's fields that apply); ``distill``: DAgger's.
     ``first_env``, ``total_envs``: a data-parallel rank's slice (the teacher's draws and indices are global). With
-    ``distill.symmetry`` the env declares its group as ``env.symmetry`` (:class:`Symmetry`; a control env's)."""
+    ``distill.symmetry`` the env gives the group by that name: ``env.symmetry(name)`` (:class:`Symmetry`; a control
+    env's)."""
 
     def __init__(self, env: Any, student: nn.Module, teacher: Teacher, config: PPOConfig,
                  distill: DistillConfig | None = None, logger: Any = None, first_env: int = 0,
                  total_envs: int | None = None) -> None:
         self.distill = distill or DistillConfig()
         self.distill.validate()
-        self.symmetry: Symmetry | None = getattr(env, "symmetry", None) if self.distill.symmetry else None
-        if self.distill.symmetry and self.symmetry is None:
-            raise ValueError(f"algo.symmetry=true needs an env that declares its symmetry group (env.symmetry, as a "
-                             f"control env does); {type(env).__name__} has none")
+        self.symmetry: Symmetry | None = None
+        if self.distill.symmetry != "none":
+            if not callable(getattr(env, "symmetry", None)):
+                raise ValueError(f"algo.symmetry={self.distill.symmetry} needs an env that declares its symmetry "
+                                 f"groups (env.symmetry(name), as a control env does); {type(env).__name__} has none")
+            self.symmetry = env.symmetry(self.distill.symmetry)
         if config.obs_norm:
             raise ValueError("distillation labels the observations a teacher sees: set agent.obs_norm=false")
         # (the mixture's distribution is the one PPO decides below; PPO's construction only resets the env)

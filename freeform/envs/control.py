@@ -331,11 +331,10 @@ class ControlEnv:
         self._start = self._com.copy()  # (headings "any": the distance is from here)
         return obs
 
-    @property
-    def symmetry(self) -> PlanarSymmetry:
-        """The ground's turns and mirrors that map this env's box onto itself (``freeform.envs.symmetry``): by
-        these a distillation turns its samples (``algo.symmetry``)."""
-        return PlanarSymmetry.of(self)
+    def symmetry(self, group: str = "ground") -> PlanarSymmetry:
+        """The ground's turns and mirrors that map this env's box onto itself (``freeform.envs.symmetry``; ``group``
+        one of its ``GROUPS``): by these a distillation turns its samples (``algo.symmetry``)."""
+        return PlanarSymmetry.of(self, group)
 
     def to_grid(self, values: torch.Tensor) -> torch.Tensor:
         """Per-cell values of the box, ``[N, Bx·By·Bz]`` or ``[N, C, Bx, By, Bz]`` (actions, observations), on the

@@ -28,23 +28,30 @@ import torch
 
 PLANAR_VECTORS = (("rel_x", "rel_y"), ("vel_x", "vel_y"), ("heading_cos", "heading_sin"))
 """The channel pairs that are vectors in the ground plane: turned with the body."""
+GROUPS = ("ground", "mirror")
+"""``ground``: every turn and mirror that maps the box onto itself (8 or 4); ``mirror``: the identity and the mirror
+y → −y alone, the elements that keep a direction along x (a wave head's hand-set wave travels along x when no
+heading turns it: the other elements would ask its per-cell outputs to undo and redo the wave)."""
 
 
 @dataclass(frozen=True)
 class PlanarSymmetry:
     """The ground's symmetries on observations ``[N, C, Bx, By, Bz]`` and per-cell actions ``[N, c·Bx·By·Bz]``
     (C order, c blocks of the box's cells: a stroke's every a then every b). ``vectors``: the channel index pairs
-    (x, y) of the planar vectors."""
+    (x, y) of the planar vectors; ``group``: which elements (:data:`GROUPS`)."""
 
     box: tuple[int, int, int]
     vectors: tuple[tuple[int, int], ...]
+    group: str = "ground"
 
     def __post_init__(self) -> None:
         if len(self.box) != 3 or min(self.box) < 1:
             raise ValueError(f"box must be three positive ints (Bx, By, Bz), got {self.box!r}")
+        if self.group not in GROUPS:
+            raise ValueError(f"symmetry group must be one of {GROUPS}, got {self.group!r}")
 
     @classmethod
-    def of(cls, env: Any) -> PlanarSymmetry:
+    def of(cls, env: Any, group: str = "ground") -> PlanarSymmetry:
         """A control env's (its ``box`` and ``channels``). Refused for an env whose observation has groups besides
         ``"policy"`` that are not per-environment labels (a privileged critic's state is a vector in the body's
         frame, which this does not turn)."""
@@ -58,18 +65,19 @@ class PlanarSymmetry:
                              "control.privileged_critic=false to use algo.symmetry")
         vectors = tuple((channels.index(x), channels.index(y)) for x, y in PLANAR_VECTORS
                         if x in channels and y in channels)
-        return cls(tuple(int(b) for b in box), vectors)
+        return cls(tuple(int(b) for b in box), vectors, group)
 
     @property
     def size(self) -> int:
-        """The number of elements (8 for a square footprint, else 4); element 0 is the identity."""
-        return 8 if self.box[0] == self.box[1] else 4
+        """The number of elements (``ground``: 8 for a square footprint, else 4; ``mirror``: 2); element 0 is the
+        identity."""
+        return 2 if self.group == "mirror" else 8 if self.box[0] == self.box[1] else 4
 
     def element(self, g: int) -> tuple[bool, bool, bool]:
         """Element ``g`` as (swap x and y, flip x, flip y)."""
         if not 0 <= g < self.size:
             raise ValueError(f"element must be in [0, {self.size}), got {g!r}")
-        return bool(g & 4), bool(g & 2), bool(g & 1)  # (without a swap: 0..3 in both group sizes)
+        return bool(g & 4), bool(g & 2), bool(g & 1)  # (without a swap: 0..3 in both group sizes; mirror: 0, 1)
 
     def matrix(self, g: int) -> torch.Tensor:
         """Element g's 2×2 matrix on planar vectors (float64)."""

@@ -52,9 +52,10 @@ class AlgoConfig:
     """distill: β of round r = beta · beta_decay^r."""
     buffer: int = 4
     """distill: rounds (epochs) of labelled observations the dataset aggregates."""
-    symmetry: bool = False
-    """distill: each regression sample turned about the vertical or mirrored at random, its label alike (a body
-    turned is as good a body: ``freeform.envs.symmetry``)."""
+    symmetry: str = "none"
+    """distill: ``ground`` — each regression sample turned about the vertical or mirrored at random, its label alike
+    (a body turned is as good a body: ``freeform.envs.symmetry``); ``mirror`` — mirrored y → −y alone (keeps a wave
+    along x); ``none``."""
 
     def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can

@@ -220,7 +220,7 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
                      first_env=envs[0], box=box)
-    if box is None and cfg.algo.name == "distill" and cfg.algo.symmetry and env.box[0] != env.box[1]:
+    if box is None and cfg.algo.name == "distill" and cfg.algo.symmetry == "ground" and env.box[0] != env.box[1]:
         side = max(env.box[:2])  # (a square footprint: the quarter turns and the diagonal mirrors map it onto itself)
         env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
                          first_env=envs[0], box=(side, side, env.box[2]))
