@@ -179,6 +179,17 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids.numpy()}
 
 
+def design_diversity(result: dict) -> dict[str, float]:
+    """A method's designs' ``distance`` (mean pairwise fraction of cells that differ) and ``distinct`` count
+    (``freeform.body.diversity``): a co-design that collapses onto one body shows here."""
+    from freeform.body import diversity
+
+    grids = result.get("grids", result.get("bodies"))
+    if grids is None or len(grids) < 2:
+        return {"distance": float("nan"), "distinct": float("nan")}
+    return diversity(torch.as_tensor(np.asarray(grids), dtype=torch.uint8))
+
+
 # a frozen controller's episodes (its fresh headings) are seeded apart from the evaluation episodes' (seed + 10_000)
 FROZEN_EPISODES_SEED = 20_000
 
@@ -249,7 +260,8 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         rows.append({"method": method, "robot_seconds": round(budget, 3), "epochs": result["epochs"],
                      "n": len(result["score"]), "mean": float(mean), "band99": float(band), "score": score,
                      **(extra or {})})
-        metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS}})
+        metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS},
+                        **design_diversity(result)})
         print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
 
     from freeform.envs.control import ControlConfig

@@ -40,6 +40,7 @@ __all__ = [
     "check_grids",
     "component_labels",
     "crop",
+    "diversity",
     "largest_component",
     "metrics",
     "bodies_and_metrics",
@@ -306,6 +307,38 @@ def crop(grid: torch.Tensor) -> torch.Tensor:
     lo, hi = bounding_box(grid.unsqueeze(0))
     (x0, y0, z0), (x1, y1, z1) = lo[0].tolist(), hi[0].tolist()
     return grid[x0:x1, y0:y1, z0:z1]
+
+
+def at_corner(grids: torch.Tensor) -> torch.Tensor:
+    """Each grid ``[N, X, Y, Z] uint8`` moved so that its bounding box starts at cell (0, 0, 0) (the rest empty):
+    a body placed elsewhere in its grid becomes the same array."""
+    lo, _ = bounding_box(grids)
+    n, *size = grids.shape
+    moved = grids
+    for axis in range(3):
+        index = torch.arange(size[axis], device=grids.device)[None] + lo[:, axis: axis + 1]  # [N, size]
+        inside = index < size[axis]
+        shape = [n, 1, 1, 1]
+        shape[axis + 1] = size[axis]
+        gather = index.clamp_max(size[axis] - 1).view(shape).expand_as(moved)
+        moved = torch.gather(moved, axis + 1, gather) * inside.view(shape)
+    return moved
+
+
+def diversity(grids: torch.Tensor) -> dict[str, float]:
+    """How different a set of designs is (a co-design that collapses onto one body shows here), each moved to its
+    grid's corner (:func:`at_corner`: where a body sits is not what it is): ``distance``, the mean over pairs of the
+    fraction of cells whose material differs (scipy's ``pdist(..., "hamming")``), and ``distinct``, the number of
+    different bodies. ``grids``: ``[N, X, Y, Z] uint8``, N >= 2."""
+    check_grids(grids)
+    if grids.shape[0] < 2:
+        raise ValueError(f"diversity needs at least 2 designs, got {grids.shape[0]}")
+    flat = at_corner(grids).reshape(grids.shape[0], -1).long()
+    onehot = torch.nn.functional.one_hot(flat).double()  # [N, cells, k]
+    same = torch.einsum("ick,jck->ij", onehot, onehot)  # cells of equal material, each pair
+    n, cells = flat.shape
+    distance = (cells - same).sum() / (n * (n - 1) * cells)  # (the diagonal's are 0)
+    return {"distance": float(distance), "distinct": int(torch.unique(flat, dim=0).shape[0])}
 
 
 # ------------------------------------------------------------------------------------------------------ metrics

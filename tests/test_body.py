@@ -377,3 +377,32 @@ def test_serial_on_cpu_restores_the_thread_count():
     with pytest.raises(RuntimeError), serial_on_cpu("cpu"):
         raise RuntimeError
     assert torch.get_num_threads() == before
+
+
+def test_diversity_is_scipys_hamming_distance_of_the_bodies_moved_to_the_corner() -> None:
+    """Truth: scipy's pdist on the bodies cropped by hand to the corner; a body placed elsewhere in its grid counts
+    once; a set of one body repeated has distance 0 and one distinct body."""
+    from scipy.spatial.distance import pdist
+
+    from freeform.body import diversity
+
+    rng = np.random.default_rng(3)
+    grids = np.zeros((6, 5, 5, 5), dtype=np.uint8)
+    for i in range(5):
+        size = rng.integers(1, 4, 3)
+        grids[i, 1: 1 + size[0], 2: 2 + size[1], : size[2]] = rng.integers(0, 4, tuple(size))
+        grids[i, 1, 2, 0] = 2  # (the bounding box's corner is filled)
+    grids[5] = np.roll(grids[4], (1, -1, 2), axis=(0, 1, 2))  # body 4 elsewhere in its grid
+    corner = np.zeros_like(grids)
+    for i, g in enumerate(grids):
+        nz = np.argwhere(g)
+        lo, hi = nz.min(0), nz.max(0) + 1
+        box = g[lo[0]: hi[0], lo[1]: hi[1], lo[2]: hi[2]]
+        corner[i, : box.shape[0], : box.shape[1], : box.shape[2]] = box
+    d = diversity(torch.from_numpy(grids))
+    assert abs(d["distance"] - pdist(corner.reshape(6, -1), "hamming").mean()) < 1e-12
+    assert d["distinct"] == 5
+    same = diversity(torch.from_numpy(np.repeat(grids[:1], 4, 0)))
+    assert same == {"distance": 0.0, "distinct": 1}
+    with pytest.raises(ValueError, match="at least 2 designs"):
+        diversity(torch.from_numpy(grids[:1]))

@@ -328,6 +328,8 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])
     metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))
     assert len(metrics) == len(rows) and float(metrics[2]["volume"]) > 0
+    for m in metrics:  # each method's designs' diversity (freeform.body.diversity, tested against scipy)
+        assert 0.0 <= float(m["distance"]) <= 1.0 and 1 <= int(m["distinct"]) <= 8
     (tmp_path / "out" / "codesign_vs_baselines.png").unlink()
     main(["--replot", "--out", str(tmp_path / "out")])  # the figure again, from the tables alone
     assert (tmp_path / "out" / "codesign_vs_baselines.png").is_file()
