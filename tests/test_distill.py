@@ -110,9 +110,14 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     for key, tensor in a["ppo"]["distill"]["per_env"].items():
         assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
     assert a["ppo"]["distill"]["per_env"]["obs"].shape[:2] == (4, 8)  # 4 envs, 2 rounds of 4 steps
-    # a run whose episode differs from the teachers' is refused, naming the field and both values
+    # the optional PPO fine-tune starts from the student's weights (control.controller_init=<the distill run>)
     from freeform.run.build import build
 
+    fine = compose(*tiny_control(bodies, "control.controller=context", "control.headings=any", "seed=4",
+                                 f"control.controller_init={tmp_path / 'straight'}"))
+    _, ppo = build(fine, torch.device("cpu"))
+    assert all(torch.equal(v, a["ppo"]["policy"][k]) for k, v in ppo.policy.state_dict().items())
+    # a run whose episode differs from the teachers' is refused, naming the field and both values
     other = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                   "control.duration=0.025"))
     with pytest.raises(ValueError, match=r"control\.duration = 0\.05 there, 0\.025 here"):
