@@ -122,3 +122,6 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                   "control.duration=0.025"))
     with pytest.raises(ValueError, match=r"control\.duration = 0\.05 there, 0\.025 here"):
         build(other, torch.device("cpu"))
+    np.save(bodies, np.load(bodies)[::-1].copy())  # the same control.bodies, other grids: refused, naming them
+    with pytest.raises(ValueError, match=r"its bodies are not this run's \(bodies \[0, 1\] differ"):
+        build(distill, torch.device("cpu"))

@@ -364,7 +364,29 @@ def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
+    _same_bodies(from_container(payload["config"]), cfg, path)
     return bank.to(device)
+
+
+def _same_bodies(theirs: TrainConfig, mine: TrainConfig, source: Path) -> None:
+    """The teacher run's first M bodies are this run's, grid for grid — its records' (what it trained on), else
+    its config's: the same ``control.bodies`` can name other grids (the untrained designs depend on
+    ``env.num_envs``; a file may have changed since)."""
+    from freeform.checkpoint import run_dir_of
+    from freeform.records import read_record
+
+    assert mine.control is not None
+    m = mine.control.teachers
+    records = sorted((run_dir_of(source) / "records").glob("epoch_*.npz"))
+    their_bodies = (torch.from_numpy(read_record(records[0]).final_grids[:m]) if records
+                    else control_bodies(theirs)[:m])
+    my_bodies = control_bodies(mine)[:m]
+    differ = (their_bodies != my_bodies).flatten(1).any(1).nonzero().flatten().tolist()
+    if differ:
+        raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are not this run's (bodies {differ[:5]} differ; "
+                         f"control.bodies={mine.control.bodies!r} gives other grids here — the untrained designs "
+                         f"depend on env.num_envs, {theirs.env.num_envs} there and {mine.env.num_envs} here — or "
+                         "its file changed): give this run the teacher run's env.num_envs, or train teachers on these")
 
 
 @register_learner("ga", "cmaes", "grid_ga")
