@@ -187,7 +187,7 @@ def design_diversity(result: dict) -> dict[str, float]:
     grids = result.get("grids", result.get("bodies"))
     if grids is None or len(grids) < 2:
         return {"distance": float("nan"), "distinct": float("nan")}
-    return diversity(torch.as_tensor(np.asarray(grids), dtype=torch.uint8))
+    return diversity(torch.from_numpy(np.ascontiguousarray(np.asarray(grids))))
 
 
 # a frozen controller's episodes (its fresh headings) are seeded apart from the evaluation episodes' (seed + 10_000)

@@ -325,7 +325,7 @@ def at_corner(grids: torch.Tensor) -> torch.Tensor:
     return moved
 
 
-def diversity(grids: torch.Tensor) -> dict[str, float]:
+def diversity(grids: torch.Tensor) -> dict[str, float | int]:
     """How different a set of designs is (a co-design that collapses onto one body shows here), each moved to its
     grid's corner (:func:`at_corner`: where a body sits is not what it is): ``distance``, the mean over pairs of the
     fraction of cells whose material differs (scipy's ``pdist(..., "hamming")``), and ``distinct``, the number of
@@ -334,10 +334,10 @@ def diversity(grids: torch.Tensor) -> dict[str, float]:
     if grids.shape[0] < 2:
         raise ValueError(f"diversity needs at least 2 designs, got {grids.shape[0]}")
     flat = at_corner(grids).reshape(grids.shape[0], -1).long()
-    onehot = torch.nn.functional.one_hot(flat).double()  # [N, cells, k]
-    same = torch.einsum("ick,jck->ij", onehot, onehot)  # cells of equal material, each pair
     n, cells = flat.shape
-    distance = (cells - same).sum() / (n * (n - 1) * cells)  # (the diagonal's are 0)
+    # pairs (i, j) agreeing at a cell, summed over the pairs: the square of how many designs hold each material there
+    holders = torch.nn.functional.one_hot(flat).sum(0).double()  # [cells, k]
+    distance = (n * n * cells - holders.pow(2).sum()) / (n * (n - 1) * cells)  # (a design agrees with itself: n·cells)
     return {"distance": float(distance), "distinct": int(torch.unique(flat, dim=0).shape[0])}
 
 

@@ -146,7 +146,7 @@ class ControlRunConfig(ControlConfig):
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
     ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
     ``control.stroke_periods`` >= 1) or ``wave`` (a stroke whose mean is a travelling wave: the body's wave vector,
-    each cell's amplitude and phase offset, and a free correction; ``controller=context`` or ``context_gru``, with
+    each cell's amplitude and phase offset, and a free correction; ``controller=context``, ``context_gru`` or ``attention``, with
     ``control.stroke_periods`` >= 1)."""
     wave_k: float = 1.0
     """``head=wave``: the wave number the untrained controller plays along x, or along the heading where the task

@@ -122,6 +122,18 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                   "control.duration=0.025"))
     with pytest.raises(ValueError, match=r"control\.duration = 0\.05 there, 0\.025 here"):
         build(other, torch.device("cpu"))
+    # a turned body sits elsewhere in its padded box: a student that the padding changes is refused
+    conv = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                 "algo.symmetry=ground", "control.controller=conv"))
+    with pytest.raises(ValueError, match=r"control.controller is 'conv'"):
+        build(conv, torch.device("cpu"))
+    from freeform.run.build import _check_turnable  # (a teacher run with fixed headings: the same rule)
+
+    with pytest.raises(ValueError, match=r"headings=fixed rewards \+x alone: use algo.symmetry=mirror"):
+        _check_turnable("context", "context", "ground", "fixed")
+    _check_turnable("context", "attention", "mirror", "fixed")
+    with pytest.raises(ValueError, match=r"algo.symmetry must be one of \['none', 'ground', 'mirror'\]"):
+        compose(*tiny_control(bodies, *teach, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
     np.save(bodies, np.load(bodies)[::-1].copy())  # the same control.bodies, other grids: refused, naming them
     with pytest.raises(ValueError, match=r"its bodies are not this run's \(bodies \[0, 1\] differ"):
         build(distill, torch.device("cpu"))

@@ -249,7 +249,7 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
 
 def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_std: float, wave: Any = None,
                            **sizes: int) -> int:
-    """What the context controllers share at construction: the input checks (``sizes``: positive ints), the box,
+    """What the body controllers (context, context_gru, attention) share at construction: the input checks (``sizes``: positive ints), the box,
     channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
     body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
     wave's initial k along x, ``net.wave_k0``) and the materials' phases (``net.wave_phases``; both buffers, out of

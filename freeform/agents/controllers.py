@@ -319,6 +319,8 @@ class VoxelAttentionController(FromInputs, nn.Module):
     N(0, 0.01²), bias 0; ``head="rhythm"``: Linear(h→3), the token's rhythm, ``controller_heads.HEADS``), scattered back to its
     cell (0 elsewhere); one learned log σ. Critic: the mean of the valid
     tokens → Linear(h→h) → tanh → Linear(h→1). Gathering and scattering are tensor ops (no loop over bodies).
+    ``head="wave"``: Linear(h→4) per token (amplitude change, phase offset, correction) and the body's wave vector
+    from its tokens' mean and max (Linear(2h→3)), played as ``controller_heads``' travelling-wave strokes.
     """
 
     fits_any_box = True
@@ -327,7 +329,7 @@ class VoxelAttentionController(FromInputs, nn.Module):
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        if isinstance(hidden, int) and isinstance(heads, int) and heads > 0 and hidden % heads:
+        if isinstance(hidden, int) and isinstance(heads, int) and hidden > 0 and heads > 0 and hidden % heads:
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
         outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, heads=heads, layers=layers)
         self.embed = nn.Sequential(nn.Linear(inputs.channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))

@@ -52,9 +52,8 @@ class PlanarSymmetry:
 
     @classmethod
     def of(cls, env: Any, group: str = "ground") -> PlanarSymmetry:
-        """A control env's (its ``box`` and ``channels``). Refused for an env whose observation has groups besides
-        ``"policy"`` that are not per-environment labels (a privileged critic's state is a vector in the body's
-        frame, which this does not turn)."""
+        """A control env's (its ``box`` and ``channels``). Refused for an env with a privileged critic (its state is
+        a vector in the body's frame, which this does not turn)."""
         channels, box = getattr(env, "channels", None), getattr(env, "box", None)
         if channels is None or box is None:
             raise ValueError(f"the ground's symmetries need a control env (its box and channels); "
@@ -100,13 +99,15 @@ class PlanarSymmetry:
 
     def tables(self, device: Any = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Every element's ``source_cells`` ``[G, cells]`` and ``matrix`` ``[G, 2, 2]`` (float32) on ``device``."""
-        sources, matrices = self._tables
-        return sources.to(device), matrices.to(device)
+        key = str(torch.device(device) if device is not None else torch.device("cpu"))
+        if key not in self._tables:  # (made once per device: a minibatch's turns copy nothing to it)
+            self._tables[key] = (torch.stack([self.source_cells(g) for g in range(self.size)]).to(device),
+                                 torch.stack([self.matrix(g) for g in range(self.size)]).float().to(device))
+        return self._tables[key]
 
     @cached_property
-    def _tables(self) -> tuple[torch.Tensor, torch.Tensor]:
-        return (torch.stack([self.source_cells(g) for g in range(self.size)]),
-                torch.stack([self.matrix(g) for g in range(self.size)]).float())
+    def _tables(self) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
+        return {}
 
     def observations(self, obs: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """``obs [N, C, Bx, By, Bz]`` with sample n turned by element ``g[n]`` (``g [N]`` int64)."""
@@ -118,8 +119,7 @@ class PlanarSymmetry:
         moved = torch.gather(flat, 2, sources[g][:, None, :].expand(n, c, -1))
         if self.vectors:
             xs, ys = [x for x, _ in self.vectors], [y for _, y in self.vectors]
-            vx, vy, m = moved[:, xs], moved[:, ys], matrices[g].to(obs.dtype)
-            moved = moved.clone()
+            vx, vy, m = moved[:, xs], moved[:, ys], matrices[g].to(obs.dtype)  # (copies: the writes below are safe)
             moved[:, xs] = m[:, 0, 0, None, None] * vx + m[:, 0, 1, None, None] * vy
             moved[:, ys] = m[:, 1, 0, None, None] * vx + m[:, 1, 1, None, None] * vy
         return moved.reshape(obs.shape)

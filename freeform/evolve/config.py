@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from freeform.envs.symmetry import GROUPS
 from freeform.learner import ALGORITHMS
 from freeform.validation import is_int, is_number, require
 
@@ -73,6 +74,7 @@ class AlgoConfig:
         require(is_int(self.mutation_voxels, 1), f"{key}.mutation_voxels", "an integer >= 1", self.mutation_voxels)
         require(is_number(self.sigma) and self.sigma > 0, f"{key}.sigma", "> 0", self.sigma)
         require(self.variant in CMA_VARIANTS, f"{key}.variant", f"one of {list(CMA_VARIANTS)}", self.variant)
+        require(self.symmetry in ("none", *GROUPS), f"{key}.symmetry", f"one of {['none', *GROUPS]}", self.symmetry)
         require(self.name != "distill" or (isinstance(self.teacher, str) and self.teacher != ""), f"{key}.teacher",
                 "a teacher run's directory or checkpoint with algo.name=distill (train one with control.teachers=M)",
                 self.teacher)

@@ -338,8 +338,27 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
                                control.hand_set_wave)
     if control.controller_init is not None:
         load_controller(student, control.controller_init)
+    if cfg.algo.symmetry != "none":
+        _check_turnable(control.controller, bank.init_kwargs["kind"], cfg.algo.symmetry, control.headings)
     return Distillation(env.env, student, BankTeacher(bank, env.teacher), ppo_config(cfg, device=str(device)),
                         DistillConfig.from_algo(cfg.algo), first_env=envs[0], total_envs=cfg.env.num_envs)
+
+
+def _check_turnable(student: str, teacher: str, symmetry: str, headings: str) -> None:
+    """A turned sample puts its body elsewhere in the padded box than the env ever does (a flip reverses the whole
+    box): only a controller that the padding does not change sees it as the same body. And a turned label walks
+    the turned way, which a fixed heading (+x) does not reward: there only the mirror y → −y keeps the task."""
+    from freeform.agents.controllers import CONTROLLERS
+
+    if headings == "fixed" and symmetry != "mirror":
+        raise ValueError(f"algo.symmetry={symmetry} turns the way a body walks, and control.headings=fixed rewards +x "
+                         "alone: use algo.symmetry=mirror (y -> -y keeps +x), or headings any or random")
+    for who, kind in (("control.controller", student), ("the teacher run's controller", teacher)):
+        if not CONTROLLERS[kind].padding_invariant:
+            raise ValueError(f"algo.symmetry={symmetry} turns each body within its padded box, which only a "
+                             f"controller that the padding does not change sees as the same body; {who} is {kind!r} "
+                             f"(use {[k for k, c in CONTROLLERS.items() if c.padding_invariant]}, or "
+                             "algo.symmetry=none)")
 
 
 def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
@@ -364,11 +383,11 @@ def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
-    _same_bodies(from_container(payload["config"]), cfg, path)
+    _same_bodies(from_container(payload["config"]), cfg, path, "cuda" if device.type == "cuda" else "cpu")
     return bank.to(device)
 
 
-def _same_bodies(theirs: TrainConfig, mine: TrainConfig, source: Path) -> None:
+def _same_bodies(theirs: TrainConfig, mine: TrainConfig, source: Path, arch: str = "cpu") -> None:
     """The teacher run's first M bodies are this run's, grid for grid — its records' (what it trained on), else
     its config's: the same ``control.bodies`` can name other grids (the untrained designs depend on
     ``env.num_envs``; a file may have changed since)."""
@@ -379,8 +398,12 @@ def _same_bodies(theirs: TrainConfig, mine: TrainConfig, source: Path) -> None:
     m = mine.control.teachers
     records = sorted((run_dir_of(source) / "records").glob("epoch_*.npz"))
     their_bodies = (torch.from_numpy(read_record(records[0]).final_grids[:m]) if records
-                    else control_bodies(theirs)[:m])
-    my_bodies = control_bodies(mine)[:m]
+                    else control_bodies(theirs, arch)[:m])
+    my_bodies = control_bodies(mine, arch)[:m]
+    if their_bodies.shape != my_bodies.shape:
+        raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are grids {list(their_bodies.shape)}, this "
+                         f"run's {list(my_bodies.shape)} (env.resolution {theirs.env.resolution} there, "
+                         f"{mine.env.resolution} here): train teachers on these bodies")
     differ = (their_bodies != my_bodies).flatten(1).any(1).nonzero().flatten().tolist()
     if differ:
         raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are not this run's (bodies {differ[:5]} differ; "
