@@ -117,6 +117,13 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                  f"control.controller_init={tmp_path / 'straight'}"))
     _, ppo = build(fine, torch.device("cpu"))
     assert all(torch.equal(v, a["ppo"]["policy"][k]) for k, v in ppo.policy.state_dict().items())
+    # teachers re-started from the student (distillation's next round, as divide-and-conquer RL does): each
+    # teacher of the new bank holds the student's weights
+    again = compose(*tiny_control(bodies, *teach, f"control.controller_init={tmp_path / 'straight'}"))
+    _, learner = build(again, torch.device("cpu"))
+    for m in range(2):
+        member = learner.policy.member_state(m)
+        assert all(torch.equal(v, a["ppo"]["policy"][k]) for k, v in member.items())
     # a run whose episode differs from the teachers' is refused, naming the field and both values
     other = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                   "control.duration=0.025"))
