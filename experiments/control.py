@@ -291,17 +291,17 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
 
 
 def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
-    """The bank of the teacher run ``run``, whose bodies (environment i's, for i < M: its first record's) must be
+    """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
     ``bodies``."""
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.body import largest_component
     from freeform.checkpoint import load_checkpoint
-    from freeform.records import read_record
+    from freeform.config import from_container
+    from freeform.run.build import teacher_bodies
 
     payload = load_checkpoint(run / "checkpoints" / "last.pt")
     bank = bank_from_checkpoint(payload, str(run))
-    record = read_record(sorted((run / "records").glob("epoch_*.npz"))[0])
-    theirs = largest_component(torch.from_numpy(record.final_grids[: bank.teachers])).numpy()
+    theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers)).numpy()
     if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
         raise ValueError(f"--per-body-run {run}: its {bank.teachers} teachers' bodies are not the first {len(bodies)} "
                          "bodies given (save them from its records: final_grids[:M])")
@@ -465,15 +465,14 @@ def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str,
                            body["mean_command"] - body["untrained_mean_command"])]
     if "hand_set_wave" in body:
         summary.append(summary_row("hand-set travelling wave (mean command)", body["hand_set_wave"]))
-    for how, theirs, mine in (("stochastic", "per_body", "controller"), ("mean command", "per_body_mean_command",
-                                                                           "mean_command")):
-        if n_own:
-            own, yours = body[theirs][:n_own], body[mine][:n_own]
-            summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
-                        summary_row(f"controller ({how}) on those {n_own} bodies", yours),
-                        {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
-                                       f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
-                         "band99": float("nan"), "n": n_own}]
+    pairs = (("stochastic", "per_body", "controller"), ("mean command", "per_body_mean_command", "mean_command"))
+    for how, theirs, mine in pairs if n_own else ():
+        own, yours = body[theirs][:n_own], body[mine][:n_own]
+        summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
+                    summary_row(f"controller ({how}) on those {n_own} bodies", yours),
+                    {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
+                                   f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
+                     "band99": float("nan"), "n": n_own}]
     return summary
 
 

@@ -276,12 +276,11 @@ def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log
     return outputs
 
 
-def _cell_means(net: nn.Module, x: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
+def _cell_means(net: nn.Module, out: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The actor head on features ``x [N, h, *box]`` of observations ``obs [N, C, *box]`` (``pooled`` =
-    ``_masked_pool(x, filled)``, which the critic reads too): (mean, mask) ``[N, A]`` (a rhythm head played on the
-    observation's clock, a wave head's strokes; zero outside the body)."""
-    out = net.actor(x)
+    """The actor head's per-cell outputs ``out [N, outputs, *box]`` on observations ``obs [N, C, *box]`` →
+    (mean, mask) ``[N, A]``: a rhythm head played on the observation's clock, a wave head's strokes with the body's
+    wave vector from ``pooled`` (the body's features, ``[N, 2h]``); zero outside the body."""
     if net.clock is not None:
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
     if net.wave is not None:

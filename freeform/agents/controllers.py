@@ -44,10 +44,6 @@ from freeform.agents.controller_heads import (
     _check_control_input,
     _env_wave,
     _masked_pool,
-    _per_cell_mean,
-    _rhythm,
-    _wave_strokes,
-    _wave_vector,
     head_rule,
 )
 from freeform.agents.networks import MLPActorCritic, rebuild
@@ -198,7 +194,7 @@ class ContextConvController(FromInputs, nn.Module):
         for conv, context in zip(self.convs, self.contexts, strict=True):
             x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
         pooled = _masked_pool(x, filled)
-        mean, mask = _cell_means(self, x, obs, filled, pooled)
+        mean, mask = _cell_means(self, self.actor(x), obs, filled, pooled)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 
@@ -267,7 +263,7 @@ class RecurrentContextController(FromInputs, nn.Module):
         m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
         x = F.relu(self.conv(x) + self.context(torch.cat([pooled, m.flatten(0, 1)], 1))[:, :, None, None, None]) * filled
         body = _masked_pool(x, filled)
-        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, x, o, filled, body))
+        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, self.actor(x), o, filled, body))
         summary = torch.cat([body, m.flatten(0, 1)], 1)
         return (mean, self.log_std.expand_as(mean), mask), summary, state
 
@@ -369,20 +365,15 @@ class VoxelAttentionController(FromInputs, nn.Module):
         for block in self.blocks:
             x = block(x, valid)
         x = self.norm(x) * valid[..., None]
-        out = self.actor(x).transpose(1, 2)  # [N, outputs, K]
-        if self.clock is not None:
-            out = _rhythm(out, features[..., list(self.clock)].transpose(1, 2))[:, None]
-        per_token = out * valid[:, None]
+        per_token = self.actor(x).transpose(1, 2) * valid[:, None]  # [N, outputs, K]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
         cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
         pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
-        if self.wave is not None:  # the body's wave vector from its tokens' mean and max
-            filled = obs[:, self.filled_channel: self.filled_channel + 1]
-            top = x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(0.0, neginf=0.0)
-            k = _wave_vector(self.wave_k(torch.cat([pooled, top], 1)) + self.wave_k0, obs, filled, self.wave)
-            box = _wave_strokes(cells.view(n, -1, *obs.shape[2:]), k, obs, self.wave, self.wave_phases)
-            cells = (box * filled).flatten(2)
-        mean, mask = _per_cell_mean(cells, obs[:, self.mask_channel].reshape(n, -1), self.head)
+        body = pooled  # (a wave head's: the tokens' mean and max, as the context controllers pool their cells)
+        if self.wave is not None:
+            body = torch.cat([pooled, x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(neginf=0.0)], 1)
+        filled = obs[:, self.filled_channel: self.filled_channel + 1]
+        mean, mask = _cell_means(self, cells.view(n, -1, *obs.shape[2:]), obs, filled, body)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 

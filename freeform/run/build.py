@@ -218,12 +218,13 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
         return PopulationControlEnv(sizes, stream, sim=cfg.sim, control=c.episode(), seed=seed, device=device,
                                     envs=envs)
     bodies = control_bodies(cfg, arch)[envs[0]:envs[1]] if bodies is None else bodies
+    if box is None and cfg.algo.name == "distill" and cfg.algo.symmetry == "ground":
+        from freeform.agents.controller_file import body_box
+
+        need = body_box(bodies)  # (a square footprint: the quarter turns and the diagonal mirrors map it onto itself)
+        box = (max(need[:2]), max(need[:2]), need[2])
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
                      first_env=envs[0], box=box)
-    if box is None and cfg.algo.name == "distill" and cfg.algo.symmetry == "ground" and env.box[0] != env.box[1]:
-        side = max(env.box[:2])  # (a square footprint: the quarter turns and the diagonal mirrors map it onto itself)
-        env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
-                         first_env=envs[0], box=(side, side, env.box[2]))
     if cfg.control.teachers:  # (each environment's observation names its body's teacher)
         from freeform.agents.teachers import TeacherIndex
 
@@ -332,7 +333,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
 
     control = cfg.control
     assert control is not None and control.teachers
-    bank = teacher_bank(cfg, device)
+    bank = teacher_bank(cfg, device, env.env.grids, envs[0])
     width = control.hidden if control.hidden is not None else cfg.agent.hidden
     student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
                                control.hand_set_wave)
@@ -361,9 +362,10 @@ def _check_turnable(student: str, teacher: str, symmetry: str, headings: str) ->
                              "algo.symmetry=none)")
 
 
-def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
-    """``algo.teacher``'s bank of per-body controllers, checked against this run: the same bodies, the same number
-    of teachers and the same episode settings (each field that differs named)."""
+def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, first_env: int = 0) -> Any:
+    """``algo.teacher``'s bank of per-body controllers, checked against this run: the same number of teachers and
+    episode settings (each field that differs named), and the same bodies — ``grids``, this run's environments
+    ``first_env …`` (environment i driven by body i mod M), grid for grid."""
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
     from freeform.config import from_container
@@ -383,29 +385,40 @@ def teacher_bank(cfg: TrainConfig, device: torch.device) -> Any:
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
-    _same_bodies(from_container(payload["config"]), cfg, path, "cuda" if device.type == "cuda" else "cpu")
+    theirs_cfg = from_container(payload["config"])
+    body = (torch.arange(len(grids)) + first_env) % bank.teachers  # (each environment's body)
+    their_bodies = teacher_bodies(path, theirs_cfg, bank.teachers, "cuda" if device.type == "cuda" else "cpu")
+    _same_bodies(their_bodies, grids.cpu(), body, theirs_cfg, cfg, path)
     return bank.to(device)
 
 
-def _same_bodies(theirs: TrainConfig, mine: TrainConfig, source: Path, arch: str = "cpu") -> None:
-    """The teacher run's first M bodies are this run's, grid for grid — its records' (what it trained on), else
-    its config's: the same ``control.bodies`` can name other grids (the untrained designs depend on
-    ``env.num_envs``; a file may have changed since)."""
+def teacher_bodies(source: Path, cfg: TrainConfig, teachers: int, arch: str = "cpu") -> torch.Tensor:
+    """A teacher run's M bodies, uint8 ``[M, ρ, ρ, ρ]`` (``source``: its directory or a checkpoint in it; ``cfg``
+    its config): its records' (what it trained on), else what its config gives — the same ``control.bodies`` can
+    name other grids elsewhere (the untrained designs depend on ``env.num_envs``; a file may change)."""
     from freeform.checkpoint import run_dir_of
     from freeform.records import read_record
 
-    assert mine.control is not None
-    m = mine.control.teachers
     records = sorted((run_dir_of(source) / "records").glob("epoch_*.npz"))
-    their_bodies = (torch.from_numpy(read_record(records[0]).final_grids[:m]) if records
-                    else control_bodies(theirs, arch)[:m])
-    my_bodies = control_bodies(mine, arch)[:m]
-    if their_bodies.shape != my_bodies.shape:
-        raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are grids {list(their_bodies.shape)}, this "
-                         f"run's {list(my_bodies.shape)} (env.resolution {theirs.env.resolution} there, "
+    if records:
+        return torch.from_numpy(read_record(records[0]).final_grids[:teachers])
+    return control_bodies(cfg, arch)[:teachers]
+
+
+def _same_bodies(their_bodies: torch.Tensor, my_grids: torch.Tensor, body: torch.Tensor, theirs: TrainConfig,
+                 mine: TrainConfig, source: Path) -> None:
+    """This run's environments' grids ``my_grids`` are the teacher run's bodies ``their_bodies[body]``, grid for
+    grid (refused naming the bodies that differ and what to do)."""
+    from freeform.checkpoint import run_dir_of
+
+    if their_bodies.shape[1:] != my_grids.shape[1:]:
+        raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are grids {list(their_bodies.shape[1:])}, "
+                         f"this run's {list(my_grids.shape[1:])} (env.resolution {theirs.env.resolution} there, "
                          f"{mine.env.resolution} here): train teachers on these bodies")
-    differ = (their_bodies != my_bodies).flatten(1).any(1).nonzero().flatten().tolist()
+    rows = (their_bodies[body] != my_grids).flatten(1).any(1)
+    differ = sorted(set(body[rows].tolist()))
     if differ:
+        assert mine.control is not None
         raise ValueError(f"algo.teacher={run_dir_of(source)}: its bodies are not this run's (bodies {differ[:5]} differ; "
                          f"control.bodies={mine.control.bodies!r} gives other grids here — the untrained designs "
                          f"depend on env.num_envs, {theirs.env.num_envs} there and {mine.env.num_envs} here — or "
