@@ -28,6 +28,8 @@ to the batch's box, at its corner). The costs of each on the 2-core CPU are in `
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import torch
@@ -298,7 +300,10 @@ class _AttentionBlock(nn.Module):
     def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         n, k, h = x.shape
         q, key, v = self.qkv(self.norm1(x)).view(n, k, 3, self.heads, h // self.heads).permute(2, 0, 3, 1, 4)
-        attended = F.scaled_dot_product_attention(q, key, v, attn_mask=valid[:, None, None, :])  # [N, heads, K, h/heads]
+        # written out, not F.scaled_dot_product_attention: torch.func.vmap (a TeacherBank) has no batching rule for it
+        scores = (q @ key.transpose(-1, -2)) / math.sqrt(h // self.heads)  # [N, heads, K, K]
+        scores = scores.masked_fill(~valid[:, None, None, :], torch.finfo(scores.dtype).min)
+        attended = scores.softmax(-1) @ v  # [N, heads, K, h/heads]
         x = x + self.out(attended.transpose(1, 2).reshape(n, k, h))
         return x + self.mlp(self.norm2(x))
 
@@ -321,6 +326,8 @@ class VoxelAttentionController(FromInputs, nn.Module):
 
     fits_any_box = True
     padding_invariant = True
+    token_count: int | None = None
+    """Tokens per body when set (:meth:`fixed_shapes`); otherwise the batch's largest voxel count."""
 
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None) -> None:
@@ -351,11 +358,23 @@ class VoxelAttentionController(FromInputs, nn.Module):
         cells = obs.flatten(2).transpose(1, 2)  # [N, A, C]
         filled = cells[..., self.filled_channel] > 0.5
         count = filled.sum(1)
-        k = max(int(count.max()), 1)
+        k = self.token_count or max(int(count.max()), 1)
         order = torch.argsort((~filled).to(torch.int32), dim=1, stable=True)[:, :k]  # the filled cells first, in C order
         features = cells.gather(1, order[..., None].expand(-1, -1, cells.shape[2]))
         valid = torch.arange(k, device=obs.device)[None] < count[:, None]
         return features, order, valid
+
+    @contextmanager
+    def fixed_shapes(self, obs: torch.Tensor) -> Iterator[None]:
+        """Inside, every forward pads its bodies to the largest voxel count in ``obs [N, C, Bx, By, Bz]``, so that
+        its shapes do not depend on the data it is given: what ``torch.func.vmap`` needs to run it over a
+        ``TeacherBank``'s blocks (the padding changes nothing: ``padding_invariant``)."""
+        filled = obs[:, self.filled_channel].flatten(1) > 0.5
+        self.token_count = max(int(filled.sum(1).max()), 1) if len(obs) else 1
+        try:
+            yield
+        finally:
+            self.token_count = None
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""

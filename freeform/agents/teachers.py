@@ -17,6 +17,7 @@ invariance test). The observation names each sample's teacher: the group ``"teac
 from __future__ import annotations
 
 from collections.abc import Mapping
+from contextlib import ExitStack
 from typing import Any
 
 import torch
@@ -26,10 +27,6 @@ from torch.func import functional_call, stack_module_state, vmap
 from freeform.agents.observation_groups import POLICY
 from freeform.agents.recurrent import RecurrentPolicy
 
-LOOPED_KINDS = ("attention",)
-"""Controllers whose forward pass depends on the data's sizes (the attention controller's token count is its
-bodies' largest voxel count, read with ``.item()``), which ``vmap`` cannot batch: the bank runs their teachers one
-after the other on their own samples."""
 TEACHER = "teacher"
 """The observation group naming each sample's teacher: int64 ``[N]`` in ``0 … M−1``."""
 
@@ -125,8 +122,6 @@ class TeacherBank(nn.Module):
                              "TeacherIndex adds it)")
         teacher = obs[TEACHER].long().reshape(-1)
         inputs = {k: v for k, v in obs.items() if k != TEACHER}
-        if self.init_kwargs["kind"] in LOOPED_KINDS:
-            return self._looped(teacher, inputs)
         slots, valid = self._slots(teacher)
         blocks = {k: v[slots] for k, v in inputs.items()}  # [M, W, ...]
         x = blocks[POLICY] if set(blocks) == {POLICY} else blocks
@@ -135,21 +130,19 @@ class TeacherBank(nn.Module):
         def one(p: dict[str, torch.Tensor], block: Any) -> tuple[torch.Tensor, ...]:
             return tuple(functional_call(self.template, p, (block,)))
 
-        outs = vmap(one)(params, x)
+        with self._fixed_shapes(inputs[POLICY]):
+            outs = vmap(one)(params, x)
         back = torch.argsort(slots[valid])  # (sample i sits at row back[i] of the valid slots)
         return tuple(out[valid][back] for out in outs)
 
-    def _looped(self, teacher: torch.Tensor, inputs: dict[str, torch.Tensor]) -> tuple[torch.Tensor, ...]:
-        """:data:`LOOPED_KINDS`: each teacher that has samples runs on them alone; the outputs back in order."""
-        parts, rows = [], []
-        for m in torch.unique(teacher).tolist():
-            idx = (teacher == m).nonzero().flatten()
-            part = {k: v[idx] for k, v in inputs.items()}
-            params = {self._names[k]: v[m] for k, v in self.stacked.items()}
-            parts.append(functional_call(self.template, params, (part[POLICY] if set(part) == {POLICY} else part,)))
-            rows.append(idx)
-        back = torch.argsort(torch.cat(rows))
-        return tuple(torch.cat(out)[back] for out in zip(*parts, strict=True))
+    def _fixed_shapes(self, policy: torch.Tensor) -> ExitStack:
+        """Each template module whose shapes depend on the data (the attention controller's token count) fixed to
+        this batch's for the vmapped call (a module's ``fixed_shapes(obs)`` context)."""
+        stack = ExitStack()
+        for module in self.template.modules():
+            if hasattr(module, "fixed_shapes"):
+                stack.enter_context(module.fixed_shapes(policy))
+        return stack
 
     def _slots(self, teacher: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``slots [M, W]``: the samples of each teacher in order, each block padded to the largest one (W samples)
