@@ -14,6 +14,9 @@ This is the one checkpoint path: ``PPO.save``/``PPO.load`` and the trainer's run
 :func:`save_checkpoint`/:func:`load_checkpoint`. A PPO checkpoint holds ``policy_class``, ``policy_kwargs``,
 ``ppo_config``, ``epoch``, ``global_step`` and ``ppo`` (``PPO.state_dict()``); a run checkpoint is a learner's
 ``checkpoint()`` (``freeform.learner``: PPO's, or ``algo`` and ``evolution``) plus the run's ``config`` and ``rng``. Files of earlier versions are upgraded on load (:func:`_upgrade`).
+
+Large tensors that are mostly zero bits (a distillation's dataset: observations that are zero outside the bodies)
+are written as their non-zero elements and a bit mask (:func:`pack_sparse`), and read back bit for bit.
 """
 
 from __future__ import annotations
@@ -31,8 +34,8 @@ from freeform.files import write_atomically
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 FORMAT = "freeform-checkpoint"
-VERSION = 3
-"""3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
+VERSION = 4
+"""4: large tensors of mostly zero bits packed (:func:`pack_sparse`); 3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
 ``episode_carry``; 2: per-environment state named under ``per_env`` keys. Version 2 files load (one upgrade
 step); version 1 was never released and is refused."""
 
@@ -60,7 +63,7 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> Path
 
     ``state`` is stamped with ``format``/``version`` keys. Returns the path written.
     """
-    payload = {"format": FORMAT, "version": VERSION, **state}
+    payload = {"format": FORMAT, "version": VERSION, **pack_sparse(state)}
 
     def write(f: Any) -> None:
         sink = _Sink(f)
@@ -125,12 +128,68 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         raise CheckpointError(f"checkpoint {path} is not a freeform checkpoint (no format={FORMAT!r} key)")
     if state.get("version") not in range(2, VERSION + 1):
         raise CheckpointError(f"checkpoint {path} has version {state.get('version')!r}; this freeform reads 2 to {VERSION}")
-    return _upgrade(state)
+    return _upgrade(unpack_sparse(state, map_location))
+
+
+PACKED = "freeform-packed-tensor"
+"""The marker key of a packed tensor in a checkpoint: ``{PACKED: shape, "mask": uint8 bits, "values": ...}``."""
+PACK_MIN_ELEMENTS = 1 << 20
+"""Tensors smaller than this are written as they are (packing would save too little to pay for its time)."""
+PACK_MAX_RATIO = 0.75
+"""A tensor is packed when its packed form (two bits per element, the non-zero elements) takes at most this
+fraction of its bytes."""
+
+
+def pack_sparse(state: Any) -> Any:
+    """``state`` with every tensor of ≥ :data:`PACK_MIN_ELEMENTS` elements that is mostly zeros replaced by its
+    packed form: its non-zero elements (NaN among them), a bit mask of where they are and one of its −0.0s (masking
+    by zero, ``x * filled``, leaves them). Containers (dict, list, tuple) are walked; all else is returned as is."""
+    if isinstance(state, dict):
+        return {k: pack_sparse(v) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(pack_sparse(v) for v in state)
+    if not isinstance(state, torch.Tensor) or state.numel() < PACK_MIN_ELEMENTS or state.layout != torch.strided \
+            or state.is_complex():
+        return state
+    flat = state.detach().reshape(-1).cpu()
+    nonzero = flat != 0
+    kept = int(nonzero.sum())
+    if flat.numel() / 4 + kept * flat.element_size() > PACK_MAX_RATIO * flat.numel() * flat.element_size():
+        return state
+    packed = {PACKED: list(state.shape), "mask": _bits(nonzero), "values": flat[nonzero].clone()}
+    if flat.is_floating_point():
+        packed["negative_zeros"] = _bits(~nonzero & torch.signbit(flat))
+    return packed
+
+
+def unpack_sparse(state: Any, map_location: str | torch.device = "cpu") -> Any:
+    """Inverse of :func:`pack_sparse`: each packed tensor rebuilt bit for bit (on ``map_location``)."""
+    if isinstance(state, dict):
+        if PACKED in state:
+            shape, values = state[PACKED], state["values"].cpu()
+            n = int(np.prod(shape, dtype=np.int64))
+            out = torch.zeros(n, dtype=values.dtype)
+            out[_unbits(state["mask"], n)] = values
+            if "negative_zeros" in state:
+                out[_unbits(state["negative_zeros"], n)] = -0.0
+            return out.reshape(shape).to(map_location)
+        return {k: unpack_sparse(v, map_location) for k, v in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(unpack_sparse(v, map_location) for v in state)
+    return state
+
+
+def _bits(mask: torch.Tensor) -> torch.Tensor:
+    return torch.from_numpy(np.packbits(mask.numpy()))
+
+
+def _unbits(bits: torch.Tensor, n: int) -> torch.Tensor:
+    return torch.from_numpy(np.unpackbits(bits.cpu().numpy(), count=n).view(np.bool_))
 
 
 def _upgrade(state: dict[str, Any]) -> dict[str, Any]:
     """A version-2 run checkpoint in today's layout: the run's episode collector moved into the learner's state
-    (evolution's carried nothing)."""
+    (evolution's carried nothing); version 3 differs from 4 only in writing no packed tensors."""
     if state["version"] == 2:
         carry = state.get("collector") or {}
         state = {**{k: v for k, v in state.items() if k != "collector"}, "version": VERSION}
@@ -218,8 +277,10 @@ __all__ = [
     "capture_rng_state",
     "load_checkpoint",
     "numbered_name",
+    "pack_sparse",
     "resolve_checkpoint",
     "restore_rng_state",
     "run_dir_of",
     "save_checkpoint",
+    "unpack_sparse",
 ]

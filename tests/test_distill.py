@@ -89,11 +89,15 @@ def test_the_loss_is_kl_or_the_means_squared_error() -> None:
     assert isinstance(MLPActorCritic.for_env(cartpoles(2)).distribution, Categorical)
 
 
-def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
+def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_path: Path,  # noqa: F811
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """A teacher bank trained one epoch through the app, then algo=distill from it (each sample turned by the
     ground's symmetries: their draws resume too): two rounds straight equal one plus a resumed one (the student,
-    the optimiser, the aggregated dataset)."""
+    the optimiser, the aggregated dataset — written packed, as a large run's is)."""
+    from freeform import checkpoint
     from freeform.train import train
+
+    monkeypatch.setattr(checkpoint, "PACK_MIN_ELEMENTS", 1024)  # (this tiny run's dataset packed like a large one's)
 
     teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
              "agent.advantage_norm=group", "seed=4")
@@ -110,6 +114,8 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     for key, tensor in a["ppo"]["distill"]["per_env"].items():
         assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
     assert a["ppo"]["distill"]["per_env"]["obs"].shape[:2] == (4, 8)  # 4 envs, 2 rounds of 4 steps
+    raw = torch.load(tmp_path / "split" / "checkpoints" / "last.pt", weights_only=True)
+    assert checkpoint.PACKED in raw["ppo"]["distill"]["per_env"]["obs"]
     # the optional PPO fine-tune starts from the student's weights (control.controller_init=<the distill run>)
     from freeform.run.build import build
 
