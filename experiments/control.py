@@ -462,18 +462,26 @@ def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str,
                summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
                            body["controller"] - body["untrained"]),
                summary_row("paired per body: controller (mean command) minus untrained (mean command)",
-                           body["mean_command"] - body["untrained_mean_command"])]
+                           body["mean_command"] - body["untrained_mean_command"]),
+               *(_beyond_gait(f"controller ({how})", body[key], open_loop)
+                 for how, key in (("stochastic", "controller"), ("mean command", "mean_command")))]
     if "hand_set_wave" in body:
         summary.append(summary_row("hand-set travelling wave (mean command)", body["hand_set_wave"]))
     pairs = (("stochastic", "per_body", "controller"), ("mean command", "per_body_mean_command", "mean_command"))
     for how, theirs, mine in pairs if n_own else ():
         own, yours = body[theirs][:n_own], body[mine][:n_own]
         summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
+                    _beyond_gait(f"per-body controllers ({how})", own, open_loop[:n_own]),
                     summary_row(f"controller ({how}) on those {n_own} bodies", yours),
                     {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
                                    f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
                      "band99": float("nan"), "n": n_own}]
     return summary
+
+
+def _beyond_gait(who: str, moved: np.ndarray, open_loop: np.ndarray) -> dict:
+    """The fraction of bodies that ``who`` moves further than their own open-loop gait (the band: the fraction's)."""
+    return summary_row(f"fraction of bodies beyond their own gait: {who}", (moved > open_loop).astype(float))
 
 
 def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:

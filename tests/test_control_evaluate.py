@@ -39,7 +39,7 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     """A controller trained in a 2 × 1 × 1 box (here: saved untrained) evaluated on bodies needing 2 × 2 × 1: a row
     per body with its simulated voxels (counted by hand), its open-loop gait (along +x, as open_loop_displacement
     scores it on the bodies as simulated), finite controller figures; the summary's six rows and three paired
-    differences."""
+    differences; the fractions of bodies beyond their own gait."""
     torch.manual_seed(0)
     net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated")), hidden=4,
                                log_std=-1.0)
@@ -57,7 +57,7 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
     np.testing.assert_allclose([float(r["open_loop"]) for r in rows], expected, rtol=1e-6, atol=1e-9)
     assert all(np.isfinite(float(r["controller"])) and float(r["band99"]) >= 0 for r in rows)
     summary = read_csv(tmp_path / "eval" / "summary.csv")
-    assert len(summary) == 9 and [r["n"] for r in summary] == ["3"] * 9
+    assert len(summary) == 11 and [r["n"] for r in summary] == ["3"] * 11
     assert summary[1]["what"].startswith("controller (context") and "mean command" in summary[2]["what"]
     assert "zeroed" in summary[3]["what"] and "untrained" in summary[4]["what"] and "mean command" in summary[5]["what"]
     np.testing.assert_allclose(float(summary[0]["mean"]), expected.mean(), rtol=1e-6)
@@ -70,6 +70,11 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
         assert row["what"].startswith("paired")
         np.testing.assert_allclose(float(row["mean"]), diff.mean(), rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(float(row["band99"]), 2.5758 * diff.std(ddof=1) / np.sqrt(3), rtol=1e-3, atol=1e-9)
+    # the fraction of bodies the controller moves beyond their own gait (the issue's "≥ 90 % of bodies")
+    for row, key in ((summary[9], "controller"), (summary[10], "mean_command")):
+        assert row["what"].startswith("fraction of bodies beyond their own gait")
+        beyond = [float(r[key]) > float(r["open_loop"]) for r in rows]
+        np.testing.assert_allclose(float(row["mean"]), np.mean(beyond), rtol=1e-9)
 
 
 def test_malformed_bodies_are_refused_naming_the_body(tmp_path) -> None:
@@ -264,6 +269,11 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
         expected = np.mean([float(r[mine]) for r in rows[:2]]) / np.mean([float(r[theirs]) for r in rows[:2]])
         np.testing.assert_allclose(float(fraction["mean"]), expected, rtol=1e-6)
         assert fraction["n"] == "2"
+        beyond = next(v for k, v in summary.items() if k.startswith(f"fraction of bodies beyond their own gait: "
+                                                                    f"per-body controllers ({how})"))
+        expected = np.mean([float(r[theirs]) > float(r["open_loop"]) for r in rows[:2]])
+        np.testing.assert_allclose(float(beyond["mean"]), expected)
+        assert beyond["n"] == "2"
     assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
     main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named
     assert read_csv(tmp_path / "from_run" / "bodies.csv") == rows
