@@ -386,3 +386,10 @@ def draw_body(ax: Any, grid: np.ndarray, body: np.ndarray | None = None, title: 
     ax.set_axis_off()
     if title:
         ax.set_title(title, fontsize=8)
+
+
+def summary_row(name: str, values: np.ndarray) -> dict:
+    """A summary.csv row: ``values``' mean over its first axis and 99 % band (``mean_band``), low and high."""
+    mean, band = mean_band(values)
+    return {"what": name, "n": len(values), "mean": float(mean), "band99": float(band),
+            "low": float(mean - band), "high": float(mean + band)}

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from experiments.control import main, read_bodies
+from experiments.control import main
+from experiments.heldout import read_bodies
 from freeform.agents.controller_file import save_controller
 from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.controllers import ContextConvController, MLPController

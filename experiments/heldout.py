@@ -1,0 +1,322 @@
+"""Controllers on bodies they never saw (zero-shot): ``python -m experiments.control --evaluate PATH --bodies
+BODIES.npy`` (:func:`evaluate_bodies`).
+
+Each body is played by the controller (stochastic and by its mean command), the controller with its sensed
+channels zeroed, an untrained one, the hand-set travelling wave and, with ``--per-body N``, the first N bodies' own
+controllers (per-body control: a teacher bank trained once by ``freeform-train`` and cached, or a teacher run
+named with ``--per-body-run``), all against each body's open-loop gait in the same window and headings.
+Writes ``bodies.csv`` (a row per body), ``summary.csv`` (means with 99 % bands across bodies, paired differences,
+the fraction of per-body control reached and of bodies beyond their own gait) and ``run.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from experiments.common import mean_band, summary_row
+from freeform.agents.controller_file import controller_for, read_controller
+from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
+from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
+from freeform.agents.networks import rebuild
+from freeform.envs.control import (
+    ControlConfig,
+    ControlEnv,
+    open_loop_displacement,
+    open_loop_moves,
+)
+from freeform.sim import SimConfig
+
+SENSED = ("rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact")
+"""The observation's sensed channels: zeroed, a controller has only the body's shape, the task and the clock."""
+
+
+def read_bodies(path: Path, materials: int) -> torch.Tensor:
+    """The bodies of a ``.npy`` of integer grids ``[M, ρ, ρ, ρ]`` (or one ``[ρ, ρ, ρ]``) in the design env's
+    materials (0 empty, 1 … ``materials``), as uint8, each reduced to its largest 6-connected component (the robot;
+    its other pieces would fall apart from it). Malformed input is refused naming the body and the problem; no row is
+    ever dropped."""
+    from freeform.body import largest_component
+
+    try:
+        grids = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"--bodies {path}: not a .npy of grids ({e})") from e
+    grids = grids[None] if grids.ndim == 3 else grids
+    if grids.ndim != 4 or len(grids) == 0 or not grids.shape[1] == grids.shape[2] == grids.shape[3]:
+        raise ValueError(f"--bodies {path}: grids must be [M, ρ, ρ, ρ] (M ≥ 1 cubes), got shape {list(grids.shape)}")
+    if not (np.issubdtype(grids.dtype, np.integer) or grids.dtype == np.bool_):
+        raise ValueError(f"--bodies {path}: grids must hold integer material indices (uint8), got {grids.dtype}")
+    for i, grid in enumerate(grids):
+        bad = np.unique(grid[(grid < 0) | (grid > materials)])
+        if bad.size:
+            raise ValueError(f"--bodies {path}: body {i} holds material {bad.tolist()}, allowed 0 (empty) … {materials}")
+        if not grid.any():
+            raise ValueError(f"--bodies {path}: body {i} is empty (no voxel: nothing to control)")
+    return largest_component(torch.from_numpy(grids.astype(np.uint8)))
+
+
+@dataclass
+class PerBody:
+    """``--per-body N``: per-body controllers for the first ``n`` bodies, trained by ``freeform-train
+    experiment=<preset>`` (a bank: ``control.teachers=n``, ``copies`` environments per body, the evaluated
+    controller's episode settings) or read from ``cache`` (a run directory named by the bodies and settings, resumed
+    where a run stopped early)."""
+
+    n: int
+    preset: str = "control_teachers_cpu"
+    copies: int = 4
+    overrides: tuple[str, ...] = ()
+    cache: Path = Path("runs/per_body")
+    run: Path | None = None
+    """A teacher run to read instead (``control.teachers`` = n, its bodies the first n given: checked)."""
+
+
+def _hydra_value(value: Any) -> str:
+    return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim: SimConfig) -> Any:
+    """The bank of per-body controllers for ``grids[:per.n]`` (:class:`PerBody`), trained or read from the cache;
+    its run's physics must be ``sim`` (the evaluated controller's)."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import compose, from_container
+    from freeform.train import train
+
+    if not 1 <= per.n <= len(grids):
+        raise ValueError(f"--per-body {per.n}: must be in 1 … {len(grids)} (the bodies given)")
+    bodies = grids[: per.n].numpy()
+    if per.run is not None:
+        return _teacher_run(per.run, bodies)
+    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items() if k != "privileged_critic"]
+    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
+    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
+    run = per.cache / f"{per.preset}_{per.n}_{key}"
+    run.mkdir(parents=True, exist_ok=True)
+    np.save(run / "bodies.npy", bodies)
+    cfg = compose(f"experiment={per.preset}", f"control.bodies={run / 'bodies.npy'}", *overrides,
+                  "trainer.render_every=0", "trainer.progress=false")
+    last = run / "checkpoints" / "last.pt"
+    if not last.is_file() or int(load_checkpoint(last)["epoch"]) < cfg.trainer.epochs:
+        print(f"per-body controllers: training {per.n} in {run} ({cfg.trainer.epochs} epochs)", flush=True)
+        with torch.enable_grad():  # (called from the evaluation, which computes no gradients)
+            train(cfg, run)  # (trainer.resume=auto continues a run that stopped early)
+    payload = load_checkpoint(last)
+    if ControlEnv.simulation(from_container(payload["config"]).sim, control) != ControlEnv.simulation(sim, control):
+        raise ValueError(f"--per-body: the per-body controllers in {run} were trained with another sim section than "
+                         "the evaluated controller's: give its sim.* values with --per-body-set")
+    return bank_from_checkpoint(payload, str(run))
+
+
+def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
+    """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
+    ``bodies``."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.body import largest_component
+    from freeform.checkpoint import load_checkpoint
+    from freeform.config import from_container
+    from freeform.run.build import teacher_bodies
+
+    payload = load_checkpoint(run / "checkpoints" / "last.pt")
+    bank = bank_from_checkpoint(payload, str(run))
+    theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers)).numpy()
+    if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
+        raise ValueError(f"--per-body-run {run}: its {bank.teachers} teachers' bodies are not the first {len(bodies)} "
+                         "bodies given (save them from its records: final_grids[:M])")
+    return bank
+
+
+class _BankOnBodies(torch.nn.Module):
+    """A bank of per-body controllers acting on an evaluation env's rows: row r is body ``rows_body[r]``'s."""
+
+    def __init__(self, bank: Any, teacher: torch.Tensor, box: tuple[int, ...]) -> None:
+        super().__init__()
+        from freeform.agents.teachers import TeacherBank
+
+        k = bank.init_kwargs  # (built for the evaluation's box: the kinds that fit any box)
+        self.bank = TeacherBank(**{**k, "controller": {**k["controller"], "box": tuple(box)}})
+        self.bank.load_state_dict(bank.state_dict())
+        self.teacher, self.distribution = teacher, self.bank.distribution
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return tuple(self.bank({"teacher": self.teacher, "policy": obs}))
+
+
+def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWave | None) -> torch.nn.Module:
+    """An untrained wave-head context controller for ``env`` (whose actions are strokes): its mean command is the
+    hand-set travelling wave — ``wave``, else the controller's own wave, else the default."""
+    own = getattr(controller, "wave", None)
+    start = wave or (HandSetWave(own["k"], own.get("amplitude", 1.0)) if own else DEFAULT_WAVE)
+    net = ContextConvController.for_env(env, head="wave", wave=start).eval()
+    with torch.no_grad():  # (the learnt parts at zero: the wave exactly, not the wave plus an init's small noise)
+        for layer in (net.actor, net.wave_k):
+            layer.weight.zero_()
+            layer.bias.zero_()
+    return net
+
+
+@torch.no_grad()
+def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
+                    seed: int = 0, per_body: PerBody | None = None,
+                    wave: HandSetWave | None = None) -> tuple[list[dict], list[dict]]:
+    """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
+    control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
+    each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
+    body × episode once per group, the groups with the same headings (the same draws): the controller, the
+    controller's mean command (deterministic: what it learned, without its exploration noise), the controller with
+    its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses nothing), an untrained
+    controller of the same architecture (seeded ``seed``), stochastic and its mean command (what the architecture
+    does before learning: the open-loop gait for most heads, the hand-set travelling wave for a ``wave`` head), the
+    hand-set wave's mean command whatever the controller's head (:func:`hand_set_wave`; with strokes), and with
+    ``per_body`` each of the first N bodies' own controller (:class:`PerBody`, stochastic). The box is the one the
+    controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
+
+    Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
+    the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean
+    command's, the untrained controller's, the hand-set wave's and the per-body controller's means) and
+    ``out/summary.csv`` (the means over the bodies with 99 % bands across bodies, then paired differences per body
+    — mean command minus open loop, stochastic minus untrained, mean command minus the untrained mean command —
+    whose bands leave out the across-body spread; with ``per_body`` the controller and its own per-body controllers
+    on the first N bodies, and the fraction of per-body control the controller reaches), and ``out/run.json``.
+    Returns (the body rows, the summary rows)."""
+    saved = read_controller(source)
+    sim = saved.sim or SimConfig()
+    grids = read_bodies(bodies, len(sim.materials))
+    trained = tuple(saved.controller.box)
+    saved = controller_for(saved.path, grids)  # (its own box where the bodies fit it; the MLP refused otherwise)
+    control = replace(saved.control, headings=headings or saved.control.headings)
+    control.validate()
+    m, n, box = len(grids), episodes, tuple(saved.controller.box)
+    controller = saved.controller.eval()
+    torch.manual_seed(seed)
+    untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
+    bank = per_body_bank(grids, per_body, saved.control, sim) if per_body is not None else None
+    groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
+              ("zeroed", controller, True, True), ("untrained", untrained, False, True),
+              ("untrained_mean_command", untrained, False, False)]
+    blocks = len(groups) + (control.stroke_periods >= 1) + 2 * (bank is not None)  # (one block of rows a group)
+    env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=seed,
+                     box=box, first_env=np.tile(np.arange(m * n), blocks))
+    if control.stroke_periods >= 1:
+        groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
+    if bank is not None:
+        rows_body = torch.arange(m).repeat_interleave(n)
+        own = _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
+        groups += [("per_body", own, False, True), ("per_body_mean_command", own, False, False)]
+    returns, obs, heading = _play(env, groups, control.steps, seed)
+    moves = open_loop_moves(grids, sim, control)  # [M, 2]
+    along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
+                                   planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
+    per_group = {name: returns[g].reshape(m, n) for g, (name, *_) in enumerate(groups)}
+    if bank is not None:
+        per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
+    rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
+    summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0)
+    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies),
+                                "body_count": m, "episodes_per_body": n, "box": list(box), "trained_box": list(trained),
+                                "seed": seed, "control": vars(control),
+                                "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
+    return rows, summary
+
+
+def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+    """One episode of every group ``(name, net, sensed channels zeroed, stochastic)`` on its block of ``env``'s
+    rows. Returns the returns ``[G, rows]``, the last observation and the episode's headings."""
+    sensed = [env.channels.index(c) for c in SENSED]
+
+    def view(obs: torch.Tensor, zeroed: bool) -> torch.Tensor:
+        if not zeroed:
+            return obs
+        obs = obs.clone()
+        obs[:, sensed] = 0.0
+        return obs
+
+    generator = torch.Generator().manual_seed(seed)
+    obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
+    states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
+    for _ in range(steps):
+        heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
+        actions = []
+        for g, ((_, net, zeroed, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
+            outputs, states[g] = controller_step(net, view(part, zeroed), states[g])
+            params = outputs[:3]
+            noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
+            actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
+        obs, reward, _, _ = env.step(torch.cat(actions))
+        total += reward.double()
+    return total.numpy().reshape(len(groups), -1), obs, heading
+
+
+def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs: torch.Tensor,
+               env: ControlEnv) -> list[dict]:
+    """``bodies.csv``'s rows: a body's voxels and muscles as simulated (from an observation of its first episode's
+    row), its open-loop gait and every group's mean over its episodes (the controller's with its 99 % band)."""
+    filled = last_obs[:, env.filled_channel].flatten(1).sum(1)  # (the next episode's: the same bodies)
+    # (voxels, not action channels: a stroke's mask holds each muscle twice, once per (a, b))
+    actuated = last_obs[:, env.channels.index("actuated")].flatten(1).sum(1)
+    rows = []
+    for i in range(len(open_loop)):
+        mean, band = mean_band(per_group["controller"][i])
+        row = {"body": i, "voxels": int(filled[i]), "actuated": int(actuated[i]), "open_loop": float(open_loop[i]),
+               "controller": float(mean), "band99": float(band)}
+        row.update({name: float(v[i].mean()) for name, v in per_group.items() if name not in ("controller", "zeroed")})
+        rows.append(row)
+    return rows
+
+
+def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int) -> list[dict]:
+    """``summary.csv``: the means over the bodies (99 % bands across bodies), then the paired differences per body
+    (each body against itself: same headings, same noise streams, so the across-body spread cancels), and with
+    per-body controllers on the first ``n_own`` bodies the controller and theirs there and the fraction reached."""
+    body = {name: v.mean(1) for name, v in per_group.items()}
+    summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
+               summary_row(f"controller ({kind}, stochastic)", body["controller"]),
+               summary_row(f"controller ({kind}, mean command)", body["mean_command"]),
+               summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", body["zeroed"]),
+               summary_row(f"untrained controller ({kind}, seed {seed}, stochastic)", body["untrained"]),
+               summary_row(f"untrained controller ({kind}, seed {seed}, mean command)", body["untrained_mean_command"]),
+               summary_row("paired per body: controller (mean command) minus open loop",
+                           body["mean_command"] - open_loop),
+               summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
+                           body["controller"] - body["untrained"]),
+               summary_row("paired per body: controller (mean command) minus untrained (mean command)",
+                           body["mean_command"] - body["untrained_mean_command"]),
+               *(_beyond_gait(f"controller ({how})", body[key], open_loop)
+                 for how, key in (("stochastic", "controller"), ("mean command", "mean_command")))]
+    if "hand_set_wave" in body:
+        summary.append(summary_row("hand-set travelling wave (mean command)", body["hand_set_wave"]))
+    pairs = (("stochastic", "per_body", "controller"), ("mean command", "per_body_mean_command", "mean_command"))
+    for how, theirs, mine in pairs if n_own else ():
+        own, yours = body[theirs][:n_own], body[mine][:n_own]
+        summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
+                    _beyond_gait(f"per-body controllers ({how})", own, open_loop[:n_own]),
+                    summary_row(f"controller ({how}) on those {n_own} bodies", yours),
+                    {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
+                                   f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
+                     "band99": float("nan"), "n": n_own}]
+    return summary
+
+
+def _beyond_gait(who: str, moved: np.ndarray, open_loop: np.ndarray) -> dict:
+    """The fraction of bodies that ``who`` moves further than their own open-loop gait (the band: the fraction's)."""
+    return summary_row(f"fraction of bodies beyond their own gait: {who}", (moved > open_loop).astype(float))
+
+
+def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
+        with open(out / name, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(table[0]))
+            writer.writeheader()
+            writer.writerows(table)
+    (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
+    for row in summary:
+        print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
