@@ -7,6 +7,11 @@ controllers (per-body control: a teacher bank trained once by ``freeform-train``
 named with ``--per-body-run``), all against each body's open-loop gait in the same window and headings.
 Writes ``bodies.csv`` (a row per body), ``summary.csv`` (means with 99 % bands across bodies, paired differences,
 the fraction of per-body control reached and of bodies beyond their own gait) and ``run.json``.
+
+Several sets evaluated apart (the 93 held-out bodies: ``design_unseen``, ``grown``, ``hand_built``) pooled into one
+table over all their bodies (:func:`pool`)::
+
+    python -m experiments.heldout --pool DIR1 DIR2 DIR3 --out DIR
 """
 
 from __future__ import annotations
@@ -320,3 +325,60 @@ def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
     (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
     for row in summary:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
+
+
+POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave", "per_body", "per_body_mean_command")
+"""The ``bodies.csv`` columns a pooled table reads (each set must have them: ``--per-body`` on all its bodies)."""
+
+
+def pool(sets: list[Path], out: Path) -> list[dict]:
+    """Evaluations of one controller on several sets of bodies (``evaluate_bodies``' output folders) as one: their
+    ``bodies.csv`` rows together (a ``set`` column: the folder's name) and a ``summary.csv`` over all the bodies —
+    the means, the fractions of per-body control, the controller over the hand-set wave, the fractions beyond
+    their own gait. Refused, naming the folder, where a set lacks a column; ``run.json`` lists each set's
+    controller (name the same one: the pooled figures mean nothing otherwise)."""
+    rows, controllers = [], []
+    for folder in sets:
+        path = Path(folder) / "bodies.csv"
+        if not path.is_file():
+            raise ValueError(f"--pool {folder}: no bodies.csv (an output folder of --evaluate PATH --bodies ...)")
+        with open(path, newline="") as f:
+            table = list(csv.DictReader(f))
+        missing = [c for c in POOLED if not table or c not in table[0]]
+        if missing or any(r["per_body"] in ("", "nan") for r in table):
+            raise ValueError(f"--pool {folder}: bodies.csv lacks {missing or 'per_body on some bodies'} (evaluate "
+                             "every body with --per-body N, N = its body count)")
+        controllers.append(json.loads((Path(folder) / "run.json").read_text())["controller"])
+        rows += [{"set": Path(folder).name, **r} for r in table]
+    v = {c: np.array([float(r[c]) for r in rows]) for c in POOLED}
+    n = len(rows)
+    summary = [summary_row("open loop (each body's own gait)", v["open_loop"]),
+               summary_row("controller (stochastic)", v["controller"]),
+               summary_row("controller (mean command)", v["mean_command"]),
+               summary_row("hand-set travelling wave (mean command)", v["hand_set_wave"]),
+               summary_row("per-body controllers (stochastic)", v["per_body"]),
+               summary_row("per-body controllers (mean command)", v["per_body_mean_command"])]
+    ratios = (("fraction of per-body control (stochastic)", v["controller"].mean() / v["per_body"].mean()),
+              ("fraction of per-body control (mean command)",
+               v["mean_command"].mean() / v["per_body_mean_command"].mean()),
+              ("controller (mean command) over the hand-set wave", v["mean_command"].mean() / v["hand_set_wave"].mean()))
+    summary += [{**summary_row(what, np.array([ratio])), "band99": float("nan"), "n": n} for what, ratio in ratios]
+    summary += [_beyond_gait(who, v[key], v["open_loop"]) for who, key in
+                (("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command"),
+                 ("per-body controllers (mean command)", "per_body_mean_command"))]
+    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n})
+    return summary
+
+
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m experiments.heldout", description=pool.__doc__.split("\n")[0])
+    p.add_argument("--pool", nargs="+", required=True, type=Path, help="--evaluate output folders to pool")
+    p.add_argument("--out", required=True, type=Path)
+    args = p.parse_args(argv)
+    pool(args.pool, args.out)
+
+
+if __name__ == "__main__":
+    main()

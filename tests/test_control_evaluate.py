@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -305,3 +306,38 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     assert any(abs(float(r["mean_command"])) > 1e-4 for r in rows)  # (the wave moves them: 0 = 0 would pass)
     np.testing.assert_allclose([float(r["hand_set_wave"]) for r in rows], [float(r["mean_command"]) for r in rows],
                                rtol=1e-5, atol=1e-7)
+
+
+def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
+    """Two sets of 1 and 2 bodies pooled: the fraction of per-body control is the mean over all three bodies
+    divided by theirs (mean command: 1.0 / (5/3) = 0.6, not the mean of the sets' fractions, 0.583), the
+    wave ratio likewise, the bodies beyond their gait counted over all; a set evaluated without per-body
+    controllers on every body is refused, naming the folder."""
+    from experiments.heldout import pool
+
+    def write(name: str, bodies: list[dict]) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        with open(folder / "bodies.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(bodies[0]))
+            writer.writeheader()
+            writer.writerows(bodies)
+        (folder / "run.json").write_text(json.dumps({"controller": "c.pt"}))
+        return folder
+
+    def body(i, gait, stoch, mean, wave, own, own_mean):
+        return {"body": i, "open_loop": gait, "controller": stoch, "mean_command": mean, "hand_set_wave": wave,
+                "per_body": own, "per_body_mean_command": own_mean}
+
+    a = write("a", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)])
+    b = write("b", [body(0, 0.9, 0.5, 0.5, 0.5, 1.0, 1.0), body(1, 0.2, 0.5, 1.5, 1.0, 1.0, 2.0)])
+    summary = {r["what"]: float(r["mean"]) for r in pool([a, b], tmp_path / "out")}
+    assert summary["fraction of per-body control (stochastic)"] == pytest.approx(0.5)
+    assert summary["fraction of per-body control (mean command)"] == pytest.approx(1.0 / (5.0 / 3.0))  # 0.6
+    assert summary["controller (mean command) over the hand-set wave"] == pytest.approx(1.0 / (2.0 / 3.0))
+    assert summary["fraction of bodies beyond their own gait: controller (stochastic)"] == pytest.approx(2 / 3)
+    rows = read_csv(tmp_path / "out" / "bodies.csv")
+    assert [r["set"] for r in rows] == ["a", "b", "b"]
+    c = write("c", [body(0, 0.1, 0.5, 1.0, 0.5, float("nan"), float("nan"))])
+    with pytest.raises(ValueError, match=r"--pool .*c: bodies.csv lacks per_body"):
+        pool([a, c], tmp_path / "out2")
