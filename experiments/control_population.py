@@ -109,7 +109,7 @@ def figure(results: Path, seeds: list[int], path: Path, moved: str = "distance i
 
 
 def held_out_sets(bodies: Path, materials: int) -> dict:
-    """Every held-out set of ``bodies/SET.npy`` as ``--evaluate`` reads it (``experiments.control.read_bodies``)."""
+    """Every held-out set of ``bodies/SET.npy`` as ``--evaluate`` reads it (``experiments.heldout.read_bodies``)."""
     from experiments.heldout import read_bodies
 
     return {name: read_bodies(bodies / f"{name}.npy", materials) for name in SETS}

@@ -1,5 +1,5 @@
 """Controllers on bodies they never saw (zero-shot): ``python -m experiments.control --evaluate PATH --bodies
-BODIES.npy`` (:func:`evaluate_bodies`).
+BODIES.npy`` (:func:`evaluate_bodies`; the held-out sets are ``experiments.heldout_bodies``').
 
 Each body is played by the controller (stochastic and by its mean command), the controller with its sensed
 channels zeroed, an untrained one, the hand-set travelling wave and, with ``--per-body N``, the first N bodies' own
@@ -189,7 +189,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     command's, the untrained controller's, the hand-set wave's and the per-body controller's means) and
     ``out/summary.csv`` (the means over the bodies with 99 % bands across bodies, then paired differences per body
     — mean command minus open loop, stochastic minus untrained, mean command minus the untrained mean command —
-    whose bands leave out the across-body spread; with ``per_body`` the controller and its own per-body controllers
+    whose bands leave out the across-body spread, and the fractions of bodies moved beyond their own gait; with
+    ``per_body`` the controller and its own per-body controllers
     on the first N bodies, and the fraction of per-body control the controller reaches), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
     saved = read_controller(source)
@@ -279,8 +280,9 @@ def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs
 
 def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int) -> list[dict]:
     """``summary.csv``: the means over the bodies (99 % bands across bodies), then the paired differences per body
-    (each body against itself: same headings, same noise streams, so the across-body spread cancels), and with
-    per-body controllers on the first ``n_own`` bodies the controller and theirs there and the fraction reached."""
+    (each body against itself: same headings, same noise streams, so the across-body spread cancels), the
+    fractions of bodies beyond their own gait, and with per-body controllers on the first ``n_own`` bodies the
+    controller and theirs there (and theirs beyond the gait) and the fraction reached."""
     body = {name: v.mean(1) for name, v in per_group.items()}
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
                summary_row(f"controller ({kind}, stochastic)", body["controller"]),
@@ -335,9 +337,10 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
     """Evaluations of one controller on several sets of bodies (``evaluate_bodies``' output folders) as one: their
     ``bodies.csv`` rows together (a ``set`` column: the folder's name) and a ``summary.csv`` over all the bodies —
     the means, the fractions of per-body control, the controller over the hand-set wave, the fractions beyond
-    their own gait. Refused, naming the folder, where a set lacks a column; ``run.json`` lists each set's
-    controller (name the same one: the pooled figures mean nothing otherwise)."""
-    rows, controllers = [], []
+    their own gait. Refused, naming the folder, where a set lacks a column or a value, or was evaluated with
+    another controller kind, episode settings, episode count or seed; ``run.json`` lists each set's controller
+    file (the same weights may sit in a run and in its ``controller.pt``)."""
+    rows, controllers, settings = [], [], []
     for folder in sets:
         path = Path(folder) / "bodies.csv"
         if not path.is_file():
@@ -345,11 +348,22 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
         with open(path, newline="") as f:
             table = list(csv.DictReader(f))
         missing = [c for c in POOLED if not table or c not in table[0]]
-        if missing or any(r["per_body"] in ("", "nan") for r in table):
-            raise ValueError(f"--pool {folder}: bodies.csv lacks {missing or 'per_body on some bodies'} (evaluate "
-                             "every body with --per-body N, N = its body count)")
-        controllers.append(json.loads((Path(folder) / "run.json").read_text())["controller"])
-        rows += [{"set": Path(folder).name, **r} for r in table]
+        if missing:
+            raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
+                             "controller with strokes; per_body: --per-body N)")
+        if any(r[c] in ("", "nan") for r in table for c in POOLED):
+            raise ValueError(f"--pool {folder}: bodies.csv lacks per_body on some bodies (evaluate every body with "
+                             "--per-body N, N = its body count)")
+        if not (Path(folder) / "run.json").is_file():
+            raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
+        run = json.loads((Path(folder) / "run.json").read_text())
+        setting = {k: run.get(k) for k in ("kind", "control", "episodes_per_body", "seed")}
+        if settings and setting != settings[0]:
+            differ = [k for k in setting if setting[k] != settings[0][k]]
+            raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ)")
+        settings.append(setting)
+        controllers.append(run.get("controller"))
+        rows += [{"set": str(folder), **{c: r[c] for c in ("body", *POOLED)}} for r in table]
     v = {c: np.array([float(r[c]) for r in rows]) for c in POOLED}
     n = len(rows)
     summary = [summary_row("open loop (each body's own gait)", v["open_loop"]),
@@ -365,6 +379,7 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
     summary += [{**summary_row(what, np.array([ratio])), "band99": float("nan"), "n": n} for what, ratio in ratios]
     summary += [_beyond_gait(who, v[key], v["open_loop"]) for who, key in
                 (("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command"),
+                 ("per-body controllers (stochastic)", "per_body"),
                  ("per-body controllers (mean command)", "per_body_mean_command"))]
     _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n})
     return summary

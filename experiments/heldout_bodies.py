@@ -1,4 +1,5 @@
-"""Bodies no population run trains on (issue 42's generalisation test): made by procedures the training stream
+"""Bodies no population run trains on (issue 42's generalisation test; a controller is scored on them by
+``experiments.heldout``): made by procedures the training stream
 (``freeform.envs.population.design_cohort``: an untrained design policy placing 2³ bundles) never uses.
 
 * ``hand_built``: shapes a person would draw on an 8³ grid — quadrupeds, tripods, bipeds, worms, crawlers, tables,

@@ -15,7 +15,7 @@ This is the one checkpoint path: ``PPO.save``/``PPO.load`` and the trainer's run
 ``ppo_config``, ``epoch``, ``global_step`` and ``ppo`` (``PPO.state_dict()``); a run checkpoint is a learner's
 ``checkpoint()`` (``freeform.learner``: PPO's, or ``algo`` and ``evolution``) plus the run's ``config`` and ``rng``. Files of earlier versions are upgraded on load (:func:`_upgrade`).
 
-Large tensors that are mostly zero bits (a distillation's dataset: observations that are zero outside the bodies)
+Large tensors that are mostly zeros (a distillation's dataset: observations that are zero outside the bodies)
 are written as their non-zero elements and a bit mask (:func:`pack_sparse`), and read back bit for bit.
 """
 
@@ -35,7 +35,7 @@ CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 FORMAT = "freeform-checkpoint"
 VERSION = 4
-"""4: large tensors of mostly zero bits packed (:func:`pack_sparse`); 3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
+"""4: large tensors of mostly zeros packed (:func:`pack_sparse`); 3: the episodes cut by a rollout's end (a run's ``collector``) inside the learner's state, as PPO's
 ``episode_carry``; 2: per-environment state named under ``per_env`` keys. Version 2 files load (one upgrade
 step); version 1 was never released and is refused."""
 
@@ -109,7 +109,8 @@ def _siblings(path: Path) -> str:
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`.
 
-    Raises :class:`CheckpointError` naming ``path`` if it is missing, unreadable, truncated, corrupt or not a
+    Packed tensors (:func:`pack_sparse`) come back as they were saved. Raises :class:`CheckpointError` naming
+    ``path`` if it is missing, unreadable, truncated, corrupt or not a
     freeform checkpoint. Nothing is written.
     """
     path = Path(path)
@@ -138,27 +139,41 @@ PACK_MIN_ELEMENTS = 1 << 20
 PACK_MAX_RATIO = 0.75
 """A tensor is packed when its packed form (two bits per element, the non-zero elements) takes at most this
 fraction of its bytes."""
+_BITS_AS = {2: torch.int16, 4: torch.int32, 8: torch.int64}
+_PACKABLE = (torch.bool, torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64, torch.float16,
+             torch.bfloat16, torch.float32, torch.float64)
+"""The dtypes packed (others — quantized, float8, complex — are written as they are)."""
 
 
 def pack_sparse(state: Any) -> Any:
     """``state`` with every tensor of ≥ :data:`PACK_MIN_ELEMENTS` elements that is mostly zeros replaced by its
-    packed form: its non-zero elements (NaN among them), a bit mask of where they are and one of its −0.0s (masking
-    by zero, ``x * filled``, leaves them). Containers (dict, list, tuple) are walked; all else is returned as is."""
+    packed form: its non-zero elements (NaN and subnormals among them, compared by their bits), a bit mask of where
+    they are and one of its −0.0s (masking by zero, ``x * filled``, leaves them). Containers (dict, list, tuple)
+    are walked and returned as they were where nothing in them is packed; all else is returned as is."""
     if isinstance(state, dict):
-        return {k: pack_sparse(v) for k, v in state.items()}
+        packed = {k: pack_sparse(v) for k, v in state.items()}
+        return state if all(packed[k] is v for k, v in state.items()) else packed
     if isinstance(state, (list, tuple)):
-        return type(state)(pack_sparse(v) for v in state)
+        items = [pack_sparse(v) for v in state]
+        if all(a is b for a, b in zip(items, state, strict=True)):
+            return state
+        return type(state)(*items) if hasattr(state, "_fields") else type(state)(items)
     if not isinstance(state, torch.Tensor) or state.numel() < PACK_MIN_ELEMENTS or state.layout != torch.strided \
-            or state.is_complex():
+            or state.dtype not in _PACKABLE:
         return state
     flat = state.detach().reshape(-1).cpu()
-    nonzero = flat != 0
+    if flat.is_floating_point():
+        bits = flat.view(_BITS_AS[flat.element_size()])
+        sign = torch.tensor(1, dtype=bits.dtype) << (8 * flat.element_size() - 1)
+        nonzero, negative_zero = (bits & ~sign) != 0, bits == sign
+    else:
+        nonzero, negative_zero = flat != 0, None
     kept = int(nonzero.sum())
     if flat.numel() / 4 + kept * flat.element_size() > PACK_MAX_RATIO * flat.numel() * flat.element_size():
         return state
     packed = {PACKED: list(state.shape), "mask": _bits(nonzero), "values": flat[nonzero].clone()}
-    if flat.is_floating_point():
-        packed["negative_zeros"] = _bits(~nonzero & torch.signbit(flat))
+    if negative_zero is not None:
+        packed["negative_zeros"] = _bits(negative_zero)
     return packed
 
 
@@ -173,9 +188,13 @@ def unpack_sparse(state: Any, map_location: str | torch.device = "cpu") -> Any:
             if "negative_zeros" in state:
                 out[_unbits(state["negative_zeros"], n)] = -0.0
             return out.reshape(shape).to(map_location)
-        return {k: unpack_sparse(v, map_location) for k, v in state.items()}
+        unpacked = {k: unpack_sparse(v, map_location) for k, v in state.items()}
+        return state if all(unpacked[k] is v for k, v in state.items()) else unpacked
     if isinstance(state, (list, tuple)):
-        return type(state)(unpack_sparse(v, map_location) for v in state)
+        items = [unpack_sparse(v, map_location) for v in state]
+        if all(a is b for a, b in zip(items, state, strict=True)):
+            return state
+        return type(state)(*items) if hasattr(state, "_fields") else type(state)(items)
     return state
 
 

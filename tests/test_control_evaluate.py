@@ -312,17 +312,17 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     """Two sets of 1 and 2 bodies pooled: the fraction of per-body control is the mean over all three bodies
     divided by theirs (mean command: 1.0 / (5/3) = 0.6, not the mean of the sets' fractions, 0.583), the
     wave ratio likewise, the bodies beyond their gait counted over all; a set evaluated without per-body
-    controllers on every body is refused, naming the folder."""
+    controllers on every body, or with another seed, is refused, naming the folder."""
     from experiments.heldout import pool
 
-    def write(name: str, bodies: list[dict]) -> Path:
+    def write(name: str, bodies: list[dict], seed: int = 0) -> Path:
         folder = tmp_path / name
         folder.mkdir()
         with open(folder / "bodies.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(bodies[0]))
             writer.writeheader()
             writer.writerows(bodies)
-        (folder / "run.json").write_text(json.dumps({"controller": "c.pt"}))
+        (folder / "run.json").write_text(json.dumps({"controller": "c.pt", "kind": "context", "seed": seed}))
         return folder
 
     def body(i, gait, stoch, mean, wave, own, own_mean):
@@ -337,7 +337,10 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     assert summary["controller (mean command) over the hand-set wave"] == pytest.approx(1.0 / (2.0 / 3.0))
     assert summary["fraction of bodies beyond their own gait: controller (stochastic)"] == pytest.approx(2 / 3)
     rows = read_csv(tmp_path / "out" / "bodies.csv")
-    assert [r["set"] for r in rows] == ["a", "b", "b"]
+    assert [Path(r["set"]).name for r in rows] == ["a", "b", "b"]
     c = write("c", [body(0, 0.1, 0.5, 1.0, 0.5, float("nan"), float("nan"))])
     with pytest.raises(ValueError, match=r"--pool .*c: bodies.csv lacks per_body"):
         pool([a, c], tmp_path / "out2")
+    d = write("d", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], seed=1)
+    with pytest.raises(ValueError, match=r"--pool .*d: evaluated with other settings .*\['seed'\]"):
+        pool([a, d], tmp_path / "out3")

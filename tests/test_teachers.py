@@ -58,6 +58,8 @@ def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> N
         alone = bank.member(m)(obs[teacher == m])
         for a, b in zip(outs, alone, strict=True):
             torch.testing.assert_close(a[teacher == m], b, rtol=1e-5, atol=1e-5)
+    if kind == "attention":  # the bank's fixed token count and written-out attention end with its call
+        assert bank.template.token_count is None and not any(b.written_out for b in bank.template.blocks)
     # and the members differ (the check above could not pass by every teacher being one)
     assert not torch.allclose(bank.member(0)(obs)[0], bank.member(1)(obs)[0])
 

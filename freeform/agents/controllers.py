@@ -289,6 +289,9 @@ class _AttentionBlock(nn.Module):
     x + MultiHeadAttention(LN(x)), then + MLP(LN(x)) (h → 2h → h, ReLU). Masked keys get no weight, so a valid
     token's output does not depend on how many padding tokens follow."""
 
+    written_out = False
+    """Attention as matmuls and a softmax instead of the fused kernel (``VoxelAttentionController.fixed_shapes``)."""
+
     def __init__(self, width: int, heads: int) -> None:
         super().__init__()
         self.heads = heads
@@ -300,10 +303,12 @@ class _AttentionBlock(nn.Module):
     def forward(self, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         n, k, h = x.shape
         q, key, v = self.qkv(self.norm1(x)).view(n, k, 3, self.heads, h // self.heads).permute(2, 0, 3, 1, 4)
-        # written out, not F.scaled_dot_product_attention: torch.func.vmap (a TeacherBank) has no batching rule for it
-        scores = (q @ key.transpose(-1, -2)) / math.sqrt(h // self.heads)  # [N, heads, K, K]
-        scores = scores.masked_fill(~valid[:, None, None, :], torch.finfo(scores.dtype).min)
-        attended = scores.softmax(-1) @ v  # [N, heads, K, h/heads]
+        if self.written_out:  # (under torch.func.vmap — a TeacherBank —, which has no CPU batching rule for SDPA)
+            scores = (q @ key.transpose(-1, -2)) / math.sqrt(h // self.heads)  # [N, heads, K, K]
+            scores = scores.masked_fill(~valid[:, None, None, :], torch.finfo(scores.dtype).min)
+            attended = scores.softmax(-1) @ v  # [N, heads, K, h/heads]
+        else:
+            attended = F.scaled_dot_product_attention(q, key, v, attn_mask=valid[:, None, None, :])
         x = x + self.out(attended.transpose(1, 2).reshape(n, k, h))
         return x + self.mlp(self.norm2(x))
 
@@ -367,14 +372,20 @@ class VoxelAttentionController(FromInputs, nn.Module):
     @contextmanager
     def fixed_shapes(self, obs: torch.Tensor) -> Iterator[None]:
         """Inside, every forward pads its bodies to the largest voxel count in ``obs [N, C, Bx, By, Bz]``, so that
-        its shapes do not depend on the data it is given: what ``torch.func.vmap`` needs to run it over a
-        ``TeacherBank``'s blocks (the padding changes nothing: ``padding_invariant``)."""
+        its shapes do not depend on the data it is given, and the attention is written out: what ``torch.func.vmap``
+        needs to run it over a ``TeacherBank``'s blocks (the padding changes nothing: ``padding_invariant``). Every
+        forward inside must be of bodies from ``obs`` (a larger body would lose voxels). Nests; restored on exit."""
         filled = obs[:, self.filled_channel].flatten(1) > 0.5
+        before = self.token_count, [block.written_out for block in self.blocks]
         self.token_count = max(int(filled.sum(1).max()), 1) if len(obs) else 1
+        for block in self.blocks:
+            block.written_out = True
         try:
             yield
         finally:
-            self.token_count = None
+            self.token_count = before[0]
+            for block, was in zip(self.blocks, before[1], strict=True):
+                block.written_out = was
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""

@@ -130,19 +130,13 @@ class TeacherBank(nn.Module):
         def one(p: dict[str, torch.Tensor], block: Any) -> tuple[torch.Tensor, ...]:
             return tuple(functional_call(self.template, p, (block,)))
 
-        with self._fixed_shapes(inputs[POLICY]):
+        with ExitStack() as stack:
+            for module in self.template.modules():  # (shapes that depend on the data fixed to this batch's)
+                if hasattr(module, "fixed_shapes"):
+                    stack.enter_context(module.fixed_shapes(inputs[POLICY]))
             outs = vmap(one)(params, x)
         back = torch.argsort(slots[valid])  # (sample i sits at row back[i] of the valid slots)
         return tuple(out[valid][back] for out in outs)
-
-    def _fixed_shapes(self, policy: torch.Tensor) -> ExitStack:
-        """Each template module whose shapes depend on the data (the attention controller's token count) fixed to
-        this batch's for the vmapped call (a module's ``fixed_shapes(obs)`` context)."""
-        stack = ExitStack()
-        for module in self.template.modules():
-            if hasattr(module, "fixed_shapes"):
-                stack.enter_context(module.fixed_shapes(policy))
-        return stack
 
     def _slots(self, teacher: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``slots [M, W]``: the samples of each teacher in order, each block padded to the largest one (W samples)
