@@ -151,6 +151,8 @@ def pack_sparse(state: Any) -> Any:
     they are and one of its −0.0s (masking by zero, ``x * filled``, leaves them). Containers (dict, list, tuple)
     are walked and returned as they were where nothing in them is packed; all else is returned as is."""
     if isinstance(state, dict):
+        if PACKED in state:  # (packed already: a state written twice is packed once)
+            return state
         packed = {k: pack_sparse(v) for k, v in state.items()}
         return state if all(packed[k] is v for k, v in state.items()) else packed
     if isinstance(state, (list, tuple)):
