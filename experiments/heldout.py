@@ -126,11 +126,11 @@ def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
     ``bodies``."""
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.body import largest_component
-    from freeform.checkpoint import load_checkpoint
+    from freeform.checkpoint import load_checkpoint, resolve_checkpoint
     from freeform.config import from_container
     from freeform.run.build import teacher_bodies
 
-    payload = load_checkpoint(run / "checkpoints" / "last.pt")
+    payload = load_checkpoint(resolve_checkpoint(run))
     bank = bank_from_checkpoint(payload, str(run))
     theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers)).numpy()
     if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
@@ -306,10 +306,14 @@ def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str,
         summary += [summary_row(f"per-body controllers ({how}; the first {n_own} bodies)", own),
                     _beyond_gait(f"per-body controllers ({how})", own, open_loop[:n_own]),
                     summary_row(f"controller ({how}) on those {n_own} bodies", yours),
-                    {**summary_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
-                                   f"({n_own} bodies)", np.array([yours.mean() / own.mean()])),
-                     "band99": float("nan"), "n": n_own}]
+                    _ratio_row(f"fraction of per-body control ({how}): controller mean / per-body mean "
+                               f"({n_own} bodies)", yours.mean() / own.mean(), n_own)]
     return summary
+
+
+def _ratio_row(what: str, ratio: float, bodies: int) -> dict:
+    """A summary row of one ratio of means over ``bodies`` bodies (no band: one number)."""
+    return {**summary_row(what, np.array([ratio])), "band99": float("nan"), "n": bodies}
 
 
 def _beyond_gait(who: str, moved: np.ndarray, open_loop: np.ndarray) -> dict:
@@ -360,7 +364,8 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
         setting = {k: run.get(k) for k in ("kind", "control", "episodes_per_body", "seed")}
         if settings and setting != settings[0]:
             differ = [k for k in setting if setting[k] != settings[0][k]]
-            raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ)")
+            raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ): "
+                             "evaluate every set with the same controller, --headings, --eval-episodes and seed")
         settings.append(setting)
         controllers.append(run.get("controller"))
         rows += [{"set": str(folder), **{c: r[c] for c in ("body", *POOLED)}} for r in table]
@@ -376,7 +381,7 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
               ("fraction of per-body control (mean command)",
                v["mean_command"].mean() / v["per_body_mean_command"].mean()),
               ("controller (mean command) over the hand-set wave", v["mean_command"].mean() / v["hand_set_wave"].mean()))
-    summary += [{**summary_row(what, np.array([ratio])), "band99": float("nan"), "n": n} for what, ratio in ratios]
+    summary += [_ratio_row(what, ratio, n) for what, ratio in ratios]
     summary += [_beyond_gait(who, v[key], v["open_loop"]) for who, key in
                 (("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command"),
                  ("per-body controllers (stochastic)", "per_body"),

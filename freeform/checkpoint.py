@@ -150,20 +150,34 @@ def pack_sparse(state: Any) -> Any:
     packed form: its non-zero elements (NaN and subnormals among them, compared by their bits), a bit mask of where
     they are and one of its −0.0s (masking by zero, ``x * filled``, leaves them). Containers (dict, list, tuple)
     are walked and returned as they were where nothing in them is packed; all else is returned as is."""
-    if isinstance(state, dict):
-        if PACKED in state:  # (packed already: a state written twice is packed once)
-            return state
-        packed = {k: pack_sparse(v) for k, v in state.items()}
-        return state if all(packed[k] is v for k, v in state.items()) else packed
+    return _map_leaves(state, _packed)
+
+
+def unpack_sparse(state: Any, map_location: str | torch.device = "cpu") -> Any:
+    """Inverse of :func:`pack_sparse`: each packed tensor rebuilt bit for bit (on ``map_location``)."""
+    return _map_leaves(state, lambda leaf: _unpacked(leaf, map_location))
+
+
+def _map_leaves(state: Any, leaf: Any) -> Any:
+    """``state`` with ``leaf`` applied to everything that is not a container (a packed tensor's dict is a leaf);
+    a container whose leaves all come back as they were is returned itself (its type and metadata kept)."""
+    if isinstance(state, dict) and PACKED not in state:
+        mapped = {k: _map_leaves(v, leaf) for k, v in state.items()}
+        return state if all(mapped[k] is v for k, v in state.items()) else mapped
     if isinstance(state, (list, tuple)):
-        items = [pack_sparse(v) for v in state]
+        items = [_map_leaves(v, leaf) for v in state]
         if all(a is b for a, b in zip(items, state, strict=True)):
             return state
         return type(state)(*items) if hasattr(state, "_fields") else type(state)(items)
-    if not isinstance(state, torch.Tensor) or state.numel() < PACK_MIN_ELEMENTS or state.layout != torch.strided \
-            or state.dtype not in _PACKABLE:
-        return state
-    flat = state.detach().reshape(-1).cpu()
+    return leaf(state)
+
+
+def _packed(x: Any) -> Any:
+    """A tensor's packed form where it is large and mostly zeros (:func:`pack_sparse`), else ``x`` itself."""
+    if not isinstance(x, torch.Tensor) or x.numel() < PACK_MIN_ELEMENTS or x.layout != torch.strided \
+            or x.dtype not in _PACKABLE:
+        return x
+    flat = x.detach().reshape(-1).cpu()
     if flat.is_floating_point():
         bits = flat.view(_BITS_AS[flat.element_size()])
         sign = torch.tensor(1, dtype=bits.dtype) << (8 * flat.element_size() - 1)
@@ -172,32 +186,24 @@ def pack_sparse(state: Any) -> Any:
         nonzero, negative_zero = flat != 0, None
     kept = int(nonzero.sum())
     if flat.numel() / 4 + kept * flat.element_size() > PACK_MAX_RATIO * flat.numel() * flat.element_size():
-        return state
-    packed = {PACKED: list(state.shape), "mask": _bits(nonzero), "values": flat[nonzero].clone()}
+        return x
+    packed = {PACKED: list(x.shape), "mask": _bits(nonzero), "values": flat[nonzero].clone()}
     if negative_zero is not None:
         packed["negative_zeros"] = _bits(negative_zero)
     return packed
 
 
-def unpack_sparse(state: Any, map_location: str | torch.device = "cpu") -> Any:
-    """Inverse of :func:`pack_sparse`: each packed tensor rebuilt bit for bit (on ``map_location``)."""
-    if isinstance(state, dict):
-        if PACKED in state:
-            shape, values = state[PACKED], state["values"].cpu()
-            n = int(np.prod(shape, dtype=np.int64))
-            out = torch.zeros(n, dtype=values.dtype)
-            out[_unbits(state["mask"], n)] = values
-            if "negative_zeros" in state:
-                out[_unbits(state["negative_zeros"], n)] = -0.0
-            return out.reshape(shape).to(map_location)
-        unpacked = {k: unpack_sparse(v, map_location) for k, v in state.items()}
-        return state if all(unpacked[k] is v for k, v in state.items()) else unpacked
-    if isinstance(state, (list, tuple)):
-        items = [unpack_sparse(v, map_location) for v in state]
-        if all(a is b for a, b in zip(items, state, strict=True)):
-            return state
-        return type(state)(*items) if hasattr(state, "_fields") else type(state)(items)
-    return state
+def _unpacked(leaf: Any, map_location: str | torch.device) -> Any:
+    """A packed tensor's dict rebuilt bit for bit on ``map_location``; any other leaf as it is."""
+    if not (isinstance(leaf, dict) and PACKED in leaf):
+        return leaf
+    shape, values = leaf[PACKED], leaf["values"].cpu()
+    n = int(np.prod(shape, dtype=np.int64))
+    out = torch.zeros(n, dtype=values.dtype)
+    out[_unbits(leaf["mask"], n)] = values
+    if "negative_zeros" in leaf:
+        out[_unbits(leaf["negative_zeros"], n)] = -0.0
+    return out.reshape(shape).to(map_location)
 
 
 def _bits(mask: torch.Tensor) -> torch.Tensor:

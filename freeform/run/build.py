@@ -333,7 +333,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
 
     control = cfg.control
     assert control is not None and control.teachers
-    bank = teacher_bank(cfg, device, env.env.grids, envs[0])
+    bank = teacher_bank(cfg, device, env.env.grids, env.teacher)
     width = control.hidden if control.hidden is not None else cfg.agent.hidden
     student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
                                control.hand_set_wave)
@@ -362,10 +362,10 @@ def _check_turnable(student: str, teacher: str, symmetry: str, headings: str) ->
                              "algo.symmetry=none)")
 
 
-def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, first_env: int = 0) -> Any:
+def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, body: torch.Tensor) -> Any:
     """``algo.teacher``'s bank of per-body controllers, checked against this run: the same number of teachers and
-    episode settings (each field that differs named), and the same bodies — ``grids``, this run's environments
-    ``first_env …`` (environment i driven by body i mod M), grid for grid."""
+    episode settings (each field that differs named), and the same bodies — ``grids``, this run's environments',
+    each the teacher run's body ``body`` (``TeacherIndex.teacher``), grid for grid."""
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
     from freeform.config import from_container
@@ -386,9 +386,8 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, fi
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
     theirs_cfg = from_container(payload["config"])
-    body = (torch.arange(len(grids)) + first_env) % bank.teachers  # (each environment's body)
     their_bodies = teacher_bodies(path, theirs_cfg, bank.teachers, "cuda" if device.type == "cuda" else "cpu")
-    _same_bodies(their_bodies, grids.cpu(), body, theirs_cfg, cfg, path)
+    _same_bodies(their_bodies, grids.cpu(), body.cpu(), theirs_cfg, cfg, path)
     return bank.to(device)
 
 
