@@ -1,0 +1,116 @@
+"""Teacher runs trained apart, pooled into one that a student is distilled from (issue 56).
+
+A teacher run (``experiment=control_teachers_cpu``) trains one controller per body for M bodies; its cost grows
+with M, so teachers for many bodies come from several runs — on other body sets, in other sessions, or as parallel
+jobs of a cluster. ``pool_teacher_runs`` writes one teacher run of all their teachers, in order, that
+``algo=distill`` reads as it reads any (``algo.teacher=OUT``):
+
+    python -m freeform.run.teacher_runs runs/teachers_a runs/teachers_b --out runs/teachers_ab
+    freeform-train experiment=control_student_cpu algo.teacher=runs/teachers_ab \\
+        control.bodies=runs/teachers_ab/bodies.npy control.teachers=<M_a + M_b> env.num_envs=<a multiple of it>
+
+``OUT`` holds ``bodies.npy`` (uint8 ``[ΣM, ρ, ρ, ρ]``: each run's bodies as it trained on them),
+``checkpoints/last.pt`` (the pooled bank and a config whose ``control.bodies`` names that file) and ``pooled.json``
+(where each teacher came from). The runs must hold the same kind of controller built alike, and have trained with
+the same episode, simulator and grid settings: a student is taught one task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+POOLED = "pooled.json"
+"""The pooled run's provenance: each source run, its teachers' range in the pool and its epoch."""
+
+
+def _source(run: Path) -> tuple[dict[str, Any], Any, np.ndarray]:
+    """A teacher run's checkpoint payload, bank and bodies (uint8 ``[M, ρ, ρ, ρ]``)."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint, resolve_checkpoint
+    from freeform.config import from_container
+    from freeform.run.build import teacher_bodies
+
+    path = resolve_checkpoint(run)
+    if not path.is_file():
+        raise ValueError(f"{run}: no teacher run or checkpoint there ({path} is not a file)")
+    payload = load_checkpoint(path)
+    bank = bank_from_checkpoint(payload, str(run))
+    bodies = teacher_bodies(path, from_container(payload["config"]), bank.teachers).numpy()
+    return payload, bank, bodies
+
+
+def _same_task(first: dict[str, Any], other: dict[str, Any], run: Path, run0: Path) -> None:
+    """``other``'s config (a container) trained the same task as ``first``'s: the episode's settings, the
+    simulator, the grid; refused naming what differs."""
+    from freeform.config import from_container
+
+    a, b = from_container(first), from_container(other)
+    assert a.control is not None and b.control is not None
+    differ = [f"control.{k}" for k, v in vars(a.control.episode()).items() if getattr(b.control, k) != v]
+    differ += [f"env.{k}" for k in ("resolution",) if getattr(a.env, k) != getattr(b.env, k)]
+    differ += [f"task.{k}" for k in ("materials",) if getattr(a.task, k) != getattr(b.task, k)]
+    differ += ["sim"] if a.sim != b.sim else []
+    if differ:
+        raise ValueError(f"{run} trained with other settings than {run0} ({', '.join(differ)} differ): a pool's "
+                         "teachers must share the episode, simulator and grid")
+
+
+def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
+    """Write one teacher run in ``out`` holding every teacher of ``runs``, in order (module docstring); returns
+    ``out``. ``out`` must not hold anything yet (nothing is overwritten)."""
+    from freeform.agents.teachers import TeacherBank
+    from freeform.checkpoint import CHECKPOINT_DIR, LAST, save_checkpoint
+    from freeform.config import from_container
+
+    if len(runs) < 2:
+        raise ValueError(f"give at least two teacher runs to pool, got {len(runs)}")
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
+    sources = [_source(run) for run in runs]
+    for run, (payload, _, _) in zip(runs[1:], sources[1:], strict=True):
+        _same_task(sources[0][0]["config"], payload["config"], run, runs[0])
+    shapes = [list(b.shape[1:]) for _, _, b in sources]
+    if any(s != shapes[0] for s in shapes):
+        raise ValueError(f"the runs' bodies are grids of different sizes ({shapes}): a pool's bodies share a grid")
+    bank = TeacherBank.concatenate([bank for _, bank, _ in sources])
+    bodies = np.concatenate([b for _, _, b in sources])
+
+    first_payload = sources[0][0]
+    config = copy.deepcopy(first_payload["config"])
+    copies = config["env"]["num_envs"] // config["control"]["teachers"]
+    config["control"].update(teachers=bank.teachers, bodies=str(out / "bodies.npy"))
+    config["env"]["num_envs"] = bank.teachers * copies
+    from_container(config)  # (validated as any run's)
+
+    provenance, start = [], 0
+    for run, (payload, b, _) in zip(runs, sources, strict=True):
+        provenance.append({"run": str(run), "teachers": [start, start + b.teachers], "epoch": payload.get("epoch")})
+        start += b.teachers
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "bodies.npy", bodies)
+    save_checkpoint(out / CHECKPOINT_DIR / LAST, {
+        "policy_class": first_payload["policy_class"], "policy_kwargs": bank.init_kwargs,
+        "ppo": {"policy": bank.state_dict()}, "config": config, "epoch": None, "pooled_from": provenance})
+    (out / POOLED).write_text(json.dumps({"teachers": bank.teachers, "sources": provenance}, indent=1) + "\n")
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", help="teacher runs (their directories or checkpoints), in the pool's order")
+    p.add_argument("--out", required=True, help="a new folder for the pooled teacher run")
+    args = p.parse_args(argv)
+    out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out))
+    pooled = json.loads((out / POOLED).read_text())
+    print(f"{pooled['teachers']} teachers from {len(pooled['sources'])} runs -> {out}; distil with "
+          f"algo.teacher={out} control.bodies={out / 'bodies.npy'} control.teachers={pooled['teachers']}")
+
+
+if __name__ == "__main__":
+    main()

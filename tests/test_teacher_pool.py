@@ -1,0 +1,89 @@
+"""Teacher runs trained apart, pooled into one (``freeform.run.teacher_runs``, ``TeacherBank.concatenate``): the pool's
+teacher j is the source run's teacher, on the source's body, and a student distils from the pool through the app;
+runs that trained another task or other controllers are refused, and nothing in a used folder is overwritten."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from test_control_run import CUBE, ROD, tiny_control
+
+from freeform.agents.distill import bank_from_checkpoint
+from freeform.agents.teachers import TeacherBank
+from freeform.checkpoint import load_checkpoint
+from freeform.config import compose
+from freeform.run.teacher_runs import main, pool_teacher_runs
+
+TEACH = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
+         "agent.advantage_norm=group", "trainer.epochs=1")
+
+WIDE = np.zeros((3, 3, 3), np.uint8)
+WIDE[:, :2, 0] = 3
+WIDE[0, 0, 0] = 2
+
+
+def _teacher_run(tmp_path: Path, name: str, grids: np.ndarray, *overrides: str) -> Path:
+    from freeform.train import train
+
+    bodies = tmp_path / f"{name}.npy"
+    np.save(bodies, grids)
+    train(compose(*tiny_control(bodies, *TEACH, *overrides)), tmp_path / name)
+    return tmp_path / name
+
+
+def _bank(run: Path) -> TeacherBank:
+    return bank_from_checkpoint(load_checkpoint(run / "checkpoints" / "last.pt"), str(run))
+
+
+def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    from freeform.run.build import build
+
+    a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE]), "seed=4")
+    b = _teacher_run(tmp_path, "b", np.stack([WIDE, ROD]), "seed=5")
+    out = tmp_path / "pool"
+    main([str(a), str(b), "--out", str(out)])
+    assert "4 teachers from 2 runs" in capsys.readouterr().out
+    np.testing.assert_array_equal(np.load(out / "bodies.npy"), np.stack([ROD, CUBE, WIDE, ROD]))
+    pooled, bank_a, bank_b = _bank(out), _bank(a), _bank(b)
+    assert pooled.teachers == 4
+    for j, (bank, m) in enumerate([(bank_a, 0), (bank_a, 1), (bank_b, 0), (bank_b, 1)]):
+        mine, theirs = pooled.member_state(j), bank.member_state(m)
+        assert all(torch.equal(mine[k], theirs[k]) for k in theirs), j
+    assert not all(torch.equal(v, bank_b.member_state(0)[k]) for k, v in bank_a.member_state(0).items())
+    assert json.loads((out / "pooled.json").read_text())["sources"][1]["teachers"] == [2, 4]
+
+    # a student of the pool: each environment's label is its body's teacher's, the one its source run trained
+    student = compose(*tiny_control(out / "bodies.npy", *TEACH[1:], "control.teachers=4", "env.num_envs=4",
+                                    "algo=distill", f"algo.teacher={out}", "seed=4"))
+    env, learner = build(student, torch.device("cpu"))
+    obs = env.reset()
+    labels = learner.teacher(obs, torch.arange(4))
+    for i, (bank, m) in enumerate([(bank_a, 0), (bank_a, 1), (bank_b, 0), (bank_b, 1)]):
+        alone = bank({"teacher": torch.tensor([m]), "policy": obs["policy"][i:i + 1]})
+        torch.testing.assert_close(labels[0][i:i + 1], alone[0])
+
+
+def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path: Path) -> None:
+    a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE]), "seed=4")
+    short = _teacher_run(tmp_path, "short", np.stack([ROD, CUBE]), "control.duration=0.025")
+    wide = _teacher_run(tmp_path, "wide", np.stack([ROD, CUBE]), "control.hidden=6")
+    with pytest.raises(ValueError, match=r"control\.duration differ"):
+        pool_teacher_runs([a, short], tmp_path / "p1")
+    with pytest.raises(ValueError, match=r"differ in \['controller', 'controller.hidden'\]"):
+        pool_teacher_runs([a, wide], tmp_path / "p2")
+    with pytest.raises(ValueError, match="at least two teacher runs"):
+        pool_teacher_runs([a], tmp_path / "p3")
+    with pytest.raises(ValueError, match="no teacher run or checkpoint"):
+        pool_teacher_runs([a, tmp_path / "nowhere"], tmp_path / "p4")
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="already holds files"):
+        pool_teacher_runs([a, a], used)
+    assert [p.name for p in used.iterdir()] == ["notes.txt"] and (used / "notes.txt").read_text() == "mine"
+    assert not any((tmp_path / p).exists() for p in ("p1", "p2", "p3", "p4"))
