@@ -344,3 +344,20 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     d = write("d", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], seed=1)
     with pytest.raises(ValueError, match=r"--pool .*d: evaluated with other settings .*\['seed'\]"):
         pool([a, d], tmp_path / "out3")
+    # the scaling curve reads pooled tables: its columns are the pooled figures, points over other bodies refused
+    from experiments.student_scaling import main as scaling
+
+    pool([b, a], tmp_path / "ba")
+    scaling(["128=" + str(tmp_path / "ba"), "64=" + str(tmp_path / "out"), "--out", str(tmp_path / "scaling")])
+    points = read_csv(tmp_path / "scaling" / "scaling.csv")
+    assert [int(p["teachers"]) for p in points] == [64, 128] and int(points[0]["bodies"]) == 3
+    for p in points:
+        assert float(p["fraction_mean_command"]) == pytest.approx(0.6)
+        assert float(p["over_wave"]) == pytest.approx(1.5)
+        assert float(p["beyond_gait"]) == pytest.approx(2 / 3)  # (mean command 1.0, 0.5, 1.5 against 0.1, 0.9, 0.2)
+    assert (tmp_path / "scaling" / "scaling.png").stat().st_size > 0
+    pool([b], tmp_path / "b_alone")
+    with pytest.raises(SystemExit, match="different numbers of bodies"):
+        scaling(["64=" + str(tmp_path / "out"), "128=" + str(tmp_path / "b_alone"), "--out", str(tmp_path / "x")])
+    with pytest.raises(ValueError, match="TEACHERS an integer"):
+        scaling(["many=" + str(tmp_path / "out"), "--out", str(tmp_path / "x")])

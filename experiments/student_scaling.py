@@ -1,0 +1,100 @@
+"""The student's scaling curve (issue 56): held-out figures against the number of teachers it was distilled from,
+read from pooled held-out tables (``python -m experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
+
+    python -m experiments.student_scaling 64=runs/eval_s64_93 128=runs/eval_s128_93 256=runs/eval_s256_93 \\
+        --out docs/results/control_student/scaling
+
+Writes ``OUT/scaling.csv`` (one row per point: teachers, bodies, the controller's stochastic and mean-command moves,
+their fractions of per-body control, the mean command over the hand-set wave, the fraction of bodies beyond their
+own gait) and ``OUT/scaling.png``. A point's label is its number of teachers; two points may share one (seeds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+ROWS = {
+    "stochastic": "controller (stochastic)",
+    "mean_command": "controller (mean command)",
+    "fraction_stochastic": "fraction of per-body control (stochastic)",
+    "fraction_mean_command": "fraction of per-body control (mean command)",
+    "over_wave": "controller (mean command) over the hand-set wave",
+    "beyond_gait": "fraction of bodies beyond their own gait: controller (mean command)",
+}
+"""scaling.csv's columns -> the pooled summary's rows they are read from."""
+
+
+def read_point(label: str, folder: Path) -> dict[str, float | int | str]:
+    """One point: ``label`` (its number of teachers) and the pooled summary in ``folder``, every row of
+    :data:`ROWS` required (refused naming the first missing)."""
+    try:
+        teachers = int(label)
+    except ValueError:
+        raise ValueError(f"a point is TEACHERS=FOLDER with TEACHERS an integer, got {label!r}") from None
+    summary = folder / "summary.csv"
+    if not summary.is_file():
+        raise ValueError(f"{folder}: no summary.csv there (write one with python -m experiments.heldout --pool)")
+    with open(summary, newline="") as f:
+        rows = {r["what"]: r for r in csv.DictReader(f)}
+    point: dict[str, float | int | str] = {"teachers": teachers, "folder": str(folder)}
+    for column, what in ROWS.items():
+        if what not in rows:
+            raise ValueError(f"{summary}: no row {what!r} (evaluate with --per-body on every body, then --pool)")
+        point[column] = float(rows[what]["mean"])
+    point["bodies"] = int(rows[ROWS["mean_command"]]["n"])
+    return point
+
+
+def plot(points: list[dict], path: Path) -> None:
+    """Fraction of per-body control (both ways) and × the wave against the number of teachers, log x."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
+    x = [p["teachers"] for p in points]
+    left.plot(x, [100 * p["fraction_mean_command"] for p in points], "o-", label="mean command")
+    left.plot(x, [100 * p["fraction_stochastic"] for p in points], "s--", label="stochastic")
+    left.axhline(70, color="grey", lw=0.8, ls=":", label="issue's bar (70 %)")
+    left.set(xscale="log", xlabel="teachers", ylabel="% of per-body control", title="held-out bodies")
+    right.plot(x, [p["over_wave"] for p in points], "o-")
+    right.axhline(1.5, color="grey", lw=0.8, ls=":")
+    right.set(xscale="log", xlabel="teachers", ylabel="× the hand-set wave (mean command)")
+    left.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("points", nargs="+", help="TEACHERS=FOLDER: a pooled held-out table and its student's teachers")
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    points = []
+    for arg in args.points:
+        label, sep, folder = arg.partition("=")
+        if not sep:
+            raise SystemExit(f"a point is TEACHERS=FOLDER, got {arg!r}")
+        points.append(read_point(label, Path(folder)))
+    if len({p["bodies"] for p in points}) != 1:
+        raise SystemExit(f"the points are over different numbers of bodies ({[p['bodies'] for p in points]}): "
+                         "compare students on the same held-out bodies")
+    points.sort(key=lambda p: p["teachers"])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "scaling.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["teachers", "bodies", *ROWS, "folder"])
+        writer.writeheader()
+        writer.writerows(points)
+    plot(points, out / "scaling.png")
+    for q in points:
+        print(f"{q['teachers']:5d} teachers: {100 * q['fraction_mean_command']:.1f} % of per-body (mean command), "
+              f"x{q['over_wave']:.2f} the wave, {100 * q['beyond_gait']:.0f} % beyond their gait")
+
+
+if __name__ == "__main__":
+    main()
