@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 from pathlib import Path
+from typing import Any
 
 ROWS = {
     "stochastic": "controller (stochastic)",
@@ -55,14 +56,24 @@ def plot(points: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
-    x = [p["teachers"] for p in points]
-    left.plot(x, [100 * p["fraction_mean_command"] for p in points], "o-", label="mean command")
-    left.plot(x, [100 * p["fraction_stochastic"] for p in points], "s--", label="stochastic")
+    x = sorted({p["teachers"] for p in points})  # (the line through each count's mean over its seeds, every point shown)
+
+    def curve(ax: Any, column: str, scale: float, style: str, label: str | None = None) -> None:
+        mean = [scale * sum(p[column] for p in points if p["teachers"] == t)
+                / sum(p["teachers"] == t for p in points) for t in x]
+        line, = ax.plot(x, mean, style, label=label)
+        ax.plot([p["teachers"] for p in points], [scale * p[column] for p in points], ".", color=line.get_color())
+
+    curve(left, "fraction_mean_command", 100, "o-", "mean command")
+    curve(left, "fraction_stochastic", 100, "s--", "stochastic")
     left.axhline(70, color="grey", lw=0.8, ls=":", label="issue's bar (70 %)")
     left.set(xscale="log", xlabel="teachers", ylabel="% of per-body control", title="held-out bodies")
-    right.plot(x, [p["over_wave"] for p in points], "o-")
+    curve(right, "over_wave", 1, "o-")
     right.axhline(1.5, color="grey", lw=0.8, ls=":")
     right.set(xscale="log", xlabel="teachers", ylabel="× the hand-set wave (mean command)")
+    for ax in (left, right):
+        ax.set_xticks(x, [str(t) for t in x])
+        ax.minorticks_off()
     left.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
