@@ -132,7 +132,8 @@ def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
 
     payload = load_checkpoint(resolve_checkpoint(run))
     bank = bank_from_checkpoint(payload, str(run))
-    theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers)).numpy()
+    theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers,
+                                                stored=payload.get("bodies"))).numpy()
     if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
         raise ValueError(f"--per-body-run {run}: its {bank.teachers} teachers' bodies are not the first {len(bodies)} "
                          "bodies given (save them from its records: final_grids[:M])")

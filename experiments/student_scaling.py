@@ -50,11 +50,9 @@ def read_point(label: str, folder: Path) -> dict[str, float | int | str]:
 
 def plot(points: list[dict], path: Path) -> None:
     """Fraction of per-body control (both ways) and × the wave against the number of teachers, log x."""
-    import matplotlib
+    from experiments.common import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
     x = sorted({p["teachers"] for p in points})  # (the line through each count's mean over its seeds, every point shown)
 
@@ -91,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         if not sep:
             raise SystemExit(f"a point is TEACHERS=FOLDER, got {arg!r}")
         points.append(read_point(label, Path(folder)))
-    if len({p["bodies"] for p in points}) != 1:
+    if len({p["bodies"] for p in points}) != 1:  # (a count only: the folders' sets are the user's to keep alike)
         raise SystemExit(f"the points are over different numbers of bodies ({[p['bodies'] for p in points]}): "
                          "compare students on the same held-out bodies")
     points.sort(key=lambda p: p["teachers"])

@@ -93,8 +93,12 @@ GENERATORS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {"primitive
 
 
 def _heldout(folder: Path) -> set[bytes]:
-    """The held-out sets' grids (``*.npy`` in ``folder``), as bytes, to compare against."""
-    return {g.tobytes() for f in sorted(folder.glob("*.npy")) for g in np.load(f, allow_pickle=False)}
+    """The held-out sets' grids (``*.npy`` in ``folder``), as bytes, to compare against; a folder without any is
+    refused (run from the repository's root, or give --heldout)."""
+    files = sorted(folder.glob("*.npy"))
+    if not files:
+        raise ValueError(f"--heldout {folder}: no held-out sets (.npy) there to keep out of the training bodies")
+    return {g.tobytes() for f in files for g in np.load(f, allow_pickle=False)}
 
 
 def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/results/heldout_bodies")) -> np.ndarray:

@@ -43,8 +43,8 @@ def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: P
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     from freeform.run.build import build
 
-    a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE]), "seed=4")
-    b = _teacher_run(tmp_path, "b", np.stack([WIDE, ROD]), "seed=5")
+    a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE]), "seed=4", "control.body_seed=7")  # (unused by a .npy:
+    b = _teacher_run(tmp_path, "b", np.stack([WIDE, ROD]), "seed=5")                     # the student's default)
     out = tmp_path / "pool"
     main([str(a), str(b), "--out", str(out)])
     assert "4 teachers from 2 runs" in capsys.readouterr().out
@@ -66,6 +66,10 @@ def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: P
     for i, (bank, m) in enumerate([(bank_a, 0), (bank_a, 1), (bank_b, 0), (bank_b, 1)]):
         alone = bank({"teacher": torch.tensor([m]), "policy": obs["policy"][i:i + 1]})
         torch.testing.assert_close(labels[0][i:i + 1], alone[0])
+    # the bodies are checked against those the pool stored: its file changed, the student is refused
+    np.save(out / "bodies.npy", np.stack([CUBE, ROD, WIDE, ROD]))
+    with pytest.raises(ValueError, match=r"its bodies are not this run's \(bodies \[0, 1\] differ"):
+        build(student, torch.device("cpu"))
 
 
 def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path: Path) -> None:
@@ -76,6 +80,10 @@ def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path
         pool_teacher_runs([a, short], tmp_path / "p1")
     with pytest.raises(ValueError, match=r"differ in \['controller', 'controller.hidden'\]"):
         pool_teacher_runs([a, wide], tmp_path / "p2")
+    conv_a = _teacher_run(tmp_path, "conv_a", np.stack([ROD, CUBE]), "control.controller=conv")
+    conv_b = _teacher_run(tmp_path, "conv_b", np.stack([WIDE, ROD]), "control.controller=conv")
+    with pytest.raises(ValueError, match=r"differ in \['controller', 'controller.box'\]"):  # (conv: the padding
+        pool_teacher_runs([conv_a, conv_b], tmp_path / "p5")                                # changes its commands)
     with pytest.raises(ValueError, match="at least two teacher runs"):
         pool_teacher_runs([a], tmp_path / "p3")
     with pytest.raises(ValueError, match="no teacher run or checkpoint"):
@@ -86,4 +94,6 @@ def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path
     with pytest.raises(ValueError, match="already holds files"):
         pool_teacher_runs([a, a], used)
     assert [p.name for p in used.iterdir()] == ["notes.txt"] and (used / "notes.txt").read_text() == "mine"
-    assert not any((tmp_path / p).exists() for p in ("p1", "p2", "p3", "p4"))
+    with pytest.raises(ValueError, match="already holds files"):
+        pool_teacher_runs([a, a], used / "notes.txt")
+    assert not any((tmp_path / p).exists() for p in ("p1", "p2", "p3", "p4", "p5"))

@@ -42,3 +42,5 @@ def test_no_held_out_body_is_drawn_and_bad_input_is_refused(tmp_path: Path) -> N
         main(["--n", "2", "--out", str(tmp_path / "bodies.txt")])
     main(["--kind", "blobs", "--n", "3", "--out", str(tmp_path / "b.npy")])
     np.testing.assert_array_equal(np.load(tmp_path / "b.npy"), training_bodies("blobs", 3, seed=1))
+    with pytest.raises(ValueError, match="no held-out sets"):
+        training_bodies("blobs", 2, seed=0, heldout=tmp_path / "nowhere")

@@ -98,26 +98,27 @@ class TeacherBank(nn.Module):
     def concatenate(cls, banks: list[TeacherBank]) -> TeacherBank:
         """One bank of every teacher of ``banks``, in order (teacher j of the second is teacher M₁ + j): banks
         trained apart — on other bodies, in other runs or jobs — taught together. They must hold the same kind of
-        controller built alike (refused naming the settings that differ)."""
+        controller built alike (refused naming the settings that differ) — for a kind that the padding changes
+        (``conv``, ``mlp``), built for the same box; the others' pool is built for the box that holds every bank's."""
         if not banks:
             raise ValueError("concatenate needs at least one TeacherBank")
 
-        def built(bank: TeacherBank) -> dict[str, Any]:  # (a kind that fits any box: the box is no weight)
-            k = {key: v for key, v in bank.init_kwargs.items() if key != "teachers"}
+        def built(bank: TeacherBank) -> dict[str, Any]:  # (a kind the padding does not change: the box is no
+            k = {key: v for key, v in bank.init_kwargs.items() if key != "teachers"}  # weight, and no input)
             return {**k, "controller": {c: v for c, v in k["controller"].items()
-                                        if not (c == "box" and bank.fits_any_box)}}
+                                        if not (c == "box" and bank.padding_invariant)}}
 
         first = built(banks[0])
         for i, bank in enumerate(banks[1:], 1):
             other = built(bank)
             if other != first:
-                differ = [k for k in first if first[k] != other.get(k)]
+                differ = [k for k in {**first, **other} if first.get(k) != other.get(k)]
                 if "controller" in differ:
-                    differ += [f"controller.{k}" for k in first["controller"]
-                               if first["controller"][k] != other["controller"].get(k)]
+                    mine, theirs = first["controller"], other["controller"]
+                    differ += [f"controller.{k}" for k in {**mine, **theirs} if mine.get(k) != theirs.get(k)]
                 raise ValueError(f"bank {i} holds other controllers than bank 0 (they differ in {differ}): only "
                                  "teachers of one kind and width, built alike, join one bank")
-        if banks[0].fits_any_box:  # (built for the box that holds every bank's bodies)
+        if banks[0].padding_invariant:  # (built for the box that holds every bank's bodies)
             boxes = [b.init_kwargs["controller"]["box"] for b in banks]
             first["controller"]["box"] = tuple(max(side) for side in zip(*boxes, strict=True))
         out = cls(sum(b.teachers for b in banks), **first)

@@ -386,18 +386,23 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
     theirs_cfg = from_container(payload["config"])
-    their_bodies = teacher_bodies(path, theirs_cfg, bank.teachers, "cuda" if device.type == "cuda" else "cpu")
+    their_bodies = teacher_bodies(path, theirs_cfg, bank.teachers, "cuda" if device.type == "cuda" else "cpu",
+                                  payload.get("bodies"))
     _same_bodies(their_bodies, grids.cpu(), body.cpu(), theirs_cfg, cfg, path)
     return bank.to(device)
 
 
-def teacher_bodies(source: Path, cfg: TrainConfig, teachers: int, arch: str = "cpu") -> torch.Tensor:
+def teacher_bodies(source: Path, cfg: TrainConfig, teachers: int, arch: str = "cpu",
+                   stored: torch.Tensor | None = None) -> torch.Tensor:
     """A teacher run's M bodies, uint8 ``[M, ρ, ρ, ρ]`` (``source``: its directory or a checkpoint in it; ``cfg``
-    its config): its records' (what it trained on), else what its config gives — the same ``control.bodies`` can
-    name other grids elsewhere (the untrained designs depend on ``env.num_envs``; a file may change)."""
+    its config): those its checkpoint holds (``stored``: a pooled run's, ``freeform.run.teacher_runs``), else its
+    records' (what it trained on), else what its config gives — the same ``control.bodies`` can name other grids
+    elsewhere (the untrained designs depend on ``env.num_envs``; a file may change)."""
     from freeform.checkpoint import run_dir_of
     from freeform.records import read_record
 
+    if stored is not None:
+        return stored[:teachers]
     records = sorted((run_dir_of(source) / "records").glob("epoch_*.npz"))
     if records:
         return torch.from_numpy(read_record(records[0]).final_grids[:teachers])

@@ -10,7 +10,8 @@ jobs of a cluster. ``pool_teacher_runs`` writes one teacher run of all their tea
         control.bodies=runs/teachers_ab/bodies.npy control.teachers=<M_a + M_b> env.num_envs=<a multiple of it>
 
 ``OUT`` holds ``bodies.npy`` (uint8 ``[ΣM, ρ, ρ, ρ]``: each run's bodies as it trained on them),
-``checkpoints/last.pt`` (the pooled bank and a config whose ``control.bodies`` names that file) and ``pooled.json``
+``checkpoints/last.pt`` (the pooled bank, its bodies, and a config whose ``control.bodies`` names that file: a student's
+bodies are checked against the bodies stored, grid for grid) and ``pooled.json``
 (where each teacher came from). The runs must hold the same kind of controller built alike, and have trained with
 the same episode, simulator and grid settings: a student is taught one task.
 """
@@ -24,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 POOLED = "pooled.json"
 """The pooled run's provenance: each source run, its teachers' range in the pool and its epoch."""
@@ -41,8 +43,11 @@ def _source(run: Path) -> tuple[dict[str, Any], Any, np.ndarray]:
         raise ValueError(f"{run}: no teacher run or checkpoint there ({path} is not a file)")
     payload = load_checkpoint(path)
     bank = bank_from_checkpoint(payload, str(run))
-    bodies = teacher_bodies(path, from_container(payload["config"]), bank.teachers).numpy()
-    return payload, bank, bodies
+    bodies = teacher_bodies(path, from_container(payload["config"]), bank.teachers, stored=payload.get("bodies"))
+    if len(bodies) != bank.teachers:
+        raise ValueError(f"{run}: {bank.teachers} teachers and {len(bodies)} bodies (its records or control.bodies "
+                         "hold fewer bodies than it has teachers)")
+    return payload, bank, bodies.numpy()
 
 
 def _same_task(first: dict[str, Any], other: dict[str, Any], run: Path, run0: Path) -> None:
@@ -66,11 +71,11 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     ``out``. ``out`` must not hold anything yet (nothing is overwritten)."""
     from freeform.agents.teachers import TeacherBank
     from freeform.checkpoint import CHECKPOINT_DIR, LAST, save_checkpoint
-    from freeform.config import from_container
+    from freeform.config import ControlRunConfig, from_container
 
     if len(runs) < 2:
         raise ValueError(f"give at least two teacher runs to pool, got {len(runs)}")
-    if out.exists() and any(out.iterdir()):
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
     sources = [_source(run) for run in runs]
     for run, (payload, _, _) in zip(runs[1:], sources[1:], strict=True):
@@ -84,7 +89,9 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     first_payload = sources[0][0]
     config = copy.deepcopy(first_payload["config"])
     copies = config["env"]["num_envs"] // config["control"]["teachers"]
-    config["control"].update(teachers=bank.teachers, bodies=str(out / "bodies.npy"))
+    defaults = ControlRunConfig()  # (what a .npy of bodies leaves unused: a student need not copy the first run's)
+    config["control"].update(teachers=bank.teachers, bodies=str(out / "bodies.npy"), body_seed=defaults.body_seed,
+                             top=defaults.top)
     config["env"]["num_envs"] = bank.teachers * copies
     from_container(config)  # (validated as any run's)
 
@@ -96,7 +103,8 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     np.save(out / "bodies.npy", bodies)
     save_checkpoint(out / CHECKPOINT_DIR / LAST, {
         "policy_class": first_payload["policy_class"], "policy_kwargs": bank.init_kwargs,
-        "ppo": {"policy": bank.state_dict()}, "config": config, "epoch": None, "pooled_from": provenance})
+        "ppo": {"policy": bank.state_dict()}, "config": config, "epoch": None, "pooled_from": provenance,
+        "bodies": torch.from_numpy(bodies)})  # (what the bodies' check compares with, whatever the file becomes)
     (out / POOLED).write_text(json.dumps({"teachers": bank.teachers, "sources": provenance}, indent=1) + "\n")
     return out
 
