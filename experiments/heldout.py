@@ -124,20 +124,15 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
 def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
     """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
     ``bodies``."""
-    from freeform.agents.distill import bank_from_checkpoint
     from freeform.body import largest_component
-    from freeform.checkpoint import load_checkpoint, resolve_checkpoint
-    from freeform.config import from_container
-    from freeform.run.build import teacher_bodies
+    from freeform.run.build import read_teacher_run
 
-    payload = load_checkpoint(resolve_checkpoint(run))
-    bank = bank_from_checkpoint(payload, str(run))
-    theirs = largest_component(teacher_bodies(run, from_container(payload["config"]), bank.teachers,
-                                                stored=payload.get("bodies"))).numpy()
-    if bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
-        raise ValueError(f"--per-body-run {run}: its {bank.teachers} teachers' bodies are not the first {len(bodies)} "
-                         "bodies given (save them from its records: final_grids[:M])")
-    return bank
+    teachers = read_teacher_run(run, f"--per-body-run {run}")
+    theirs = largest_component(teachers.bodies).numpy()
+    if teachers.bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
+        raise ValueError(f"--per-body-run {run}: its {teachers.bank.teachers} teachers' bodies are not the first "
+                         f"{len(bodies)} bodies given (save them from its records: final_grids[:M])")
+    return teachers.bank
 
 
 class _BankOnBodies(torch.nn.Module):

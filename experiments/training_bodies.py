@@ -35,6 +35,9 @@ SIZES = (12, 100)
 
 MUSCLES = (A, B)
 
+CELLS = np.stack(np.meshgrid(*[np.arange(RHO)] * 3, indexing="ij"), -1).astype(float)
+"""Every cell's coordinates, ``[ρ, ρ, ρ, 3]``: where the parts and the fields are evaluated."""
+
 
 def _on_floor(grid: np.ndarray) -> np.ndarray:
     """``grid`` (its largest component) with its lowest voxel at z = 0."""
@@ -46,7 +49,7 @@ def _on_floor(grid: np.ndarray) -> np.ndarray:
 def _part(rng: np.random.Generator, centre: np.ndarray) -> np.ndarray:
     """A random box or ellipsoid (half-sizes 0.5–2.5 voxels) about ``centre``: bool ``[ρ, ρ, ρ]``."""
     half = rng.uniform(0.5, 2.5, size=3)
-    cells = np.stack(np.meshgrid(*[np.arange(RHO)] * 3, indexing="ij"), -1) - centre
+    cells = CELLS - centre
     if rng.random() < 0.5:
         return (np.abs(cells) <= half).all(-1)
     return ((cells / (half + 0.5)) ** 2).sum(-1) <= 1.0
@@ -67,13 +70,12 @@ def primitive_body(rng: np.random.Generator) -> np.ndarray:
 
 def _bumps(rng: np.random.Generator, signed: bool) -> np.ndarray:
     """A sum of 3–6 Gaussian bumps (widths 1–3 voxels) over the grid's cells, each ±1 if ``signed``."""
-    cells = np.stack(np.meshgrid(*[np.arange(RHO)] * 3, indexing="ij"), -1).astype(float)
     field = np.zeros((RHO,) * 3)
     for _ in range(int(rng.integers(3, 7))):
         centre = rng.uniform(0.0, RHO - 1.0, size=3) * np.array([1.0, 1.0, 0.6])
         width = rng.uniform(1.0, 3.0)
         sign = rng.choice([-1.0, 1.0]) if signed else 1.0
-        field += sign * np.exp(-((cells - centre) ** 2).sum(-1) / (2 * width**2))
+        field += sign * np.exp(-((CELLS - centre) ** 2).sum(-1) / (2 * width**2))
     return field
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import random
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -366,18 +366,10 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     """``algo.teacher``'s bank of per-body controllers, checked against this run: the same number of teachers and
     episode settings (each field that differs named), and the same bodies — ``grids``, this run's environments',
     each the teacher run's body ``body`` (``TeacherIndex.teacher``), grid for grid."""
-    from freeform.agents.distill import bank_from_checkpoint
-    from freeform.checkpoint import load_checkpoint
-    from freeform.config import from_container
-
     source = Path(str(cfg.algo.teacher))
-    path = source / "checkpoints" / "last.pt" if source.is_dir() else source
-    if not path.is_file():
-        raise ValueError(f"algo.teacher={source}: no such teacher run or checkpoint ({path} is not a file)")
-    payload = load_checkpoint(path)
-    bank = bank_from_checkpoint(payload, str(source))
-    theirs, mine = from_container(payload["config"]).control, cfg.control
-    assert mine is not None
+    run = read_teacher_run(source, f"algo.teacher={source}", "cuda" if device.type == "cuda" else "cpu")
+    theirs, mine = run.config.control, cfg.control
+    assert theirs is not None and mine is not None
     keys = ("teachers", "bodies", "body_seed", "top", *vars(mine.episode()))
     differ = [k for k in keys if getattr(theirs, k) != getattr(mine, k)]
     if differ:
@@ -385,11 +377,34 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
                                      for k in differ)
                          + " (give this run the teacher run's values, or train teachers with these)")
-    theirs_cfg = from_container(payload["config"])
-    their_bodies = teacher_bodies(path, theirs_cfg, bank.teachers, "cuda" if device.type == "cuda" else "cpu",
-                                  payload.get("bodies"))
-    _same_bodies(their_bodies, grids.cpu(), body.cpu(), theirs_cfg, cfg, path)
-    return bank.to(device)
+    _same_bodies(run.bodies, grids.cpu(), body.cpu(), run.config, cfg, source)
+    return run.bank.to(device)
+
+
+class TeacherRun(NamedTuple):
+    """A teacher run read back: its checkpoint's payload, its config, its bank (weights loaded), its M bodies."""
+
+    payload: dict[str, Any]
+    config: TrainConfig
+    bank: Any
+    bodies: torch.Tensor
+
+
+def read_teacher_run(source: Path, name: str, arch: str = "cpu") -> TeacherRun:
+    """A teacher run (``source``: its directory or a checkpoint): its bank and its bodies (:func:`teacher_bodies`);
+    ``name`` says who asked, in the refusals."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint, resolve_checkpoint
+    from freeform.config import from_container
+
+    path = resolve_checkpoint(source)
+    if not path.is_file():
+        raise ValueError(f"{name}: no teacher run or checkpoint there ({path} is not a file; a run of "
+                         "experiment=control_teachers_cpu writes one)")
+    payload = load_checkpoint(path)
+    bank = bank_from_checkpoint(payload, str(source))
+    config = from_container(payload["config"])
+    return TeacherRun(payload, config, bank, teacher_bodies(path, config, bank.teachers, arch, payload.get("bodies")))
 
 
 def teacher_bodies(source: Path, cfg: TrainConfig, teachers: int, arch: str = "cpu",

@@ -31,31 +31,20 @@ POOLED = "pooled.json"
 """The pooled run's provenance: each source run, its teachers' range in the pool and its epoch."""
 
 
-def _source(run: Path) -> tuple[dict[str, Any], Any, np.ndarray]:
-    """A teacher run's checkpoint payload, bank and bodies (uint8 ``[M, ρ, ρ, ρ]``)."""
-    from freeform.agents.distill import bank_from_checkpoint
-    from freeform.checkpoint import load_checkpoint, resolve_checkpoint
-    from freeform.config import from_container
-    from freeform.run.build import teacher_bodies
+def _source(run: Path) -> Any:
+    """A teacher run (``freeform.run.build.TeacherRun``), as many bodies as teachers."""
+    from freeform.run.build import read_teacher_run
 
-    path = resolve_checkpoint(run)
-    if not path.is_file():
-        raise ValueError(f"{run}: no teacher run or checkpoint there ({path} is not a file)")
-    payload = load_checkpoint(path)
-    bank = bank_from_checkpoint(payload, str(run))
-    bodies = teacher_bodies(path, from_container(payload["config"]), bank.teachers, stored=payload.get("bodies"))
-    if len(bodies) != bank.teachers:
-        raise ValueError(f"{run}: {bank.teachers} teachers and {len(bodies)} bodies (its records or control.bodies "
-                         "hold fewer bodies than it has teachers)")
-    return payload, bank, bodies.numpy()
+    source = read_teacher_run(run, str(run))
+    if len(source.bodies) != source.bank.teachers:
+        raise ValueError(f"{run}: {source.bank.teachers} teachers and {len(source.bodies)} bodies (its records or "
+                         "control.bodies hold fewer bodies than it has teachers)")
+    return source
 
 
-def _same_task(first: dict[str, Any], other: dict[str, Any], run: Path, run0: Path) -> None:
-    """``other``'s config (a container) trained the same task as ``first``'s: the episode's settings, the
-    simulator, the grid; refused naming what differs."""
-    from freeform.config import from_container
-
-    a, b = from_container(first), from_container(other)
+def _same_task(a: Any, b: Any, run: Path, run0: Path) -> None:
+    """``b`` (a run's ``TrainConfig``) trained the same task as ``a``: the episode's settings, the simulator, the
+    grid; refused naming what differs."""
     assert a.control is not None and b.control is not None
     differ = [f"control.{k}" for k, v in vars(a.control.episode()).items() if getattr(b.control, k) != v]
     differ += [f"env.{k}" for k in ("resolution",) if getattr(a.env, k) != getattr(b.env, k)]
@@ -78,16 +67,15 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
     sources = [_source(run) for run in runs]
-    for run, (payload, _, _) in zip(runs[1:], sources[1:], strict=True):
-        _same_task(sources[0][0]["config"], payload["config"], run, runs[0])
-    shapes = [list(b.shape[1:]) for _, _, b in sources]
+    for run, source in zip(runs[1:], sources[1:], strict=True):
+        _same_task(sources[0].config, source.config, run, runs[0])
+    shapes = [list(s.bodies.shape[1:]) for s in sources]
     if any(s != shapes[0] for s in shapes):
         raise ValueError(f"the runs' bodies are grids of different sizes ({shapes}): a pool's bodies share a grid")
-    bank = TeacherBank.concatenate([bank for _, bank, _ in sources])
-    bodies = np.concatenate([b for _, _, b in sources])
+    bank = TeacherBank.concatenate([s.bank for s in sources])
+    bodies = torch.cat([s.bodies for s in sources]).numpy()
 
-    first_payload = sources[0][0]
-    config = copy.deepcopy(first_payload["config"])
+    config = copy.deepcopy(sources[0].payload["config"])
     copies = config["env"]["num_envs"] // config["control"]["teachers"]
     defaults = ControlRunConfig()  # (what a .npy of bodies leaves unused: a student need not copy the first run's)
     config["control"].update(teachers=bank.teachers, bodies=str(out / "bodies.npy"), body_seed=defaults.body_seed,
@@ -96,13 +84,14 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     from_container(config)  # (validated as any run's)
 
     provenance, start = [], 0
-    for run, (payload, b, _) in zip(runs, sources, strict=True):
-        provenance.append({"run": str(run), "teachers": [start, start + b.teachers], "epoch": payload.get("epoch")})
-        start += b.teachers
+    for run, source in zip(runs, sources, strict=True):
+        teachers = source.bank.teachers
+        provenance.append({"run": str(run), "teachers": [start, start + teachers], "epoch": source.payload.get("epoch")})
+        start += teachers
     out.mkdir(parents=True, exist_ok=True)
     np.save(out / "bodies.npy", bodies)
     save_checkpoint(out / CHECKPOINT_DIR / LAST, {
-        "policy_class": first_payload["policy_class"], "policy_kwargs": bank.init_kwargs,
+        "policy_class": sources[0].payload["policy_class"], "policy_kwargs": bank.init_kwargs,
         "ppo": {"policy": bank.state_dict()}, "config": config, "epoch": None, "pooled_from": provenance,
         "bodies": torch.from_numpy(bodies)})  # (what the bodies' check compares with, whatever the file becomes)
     (out / POOLED).write_text(json.dumps({"teachers": bank.teachers, "sources": provenance}, indent=1) + "\n")
