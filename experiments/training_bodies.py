@@ -10,12 +10,23 @@ it never saw.
   random size, its materials from a second, signed field of bumps (a muscle group where it is far from zero,
   passive near it): rounded bodies whose muscle regions are patches, not the held-out grown set's plane-wave
   stripes.
+* ``limbed``: a trunk (a box 2–5 voxels long and wide, 1–3 high) on 0–3-voxel legs (2, 3, 4 or 6 columns, one or
+  two voxels thick, under its rim, some splayed at the foot), with 0–2 horizontal limbs (tails, arms) off its sides;
+  each limb one muscle group, diagonal legs alike (a trot's pairing) or at random, the trunk mostly passive. The
+  hand-built held-out set has quadrupeds and tripods of fixed proportions: this kind is nearest to it.
+* ``cppn``: a compositional pattern-producing network's pattern (EvoGym's and the soft-robot literature's
+  generator): a random two-layer network of sines, Gaussians, tanh and |·| over each cell's coordinates and its
+  distance from the centre gives a shape field (its top cells, to a random size) and three material scores (the
+  largest wins): repeated and mirrored parts, stripes and rings, unlike a sum of bumps.
 
 Every body is its largest 6-connected component, on the floor (lowest voxel at z = 0), between ``sizes`` voxels, with
 voxels of both muscle groups; a grid equal to any held-out body is redrawn. Materials as the design env's (k = 4):
 0 empty, 1 passive, 2 and 3 muscles in anti-phase.
 
     python -m experiments.training_bodies --kind mixed --n 128 --seed 1 --out runs/bodies_mixed128.npy
+    python -m experiments.training_bodies --kind limbed,cppn --n 128 --seed 3 --out runs/bodies_limbed_cppn128.npy
+
+``--kind`` names one generator, or several separated by commas taken in turn (``mixed``: ``primitives,blobs``).
 """
 
 from __future__ import annotations
@@ -90,8 +101,73 @@ def blob_body(rng: np.random.Generator) -> np.ndarray:
     return _on_floor(grid.astype(np.uint8))
 
 
-GENERATORS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {"primitives": primitive_body,
-                                                                       "blobs": blob_body}
+def limbed_body(rng: np.random.Generator) -> np.ndarray:
+    """One ``limbed`` grid (module docstring), before the size and muscle checks."""
+    grid = np.zeros((RHO,) * 3, np.uint8)
+    size = rng.integers([2, 2, 1], [6, 6, 4])
+    leg = int(rng.integers(0, 4))
+    lo = np.array([*(rng.integers(1, RHO - size[:2]) if leg else rng.integers(0, RHO - size[:2] + 1)), leg])
+    hi = lo + size
+    if hi[2] > RHO:
+        return grid
+    grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = rng.choice([PASSIVE, A, B], p=[0.6, 0.2, 0.2])
+    corners = [(lo[0], lo[1]), (hi[0] - 1, hi[1] - 1), (hi[0] - 1, lo[1]), (lo[0], hi[1] - 1),
+               (lo[0], (lo[1] + hi[1] - 1) // 2), (hi[0] - 1, (lo[1] + hi[1] - 1) // 2)]
+    count = int(rng.choice([2, 3, 4, 6])) if leg else 0
+    trot = rng.random() < 0.5
+    for i, (x, y) in enumerate(corners[:count]):
+        m = (A if i % 2 == 0 else B) if trot else int(rng.choice(MUSCLES))
+        t = int(rng.integers(1, 3))
+        out = np.sign([x - (lo[0] + hi[0] - 1) / 2, y - (lo[1] + hi[1] - 1) / 2]).astype(int)
+        xs = slice(x, x + t) if out[0] <= 0 else slice(max(x - t + 1, 0), x + 1)
+        ys = slice(y, y + t) if out[1] <= 0 else slice(max(y - t + 1, 0), y + 1)
+        grid[xs, ys, 0:leg] = m
+        if rng.random() < 0.4:  # (a foot splayed outward)
+            fx, fy = np.clip([x + out[0], y + out[1]], 0, RHO - 1)
+            grid[fx, fy, 0] = m
+    for _ in range(int(rng.integers(0, 3))):  # (tails and arms at the trunk's height)
+        axis, side = int(rng.integers(2)), int(rng.choice([-1, 1]))
+        z = int(rng.integers(lo[2], hi[2]))
+        other = int(rng.integers(lo[1 - axis], hi[1 - axis]))
+        start = hi[axis] if side > 0 else lo[axis] - 1
+        cells = [start + side * k for k in range(int(rng.integers(1, 4)))]
+        cells = [c for c in cells if 0 <= c < RHO]
+        idx = [0, 0, z]
+        m = int(rng.choice(MUSCLES))
+        for c in cells:
+            idx[axis], idx[1 - axis] = c, other
+            grid[tuple(idx)] = m
+    return _on_floor(grid)
+
+
+ACTIVATIONS: tuple[Callable[[np.ndarray], np.ndarray], ...] = (
+    np.sin, lambda v: np.exp(-v**2), np.tanh, np.abs)
+"""A CPPN node's functions: periodic, bell, sigmoid-like and mirror-symmetric."""
+
+
+def cppn_body(rng: np.random.Generator) -> np.ndarray:
+    """One ``cppn`` grid (module docstring), before the size and muscle checks."""
+    centre = (RHO - 1) / 2
+    coords = (CELLS - centre) / centre  # (each axis in [-1, 1])
+    layer = np.concatenate([coords, np.linalg.norm(coords, axis=-1, keepdims=True),
+                            np.ones(coords.shape[:-1] + (1,))], -1).reshape(-1, 5)
+    for width in (int(rng.integers(3, 6)), int(rng.integers(3, 6))):
+        weights = rng.normal(0.0, 1.5, size=(layer.shape[1], width))
+        acts = rng.integers(len(ACTIVATIONS), size=width)
+        pre = layer @ weights
+        layer = np.stack([ACTIVATIONS[a](pre[:, j]) for j, a in enumerate(acts)], -1)
+    out = (layer @ rng.normal(0.0, 1.0, size=(layer.shape[1], 4))).reshape((RHO,) * 3 + (4,))
+    size = int(rng.integers(*SIZES))
+    shape = out[..., 0] - 0.5 * (coords[..., 2] + 1)  # (a pull towards the floor, so the body stands on it)
+    filled = shape >= np.sort(shape, axis=None)[-size]
+    grid = (np.argmax(out[..., 1:], -1) + PASSIVE).astype(np.uint8) * filled
+    return _on_floor(grid.astype(np.uint8))
+
+
+GENERATORS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
+    "primitives": primitive_body, "blobs": blob_body, "limbed": limbed_body, "cppn": cppn_body}
+
+ALIASES = {"mixed": "primitives,blobs"}
 
 
 def _heldout(folder: Path) -> set[bytes]:
@@ -104,13 +180,16 @@ def _heldout(folder: Path) -> set[bytes]:
 
 
 def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/results/heldout_bodies")) -> np.ndarray:
-    """``[n, 8, 8, 8]`` uint8 bodies of generator ``kind`` (``primitives``, ``blobs``, or ``mixed``: both, in turn),
-    drawn from ``seed``; none equal to a held-out body in ``heldout``."""
-    if kind not in (*GENERATORS, "mixed"):
-        raise ValueError(f"--kind must be one of {[*GENERATORS, 'mixed']}, got {kind!r}")
+    """``[n, 8, 8, 8]`` uint8 bodies of generator ``kind`` (one of :data:`GENERATORS`, several separated by commas
+    taken in turn, or an alias: ``mixed`` = ``primitives,blobs``), drawn from ``seed``; none equal to a held-out body
+    in ``heldout``."""
+    kinds = ALIASES.get(kind, kind).split(",")
+    unknown = [k for k in kinds if k not in GENERATORS]
+    if unknown:
+        raise ValueError(f"--kind: {unknown} not a generator; give one of {[*GENERATORS, *ALIASES]} or several "
+                         f"separated by commas, got {kind!r}")
     if n < 1:
         raise ValueError(f"--n must be >= 1, got {n}")
-    kinds = list(GENERATORS) if kind == "mixed" else [kind]
     rng, avoid, out = np.random.default_rng(seed), _heldout(heldout), []
     while len(out) < n:
         grid = GENERATORS[kinds[len(out) % len(kinds)]](rng)
@@ -122,7 +201,9 @@ def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/res
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--kind", default="mixed", help="primitives, blobs, or mixed (both in turn)")
+    p.add_argument("--kind", default="mixed",
+                   help=f"one of {[*GENERATORS]}, several separated by commas (taken in turn), or mixed "
+                        f"(= {ALIASES['mixed']})")
     p.add_argument("--n", type=int, default=128, help="how many bodies")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--heldout", default="docs/results/heldout_bodies", help="folder of held-out .npy sets to avoid")
