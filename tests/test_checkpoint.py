@@ -309,3 +309,25 @@ def test_run_files_get_the_umask_permissions_not_mkstemps_0600(tmp_path: Path) -
         os.umask(old)
     assert (path.stat().st_mode & 0o777) == (other.stat().st_mode & 0o777) == 0o644
     assert other.read_bytes() == b"{}" and sorted(p.name for p in tmp_path.iterdir()) == ["info.json", "last.pt"]
+
+
+@pytest.mark.parametrize("links", [True, False])
+def test_a_numbered_checkpoint_is_last_pt_under_a_second_name_that_keeps_its_epoch(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, links: bool) -> None:
+    """The run directory writes last.pt once and gives it the numbered name (a hard link, or a copy where the
+    filesystem has none); the numbered file keeps that epoch's state when last.pt is written again."""
+    from freeform.run.rundir import RunDir
+
+    if not links:
+        def refuse(*args: object, **kwargs: object) -> None:
+            raise OSError(errno.EXDEV, "Invalid cross-device link")
+        monkeypatch.setattr(os, "link", refuse)
+    run = RunDir(tmp_path, writer=True)
+    run.save_checkpoint(_state(2), 2, numbered=True)
+    run.save_checkpoint(_state(3), 3, numbered=False)
+    directory = tmp_path / ck.CHECKPOINT_DIR
+    assert load_checkpoint(directory / ck.numbered_name(2))["i"] == 2 and load_checkpoint(directory / ck.LAST)["i"] == 3
+    assert sorted(p.name for p in directory.iterdir()) == sorted([ck.LAST, ck.numbered_name(2)])  # no temporary left
+    assert run.failure is None and run.saved_epoch == 3
+    run.save_checkpoint(_state(4), 4, numbered=True, last=False)  # (a numbered file alone is serialised as before)
+    assert load_checkpoint(directory / ck.numbered_name(4))["i"] == 4 and load_checkpoint(directory / ck.LAST)["i"] == 3

@@ -27,7 +27,7 @@ import freeform
 from freeform.agents import distributed
 from freeform.checkpoint import CHECKPOINT_DIR, LAST, numbered_name, pack_sparse, save_checkpoint
 from freeform.config import TrainConfig
-from freeform.files import write_atomically
+from freeform.files import copy_atomically, write_atomically
 from freeform.records import EpochRecord, record_path, write_record
 from freeform.sim import runtime as sim_runtime
 
@@ -92,14 +92,15 @@ class RunDir:
         if self.failure is not None:
             return
         directory = self.path / CHECKPOINT_DIR
-        state = pack_sparse(state)  # (once for both files)
+        state = pack_sparse(state)
         if last:
             if not self.attempt(directory / LAST, lambda: save_checkpoint(directory / LAST, state)):
                 return
             self.saved_epoch = epoch
-        if numbered:
+        if numbered:  # (last.pt's bytes under a second name when it was just written: one serialisation)
             name = numbered_name(epoch)
-            self.attempt(directory / name, lambda: save_checkpoint(directory / name, state))
+            self.attempt(directory / name, lambda: copy_atomically(directory / LAST, directory / name) if last
+                         else save_checkpoint(directory / name, state))
 
     def write_record(self, record: EpochRecord) -> None:
         """``records/epoch_<e>.npz`` (``freeform.records``)."""
