@@ -1,12 +1,16 @@
-"""The student's scaling curve (issue 56): held-out figures against the number of teachers it was distilled from,
-read from pooled held-out tables (``python -m experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
+"""The student's scaling curves (issue 56): held-out figures against the number of teachers it was distilled from,
+or against its distillation rounds (``--x rounds``), read from pooled held-out tables (``python -m
+experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
 
     python -m experiments.student_scaling 64=runs/eval_s64_93 128=runs/eval_s128_93 256=runs/eval_s256_93 \\
         --out docs/results/control_student/scaling
+    python -m experiments.student_scaling --x rounds 2=runs/eval_s256r2_93 4=runs/eval_s256_93 8=runs/eval_s256r8_93 \\
+        --out docs/results/control_student/scaling
 
-Writes ``OUT/scaling.csv`` (one row per point: teachers, bodies, the controller's stochastic and mean-command moves,
-their fractions of per-body control, the mean command over the hand-set wave, the fraction of bodies beyond their
-own gait) and ``OUT/scaling.png``. A point's label is its number of teachers; two points may share one (seeds).
+Writes ``OUT/scaling.csv`` (``--x teachers``) or ``OUT/rounds.csv`` (one row per point: the x, bodies, the
+controller's stochastic and mean-command moves, their fractions of per-body control, the mean command over the
+hand-set wave, the fraction of bodies beyond their own gait) and the figure beside it (``.png``). A point's label is
+its x; two points may share one (seeds).
 """
 
 from __future__ import annotations
@@ -26,20 +30,23 @@ ROWS = {
 }
 """scaling.csv's columns -> the pooled summary's rows they are read from."""
 
+AXES = {"teachers": "scaling", "rounds": "rounds"}
+"""What a point's label counts (``--x``) -> the files' stem: the number of teachers, or of distillation rounds."""
 
-def read_point(label: str, folder: Path) -> dict[str, float | int | str]:
-    """One point: ``label`` (its number of teachers) and the pooled summary in ``folder``, every row of
-    :data:`ROWS` required (refused naming the first missing)."""
+
+def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float | int | str]:
+    """One point: ``label`` (its ``x``: number of teachers or rounds) and the pooled summary in ``folder``, every
+    row of :data:`ROWS` required (refused naming the first missing)."""
     try:
-        teachers = int(label)
+        value = int(label)
     except ValueError:
-        raise ValueError(f"a point is TEACHERS=FOLDER with TEACHERS an integer, got {label!r}") from None
+        raise ValueError(f"a point is {x.upper()}=FOLDER with {x.upper()} an integer, got {label!r}") from None
     summary = folder / "summary.csv"
     if not summary.is_file():
         raise ValueError(f"{folder}: no summary.csv there (write one with python -m experiments.heldout --pool)")
     with open(summary, newline="") as f:
         rows = {r["what"]: r for r in csv.DictReader(f)}
-    point: dict[str, float | int | str] = {"teachers": teachers, "folder": str(folder)}
+    point: dict[str, float | int | str] = {x: value, "folder": str(folder)}
     for column, what in ROWS.items():
         if what not in rows:
             raise ValueError(f"{summary}: no row {what!r} (evaluate with --per-body on every body, then --pool)")
@@ -48,29 +55,29 @@ def read_point(label: str, folder: Path) -> dict[str, float | int | str]:
     return point
 
 
-def plot(points: list[dict], path: Path) -> None:
-    """Fraction of per-body control (both ways) and × the wave against the number of teachers, log x."""
+def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
+    """Fraction of per-body control (both ways) and × the wave against ``x`` (the number of teachers or rounds),
+    log x."""
     from experiments.common import pyplot
 
     plt = pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5))
-    x = sorted({p["teachers"] for p in points})  # (the line through each count's mean over its seeds, every point shown)
+    ticks = sorted({p[x] for p in points})  # (the line through each count's mean over its seeds, every point shown)
 
     def curve(ax: Any, column: str, scale: float, style: str, label: str | None = None) -> None:
-        mean = [scale * sum(p[column] for p in points if p["teachers"] == t)
-                / sum(p["teachers"] == t for p in points) for t in x]
-        line, = ax.plot(x, mean, style, label=label)
-        ax.plot([p["teachers"] for p in points], [scale * p[column] for p in points], ".", color=line.get_color())
+        mean = [scale * sum(p[column] for p in points if p[x] == t) / sum(p[x] == t for p in points) for t in ticks]
+        line, = ax.plot(ticks, mean, style, label=label)
+        ax.plot([p[x] for p in points], [scale * p[column] for p in points], ".", color=line.get_color())
 
     curve(left, "fraction_mean_command", 100, "o-", "mean command")
     curve(left, "fraction_stochastic", 100, "s--", "stochastic")
     left.axhline(70, color="grey", lw=0.8, ls=":", label="issue's bar (70 %)")
-    left.set(xscale="log", xlabel="teachers", ylabel="% of per-body control", title="held-out bodies")
+    left.set(xscale="log", xlabel=x, ylabel="% of per-body control", title="held-out bodies")
     curve(right, "over_wave", 1, "o-")
     right.axhline(1.5, color="grey", lw=0.8, ls=":")
-    right.set(xscale="log", xlabel="teachers", ylabel="× the hand-set wave (mean command)")
+    right.set(xscale="log", xlabel=x, ylabel="× the hand-set wave (mean command)")
     for ax in (left, right):
-        ax.set_xticks(x, [str(t) for t in x])
+        ax.set_xticks(ticks, [str(t) for t in ticks])
         ax.minorticks_off()
     left.legend(fontsize=8)
     fig.tight_layout()
@@ -80,28 +87,30 @@ def plot(points: list[dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("points", nargs="+", help="TEACHERS=FOLDER: a pooled held-out table and its student's teachers")
+    p.add_argument("points", nargs="+", help="X=FOLDER: a pooled held-out table and its student's teachers (or "
+                                             "rounds, with --x rounds)")
+    p.add_argument("--x", default="teachers", choices=list(AXES), help="what a point's label counts")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
     points = []
     for arg in args.points:
         label, sep, folder = arg.partition("=")
         if not sep:
-            raise SystemExit(f"a point is TEACHERS=FOLDER, got {arg!r}")
-        points.append(read_point(label, Path(folder)))
+            raise SystemExit(f"a point is {args.x.upper()}=FOLDER, got {arg!r}")
+        points.append(read_point(label, Path(folder), args.x))
     if len({p["bodies"] for p in points}) != 1:  # (a count only: the folders' sets are the user's to keep alike)
         raise SystemExit(f"the points are over different numbers of bodies ({[p['bodies'] for p in points]}): "
                          "compare students on the same held-out bodies")
-    points.sort(key=lambda p: p["teachers"])
+    points.sort(key=lambda p: p[args.x])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "scaling.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["teachers", "bodies", *ROWS, "folder"])
+    with open(out / f"{AXES[args.x]}.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=[args.x, "bodies", *ROWS, "folder"])
         writer.writeheader()
         writer.writerows(points)
-    plot(points, out / "scaling.png")
+    plot(points, out / f"{AXES[args.x]}.png", args.x)
     for q in points:
-        print(f"{q['teachers']:5d} teachers: {100 * q['fraction_mean_command']:.1f} % of per-body (mean command), "
+        print(f"{q[args.x]:5d} {args.x}: {100 * q['fraction_mean_command']:.1f} % of per-body (mean command), "
               f"x{q['over_wave']:.2f} the wave, {100 * q['beyond_gait']:.0f} % beyond their gait")
 
 
