@@ -11,8 +11,8 @@ it never saw.
   passive near it): rounded bodies whose muscle regions are patches, not the held-out grown set's plane-wave
   stripes.
 * ``limbed``: a trunk (a box 2–5 voxels long and wide, 1–3 high) on 0–3-voxel legs (2, 3, 4 or 6 columns, one or
-  two voxels thick, under its rim, some splayed at the foot), with 0–2 horizontal limbs (tails, arms) off its sides;
-  each limb one muscle group, diagonal legs alike (a trot's pairing) or at random, the trunk mostly passive. The
+  two voxels thick, under its rim, some with a foot splayed outward), with 0–2 horizontal limbs (tails, arms) off its
+  sides; each limb one muscle group, diagonal legs alike (a trot's pairing) or at random, the trunk mostly passive. The
   hand-built held-out set has quadrupeds and tripods of fixed proportions: this kind is nearest to it.
 * ``cppn``: a compositional pattern-producing network's pattern (EvoGym's and the soft-robot literature's
   generator): a random two-layer network of sines, Gaussians, tanh and |·| over each cell's coordinates and its
@@ -45,6 +45,9 @@ SIZES = (12, 100)
 """Voxels a body may have: the held-out sets' range (12–100)."""
 
 MUSCLES = (A, B)
+
+MAX_DRAWS = 100
+"""Draws allowed a body before a generator is taken to be unable to make one (the kinds pass 17–70 % of draws)."""
 
 CELLS = np.stack(np.meshgrid(*[np.arange(RHO)] * 3, indexing="ij"), -1).astype(float)
 """Every cell's coordinates, ``[ρ, ρ, ρ, 3]``: where the parts and the fields are evaluated."""
@@ -90,11 +93,15 @@ def _bumps(rng: np.random.Generator, signed: bool) -> np.ndarray:
     return field
 
 
+def _top(field: np.ndarray, size: int) -> np.ndarray:
+    """The ``size`` cells where ``field`` is largest (ties kept): bool ``[ρ, ρ, ρ]``."""
+    return field >= np.sort(field, axis=None)[-size]
+
+
 def blob_body(rng: np.random.Generator) -> np.ndarray:
     """One ``blobs`` grid (module docstring), before the size and muscle checks."""
     shape = _bumps(rng, signed=False)
-    size = int(rng.integers(*SIZES))
-    filled = shape >= np.sort(shape, axis=None)[-size]
+    filled = _top(shape, int(rng.integers(*SIZES)))
     muscle = _bumps(rng, signed=True)
     level = rng.uniform(0.1, 0.4) * np.abs(muscle[filled]).max()
     grid = np.where(muscle > level, A, np.where(muscle < -level, B, PASSIVE)).astype(np.uint8) * filled
@@ -107,24 +114,25 @@ def limbed_body(rng: np.random.Generator) -> np.ndarray:
     size = rng.integers([2, 2, 1], [6, 6, 4])
     leg = int(rng.integers(0, 4))
     lo = np.array([*(rng.integers(1, RHO - size[:2]) if leg else rng.integers(0, RHO - size[:2] + 1)), leg])
-    hi = lo + size
-    if hi[2] > RHO:
-        return grid
+    hi = lo + size  # (at most 3 + 3 high: the trunk always fits under the ceiling)
     grid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] = rng.choice([PASSIVE, A, B], p=[0.6, 0.2, 0.2])
-    corners = [(lo[0], lo[1]), (hi[0] - 1, hi[1] - 1), (hi[0] - 1, lo[1]), (lo[0], hi[1] - 1),
-               (lo[0], (lo[1] + hi[1] - 1) // 2), (hi[0] - 1, (lo[1] + hi[1] - 1) // 2)]
+    mid = (lo[1] + hi[1] - 1) // 2
+    corners = list(dict.fromkeys([(lo[0], lo[1]), (hi[0] - 1, hi[1] - 1), (hi[0] - 1, lo[1]), (lo[0], hi[1] - 1),
+                                  (lo[0], mid), (hi[0] - 1, mid)]))  # (a trunk 2 wide has no middle legs of its own)
     count = int(rng.choice([2, 3, 4, 6])) if leg else 0
     trot = rng.random() < 0.5
-    for i, (x, y) in enumerate(corners[:count]):
-        m = (A if i % 2 == 0 else B) if trot else int(rng.choice(MUSCLES))
+    for x, y in corners[:count]:
+        m = (A if (x == lo[0]) == (y == lo[1]) else B) if trot else int(rng.choice(MUSCLES))  # (trot: diagonals alike)
         t = int(rng.integers(1, 3))
         out = np.sign([x - (lo[0] + hi[0] - 1) / 2, y - (lo[1] + hi[1] - 1) / 2]).astype(int)
-        xs = slice(x, x + t) if out[0] <= 0 else slice(max(x - t + 1, 0), x + 1)
-        ys = slice(y, y + t) if out[1] <= 0 else slice(max(y - t + 1, 0), y + 1)
+        xs = slice(x, x + t) if out[0] <= 0 else slice(x - t + 1, x + 1)  # (thick legs grow inward, x - 1 >= 0)
+        ys = slice(y, y + t) if out[1] <= 0 else slice(y - t + 1, y + 1)
         grid[xs, ys, 0:leg] = m
-        if rng.random() < 0.4:  # (a foot splayed outward)
-            fx, fy = np.clip([x + out[0], y + out[1]], 0, RHO - 1)
-            grid[fx, fy, 0] = m
+        if rng.random() < 0.4:  # (a foot splayed outward along one axis: it shares a face with its leg)
+            foot = [x, y, 0]
+            axis = int(rng.choice(np.flatnonzero(out))) if out.any() else 0
+            foot[axis] = int(np.clip(foot[axis] + (out[axis] or 1), 0, RHO - 1))
+            grid[tuple(foot)] = m
     for _ in range(int(rng.integers(0, 3))):  # (tails and arms at the trunk's height)
         axis, side = int(rng.integers(2)), int(rng.choice([-1, 1]))
         z = int(rng.integers(lo[2], hi[2]))
@@ -158,10 +166,8 @@ def cppn_body(rng: np.random.Generator) -> np.ndarray:
         layer = np.stack([ACTIVATIONS[a](pre[:, j]) for j, a in enumerate(acts)], -1)
     out = (layer @ rng.normal(0.0, 1.0, size=(layer.shape[1], 4))).reshape((RHO,) * 3 + (4,))
     size = int(rng.integers(*SIZES))
-    shape = out[..., 0] - 0.5 * (coords[..., 2] + 1)  # (a pull towards the floor, so the body stands on it)
-    filled = shape >= np.sort(shape, axis=None)[-size]
-    grid = (np.argmax(out[..., 1:], -1) + PASSIVE).astype(np.uint8) * filled
-    return _on_floor(grid.astype(np.uint8))
+    filled = _top(out[..., 0] - 0.5 * (coords[..., 2] + 1), size)  # (pulled towards the floor, to stand on it)
+    return _on_floor((np.argmax(out[..., 1:], -1) + PASSIVE).astype(np.uint8) * filled)
 
 
 GENERATORS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
@@ -191,11 +197,16 @@ def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/res
     if n < 1:
         raise ValueError(f"--n must be >= 1, got {n}")
     rng, avoid, out = np.random.default_rng(seed), _heldout(heldout), []
-    while len(out) < n:
+    for _ in range(MAX_DRAWS * n):
+        if len(out) == n:
+            break
         grid = GENERATORS[kinds[len(out) % len(kinds)]](rng)
         voxels = int((grid > 0).sum())
         if SIZES[0] <= voxels <= SIZES[1] and all((grid == m).any() for m in MUSCLES) and grid.tobytes() not in avoid:
             out.append(grid)
+    if len(out) < n:
+        raise ValueError(f"--kind {kind}: {len(out)} of {n} bodies passed the checks (connected, {SIZES[0]}–"
+                         f"{SIZES[1]} voxels, both muscles, not held out) in {MAX_DRAWS * n} draws")
     return np.stack(out)
 
 

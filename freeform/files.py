@@ -3,8 +3,8 @@
 The one atomic writer of freeform (checkpoints, design records, ``run_info.json``): a temporary file in the target's
 directory, flushed and fsynced, given the permissions an ordinary ``open()`` would give, renamed over the target
 (``os.replace`` is atomic on POSIX and Windows), and the directory fsynced so that the rename survives a crash.
-:func:`copy_atomically` gives a finished file a second name the same way (a hard link where the filesystem has
-them: a numbered checkpoint beside ``last.pt`` costs no second serialisation of a dataset-sized state).
+:func:`copy_atomically` gives a finished file a second name the same way (a numbered checkpoint beside ``last.pt``
+is a copy of its bytes, not a second serialisation of a dataset-sized state).
 """
 
 from __future__ import annotations
@@ -42,28 +42,14 @@ def write_atomically(path: str | os.PathLike[str], write: Callable[[BinaryIO], N
 
 
 def copy_atomically(source: str | os.PathLike[str], path: str | os.PathLike[str]) -> Path:
-    """Create or replace ``path`` with ``source``'s bytes, atomically; returns the path. A hard link where the
-    filesystem allows one (every writer here replaces a file by renaming a new one over it, never edits it in place,
-    so the two names part when ``source`` is next written), else a copy; on failure ``path`` is left as it was."""
-    path = Path(path)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.link"
-    tmp.unlink(missing_ok=True)
-    try:
-        os.link(source, tmp)
-    except OSError:  # (no hard links here: another filesystem, a FAT mount, a quota on links)
-        return write_atomically(path, lambda f: _copy_into(source, f))
-    try:
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-    return path
+    """Create or replace ``path`` with a copy of ``source``'s bytes, atomically (:func:`write_atomically`); returns
+    the path. A copy, not a hard link: a user who rolls ``last.pt`` back with ``cp`` writes into the file in place,
+    and a link would carry that into the numbered checkpoint too."""
+    def copy(f: BinaryIO) -> None:
+        with open(source, "rb") as src:
+            shutil.copyfileobj(src, f, 16 << 20)
 
-
-def _copy_into(source: str | os.PathLike[str], f: BinaryIO) -> None:
-    with open(source, "rb") as src:
-        shutil.copyfileobj(src, f)
+    return write_atomically(path, copy)
 
 
 def _umask() -> int:

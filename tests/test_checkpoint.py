@@ -311,23 +311,24 @@ def test_run_files_get_the_umask_permissions_not_mkstemps_0600(tmp_path: Path) -
     assert other.read_bytes() == b"{}" and sorted(p.name for p in tmp_path.iterdir()) == ["info.json", "last.pt"]
 
 
-@pytest.mark.parametrize("links", [True, False])
-def test_a_numbered_checkpoint_is_last_pt_under_a_second_name_that_keeps_its_epoch(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, links: bool) -> None:
-    """The run directory writes last.pt once and gives it the numbered name (a hard link, or a copy where the
-    filesystem has none); the numbered file keeps that epoch's state when last.pt is written again."""
+def test_a_numbered_checkpoint_is_a_copy_of_last_pt_that_keeps_its_epoch(tmp_path: Path) -> None:
+    """The run directory writes last.pt once and copies its bytes to the numbered name; the numbered file keeps that
+    epoch's state when last.pt is written again, or overwritten in place by a user's ``cp`` rollback."""
+    import shutil
+
     from freeform.run.rundir import RunDir
 
-    if not links:
-        def refuse(*args: object, **kwargs: object) -> None:
-            raise OSError(errno.EXDEV, "Invalid cross-device link")
-        monkeypatch.setattr(os, "link", refuse)
     run = RunDir(tmp_path, writer=True)
     run.save_checkpoint(_state(2), 2, numbered=True)
-    run.save_checkpoint(_state(3), 3, numbered=False)
     directory = tmp_path / ck.CHECKPOINT_DIR
-    assert load_checkpoint(directory / ck.numbered_name(2))["i"] == 2 and load_checkpoint(directory / ck.LAST)["i"] == 3
+    last, numbered = directory / ck.LAST, directory / ck.numbered_name(2)
+    assert numbered.read_bytes() == last.read_bytes() and not os.path.samefile(last, numbered)
+    run.save_checkpoint(_state(3), 3, numbered=False)
+    assert load_checkpoint(numbered)["i"] == 2 and load_checkpoint(last)["i"] == 3
+    save_checkpoint(tmp_path / "other.pt", _state(9))
+    shutil.copyfile(tmp_path / "other.pt", last)  # (in place: the file's inode kept)
+    assert load_checkpoint(numbered)["i"] == 2
     assert sorted(p.name for p in directory.iterdir()) == sorted([ck.LAST, ck.numbered_name(2)])  # no temporary left
     assert run.failure is None and run.saved_epoch == 3
     run.save_checkpoint(_state(4), 4, numbered=True, last=False)  # (a numbered file alone is serialised as before)
-    assert load_checkpoint(directory / ck.numbered_name(4))["i"] == 4 and load_checkpoint(directory / ck.LAST)["i"] == 3
+    assert load_checkpoint(directory / ck.numbered_name(4))["i"] == 4 and load_checkpoint(last)["i"] == 9

@@ -365,6 +365,7 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     scaling(["--x", "rounds", "8=" + str(tmp_path / "ba"), "4=" + str(tmp_path / "out"), "--out", str(tmp_path / "scaling")])
     rounds = read_csv(tmp_path / "scaling" / "rounds.csv")
     assert [int(p["rounds"]) for p in rounds] == [4, 8] and "teachers" not in rounds[0]
+    assert [Path(p["folder"]).name for p in rounds] == ["out", "ba"]  # (each label with its own folder)
     assert [p["fraction_mean_command"] for p in rounds] == [p["fraction_mean_command"] for p in points]
     assert (tmp_path / "scaling" / "rounds.png").stat().st_size > 0
     with pytest.raises(ValueError, match="ROUNDS an integer"):

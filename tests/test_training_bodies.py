@@ -55,3 +55,23 @@ def test_kinds_in_turn() -> None:
     # (the first body is the first one the first kind's generator gives from the seed; the second is the other kind)
     np.testing.assert_array_equal(both[0], training_bodies("limbed", 1, seed=2)[0])
     assert not any(np.array_equal(both[1], g) for g in training_bodies("limbed", 12, seed=2))
+
+
+def test_limbed_bodies_stand_on_separate_legs_under_a_wider_trunk() -> None:
+    """Most ``limbed`` bodies touch the floor with two or more separate feet (scipy's labelling of the floor layer)
+    under a layer wider than the floor's; a body lying flat (no legs) is the exception."""
+    legged = 0
+    for g in training_bodies("limbed", 60, seed=4):
+        floor = g[:, :, 0] > 0
+        _, feet = ndimage.label(floor)
+        widest = max(int((g[:, :, z] > 0).sum()) for z in range(g.shape[2]))
+        legged += feet >= 2 and widest > floor.sum()
+    assert legged >= 30, legged
+
+
+def test_a_generator_that_cannot_make_a_body_is_refused_not_looped_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    from experiments import training_bodies as tb
+
+    monkeypatch.setitem(tb.GENERATORS, "empty", lambda rng: np.zeros((8, 8, 8), np.uint8))
+    with pytest.raises(ValueError, match=r"--kind limbed,empty: 1 of 3 bodies passed the checks .* in 300 draws"):
+        tb.training_bodies("limbed,empty", 3, seed=0)

@@ -97,7 +97,7 @@ class RunDir:
             if not self.attempt(directory / LAST, lambda: save_checkpoint(directory / LAST, state)):
                 return
             self.saved_epoch = epoch
-        if numbered:  # (last.pt's bytes under a second name when it was just written: one serialisation)
+        if numbered:  # (a copy of last.pt's bytes when it was just written: one serialisation)
             name = numbered_name(epoch)
             self.attempt(directory / name, lambda: copy_atomically(directory / LAST, directory / name) if last
                          else save_checkpoint(directory / name, state))
