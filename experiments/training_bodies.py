@@ -47,7 +47,8 @@ SIZES = (12, 100)
 MUSCLES = (A, B)
 
 MAX_DRAWS = 100
-"""Draws allowed a body before a generator is taken to be unable to make one (the kinds pass 17–70 % of draws)."""
+"""Draws allowed a body before a generator is taken to be unable to make one (the kinds pass 18–69 % of draws:
+primitives 34, blobs 36, limbed 69, cppn 18 % of 1,000 from seed 0)."""
 
 CELLS = np.stack(np.meshgrid(*[np.arange(RHO)] * 3, indexing="ij"), -1).astype(float)
 """Every cell's coordinates, ``[ρ, ρ, ρ, 3]``: where the parts and the fields are evaluated."""
@@ -206,7 +207,9 @@ def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/res
             out.append(grid)
     if len(out) < n:
         raise ValueError(f"--kind {kind}: {len(out)} of {n} bodies passed the checks (connected, {SIZES[0]}–"
-                         f"{SIZES[1]} voxels, both muscles, not held out) in {MAX_DRAWS * n} draws")
+                         f"{SIZES[1]} voxels, both muscles, not held out) in {MAX_DRAWS * n} draws; a generator "
+                         f"must make such a body in at least 1 of {MAX_DRAWS} draws — fix it, or leave it out of "
+                         f"--kind")
     return np.stack(out)
 
 

@@ -25,7 +25,7 @@ import torch
 
 import freeform
 from freeform.agents import distributed
-from freeform.checkpoint import CHECKPOINT_DIR, LAST, numbered_name, pack_sparse, save_checkpoint
+from freeform.checkpoint import CHECKPOINT_DIR, LAST, numbered_name, save_checkpoint
 from freeform.config import TrainConfig
 from freeform.files import copy_atomically, write_atomically
 from freeform.records import EpochRecord, record_path, write_record
@@ -92,7 +92,6 @@ class RunDir:
         if self.failure is not None:
             return
         directory = self.path / CHECKPOINT_DIR
-        state = pack_sparse(state)
         if last:
             if not self.attempt(directory / LAST, lambda: save_checkpoint(directory / LAST, state)):
                 return
