@@ -37,9 +37,10 @@ from freeform.envs.control import (
     open_loop_displacement,
     open_loop_moves,
 )
+from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
 
-SENSED = ("rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact")
+SENSED = ("rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact", *RESPONSE_CHANNELS)
 """The observation's sensed channels: zeroed, a controller has only the body's shape, the task and the clock."""
 
 
@@ -232,7 +233,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
 def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
     """One episode of every group ``(name, net, sensed channels zeroed, stochastic)`` on its block of ``env``'s
     rows. Returns the returns ``[G, rows]``, the last observation and the episode's headings."""
-    sensed = [env.channels.index(c) for c in SENSED]
+    sensed = [env.channels.index(c) for c in SENSED if c in env.channels]
 
     def view(obs: torch.Tensor, zeroed: bool) -> torch.Tensor:
         if not zeroed:

@@ -147,6 +147,17 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     _check_turnable("context", "attention", "mirror", "fixed")
     with pytest.raises(ValueError, match=r"algo.symmetry must be one of \['none', 'ground', 'mirror'\]"):
         compose(*tiny_control(bodies, *teach, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
+    # a student may sense more than its teachers did (control.response): they label what they read before it
+    seeing = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                   "control.response=true"))
+    _, student = build(seeing, torch.device("cpu"))
+    obs, envs = student.env.reset(), torch.arange(4)
+    assert obs.shape[1] == student.teacher.bank.init_kwargs["controller"]["channels"] + 6
+    from freeform.run.build import read_teacher_run
+
+    bank = read_teacher_run(tmp_path / "teachers", "the teachers").bank.eval()
+    for a, b in zip(student.teacher(obs, envs), bank({"teacher": envs % 2, "policy": obs[:, :-6]}), strict=True):
+        torch.testing.assert_close(a, b)
     np.save(bodies, np.load(bodies)[::-1].copy())  # the same control.bodies, other grids: refused, naming them
     with pytest.raises(ValueError, match=r"its bodies are not this run's \(bodies \[0, 1\] differ"):
         build(distill, torch.device("cpu"))

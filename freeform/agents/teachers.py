@@ -155,6 +155,7 @@ class TeacherBank(nn.Module):
                              "TeacherIndex adds it)")
         teacher = obs[TEACHER].long().reshape(-1)
         inputs = {k: v for k, v in obs.items() if k != TEACHER}
+        inputs[POLICY] = self._own_channels(inputs[POLICY])
         slots, valid = self._slots(teacher)
         blocks = {k: v[slots] for k, v in inputs.items()}  # [M, W, ...]
         x = blocks[POLICY] if set(blocks) == {POLICY} else blocks
@@ -170,6 +171,17 @@ class TeacherBank(nn.Module):
             outs = vmap(one)(params, x)
         back = torch.argsort(slots[valid])  # (sample i sits at row back[i] of the valid slots)
         return tuple(out[valid][back] for out in outs)
+
+    def _own_channels(self, obs: torch.Tensor) -> torch.Tensor:
+        """The channels the teachers were built for, the first ``C`` of ``obs [N, C', ...]``: a student's env may
+        append channels its teachers never saw (``control.response``), never remove any."""
+        channels = self.init_kwargs["controller"].get("channels")
+        if channels is None or obs.dim() < 2 or obs.shape[1] == channels:
+            return obs
+        if obs.shape[1] < channels:
+            raise ValueError(f"the teachers read {channels} observation channels and this env gives {obs.shape[1]}: "
+                             "run them on an env with their run's channels (control.residual, control.response)")
+        return obs[:, :channels]
 
     def _slots(self, teacher: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``slots [M, W]``: the samples of each teacher in order, each block padded to the largest one (W samples)

@@ -52,6 +52,7 @@ import torch
 
 from freeform.body import metrics
 from freeform.distributions import MaskedDiagGaussian
+from freeform.envs.response import RESPONSE_CHANNELS, GaitResponse, response_window
 from freeform.envs.symmetry import PlanarSymmetry
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
@@ -116,6 +117,7 @@ class ControlConfig:
     ramp: bool = False
     stroke_periods: int = 0
     privileged_critic: bool = False
+    response: bool = False
 
     @property
     def periods_per_step(self) -> int:
@@ -137,7 +139,7 @@ class ControlConfig:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
         if self.command_rate is not None and not self.command_rate > 0:
             raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
-        for name in ("residual", "ramp", "privileged_critic"):
+        for name in ("residual", "ramp", "privileged_critic", "response"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
         if not (isinstance(self.stroke_periods, int) and not isinstance(self.stroke_periods, bool)
@@ -236,7 +238,8 @@ class ControlEnv:
             raise ValueError("ControlEnv simulates each body as one robot, in the order of the grids")
         self.origin = torch.from_numpy(lay.origin.astype(np.int64))
         """``[N, 3]`` where each body's box starts in its grid (the layout's crop origin)."""
-        self.channels = RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS
+        self.channels = ((RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS)
+                         + (RESPONSE_CHANNELS if self.control.response else ()))
         """The observation's channels, in order."""
         self.observation_shape: Any = (len(self.channels), *self.box)
         if self.control.privileged_critic:
@@ -285,6 +288,10 @@ class ControlEnv:
         self._open_loop = np.zeros(lay.num_voxels)  # the sine mid-way through the coming period (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
+        self._response = GaitResponse(lay.num_voxels, response_window(
+            self.sim_config.temp_period, self.control.period * self.control.periods_per_step)) \
+            if self.control.response else None
+        """Each voxel's recent velocities, for the response channels (``control.response``)."""
 
     @staticmethod
     def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
@@ -312,11 +319,13 @@ class ControlEnv:
             self.engine = self.simulator.engine(self.layout)
         if self._settled is None:  # the first episode settles the bodies; the others start from that state
             self.engine = self.simulator.engine(self.layout)
-            if self.control.burn_in > 0:
-                self.engine.advance_time(self.control.burn_in)
+            self._burn_in()
             self._settled = self.engine.snapshot()
+            self._settled_response = self._response.state() if self._response is not None else None
         else:  # (the burn-in is deterministic: the same state, bit for bit, without its cost)
             self.engine.restore(self._settled)
+            if self._response is not None:
+                self._response.restore(self._settled_response)
         if self.control.headings == "random":
             draw = np.random.default_rng([self.seed, self.episode]).uniform(0.0, 2 * math.pi, self._draws.max() + 1)
             self.heading = draw[self._draws]
@@ -330,6 +339,21 @@ class ControlEnv:
         obs, self._com = self._observe()
         self._start = self._com.copy()  # (headings "any": the distance is from here)
         return obs
+
+    def _burn_in(self) -> None:
+        """Settle for ``control.burn_in`` s under zero commands; with the response, its last whole steps one by one,
+        each but the last sensed (the first observation senses that one): the first decision reads a period."""
+        step = self.control.period * self.control.periods_per_step
+        steps = int(math.floor(self.control.burn_in / step + 1e-9)) if self._response is not None else 0
+        if self.control.burn_in - steps * step > 0:
+            self.engine.advance_time(self.control.burn_in - steps * step)
+        for k in range(steps):
+            for _ in range(self.control.periods_per_step):
+                readout = self.engine.control_step(np.zeros(self.layout.num_voxels), self.control.period,
+                                                   ramp=self.control.period if self.control.ramp else 0.0)
+            clock = 2 * math.pi * (self.control.burn_in - (steps - 1 - k) * step) / self.sim_config.temp_period
+            if k < steps - 1:
+                self._response.add(readout[0][:, SENSE.span("VEL")] / self._speed, clock)
 
     def symmetry(self, group: str = "ground") -> PlanarSymmetry:
         """The ground's turns and mirrors that map this env's box onto itself (``freeform.envs.symmetry``; ``group``
@@ -499,6 +523,8 @@ class ControlEnv:
         if self.control.residual:  # what the corrections are added to: the sine, mid-way through the period
             middle = (start + 0.5 * self.control.period) / self.sim_config.temp_period
             self._open_loop = self._actuated * np.sin(2 * math.pi * (middle + self._phase))
+        if self._response is not None:
+            self._response.add(sensed[:, SENSE.span("VEL")] / self._speed, clock)
         features = np.concatenate([
             np.ones((len(r), 1)), self._material[:, None], self._actuated[:, None],
             sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,
@@ -506,6 +532,7 @@ class ControlEnv:
             np.stack([seen * np.cos(self.heading)[r], seen * np.sin(self.heading)[r], np.full(len(r), progress),
                       np.full(len(r), math.sin(clock)), np.full(len(r), math.cos(clock))], 1),
             *([self._open_loop[:, None]] if self.control.residual else []),
+            *([self._response.coefficients()] if self._response is not None else []),
         ], 1)
         obs = torch.zeros((R, len(self.channels), self.cells), dtype=torch.float32, device=self.device)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first

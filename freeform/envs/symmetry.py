@@ -26,7 +26,8 @@ from typing import Any
 
 import torch
 
-PLANAR_VECTORS = (("rel_x", "rel_y"), ("vel_x", "vel_y"), ("heading_cos", "heading_sin"))
+PLANAR_VECTORS = (("rel_x", "rel_y"), ("vel_x", "vel_y"), ("heading_cos", "heading_sin"), ("resp_x_sin", "resp_y_sin"),
+                  ("resp_x_cos", "resp_y_cos"))
 """The channel pairs that are vectors in the ground plane: turned with the body."""
 GROUPS = ("ground", "mirror")
 """``ground``: every turn and mirror that maps the box onto itself (8 or 4); ``mirror``: the identity and the mirror
