@@ -35,7 +35,7 @@ def test_the_window_reads_a_sinusoids_amplitude_and_phase_whatever_the_drift_and
 
 def test_a_period_that_is_not_a_whole_number_of_steps_is_refused():
     assert response_window(0.25, 0.0125) == 20
-    with pytest.raises(ValueError, match=r"a whole number >= 4 of steps, got 3\.2"):
+    with pytest.raises(ValueError, match=r"a whole number >= 4 of control periods, got 3\.2"):
         response_window(0.25, 0.078125)
     with pytest.raises(ValueError, match=r"got 2 "):
         response_window(0.25, 0.125)
@@ -78,6 +78,22 @@ def test_the_response_channels_sum_the_env_velocity_and_clock_channels_from_the_
     assert torch.equal(plain.reset(), first[:, : len(RESIDUAL_CHANNELS)])
     env.reset()  # (a later episode starts from the settled state and its response, not from an empty window)
     torch.testing.assert_close(env.reset(), first)
+
+
+def test_a_stroke_senses_every_control_period_it_holds():
+    """Strokes of 5 periods (a decision every 5 control periods): after 4 zero strokes the response is a twin's
+    that decides every period, after 20 zero steps — both sampled every period, as their clocks read."""
+    sim = SimConfig(precision="f64")
+    control = ControlConfig(burn_in=0.0, duration=0.5, residual=True, response=True)
+    twin = ControlEnv(_body(), sim=sim, control=control)
+    strokes = ControlEnv(_body(), sim=sim, control=ControlConfig(**{**vars(control), "stroke_periods": 5}))
+    twin.reset(), strokes.reset()
+    for _ in range(20):
+        obs, *_ = twin.step(torch.zeros(1, twin.action_dim))
+    for _ in range(4):
+        held, *_ = strokes.step(torch.zeros(1, strokes.action_dim))
+    assert held[0, -6:].abs().max() > 1e-3
+    torch.testing.assert_close(held[:, -6:], obs[:, -6:], atol=1e-6, rtol=1e-5)
 
 
 def test_teachers_read_the_channels_they_were_built_for():

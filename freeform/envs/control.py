@@ -288,10 +288,8 @@ class ControlEnv:
         self._open_loop = np.zeros(lay.num_voxels)  # the sine mid-way through the coming period (residual control)
         L = self.sim_config.voxel_size
         self._length, self._speed = L, L / self.sim_config.temp_period
-        self._response = GaitResponse(lay.num_voxels, response_window(
-            self.sim_config.temp_period, self.control.period * self.control.periods_per_step)) \
-            if self.control.response else None
-        """Each voxel's recent velocities, for the response channels (``control.response``)."""
+        window = response_window(self.sim_config.temp_period, self.control.period) if self.control.response else 0
+        self._response = GaitResponse(lay.num_voxels, window) if window else None  # (control.response's samples)
 
     @staticmethod
     def simulation(sim: SimConfig, control: ControlConfig) -> SimConfig:
@@ -341,19 +339,21 @@ class ControlEnv:
         return obs
 
     def _burn_in(self) -> None:
-        """Settle for ``control.burn_in`` s under zero commands; with the response, its last whole steps one by one,
-        each but the last sensed (the first observation senses that one): the first decision reads a period."""
-        step = self.control.period * self.control.periods_per_step
-        steps = int(math.floor(self.control.burn_in / step + 1e-9)) if self._response is not None else 0
-        if self.control.burn_in - steps * step > 0:
-            self.engine.advance_time(self.control.burn_in - steps * step)
-        for k in range(steps):
-            for _ in range(self.control.periods_per_step):
-                readout = self.engine.control_step(np.zeros(self.layout.num_voxels), self.control.period,
-                                                   ramp=self.control.period if self.control.ramp else 0.0)
-            clock = 2 * math.pi * (self.control.burn_in - (steps - 1 - k) * step) / self.sim_config.temp_period
-            if k < steps - 1:
-                self._response.add(readout[0][:, SENSE.span("VEL")] / self._speed, clock)
+        """Settle for ``control.burn_in`` s under zero commands; with the response, its last whole control periods one
+        by one, each but the last sensed (the first observation senses that): the first decision reads the gait."""
+        period = self.control.period
+        periods = int(math.floor(self.control.burn_in / period + 1e-9)) if self._response is not None else 0
+        if self.control.burn_in - periods * period > 0:
+            self.engine.advance_time(self.control.burn_in - periods * period)
+        for k in range(periods):
+            readout = self.engine.control_step(np.zeros(self.layout.num_voxels), period,
+                                               ramp=period if self.control.ramp else 0.0)
+            if k < periods - 1:
+                self._sense(readout[0], self.control.burn_in - (periods - 1 - k) * period)
+
+    def _sense(self, sensed: np.ndarray, t: float) -> None:
+        """The response's sample of the voxels' velocities at ``t`` s since placement."""
+        self._response.add(sensed[:, SENSE.span("VEL")] / self._speed, 2 * math.pi * t / self.sim_config.temp_period)
 
     def symmetry(self, group: str = "ground") -> PlanarSymmetry:
         """The ground's turns and mirrors that map this env's box onto itself (``freeform.envs.symmetry``; ``group``
@@ -409,7 +409,9 @@ class ControlEnv:
         if not torch.isfinite(values).all():
             raise ValueError("actions must be finite in the cells that hold a voxel")
         values = values.numpy()
-        for _ in range(self.control.periods_per_step):
+        for p in range(self.control.periods_per_step):
+            if p and self._response is not None:  # (a stroke's periods but its last: the observation senses that)
+                self._sense(readout[0], self.control.burn_in + self._periods * self.control.period)
             if self.control.stroke_periods:  # the stroke at this period's middle, in each voxel's own phase
                 middle = (self.control.burn_in + (self._periods + 0.5) * self.control.period) / self.sim_config.temp_period
                 theta = 2 * math.pi * (middle + self._phase)
@@ -524,7 +526,7 @@ class ControlEnv:
             middle = (start + 0.5 * self.control.period) / self.sim_config.temp_period
             self._open_loop = self._actuated * np.sin(2 * math.pi * (middle + self._phase))
         if self._response is not None:
-            self._response.add(sensed[:, SENSE.span("VEL")] / self._speed, clock)
+            self._sense(sensed, start)
         features = np.concatenate([
             np.ones((len(r), 1)), self._material[:, None], self._actuated[:, None],
             sensed[:, SENSE.span("REL")] / self._length, sensed[:, SENSE.span("VEL")] / self._speed,

@@ -23,13 +23,13 @@ RESPONSE_CHANNELS = ("resp_x_sin", "resp_y_sin", "resp_z_sin", "resp_x_cos", "re
 
 
 def response_window(temp_period: float, step: float) -> int:
-    """Samples per actuation period: ``temp_period / step`` (s / s), refused unless a whole number >= 4 (below 4
-    the second harmonic folds onto the first)."""
+    """Samples per actuation period, one every control period ``step``: ``temp_period / step`` (s / s), refused
+    unless a whole number >= 4 (below 4 the second harmonic folds onto the first)."""
     ratio = temp_period / step
     window = round(ratio)
     if abs(ratio - window) > 1e-6 * max(1.0, ratio) or window < 4:
         raise ValueError(f"control.response samples one actuation period (sim.temp_period = {temp_period} s) every "
-                         f"control step ({step} s): the period must be a whole number >= 4 of steps, got {ratio:.6g} "
+                         f"control period ({step} s): the period must be a whole number >= 4 of control periods, got {ratio:.6g} "
                          "(set control.period, or control.response=false)")
     return window
 
