@@ -20,8 +20,8 @@ it never saw.
   largest wins): repeated and mirrored parts, stripes and rings, unlike a sum of bumps.
 
 Every body is its largest 6-connected component, on the floor (lowest voxel at z = 0), between ``sizes`` voxels, with
-voxels of both muscle groups; a grid equal to any held-out body is redrawn. Materials as the design env's (k = 4):
-0 empty, 1 passive, 2 and 3 muscles in anti-phase.
+voxels of both muscle groups; a held-out body, wherever it sits in its grid, is redrawn. Materials as the design
+env's (k = 4): 0 empty, 1 passive, 2 and 3 muscles in anti-phase.
 
     python -m experiments.training_bodies --kind mixed --n 128 --seed 1 --out runs/bodies_mixed128.npy
     python -m experiments.training_bodies --kind limbed,cppn --n 128 --seed 3 --out runs/bodies_limbed_cppn128.npy
@@ -177,19 +177,26 @@ GENERATORS: dict[str, Callable[[np.random.Generator], np.ndarray]] = {
 ALIASES = {"mixed": "primitives,blobs"}
 
 
+def _shape(grid: np.ndarray) -> bytes:
+    """A body up to where it sits in its grid: its bounding box's size and cells, as bytes."""
+    filled = np.nonzero(grid)
+    crop = grid[tuple(slice(int(i.min()), int(i.max()) + 1) for i in filled)] if filled[0].size else grid[:0, :0, :0]
+    return np.asarray(crop.shape, np.int64).tobytes() + np.ascontiguousarray(crop, np.uint8).tobytes()
+
+
 def _heldout(folder: Path) -> set[bytes]:
-    """The held-out sets' grids (``*.npy`` in ``folder``), as bytes, to compare against; a folder without any is
-    refused (run from the repository's root, or give --heldout)."""
+    """The held-out sets' bodies (``*.npy`` in ``folder``) up to a shift (:func:`_shape`), to compare against; a
+    folder without any is refused (run from the repository's root, or give --heldout)."""
     files = sorted(folder.glob("*.npy"))
     if not files:
         raise ValueError(f"--heldout {folder}: no held-out sets (.npy) there to keep out of the training bodies")
-    return {g.tobytes() for f in files for g in np.load(f, allow_pickle=False)}
+    return {_shape(g) for f in files for g in np.load(f, allow_pickle=False)}
 
 
 def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/results/heldout_bodies")) -> np.ndarray:
     """``[n, 8, 8, 8]`` uint8 bodies of generator ``kind`` (one of :data:`GENERATORS`, several separated by commas
-    taken in turn, or an alias: ``mixed`` = ``primitives,blobs``), drawn from ``seed``; none equal to a held-out body
-    in ``heldout``."""
+    taken in turn, or an alias: ``mixed`` = ``primitives,blobs``), drawn from ``seed``; none a held-out body of
+    ``heldout`` or one shifted in its grid."""
     kinds = ALIASES.get(kind, kind).split(",")
     unknown = [k for k in kinds if k not in GENERATORS]
     if unknown:
@@ -203,7 +210,7 @@ def training_bodies(kind: str, n: int, seed: int, heldout: Path = Path("docs/res
             break
         grid = GENERATORS[kinds[len(out) % len(kinds)]](rng)
         voxels = int((grid > 0).sum())
-        if SIZES[0] <= voxels <= SIZES[1] and all((grid == m).any() for m in MUSCLES) and grid.tobytes() not in avoid:
+        if SIZES[0] <= voxels <= SIZES[1] and all((grid == m).any() for m in MUSCLES) and _shape(grid) not in avoid:
             out.append(grid)
     if len(out) < n:
         raise ValueError(f"--kind {kind}: {len(out)} of {n} bodies passed the checks (connected, {SIZES[0]}–"

@@ -32,7 +32,10 @@ def test_no_held_out_body_is_drawn_and_bad_input_is_refused(tmp_path: Path) -> N
     grids = training_bodies("mixed", 6, seed=0)
     heldout = tmp_path / "heldout"
     heldout.mkdir()
-    np.save(heldout / "set.npy", grids[2:3])  # (the third body drawn, now held out: redrawn in its place)
+    # the third body drawn, held out shifted in a larger grid: still the same body, redrawn in its place
+    shifted = np.zeros((1, 10, 10, 10), np.uint8)
+    shifted[0, 2:10, 1:9, 0:8] = grids[2]
+    np.save(heldout / "set.npy", shifted)
     again = training_bodies("mixed", 6, seed=0, heldout=heldout)
     assert not any(np.array_equal(g, grids[2]) for g in again)
     np.testing.assert_array_equal(again[:2], grids[:2])
