@@ -410,14 +410,14 @@ class ControlEnv:
             raise ValueError("actions must be finite in the cells that hold a voxel")
         values = values.numpy()
         for p in range(self.control.periods_per_step):
-            if p and self._response is not None:  # (a stroke's periods but its last: the observation senses that)
-                self._sense(readout[0], self.control.burn_in + self._periods * self.control.period)
             if self.control.stroke_periods:  # the stroke at this period's middle, in each voxel's own phase
                 middle = (self.control.burn_in + (self._periods + 0.5) * self.control.period) / self.sim_config.temp_period
                 theta = 2 * math.pi * (middle + self._phase)
                 readout = self._period(values[0] * np.sin(theta) + values[1] * np.cos(theta))
             else:
                 readout = self._period(values[0])
+            if p < self.control.periods_per_step - 1 and self._response is not None:  # (the last: _observe's)
+                self._sense(readout[0], self.control.burn_in + self._periods * self.control.period)
         self.t += 1
         obs, com = self._observe(readout)
         ok = readout.status == RUNNING
