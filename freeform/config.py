@@ -30,7 +30,7 @@ from freeform.agents.controllers import CODESIGN_KINDS
 from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
-from freeform.envs.control import ControlConfig
+from freeform.envs.control_config import ControlConfig
 from freeform.envs.design import EnvConfig
 from freeform.evolve.config import AlgoConfig
 from freeform.learner import learner_names
@@ -164,6 +164,12 @@ class ControlRunConfig(ControlConfig):
     or a checkpoint file; the controller's weights are loaded (the same ``controller`` kind and width), the rest
     starts fresh. A co-design run so starts with a controller that already drives bodies (a warm start: its
     robot-seconds belong to the co-design run's budget). None: from scratch."""
+    prior: str | None = None
+    """Regularise towards a trained controller (Distral, ``freeform.agents.prior``): a ``controller.pt``, a results
+    folder holding one, or a control run; each step's reward gains ``prior_coeff`` × its log-likelihood of the
+    action taken per acting entry — teachers (``teachers`` > 0) kept near one student. None: no prior."""
+    prior_coeff: float = 0.05
+    """The prior's weight (> 0; with ``prior``)."""
 
     @property
     def codesign(self) -> bool:
@@ -202,6 +208,11 @@ class ControlRunConfig(ControlConfig):
                 self.designer)
         require(self.controller_init is None or (isinstance(self.controller_init, str) and self.controller_init != ""),
                 f"{key}.controller_init", "None or a path to a control run or checkpoint", self.controller_init)
+        require(self.prior is None or (isinstance(self.prior, str) and self.prior != "" and not self.codesign),
+                f"{key}.prior", "None or a path to a controller.pt or a control run (not with bodies=codesign)",
+                self.prior)
+        require(isinstance(self.prior_coeff, (int, float)) and self.prior_coeff > 0, f"{key}.prior_coeff",
+                "a number > 0", self.prior_coeff)
         require(not (self.codesign and self.privileged_critic), f"{key}.privileged_critic",
                 "false with bodies=codesign (a co-design episode observes its design first)", self.privileged_critic)
         require(not self.codesign or self.controller in CODESIGN_CONTROLLERS, f"{key}.controller",

@@ -44,7 +44,7 @@ for bit, so a controller starts from what the body already does and learns what 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -52,6 +52,7 @@ import torch
 
 from freeform.body import metrics
 from freeform.distributions import MaskedDiagGaussian
+from freeform.envs.control_config import HEADINGS, ControlConfig, same_config
 from freeform.envs.response import RESPONSE_CHANNELS, GaitResponse, response_window
 from freeform.envs.symmetry import PlanarSymmetry
 from freeform.sim import SimConfig, Simulator
@@ -64,96 +65,11 @@ OBS_CHANNELS = ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z", "ve
 RESIDUAL_CHANNELS = (*OBS_CHANNELS, "open_loop")
 """A residual control env's channels (``ControlConfig.residual``): the last one is each actuated voxel's open-loop
 command over the coming period, the base its action is added to."""
-HEADINGS = ("fixed", "random", "any")
 CRITIC_STATE = ("dx", "dy", "dz", "r11", "r21", "r31", "r12", "r22", "r32", "time_left")
 """The privileged critic's entries per body (``ControlConfig.privileged_critic``): the centre of mass's displacement
 since the episode's start (voxel lengths), the body's orientation — the first two columns of the rotation that best
 maps its voxels' rest offsets onto their offsets now (Kabsch's, about the centre of mass) — and the fraction of the
 episode left."""
-
-
-@dataclass
-class ControlConfig:
-    """An episode's timing and the task.
-
-    period: simulated seconds per control step. 0.0125 s = 1/20 of the default actuation period (0.25 s): 20
-        decisions per stroke of the open-loop gait it replaces, ≈ 100 simulator steps at the default dt (1.2e-4 s).
-    duration: simulated seconds of control per episode (``round(duration / period)`` steps).
-    burn_in: seconds of settling before the controller acts (commands 0: no actuation, or under ``residual`` the
-        open-loop gait).
-    headings: "fixed" (+x: locomotion) | "random" (one uniform heading per robot and episode: steering) | "any"
-        (the distance moved in the plane, whichever way: the paper's locomotion reward; no heading observed).
-    command_rate: the most what a muscle receives may change per simulated second (None: any change, at once —
-        Voxelyze's actuation sets the rest size instantly). A muscle's bandwidth: 2π·f_max for full-amplitude swings
-        up to f_max Hz (the open-loop sine's 4 Hz: ≈ 25.1 /s, so 26 lets that gait through untouched); at each control
-        step what a voxel receives — its command, or under ``residual`` its sine plus its correction, clipped to
-        [−1, 1] — moves towards what the action asks by at most ``command_rate · period`` (held at the control
-        steps' ends; with ``ramp`` the received value moves linearly between them, up to the sine's own curvature).
-    residual: actions (in [−2, 2]) are corrections added to the open-loop gait, each actuated voxel's sine of its
-        material's phase, computed at every simulator step (``SimConfig(actuation="residual")``), and the
-        observation carries that sine (``RESIDUAL_CHANNELS``); zero actions are the open-loop gait from t = 0, burn-in
-        included, bit for bit. False: an action is the command itself, in [−1, 1] (zero: no actuation).
-    ramp: each step's command moves linearly from the last one to the new one over the control period (a
-        first-order hold: ``Engine.set_commands(ramp=period)``) instead of jumping at the period's start — Voxelyze
-        sets a voxel's rest size at once, so a jump of the command is a kick.
-    stroke_periods: 0 — an action is one control period's commands. n >= 1 — an action is a *stroke*, held for n
-        control periods: each cell's pair (a, b), and what the voxel receives at each of those periods is
-        a·sin θ + b·cos θ, θ = 2π(t/T + φ) the phase of its own open-loop sine at the period's middle (φ its
-        material's phase): under ``residual`` control (0, 0) is the open-loop gait, b shifts its phase and a scales
-        it. The action is ``[N, 2·Bx·By·Bz]`` (every a, then every b); an episode is ``duration / (n·period)``
-        decisions, each of whose exploration noise acts over a whole stroke instead of one period.
-    privileged_critic: the observation becomes the groups ``{"policy": the cells' channels, "critic": [N, 10]}``
-        (``freeform.agents.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
-        each body's displacement since the episode's start (voxel lengths; under ``headings="any"`` its reward is
-        the growth of that distance), its orientation, and the episode's time left — and the actor does not.
-    """
-
-    period: float = 0.0125
-    duration: float = 2.0
-    burn_in: float = 0.25
-    headings: str = "fixed"
-    command_rate: float | None = None
-    residual: bool = False
-    ramp: bool = False
-    stroke_periods: int = 0
-    privileged_critic: bool = False
-    response: bool = False
-
-    @property
-    def periods_per_step(self) -> int:
-        """Control periods one action lasts (``stroke_periods``, or 1)."""
-        return max(1, self.stroke_periods)
-
-    @property
-    def steps(self) -> int:
-        """Decisions (env steps) per episode."""
-        return max(1, round(self.duration / (self.period * self.periods_per_step)))
-
-    def validate(self, key: str = "control") -> None:
-        for name in ("period", "duration"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{key}.{name} must be > 0 (seconds), got {getattr(self, name)!r}")
-        if not self.burn_in >= 0:
-            raise ValueError(f"{key}.burn_in must be >= 0 (seconds), got {self.burn_in!r}")
-        if self.headings not in HEADINGS:
-            raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
-        if self.command_rate is not None and not self.command_rate > 0:
-            raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
-        for name in ("residual", "ramp", "privileged_critic", "response"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"{key}.{name} must be true or false, got {getattr(self, name)!r}")
-        if not (isinstance(self.stroke_periods, int) and not isinstance(self.stroke_periods, bool)
-                and self.stroke_periods >= 0):
-            raise ValueError(f"{key}.stroke_periods must be an int >= 0 (0: an action is one period's commands), "
-                             f"got {self.stroke_periods!r}")
-
-
-def same_config(saved: Any, mine: dict[str, Any]) -> bool:
-    """Whether an env's saved config (a checkpoint's ``{"control": vars(ControlConfig), ...}``) is ``mine``; a
-    control field it lacks — saved before the field existed — counts as that field's default, so older runs resume."""
-    if not (isinstance(saved, dict) and isinstance(saved.get("control"), dict)):
-        return False
-    return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
 def arch_for(device: torch.device) -> str:
@@ -220,6 +136,8 @@ class ControlEnv:
         self.t = self._periods = 0
         self.heading = np.zeros(self.num_envs)
         self._com = self._start = np.zeros((self.num_envs, 3))
+        self.observation: Any = None
+        """The observation last returned (by ``reset`` or ``step``, or after ``load_state_dict``)."""
 
     def _place_in_box(self, box: tuple[int, int, int] | None) -> None:
         """Each body in its box (the largest body's, or ``box``) and the observation's and action's shapes."""
@@ -540,7 +458,8 @@ class ControlEnv:
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first
         obs = obs.view(R, len(self.channels), *self.box)
         if self.control.privileged_critic:
-            return {"policy": obs, "critic": self._critic_state(sensed, com)}, com
+            obs = {"policy": obs, "critic": self._critic_state(sensed, com)}
+        self.observation = obs  # (what the next action acts on, once step or reset returns it)
         return obs, com
 
     def _critic_state(self, sensed: np.ndarray, com: np.ndarray) -> torch.Tensor:

@@ -312,6 +312,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
         own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
         eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (
             cfg.agent.eval_every) else None
+        if control.prior is not None:
+            env = _with_prior(env, control.prior, control.prior_coeff, device)
         return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
 
     if cfg.env.dense_every:  # the partial body scored every k steps; records and returns keep the terminal reward
@@ -322,6 +324,25 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
                               trunk=trunk)
     eval_env = design_env(cfg, device, envs[1] - envs[0], cfg.seed + 1) if cfg.agent.eval_every else None
     return PPO(env, policy, ppo_config(cfg, device=str(device)), eval_env=eval_env)
+
+
+def _with_prior(env: Any, source: str, coeff: float, device: torch.device) -> Any:
+    """``env`` whose reward gains ``control.prior``'s log-likelihood (``freeform.agents.prior.PriorReward``)."""
+    from freeform.agents.controller_file import read_controller
+    from freeform.agents.prior import PriorReward
+
+    if not Path(source).exists():
+        raise ValueError(f"control.prior={source!r}: no such controller.pt, results folder or control run")
+    try:
+        prior = read_controller(Path(source), box=tuple(env.box)).controller
+    except ValueError as e:
+        raise ValueError(f"control.prior={source!r}: {e}") from e
+    shape = env.observation_shape
+    channels = (shape["policy"] if isinstance(shape, dict) else shape)[0]
+    if prior.init_kwargs.get("channels") != channels:
+        raise ValueError(f"control.prior={source!r} reads {prior.init_kwargs.get('channels')} observation channels "
+                         f"and this run's env gives {channels} (control.residual, control.response: the prior's)")
+    return PriorReward(env, prior.to(device), coeff)
 
 
 @register_learner("distill")
