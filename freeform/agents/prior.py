@@ -9,7 +9,8 @@ gaits it can share.
 
 The term is the prior's log-density of the action taken per entry that acts (a masked Gaussian's mask; else every
 entry), ``c · log π₀(a | s) / n_a``, so that c means the same for a body of 10 muscles and one of 60. It is added
-to the env's reward, and the env's own reward is kept in ``info["task_reward"]``.
+to the env's reward. The return the run logs stays the task's: at an episode's end ``info["task_reward"]`` is the
+env's own rewards summed over the episode (the shaped-reward convention of ``freeform.envs.dense``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ class PriorReward:
             p.requires_grad_(False)
         self.num_envs, self.action_dim, self.device = env.num_envs, env.action_dim, env.device
         self.observation_shape = env.observation_shape
+        self._task_return = torch.zeros(env.num_envs, device=env.device)
+        """The env's own rewards since each episode began (a control env's episodes all end at an epoch's end, where
+        a checkpoint is taken: nothing to save)."""
 
     def __getattr__(self, name: str) -> Any:
         if name == "env":
@@ -48,6 +52,7 @@ class PriorReward:
         return getattr(self.env, name)
 
     def reset(self, seed: int | None = None) -> Any:
+        self._task_return.zero_()
         return self.env.reset(seed)
 
     @torch.no_grad()
@@ -66,7 +71,10 @@ class PriorReward:
             raise RuntimeError("call reset() before step()")
         bonus = self.coeff * self.log_likelihood(self.env.observation, actions).to(self.device)
         obs, reward, done, info = self.env.step(actions)
-        return obs, reward + bonus.to(reward.dtype), done, {**info, "task_reward": reward}
+        self._task_return = self._task_return + reward.to(self._task_return.dtype)
+        info = {**info, "task_reward": torch.where(done, self._task_return, 0.0)}
+        self._task_return = torch.where(done, 0.0, self._task_return)
+        return obs, reward + bonus.to(reward.dtype), done, info
 
 
 __all__ = ["PriorReward"]
