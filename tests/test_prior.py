@@ -68,7 +68,7 @@ def test_a_teacher_run_with_a_prior_resumes_bit_for_bit(bodies: Path, tmp_path: 
         assert torch.equal(tensor, b["ppo"]["policy"][key]), key
     _, learner = build(compose(*tiny_control(bodies, *teach)), torch.device("cpu"))
     assert isinstance(learner.env, PriorReward) and learner.env.coeff == 0.5
-    with pytest.raises(ValueError, match=r"control.prior='nowhere': no such controller.pt"):
+    with pytest.raises(ValueError, match=r"control.prior='nowhere': no such checkpoint, controller.pt"):
         build(compose(*tiny_control(bodies, *student, "control.prior=nowhere")), torch.device("cpu"))
     with pytest.raises(ValueError, match=r"control.prior='.*' reads 16 observation channels and this run's env "
                                          r"gives 17"):

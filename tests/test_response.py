@@ -69,7 +69,8 @@ def test_the_response_channels_sum_the_env_velocity_and_clock_channels_from_the_
         v = seen[:, c[f"vel_{axis}"]]
         for clock in ("sin", "cos"):
             want = 2.0 / window * (v * seen[:, c[f"clock_{clock}"]]).sum(0)
-            assert want.abs().max() > 1e-3 or axis != "x"  # (the bar moves along x in its gait)
+            if axis == "x":  # (the bar moves along x in its gait: the sums are not trivially zero)
+                assert want.abs().max() > 1e-3
             torch.testing.assert_close(obs[0, c[f"resp_{axis}_{clock}"]].double(), want, atol=1e-5, rtol=1e-4)
             torch.testing.assert_close(first[0, c[f"resp_{axis}_{clock}"]].double(), want, atol=1e-5, rtol=1e-4)
     # the other channels are the env's without the response: the same gait, bit for bit after the same burn-in

@@ -29,8 +29,8 @@ def response_window(temp_period: float, step: float) -> int:
     window = round(ratio)
     if abs(ratio - window) > 1e-6 * max(1.0, ratio) or window < 4:
         raise ValueError(f"control.response samples one actuation period (sim.temp_period = {temp_period} s) every "
-                         f"control period ({step} s): the period must be a whole number >= 4 of control periods, got {ratio:.6g} "
-                         "(set control.period, or control.response=false)")
+                         f"control period ({step} s): the period must be a whole number >= 4 of control periods, got "
+                         f"{ratio:.6g} (set control.period to sim.temp_period / n, or control.response=false)")
     return window
 
 

@@ -253,19 +253,26 @@ def build(cfg: TrainConfig, device: torch.device, envs: tuple[int, int] | None =
     return env, learner
 
 
+def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | None = None) -> torch.nn.Module:
+    """The controller that config field ``field`` names (``source``: a ``controller.pt``, a results folder holding
+    one, a control run's directory or checkpoint; ``freeform.agents.controller_file.read_controller``), built for
+    ``box`` if given; a missing or unreadable source is refused naming the field."""
+    from freeform.agents.controller_file import read_controller
+
+    if not Path(source).exists():
+        raise ValueError(f"{field}={source!r}: no such checkpoint, controller.pt or run folder (give a control run's "
+                         "directory, a checkpoint, or a folder holding controller.pt)")
+    try:
+        return read_controller(Path(source), box=box).controller
+    except ValueError as e:
+        raise ValueError(f"{field}={source!r}: {e}") from e
+
+
 def load_controller(controller: torch.nn.Module, source: str) -> None:
     """``control.controller_init``: a trained controller's weights into ``controller`` — from a ``controller.pt``, a
     results folder holding one, a control run's policy or a co-design run's controller part (a run's directory or
     checkpoint file: ``freeform.agents.controller_file.read_controller``)."""
-    from freeform.agents.controller_file import read_controller
-
-    path = Path(source)
-    if not path.exists():
-        raise ValueError(f"control.controller_init={source!r}: no such checkpoint, controller.pt or run folder")
-    try:
-        trained = read_controller(path).controller
-    except ValueError as e:
-        raise ValueError(f"control.controller_init={source!r}: {e}") from e
+    trained = read_saved_controller(source, "control.controller_init")
     ours, theirs = getattr(controller, "wave", None), getattr(trained, "wave", None)
     if ours is not None and theirs is not None and (ours["k"], ours["amplitude"]) != (theirs["k"], theirs["amplitude"]):
         # (the hand-set wave is no weight: loaded under another, the trained heads would play another gait)
@@ -328,15 +335,9 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
 
 def _with_prior(env: Any, source: str, coeff: float, device: torch.device) -> Any:
     """``env`` whose reward gains ``control.prior``'s log-likelihood (``freeform.agents.prior.PriorReward``)."""
-    from freeform.agents.controller_file import read_controller
     from freeform.agents.prior import PriorReward
 
-    if not Path(source).exists():
-        raise ValueError(f"control.prior={source!r}: no such controller.pt, results folder or control run")
-    try:
-        prior = read_controller(Path(source), box=tuple(env.box)).controller
-    except ValueError as e:
-        raise ValueError(f"control.prior={source!r}: {e}") from e
+    prior = read_saved_controller(source, "control.prior", box=tuple(env.box))
     shape = env.observation_shape
     channels = (shape["policy"] if isinstance(shape, dict) else shape)[0]
     if prior.init_kwargs.get("channels") != channels:
