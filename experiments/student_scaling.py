@@ -1,5 +1,7 @@
 """The student's scaling curves (issue 56): held-out figures against the number of teachers it was distilled from,
-or against its distillation rounds (``--x rounds``), read from pooled held-out tables (``python -m
+against its distillation rounds (``--x rounds``), or against its generations of iterated distillation (``--x
+generations``: teachers re-started from the last student, trained, distilled back into it), read from pooled
+held-out tables (``python -m
 experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
 
     python -m experiments.student_scaling 64=runs/eval_s64_93 128=runs/eval_s128_93 256=runs/eval_s256_93 \\
@@ -7,7 +9,7 @@ experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
     python -m experiments.student_scaling --x rounds 2=runs/eval_s256r2_93 4=runs/eval_s256_93 8=runs/eval_s256r8_93 \\
         --out docs/results/control_student/scaling
 
-Writes ``OUT/scaling.csv`` (``--x teachers``) or ``OUT/rounds.csv`` (one row per point: the x, bodies, the
+Writes ``OUT/scaling.csv`` (``--x teachers``), ``OUT/rounds.csv`` or ``OUT/generations.csv`` (one row per point: the x, bodies, the
 controller's stochastic and mean-command moves, their fractions of per-body control, the mean command over the
 hand-set wave, the fraction of bodies beyond their own gait) and the figure beside it (``.png``). A point's label is
 its x; two points may share one (seeds).
@@ -30,8 +32,12 @@ ROWS = {
 }
 """scaling.csv's columns -> the pooled summary's rows they are read from."""
 
-AXES = {"teachers": "scaling", "rounds": "rounds"}
-"""What a point's label counts (``--x``) -> the files' stem: the number of teachers, or of distillation rounds."""
+AXES = {"teachers": "scaling", "rounds": "rounds", "generations": "generations"}
+"""What a point's label counts (``--x``) -> the files' stem: the number of teachers, of distillation rounds, or of
+generations (generation 1 distilled from teachers started from the population controller, generation g + 1 from
+teachers started from generation g)."""
+DOUBLING = {"teachers", "rounds"}
+"""Axes whose points double (16, 64, 256; 2, 4, 8), drawn on a log scale; generations count 1, 2, 3."""
 
 
 def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float | int | str]:
@@ -56,8 +62,8 @@ def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float
 
 
 def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
-    """Fraction of per-body control (both ways) and × the wave against ``x`` (the number of teachers or rounds),
-    log x."""
+    """Fraction of per-body control (both ways) and × the wave against ``x`` (the number of teachers, rounds or
+    generations; log x where it doubles)."""
     from experiments.common import pyplot
 
     plt = pyplot()
@@ -72,10 +78,11 @@ def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
     curve(left, "fraction_mean_command", 100, "o-", "mean command")
     curve(left, "fraction_stochastic", 100, "s--", "stochastic")
     left.axhline(70, color="grey", lw=0.8, ls=":", label="issue's bar (70 %)")
-    left.set(xscale="log", xlabel=x, ylabel="% of per-body control", title="held-out bodies")
+    scale = "log" if x in DOUBLING else "linear"
+    left.set(xscale=scale, xlabel=x, ylabel="% of per-body control", title="held-out bodies")
     curve(right, "over_wave", 1, "o-")
     right.axhline(1.5, color="grey", lw=0.8, ls=":")
-    right.set(xscale="log", xlabel=x, ylabel="× the hand-set wave (mean command)")
+    right.set(xscale=scale, xlabel=x, ylabel="× the hand-set wave (mean command)")
     for ax in (left, right):
         ax.set_xticks(ticks, [str(t) for t in ticks])
         ax.minorticks_off()
@@ -88,7 +95,7 @@ def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("points", nargs="+", help="X=FOLDER: a pooled held-out table and its student's teachers (or "
-                                             "rounds, with --x rounds)")
+                                             "rounds or generations, with --x)")
     p.add_argument("--x", default="teachers", choices=list(AXES), help="what a point's label counts")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)

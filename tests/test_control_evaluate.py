@@ -370,3 +370,9 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     assert (tmp_path / "scaling" / "rounds.png").stat().st_size > 0
     with pytest.raises(ValueError, match="ROUNDS an integer"):
         scaling(["--x", "rounds", "all=" + str(tmp_path / "out"), "--out", str(tmp_path / "x")])
+    # against generations of iterated distillation: generations.csv, its own column
+    scaling(["--x", "generations", "2=" + str(tmp_path / "ba"), "1=" + str(tmp_path / "out"),
+             "--out", str(tmp_path / "scaling")])
+    generations = read_csv(tmp_path / "scaling" / "generations.csv")
+    assert [int(p["generations"]) for p in generations] == [1, 2] and "rounds" not in generations[0]
+    assert (tmp_path / "scaling" / "generations.png").stat().st_size > 0
