@@ -1,18 +1,20 @@
 """The student's scaling curves (issue 56): held-out figures against the number of teachers it was distilled from,
 against its distillation rounds (``--x rounds``), or against its generations of iterated distillation (``--x
 generations``: teachers re-started from the last student, trained, distilled back into it), read from pooled
-held-out tables (``python -m
-experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
+held-out tables (``python -m experiments.heldout --pool ... --out DIR`` writes ``DIR/summary.csv``).
 
     python -m experiments.student_scaling 64=runs/eval_s64_93 128=runs/eval_s128_93 256=runs/eval_s256_93 \\
         --out docs/results/control_student/scaling
     python -m experiments.student_scaling --x rounds 2=runs/eval_s256r2_93 4=runs/eval_s256_93 8=runs/eval_s256r8_93 \\
         --out docs/results/control_student/scaling
+    python -m experiments.student_scaling --x generations 1=runs/eval_s64_attn_93 2=runs/eval_s64iter12_93 \\
+        2=runs/eval_s64iter12s1_93 3=runs/eval_s64gen3_93 3=runs/eval_s64gen3s1_93 \\
+        --out docs/results/control_student/scaling
 
-Writes ``OUT/scaling.csv`` (``--x teachers``), ``OUT/rounds.csv`` or ``OUT/generations.csv`` (one row per point: the x, bodies, the
-controller's stochastic and mean-command moves, their fractions of per-body control, the mean command over the
-hand-set wave, the fraction of bodies beyond their own gait) and the figure beside it (``.png``). A point's label is
-its x; two points may share one (seeds).
+Writes ``OUT/scaling.csv`` (``--x teachers``), ``OUT/rounds.csv`` or ``OUT/generations.csv`` (one row per point:
+the x, bodies, the controller's stochastic and mean-command moves, their fractions of per-body control, the mean
+command over the hand-set wave, the fraction of bodies beyond their own gait) and the figure beside it (``.png``). A
+point's label is its x; two points may share one (seeds).
 """
 
 from __future__ import annotations
