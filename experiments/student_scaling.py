@@ -34,12 +34,10 @@ ROWS = {
 }
 """scaling.csv's columns -> the pooled summary's rows they are read from."""
 
-AXES = {"teachers": "scaling", "rounds": "rounds", "generations": "generations"}
-"""What a point's label counts (``--x``) -> the files' stem: the number of teachers, of distillation rounds, or of
-generations (generation 1 distilled from teachers started from the population controller, generation g + 1 from
-teachers started from generation g)."""
-DOUBLING = {"teachers", "rounds"}
-"""Axes whose points double (16, 64, 256; 2, 4, 8), drawn on a log scale; generations count 1, 2, 3."""
+AXES = {"teachers": ("scaling", "log"), "rounds": ("rounds", "log"), "generations": ("generations", "linear")}
+"""What a point's label counts (``--x``) -> the files' stem and the x axis's scale: the number of teachers or of
+distillation rounds (they double: 16, 64, 256; 2, 4, 8), or of generations (1, 2, 3: generation 1 distilled from
+teachers started from the population controller, generation g + 1 from teachers started from generation g)."""
 
 
 def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float | int | str]:
@@ -80,7 +78,7 @@ def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
     curve(left, "fraction_mean_command", 100, "o-", "mean command")
     curve(left, "fraction_stochastic", 100, "s--", "stochastic")
     left.axhline(70, color="grey", lw=0.8, ls=":", label="issue's bar (70 %)")
-    scale = "log" if x in DOUBLING else "linear"
+    scale = AXES[x][1]
     left.set(xscale=scale, xlabel=x, ylabel="% of per-body control", title="held-out bodies")
     curve(right, "over_wave", 1, "o-")
     right.axhline(1.5, color="grey", lw=0.8, ls=":")
@@ -113,11 +111,11 @@ def main(argv: list[str] | None = None) -> None:
     points.sort(key=lambda p: p[args.x])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / f"{AXES[args.x]}.csv", "w", newline="") as f:
+    with open(out / f"{AXES[args.x][0]}.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[args.x, "bodies", *ROWS, "folder"])
         writer.writeheader()
         writer.writerows(points)
-    plot(points, out / f"{AXES[args.x]}.png", args.x)
+    plot(points, out / f"{AXES[args.x][0]}.png", args.x)
     for q in points:
         print(f"{q[args.x]:5d} {args.x}: {100 * q['fraction_mean_command']:.1f} % of per-body (mean command), "
               f"x{q['over_wave']:.2f} the wave, {100 * q['beyond_gait']:.0f} % beyond their gait")
