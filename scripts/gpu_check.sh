@@ -14,9 +14,13 @@
 #                                        # .whl/, gathered by ../shared/device/gather-wheels.sh and carried along)
 #   scripts/gpu_check.sh OUTDIR --cpu    # the rehearsal on a CPU machine: every step at small sizes (< 10 min;
 #                                        # --rehearse is the same)
-#   scripts/gpu_check.sh OUTDIR [--cpu] STEP...   # only these steps (environment blocks update gpu cuda_tests floor), e.g.
+#   scripts/gpu_check.sh OUTDIR [--cpu] STEP...   # only these steps (environment blocks update gpu cuda_tests floor
+#                                                 # control_scale), e.g.
 #     PYTHON=python3 scripts/gpu_check.sh $OUT/check environment blocks floor   # issue 44: < 4 min on one H100
 #     PYTHON=.venv/bin/python scripts/gpu_check.sh /tmp/check --rehearse environment blocks floor   # ~1-2 min here
+# control_scale (issue 59: one epoch of the population and teacher presets at 1,024 bodies, benchmarks/bench_control_scale.py)
+# is not in the default list, which fills most of a 10-minute call: give it a call of its own,
+#     PYTHON=python3 scripts/gpu_check.sh $OUT/scale environment control_scale             # < 5 min, estimated
 #
 # The carry is 64 MiB with the checkout: taichi's wheel (54 MiB) fits once its C-API library, headers and examples,
 # which Python's taichi does not load, are dropped:
@@ -31,7 +35,7 @@ mode=
 if [ "${1:-}" = "--cpu" ] || [ "${1:-}" = "--rehearse" ]; then mode=--cpu; shift; fi
 steps=${*:-environment blocks update gpu cuda_tests floor}
 for s in $steps; do
-  case $s in environment|blocks|update|gpu|cuda_tests|floor) ;; *) echo "unknown step $s" >&2; exit 2;; esac
+  case $s in environment|blocks|update|gpu|cuda_tests|floor|control_scale) ;; *) echo "unknown step $s" >&2; exit 2;; esac
 done
 mkdir -p "$out"
 out=$(cd "$out" && pwd)
@@ -70,6 +74,7 @@ step update 300 $PY -m benchmarks update
 step gpu 270 $PY -m benchmarks gpu
 step cuda_tests 260 $PY -m pytest -q -s -m cuda tests/test_cuda.py -p no:cacheprovider -p no:warnings
 step floor 60 $PY -m benchmarks floor
+step control_scale 270 $PY -m benchmarks control_scale
 
 {
   echo "=== freeform GPU check ($arch) ==="
@@ -86,7 +91,9 @@ step floor 60 $PY -m benchmarks floor
   grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/update.log" 2>/dev/null | tail -30 | cut -c1-300
   echo "--- GPU benchmark"
   grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/gpu.log" 2>/dev/null | tail -25 | cut -c1-300
-  for log in blocks update cuda_tests floor gpu; do  # a failure's last lines
+  echo "--- control at scale"
+  grep -vE "^\[|Warning|warn|^ *$|importlib|^W[0-9]" "$out/control_scale.log" 2>/dev/null | tail -8 | cut -c1-300
+  for log in blocks update cuda_tests floor gpu control_scale; do  # a failure's last lines
     if [ -f "$out/$log.log" ] && ! grep -q "^$log: exit 0 " "$out/steps.txt"; then
       echo "--- last lines of $log.log"
       tail -n 25 "$out/$log.log" | cut -c1-300
