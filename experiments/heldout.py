@@ -340,8 +340,9 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
     the means, the fractions of per-body control, the controller over the hand-set wave, the fractions beyond
     their own gait. Refused, naming the folder, where a set lacks a column or a value, or was evaluated with
     another controller kind, episode settings, episode count or seed; ``run.json`` lists each set's controller
-    file (the same weights may sit in a run and in its ``controller.pt``)."""
-    rows, controllers, settings = [], [], []
+    file (the same weights may sit in a run and in its ``controller.pt``) and each set's bodies (``sets``: the
+    ``.npy`` each set was evaluated on and its body count, which ``experiments.student_scaling`` compares)."""
+    rows, controllers, settings, sources = [], [], [], []
     for folder in sets:
         path = Path(folder) / "bodies.csv"
         if not path.is_file():
@@ -365,6 +366,7 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
                              "evaluate every set with the same controller, --headings, --eval-episodes and seed")
         settings.append(setting)
         controllers.append(run.get("controller"))
+        sources.append({"bodies": run.get("bodies"), "n": len(table)})
         rows += [{"set": str(folder), **{c: r[c] for c in ("body", *POOLED)}} for r in table]
     v = {c: np.array([float(r[c]) for r in rows]) for c in POOLED}
     n = len(rows)
@@ -383,7 +385,8 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
                 (("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command"),
                  ("per-body controllers (stochastic)", "per_body"),
                  ("per-body controllers (mean command)", "per_body_mean_command"))]
-    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n})
+    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n,
+                                "sets": sources})
     return summary
 
 

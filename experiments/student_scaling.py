@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,28 @@ def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float
         point[column] = float(rows[what]["mean"])
     point["bodies"] = int(rows[ROWS["mean_command"]]["n"])
     return point
+
+
+def body_sets(folder: Path) -> list[tuple[str, int]] | None:
+    """The sets a pooled table was made of, as (the ``.npy``'s file name, its body count), sorted; None for a
+    table pooled before ``experiments.heldout`` recorded them (only its count can then be compared)."""
+    run = folder / "run.json"
+    sets = json.loads(run.read_text()).get("sets") if run.is_file() else None
+    if sets is None:
+        return None
+    return sorted((Path(str(s["bodies"])).name, int(s["n"])) for s in sets)
+
+
+def same_bodies(points: list[dict], sets: list[list[tuple[str, int]] | None]) -> None:
+    """Refuse points over other held-out bodies: their sets' files and counts where every point's table records
+    them, else their body counts."""
+    if all(s is not None for s in sets) and any(s != sets[0] for s in sets):
+        other = next(i for i, s in enumerate(sets) if s != sets[0])
+        raise SystemExit(f"{points[other]['folder']} pools other sets than {points[0]['folder']} ({sets[other]} "
+                         f"against {sets[0]}): compare students on the same held-out bodies")
+    if len({p["bodies"] for p in points}) != 1:
+        raise SystemExit(f"the points are over different numbers of bodies ({[p['bodies'] for p in points]}): "
+                         "compare students on the same held-out bodies")
 
 
 def plot(points: list[dict], path: Path, x: str = "teachers") -> None:
@@ -105,9 +128,7 @@ def main(argv: list[str] | None = None) -> None:
         if not sep:
             raise SystemExit(f"a point is {args.x.upper()}=FOLDER, got {arg!r}")
         points.append(read_point(label, Path(folder), args.x))
-    if len({p["bodies"] for p in points}) != 1:  # (a count only: the folders' sets are the user's to keep alike)
-        raise SystemExit(f"the points are over different numbers of bodies ({[p['bodies'] for p in points]}): "
-                         "compare students on the same held-out bodies")
+    same_bodies(points, [body_sets(Path(p["folder"])) for p in points])
     points.sort(key=lambda p: p[args.x])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -312,17 +312,19 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     """Two sets of 1 and 2 bodies pooled: the fraction of per-body control is the mean over all three bodies
     divided by theirs (mean command: 1.0 / (5/3) = 0.6, not the mean of the sets' fractions, 0.583), the
     wave ratio likewise, the bodies beyond their gait counted over all; a set evaluated without per-body
-    controllers on every body, or with another seed, is refused, naming the folder."""
+    controllers on every body, or with another seed, is refused, naming the folder; the scaling curve refuses
+    points pooled from other sets of bodies (by the sets recorded, else by the count)."""
     from experiments.heldout import pool
 
-    def write(name: str, bodies: list[dict], seed: int = 0) -> Path:
+    def write(name: str, bodies: list[dict], seed: int = 0, source: str = "sets/a.npy") -> Path:
         folder = tmp_path / name
         folder.mkdir()
         with open(folder / "bodies.csv", "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=list(bodies[0]))
             writer.writeheader()
             writer.writerows(bodies)
-        (folder / "run.json").write_text(json.dumps({"controller": "c.pt", "kind": "context", "seed": seed}))
+        (folder / "run.json").write_text(json.dumps({"controller": "c.pt", "kind": "context", "seed": seed,
+                                                     "bodies": source}))
         return folder
 
     def body(i, gait, stoch, mean, wave, own, own_mean):
@@ -357,8 +359,17 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
         assert float(p["beyond_gait"]) == pytest.approx(2 / 3)  # (mean command 1.0, 0.5, 1.5 against 0.1, 0.9, 0.2)
     assert (tmp_path / "scaling" / "scaling.png").stat().st_size > 0
     pool([b], tmp_path / "b_alone")
+    with pytest.raises(SystemExit, match="pools other sets"):
+        scaling(["64=" + str(tmp_path / "out"), "128=" + str(tmp_path / "b_alone"), "--out", str(tmp_path / "x")])
+    record = json.loads((tmp_path / "b_alone" / "run.json").read_text())  # a table pooled before sets were recorded
+    (tmp_path / "b_alone" / "run.json").write_text(json.dumps({k: v for k, v in record.items() if k != "sets"}))
     with pytest.raises(SystemExit, match="different numbers of bodies"):
         scaling(["64=" + str(tmp_path / "out"), "128=" + str(tmp_path / "b_alone"), "--out", str(tmp_path / "x")])
+    # the same count over another set of bodies: refused by the sets the pooled tables record
+    e = write("e", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], source="elsewhere/grown.npy")
+    pool([b, e], tmp_path / "be")
+    with pytest.raises(SystemExit, match=r"be pools other sets than .*out \(\[\('a.npy', 2\), \('grown.npy', 1\)\]"):
+        scaling(["64=" + str(tmp_path / "out"), "128=" + str(tmp_path / "be"), "--out", str(tmp_path / "x")])
     with pytest.raises(ValueError, match="TEACHERS an integer"):
         scaling(["many=" + str(tmp_path / "out"), "--out", str(tmp_path / "x")])
     # against rounds: the same columns under "rounds", in rounds.csv beside scaling.csv
