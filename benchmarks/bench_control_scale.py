@@ -13,10 +13,8 @@ timed (the first one compiles); the second is the figure.
 from __future__ import annotations
 
 import os
-import tempfile
-import time
-from pathlib import Path
 
+from benchmarks.bench_gpu import line, train_epochs
 from freeform.sim import runtime
 
 COPIES = 4
@@ -24,10 +22,6 @@ COPIES = 4
 
 BODIES = {"cuda": 1024, "cpu": 16}
 """N by arch: the issue's 1,024 on a GPU; on the CPU the teacher preset's own 16 (64 environments)."""
-
-
-def _line(label: str, value: str) -> None:
-    print(f"  {label:62s} {value}", flush=True)
 
 
 def preset_overrides(n: int) -> dict[str, tuple[str, ...]]:
@@ -39,19 +33,6 @@ def preset_overrides(n: int) -> dict[str, tuple[str, ...]]:
             "control_teachers_cpu": (f"control.teachers={n}", *common)}
 
 
-def epoch(preset: str, overrides: tuple[str, ...], device: str) -> tuple[dict[str, float], float]:
-    """Train ``preset`` with ``overrides`` for its epochs in a scratch directory: the last epoch's logged figures
-    and the wall time of the whole call (compilation included)."""
-    from freeform.config import compose
-    from freeform.run.trainer import train
-
-    cfg = compose(f"experiment={preset}", f"trainer.device={device}", *overrides)
-    with tempfile.TemporaryDirectory() as run:
-        t0 = time.perf_counter()
-        history = train(cfg, Path(run)).history
-        return history[-1], time.perf_counter() - t0
-
-
 def main() -> None:
     arch = runtime.ensure(os.environ.get("FREEFORM_BENCH_ARCH", "auto"))
     device = "cuda" if arch == "cuda" else "cpu"
@@ -59,15 +40,15 @@ def main() -> None:
     print(f"control at scale on {runtime.describe()} ({arch}): {n} bodies x {COPIES} copies; epoch 2 of 2")
     for preset, overrides in preset_overrides(n).items():
         try:
-            last, wall = epoch(preset, overrides, device)
+            _, last, wall = train_epochs((f"experiment={preset}", f"trainer.device={device}", *overrides))
         except Exception as e:  # one preset's failure is a figure too; the other still runs
-            _line(preset, f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            line(preset, f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue
         rollout, update = last.get("perf/time_rollout", float("nan")), last.get("perf/time_update", float("nan"))
         env, sps = last.get("perf/time_env", float("nan")), last.get("perf/samples_per_second", float("nan"))
-        _line(f"{preset}: rollout (of it env) | update | samples/s",
+        line(f"{preset}: rollout (of it env) | update | samples/s",
               f"{rollout:7.2f} s ({env:.2f}) | {update:6.2f} s | {sps:8.0f}")
-        _line("  an epoch per body | both epochs, compilation included",
+        line("  an epoch per body | both epochs, compilation included",
               f"{(rollout + update) / n * 1e3:7.1f} ms | {wall:7.1f} s")
 
 

@@ -13,6 +13,7 @@ import statistics
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -21,7 +22,8 @@ from freeform.sim import SimConfig, Simulator, runtime
 PAPER_SIM = dict(precision="f32", semantics="rl4design", burn_in=5.0, duration=5.0)  # the paper's protocol
 
 
-def _line(label: str, value: str) -> None:
+def line(label: str, value: str) -> None:
+    """One figure: its label padded to a column, then its value (every GPU benchmark's format)."""
     print(f"  {label:58s} {value}", flush=True)
 
 
@@ -40,7 +42,7 @@ def sim_section(arch: str, rehearsal: bool) -> None:
         Simulator(cfg, arch=arch, schedule="flat").simulate(_bodies(2))
         runtime.sync()
         what = "kernels (cold unless cached)" if not launches else f"+ a compute graph of {launches} launches"
-        _line(f"first simulate, {what}", f"{time.perf_counter() - t0:7.2f} s")
+        line(f"first simulate, {what}", f"{time.perf_counter() - t0:7.2f} s")
     steps = 128 if rehearsal else 512
     for batch in ((1, 8, 32) if rehearsal else (1, 32, 128, 512)):
         cells = []
@@ -57,15 +59,15 @@ def sim_section(arch: str, rehearsal: bool) -> None:
                 runtime.sync()
                 runs.append((time.perf_counter() - t0) / steps * 1e6)
             cells.append(f"{min(runs):7.1f}")
-        _line(f"µs per step, batch {batch}: launched from Python | compute graph", " | ".join(cells))
+        line(f"µs per step, batch {batch}: launched from Python | compute graph", " | ".join(cells))
     batch, protocol = (16, {"burn_in": 0.25, "duration": 0.25}) if rehearsal else (128, {})
     cfg = SimConfig(**{**PAPER_SIM, **protocol})
     sim = Simulator(cfg, arch=arch, schedule="flat")
     t0 = time.perf_counter()
     r = sim.simulate(_bodies(batch))
     runtime.sync()
-    _line(f"the epoch's simulation: {batch} bodies, {cfg.burn_in:g} s + {cfg.duration:g} s "
-          f"({int(r.steps.max())} steps)", f"{time.perf_counter() - t0:7.2f} s")
+    line(f"the epoch's simulation: {batch} bodies, {cfg.burn_in:g} s + {cfg.duration:g} s "
+         f"({int(r.steps.max())} steps)", f"{time.perf_counter() - t0:7.2f} s")
 
 
 def update_section(device: str, rehearsal: bool) -> None:
@@ -98,39 +100,43 @@ def update_section(device: str, rehearsal: bool) -> None:
                     torch.cuda.synchronize()
                 runs.append(time.perf_counter() - t0)
         except Exception as e:  # one variant's failure is a figure too; the others still run
-            _line(f"update, {name}", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            line(f"update, {name}", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue
         batch = cfg.env.num_envs * cfg.env.steps
         minibatches = cfg.agent.num_sgd_iter * (batch // min(cfg.agent.sgd_minibatch_size, batch))
-        _line(f"update, {minibatches} minibatches of {cfg.agent.sgd_minibatch_size}, {name} (first update)",
-              f"{statistics.median(runs) / minibatches * 1e3:7.2f} ms per minibatch ({first:.1f} s)")
+        line(f"update, {minibatches} minibatches of {cfg.agent.sgd_minibatch_size}, {name} (first update)",
+             f"{statistics.median(runs) / minibatches * 1e3:7.2f} ms per minibatch ({first:.1f} s)")
+
+
+def train_epochs(overrides: tuple[str, ...]) -> tuple[Any, dict[str, float], float]:
+    """Train the composed config (``overrides``: a preset and its settings) in a scratch directory: the config,
+    the last epoch's logged figures and the wall time of the whole call, compilation included."""
+    from freeform.config import compose
+    from freeform.run.trainer import train
+
+    cfg = compose(*overrides)
+    with tempfile.TemporaryDirectory() as run:
+        t0 = time.perf_counter()
+        history = train(cfg, Path(run)).history
+        return cfg, history[-1], time.perf_counter() - t0
 
 
 def epoch_section(device: str, rehearsal: bool) -> None:
     """One paper_locomotion epoch, as the trainer reports it (after a first epoch that compiles); on a GPU with the
     update as a CUDA graph (``agent.cuda_graph``) and eager."""
-    from freeform.config import compose
-    from freeform.run.trainer import train
-
     preset = "experiment=locomotion_cpu" if rehearsal else "experiment=paper_locomotion"
-    for update in ((("agent.cuda_graph=false",),) if rehearsal else (("agent.cuda_graph=true",), ("agent.cuda_graph=false",))):
-        cfg = compose(preset, f"trainer.device={device}", "trainer.epochs=2", "trainer.progress=false",
-                      "trainer.checkpoint_every=0", *update)
+    for update in (("agent.cuda_graph=false",) if rehearsal else ("agent.cuda_graph=true", "agent.cuda_graph=false")):
         try:
-            with tempfile.TemporaryDirectory() as run:
-                t0 = time.perf_counter()
-                history = train(cfg, Path(run)).history
-                wall = time.perf_counter() - t0
+            cfg, last, wall = train_epochs((preset, f"trainer.device={device}", "trainer.epochs=2", "trainer.progress=false",
+                                       "trainer.checkpoint_every=0", update))
         except Exception as e:
-            _line(f"{preset.split('=')[1]} epoch, cuda_graph={cfg.agent.cuda_graph}",
-                  f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            line(f"{preset.split('=')[1]} epoch, {update}", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue
-        last = history[-1]
         rollout, upd = last.get("perf/time_rollout", float("nan")), last.get("perf/time_update", float("nan"))
         sim, env = last.get("perf/sim_seconds", float("nan")), last.get("perf/time_env", float("nan"))
-        _line(f"{preset.split('=')[1]} epoch 2 ({cfg.env.num_envs} robots, cuda_graph={cfg.agent.cuda_graph}): "
-              "rollout (env | of it simulation) | update", f"{rollout:6.2f} s ({env:.2f} | {sim:.2f}) | {upd:6.2f} s")
-        _line("  both epochs, compilation included", f"{wall:7.1f} s")
+        line(f"{preset.split('=')[1]} epoch 2 ({cfg.env.num_envs} robots, cuda_graph={cfg.agent.cuda_graph}): "
+             "rollout (env | of it simulation) | update", f"{rollout:6.2f} s ({env:.2f} | {sim:.2f}) | {upd:6.2f} s")
+        line("  both epochs, compilation included", f"{wall:7.1f} s")
 
 
 def control_section(arch: str, device: str, rehearsal: bool) -> None:
@@ -140,11 +146,11 @@ def control_section(arch: str, device: str, rehearsal: bool) -> None:
     print("closed-loop control (ControlEnv, design bodies, f32, fixed dt 1e-4 s, a period of 100 steps):")
     for n in ((8, 16) if rehearsal else (128, 1024)):
         rate, sim, outside, host = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
-        _line(f"{n} bodies: control steps/s | simulator ms | outside ms | env host ms a step",
-              f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f} | {host * 1e3:7.2f}")
+        line(f"{n} bodies: control steps/s | simulator ms | outside ms | env host ms a step",
+             f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f} | {host * 1e3:7.2f}")
         stepwise, one_call = measure_engine(_bodies(n), 100, 3 if rehearsal else 10, arch)
-        _line(f"{n} bodies: engine ms a period, stepwise (3 calls + steps) | one call (control_step)",
-              f"{stepwise * 1e3:7.2f} | {one_call * 1e3:7.2f}")
+        line(f"{n} bodies: engine ms a period, stepwise (3 calls + steps) | one call (control_step)",
+             f"{stepwise * 1e3:7.2f} | {one_call * 1e3:7.2f}")
 
 
 def main() -> None:
