@@ -97,3 +97,29 @@ def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path
     with pytest.raises(ValueError, match="already holds files"):
         pool_teacher_runs([a, a], used / "notes.txt")
     assert not any((tmp_path / p).exists() for p in ("p1", "p2", "p3", "p4", "p5"))
+
+
+def test_one_teacher_exports_as_its_bodys_own_controller(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--teacher I``: teacher I's weights, the run's episode and body I as a ``controller.pt`` any controller tool
+    reads; another index, several runs or a used folder are refused, and nothing there is overwritten."""
+    from freeform.agents.controller_file import read_controller
+
+    run = _teacher_run(tmp_path, "t", np.stack([ROD, CUBE]), "seed=3")
+    out = tmp_path / "cube"
+    main([str(run), "--teacher", "1", "--out", str(out)])
+    assert "teacher 1 of" in capsys.readouterr().out
+    np.testing.assert_array_equal(np.load(out / "body.npy"), CUBE[None])
+    saved, bank = read_controller(out), _bank(run)
+    theirs = bank.member_state(1)
+    assert all(torch.equal(saved.controller.state_dict()[k], v) for k, v in theirs.items())
+    assert not all(torch.equal(bank.member_state(0)[k], v) for k, v in theirs.items())  # (teacher 1, not 0)
+    assert saved.control.headings == "any" and saved.kind == "context"
+
+    with pytest.raises(ValueError, match=r"--teacher 2: .* teachers 0 … 1"):
+        main([str(run), "--teacher", "2", "--out", str(tmp_path / "none")])
+    with pytest.raises(ValueError, match="already holds files"):
+        main([str(run), "--teacher", "0", "--out", str(out)])
+    assert sorted(p.name for p in out.iterdir()) == ["body.npy", "controller.pt"]
+    with pytest.raises(SystemExit):
+        main([str(run), str(run), "--teacher", "0", "--out", str(tmp_path / "two")])
+    assert not (tmp_path / "none").exists() and not (tmp_path / "two").exists()

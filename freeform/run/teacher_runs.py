@@ -14,6 +14,13 @@ jobs of a cluster. ``pool_teacher_runs`` writes one teacher run of all their tea
 bodies are checked against the bodies stored, grid for grid) and ``pooled.json``
 (where each teacher came from). The runs must hold the same kind of controller built alike, and have trained with
 the same episode, simulator and grid settings: a student is taught one task.
+
+One teacher out of a run, as a controller of its own (``export_teacher``): body I's controller — e.g. the committed
+student adapted to your bodies (``experiment=control_adapt_cpu``) — as a self-contained ``controller.pt`` beside its
+body (``body.npy``), which every controller tool reads (``experiments.control --evaluate``, renders, co-design's
+``control.controller_init``):
+
+    python -m freeform.run.teacher_runs runs/adapt --teacher 3 --out runs/body3_controller
 """
 
 from __future__ import annotations
@@ -98,11 +105,37 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     return out
 
 
+def export_teacher(run: Path, teacher: int, out: Path) -> Path:
+    """Write teacher ``teacher`` of the teacher run ``run`` into ``out`` (new or empty) as ``controller.pt``
+    (``freeform.agents.controller_file.save_controller``: its weights, the run's episode and simulator) and its body
+    as ``body.npy`` (uint8 ``[1, ρ, ρ, ρ]``); returns the controller file."""
+    from freeform.agents.controller_file import save_controller
+
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
+    source = _source(run)
+    if not 0 <= teacher < source.bank.teachers:
+        raise ValueError(f"--teacher {teacher}: {run} has teachers 0 … {source.bank.teachers - 1}")
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "body.npy", source.bodies[teacher:teacher + 1].numpy().astype(np.uint8))
+    return save_controller(out / "controller.pt", source.bank.member(teacher), source.config.control,
+                           source.config.sim)
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", help="teacher runs (their directories or checkpoints), in the pool's order")
-    p.add_argument("--out", required=True, help="a new folder for the pooled teacher run")
+    p.add_argument("--out", required=True, help="a new folder for the pooled teacher run (or the exported teacher)")
+    p.add_argument("--teacher", type=int, default=None, metavar="I",
+                   help="export teacher I of the one run given as a controller.pt (with its body.npy) instead")
     args = p.parse_args(argv)
+    if args.teacher is not None:
+        if len(args.runs) != 1:
+            p.error(f"--teacher exports from one teacher run, got {len(args.runs)}")
+        path = export_teacher(Path(args.runs[0]), args.teacher, Path(args.out))
+        print(f"teacher {args.teacher} of {args.runs[0]} -> {path}; evaluate with python -m experiments.control "
+              f"--evaluate {path.parent} --bodies {path.parent / 'body.npy'}")
+        return
     out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out))
     pooled = json.loads((out / POOLED).read_text())
     print(f"{pooled['teachers']} teachers from {len(pooled['sources'])} runs -> {out}; distil with "
