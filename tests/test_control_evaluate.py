@@ -387,3 +387,47 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     generations = read_csv(tmp_path / "scaling" / "generations.csv")
     assert [int(p["generations"]) for p in generations] == [1, 2] and "rounds" not in generations[0]
     assert (tmp_path / "scaling" / "generations.png").stat().st_size > 0
+
+
+def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) -> None:
+    """``experiments.adaptation``: a 0-epoch point is the evaluated controller (the bank's start), a later point
+    the per-body column; the paired difference between starts is per body (a 3-body example worked by hand:
+    differences 0.5, 0.3, 0.1 -> mean 0.3, band t(0.995, 2)·0.2/√3); tables over other bodies or without per-body
+    controllers are refused."""
+    from scipy import stats
+
+    from experiments.adaptation import main
+
+    def write(name: str, rows: list[tuple], per_body: bool = True) -> str:
+        folder = tmp_path / name
+        folder.mkdir()
+        fields = ["body", "open_loop", "controller", "mean_command"] + (
+            ["per_body", "per_body_mean_command"] if per_body else [])
+        with open(folder / "bodies.csv", "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(fields)
+            writer.writerows(r[:len(fields)] for r in rows)
+        return str(folder)
+
+    # body, gait, controller (stoch, mean), per-body after training (stoch, mean)
+    student = write("s", [(0, 0.5, 1.0, 1.0, 2.0, 2.5), (1, 0.5, 0.2, 0.4, 1.5, 1.6), (2, 0.5, 0.3, 0.3, 1.0, 1.0)])
+    population = write("p", [(0, 0.5, 0.1, 0.1, 1.5, 2.0), (1, 0.5, 0.1, 0.2, 1.2, 1.3), (2, 0.5, 0.1, 0.1, 0.9, 0.9)])
+    out = tmp_path / "out"
+    main(["--from", "student", f"0={student}", f"4={student}", "--from", "population", f"4={population}",
+          "--out", str(out)])
+    rows = read_csv(out / "adaptation.csv")
+    assert [(r["start"], r["epochs"]) for r in rows] == [("student", "0"), ("student", "4"), ("population", "4")]
+    assert float(rows[0]["stochastic"]) == pytest.approx(0.5) and float(rows[1]["stochastic"]) == pytest.approx(1.5)
+    assert float(rows[0]["beyond_gait"]) == pytest.approx(1 / 3, abs=1e-4) and float(rows[2]["beyond_gait"]) == 1.0
+    (pair,) = read_csv(out / "paired.csv")
+    assert (pair["epochs"], pair["minus"], pair["of"]) == ("4", "population", "student")
+    assert float(pair["stochastic"]) == pytest.approx(0.3, abs=1e-4)
+    assert float(pair["stochastic_band99"]) == pytest.approx(stats.t.ppf(0.995, 2) * 0.2 / np.sqrt(3), abs=1e-4)
+    assert (out / "adaptation.png").is_file()
+
+    other = write("o", [(0, 0.5, 1, 1, 1, 1), (1, 0.5, 1, 1, 1, 1)])
+    with pytest.raises(SystemExit):
+        main(["--from", "student", f"4={student}", f"8={other}", "--out", str(tmp_path / "x")])
+    with pytest.raises(ValueError, match="no per_body column"):
+        main(["--from", "student", f"4={write('n', [(0, 0.5, 1, 1)], per_body=False)}", "--out", str(tmp_path / "y")])
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
