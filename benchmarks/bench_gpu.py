@@ -127,8 +127,8 @@ def epoch_section(device: str, rehearsal: bool) -> None:
     preset = "experiment=locomotion_cpu" if rehearsal else "experiment=paper_locomotion"
     for update in (("agent.cuda_graph=false",) if rehearsal else ("agent.cuda_graph=true", "agent.cuda_graph=false")):
         try:
-            cfg, last, wall = train_epochs((preset, f"trainer.device={device}", "trainer.epochs=2", "trainer.progress=false",
-                                       "trainer.checkpoint_every=0", update))
+            cfg, last, wall = train_epochs((preset, f"trainer.device={device}", "trainer.epochs=2",
+                                            "trainer.progress=false", "trainer.checkpoint_every=0", update))
         except Exception as e:
             line(f"{preset.split('=')[1]} epoch, {update}", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue

@@ -82,8 +82,8 @@ def paired(points: list[dict]) -> list[dict]:
         row = {"epochs": other["epochs"], "minus": other["start"], "of": first}
         for name in COLUMNS:
             d = mine[other["epochs"]][name] - other[name]
-            half = stats.t.ppf(0.995, len(d) - 1) * d.std(ddof=1) / np.sqrt(len(d))
-            row[name], row[f"{name}_band99"] = round(float(d.mean()), 4), round(float(half), 4)
+            mean, half = mean_band(d, z=stats.t.ppf(0.995, len(d) - 1))  # (Student's t: few bodies per set)
+            row[name], row[f"{name}_band99"] = round(float(mean), 4), round(float(half), 4)
         rows.append(row)
     return rows
 

@@ -49,6 +49,12 @@ def _source(run: Path) -> Any:
     return source
 
 
+def _refuse_used(out: Path) -> None:
+    """Refuse an ``--out`` that holds anything: what this module writes never overwrites."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
+
+
 def _same_task(a: Any, b: Any, run: Path, run0: Path) -> None:
     """``b`` (a run's ``TrainConfig``) trained the same task as ``a``: the episode's settings, the simulator, the
     grid; refused naming what differs."""
@@ -71,8 +77,7 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
 
     if len(runs) < 2:
         raise ValueError(f"give at least two teacher runs to pool, got {len(runs)}")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
+    _refuse_used(out)
     sources = [_source(run) for run in runs]
     for run, source in zip(runs[1:], sources[1:], strict=True):
         _same_task(sources[0].config, source.config, run, runs[0])
@@ -111,8 +116,7 @@ def export_teacher(run: Path, teacher: int, out: Path) -> Path:
     as ``body.npy`` (uint8 ``[1, ρ, ρ, ρ]``); returns the controller file."""
     from freeform.agents.controller_file import save_controller
 
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"--out {out} already holds files: give an empty or new folder (nothing is overwritten)")
+    _refuse_used(out)
     source = _source(run)
     if not 0 <= teacher < source.bank.teachers:
         raise ValueError(f"--teacher {teacher}: {run} has teachers 0 … {source.bank.teachers - 1}")
