@@ -71,6 +71,81 @@ def test_a_student_learns_to_balance_the_pole_from_its_teacher() -> None:
     assert stats[0]["teacher_steps"] == pytest.approx(1.0) and stats[-1]["teacher_steps"] < 0.05
 
 
+def blind_cartpoles(n: int) -> object:
+    """CartPole whose policy sees the cart's and the pole's positions alone; the velocities are the ``"critic"``
+    group (``HideEntries``): the privileged teacher's."""
+    from freeform.envs.partial import HideEntries
+
+    return from_gymnasium(gym.vector.SyncVectorEnv(
+        [lambda: HideEntries(gym.make("CartPole-v1"), [1, 3], critic=True)] * n), seed=0, dict_obs=True)
+
+
+def privileged_balancer(obs: dict[str, torch.Tensor], envs: torch.Tensor) -> tuple[torch.Tensor, None]:
+    """:func:`balancer` reading the pole's angle from ``"policy"`` and its angular velocity from ``"critic"``."""
+    s = (obs["policy"][:, 1] + 0.5 * obs["critic"][:, 1]) * 20.0
+    return torch.stack([-s, s], 1), None
+
+
+def test_a_recurrent_student_learns_what_only_its_privileged_teacher_sees() -> None:
+    """The teacher reads the pole's angular velocity, the students its angle alone. Distilled alike (6 rounds), a
+    feed-forward student cannot tell which way the pole swings and drops it (< 100 steps); a GRU student, trained
+    over sequences of 16 steps, infers the swing from the angles it saw and balances >= 400 of the 500 steps."""
+    from freeform.agents.recurrent import RecurrentActorCritic
+
+    returns = {}
+    for kind in ("feed-forward", "gru"):
+        torch.manual_seed(0)
+        env = blind_cartpoles(8)
+        student = (RecurrentActorCritic.for_env(env, hidden=(32,), rnn="gru", rnn_hidden=32) if kind == "gru"
+                   else MLPActorCritic.for_env(env, hidden=(32,)))
+        learner = Distillation(env, student, privileged_balancer,
+                               PPOConfig(rollout_steps=64, num_sgd_iter=8, sgd_minibatch_size=128, lr=1e-2,
+                                         sequence_length=16),
+                               DistillConfig(loss="kl", beta=1.0, beta_decay=0.5, buffer=8))
+        for _ in range(6):
+            learner.train_epoch()
+        returns[kind] = learner.evaluate(blind_cartpoles(4), episodes=4)["eval_return"]
+    assert returns["feed-forward"] < 100 and returns["gru"] >= 400, returns
+
+
+def test_a_recurrent_students_sequences_carry_its_memory_across_chunks() -> None:
+    """The dataset starts mid-episode (3 rounds, 2 kept): the steps before an env's first episode start there do
+    not count (the student's memory of them is unknown), and the rest do. Cut into chunks of 5 steps, each run
+    from the state the student reaches over the chunks before it, the regression's loss is the one of each env's
+    16 steps run as one sequence."""
+    from freeform.agents.recurrent import RecurrentActorCritic
+
+    torch.manual_seed(0)
+    env = blind_cartpoles(4)
+    student = RecurrentActorCritic.for_env(env, hidden=(8,), rnn="lstm", rnn_hidden=8)
+    learner = Distillation(env, student, privileged_balancer,
+                           PPOConfig(rollout_steps=8, num_sgd_iter=1, sgd_minibatch_size=16, sequence_length=5),
+                           DistillConfig(beta=0.5, buffer=2))
+    for _ in range(3):
+        learner.train_epoch()
+    starts, valid = learner.dataset["starts"], learner.dataset["valid"]
+    assert starts.shape == valid.shape == (4, 16)
+    first = torch.where(starts.any(1), starts.float().argmax(1), 16)  # (16: no start in the dataset, none counts)
+    expected = (torch.arange(16)[None] >= first[:, None]) & valid
+    assert bool((first > 0).any()) and bool((first < 16).any()), first  # begun mid-episode; an episode begins
+    with torch.no_grad():  # (a fresh head commands ≈ 0 whatever it remembers: made loud, so that memory shows)
+        student.actor[-1].weight.mul_(300.0)
+
+    def loss(length: int) -> torch.Tensor:
+        learner.config.sequence_length = length
+        seq = learner._sequences()
+        sequences = seq.mask.shape[1]
+        total, _ = learner._sequence_loss(seq, torch.arange(sequences), torch.zeros(seq.mask.numel(), dtype=torch.long),
+                                          seq.counted.sum())
+        return seq, total
+
+    whole, one = loss(16)
+    torch.testing.assert_close(whole.mask.T, expected)
+    chunked, five = loss(5)
+    assert chunked.mask.shape == (5, 4 * 4) and int(chunked.mask.sum()) == int(expected.sum())
+    torch.testing.assert_close(five, one)
+
+
 def test_the_loss_is_kl_or_the_means_squared_error() -> None:
     """By hand: one sample, a 2-D Gaussian; KL(N(0, 1) ‖ N(1, e)) per entry = log σ1 − log σ0 + (σ0² + Δ²)/(2σ1²)
     − 1/2; mse the means' squared error averaged over the entries; the value's squared error."""
@@ -161,3 +236,27 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     np.save(bodies, np.load(bodies)[::-1].copy())  # the same control.bodies, other grids: refused, naming them
     with pytest.raises(ValueError, match=r"its bodies are not this run's \(bodies \[0, 1\] differ"):
         build(distill, torch.device("cpu"))
+
+
+def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
+    """algo=distill into a context_gru student (chunks of 3 steps in episodes of 4, so chunks begin mid-episode;
+    samples turned by the ground's symmetries, a chunk as one): two rounds straight equal one plus a resumed one —
+    the student, and the dataset with its episode starts."""
+    from freeform.train import train
+
+    teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
+             "agent.advantage_norm=group", "seed=4")
+    train(compose(*tiny_control(bodies, *teach, "trainer.epochs=1")), tmp_path / "teachers")
+    distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground",
+                                    "control.controller=context_gru", "agent.sequence_length=3"))
+    straight_and_resumed(distill, tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    assert a["policy_class"].endswith(":RecurrentContextController")
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    data = a["ppo"]["distill"]["per_env"]
+    for key, tensor in data.items():
+        assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
+    assert data["starts"].shape == (4, 8) and data["starts"][:, ::4].all() and not data["starts"][:, 1::4].any()

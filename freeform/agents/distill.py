@@ -15,6 +15,13 @@ distillation works for any ``VecEnv``. Collection, episodes, checkpoints, resume
 PPO's (the learner is a :class:`~freeform.agents.PPO` whose update is the regression); the dataset is
 per-environment state (``per_env``), so a checkpoint resumes it exactly, on any number of ranks.
 
+A recurrent student (``freeform.agents.recurrent``: ``context_gru``, ``RecurrentActorCritic``) learns over sequences:
+the dataset keeps each env's steps in order with its episode starts, and the regression runs chunks of
+``agent.sequence_length`` steps from the student's state at their first step (truncated BPTT, as PPO trains it).
+The teacher still labels single observations — it may read what the student cannot (the observation groups'
+``"critic"``: a privileged teacher), and a student with memory can then infer from its observations over time
+what the teacher sees at once (rsl_rl's privileged teacher and recurrent student).
+
 Shapes: ``T`` = ``rollout_steps``, ``N`` = environments, ``K`` = ``buffer · T`` samples kept per environment.
 """
 
@@ -22,7 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import torch
 import torch.nn as nn
@@ -34,6 +41,8 @@ from freeform.agents.teachers import TEACHER, TeacherBank
 from freeform.distributions import ActionDistribution, DiagGaussian
 
 LOSSES = ("kl", "mse")
+STEP_FLAGS = ("starts", "valid")
+"""What a recurrent student's dataset keeps of each step besides its sample: ``[N, K]`` bool each."""
 
 
 @dataclass
@@ -176,6 +185,22 @@ def distill_loss(student: tuple[torch.Tensor, ...], teacher: tuple[torch.Tensor,
     return action + vf_coeff * value_loss, torch.stack([action, kl, mse, value_loss]).detach()
 
 
+class _Sequences(NamedTuple):
+    """A recurrent student's view of the dataset: each env's K steps cut into C chunks of L (the last padded),
+    sequence ``s = c·N + n`` env n's chunk c, time-major — ``obs [L, S, ...]``, the labels ``params`` (each ``[L, S,
+    ...]``) and ``value [L, S]``, ``starts [L, S]`` bool (the state is reset before such a step), ``mask [L, S]``
+    bool (the steps that count), ``state`` the student's at each chunk's first step (``[S, ...]`` each); this
+    rank's, with ``counted`` the mask of every rank's sequences (``[L, C·N_global]``)."""
+
+    obs: Observation
+    params: list[torch.Tensor]
+    value: torch.Tensor
+    starts: torch.Tensor
+    mask: torch.Tensor
+    state: tuple[torch.Tensor, ...]
+    counted: torch.Tensor
+
+
 class Distillation(PPO):
     """DAgger into ``student`` (any policy PPO trains: ``forward(obs) -> (*params, value)``) from ``teacher``
     (module docstring). ``config``: the student's SGD (PPO's fields that apply); ``distill``: DAgger's.
@@ -200,8 +225,6 @@ class Distillation(PPO):
         mixing = TeacherMixing(env, teacher, None, config.seed, first_env, total_envs)
         # (what PPO's own update reads of rewards and advantages plays no part in a regression)
         super().__init__(mixing, student, replace(config, group_baseline=False, advantage_norm="none"), logger=logger)
-        if self.recurrent:
-            raise ValueError("distillation regresses single steps; the student must be feed-forward")
         if self.distill.loss == "mse" and not isinstance(self.distribution, DiagGaussian):
             raise ValueError(f"algo.loss=mse regresses a Gaussian's means; this student's actions are a "
                              f"{self.distribution}: use algo.loss=kl")
@@ -225,16 +248,25 @@ class Distillation(PPO):
 
     def update(self) -> dict[str, float]:
         """Label the rollout's observations, add them to the dataset, then ``num_sgd_iter`` shuffled passes of
-        minibatch Adam steps on the regression (:func:`distill_loss`). Minibatches are drawn from the global
-        dataset (``K · N`` samples, sample ``g = k·N + n``) as PPO draws them from its batch: data-parallel, each
-        rank computes the samples it holds and the gradients are summed."""
+        minibatch Adam steps on the regression (:func:`distill_loss`): on single samples, or a recurrent student's
+        on sequences (:meth:`_regress_sequences`)."""
         self._aggregate(*self._labels())
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.current_lr()
+        totals, steps = self._regress_sequences() if self.recurrent else self._regress_samples()
+        means = (self.dp.sum_(totals) / max(steps, 1)).tolist()
+        return {"distill_loss": means[0], "distill_kl": means[1], "distill_action_mse": means[2],
+                "distill_value_loss": means[3], "dataset_samples": float(self.filled * self.num_envs),
+                "lr": self.current_lr()}
+
+    def _regress_samples(self) -> tuple[torch.Tensor, int]:
+        """A feed-forward student's passes. Minibatches are drawn from the global dataset (``K · N`` samples,
+        sample ``g = k·N + n``) as PPO draws them from its batch: data-parallel, each rank computes the samples it
+        holds and the gradients are summed. Returns the statistics' sums ``[4]`` and the number of steps."""
         cfg, dp, flat = self.config, self.dp, self.flat
         obs, params, value = self._flat_dataset()
         size = self.filled * self.num_envs
         minibatch = min(cfg.sgd_minibatch_size, size)
-        for group in self.optimizer.param_groups:
-            group["lr"] = self.current_lr()
 
         def reduce(x: torch.Tensor) -> torch.Tensor:
             return dp.minibatch_mean(x, minibatch)
@@ -253,9 +285,89 @@ class Distillation(PPO):
                     loss.backward()
                     totals += stats
                 self._step(flat)
-        means = (dp.sum_(totals) / max(steps, 1)).tolist()
-        return {"distill_loss": means[0], "distill_kl": means[1], "distill_action_mse": means[2],
-                "distill_value_loss": means[3], "dataset_samples": float(size), "lr": self.current_lr()}
+        return totals, steps
+
+    def _regress_sequences(self) -> tuple[torch.Tensor, int]:
+        """A recurrent student's passes (DAgger over sequences): each env's K stored steps cut into chunks of
+        ``sequence_length`` (:meth:`_sequences`), ``max(1, sgd_minibatch_size // sequence_length)`` chunks a
+        minibatch, each run from the student's state at its first step (truncated BPTT), the loss averaged over the
+        steps that count. A chunk's symmetry element (``algo.symmetry``) turns all its steps alike: a turned
+        episode. Data-parallel, sequences are split between ranks whole (``dp.local_sequences``), as PPO's are."""
+        cfg, dp, flat = self.config, self.dp, self.flat
+        seq = self._sequences()
+        length, sequences = seq.counted.shape  # (global)
+        per = min(sequences, max(1, cfg.sgd_minibatch_size // length))
+        totals, steps = torch.zeros(4, device=self.device), cfg.num_sgd_iter * (sequences // per)
+        self.policy.train()
+        for _ in range(cfg.num_sgd_iter):
+            order = torch.randperm(sequences, generator=self.generator, device=self.device)
+            for i in range(sequences // per):
+                idx = order[i * per: (i + 1) * per]
+                count, g = seq.counted[:, idx].sum().clamp_min(1), self._elements(per)
+                local, mine = dp.local_sequences(idx)
+                flat.zero_grad()
+                if local.numel():  # (a rank may hold none of a minibatch; it then adds zero gradients)
+                    g = (g if mine is None else g[mine]).repeat(length)  # time-major: step t of chunk j is t·S + j
+                    loss, stats = self._sequence_loss(seq, local, g, count)
+                    loss.backward()
+                    totals += stats
+                self._step(flat)
+        return totals, steps
+
+    def _sequence_loss(self, seq: _Sequences, local: torch.Tensor, g: torch.Tensor, count: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`distill_loss` on this rank's chunks ``local`` of a minibatch, each step's element ``g [L·S]``,
+        the means over the minibatch's ``count`` counted steps (every rank's)."""
+        length = seq.mask.shape[0]
+
+        def steps_of(x: torch.Tensor) -> torch.Tensor:  # [L, C·n, ...] -> this minibatch's [L·S, ...]
+            return x[:, local].reshape(length * local.numel(), *x.shape[2:])
+
+        obs, labels = self._turn(obs_map(steps_of, seq.obs), tuple(steps_of(p) for p in seq.params), g)
+        obs = obs_map(lambda x: x.reshape(length, local.numel(), *x.shape[1:]), obs)
+        *params, value, _ = self.policy(obs, tuple(s[local] for s in seq.state), seq.starts[:, local])
+        weight = steps_of(seq.mask)
+
+        def reduce(x: torch.Tensor) -> torch.Tensor:
+            return torch.where(weight, x, 0.0).sum() / count.to(x.dtype)
+
+        student = (*(p.reshape(-1, p.shape[-1]) for p in params), value.reshape(-1))
+        return distill_loss(student, labels, steps_of(seq.value), self.distribution, self.distill.loss,
+                            self.config.vf_loss_coeff, reduce)
+
+    @torch.no_grad()
+    def _sequences(self) -> _Sequences:
+        """The dataset as chunks of ``L = min(sequence_length, K)`` steps per env (:class:`_Sequences`). A step
+        counts where the student's memory of it is known — at or after the env's first episode start in the
+        dataset (the rounds before it were dropped) — and the env did not only reset there. Each chunk starts from
+        the state the student, as it is now, reaches over the dataset from that first start: one pass without
+        gradients, skipped where every chunk begins an episode (the state is then reset)."""
+        d, dp = self.dataset, self.dp
+        k = self.filled
+        length = min(self.config.sequence_length, k)
+        chunks = -(-k // length)
+        pad = chunks * length - k
+
+        def cut(x: torch.Tensor) -> torch.Tensor:  # [N, K, ...] -> [L, C·N, ...] (sequence c·N + n)
+            x = x.transpose(0, 1)
+            if pad:
+                x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
+            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, -1, *x.shape[2:])
+
+        starts = d["starts"]  # [N, K]
+        mask = (starts.long().cummax(1).values.bool() & d["valid"])
+        state = self.policy.initial_state(starts.shape[0])
+        states = [state] * chunks
+        if not bool(starts[:, ::length].all()):  # some chunk begins mid-episode: run the student up to it
+            obs = obs_map(lambda x: x.transpose(0, 1), d["obs"])  # [K, N, ...]
+            for c in range(1, chunks):
+                window = slice((c - 1) * length, c * length)
+                *_, state = self.policy(obs_map(lambda x, w=window: x[w], obs), state, starts.T[window])
+                states[c] = state
+        return _Sequences(obs=obs_map(cut, d["obs"]), params=[cut(p) for p in d["params"]], value=cut(d["value"]),
+                          starts=cut(starts), mask=cut(mask),
+                          state=tuple(torch.cat([st[j] for st in states]) for j in range(len(state))),
+                          counted=cut(dp.gather_envs(mask, dim=0)))
 
     def _elements(self, minibatch: int) -> torch.Tensor:
         """The symmetry's element for each sample of a global minibatch ``[minibatch]`` (all 0 without one); drawn
@@ -268,8 +380,11 @@ class Distillation(PPO):
                 ) -> tuple[Observation, tuple[torch.Tensor, ...]]:
         """The samples ``idx`` of the dataset and their labels, each turned by its element ``g`` (the value, a
         scalar of the task, is unchanged)."""
-        batch = obs_map(lambda x: x.index_select(0, idx), obs)
-        labels = tuple(p.index_select(0, idx) for p in params)
+        return self._turn(obs_map(lambda x: x.index_select(0, idx), obs), tuple(p.index_select(0, idx) for p in params), g)
+
+    def _turn(self, batch: Observation, labels: tuple[torch.Tensor, ...], g: torch.Tensor
+              ) -> tuple[Observation, tuple[torch.Tensor, ...]]:
+        """Samples ``[M, ...]`` and their labels, each turned by its element ``g [M]``."""
         if self.symmetry is None:
             return batch, labels
         if isinstance(batch, Mapping):
@@ -315,12 +430,16 @@ class Distillation(PPO):
             d["obs"] = keep(None if first else d["obs"], obs)
         d["params"] = [keep(None if first else d["params"][i], p) for i, p in enumerate(params)]
         d["value"] = keep(None if first else d["value"], value)
+        if self.recurrent:  # where an episode begins, and where the env only reset (no transition), per step
+            for name, x in (("starts", self.rollout.episode_starts), ("valid", self.rollout.valid)):
+                d[name] = keep(None if first else d[name], x.transpose(0, 1).contiguous())
         self.filled = int(d["value"].shape[1])
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        data = {"obs": self.dataset["obs"], "value": self.dataset["value"],
-                **{f"params_{i}": p for i, p in enumerate(self.dataset["params"])}} if self.dataset else {}
+        d = self.dataset
+        data = {"obs": d["obs"], "value": d["value"], **{k: d[k] for k in STEP_FLAGS if k in d},
+                **{f"params_{i}": p for i, p in enumerate(d["params"])}} if d else {}
         state["distill"] = self.dp.gather_state({"filled": self.filled, PER_ENV: data})
         return state
 
@@ -331,7 +450,11 @@ class Distillation(PPO):
         data = part[PER_ENV]
         self.dataset = {} if not data else {
             "obs": obs_map(lambda x: x.to(self.device), data["obs"]), "value": data["value"].to(self.device),
-            "params": [data[f"params_{i}"].to(self.device) for i in range(sum(k.startswith("params_") for k in data))]}
+            "params": [data[f"params_{i}"].to(self.device) for i in range(sum(k.startswith("params_") for k in data))],
+            **{k: data[k].to(self.device) for k in STEP_FLAGS if k in data}}
+        if self.recurrent and self.dataset and not all(k in self.dataset for k in STEP_FLAGS):
+            raise ValueError("this checkpoint's dataset was a feed-forward student's: it has no episode starts for "
+                             "a recurrent student's sequences (resume it with the student it was saved with)")
 
 
 def bank_from_checkpoint(payload: Mapping[str, Any], source: str) -> TeacherBank:
