@@ -138,15 +138,16 @@ class ControlRunConfig(ControlConfig):
     controller: str = "conv"
     """A kind of ``freeform.agents.controllers.CONTROLLERS``: ``conv`` (``ConvController``: one set of weights for
     every cell, any body), ``mlp`` (``MLPController`` over the flattened box: the baseline), ``context``
-    (``ContextConvController``: masked convolutions with the body's pooled features) or ``attention``
-    (``VoxelAttentionController``: attention over the body's voxels); the last two are unchanged by padding.
-    Width: ``hidden``."""
+    (``ContextConvController``: masked convolutions with the body's pooled features), ``attention``
+    (``VoxelAttentionController``: attention over the body's voxels), or either with a memory of the episode
+    (``context_gru``, ``attention_gru``: recurrent; ``attention_gru`` starts from an ``attention`` controller's
+    weights); all but the first two are unchanged by padding. Width: ``hidden``."""
     head: str = "direct"
     """The controller's actor head (``freeform.agents.controller_heads.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
     ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
     ``control.stroke_periods`` >= 1) or ``wave`` (a stroke whose mean is a travelling wave: the body's wave vector,
-    each cell's amplitude and phase offset, and a free correction; ``controller=context``, ``context_gru`` or ``attention``, with
+    each cell's amplitude and phase offset, and a free correction; ``controller=context``, ``attention`` or their ``_gru`` kinds, with
     ``control.stroke_periods`` >= 1)."""
     wave_k: float = 1.0
     """``head=wave``: the wave number the untrained controller plays along x, or along the heading where the task

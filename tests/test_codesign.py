@@ -168,6 +168,7 @@ def test_a_codesign_policy_can_hold_a_population_controller() -> None:
 
 
 def test_ppo_trains_body_and_brain_and_saves_between_episodes() -> None:
+    torch.manual_seed(0)  # (the weights are the process's draws: a file run before this one must not change them)
     e = env(n=4)
     policy = CodesignActorCritic.for_env(e, hidden=8, controller_hidden=4)
     ppo = PPO(e, policy, PPOConfig(rollout_steps=e.steps, sgd_minibatch_size=8, num_sgd_iter=2, seed=0))

@@ -129,7 +129,7 @@ def test_controller_refusals(bad: dict) -> None:
 
 # ------------------------------------------------------------------ controllers with a view of the whole body
 
-BOX_FREE = ("context", "attention", "context_gru")  # the kinds whose padding changes nothing
+BOX_FREE = ("context", "attention", "context_gru", "attention_gru")  # the kinds whose padding changes nothing
 
 
 def run(net: torch.nn.Module, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -253,14 +253,17 @@ def test_a_controller_built_for_one_box_runs_on_another_and_reads_back_for_it(tm
 
 @pytest.mark.parametrize("kind", BOX_FREE)
 def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
-    """One PPO epoch moves every weight the loss reaches (actor head, trunk, critic, σ) and a run's checkpoint of it
-    reads back as a controller."""
+    """One PPO epoch moves every weight the loss reaches (actor head, trunk, critic, σ; the memory of
+    ``attention_gru`` after its silent recall has moved, an epoch later) and a run's checkpoint of it reads back as a
+    controller."""
     env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
     torch.manual_seed(0)
     net = build_controller(kind, env, hidden=8)
     before = {k: v.clone() for k, v in net.state_dict().items()}
     ppo = PPO(env, net, PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8, lr=1e-3, seed=0))
     assert np.isfinite(ppo.train_epoch()["action_std"])
+    if kind == "attention_gru":
+        ppo.train_epoch()
     still = [k for k, v in net.state_dict().items() if torch.equal(v, before[k])]
     assert still == []
     ppo.save(tmp_path / "ppo.pt")
@@ -412,16 +415,19 @@ def replace_control(env: ControlEnv, **changes) -> ControlEnv:
     return ControlEnv(env.grids, control=replace(env.control, **changes))
 
 
-def test_the_recurrent_controller_remembers_the_episode_and_forgets_it_at_a_reset(envs_and_obs) -> None:
+@pytest.mark.parametrize("kind", ["context_gru", "attention_gru"])
+def test_the_recurrent_controller_remembers_the_episode_and_forgets_it_at_a_reset(envs_and_obs, kind) -> None:
     """Truth: the same controller stepped one observation at a time (controller_step, the state carried by hand).
     A sequence of T steps in one call gives those outputs; an episode start at step k gives step k's outputs from
     the initial state; the memory is not a no-op (the same last observation after two different histories gives
     different commands); and it is refused behind a privileged critic, naming why."""
     _, env, _, obs = envs_and_obs
     torch.manual_seed(4)
-    net = build_controller("context_gru", env, hidden=8)
+    net = build_controller(kind, env, hidden=8)
     with torch.no_grad():
         net.actor.weight.normal_(std=0.3)  # (commands that show the memory's effect above rounding)
+        if kind == "attention_gru":
+            net.recall.weight.normal_(std=0.3)  # (its recall starts silent)
         seq = obs[None] + 0.3 * torch.randn(5, *obs.shape) * obs[None, :, env.filled_channel : env.filled_channel + 1]
         start = torch.zeros(5, env.num_envs, dtype=torch.bool)
         start[3, 1] = True  # env 1 starts a new episode at step 3
@@ -438,5 +444,33 @@ def test_the_recurrent_controller_remembers_the_episode_and_forgets_it_at_a_rese
         torch.testing.assert_close(mean[3, 1], fresh[0][1], rtol=1e-5, atol=1e-6)  # reset: as from the start
         assert (mean[3, 0] - fresh[0][0]).abs().max() > 1e-4  # env 0 remembers its three steps
     grouped = replace_control(env, privileged_critic=True)
-    with pytest.raises(ValueError, match="context_gru.*privileged"):
-        build_controller("context_gru", grouped, hidden=8)
+    with pytest.raises(ValueError, match=f"{kind}.*privileged"):
+        build_controller(kind, grouped, hidden=8)
+
+
+def test_the_attention_controller_with_memory_starts_as_the_feed_forward_one_it_grows_from(envs_and_obs,
+                                                                                           tmp_path) -> None:
+    """control.controller_init of a trained feed-forward ``attention`` controller into ``attention_gru``: every
+    weight they share is loaded and the memory's recall is silent, so over an episode of changing observations the
+    recurrent controller gives the feed-forward one's commands and values at every step (to rounding). A file of
+    another kind is still refused, naming it."""
+    from freeform.run.build import load_controller
+
+    _, env, _, obs = envs_and_obs
+    torch.manual_seed(5)
+    trained = build_controller("attention", env, hidden=8, head="direct")
+    with torch.no_grad():
+        for p in trained.parameters():
+            p.add_(0.2 * torch.randn_like(p))  # (a trained controller, not the fresh init)
+    save_controller(tmp_path / "controller.pt", trained, env.control)
+    grown = build_controller("attention_gru", env, hidden=8)
+    load_controller(grown, str(tmp_path / "controller.pt"))
+    seq = obs[None] + 0.3 * torch.randn(4, *obs.shape) * obs[None, :, env.filled_channel: env.filled_channel + 1]
+    with torch.no_grad():
+        *out, _ = grown(seq, grown.initial_state(env.num_envs), torch.zeros(4, env.num_envs, dtype=torch.bool))
+        for t in range(4):
+            for a, b in zip(out, trained(seq[t]), strict=True):
+                torch.testing.assert_close(a[t], b, rtol=1e-6, atol=1e-7)  # (batched over T·N: rounding)
+    save_controller(tmp_path / "context" / "controller.pt", build_controller("context", env, hidden=8), env.control)
+    with pytest.raises(ValueError, match="holds another controller than this run builds"):
+        load_controller(grown, str(tmp_path / "context" / "controller.pt"))

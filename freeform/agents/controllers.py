@@ -389,11 +389,16 @@ class VoxelAttentionController(FromInputs, nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
-        n = obs.shape[0]
         features, order, valid = self.tokens(obs)
         x = self.embed(features)
         for block in self.blocks:
             x = block(x, valid)
+        return self._readout(obs, x, order, valid)
+
+    def _readout(self, obs: torch.Tensor, x: torch.Tensor, order: torch.Tensor, valid: torch.Tensor
+                 ) -> tuple[torch.Tensor, ...]:
+        """The tokens after the blocks ``x [N, K, h]`` → (mean, log_std, mask, value), as :meth:`forward`."""
+        n = obs.shape[0]
         x = self.norm(x) * valid[..., None]
         per_token = self.actor(x).transpose(1, 2) * valid[:, None]  # [N, outputs, K]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
@@ -408,9 +413,79 @@ class VoxelAttentionController(FromInputs, nn.Module):
         return mean, self.log_std.expand_as(mean), mask, value
 
 
+class RecurrentAttentionController(VoxelAttentionController):
+    """:class:`VoxelAttentionController` with a memory of how this body has moved: a GRU over the body's tokens
+    after the first block, step after step of the episode, recalled into every token before the other blocks — so
+    that a controller meeting a body it never saw can read, from the body's answers to its last commands, what its
+    voxels alone do not say (the implicit system identification of :class:`RecurrentContextController`).
+
+    A recurrent policy (``freeform.agents.recurrent``): observations ``[T, N, C, Bx, By, Bz]``, the state ``(m [N,
+    1, M],)`` (zeros at an episode's start; the critic reads the tokens it shaped), ``episode_start [T, N]``::
+
+        x = block_1(embed(tokens))                       (all T·N observations at once)
+        m_t = GRU(mean over the body's tokens of x, m_{t−1})     (M wide: ``memory``)
+        x = blocks_2..L(x + Linear(M→h)(m_t))            (the recall)
+
+    then the attention controller's norm, actor, wave head and critic. The recall starts at zero, so the untrained
+    memory changes nothing: started from a feed-forward ``attention`` controller of the same sizes
+    (``control.controller_init``, :attr:`grows_from`) it gives that controller's commands exactly, and training
+    (distillation over sequences) learns what memory adds to it. Padding changes nothing, as there.
+    """
+
+    actor_state_size = 1
+    grows_from = "attention"
+    """The feed-forward kind whose weights this one starts from: all but :attr:`memory_prefixes`'."""
+    memory_prefixes = ("gru.", "recall.")
+
+    def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
+                 head: str = "direct", wave: dict[str, Any] | None = None, memory: int = 32) -> None:
+        super().__init__(inputs, hidden, heads, layers, log_std, head, wave)
+        if not (isinstance(memory, int) and memory >= 1) or layers < 2:
+            raise ValueError(f"memory must be a positive int and layers >= 2 (the recall enters between blocks), "
+                             f"got memory={memory!r}, layers={layers!r}")
+        self.init_kwargs["memory"] = self.memory = memory
+        self.gru = nn.GRU(hidden, memory)
+        self.recall = nn.Linear(memory, hidden)
+        nn.init.zeros_(self.recall.weight)
+        nn.init.zeros_(self.recall.bias)
+
+    def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
+        """``(zeros [N, 1, memory],)``: the GRU's state at an episode's start."""
+        return (self.log_std.new_zeros(num_envs, 1, self.memory),)
+
+    def _steps(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+               ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        """→ ((mean, log σ, mask ``[T, N, A]``, value ``[T, N]``), the state after the last step)."""
+        steps, n = obs.shape[:2]
+        o = obs.flatten(0, 1)
+        features, order, valid = self.tokens(o)
+        x = self.blocks[0](self.embed(features), valid)
+        pooled = (x * valid[..., None]).sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+        m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
+        x = x + self.recall(m.flatten(0, 1))[:, None]
+        for block in self.blocks[1:]:
+            x = block(x, valid)
+        out = self._readout(o, x, order, valid)
+        return tuple(t.view(steps, n, *t.shape[1:]) for t in out), state
+
+    def action_params(self, obs: torch.Tensor, actor_state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+                      ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...]]:
+        """The actor alone: ``obs [T, N, C, Bx, By, Bz]`` → ((mean, log σ, mask) ``[T, N, A]`` each, state)."""
+        (*params, _), state = self._steps(obs, actor_state, episode_start)
+        return tuple(params), state
+
+    def forward(self, obs: torch.Tensor, state: tuple[torch.Tensor, ...], episode_start: torch.Tensor
+                ) -> tuple[Any, ...]:
+        """``obs [T, N, C, Bx, By, Bz]``, ``state``, ``episode_start [T, N]`` → (mean, log σ, mask ``[T, N, A]``,
+        value ``[T, N]``, state)."""
+        out, state = self._steps(obs, state, episode_start)
+        return (*out, state)
+
+
 CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPController,
                                            "context": ContextConvController, "attention": VoxelAttentionController,
-                                           "context_gru": RecurrentContextController}
+                                           "context_gru": RecurrentContextController,
+                                           "attention_gru": RecurrentAttentionController}
 """``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
 ``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
 a body changes nothing."""
@@ -531,5 +606,5 @@ def controller_kind(controller: nn.Module) -> str:
 
 
 __all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "MLPController", "PrivilegedCritic",
-           "RecurrentContextController", "VoxelAttentionController", "build_controller", "controller_kind",
-           "controller_step"]
+           "RecurrentAttentionController", "RecurrentContextController", "VoxelAttentionController", "build_controller",
+           "controller_kind", "controller_step"]

@@ -271,7 +271,10 @@ def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | N
 def load_controller(controller: torch.nn.Module, source: str) -> None:
     """``control.controller_init``: a trained controller's weights into ``controller`` — from a ``controller.pt``, a
     results folder holding one, a control run's policy or a co-design run's controller part (a run's directory or
-    checkpoint file: ``freeform.agents.controller_file.read_controller``)."""
+    checkpoint file: ``freeform.agents.controller_file.read_controller``). A controller with memory (``grows_from``:
+    ``attention_gru``) also starts from its feed-forward kind's weights, its memory silent until trained."""
+    from freeform.agents.controllers import controller_kind
+
     trained = read_saved_controller(source, "control.controller_init")
     ours, theirs = getattr(controller, "wave", None), getattr(trained, "wave", None)
     if ours is not None and theirs is not None and (ours["k"], ours["amplitude"]) != (theirs["k"], theirs["amplitude"]):
@@ -280,8 +283,13 @@ def load_controller(controller: torch.nn.Module, source: str) -> None:
                          f"amplitude {theirs['amplitude']}; this run's is k = {ours['k']}, amplitude "
                          f"{ours['amplitude']}: set control.wave_k and control.wave_amplitude to the file's")
     weights = trained.state_dict()
+    # (a controller with memory may start from its feed-forward kind: everything but the memory, which starts silent)
+    grows = getattr(controller, "grows_from", None) == controller_kind(trained)
     try:
-        controller.load_state_dict(weights)
+        loaded = controller.load_state_dict(weights, strict=not grows)
+        unexplained = [k for k in loaded.missing_keys if not k.startswith(controller.memory_prefixes)] if grows else []
+        if unexplained or (grows and loaded.unexpected_keys):
+            raise RuntimeError(f"missing {unexplained}, unexpected {loaded.unexpected_keys}")
     except RuntimeError as e:
         detail = "; ".join(line.strip() for line in str(e).splitlines()[:3])
         raise ValueError(f"control.controller_init={source!r} holds another controller than this run builds (kind "
