@@ -146,6 +146,58 @@ def test_two_gloo_ranks_match_one_process(tmp_path: Path, case: str) -> None:
     torch.testing.assert_close(flat_params(back), flat_params(single), rtol=1e-4, atol=1e-5)
 
 
+def make_distillation(envs: tuple[int, int] = (0, NUM_ENVS), student: str = "feed-forward") -> Any:
+    """DAgger from a fixed network (the same teacher for every env) into a student, on environments ``[lo, hi)``;
+    the recurrent student's sequences of 3 steps begin mid-episode (episodes of 4), so its state pass runs too."""
+    from freeform.agents.distill import Distillation, DistillConfig
+
+    torch.manual_seed(7)
+    teacher_net = VoxelActorCritic(resolution=RHO, materials=2, hidden=8).eval()
+
+    def teacher(obs: torch.Tensor, _envs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        with torch.no_grad():
+            return tuple(teacher_net(obs))
+
+    torch.manual_seed(0)
+    env = DesignEnv(envs[1] - envs[0], EnvConfig(resolution=RHO, steps=STEPS), materials=2)
+    policy = (RecurrentActorCritic(RHO**3, env.action_dim, hidden=(8,), rnn_hidden=8) if student == "recurrent"
+              else VoxelActorCritic(resolution=RHO, materials=2, hidden=16))
+    return Distillation(env, policy, teacher, PPOConfig(**{**PPO_KW, "sequence_length": 3}),
+                        DistillConfig(beta=0.5, buffer=2), first_env=envs[0], total_envs=NUM_ENVS)
+
+
+def _distill_worker(rank: int, world: int, init_file: str, out_dir: str, student: str) -> None:
+    """One rank of :func:`make_distillation`: three rounds (the third drops the first from the dataset)."""
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    try:
+        learner = make_distillation(env_slice(NUM_ENVS, world, rank), student)
+        stats = [learner.train_epoch() for _ in range(3)]
+        torch.save({"stats": stats, "params": flat_params(learner)}, Path(out_dir) / f"rank{rank}.pt")
+        dist.barrier()
+    finally:
+        dist.destroy_process_group()
+    os._exit(0)  # (as _worker: skip the interpreter's teardown)
+
+
+@pytest.mark.parametrize("student", ["feed-forward", "recurrent"])
+def test_two_gloo_ranks_distil_as_one_process(tmp_path: Path, student: str) -> None:
+    """algo=distill data-parallel: the teachers' mixing draws, the aggregated dataset's minibatches (samples, or a
+    recurrent student's sequences, split between ranks by their env) and the summed gradients give the single
+    process's student and statistics after three rounds, up to summation order."""
+    single = make_distillation(student=student)
+    want = [single.train_epoch() for _ in range(3)]
+    mp.spawn(_distill_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), student), nprocs=2, join=True)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
+    assert torch.equal(ranks[0]["params"], ranks[1]["params"])
+    torch.testing.assert_close(ranks[0]["params"], flat_params(single), rtol=1e-4, atol=1e-5)
+    for got, expected in zip(ranks[0]["stats"], want, strict=True):
+        got, expected = comparable(got), comparable(expected)
+        assert got.keys() == expected.keys()
+        for key in expected:
+            assert got[key] == pytest.approx(expected[key], rel=1e-4, abs=1e-6, nan_ok=True), key
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # The split rules, by hand.
 # ---------------------------------------------------------------------------------------------------------------

@@ -90,7 +90,8 @@ class DistillConfig:
 
 class Teacher(Protocol):
     """A policy per environment: ``(obs [N, ...], envs [N] int64, each sample's environment) -> (*params, value)``,
-    ``params`` the student's distribution's (``value`` ``[N]``, or None where the teacher has no critic)."""
+    ``params`` the student's distribution's (``value`` ``[N]``, or None where the teacher has no critic). ``envs``
+    index this process's environments: data-parallel, index i is environment ``first_env + i`` of the run."""
 
     def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]: ...
 
@@ -137,7 +138,8 @@ class TeacherMixing:
         self.total_envs = total_envs if total_envs is not None else env.num_envs
         self.beta, self.step_count = 0.0, 0
         self.mixed = 0.0
-        """The fraction of the last rollout's steps that took the teacher's action (a statistic)."""
+        """The fraction of the last rollout's steps that took the teacher's action, over every rank's environments
+        (a statistic)."""
         self._obs: Observation | None = None
 
     def __getattr__(self, name: str) -> Any:
@@ -156,13 +158,14 @@ class TeacherMixing:
     def step(self, actions: torch.Tensor) -> tuple[Observation, torch.Tensor, torch.Tensor, dict[str, Any]]:
         if self.beta > 0.0 and self._obs is not None:
             g = torch.Generator().manual_seed(int(self.seed) * 1_000_003 + self.step_count)
-            take = torch.rand(self.total_envs, generator=g)[self.first_env: self.first_env + self.num_envs] < self.beta
+            every = torch.rand(self.total_envs, generator=g) < self.beta  # (every rank draws all: the global figure)
+            take = every[self.first_env: self.first_env + self.num_envs]
             if bool(take.any()):
                 envs = torch.arange(self.num_envs, device=self.device)
                 *params, _ = self.teacher(self._obs, envs)
                 taught = self.distribution.env_actions(self.distribution.mode(tuple(params))).to(actions.device)
                 actions = torch.where(take.to(actions.device)[:, None], taught.to(actions.dtype), actions)
-            self.mixed += float(take.float().mean())
+            self.mixed += float(every.float().mean())
         self.step_count += 1
         obs, reward, done, info = self.env.step(actions)
         self._obs = obs
