@@ -334,21 +334,58 @@ POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave", "per_body"
 """The ``bodies.csv`` columns a pooled table reads (each set must have them: ``--per-body`` on all its bodies)."""
 
 
-def pool(sets: list[Path], out: Path) -> list[dict]:
+def _read_table(path: Path, who: str) -> list[dict]:
+    if not path.is_file():
+        raise ValueError(f"{who}: no bodies.csv (an output folder of --evaluate PATH --bodies ...)")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
+    """``--per-body-from``: an earlier pooled table's rows (its folder, or its bodies CSV file as the results keep
+    it: ``heldout93/<name>_bodies.csv``), one list per set in its order (``count`` of them)."""
+    groups: dict[str, list[dict]] = {}
+    path = reference if reference.suffix == ".csv" else reference / "bodies.csv"
+    for row in _read_table(path, f"--per-body-from {reference}"):
+        groups.setdefault(row.get("set", ""), []).append(row)
+    if "" in groups or len(groups) != count:
+        raise ValueError(f"--per-body-from {reference}: a pooled table of {count} sets is needed (an output folder "
+                         f"of --pool), and it holds {len(groups)}")
+    return list(groups.values())
+
+
+def _take_per_body(table: list[dict], reference: list[dict], folder: Path, source: Path) -> None:
+    """Each body's per-body columns from ``reference`` (the same set in an earlier pooled table), in place; the same
+    body under the same episode settings walks its own gait the same, so the open-loop figures must agree."""
+    if len(reference) != len(table):
+        raise ValueError(f"--per-body-from {source}: its set for {folder} holds {len(reference)} bodies, and "
+                         f"{folder} {len(table)}")
+    for mine, theirs in zip(table, reference, strict=True):
+        gait = (float(mine["open_loop"]), float(theirs["open_loop"]))
+        if mine["body"] != theirs["body"] or not np.isclose(*gait, rtol=1e-6, atol=1e-9):
+            raise ValueError(f"--per-body-from {source}: body {mine['body']} of {folder} walked its own gait "
+                             f"{gait[0]:.6f} here and {gait[1]:.6f} there: not the same bodies, or other episode "
+                             "settings (evaluate with the reference's --headings, --eval-episodes and seed)")
+        mine["per_body"], mine["per_body_mean_command"] = theirs["per_body"], theirs["per_body_mean_command"]
+
+
+def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list[dict]:
     """Evaluations of one controller on several sets of bodies (``evaluate_bodies``' output folders) as one: their
     ``bodies.csv`` rows together (a ``set`` column: the folder's name) and a ``summary.csv`` over all the bodies —
     the means, the fractions of per-body control, the controller over the hand-set wave, the fractions beyond
     their own gait. Refused, naming the folder, where a set lacks a column or a value, or was evaluated with
     another controller kind, episode settings, episode count or seed; ``run.json`` lists each set's controller
     file (the same weights may sit in a run and in its ``controller.pt``) and each set's bodies (``sets``: the
-    ``.npy`` each set was evaluated on and its body count, which ``experiments.student_scaling`` compares)."""
+    ``.npy`` each set was evaluated on and its body count, which ``experiments.student_scaling`` compares).
+    ``per_body_from``: an earlier pooled table of the same sets, in the same order, whose per-body columns are
+    taken instead of the sets' own (sets evaluated without ``--per-body``: no per-body controllers trained
+    again); each body's open-loop figure must equal the reference's."""
+    reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
     rows, controllers, settings, sources = [], [], [], []
-    for folder in sets:
-        path = Path(folder) / "bodies.csv"
-        if not path.is_file():
-            raise ValueError(f"--pool {folder}: no bodies.csv (an output folder of --evaluate PATH --bodies ...)")
-        with open(path, newline="") as f:
-            table = list(csv.DictReader(f))
+    for i, folder in enumerate(sets):
+        table = _read_table(Path(folder) / "bodies.csv", f"--pool {folder}")
+        if reference is not None:
+            _take_per_body(table, reference[i], folder, per_body_from)
         missing = [c for c in POOLED if not table or c not in table[0]]
         if missing:
             raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
@@ -386,7 +423,7 @@ def pool(sets: list[Path], out: Path) -> list[dict]:
                  ("per-body controllers (stochastic)", "per_body"),
                  ("per-body controllers (mean command)", "per_body_mean_command"))]
     _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n,
-                                "sets": sources})
+                                "sets": sources, "per_body_from": per_body_from and str(per_body_from)})
     return summary
 
 
@@ -396,8 +433,12 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m experiments.heldout", description=pool.__doc__.split("\n")[0])
     p.add_argument("--pool", nargs="+", required=True, type=Path, help="--evaluate output folders to pool")
     p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--per-body-from", type=Path, default=None,
+                   help="a pooled table of the same sets (same order) whose per-body columns to take (for sets "
+                        "evaluated without --per-body): its folder or bodies CSV, e.g. "
+                        "docs/results/control_student/heldout93/student64_gen3_bodies.csv")
     args = p.parse_args(argv)
-    pool(args.pool, args.out)
+    pool(args.pool, args.out, args.per_body_from)
 
 
 if __name__ == "__main__":

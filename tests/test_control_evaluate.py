@@ -312,7 +312,8 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     """Two sets of 1 and 2 bodies pooled: the fraction of per-body control is the mean over all three bodies
     divided by theirs (mean command: 1.0 / (5/3) = 0.6, not the mean of the sets' fractions, 0.583), the
     wave ratio likewise, the bodies beyond their gait counted over all; a set evaluated without per-body
-    controllers on every body, or with another seed, is refused, naming the folder; the scaling curve refuses
+    controllers on every body, or with another seed, is refused, naming the folder; sets evaluated without them
+    take an earlier pooled table's (--per-body-from), a body whose own gait differs refused; the scaling curve refuses
     points pooled from other sets of bodies (by the sets recorded, else by the count)."""
     from experiments.heldout import pool
 
@@ -346,6 +347,20 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     d = write("d", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], seed=1)
     with pytest.raises(ValueError, match=r"--pool .*d: evaluated with other settings .*\['seed'\]"):
         pool([a, d], tmp_path / "out3")
+    # sets evaluated without per-body controllers take theirs from an earlier pooled table of the same bodies (its
+    # folder or its bodies CSV), matched set by set and checked by each body's own gait
+    bare = [write("a_bare", [body(0, 0.1, 0.5, 0.5, 0.5, float("nan"), float("nan"))]),
+            write("b_bare", [body(0, 0.9, 0.5, 1.0, 0.5, float("nan"), float("nan")),
+                             body(1, 0.2, 0.5, 1.0, 1.0, float("nan"), float("nan"))])]
+    for reference in (tmp_path / "out", tmp_path / "out" / "bodies.csv"):
+        taken = {r["what"]: float(r["mean"]) for r in pool(bare, tmp_path / "taken", per_body_from=reference)}
+        assert taken["fraction of per-body control (mean command)"] == pytest.approx((2.5 / 3) / (5.0 / 3.0))
+        assert taken["per-body controllers (stochastic)"] == pytest.approx(1.0)
+    moved = write("b_moved", [body(0, 0.9, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.25, 0.5, 1.0, 1.0, 1.0, 2.0)])
+    with pytest.raises(ValueError, match=r"body 1 of .*b_moved walked its own gait 0.250000 here and 0.200000 there"):
+        pool([bare[0], moved], tmp_path / "out4", per_body_from=tmp_path / "out")
+    with pytest.raises(ValueError, match=r"a pooled table of 1 sets is needed .* it holds 2"):
+        pool([a], tmp_path / "out4", per_body_from=tmp_path / "out")
     # the scaling curve reads pooled tables: its columns are the pooled figures, points over other bodies refused
     from experiments.student_scaling import main as scaling
 
