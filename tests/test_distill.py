@@ -240,8 +240,9 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
 
 def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
     """algo=distill into an attention_gru student (chunks of 3 steps in episodes of 4, so chunks begin mid-episode;
-    samples turned by the ground's symmetries, a chunk as one): two rounds straight equal one plus a resumed one —
-    the student, and the dataset with its episode starts."""
+    samples turned by the ground's symmetries, a chunk as one; the first epoch's gait rendered, the student driving
+    its body): two rounds straight equal one plus a resumed one — the student, and the dataset with its episode
+    starts."""
     from freeform.train import train
 
     teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
@@ -249,7 +250,8 @@ def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path,
     train(compose(*tiny_control(bodies, *teach, "trainer.epochs=1")), tmp_path / "teachers")
     distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                     "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground",
-                                    "control.controller=attention_gru", "agent.sequence_length=3"))
+                                    "control.controller=attention_gru", "agent.sequence_length=3",
+                                    "trainer.render_every=2"))  # (epoch 0's gait render: the student drives)
     straight_and_resumed(distill, tmp_path, epochs=2)
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")

@@ -98,6 +98,8 @@ def render_callback(every: int) -> EpochCallback:
         else:  # the controller drives the epoch's best body, in the box it was built for
             best = grids[int(ctx.episodes["rewards"].argmax())][None]
             env = control_env(cfg, learner.device, (0, 1), ctx.global_step, bodies=best, box=learner.env.box)
+            if cfg.control.teachers and cfg.algo.name == "distill":  # (a student reads the body, not its teacher)
+                env = env.env
         log_controlled_gait(ctx.logger.writer, env, learner.episode_actor(deterministic=True), ctx.global_step)
 
     return callback
