@@ -275,19 +275,23 @@ def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
                                                    for k, v in again.policy.state_dict().items())
 
 
-def test_ppo_loads_a_checkpoint_naming_the_controllers_old_module(tmp_path) -> None:
-    """Checkpoints written before the controllers moved to agents/controllers.py name
-    ``freeform.agents.networks:ConvController``; they still load."""
+@pytest.mark.parametrize(("kind", "now", "before"), [
+    ("conv", "freeform.agents.controllers:ConvController", "freeform.agents.networks:ConvController"),
+    ("attention", "freeform.agents.attention_controllers:VoxelAttentionController",
+     "freeform.agents.controllers:VoxelAttentionController")])
+def test_ppo_loads_a_checkpoint_naming_the_controllers_old_module(tmp_path, kind, now, before) -> None:
+    """Checkpoints written before a controller moved name its old module (the conv controller's before
+    agents/controllers.py, the attention controller's before agents/attention_controllers.py); they still load."""
     from freeform.checkpoint import load_checkpoint, save_checkpoint
 
     env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
-    ppo = PPO(env, build_controller("conv", env, hidden=4), PPOConfig(rollout_steps=4, sgd_minibatch_size=8, seed=0))
+    ppo = PPO(env, build_controller(kind, env, hidden=4), PPOConfig(rollout_steps=4, sgd_minibatch_size=8, seed=0))
     ppo.save(tmp_path / "ppo.pt")
     payload = load_checkpoint(tmp_path / "ppo.pt")
-    assert payload["policy_class"] == "freeform.agents.controllers:ConvController"
-    payload["policy_class"] = "freeform.agents.networks:ConvController"
+    assert payload["policy_class"] == now
+    payload["policy_class"] = before
     save_checkpoint(tmp_path / "old.pt", payload)
-    assert type(PPO.load(tmp_path / "old.pt", env).policy) is ConvController
+    assert type(PPO.load(tmp_path / "old.pt", env).policy) is CONTROLLERS[kind]
 
 
 def test_the_registry_names_reach_the_config() -> None:

@@ -5,6 +5,7 @@ resumes bit for bit."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -164,30 +165,42 @@ def test_the_loss_is_kl_or_the_means_squared_error() -> None:
     assert isinstance(MLPActorCritic.for_env(cartpoles(2)).distribution, Categorical)
 
 
+TEACH = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
+         "agent.advantage_norm=group", "seed=4")
+"""A tiny teacher run's overrides (two context teachers, each body's own baseline and advantages)."""
+
+
+def distilled_straight_and_resumed(body_file: Path, tmp_path: Path, *student: str) -> tuple[Any, dict]:
+    """Teachers trained one epoch through the app (:data:`TEACH`), then algo=distill from them (β 0.5, samples turned
+    by the ground's symmetries) with ``student``'s overrides: two rounds straight and one plus a resumed one. Asserts
+    the students and the aggregated datasets equal to the bit; returns the distillation's config and the straight
+    run's checkpoint."""
+    from freeform.train import train
+
+    train(compose(*tiny_control(body_file, *TEACH, "trainer.epochs=1")), tmp_path / "teachers")
+    distill = compose(*tiny_control(body_file, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground", *student))
+    straight_and_resumed(distill, tmp_path, epochs=2)
+    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
+    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    for key, tensor in a["ppo"]["distill"]["per_env"].items():
+        assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
+    return distill, a
+
+
 def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_path: Path,  # noqa: F811
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """A teacher bank trained one epoch through the app, then algo=distill from it (each sample turned by the
     ground's symmetries: their draws resume too): two rounds straight equal one plus a resumed one (the student,
     the optimiser, the aggregated dataset — written packed, as a large run's is)."""
     from freeform import checkpoint
-    from freeform.train import train
 
     monkeypatch.setattr(checkpoint, "PACK_MIN_ELEMENTS", 1024)  # (this tiny run's dataset packed like a large one's)
 
-    teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
-             "agent.advantage_norm=group", "seed=4")
-    cfg = compose(*tiny_control(bodies, *teach, "trainer.epochs=1"))
-    train(cfg, tmp_path / "teachers")
-    distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
-                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground"))
-    straight_and_resumed(distill, tmp_path, epochs=2)
-    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
-    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    distill, a = distilled_straight_and_resumed(bodies, tmp_path)
     assert a["policy_class"].endswith(":ContextConvController")
-    for key, tensor in a["ppo"]["policy"].items():
-        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
-    for key, tensor in a["ppo"]["distill"]["per_env"].items():
-        assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
     assert a["ppo"]["distill"]["per_env"]["obs"].shape[:2] == (4, 8)  # 4 envs, 2 rounds of 4 steps
     raw = torch.load(tmp_path / "split" / "checkpoints" / "last.pt", weights_only=True)
     assert checkpoint.PACKED in raw["ppo"]["distill"]["per_env"]["obs"]
@@ -200,18 +213,18 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     assert all(torch.equal(v, a["ppo"]["policy"][k]) for k, v in ppo.policy.state_dict().items())
     # teachers re-started from the student (distillation's next round, as divide-and-conquer RL does): each
     # teacher of the new bank holds the student's weights
-    again = compose(*tiny_control(bodies, *teach, f"control.controller_init={tmp_path / 'straight'}"))
+    again = compose(*tiny_control(bodies, *TEACH, f"control.controller_init={tmp_path / 'straight'}"))
     _, learner = build(again, torch.device("cpu"))
     for m in range(2):
         member = learner.policy.member_state(m)
         assert all(torch.equal(v, a["ppo"]["policy"][k]) for k, v in member.items())
     # a run whose episode differs from the teachers' is refused, naming the field and both values
-    other = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+    other = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                   "control.duration=0.025"))
     with pytest.raises(ValueError, match=r"control\.duration = 0\.05 there, 0\.025 here"):
         build(other, torch.device("cpu"))
     # a turned body sits elsewhere in its padded box: a student that the padding changes is refused
-    conv = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+    conv = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                  "algo.symmetry=ground", "control.controller=conv"))
     with pytest.raises(ValueError, match=r"control.controller is 'conv'"):
         build(conv, torch.device("cpu"))
@@ -221,9 +234,9 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
         _check_turnable("context", "context", "ground", "fixed")
     _check_turnable("context", "attention", "mirror", "fixed")
     with pytest.raises(ValueError, match=r"algo.symmetry must be one of \['none', 'ground', 'mirror'\]"):
-        compose(*tiny_control(bodies, *teach, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
+        compose(*tiny_control(bodies, *TEACH, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
     # a student may sense more than its teachers did (control.response): they label what they read before it
-    seeing = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+    seeing = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                    "control.response=true"))
     _, student = build(seeing, torch.device("cpu"))
     obs, envs = student.env.reset(), torch.arange(4)
@@ -243,22 +256,9 @@ def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path,
     samples turned by the ground's symmetries, a chunk as one; the first epoch's gait rendered, the student driving
     its body): two rounds straight equal one plus a resumed one — the student, and the dataset with its episode
     starts."""
-    from freeform.train import train
-
-    teach = ("control.teachers=2", "control.controller=context", "agent.group_baseline=true", "control.headings=any",
-             "agent.advantage_norm=group", "seed=4")
-    train(compose(*tiny_control(bodies, *teach, "trainer.epochs=1")), tmp_path / "teachers")
-    distill = compose(*tiny_control(bodies, *teach, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
-                                    "algo.beta=0.5", "agent.num_sgd_iter=2", "algo.symmetry=ground",
-                                    "control.controller=attention_gru", "agent.sequence_length=3",
-                                    "trainer.render_every=2"))  # (epoch 0's gait render: the student drives)
-    straight_and_resumed(distill, tmp_path, epochs=2)
-    a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
-    b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
+    _, a = distilled_straight_and_resumed(bodies, tmp_path, "control.controller=attention_gru",
+                                          "agent.sequence_length=3",
+                                          "trainer.render_every=2")  # (epoch 0's gait render: the student drives)
     assert a["policy_class"].endswith(":RecurrentAttentionController")
-    for key, tensor in a["ppo"]["policy"].items():
-        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
     data = a["ppo"]["distill"]["per_env"]
-    for key, tensor in data.items():
-        assert torch.equal(tensor, b["ppo"]["distill"]["per_env"][key]), key
     assert data["starts"].shape == (4, 8) and data["starts"][:, ::4].all() and not data["starts"][:, 1::4].any()

@@ -269,11 +269,14 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
 
 def moved_policies() -> dict[str, type[nn.Module]]:
     """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now)."""
+    from freeform.agents.attention_controllers import RecurrentAttentionController, VoxelAttentionController
     from freeform.agents.codesign_network import CodesignActorCritic
     from freeform.agents.controllers import ConvController, MLPController
     from freeform.agents.networks import GroupedMLPActorCritic
 
-    return {"freeform.agents.networks:ConvController": ConvController,
+    return {"freeform.agents.controllers:VoxelAttentionController": VoxelAttentionController,
+            "freeform.agents.controllers:RecurrentAttentionController": RecurrentAttentionController,
+            "freeform.agents.networks:ConvController": ConvController,
             "freeform.agents.networks:MLPController": MLPController,
             "freeform.agents.networks:CodesignActorCritic": CodesignActorCritic,
             "freeform.agents.observation_groups:GroupedMLPActorCritic": GroupedMLPActorCritic}
