@@ -334,9 +334,10 @@ POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave", "per_body"
 """The ``bodies.csv`` columns a pooled table reads (each set must have them: ``--per-body`` on all its bodies)."""
 
 
-def _read_table(path: Path, who: str) -> list[dict]:
+def _read_table(path: Path, who: str, made_by: str) -> list[dict]:
+    """A ``bodies.csv``'s rows; refused naming ``who`` asked and what writes one (``made_by``)."""
     if not path.is_file():
-        raise ValueError(f"{who}: no bodies.csv (an output folder of --evaluate PATH --bodies ...)")
+        raise ValueError(f"{who}: no {path.name} there (give an output folder of {made_by})")
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
@@ -346,7 +347,7 @@ def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
     it: ``heldout93/<name>_bodies.csv``), one list per set in its order (``count`` of them)."""
     groups: dict[str, list[dict]] = {}
     path = reference if reference.suffix == ".csv" else reference / "bodies.csv"
-    for row in _read_table(path, f"--per-body-from {reference}"):
+    for row in _read_table(path, f"--per-body-from {reference}", "--pool, or its bodies CSV"):
         groups.setdefault(row.get("set", ""), []).append(row)
     if "" in groups or len(groups) != count:
         raise ValueError(f"--per-body-from {reference}: a pooled table of {count} sets is needed (an output folder "
@@ -383,7 +384,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
     rows, controllers, settings, sources = [], [], [], []
     for i, folder in enumerate(sets):
-        table = _read_table(Path(folder) / "bodies.csv", f"--pool {folder}")
+        table = _read_table(Path(folder) / "bodies.csv", f"--pool {folder}", "--evaluate PATH --bodies ...")
         if reference is not None:
             _take_per_body(table, reference[i], folder, per_body_from)
         missing = [c for c in POOLED if not table or c not in table[0]]

@@ -36,7 +36,8 @@ import torch.nn as nn
 
 from freeform.agents.distributed import PER_ENV
 from freeform.agents.ppo import PPO, PPOConfig
-from freeform.agents.ppo.rollout import Observation, obs_map
+from freeform.agents.ppo.losses import masked_mean
+from freeform.agents.ppo.rollout import Observation, chunked, obs_map
 from freeform.agents.teachers import TEACHER, TeacherBank
 from freeform.distributions import ActionDistribution, DiagGaussian
 
@@ -329,14 +330,9 @@ class Distillation(PPO):
         obs, labels = self._turn(obs_map(steps_of, seq.obs), tuple(steps_of(p) for p in seq.params), g)
         obs = obs_map(lambda x: x.reshape(length, local.numel(), *x.shape[1:]), obs)
         *params, value, _ = self.policy(obs, tuple(s[local] for s in seq.state), seq.starts[:, local])
-        weight = steps_of(seq.mask)
-
-        def reduce(x: torch.Tensor) -> torch.Tensor:
-            return torch.where(weight, x, 0.0).sum() / count.to(x.dtype)
-
         student = (*(p.reshape(-1, p.shape[-1]) for p in params), value.reshape(-1))
         return distill_loss(student, labels, steps_of(seq.value), self.distribution, self.distill.loss,
-                            self.config.vf_loss_coeff, reduce)
+                            self.config.vf_loss_coeff, masked_mean(steps_of(seq.mask), count.to(value.dtype)))
 
     @torch.no_grad()
     def _sequences(self) -> _Sequences:
@@ -349,13 +345,9 @@ class Distillation(PPO):
         k = self.filled
         length = min(self.config.sequence_length, k)
         chunks = -(-k // length)
-        pad = chunks * length - k
 
         def cut(x: torch.Tensor) -> torch.Tensor:  # [N, K, ...] -> [L, C·N, ...] (sequence c·N + n)
-            x = x.transpose(0, 1)
-            if pad:
-                x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
-            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, -1, *x.shape[2:])
+            return chunked(x.transpose(0, 1), length)
 
         starts = d["starts"]  # [N, K]
         mask = (starts.long().cummax(1).values.bool() & d["valid"])

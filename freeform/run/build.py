@@ -282,18 +282,19 @@ def load_controller(controller: torch.nn.Module, source: str) -> None:
         raise ValueError(f"control.controller_init={source!r} was trained on the hand-set wave k = {theirs['k']}, "
                          f"amplitude {theirs['amplitude']}; this run's is k = {ours['k']}, amplitude "
                          f"{ours['amplitude']}: set control.wave_k and control.wave_amplitude to the file's")
-    weights = trained.state_dict()
     # (a controller with memory may start from its feed-forward kind: everything but the memory, which starts silent)
     grows = getattr(controller, "grows_from", None) == controller_kind(trained)
     try:
-        loaded = controller.load_state_dict(weights, strict=not grows)
-        unexplained = [k for k in loaded.missing_keys if not k.startswith(controller.memory_prefixes)] if grows else []
-        if unexplained or (grows and loaded.unexpected_keys):
-            raise RuntimeError(f"missing {unexplained}, unexpected {loaded.unexpected_keys}")
+        loaded = controller.load_state_dict(trained.state_dict(), strict=not grows)
+        detail = ""
     except RuntimeError as e:
         detail = "; ".join(line.strip() for line in str(e).splitlines()[:3])
+    if grows and not detail:
+        missing = [k for k in loaded.missing_keys if not k.startswith(controller.memory_prefixes)]
+        detail = f"missing {missing}, unexpected {loaded.unexpected_keys}" if missing or loaded.unexpected_keys else ""
+    if detail:
         raise ValueError(f"control.controller_init={source!r} holds another controller than this run builds (kind "
-                         f"or width: control.controller, control.hidden): {detail}") from e
+                         f"or width: control.controller, control.hidden): {detail}")
 
 
 @register_learner("ppo")

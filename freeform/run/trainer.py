@@ -71,6 +71,15 @@ class EpochContext:
 EpochCallback = Callable[[EpochContext], None]
 
 
+def _names_teachers(env: Any) -> bool:
+    """Whether ``env``'s observations name each body's teacher (a bank's, ``agents.teachers.TeacherIndex``): what a
+    learner acting on it reads, so that a render drives its policy on the same kind of observation."""
+    from freeform.agents.teachers import TEACHER
+
+    shape = env.observation_shape
+    return isinstance(shape, dict) and TEACHER in shape
+
+
 def render_callback(every: int) -> EpochCallback:
     """At epochs 0, ``every``, 2·``every``, ... log renders of the epoch's bodies to TensorBoard
     (``freeform.render.log_bodies(writer, final_grids, rewards, step, cfg)``: best, median and a random body; in a
@@ -98,7 +107,7 @@ def render_callback(every: int) -> EpochCallback:
         else:  # the controller drives the epoch's best body, in the box it was built for
             best = grids[int(ctx.episodes["rewards"].argmax())][None]
             env = control_env(cfg, learner.device, (0, 1), ctx.global_step, bodies=best, box=learner.env.box)
-            if cfg.control.teachers and cfg.algo.name == "distill":  # (a student reads the body, not its teacher)
+            if cfg.control.teachers and not _names_teachers(learner.env):  # (a student reads the body alone)
                 env = env.env
         log_controlled_gait(ctx.logger.writer, env, learner.episode_actor(deterministic=True), ctx.global_step)
 

@@ -203,11 +203,17 @@ def sequence_minibatch_loss(
     flat = tuple(p.reshape(-1, p.shape[-1]) for p in params)
     weight = sequences.mask.reshape(-1)
     count = (weight.sum() if count is None else count).clamp_min(1).to(value.dtype)
+    return ppo_loss(flat, value.reshape(-1), dist, cfg, samples, advantages, kl_coeff, masked_mean(weight, count))
+
+
+def masked_mean(weight: torch.Tensor, count: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A sequence minibatch's ``reduce``: a per-step quantity ``[M]`` summed over the steps that count (``weight
+    [M]`` bool) and divided by ``count`` (the minibatch's counted steps, every rank's)."""
 
     def reduce(x: torch.Tensor) -> torch.Tensor:
         return torch.where(weight, x, 0.0).sum() / count
 
-    return ppo_loss(flat, value.reshape(-1), dist, cfg, samples, advantages, kl_coeff, reduce)
+    return reduce
 
 
 def ppo_loss(
@@ -242,5 +248,5 @@ def ppo_loss(
 
 
 __all__ = ["clamped_value_loss", "clipped_surrogate", "compute_advantages", "discounted_cumsum", "explained_variance",
-           "gaussian_entropy", "gaussian_kl", "gaussian_log_prob", "minibatch_loss", "ppo2_value_loss", "ppo_loss",
-           "sequence_minibatch_loss", "standardize", "update_kl_coeff"]
+           "gaussian_entropy", "gaussian_kl", "gaussian_log_prob", "masked_mean", "minibatch_loss", "ppo2_value_loss",
+           "ppo_loss", "sequence_minibatch_loss", "standardize", "update_kl_coeff"]

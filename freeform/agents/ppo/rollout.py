@@ -79,6 +79,18 @@ class Sequences(NamedTuple):
     episode_start: torch.Tensor
     mask: torch.Tensor
 
+
+def chunked(x: torch.Tensor, length: int) -> torch.Tensor:
+    """Time-major ``x [T, N, ...]`` cut into ``C = ⌈T / L⌉`` chunks of ``L = length`` steps per env, the last padded
+    with zeros: ``[L, C·N, ...]``, sequence ``s = c·N + n`` env n's chunk c (a recurrent policy's training view)."""
+    steps = x.shape[0]
+    chunks = -(-steps // length)
+    pad = chunks * length - steps
+    if pad:
+        x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
+    return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, -1, *x.shape[2:])
+
+
 @dataclass
 class Rollout:
     """One epoch's samples, on the PPO device. Observations keep the env's dtype (uint8 grids stay uint8).
@@ -169,5 +181,5 @@ class Rollout:
         )
 
 
-__all__ = ["Sequences", "Observation", "Rollout", "Samples", "minibatch_samples", "obs_first", "obs_map", "obs_shapes",
-           "sample_columns"]
+__all__ = ["Sequences", "Observation", "Rollout", "Samples", "chunked", "minibatch_samples", "obs_first", "obs_map",
+           "obs_shapes", "sample_columns"]

@@ -25,7 +25,7 @@ from freeform.agents.ppo.losses import (
     standardize_groups,
     update_kl_coeff,
 )
-from freeform.agents.ppo.rollout import Observation, Rollout, Sequences, minibatch_samples, obs_map
+from freeform.agents.ppo.rollout import Observation, Rollout, Sequences, chunked, minibatch_samples, obs_map
 from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 
 
@@ -192,12 +192,9 @@ class MinibatchUpdate:
         steps, envs = buf.rewards.shape
         length = min(self.config.sequence_length, steps)
         chunks = -(-steps // length)
-        pad = chunks * length - steps
 
         def cut(x: torch.Tensor) -> torch.Tensor:  # [T, N, ...] -> [L, C·N, ...]
-            if pad:
-                x = torch.cat([x, x.new_zeros(pad, *x.shape[1:])])
-            return x.reshape(chunks, length, *x.shape[1:]).transpose(0, 1).reshape(length, -1, *x.shape[2:])
+            return chunked(x, length)
 
         assert buf.episode_starts is not None
         return _SequenceBatch(
