@@ -20,13 +20,12 @@ have, 99 % bands) and ``adaptation.png``. Every table must hold the same bodies,
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
-from experiments.common import mean_band
+from experiments.common import mean_band, paired_band, write_rows
+from experiments.paired import body_keys, read_table
 
 COLUMNS = {"stochastic": ("controller", "per_body"), "mean_command": ("mean_command", "per_body_mean_command")}
 """A point's figures -> bodies.csv's columns they are read from: (at 0 epochs, after training)."""
@@ -34,20 +33,10 @@ COLUMNS = {"stochastic": ("controller", "per_body"), "mean_command": ("mean_comm
 
 def read_bodies(folder: Path) -> list[dict[str, str]]:
     """``folder``'s per-body table (a pooled or single held-out evaluation), refused naming what is missing."""
-    table = folder / "bodies.csv"
-    if not table.is_file():
-        raise ValueError(f"{folder}: no bodies.csv there (evaluate with python -m experiments.control --evaluate)")
-    with open(table, newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_table(folder, str(folder), "python -m experiments.control --evaluate")
     if rows and "per_body" not in rows[0]:
-        raise ValueError(f"{table}: no per_body column (evaluate with --per-body N --per-body-run RUN)")
+        raise ValueError(f"{folder}: no per_body column (evaluate with --per-body N --per-body-run RUN)")
     return rows
-
-
-def body_keys(rows: list[dict[str, str]]) -> list[tuple[str, str]]:
-    """Each row's body: its set (a pooled table's: the folder's last ``_`` part, ``eval_x_grown`` -> ``grown``;
-    none in a single set's table) and its index."""
-    return [(r.get("set", "").rsplit("_", 1)[-1], r["body"]) for r in rows]
 
 
 def read_point(start: str, spec: str) -> dict:
@@ -81,9 +70,8 @@ def paired(points: list[dict]) -> list[dict]:
     for other in (p for p in points if p["start"] != first and p["epochs"] in mine):
         row = {"epochs": other["epochs"], "minus": other["start"], "of": first}
         for name in COLUMNS:
-            d = mine[other["epochs"]][name] - other[name]
-            mean, half = mean_band(d, z=stats.t.ppf(0.995, len(d) - 1))  # (Student's t: few bodies per set)
-            row[name], row[f"{name}_band99"] = round(float(mean), 4), round(float(half), 4)
+            mean, half = paired_band(mine[other["epochs"]][name] - other[name])
+            row[name], row[f"{name}_band99"] = round(mean, 4), round(half, 4)
         rows.append(row)
     return rows
 
@@ -109,13 +97,6 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def write(rows: list[dict], path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--from", dest="starts", nargs="+", action="append", required=True, metavar=("START", "POINT"),
@@ -132,10 +113,10 @@ def main(argv: list[str] | None = None) -> None:
             p.error(f"{point['folder']} holds other bodies than {points[0]['folder']}: compare on the same bodies")
     rows = [summary(pt) for pt in points]
     args.out.mkdir(parents=True, exist_ok=True)
-    write(rows, args.out / "adaptation.csv")
+    write_rows(args.out / "adaptation.csv", rows)
     pairs = paired(points)
     if pairs:
-        write(pairs, args.out / "paired.csv")
+        write_rows(args.out / "paired.csv", pairs)
     plot(rows, args.out / "adaptation.png")
     for row in rows:
         print(f"{row['start']:>12} {row['epochs']:>3} epochs: {row['stochastic']:.3f} ± {row['stochastic_band99']:.3f}"

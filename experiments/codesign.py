@@ -28,7 +28,6 @@ Writes ``summary.csv`` (method, robot-seconds, score with its band, what the sco
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import re
 from pathlib import Path
@@ -37,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from experiments.common import mean_band
+from experiments.common import mean_band, read_rows, write_rows
 
 METRICS = ("volume", "surface_ratio", "passive_ratio", "lcc_ratio", "substructures", "symmetry", "compressibility")
 
@@ -343,11 +342,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
             add(method, result, seconds, score)
 
     for name, table in (("summary.csv", rows), ("metrics.csv", metrics)):
-        fields = list(dict.fromkeys(k for row in table for k in row))
-        with open(out / name, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=fields)
-            writer.writeheader()
-            writer.writerows(table)
+        write_rows(out / name, table)
     (out / "run.json").write_text(json.dumps({"runs": runs, "episodes": episodes,
                                               "window_s": [window.burn_in, window.duration]}, indent=1))
     figure(rows, metrics, out / "codesign_vs_baselines.png", window.duration)
@@ -415,7 +410,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--replot", action="store_true", help="redraw the figure from --out's CSVs (no runs needed)")
     args = p.parse_args(argv)
     if args.replot:
-        rows, metrics = (list(csv.DictReader(open(args.out / name))) for name in ("summary.csv", "metrics.csv"))
+        rows, metrics = (read_rows(args.out / name) for name in ("summary.csv", "metrics.csv"))
         seconds = json.loads((args.out / "run.json").read_text())["window_s"][1]
         figure(rows, metrics, args.out / "codesign_vs_baselines.png", seconds)
         return

@@ -39,7 +39,6 @@ how many sit at the clip — what to look at before believing a fast gait.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import time
 from dataclasses import replace
@@ -49,7 +48,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from experiments.common import summary_row
+from experiments.common import summary_row, write_rows
 from experiments.heldout import PerBody, evaluate_bodies
 from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, read_controller, save_controller
@@ -190,10 +189,7 @@ def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dic
              for i, e in enumerate(events.Scalars("charts/episode_reward_mean"))]
     for name, table in (("summary.csv", rows), ("by_heading.csv", by_heading), ("metrics.csv", metrics),
                         ("curve.csv", curve)):
-        with open(out / name, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(table[0]))
-            writer.writeheader()
-            writer.writerows(table)
+        write_rows(out / name, table)
     (out / "run.json").write_text(json.dumps({"run": str(run), "name": cfg.name, "episodes": episodes,
                                               "epochs": int(last["ppo"]["epoch"]), "control": vars(cfg.control)}, indent=1))
     saved = read_controller(run)  # the last policy's controller, self-contained (--evaluate DIR --bodies reads it)
@@ -308,14 +304,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']})")
     if not curve:
         raise SystemExit("no epoch ran within --minutes")
-    with open(out / "curve.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(curve[0]))
-        writer.writeheader()
-        writer.writerows(curve)
-    with open(out / "summary.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows(out / "curve.csv", curve)
+    write_rows(out / "summary.csv", rows)
     (out / "args.json").write_text(json.dumps(vars(args), indent=1))
     figure(curve, rows[:3], out / "control_walker.png")
 

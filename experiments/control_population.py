@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import mean_band, pyplot, read_csv, write_csv
+from experiments.common import mean_band, paired_band, pyplot, read_csv, write_csv
 
 SETS = ("design_unseen", "grown", "hand_built")
 COLUMNS = ("open_loop", "controller", "mean_command", "untrained", "untrained_mean_command")
@@ -73,7 +73,7 @@ def all_sets_row(results: Path, seed: int) -> dict[str, object]:
     for c in COLUMNS:
         out[c], out[f"{c}_band99"] = mean_band(value[c])
     for a, b in PAIRS:
-        out[f"{a}_minus_{b}"], out[f"{a}_minus_{b}_band99"] = mean_band(value[a] - value[b])
+        out[f"{a}_minus_{b}"], out[f"{a}_minus_{b}_band99"] = paired_band(value[a] - value[b])
     out["mean_command_over_open_loop"] = float(value["mean_command"].mean() / value["open_loop"].mean())
     out["beyond_own_gait"] = int((value["mean_command"] > value["open_loop"]).sum())
     return out

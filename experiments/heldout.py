@@ -16,7 +16,6 @@ table over all their bodies (:func:`pool`)::
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 from dataclasses import dataclass, replace
@@ -26,7 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from experiments.common import mean_band, summary_row
+from experiments.common import mean_band, summary_row, write_rows
+from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
@@ -288,11 +288,11 @@ def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str,
                summary_row(f"untrained controller ({kind}, seed {seed}, stochastic)", body["untrained"]),
                summary_row(f"untrained controller ({kind}, seed {seed}, mean command)", body["untrained_mean_command"]),
                summary_row("paired per body: controller (mean command) minus open loop",
-                           body["mean_command"] - open_loop),
+                           body["mean_command"] - open_loop, paired=True),
                summary_row("paired per body: controller (stochastic) minus untrained (stochastic)",
-                           body["controller"] - body["untrained"]),
+                           body["controller"] - body["untrained"], paired=True),
                summary_row("paired per body: controller (mean command) minus untrained (mean command)",
-                           body["mean_command"] - body["untrained_mean_command"]),
+                           body["mean_command"] - body["untrained_mean_command"], paired=True),
                *(_beyond_gait(f"controller ({how})", body[key], open_loop)
                  for how, key in (("stochastic", "controller"), ("mean command", "mean_command")))]
     if "hand_set_wave" in body:
@@ -319,12 +319,8 @@ def _beyond_gait(who: str, moved: np.ndarray, open_loop: np.ndarray) -> dict:
 
 
 def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    for name, table in (("bodies.csv", rows), ("summary.csv", summary)):
-        with open(out / name, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(table[0]))
-            writer.writeheader()
-            writer.writerows(table)
+    write_rows(out / "bodies.csv", rows)
+    write_rows(out / "summary.csv", summary)
     (out / "run.json").write_text(json.dumps(run, indent=1, default=str))
     for row in summary:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
@@ -334,20 +330,11 @@ POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave", "per_body"
 """The ``bodies.csv`` columns a pooled table reads (each set must have them: ``--per-body`` on all its bodies)."""
 
 
-def _read_table(path: Path, who: str, made_by: str) -> list[dict]:
-    """A ``bodies.csv``'s rows; refused naming ``who`` asked and what writes one (``made_by``)."""
-    if not path.is_file():
-        raise ValueError(f"{who}: no {path.name} there (give an output folder of {made_by})")
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
     """``--per-body-from``: an earlier pooled table's rows (its folder, or its bodies CSV file as the results keep
     it: ``heldout93/<name>_bodies.csv``), one list per set in its order (``count`` of them)."""
     groups: dict[str, list[dict]] = {}
-    path = reference if reference.suffix == ".csv" else reference / "bodies.csv"
-    for row in _read_table(path, f"--per-body-from {reference}", "--pool, or its bodies CSV"):
+    for row in read_table(reference, f"--per-body-from {reference}", "--pool, or its bodies CSV"):
         groups.setdefault(row.get("set", ""), []).append(row)
     if "" in groups or len(groups) != count:
         raise ValueError(f"--per-body-from {reference}: a pooled table of {count} sets is needed (an output folder "
@@ -384,7 +371,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
     rows, controllers, settings, sources = [], [], [], []
     for i, folder in enumerate(sets):
-        table = _read_table(Path(folder) / "bodies.csv", f"--pool {folder}", "--evaluate PATH --bodies ...")
+        table = read_table(Path(folder), f"--pool {folder}", "--evaluate PATH --bodies ...")
         if reference is not None:
             _take_per_body(table, reference[i], folder, per_body_from)
         missing = [c for c in POOLED if not table or c not in table[0]]

@@ -194,13 +194,9 @@ def main(argv: list[str] | None = None) -> None:
               f"{out / (name + '.npy')}")
 
     if args.waves:
-        import csv
+        from experiments.common import write_rows
 
-        rows = travelling_waves(sets)
-        with open(out / "waves.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        write_rows(out / "waves.csv", travelling_waves(sets))
 
 
 if __name__ == "__main__":

@@ -20,10 +20,11 @@ point's label is its x; two points may share one (seeds).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 from typing import Any
+
+from experiments.common import read_rows, write_rows
 
 ROWS = {
     "stochastic": "controller (stochastic)",
@@ -51,8 +52,7 @@ def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float
     summary = folder / "summary.csv"
     if not summary.is_file():
         raise ValueError(f"{folder}: no summary.csv there (write one with python -m experiments.heldout --pool)")
-    with open(summary, newline="") as f:
-        rows = {r["what"]: r for r in csv.DictReader(f)}
+    rows = {r["what"]: r for r in read_rows(summary)}
     point: dict[str, float | int | str] = {x: value, "folder": str(folder)}
     for column, what in ROWS.items():
         if what not in rows:
@@ -131,11 +131,7 @@ def main(argv: list[str] | None = None) -> None:
     same_bodies(points, [body_sets(Path(p["folder"])) for p in points])
     points.sort(key=lambda p: p[args.x])
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / f"{AXES[args.x][0]}.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=[args.x, "bodies", *ROWS, "folder"])
-        writer.writeheader()
-        writer.writerows(points)
+    write_rows(out / f"{AXES[args.x][0]}.csv", [{k: p[k] for k in (args.x, "bodies", *ROWS, "folder")} for p in points])
     plot(points, out / f"{AXES[args.x][0]}.png", args.x)
     for q in points:
         print(f"{q[args.x]:5d} {args.x}: {100 * q['fraction_mean_command']:.1f} % of per-body (mean command), "

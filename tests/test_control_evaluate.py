@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scipy import stats
 
+from experiments.common import read_rows as read_csv
+from experiments.common import write_rows
 from experiments.control import main
 from experiments.heldout import read_bodies
 from freeform.agents.controller_file import save_controller
@@ -30,11 +33,6 @@ def tiny_bodies() -> np.ndarray:
     g[1, 0:2, 0, 0], g[1, 0, 1, 0] = [2, 1], 3
     g[2, 0:2, 0, 0], g[2, 2, 2, 2] = [3, 2], 1
     return g
-
-
-def read_csv(path: Path) -> list[dict]:
-    with open(path) as f:
-        return list(csv.DictReader(f))
 
 
 def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_path) -> None:
@@ -71,7 +69,8 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
         diff = np.array([float(r[a]) - float(r[b]) for r in rows])
         assert row["what"].startswith("paired")
         np.testing.assert_allclose(float(row["mean"]), diff.mean(), rtol=1e-6, atol=1e-9)
-        np.testing.assert_allclose(float(row["band99"]), 2.5758 * diff.std(ddof=1) / np.sqrt(3), rtol=1e-3, atol=1e-9)
+        np.testing.assert_allclose(float(row["band99"]), stats.t.ppf(0.995, 2) * diff.std(ddof=1) / np.sqrt(3),
+                                   rtol=1e-6, atol=1e-9)  # (paired per body: Student's t over the 3 bodies)
     # the fraction of bodies the controller moves beyond their own gait (the issue's "≥ 90 % of bodies")
     for row, key in ((summary[9], "controller"), (summary[10], "mean_command")):
         assert row["what"].startswith("fraction of bodies beyond their own gait")
@@ -162,8 +161,8 @@ def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
     assert row["bodies"] == 9
     np.testing.assert_allclose(row["mean_command"], v["mean_command"].mean())
     diff = v["mean_command"] - v["untrained_mean_command"]
-    np.testing.assert_allclose(row["mean_command_minus_untrained_mean_command_band99"],
-                               2.5758 * diff.std(ddof=1) / 3.0, rtol=1e-3)
+    np.testing.assert_allclose(row["mean_command_minus_untrained_mean_command_band99"],  # (paired: Student's t)
+                               stats.t.ppf(0.995, 8) * diff.std(ddof=1) / 3.0, rtol=1e-6)
     np.testing.assert_allclose(row["mean_command_over_open_loop"], v["mean_command"].mean() / v["open_loop"].mean())
     assert row["beyond_own_gait"] == int((v["mean_command"] > v["open_loop"]).sum())
 
@@ -409,8 +408,6 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
     the per-body column; the paired difference between starts is per body (a 3-body example worked by hand:
     differences 0.5, 0.3, 0.1 -> mean 0.3, band t(0.995, 2)·0.2/√3); tables over other bodies or without per-body
     controllers are refused."""
-    from scipy import stats
-
     from experiments.adaptation import main
 
     def write(name: str, rows: list[tuple], per_body: bool = True) -> str:
@@ -446,3 +443,43 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
     with pytest.raises(ValueError, match="no per_body column"):
         main(["--from", "student", f"4={write('n', [(0, 0.5, 1, 1)], per_body=False)}", "--out", str(tmp_path / "y")])
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_two_tables_compared_body_by_body(tmp_path) -> None:
+    """``experiments.paired``: A − B per body with Student's t band (scipy's, 2 degrees of freedom for 3 bodies),
+    the fraction of bodies A moves further; a folder and a bodies CSV read alike; tables of other bodies (another
+    count, or a body whose own gait differs: other bodies or other episode settings) refused naming the body."""
+    from experiments.paired import main as paired
+
+    def write(name: str, gaits, stoch, mean) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        rows = [{"set": f"runs/eval_{name}_grown", "body": i, "open_loop": g, "controller": s_, "mean_command": m}
+                for i, (g, s_, m) in enumerate(zip(gaits, stoch, mean, strict=True))]
+        write_rows(folder / "bodies.csv", rows)
+        return folder
+
+    a = write("a", [0.1, 0.2, 0.3], [1.0, 1.2, 0.9], [1.5, 1.1, 1.0])
+    b = write("b", [0.1, 0.2, 0.3], [0.8, 1.0, 1.0], [1.0, 1.0, 1.0])
+    paired([str(a), str(b / "bodies.csv"), "--out", str(tmp_path / "ab.csv")])
+    rows = {r["what"]: r for r in read_csv(tmp_path / "ab.csv")}
+    d = np.array([0.2, 0.2, -0.1])
+    assert float(rows["stochastic"]["a_minus_b"]) == pytest.approx(d.mean(), abs=1e-4)
+    assert float(rows["stochastic"]["band99"]) == pytest.approx(stats.t.ppf(0.995, 2) * d.std(ddof=1) / np.sqrt(3),
+                                                                abs=1e-4)
+    assert float(rows["stochastic"]["a_further"]) == pytest.approx(2 / 3, abs=1e-4)
+    assert float(rows["mean command"]["a_minus_b"]) == pytest.approx(0.2, abs=1e-4)
+    assert float(rows["mean command"]["a"]) == pytest.approx(3.6 / 3, abs=1e-4)
+    moved = write("moved", [0.1, 0.25, 0.3], [1, 1, 1], [1, 1, 1])
+    with pytest.raises(SystemExit):  # (the command line: argparse's error, naming the body)
+        paired([str(a), str(moved)])
+    from experiments.paired import compare
+
+    with pytest.raises(ValueError, match=r"body \('grown', '1'\) of .*a is not body .* \(its own gait 0.200000 against "
+                                         r"0.250000\)"):
+        compare(a, moved)
+    short = write("short", [0.1, 0.2], [1, 1], [1, 1])
+    with pytest.raises(ValueError, match="holds 3 bodies and .*short 2"):
+        compare(a, short)
+    with pytest.raises(ValueError, match="no bodies.csv there"):
+        compare(a, tmp_path / "nowhere")

@@ -1,0 +1,93 @@
+"""Two held-out tables compared body by body: each controller's move on a body minus the other's on the same body
+(same headings, same noise streams: the across-body spread cancels), with a 99 % band over the bodies (Student's
+t, :func:`experiments.common.paired_band`). Every "paired" figure of ``docs/control.md`` is this command's::
+
+    python -m experiments.paired runs/eval_gen4_93 docs/results/control_student/heldout93/student64_gen3_bodies.csv
+
+A and B are output folders of ``python -m experiments.control --evaluate ... --bodies`` or of ``python -m
+experiments.heldout --pool`` (their ``bodies.csv``), or such a table as the results keep it
+(``heldout93/<name>_bodies.csv``). They must hold the same bodies in the same order under the same episode
+settings: each body's set, index and open-loop gait are checked. Prints, per column (stochastic, mean command),
+A's and B's means, A − B with its band and the fraction of bodies on which A moves further; ``--out CSV`` writes
+the same rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import paired_band, read_rows, write_rows
+
+COLUMNS = {"stochastic": "controller", "mean command": "mean_command"}
+"""What is compared -> the ``bodies.csv`` column it is read from."""
+
+
+def read_table(source: Path, who: str, made_by: str) -> list[dict[str, str]]:
+    """A held-out table's rows: ``source`` is its ``bodies.csv`` (any ``.csv``) or the folder holding one; refused
+    naming ``who`` asked and what writes one (``made_by``)."""
+    path = source if source.suffix == ".csv" else source / "bodies.csv"
+    if not path.is_file():
+        raise ValueError(f"{who}: no {path.name} there (give an output folder of {made_by})")
+    return read_rows(path)
+
+
+def body_keys(rows: list[dict[str, str]]) -> list[tuple[str, str]]:
+    """Each row's body: its set (a pooled table's: the set folder's last ``_`` part, ``eval_x_grown`` -> ``grown``;
+    none in a single set's table) and its index."""
+    return [(r.get("set", "").rsplit("_", 1)[-1], r["body"]) for r in rows]
+
+
+def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, name_b: str) -> None:
+    """Refuse, naming the first body that differs, tables of other bodies or other episode settings (the same body
+    under the same settings walks its own gait the same)."""
+    if len(a) != len(b):
+        raise ValueError(f"{name_a} holds {len(a)} bodies and {name_b} {len(b)}: compare tables of the same bodies")
+    for key_a, key_b, row_a, row_b in zip(body_keys(a), body_keys(b), a, b, strict=True):
+        gait = (float(row_a["open_loop"]), float(row_b["open_loop"]))
+        if key_a != key_b or not np.isclose(*gait, rtol=1e-6, atol=1e-9):
+            raise ValueError(f"body {key_a} of {name_a} is not body {key_b} of {name_b} (its own gait "
+                             f"{gait[0]:.6f} against {gait[1]:.6f}): the same bodies in the same order, evaluated "
+                             "with the same --headings, --eval-episodes and seed")
+
+
+def compare(a: Path, b: Path) -> list[dict[str, object]]:
+    """A − B per body for each of :data:`COLUMNS`: one row each (n, both means, the difference and its 99 % band,
+    the fraction of bodies on which A moves further)."""
+    made_by = "python -m experiments.control --evaluate ... --bodies, or experiments.heldout --pool"
+    rows_a, rows_b = read_table(a, str(a), made_by), read_table(b, str(b), made_by)
+    same_bodies(rows_a, rows_b, str(a), str(b))
+    out = []
+    for what, column in COLUMNS.items():
+        if not rows_a or column not in rows_a[0] or column not in rows_b[0]:
+            raise ValueError(f"{a} or {b}: no {column} column (a held-out table of experiments.control --evaluate)")
+        va, vb = (np.array([float(r[column]) for r in rows]) for rows in (rows_a, rows_b))
+        mean, band = paired_band(va - vb)
+        out.append({"what": what, "n": len(va), "a": round(float(va.mean()), 4), "b": round(float(vb.mean()), 4),
+                    "a_minus_b": round(mean, 4), "band99": round(band, 4),
+                    "a_further": round(float(np.mean(va > vb)), 4)})
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m experiments.paired", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("a", type=Path, help="a held-out table (folder or bodies CSV)")
+    p.add_argument("b", type=Path, help="the table it is compared with, same bodies")
+    p.add_argument("--out", type=Path, default=None, help="also write the rows to this CSV")
+    args = p.parse_args(argv)
+    try:
+        rows = compare(args.a, args.b)
+    except ValueError as e:
+        p.error(str(e))
+    for r in rows:
+        print(f"{r['what']}: {r['a']:.3f} against {r['b']:.3f}, A − B {r['a_minus_b']:+.3f} ± {r['band99']:.3f} "
+              f"(99 %, {r['n']} bodies; A further on {100 * r['a_further']:.0f} %)")
+    if args.out is not None:
+        write_rows(args.out, rows)
+
+
+if __name__ == "__main__":
+    main()
