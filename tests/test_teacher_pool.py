@@ -123,3 +123,44 @@ def test_one_teacher_exports_as_its_bodys_own_controller(tmp_path: Path, capsys:
     with pytest.raises(SystemExit):
         main([str(run), str(run), "--teacher", "0", "--out", str(tmp_path / "two")])
     assert not (tmp_path / "none").exists() and not (tmp_path / "two").exists()
+
+
+def test_the_reptile_step_moves_the_start_along_its_teachers_mean_step(tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """``--reptile --step E``: a bank started from one controller (``control.controller_init``) gives
+    start + E · (mean of its teachers − start), weight by weight, computed here from the bank's members; E = 1 is
+    their average. A bad step, a run started from no controller, or a start of another kind are refused, and
+    nothing is written."""
+    from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.controllers import MLPController
+    from freeform.envs.control import OBS_CHANNELS, ControlConfig
+
+    first = _teacher_run(tmp_path, "first", np.stack([ROD, CUBE]), "seed=3")
+    main([str(first), "--teacher", "0", "--out", str(tmp_path / "start")])
+    run = _teacher_run(tmp_path, "bank", np.stack([ROD, CUBE]), "seed=4",
+                       f"control.controller_init={tmp_path / 'start'}")
+    start, bank = read_controller(tmp_path / "start").controller.state_dict(), _bank(run)
+    members = [bank.member_state(i) for i in range(2)]
+    assert not all(torch.equal(members[0][k], members[1][k]) for k in start)  # (the teachers trained apart)
+    for step in (1.0, 2.5):
+        out = tmp_path / f"reptile{step}"
+        main([str(run), "--reptile", "--step", str(step), "--out", str(out)])
+        assert "the Reptile step" in capsys.readouterr().out
+        got = read_controller(out).controller.state_dict()
+        for k, w0 in start.items():
+            want = w0 + step * ((members[0][k] + members[1][k]) / 2 - w0)
+            torch.testing.assert_close(got[k], want, rtol=1e-6, atol=1e-7)
+        assert json.loads((out / "reptile.json").read_text())["step"] == step
+
+    with pytest.raises(ValueError, match="--step 0.0: .* positive"):
+        main([str(run), "--reptile", "--step", "0", "--out", str(tmp_path / "none")])
+    with pytest.raises(ValueError, match=r"did not start from one controller .* give --start"):
+        main([str(first), "--reptile", "--out", str(tmp_path / "none")])
+    other = tmp_path / "mlp.pt"
+    save_controller(other, MLPController(len(OBS_CHANNELS), (2, 1, 1), 2, (4,)), ControlConfig())
+    with pytest.raises(ValueError, match=r"--start .*mlp.pt: a MLPController, and the teachers .* are "
+                                         r"ContextConvControllers"):
+        main([str(run), "--reptile", "--start", str(other), "--out", str(tmp_path / "none")])
+    with pytest.raises(SystemExit):
+        main([str(run), str(run), "--reptile", "--out", str(tmp_path / "none")])
+    assert not (tmp_path / "none").exists()

@@ -133,6 +133,11 @@ class TeacherBank(nn.Module):
             raise ValueError(f"teacher must be in 0 … {self.teachers - 1}, got {teacher}")
         return {self._names[k]: v[teacher].detach().clone() for k, v in self.stacked.items()}
 
+    def mean_state(self) -> dict[str, torch.Tensor]:
+        """The teachers' weights averaged, named as in the template's ``state_dict`` (a bank started from one
+        controller: the Reptile step's target, ``freeform.run.teacher_runs.reptile_step``)."""
+        return {self._names[k]: v.detach().mean(0) for k, v in self.stacked.items()}
+
     def member(self, teacher: int) -> nn.Module:
         """A controller (the template's class) holding teacher ``teacher``'s weights: runs alone what the bank runs
         for that teacher."""

@@ -126,13 +126,60 @@ def export_teacher(run: Path, teacher: int, out: Path) -> Path:
                            source.config.sim)
 
 
+def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = None) -> Path:
+    """The Reptile step (Nichol, Achiam & Schulman 2018) of a teacher run whose teachers all started from one
+    controller: ``start + step · (mean of the teachers' weights − start)``, written into ``out`` (new or empty) as
+    ``controller.pt`` with ``reptile.json`` (its provenance); returns the controller file. ``step`` = 1 is the
+    teachers' weight average; ``start``: that controller (default: the run's ``control.controller_init``).
+
+    A bank re-started from a student (``experiment=control_adapt_cpu``) trains its teachers apart; their mean step
+    is what a few epochs on every body agree on, and a step along it is a new student without a distillation."""
+    from freeform.agents.controller_file import read_controller, save_controller
+
+    if not step > 0:
+        raise ValueError(f"--step {step}: the Reptile step is a positive multiple of the teachers' mean step")
+    _refuse_used(out)
+    source = _source(run)
+    start = start if start is not None else source.config.control.controller_init
+    if start is None:
+        raise ValueError(f"{run}: its teachers did not start from one controller (control.controller_init unset): "
+                         "give --start, the controller they started from")
+    begun, controller = read_controller(start), source.bank.member(0)
+    if type(begun.controller) is not type(controller):
+        raise ValueError(f"--start {start}: a {type(begun.controller).__name__}, and the teachers of {run} are "
+                         f"{type(controller).__name__}s: give the controller they started from")
+    mean, w0 = source.bank.mean_state(), begun.controller.state_dict()
+    if set(w0) != set(mean) or any(w0[k].shape != v.shape for k, v in mean.items()):
+        raise ValueError(f"--start {start}: its weights are not shaped as the teachers' of {run} (another width, "
+                         "head or box): give the controller they started from")
+    controller.load_state_dict({k: w0[k] + step * (v - w0[k]) for k, v in mean.items()})
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "reptile.json").write_text(json.dumps({"run": str(run), "epoch": source.payload.get("epoch"),
+                                                  "teachers": source.bank.teachers, "start": str(start),
+                                                  "step": step}, indent=1) + "\n")
+    return save_controller(out / "controller.pt", controller, source.config.control, source.config.sim)
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", help="teacher runs (their directories or checkpoints), in the pool's order")
     p.add_argument("--out", required=True, help="a new folder for the pooled teacher run (or the exported teacher)")
     p.add_argument("--teacher", type=int, default=None, metavar="I",
                    help="export teacher I of the one run given as a controller.pt (with its body.npy) instead")
+    p.add_argument("--reptile", action="store_true",
+                   help="write the Reptile step of the one run given (teachers started from one controller) instead")
+    p.add_argument("--step", type=float, default=1.0, help="with --reptile: the step, a multiple of the teachers' "
+                                                           "mean step (1: their weight average)")
+    p.add_argument("--start", type=Path, default=None, help="with --reptile: the controller the teachers started "
+                                                            "from (default: the run's control.controller_init)")
     args = p.parse_args(argv)
+    if args.reptile:
+        if len(args.runs) != 1 or args.teacher is not None:
+            p.error("--reptile takes one teacher run, without --teacher")
+        path = reptile_step(Path(args.runs[0]), Path(args.out), args.step, args.start)
+        print(f"the Reptile step {args.step:g} of {args.runs[0]} -> {path}; a start for the next bank with "
+              f"control.controller_init={path.parent}")
+        return
     if args.teacher is not None:
         if len(args.runs) != 1:
             p.error(f"--teacher exports from one teacher run, got {len(args.runs)}")
