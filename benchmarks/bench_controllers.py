@@ -1,4 +1,4 @@
-"""The controllers' cost on the CPU (freeform/agents/controllers.py): each kind of ``CONTROLLERS`` at its default
+"""The controllers' cost on the CPU (freeform/agents/controllers.py): each kind of ``CONTROLLERS`` at its presets'
 width, for 64 bodies of two settings — the design setting (64 untrained designs of ρ = 8, 4 materials, 20 design
 steps: ``experiment=locomotion_cpu``'s; their union box) and the walker (``docs/results/control_walker/walker.npy``,
 64 copies: one small box) — timing
@@ -26,7 +26,7 @@ from freeform.envs.control import ControlConfig, ControlEnv
 
 WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"
 ROUNDS = 5
-WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16}
+WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16, "attention_gru": 32}
 SEQUENCE = 8  # a recurrent controller's update runs the 512 samples as 64 sequences of 8 steps (one stroke episode)
 
 
