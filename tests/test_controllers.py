@@ -299,9 +299,9 @@ def test_the_registry_names_reach_the_config() -> None:
 
     for kind in CONTROLLERS:
         ControlRunConfig(controller=kind).validate()
-    from benchmarks.bench_controllers import WIDTHS  # (make bench times every kind: a new one needs its width)
+    from benchmarks.bench_controllers import WIDTHS
 
-    assert set(WIDTHS) == set(CONTROLLERS)
+    assert set(WIDTHS) == set(CONTROLLERS)  # (make bench times every kind: a new one needs its width)
     with pytest.raises(ValueError, match=r"control.controller.*'conv', 'mlp', 'context', 'attention'"):
         ControlRunConfig(controller="unet").validate()
     with pytest.raises(ValueError, match="controller kind must be one of"):
