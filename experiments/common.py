@@ -51,12 +51,15 @@ def paired_band(differences: np.ndarray) -> tuple[float, float]:
     """Mean and 99 % half-width of paired differences ``[n]`` (one per body: two controllers on the same body, same
     headings and noise streams), Student's t with n − 1 degrees of freedom — tens of bodies, where the normal band
     of :func:`mean_band` (the paper's, over thousands of episodes) is 30 % too narrow at n = 9 and 2 % at n = 93.
-    Every "paired" figure of the held-out tables is this band."""
+    Every "paired" figure of the held-out tables is this band. One body: its difference, half-width 0 (as
+    :func:`mean_band`: no spread to estimate)."""
     from scipy import stats
 
     d = np.asarray(differences, dtype=np.float64)
-    if d.ndim != 1 or len(d) < 2:
-        raise ValueError(f"paired differences: need a 1-d array of at least 2, got shape {d.shape}")
+    if d.ndim != 1 or len(d) == 0:
+        raise ValueError(f"paired differences: need a 1-d array of at least one, got shape {d.shape}")
+    if len(d) == 1:
+        return float(d[0]), 0.0
     mean, half = mean_band(d, z=float(stats.t.ppf(0.995, len(d) - 1)))
     return float(mean), float(half)
 

@@ -31,6 +31,18 @@ def test_band_of_one_trial_is_zero_and_nans_are_skipped():
     assert half[1] == 0.0 and half[0] > 0
 
 
+def test_the_paired_band_is_students_t_over_the_bodies_and_one_body_has_none():
+    """scipy's t interval (n − 1 degrees of freedom) for per-body differences; a one-body table (an exported
+    teacher on its own body) gives its difference with half-width 0 instead of failing."""
+    d = np.array([0.3, -0.1, 0.2, 0.5, 0.0])
+    mean, half = common.paired_band(d)
+    low, high = stats.t.interval(0.99, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
+    assert mean == pytest.approx(d.mean()) and half == pytest.approx((high - low) / 2, rel=1e-9)
+    assert common.paired_band(np.array([0.4])) == (0.4, 0.0)
+    with pytest.raises(ValueError, match="at least one"):
+        common.paired_band(np.zeros(0))
+
+
 def test_moving_average_is_a_centred_five_epoch_window_cut_at_the_ends():
     x = np.array([0.0, 10.0, 20.0, 30.0, 40.0, 50.0])
     # Hand-worked: window [i-2, i+2] ∩ [0, 5].
