@@ -56,8 +56,9 @@ def paired_band(differences: np.ndarray) -> tuple[float, float]:
     from scipy import stats
 
     d = np.asarray(differences, dtype=np.float64)
+    d = d[np.isfinite(d)] if d.ndim == 1 else d
     if d.ndim != 1 or len(d) == 0:
-        raise ValueError(f"paired differences: need a 1-d array of at least one, got shape {d.shape}")
+        raise ValueError(f"paired differences: need a 1-d array of at least one finite value, got shape {d.shape}")
     if len(d) == 1:
         return float(d[0]), 0.0
     mean, half = mean_band(d, z=float(stats.t.ppf(0.995, len(d) - 1)))

@@ -371,7 +371,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
     rows, controllers, settings, sources = [], [], [], []
     for i, folder in enumerate(sets):
-        table = read_table(Path(folder), f"--pool {folder}", "--evaluate PATH --bodies ...")
+        table = read_table(Path(folder) / "bodies.csv", f"--pool {folder}", "--evaluate PATH --bodies ...")
         if reference is not None:
             _take_per_body(table, reference[i], folder, per_body_from)
         missing = [c for c in POOLED if not table or c not in table[0]]

@@ -58,11 +58,13 @@ def compare(a: Path, b: Path) -> list[dict[str, object]]:
     the fraction of bodies on which A moves further)."""
     made_by = "python -m experiments.control --evaluate ... --bodies, or experiments.heldout --pool"
     rows_a, rows_b = read_table(a, str(a), made_by), read_table(b, str(b), made_by)
+    for rows, name in ((rows_a, a), (rows_b, b)):
+        missing = [c for c in ("body", "open_loop", *COLUMNS.values()) if not rows or c not in rows[0]]
+        if missing:
+            raise ValueError(f"{name}: no {missing} column (a held-out bodies table of {made_by})")
     same_bodies(rows_a, rows_b, str(a), str(b))
     out = []
     for what, column in COLUMNS.items():
-        if not rows_a or column not in rows_a[0] or column not in rows_b[0]:
-            raise ValueError(f"{a} or {b}: no {column} column (a held-out table of experiments.control --evaluate)")
         va, vb = (np.array([float(r[column]) for r in rows]) for rows in (rows_a, rows_b))
         mean, band = paired_band(va - vb)
         out.append({"what": what, "n": len(va), "a": round(float(va.mean()), 4), "b": round(float(vb.mean()), 4),

@@ -142,7 +142,7 @@ def test_a_recurrent_controller_without_memory_evaluates_as_its_feed_forward_twi
 
 def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
     """Truth: numpy on the same per-body values, pooled over the three sets: the means, the paired difference's
-    99 % band (2.5758 · sd / √n), the ratio to the open loop and the count of bodies beyond their gait; a results
+    99 % band (Student's t, n − 1: t · sd / √n), the ratio to the open loop and the count of bodies beyond their gait; a results
     folder missing a set's table for a seed leaves that seed out."""
     from experiments import control_population as cp
 
@@ -478,6 +478,9 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"body \('grown', '1'\) of .*a is not body .* \(its own gait 0.200000 against "
                                          r"0.250000\)"):
         compare(a, moved)
+    (tmp_path / "summary.csv").write_text("what,n,mean\ncontroller,3,1.0\n")  # (the wrong file of a folder)
+    with pytest.raises(ValueError, match=r"summary.csv: no \['body', 'open_loop', 'controller', 'mean_command'\]"):
+        compare(a, tmp_path / "summary.csv")
     short = write("short", [0.1, 0.2], [1, 1], [1, 1])
     with pytest.raises(ValueError, match="holds 3 bodies and .*short 2"):
         compare(a, short)

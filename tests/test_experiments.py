@@ -39,6 +39,7 @@ def test_the_paired_band_is_students_t_over_the_bodies_and_one_body_has_none():
     low, high = stats.t.interval(0.99, len(d) - 1, loc=d.mean(), scale=stats.sem(d))
     assert mean == pytest.approx(d.mean()) and half == pytest.approx((high - low) / 2, rel=1e-9)
     assert common.paired_band(np.array([0.4])) == (0.4, 0.0)
+    assert common.paired_band(np.append(d, np.nan)) == (mean, half)  # (a missing body: not counted, df as without)
     with pytest.raises(ValueError, match="at least one"):
         common.paired_band(np.zeros(0))
 

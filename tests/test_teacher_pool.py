@@ -152,8 +152,11 @@ def test_the_reptile_step_moves_the_start_along_its_teachers_mean_step(tmp_path:
             torch.testing.assert_close(got[k], want, rtol=1e-6, atol=1e-7)
         assert json.loads((out / "reptile.json").read_text())["step"] == step
 
-    with pytest.raises(ValueError, match="--step 0.0: .* positive"):
-        main([str(run), "--reptile", "--step", "0", "--out", str(tmp_path / "none")])
+    for bad in ("0", "inf"):
+        with pytest.raises(ValueError, match=f"--step {float(bad)}: .* positive, finite"):
+            main([str(run), "--reptile", "--step", bad, "--out", str(tmp_path / "none")])
+    with pytest.raises(SystemExit):  # (--step without --reptile: refused, not a silent pool)
+        main([str(run), "--step", "3", "--out", str(tmp_path / "none")])
     with pytest.raises(ValueError, match=r"did not start from one controller .* give --start"):
         main([str(first), "--reptile", "--out", str(tmp_path / "none")])
     other = tmp_path / "mlp.pt"

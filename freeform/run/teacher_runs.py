@@ -21,6 +21,11 @@ body (``body.npy``), which every controller tool reads (``experiments.control --
 ``control.controller_init``):
 
     python -m freeform.run.teacher_runs runs/adapt --teacher 3 --out runs/body3_controller
+
+The Reptile step of a bank whose teachers all started from one controller (``reptile_step``): that start moved E
+times along the teachers' mean weight step, a new student without a distillation:
+
+    python -m freeform.run.teacher_runs runs/adapt --reptile --step 3 --out runs/reptile
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -135,9 +141,10 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
     A bank re-started from a student (``experiment=control_adapt_cpu``) trains its teachers apart; their mean step
     is what a few epochs on every body agree on, and a step along it is a new student without a distillation."""
     from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.controllers import PrivilegedCritic
 
-    if not step > 0:
-        raise ValueError(f"--step {step}: the Reptile step is a positive multiple of the teachers' mean step")
+    if not (step > 0 and math.isfinite(step)):
+        raise ValueError(f"--step {step}: the Reptile step is a positive, finite multiple of the teachers' mean step")
     _refuse_used(out)
     source = _source(run)
     start = start if start is not None else source.config.control.controller_init
@@ -145,6 +152,9 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
         raise ValueError(f"{run}: its teachers did not start from one controller (control.controller_init unset): "
                          "give --start, the controller they started from")
     begun, controller = read_controller(start), source.bank.member(0)
+    if isinstance(controller, PrivilegedCritic):
+        raise ValueError(f"{run}: its teachers carry a privileged critic (control.privileged_critic); the Reptile "
+                         "step averages plain controllers only")
     if type(begun.controller) is not type(controller):
         raise ValueError(f"--start {start}: a {type(begun.controller).__name__}, and the teachers of {run} are "
                          f"{type(controller).__name__}s: give the controller they started from")
@@ -173,6 +183,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--start", type=Path, default=None, help="with --reptile: the controller the teachers started "
                                                             "from (default: the run's control.controller_init)")
     args = p.parse_args(argv)
+    if not args.reptile and (args.step != 1.0 or args.start is not None):
+        p.error("--step and --start belong to --reptile")
     if args.reptile:
         if len(args.runs) != 1 or args.teacher is not None:
             p.error("--reptile takes one teacher run, without --teacher")
