@@ -297,3 +297,72 @@ def test_a_stroke_plays_a_sin_plus_b_cos_of_each_voxels_own_phase_for_its_period
         np.testing.assert_array_equal(strokes.engine.positions(), periods.engine.positions())
     with pytest.raises(ValueError, match=r"a stroke's \(a, b\) per cell"):
         strokes.step(torch.zeros(2, 27))
+
+
+def _turned(v: torch.Tensor, heading: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Planar vectors ``v [N, 2, ...]`` written in a frame turned about z by +heading (x along it), by hand."""
+    c = torch.from_numpy(np.cos(heading)).double().view(-1, *[1] * (v.dim() - 2))
+    s = torch.from_numpy(np.sin(heading)).double().view(-1, *[1] * (v.dim() - 2))
+    x, y = v[:, 0].double(), v[:, 1].double()
+    return c * x + s * y, c * y - s * x
+
+
+def test_the_heading_frame_writes_every_planar_vector_along_the_heading():
+    """``frame="heading"``: the same episode as the world frame (the frame is what is observed, not what is
+    simulated: equal rewards), with the positions, velocities, responses and the privileged critic's displacement
+    and body axes turned by minus each robot's heading (a rotation written out here), the heading channels 0, and
+    every other channel unchanged."""
+    g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
+    control = ControlConfig(burn_in=0.01, duration=0.0375, headings="random", response=True, privileged_critic=True)
+    world = ControlEnv(g, sim=SimConfig(precision="f64"), control=control, seed=0)
+    turned = ControlEnv(g, sim=SimConfig(precision="f64"), control=replace(control, frame="heading"), seed=0)
+    channels = {name: i for i, name in enumerate(world.channels)}
+    pairs = [("rel_x", "rel_y"), ("vel_x", "vel_y"), ("resp_x_sin", "resp_y_sin"), ("resp_x_cos", "resp_y_cos")]
+    a, b = world.reset(), turned.reset()
+    for step in range(control.steps + 1):  # (the last step's observation is the next episode's first: new headings)
+        heading = world.heading.copy()
+        assert np.array_equal(heading, turned.heading) and np.ptp(heading) > 0.1  # (two different headings)
+        wp, tp = a["policy"], b["policy"]
+        moved = [channels[c] for p in pairs for c in p] + [channels["heading_cos"], channels["heading_sin"]]
+        same = [i for i in range(len(world.channels)) if i not in moved]
+        assert torch.equal(wp[:, same], tp[:, same])
+        assert (tp[:, [channels["heading_cos"], channels["heading_sin"]]] == 0).all()
+        for x, y in pairs:
+            ex, ey = _turned(wp[:, [channels[x], channels[y]]], heading)
+            assert ex.abs().max() + ey.abs().max() > 0 or x.startswith("vel")  # (something to turn)
+            torch.testing.assert_close(tp[:, channels[x]].double(), ex, rtol=0, atol=1e-6)
+            torch.testing.assert_close(tp[:, channels[y]].double(), ey, rtol=0, atol=1e-6)
+        for x in (0, 3, 6):  # the critic's displacement and the body's x and y axes, in the ground plane
+            ex, ey = _turned(a["critic"][:, x: x + 2, None], heading)
+            torch.testing.assert_close(b["critic"][:, x: x + 2].double(), torch.cat([ex, ey], 1), rtol=0, atol=1e-6)
+        if step == control.steps:
+            break
+        act = torch.rand((2, 27), generator=torch.Generator().manual_seed(step)) * 2 - 1
+        (a, ra, _, _), (b, rb, _, _) = world.step(act), turned.step(act)
+        assert torch.equal(ra, rb)
+    with pytest.raises(ValueError, match="control.frame must be one of"):
+        ControlEnv(pair(), control=ControlConfig(frame="body"))
+
+
+def test_a_wave_head_travels_along_the_heading_in_either_frame():
+    """The hand-set wave (a wave head whose learnt parts are 0) asks each voxel the same strokes whether the
+    observation is in the world's frame (the wave vector turned by the heading channels) or in the heading's (the
+    wave along x): the heading's frame changes what a controller reads, not the wave it starts from."""
+    from freeform.agents.controllers import build_controller
+
+    g = np.concatenate([np.full((1, 3, 3, 3), 2, np.uint8), np.full((1, 3, 3, 3), 3, np.uint8)])
+    g[0, 0] = 1
+    control = ControlConfig(burn_in=0.01, duration=0.05, headings="random", residual=True, stroke_periods=2)
+    means = []
+    for frame in ("world", "heading"):
+        env = ControlEnv(g, sim=SimConfig(precision="f64"), control=replace(control, frame=frame), seed=2)
+        torch.manual_seed(0)
+        net = build_controller("attention", env, hidden=8, head="wave")
+        assert ("heading_channels" in net.wave) == (frame == "world")
+        with torch.no_grad():
+            for layer in (net.actor, net.wave_k):
+                layer.weight.zero_()
+                layer.bias.zero_()
+            means.append(net(env.reset())[0])
+    assert means[0].abs().max() > 0.1
+    torch.testing.assert_close(means[1], means[0], rtol=0, atol=1e-5)

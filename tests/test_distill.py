@@ -233,6 +233,10 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
     with pytest.raises(ValueError, match=r"headings=fixed rewards \+x alone: use algo.symmetry=mirror"):
         _check_turnable("context", "context", "ground", "fixed")
     _check_turnable("context", "attention", "mirror", "fixed")
+    with pytest.raises(ValueError, match=r"control.frame=heading every task is \+x"):  # (steering, turned to +x)
+        _check_turnable("attention", "attention", "ground", "random", "heading")
+    _check_turnable("attention", "attention", "mirror", "random", "heading")
+    _check_turnable("attention", "attention", "ground", "any", "heading")  # (no heading: the world's frame)
     with pytest.raises(ValueError, match=r"algo.symmetry must be one of \['none', 'ground', 'mirror'\]"):
         compose(*tiny_control(bodies, *TEACH, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
     # a student may sense more than its teachers did (control.response): they label what they read before it

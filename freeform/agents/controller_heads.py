@@ -189,7 +189,7 @@ def _env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
     wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
                 material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
                 residual=bool(env.control.residual), k=float(start.k), amplitude=float(start.amplitude))
-    if env.control.headings != "any":  # (a heading to follow: the wave's frame turns with it)
+    if env.control.headings != "any" and env.control.frame == "world":  # (a heading to follow: the wave turns with it)
         wave["heading_channels"] = (env.channels.index("heading_cos"), env.channels.index("heading_sin"))
     return wave
 

@@ -54,7 +54,7 @@ from freeform.body import metrics
 from freeform.distributions import MaskedDiagGaussian
 from freeform.envs.control_config import HEADINGS, ControlConfig, same_config
 from freeform.envs.response import RESPONSE_CHANNELS, GaitResponse, response_window
-from freeform.envs.symmetry import PlanarSymmetry
+from freeform.envs.symmetry import PLANAR_VECTORS, PlanarSymmetry
 from freeform.sim import SimConfig, Simulator
 from freeform.sim.config import material_table
 from freeform.sim.engine import Engine, Readout
@@ -159,6 +159,10 @@ class ControlEnv:
         self.channels = ((RESIDUAL_CHANNELS if self.control.residual else OBS_CHANNELS)
                          + (RESPONSE_CHANNELS if self.control.response else ()))
         """The observation's channels, in order."""
+        self._planar_columns = tuple((self.channels.index(x), self.channels.index(y)) for x, y in PLANAR_VECTORS
+                                     if x in self.channels and y in self.channels and x != "heading_cos")
+        """The observation's planar vectors but the heading (``[x, y]`` channel pairs): what the heading's frame
+        turns."""
         self.observation_shape: Any = (len(self.channels), *self.box)
         if self.control.privileged_critic:
             self.observation_shape = {"policy": self.observation_shape, "critic": (len(CRITIC_STATE),)}
@@ -439,7 +443,8 @@ class ControlEnv:
         start = self.control.burn_in + self.t * self.control.periods_per_step * self.control.period
         clock = 2 * math.pi * start / self.sim_config.temp_period
         r = self._robot
-        seen = float(self.control.headings != "any")  # (no heading to observe when any direction counts)
+        # (no heading to observe when any direction counts, nor in the heading's frame, where it is +x)
+        seen = float(self.control.headings != "any" and self.control.frame == "world")
         if self.control.residual:  # what the corrections are added to: the sine, mid-way through the period
             middle = (start + 0.5 * self.control.period) / self.sim_config.temp_period
             self._open_loop = self._actuated * np.sin(2 * math.pi * (middle + self._phase))
@@ -454,6 +459,8 @@ class ControlEnv:
             *([self._open_loop[:, None]] if self.control.residual else []),
             *([self._response.coefficients()] if self._response is not None else []),
         ], 1)
+        if self.control.frame == "heading":
+            self._to_heading_frame(features, self.heading[r], self._planar_columns)
         obs = torch.zeros((R, len(self.channels), self.cells), dtype=torch.float32, device=self.device)
         obs[self._body_t, :, self._cell_t] = torch.from_numpy(features).float().to(self.device)  # channel-first
         obs = obs.view(R, len(self.channels), *self.box)
@@ -461,6 +468,15 @@ class ControlEnv:
             obs = {"policy": obs, "critic": self._critic_state(sensed, com)}
         self.observation = obs  # (what the next action acts on, once step or reset returns it)
         return obs, com
+
+    @staticmethod
+    def _to_heading_frame(rows: np.ndarray, heading: np.ndarray, columns: tuple[tuple[int, int], ...]) -> None:
+        """Turn the planar vectors of ``rows [n, …]`` (each pair of ``columns``: x, y) about z by −``heading [n]``
+        (radians), in place: x along the heading (``ControlConfig.frame``)."""
+        c, s = np.cos(heading), np.sin(heading)
+        for x, y in columns:
+            vx, vy = rows[:, x].copy(), rows[:, y].copy()
+            rows[:, x], rows[:, y] = c * vx + s * vy, c * vy - s * vx
 
     def _critic_state(self, sensed: np.ndarray, com: np.ndarray) -> torch.Tensor:
         """``CRITIC_STATE`` ``[N, 10]`` float32: displacement since the episode's start, orientation, time left."""
@@ -474,6 +490,8 @@ class ControlEnv:
         rotation = np.transpose(vt, (0, 2, 1)) @ np.transpose(u, (0, 2, 1))  # rest → now
         left = np.full((self.num_envs, 1), 1.0 - self.t / self.control.steps)
         state = np.concatenate([moved, rotation[:, :, 0], rotation[:, :, 1], left], 1)
+        if self.control.frame == "heading":  # (the displacement and the body's axes: vectors in the ground plane)
+            self._to_heading_frame(state, self.heading, ((0, 1), (3, 4), (6, 7)))
         return torch.from_numpy(state).float().to(self.device)
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 HEADINGS = ("fixed", "random", "any")
+FRAMES = ("world", "heading")
 
 
 @dataclass
@@ -39,6 +40,14 @@ class ControlConfig:
         material's phase): under ``residual`` control (0, 0) is the open-loop gait, b shifts its phase and a scales
         it. The action is ``[N, 2·Bx·By·Bz]`` (every a, then every b); an episode is ``duration / (n·period)``
         decisions, each of whose exploration noise acts over a whole stroke instead of one period.
+    frame: the frame the observation's planar vectors are given in. "world" — the ground's x and y, the heading
+        in its own channels. "heading" — turned about z by minus the robot's heading, so x lies along it (the
+        heading channels 0: the task is always +x): the positions from the centre of mass, velocities and
+        responses, and a privileged critic's displacement and orientation. The ground is the same every way, so a
+        body asked to go along θ is, in this frame, a body turned by −θ asked to go along +x: what steering asks
+        of a controller becomes one task seen in every orientation, and a voxel's place along the heading — what a
+        travelling wave's phase follows — is one channel instead of a product of two (``docs/control.md``,
+        "Steering"). Under ``headings`` "fixed" and "any" (heading 0) the two frames agree, heading channels apart.
     privileged_critic: the observation becomes the groups ``{"policy": the cells' channels, "critic": [N, 10]}``
         (``freeform.agents.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
         each body's displacement since the episode's start (voxel lengths; under ``headings="any"`` its reward is
@@ -55,6 +64,7 @@ class ControlConfig:
     stroke_periods: int = 0
     privileged_critic: bool = False
     response: bool = False
+    frame: str = "world"
 
     @property
     def periods_per_step(self) -> int:
@@ -74,6 +84,8 @@ class ControlConfig:
             raise ValueError(f"{key}.burn_in must be >= 0 (seconds), got {self.burn_in!r}")
         if self.headings not in HEADINGS:
             raise ValueError(f"{key}.headings must be one of {HEADINGS}, got {self.headings!r}")
+        if self.frame not in FRAMES:
+            raise ValueError(f"{key}.frame must be one of {FRAMES}, got {self.frame!r}")
         if self.command_rate is not None and not self.command_rate > 0:
             raise ValueError(f"{key}.command_rate must be None or > 0 (per second), got {self.command_rate!r}")
         for name in ("residual", "ramp", "privileged_critic", "response"):
@@ -93,4 +105,4 @@ def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
-__all__ = ["HEADINGS", "ControlConfig", "same_config"]
+__all__ = ["FRAMES", "HEADINGS", "ControlConfig", "same_config"]
