@@ -101,7 +101,7 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
         raise ValueError(f"--per-body {per.n}: must be in 1 … {len(grids)} (the bodies given)")
     bodies = grids[: per.n].numpy()
     if per.run is not None:
-        return _teacher_run(per.run, bodies)
+        return _teacher_run(per.run, bodies, control)
     episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items() if k != "privileged_critic"]
     overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
     key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
@@ -122,13 +122,16 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     return bank_from_checkpoint(payload, str(run))
 
 
-def _teacher_run(run: Path, bodies: np.ndarray) -> Any:
+def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
     """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
-    ``bodies``."""
+    ``bodies`` and whose observations the evaluation's (``control``: the frame they are written in)."""
     from freeform.body import largest_component
     from freeform.run.build import read_teacher_run
 
     teachers = read_teacher_run(run, f"--per-body-run {run}")
+    if teachers.config.control.frame != control.frame:
+        raise ValueError(f"--per-body-run {run}: its teachers read observations in the {teachers.config.control.frame}"
+                         f" frame and the evaluated controller's are in the {control.frame} frame (control.frame)")
     theirs = largest_component(teachers.bodies).numpy()
     if teachers.bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
         raise ValueError(f"--per-body-run {run}: its {teachers.bank.teachers} teachers' bodies are not the first "

@@ -141,6 +141,23 @@ def test_the_app_trains_a_bank_of_teachers_and_resumes_it_bit_for_bit(bodies: Pa
     assert not torch.equal(actor[0], actor[1])
 
 
+def test_a_banks_copies_of_a_body_share_its_heading(bodies: Path) -> None:  # noqa: F811
+    """Steering (control_steering_cpu: random headings) with a bank of 2 teachers on 4 environments, built as the app
+    builds it on two ranks' halves: environments 0 and 2 drive body 0 and walk one heading, 1 and 3 another, so the
+    leave-one-out baseline among a body's copies compares what the noise did along one heading."""
+    from freeform.run.build import control_env
+
+    cfg = compose(*tiny_control(bodies, "control.teachers=2"))
+    env = control_env(cfg, torch.device("cpu"), (0, 4), seed=0)
+    env.reset()
+    heading = env.env.heading
+    assert heading[0] == heading[2] and heading[1] == heading[3] and heading[0] != heading[1]
+    halves = [control_env(cfg, torch.device("cpu"), envs, seed=0) for envs in ((0, 2), (2, 4))]
+    for half in halves:
+        half.reset()
+    assert np.array_equal(np.concatenate([h.env.heading for h in halves]), heading)  # (any split into ranks)
+
+
 @pytest.mark.parametrize("override, message", [
     ("control.teachers=3", "env.num_envs"),
     ("control.bodies=population", "control.teachers"),

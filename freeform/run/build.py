@@ -223,12 +223,15 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
 
         need = body_box(bodies)  # (a square footprint: the quarter turns and the diagonal mirrors map it onto itself)
         box = (max(need[:2]), max(need[:2]), need[2])
+    # a bank's copies of a body share its heading (as a population env's do): its leave-one-out baseline and its
+    # per-body advantages then compare the noise's effects, not the luck of a copy's heading against its siblings'
+    body = torch.arange(envs[0], envs[1]) % cfg.control.teachers if cfg.control.teachers else None
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
-                     first_env=envs[0], box=box)
-    if cfg.control.teachers:  # (each environment's observation names its body's teacher)
+                     first_env=envs[0] if body is None else body.numpy(), box=box)
+    if body is not None:  # (each environment's observation names its body's teacher)
         from freeform.agents.teachers import TeacherIndex
 
-        env = TeacherIndex(env, torch.arange(envs[0], envs[1]) % cfg.control.teachers)
+        env = TeacherIndex(env, body)
     return env
 
 
