@@ -344,10 +344,12 @@ def test_the_heading_frame_writes_every_planar_vector_along_the_heading():
         ControlEnv(pair(), control=ControlConfig(frame="body"))
 
 
-def test_a_wave_head_travels_along_the_heading_in_either_frame():
+def test_a_wave_head_travels_along_the_heading_in_either_frame(tmp_path):
     """The hand-set wave (a wave head whose learnt parts are 0) asks each voxel the same strokes whether the
     observation is in the world's frame (the wave vector turned by the heading channels) or in the heading's (the
-    wave along x): the heading's frame changes what a controller reads, not the wave it starts from."""
+    wave along x): the heading's frame changes what a controller reads, not the wave it starts from. A world
+    frame's wave head is not saved as a heading frame's controller (its wave would read zeroed channels)."""
+    from freeform.agents.controller_file import save_controller
     from freeform.agents.controllers import build_controller
 
     g = np.concatenate([np.full((1, 3, 3, 3), 2, np.uint8), np.full((1, 3, 3, 3), 3, np.uint8)])
@@ -364,5 +366,9 @@ def test_a_wave_head_travels_along_the_heading_in_either_frame():
                 layer.weight.zero_()
                 layer.bias.zero_()
             means.append(net(env.reset())[0])
+        if frame == "world":
+            with pytest.raises(ValueError, match="turns with the heading channels, which the heading's frame zeroes"):
+                save_controller(tmp_path / "controller.pt", net, replace(control, frame="heading"))
+            assert not (tmp_path / "controller.pt").exists()
     assert means[0].abs().max() > 0.1
     torch.testing.assert_close(means[1], means[0], rtol=0, atol=1e-5)

@@ -69,6 +69,10 @@ def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: 
     episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
     if isinstance(controller, PrivilegedCritic):
         controller = controller.controller
+    wave = controller.init_kwargs.get("wave") or {}
+    if episode["frame"] == "heading" and wave.get("heading_channels") is not None:
+        raise ValueError("this controller's wave turns with the heading channels, which the heading's frame zeroes "
+                         "(control.frame=heading): build it for an env in that frame (its wave then runs along x)")
     return save_checkpoint(path, {
         "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
                        "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
