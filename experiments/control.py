@@ -136,8 +136,9 @@ def evaluation_env(cfg: Any, env: Any, seed: int) -> Any:
     from freeform.run.build import control_env
 
     if cfg.control.codesign:
-        return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed)
-    return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed, bodies=env.grids, box=env.box)
+        return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed, shared_headings=False)
+    return control_env(cfg, torch.device("cpu"), (0, cfg.env.num_envs), seed, bodies=env.grids, box=env.box,
+                       shared_headings=False)
 
 
 def evaluate_run(run: Path, episodes: int, out: Path, bins: int = 8) -> list[dict]:

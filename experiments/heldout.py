@@ -89,6 +89,9 @@ def _hydra_value(value: Any) -> str:
     return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
 
 
+_KEYLESS_DEFAULTS = {("frame", "world")}
+
+
 def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim: SimConfig) -> Any:
     """The bank of per-body controllers for ``grids[:per.n]`` (:class:`PerBody`), trained or read from the cache;
     its run's physics must be ``sim`` (the evaluated controller's)."""
@@ -102,7 +105,9 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     bodies = grids[: per.n].numpy()
     if per.run is not None:
         return _teacher_run(per.run, bodies, control)
-    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items() if k != "privileged_critic"]
+    # (a field added since the caches were made stays out of the overrides and the key at its default: old caches hold)
+    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items()
+               if k != "privileged_critic" and (k, v) not in _KEYLESS_DEFAULTS]
     overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
     key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
     run = per.cache / f"{per.preset}_{per.n}_{key}"

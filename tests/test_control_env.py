@@ -344,13 +344,16 @@ def test_the_heading_frame_writes_every_planar_vector_along_the_heading():
         ControlEnv(pair(), control=ControlConfig(frame="body"))
 
 
-def test_a_wave_head_travels_along_the_heading_in_either_frame(tmp_path):
+def test_a_wave_head_travels_along_the_heading_in_either_frame(tmp_path, caplog):
     """The hand-set wave (a wave head whose learnt parts are 0) asks each voxel the same strokes whether the
     observation is in the world's frame (the wave vector turned by the heading channels) or in the heading's (the
     wave along x): the heading's frame changes what a controller reads, not the wave it starts from. A world
     frame's wave head is not saved as a heading frame's controller (its wave would read zeroed channels)."""
+    import logging
+
     from freeform.agents.controller_file import save_controller
     from freeform.agents.controllers import build_controller
+    from freeform.run.build import load_controller
 
     g = np.concatenate([np.full((1, 3, 3, 3), 2, np.uint8), np.full((1, 3, 3, 3), 3, np.uint8)])
     g[0, 0] = 1
@@ -366,9 +369,21 @@ def test_a_wave_head_travels_along_the_heading_in_either_frame(tmp_path):
                 layer.weight.zero_()
                 layer.bias.zero_()
             means.append(net(env.reset())[0])
+            if frame == "world":
+                net.wave_k.weight.add_(0.5)  # (something to load: the saved weights differ from a fresh net's)
+                world_wave_k = net.wave_k.weight.clone()
         if frame == "world":
             with pytest.raises(ValueError, match="turns with the heading channels, which the heading's frame zeroes"):
                 save_controller(tmp_path / "controller.pt", net, replace(control, frame="heading"))
             assert not (tmp_path / "controller.pt").exists()
+            save_controller(tmp_path / "world" / "controller.pt", net, env.control)
+        else:
+            with pytest.raises(ValueError, match="runs along x whatever the heading"):
+                save_controller(tmp_path / "controller.pt", net, replace(control, frame="world"))
+            assert not (tmp_path / "controller.pt").exists()
+            with caplog.at_level(logging.WARNING, logger="freeform.run.build"):  # a start from the other frame
+                load_controller(net, str(tmp_path / "world"), frame="heading")
+            assert "trained on observations in the world frame" in caplog.text
+            torch.testing.assert_close(net.wave_k.weight, world_wave_k)  # (its weights, loaded)
     assert means[0].abs().max() > 0.1
     torch.testing.assert_close(means[1], means[0], rtol=0, atol=1e-5)

@@ -281,8 +281,9 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
     with pytest.raises(ValueError, match="not the first 2 bodies given"):
         main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])
-    from dataclasses import replace  # a controller reading the heading's frame against teachers of the world's
+    from dataclasses import replace
 
+    # a controller reading the heading's frame against teachers of the world's
     save_controller(tmp_path / "turned" / "controller.pt", net, replace(SHORT, frame="heading"), SimConfig())
     with pytest.raises(ValueError, match="in the world frame and the evaluated controller's are in the heading frame"):
         main([args[0], str(tmp_path / "turned"), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])

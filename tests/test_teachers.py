@@ -156,6 +156,9 @@ def test_a_banks_copies_of_a_body_share_its_heading(bodies: Path) -> None:  # no
     for half in halves:
         half.reset()
     assert np.array_equal(np.concatenate([h.env.heading for h in halves]), heading)  # (any split into ranks)
+    evaluation = control_env(cfg, torch.device("cpu"), (0, 4), seed=0, shared_headings=False)
+    evaluation.reset()  # (an evaluation's episodes: each environment its own draw, as before banks shared them)
+    assert len(set(evaluation.env.heading.tolist())) == 4
 
 
 @pytest.mark.parametrize("override, message", [

@@ -73,6 +73,10 @@ def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: 
     if episode["frame"] == "heading" and wave.get("heading_channels") is not None:
         raise ValueError("this controller's wave turns with the heading channels, which the heading's frame zeroes "
                          "(control.frame=heading): build it for an env in that frame (its wave then runs along x)")
+    if wave and episode["frame"] == "world" and episode["headings"] == "random" and wave.get("heading_channels") is None:
+        raise ValueError("this controller's wave runs along x whatever the heading (built for the heading's frame or "
+                         "for no heading), and control.headings=random in the world's frame asks it to turn: save it "
+                         "with the frame and headings it was built for")
     return save_checkpoint(path, {
         "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
                        "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},

@@ -11,6 +11,7 @@ Every trajectory reward registered with ``freeform.envs.trajectory.trajectory_re
 
 from __future__ import annotations
 
+import logging
 import random
 from collections.abc import Callable
 from pathlib import Path
@@ -193,10 +194,13 @@ def control_bodies(cfg: TrainConfig, arch: str = "cpu") -> torch.Tensor:
 
 
 def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], seed: int,
-                bodies: torch.Tensor | None = None, box: tuple[int, int, int] | None = None) -> Any:
+                bodies: torch.Tensor | None = None, box: tuple[int, int, int] | None = None,
+                shared_headings: bool = True) -> Any:
     """The run's ``ControlEnv`` of environments ``envs = (lo, hi)``, seeded ``seed``: their bodies are ``bodies``
     (``[hi − lo, ρ, ρ, ρ]``; default: :func:`control_bodies`' ``lo … hi−1``), padded to ``box`` if given (the box a
-    controller was built for). With ``control.bodies=codesign`` a ``CodesignEnv`` (its bodies are designed)."""
+    controller was built for). With ``control.bodies=codesign`` a ``CodesignEnv`` (its bodies are designed).
+    ``shared_headings``: a bank's copies of a body walk one heading (training); False: each environment its own
+    draw (an evaluation's episodes, which a baseline does not compare)."""
     from freeform.envs.control import ControlEnv
 
     assert cfg.control is not None
@@ -227,7 +231,7 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     # per-body advantages then compare the noise's effects, not the luck of a copy's heading against its siblings'
     body = torch.arange(envs[0], envs[1]) % cfg.control.teachers if cfg.control.teachers else None
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
-                     first_env=envs[0] if body is None else body.numpy(), box=box)
+                     first_env=body.numpy() if body is not None and shared_headings else envs[0], box=box)
     if body is not None:  # (each environment's observation names its body's teacher)
         from freeform.agents.teachers import TeacherIndex
 
@@ -260,25 +264,35 @@ def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | N
     """The controller that config field ``field`` names (``source``: a ``controller.pt``, a results folder holding
     one, a control run's directory or checkpoint; ``freeform.agents.controller_file.read_controller``), built for
     ``box`` if given; a missing or unreadable source is refused naming the field."""
+    return _read_saved(source, field, box).controller
+
+
+def _read_saved(source: str, field: str, box: tuple[int, int, int] | None = None) -> Any:
+    """:func:`read_saved_controller`'s ``SavedController`` (the network with its ``ControlConfig``)."""
     from freeform.agents.controller_file import read_controller
 
     if not Path(source).exists():
         raise ValueError(f"{field}={source!r}: no such checkpoint, controller.pt or run folder (give a control run's "
                          "directory, a checkpoint, or a folder holding controller.pt)")
     try:
-        return read_controller(Path(source), box=box).controller
+        return read_controller(Path(source), box=box)
     except ValueError as e:
         raise ValueError(f"{field}={source!r}: {e}") from e
 
 
-def load_controller(controller: torch.nn.Module, source: str) -> None:
+def load_controller(controller: torch.nn.Module, source: str, frame: str = "world") -> None:
     """``control.controller_init``: a trained controller's weights into ``controller`` — from a ``controller.pt``, a
     results folder holding one, a control run's policy or a co-design run's controller part (a run's directory or
     checkpoint file: ``freeform.agents.controller_file.read_controller``). A controller with memory (``grows_from``:
     ``attention_gru``) also starts from its feed-forward kind's weights, its memory silent until trained."""
     from freeform.agents.controllers import controller_kind
 
-    trained = read_saved_controller(source, "control.controller_init")
+    saved = _read_saved(source, "control.controller_init")
+    trained = saved.controller
+    if saved.control.frame != frame:  # (a start, not an error: weights of either frame; the steering teachers')
+        logging.getLogger(__name__).warning(
+            "control.controller_init=%r was trained on observations in the %s frame and this run's are in the %s "
+            "frame (control.frame): its weights start reading turned vectors", source, saved.control.frame, frame)
     ours, theirs = getattr(controller, "wave", None), getattr(trained, "wave", None)
     if ours is not None and theirs is not None and (ours["k"], ours["amplitude"]) != (theirs["k"], theirs["amplitude"]):
         # (the hand-set wave is no weight: loaded under another, the trained heads would play another gait)
@@ -322,14 +336,15 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
                                       control.init_log_std, control.head, control.hand_set_wave)
         if control.controller_init is not None:
             load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
-                            control.controller_init)
+                            control.controller_init, control.frame)
         if control.teachers:
             from freeform.agents.teachers import TeacherBank
 
             policy = TeacherBank.from_template(policy, control.teachers)
         # (a control run's evaluation: this rank's bodies again, not searched again)
         own = control.codesign or control.bodies == "population"  # (bodies of its own: designed, or a stream)
-        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids) if (
+        eval_env = control_env(cfg, device, envs, cfg.seed + 1, bodies=None if own else env.grids,
+                               shared_headings=False) if (
             cfg.agent.eval_every) else None
         if control.prior is not None:
             env = _with_prior(env, control.prior, control.prior_coeff, device)
@@ -372,7 +387,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
     student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
                                control.hand_set_wave)
     if control.controller_init is not None:
-        load_controller(student, control.controller_init)
+        load_controller(student, control.controller_init, control.frame)
     if cfg.algo.symmetry != "none":
         _check_turnable(control.controller, bank.init_kwargs["kind"], cfg.algo.symmetry, control.headings,
                         control.frame)
