@@ -13,6 +13,7 @@ from typing import Any
 import torch
 import torch.nn as nn
 
+from freeform.agents.controller_heads import wave_follows_heading
 from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind, controller_step
 from freeform.agents.networks import rebuild
 from freeform.body import bounding_box
@@ -69,18 +70,28 @@ def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: 
     episode["privileged_critic"] = False  # (the file holds the actor: it acts on what the sensors give)
     if isinstance(controller, PrivilegedCritic):
         controller = controller.controller
-    wave = controller.init_kwargs.get("wave") or {}
-    if episode["frame"] == "heading" and wave.get("heading_channels") is not None:
-        raise ValueError("this controller's wave turns with the heading channels, which the heading's frame zeroes "
-                         "(control.frame=heading): build it for an env in that frame (its wave then runs along x)")
-    if wave and episode["frame"] == "world" and episode["headings"] == "random" and wave.get("heading_channels") is None:
-        raise ValueError("this controller's wave runs along x whatever the heading (built for the heading's frame or "
-                         "for no heading), and control.headings=random in the world's frame asks it to turn: save it "
-                         "with the frame and headings it was built for")
+    _check_wave_frame(controller.init_kwargs.get("wave"), ControlConfig(**episode))
     return save_checkpoint(path, {
         "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
                        "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
         "control": episode, "sim": dataclasses.asdict(sim) if sim is not None else None})
+
+
+def _check_wave_frame(wave: dict[str, Any] | None, control: ControlConfig) -> None:
+    """A wave head saved with a ``ControlConfig`` whose heading it cannot follow is refused: one that turns with
+    the heading channels in the heading's frame (they are 0 there), or one that does not turn where the world's
+    frame asks it to (random headings; ``controller_heads.wave_follows_heading``). Files without heading channels
+    from before steering stay valid where the heading does not vary."""
+    if not wave:
+        return
+    turns = wave.get("heading_channels") is not None
+    if turns and control.frame == "heading":
+        raise ValueError("this controller's wave turns with the heading channels, which the heading's frame zeroes "
+                         "(control.frame=heading): build it for an env in that frame (its wave then runs along x)")
+    if not turns and control.headings == "random" and wave_follows_heading(control):
+        raise ValueError("this controller's wave runs along x whatever the heading (built for the heading's frame or "
+                         "for no heading), and control.headings=random in the world's frame asks it to turn: save it "
+                         "with the frame and headings it was built for")
 
 
 def read_controller(source: str | Path, box: tuple[int, int, int] | None = None) -> SavedController:

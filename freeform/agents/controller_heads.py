@@ -183,13 +183,20 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     return setup
 
 
+def wave_follows_heading(control: Any) -> bool:
+    """Whether a wave head for an env of ``control`` (a ``ControlConfig``) turns its wave with the observation's
+    heading channels: where there is a heading and the observation is in the world's frame (in the heading's frame
+    the wave runs along x, which is the heading, and the heading channels are 0)."""
+    return control.headings != "any" and control.frame == "world"
+
+
 def _env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
     if head != "wave":
         return None
     wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
                 material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
                 residual=bool(env.control.residual), k=float(start.k), amplitude=float(start.amplitude))
-    if env.control.headings != "any" and env.control.frame == "world":  # (a heading to follow: the wave turns with it)
+    if wave_follows_heading(env.control):
         wave["heading_channels"] = (env.channels.index("heading_cos"), env.channels.index("heading_sin"))
     return wave
 

@@ -178,18 +178,19 @@ def main(argv: list[str] | None = None) -> None:
                    help="export teacher I of the one run given as a controller.pt (with its body.npy) instead")
     p.add_argument("--reptile", action="store_true",
                    help="write the Reptile step of the one run given (teachers started from one controller) instead")
-    p.add_argument("--step", type=float, default=1.0, help="with --reptile: the step, a multiple of the teachers' "
+    p.add_argument("--step", type=float, default=None, help="with --reptile: the step, a multiple of the teachers' "
                                                            "mean step (1: their weight average)")
     p.add_argument("--start", type=Path, default=None, help="with --reptile: the controller the teachers started "
                                                             "from (default: the run's control.controller_init)")
     args = p.parse_args(argv)
-    if not args.reptile and (args.step != 1.0 or args.start is not None):
+    if not args.reptile and (args.step is not None or args.start is not None):
         p.error("--step and --start belong to --reptile")
     if args.reptile:
         if len(args.runs) != 1 or args.teacher is not None:
             p.error("--reptile takes one teacher run, without --teacher")
-        path = reptile_step(Path(args.runs[0]), Path(args.out), args.step, args.start)
-        print(f"the Reptile step {args.step:g} of {args.runs[0]} -> {path}; a start for the next bank with "
+        step = 1.0 if args.step is None else args.step
+        path = reptile_step(Path(args.runs[0]), Path(args.out), step, args.start)
+        print(f"the Reptile step {step:g} of {args.runs[0]} -> {path}; a start for the next bank with "
               f"control.controller_init={path.parent}")
         return
     if args.teacher is not None:
