@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -37,6 +38,7 @@ from freeform.envs.control import (
     open_loop_displacement,
     open_loop_moves,
 )
+from freeform.envs.control_config import interface_differences
 from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
 
@@ -92,6 +94,17 @@ def _hydra_value(value: Any) -> str:
 _KEYLESS_DEFAULTS = {("frame", "world")}
 
 
+def per_body_cache_run(bodies: np.ndarray, per: PerBody, control: ControlConfig) -> tuple[Path, list[str]]:
+    """The cache's run directory for per-body controllers of ``bodies`` (uint8 ``[n, ρ, ρ, ρ]``) under the episode
+    settings ``control``, named by a hash of the bodies and the overrides, and those overrides of ``per.preset``."""
+    # (a field added since the caches were made stays out of the overrides and the key at its default: old caches hold)
+    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items()
+               if k != "privileged_critic" and (k, v) not in _KEYLESS_DEFAULTS]
+    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
+    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
+    return per.cache / f"{per.preset}_{per.n}_{key}", overrides
+
+
 def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim: SimConfig) -> Any:
     """The bank of per-body controllers for ``grids[:per.n]`` (:class:`PerBody`), trained or read from the cache;
     its run's physics must be ``sim`` (the evaluated controller's)."""
@@ -105,12 +118,7 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     bodies = grids[: per.n].numpy()
     if per.run is not None:
         return _teacher_run(per.run, bodies, control)
-    # (a field added since the caches were made stays out of the overrides and the key at its default: old caches hold)
-    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items()
-               if k != "privileged_critic" and (k, v) not in _KEYLESS_DEFAULTS]
-    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
-    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
-    run = per.cache / f"{per.preset}_{per.n}_{key}"
+    run, overrides = per_body_cache_run(bodies, per, control)
     run.mkdir(parents=True, exist_ok=True)
     np.save(run / "bodies.npy", bodies)
     cfg = compose(f"experiment={per.preset}", f"control.bodies={run / 'bodies.npy'}", *overrides,
@@ -134,9 +142,11 @@ def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
     from freeform.run.build import read_teacher_run
 
     teachers = read_teacher_run(run, f"--per-body-run {run}")
-    if teachers.config.control.frame != control.frame:
-        raise ValueError(f"--per-body-run {run}: its teachers read observations in the {teachers.config.control.frame}"
-                         f" frame and the evaluated controller's are in the {control.frame} frame (control.frame)")
+    differ = interface_differences(teachers.config.control, control)
+    if differ:
+        raise ValueError(f"--per-body-run {run}: its teachers were trained for another controller interface or task "
+                         f"than this evaluation's — {'; '.join(differ)}: give a teacher run of the evaluated "
+                         "controller's settings (and --headings)")
     theirs = largest_component(teachers.bodies).numpy()
     if teachers.bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
         raise ValueError(f"--per-body-run {run}: its {teachers.bank.teachers} teachers' bodies are not the first "
@@ -205,11 +215,14 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     saved = controller_for(saved.path, grids)  # (its own box where the bodies fit it; the MLP refused otherwise)
     control = replace(saved.control, headings=headings or saved.control.headings)
     control.validate()
+    if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
+        warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
+                      f"{saved.control.headings}, a task (and heading channels) its weights never saw", stacklevel=2)
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
     untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
-    bank = per_body_bank(grids, per_body, saved.control, sim) if per_body is not None else None
+    bank = per_body_bank(grids, per_body, control, sim) if per_body is not None else None
     groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
               ("zeroed", controller, True, True), ("untrained", untrained, False, True),
               ("untrained_mean_command", untrained, False, False)]

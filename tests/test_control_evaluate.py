@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -189,7 +190,6 @@ def test_design_after_control_scores_a_controller_that_adds_nothing_as_the_open_
     """``ControlledLocomotionTask`` with a residual controller whose mean command is 0 everywhere (its actor zeroed)
     scores each body by its own sine gait — ``open_loop_displacement`` of the bodies as simulated, an independent
     simulation — and an empty body by 0; the run's sim must have the controller's materials."""
-    from dataclasses import replace
 
     from freeform.agents.controller_file import read_controller
     from freeform.envs import ControlledLocomotionTask
@@ -227,7 +227,6 @@ def test_the_app_refuses_design_after_control_without_a_controller() -> None:
 def test_bodies_csv_counts_actuated_voxels_not_a_strokes_action_channels(tmp_path) -> None:
     """A stroke controller acts on two channels per muscle, (a, b); ``bodies.csv``'s ``actuated`` still counts the
     muscles (the voxels counted by hand: 2, 2, 2), not 4, 4, 4."""
-    from dataclasses import replace
 
     control = replace(SHORT, stroke_periods=1)
     torch.manual_seed(0)
@@ -248,7 +247,8 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     controller's mean over those two bodies divided by theirs, recomputed from bodies.csv."""
     torch.manual_seed(0)
     net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated")), hidden=4, log_std=-1.0)
-    save_controller(tmp_path / "controller.pt", net, SHORT, SimConfig())
+    trained = replace(SHORT, headings="any")
+    save_controller(tmp_path / "controller.pt", net, trained, SimConfig())
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     cache = tmp_path / "cache"
     args = ["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "any",
@@ -281,18 +281,45 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
     with pytest.raises(ValueError, match="not the first 2 bodies given"):
         main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])
-    from dataclasses import replace
+    # a controller of another interface than the teachers' (they read the world's frame, no open-loop or response
+    # channel): refused naming the field, before anything is played or written
+    for field, value in (("frame", "heading"), ("residual", True), ("response", True)):
+        save_controller(tmp_path / field / "controller.pt", net, replace(trained, **{field: value}), SimConfig())
+        with pytest.raises(ValueError, match=rf"control\.{field}: .* \(not {value!r}\)"):
+            main([args[0], str(tmp_path / field), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])
+    assert not (tmp_path / "y").exists()
+    # teachers of another task than the one evaluated (--headings random against teachers of any)
+    with pytest.warns(UserWarning, match="trained for headings=any"), \
+            pytest.raises(ValueError, match=r"control\.headings: 'any' \(not 'random'\)"):
+        main([*args[:5], "random", *args[6:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])
 
-    # a controller reading the heading's frame against teachers of the world's
-    save_controller(tmp_path / "turned" / "controller.pt", net, replace(SHORT, frame="heading"), SimConfig())
-    with pytest.raises(ValueError, match="in the world frame and the evaluated controller's are in the heading frame"):
-        main([args[0], str(tmp_path / "turned"), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])
+
+def test_the_per_body_cache_key_of_a_run_made_before_a_field_existed_still_finds_it() -> None:
+    """The per-body cache is named by the bodies and the overrides of the episode's settings. The key below is the
+    one caches made before ``control.frame`` existed were named by, its override list written out by hand (every
+    ControlConfig field of that time, at the population preset's values): fields added since (``frame``) stay out of the key at
+    their default, so an old cache is found; at another value they enter it."""
+    import hashlib
+
+    from experiments.heldout import PerBody, per_body_cache_run
+
+    bodies = tiny_bodies()[:2]
+    control = ControlConfig(headings="any", command_rate=26.0, residual=True, ramp=True, stroke_periods=20,
+                            burn_in=1.0, response=False)
+    per = PerBody(n=2, cache=Path("cache"))
+    then = ["control.teachers=2", "env.num_envs=8", "control.period=0.0125", "control.duration=2.0",
+            "control.burn_in=1.0", "control.headings=any", "control.command_rate=26.0", "control.residual=true",
+            "control.ramp=true", "control.stroke_periods=20", "control.response=false"]
+    key = hashlib.sha1(bodies.tobytes() + "|".join(["control_teachers_cpu", *then]).encode()).hexdigest()[:12]
+    run, overrides = per_body_cache_run(bodies, per, control)
+    assert run == Path("cache") / f"control_teachers_cpu_2_{key}" and overrides == then
+    turned, overrides = per_body_cache_run(bodies, per, replace(control, frame="heading"))
+    assert turned != run and "control.frame=heading" in overrides
 
 
 def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> None:
     """A wave-head controller whose learnt parts are zero is the hand-set wave itself: its mean command's column
     equals the hand-set wave's, body by body (deterministic episodes of the same bodies)."""
-    from dataclasses import replace
 
     from freeform.agents.controller_heads import HandSetWave
 

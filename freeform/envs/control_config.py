@@ -97,6 +97,20 @@ class ControlConfig:
                              f"got {self.stroke_periods!r}")
 
 
+#: The fields that fix what a controller reads and writes — its observation's channels (``residual``'s open-loop
+#: channel, ``response``'s six, the heading channels and the planar vectors' ``frame``), its action's layout
+#: (``stroke_periods``) — and the task its weights learnt (``headings``). A controller trained under other values of
+#: any of them is another controller's input to this env: shapes that fail deep inside, or a task it never saw.
+INTERFACE = ("headings", "frame", "residual", "response", "stroke_periods")
+
+
+def interface_differences(theirs: ControlConfig, mine: ControlConfig) -> list[str]:
+    """The :data:`INTERFACE` fields on which ``theirs`` (a saved controller's or teacher run's) differs from
+    ``mine``, as ``"control.<field>: <theirs> (not <mine>)"``; empty when a controller of ``theirs`` fits ``mine``."""
+    return [f"control.{name}: {getattr(theirs, name)!r} (not {getattr(mine, name)!r})" for name in INTERFACE
+            if getattr(theirs, name) != getattr(mine, name)]
+
+
 def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     """Whether an env's saved config (a checkpoint's ``{"control": vars(ControlConfig), ...}``) is ``mine``; a
     control field it lacks — saved before the field existed — counts as that field's default, so older runs resume."""
@@ -105,4 +119,4 @@ def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
-__all__ = ["FRAMES", "HEADINGS", "ControlConfig", "same_config"]
+__all__ = ["FRAMES", "HEADINGS", "INTERFACE", "ControlConfig", "interface_differences", "same_config"]
