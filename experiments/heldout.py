@@ -347,8 +347,11 @@ def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
         print(f"{row['what']}: {row['mean']:.3f} ± {row['band99']:.3f} (n = {row['n']} bodies)")
 
 
-POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave", "per_body", "per_body_mean_command")
-"""The ``bodies.csv`` columns a pooled table reads (each set must have them: ``--per-body`` on all its bodies)."""
+POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave")
+"""The ``bodies.csv`` columns a pooled table reads (each set must have them: a controller with strokes)."""
+PER_BODY = ("per_body", "per_body_mean_command")
+"""The per-body columns, pooled where every body of every set has them (``--per-body N``, N its body count, or
+``--per-body-from``) and left out where no body has them (a table with no per-body reference)."""
 
 
 def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
@@ -390,7 +393,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     taken instead of the sets' own (sets evaluated without ``--per-body``: no per-body controllers trained
     again); each body's open-loop figure must equal the reference's."""
     reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
-    rows, controllers, settings, sources = [], [], [], []
+    tables, controllers, settings, sources = [], [], [], []
     for i, folder in enumerate(sets):
         table = read_table(Path(folder) / "bodies.csv", f"--pool {folder}", "--evaluate PATH --bodies ...")
         if reference is not None:
@@ -398,10 +401,9 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         missing = [c for c in POOLED if not table or c not in table[0]]
         if missing:
             raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
-                             "controller with strokes; per_body: --per-body N)")
+                             "controller with strokes)")
         if any(r[c] in ("", "nan") for r in table for c in POOLED):
-            raise ValueError(f"--pool {folder}: bodies.csv lacks per_body on some bodies (evaluate every body with "
-                             "--per-body N, N = its body count)")
+            raise ValueError(f"--pool {folder}: bodies.csv lacks a value of {list(POOLED)} on some bodies")
         if not (Path(folder) / "run.json").is_file():
             raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
         run = json.loads((Path(folder) / "run.json").read_text())
@@ -413,27 +415,55 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         settings.append(setting)
         controllers.append(run.get("controller"))
         sources.append({"bodies": run.get("bodies"), "n": len(table)})
-        rows += [{"set": str(folder), **{c: r[c] for c in ("body", *POOLED)}} for r in table]
-    v = {c: np.array([float(r[c]) for r in rows]) for c in POOLED}
-    n = len(rows)
+        tables.append(table)
+    columns = (*POOLED, *_per_body_columns(tables, sets))
+    rows = [{"set": str(folder), **{c: r[c] for c in ("body", *columns)}}
+            for folder, table in zip(sets, tables, strict=True) for r in table]
+    summary = _pooled_summary({c: np.array([float(r[c]) for r in rows]) for c in columns})
+    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": len(rows),
+                                "sets": sources, "per_body_from": per_body_from and str(per_body_from)})
+    return summary
+
+
+def _per_body_columns(tables: list[list[dict]], sets: list[Path]) -> tuple[str, ...]:
+    """:data:`PER_BODY` where every body of every set has its values, () where none has any; refused between."""
+    def has(row: dict) -> bool:
+        return all(row.get(c, "") not in ("", "nan") for c in PER_BODY)
+
+    counts = [sum(map(has, table)) for table in tables]
+    if all(k == len(t) for k, t in zip(counts, tables, strict=True)):
+        return PER_BODY
+    if not any(counts):
+        return ()
+    partial = [f"{folder} ({k} of {len(t)})" for folder, k, t in zip(sets, counts, tables, strict=True) if k < len(t)]
+    raise ValueError(f"--pool: per-body columns on some bodies only — {', '.join(partial)} have them on fewer: "
+                     "evaluate every body with --per-body N (N = the set's body count), take them from an earlier "
+                     "pooled table (--per-body-from), or pool tables that have none")
+
+
+def _pooled_summary(v: dict[str, np.ndarray]) -> list[dict]:
+    """The pooled ``summary.csv`` of the columns ``v`` (each ``[bodies]``): the means, the mean command against the
+    hand-set wave paired per body and as a ratio, with per-body columns the fractions of per-body control, and the
+    fractions beyond their own gait."""
+    n, own = len(v["open_loop"]), "per_body" in v
     summary = [summary_row("open loop (each body's own gait)", v["open_loop"]),
                summary_row("controller (stochastic)", v["controller"]),
                summary_row("controller (mean command)", v["mean_command"]),
                summary_row("hand-set travelling wave (mean command)", v["hand_set_wave"]),
-               summary_row("per-body controllers (stochastic)", v["per_body"]),
-               summary_row("per-body controllers (mean command)", v["per_body_mean_command"])]
-    ratios = (("fraction of per-body control (stochastic)", v["controller"].mean() / v["per_body"].mean()),
-              ("fraction of per-body control (mean command)",
-               v["mean_command"].mean() / v["per_body_mean_command"].mean()),
-              ("controller (mean command) over the hand-set wave", v["mean_command"].mean() / v["hand_set_wave"].mean()))
+               summary_row("paired per body: controller (mean command) minus the hand-set wave",
+                           v["mean_command"] - v["hand_set_wave"], paired=True)]
+    whose = [("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command")]
+    ratios = [("controller (mean command) over the hand-set wave", v["mean_command"].mean() / v["hand_set_wave"].mean())]
+    if own:
+        summary += [summary_row("per-body controllers (stochastic)", v["per_body"]),
+                    summary_row("per-body controllers (mean command)", v["per_body_mean_command"])]
+        ratios[:0] = [("fraction of per-body control (stochastic)", v["controller"].mean() / v["per_body"].mean()),
+                      ("fraction of per-body control (mean command)",
+                       v["mean_command"].mean() / v["per_body_mean_command"].mean())]
+        whose += [("per-body controllers (stochastic)", "per_body"),
+                  ("per-body controllers (mean command)", "per_body_mean_command")]
     summary += [_ratio_row(what, ratio, n) for what, ratio in ratios]
-    summary += [_beyond_gait(who, v[key], v["open_loop"]) for who, key in
-                (("controller (stochastic)", "controller"), ("controller (mean command)", "mean_command"),
-                 ("per-body controllers (stochastic)", "per_body"),
-                 ("per-body controllers (mean command)", "per_body_mean_command"))]
-    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": n,
-                                "sets": sources, "per_body_from": per_body_from and str(per_body_from)})
-    return summary
+    return summary + [_beyond_gait(who, v[key], v["open_loop"]) for who, key in whose]
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -344,7 +344,8 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     """Two sets of 1 and 2 bodies pooled: the fraction of per-body control is the mean over all three bodies
     divided by theirs (mean command: 1.0 / (5/3) = 0.6, not the mean of the sets' fractions, 0.583), the
     wave ratio likewise, the bodies beyond their gait counted over all; a set evaluated without per-body
-    controllers on every body, or with another seed, is refused, naming the folder; sets evaluated without them
+    controllers on some bodies only, or with another seed, is refused, naming the folder; sets evaluated without
+    them pool without the per-body rows (the mean command paired against the wave, Student's t from scipy) or
     take an earlier pooled table's (--per-body-from), a body whose own gait differs refused; the scaling curve refuses
     points pooled from other sets of bodies (by the sets recorded, else by the count)."""
     from experiments.heldout import pool
@@ -374,8 +375,9 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     rows = read_csv(tmp_path / "out" / "bodies.csv")
     assert [Path(r["set"]).name for r in rows] == ["a", "b", "b"]
     c = write("c", [body(0, 0.1, 0.5, 1.0, 0.5, float("nan"), float("nan"))])
-    with pytest.raises(ValueError, match=r"--pool .*c: bodies.csv lacks per_body"):
+    with pytest.raises(ValueError, match=r"per-body columns on some bodies only — .*c \(0 of 1\) have them"):
         pool([a, c], tmp_path / "out2")
+    assert not (tmp_path / "out2").exists()
     d = write("d", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], seed=1)
     with pytest.raises(ValueError, match=r"--pool .*d: evaluated with other settings .*\['seed'\]"):
         pool([a, d], tmp_path / "out3")
@@ -384,6 +386,15 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     bare = [write("a_bare", [body(0, 0.1, 0.5, 0.5, 0.5, float("nan"), float("nan"))]),
             write("b_bare", [body(0, 0.9, 0.5, 1.0, 0.5, float("nan"), float("nan")),
                              body(1, 0.2, 0.5, 1.0, 1.0, float("nan"), float("nan"))])]
+    # ... or pool without them (a steering table: no per-body reference), the mean command paired against the wave
+    pool(bare, tmp_path / "plain")
+    plain = {r["what"]: r for r in read_csv(tmp_path / "plain" / "summary.csv")}
+    assert not any("per-body" in what for what in plain) and "per_body" not in read_csv(tmp_path / "plain" / "bodies.csv")[0]
+    gain = np.array([0.0, 0.5, 0.0])  # mean command minus the wave, body by body
+    paired = plain["paired per body: controller (mean command) minus the hand-set wave"]
+    assert float(paired["mean"]) == pytest.approx(gain.mean())
+    assert float(paired["band99"]) == pytest.approx(stats.t.ppf(0.995, 2) * gain.std(ddof=1) / np.sqrt(3))
+    assert float(plain["controller (mean command) over the hand-set wave"]["mean"]) == pytest.approx(2.5 / 2.0)
     for reference in (tmp_path / "out", tmp_path / "out" / "bodies.csv"):
         taken = {r["what"]: float(r["mean"]) for r in pool(bare, tmp_path / "taken", per_body_from=reference)}
         assert taken["fraction of per-body control (mean command)"] == pytest.approx((2.5 / 3) / (5.0 / 3.0))
