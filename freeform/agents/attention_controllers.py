@@ -20,9 +20,9 @@ from freeform.agents.controller_heads import (
     ControlInputs,
     FromInputs,
     HandSetWave,
-    _body_controller_setup,
-    _cell_means,
-    _env_wave,
+    body_controller_setup,
+    cell_means,
+    env_wave,
 )
 from freeform.agents.recurrent import run_rnn
 
@@ -82,7 +82,7 @@ class VoxelAttentionController(FromInputs, nn.Module):
         super().__init__()
         if isinstance(hidden, int) and isinstance(heads, int) and hidden > 0 and heads > 0 and hidden % heads:
             raise ValueError(f"hidden ({hidden}) must be a multiple of heads ({heads})")
-        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, heads=heads, layers=layers)
+        outputs = body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, heads=heads, layers=layers)
         self.embed = nn.Sequential(nn.Linear(inputs.channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.blocks = nn.ModuleList(_AttentionBlock(hidden, heads) for _ in range(layers))
         self.norm = nn.LayerNorm(hidden)
@@ -98,7 +98,7 @@ class VoxelAttentionController(FromInputs, nn.Module):
                 wave: HandSetWave = DEFAULT_WAVE) -> VoxelAttentionController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         description of the observation and its hand-set wave)."""
-        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=_env_wave(env, head, wave))
+        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=env_wave(env, head, wave))
 
     def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
@@ -151,7 +151,7 @@ class VoxelAttentionController(FromInputs, nn.Module):
         if self.wave is not None:
             body = torch.cat([pooled, x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(neginf=0.0)], 1)
         filled = obs[:, self.filled_channel: self.filled_channel + 1]
-        mean, mask = _cell_means(self, cells.view(n, -1, *obs.shape[2:]), obs, filled, body)
+        mean, mask = cell_means(self, cells.view(n, -1, *obs.shape[2:]), obs, filled, body)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 

@@ -51,7 +51,7 @@ class FromInputs:
         return cls(inputs, **rest)
 
 
-def _check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
+def check_control_input(channels: int, box: Any, **channel_indices: int) -> tuple[int, int, int]:
     """A controller's observation ``[C, Bx, By, Bz]`` checked: the box as three positive ints, each named index a
     channel."""
     if not isinstance(channels, int) or channels < 1:
@@ -72,7 +72,7 @@ WAVE_KINDS = ("context", "attention", "context_gru", "attention_gru")
 """The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
 
 
-def _masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
+def masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
     """Features ``x [N, h, Bx, By, Bz]`` (≥ 0, zero outside the body) pooled over the body's cells (``filled
     [N, 1, Bx, By, Bz]``): their mean and max ``[N, 2h]``. The max over the whole box is the body's, since every
     feature is ≥ 0 and the padding's are 0."""
@@ -165,7 +165,7 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     pos = tuple(int(c) for c in wave["pos_channels"])
     if len(pos) != 3:
         raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
-    _check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
+    check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
                          material=int(wave["material_channel"]))
     phases = tuple(float(p) for p in wave["phases"])
     if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
@@ -178,7 +178,7 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
         if len(heading) != 2:
             raise ValueError(f"wave heading_channels must be the 2 channels heading_cos, heading_sin, got "
                              f"{wave['heading_channels']!r}")
-        _check_control_input(channels, (1, 1, 1), heading_cos=heading[0], heading_sin=heading[1])
+        check_control_input(channels, (1, 1, 1), heading_cos=heading[0], heading_sin=heading[1])
         setup["heading_channels"] = heading
     return setup
 
@@ -190,7 +190,7 @@ def wave_follows_heading(control: Any) -> bool:
     return control.headings != "any" and control.frame == "world"
 
 
-def _env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
+def env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
     if head != "wave":
         return None
     wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
@@ -241,7 +241,7 @@ def _clock_channels(channels: int, head: str, clock_channels: Any) -> tuple[int,
     if clock_channels is None or len(clock_channels) != 2:
         raise ValueError(f"a rhythm head needs clock_channels = (clock_sin, clock_cos) channel indices, got "
                          f"{clock_channels!r}")
-    _check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
+    check_control_input(channels, (1, 1, 1), clock_sin=int(clock_channels[0]), clock_cos=int(clock_channels[1]))
     return int(clock_channels[0]), int(clock_channels[1])
 
 
@@ -254,7 +254,7 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
     return out[:, 0] * clock[:, 0] + out[:, 1] * clock[:, 1] + out[:, 2]
 
 
-def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_std: float, wave: Any = None,
+def body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_std: float, wave: Any = None,
                            **sizes: int) -> int:
     """What the body controllers (context, context_gru, attention) share at construction: the input checks (``sizes``: positive ints), the box,
     channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
@@ -263,7 +263,7 @@ def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log
     the state dict, made once so that a forward pass copies nothing to the device: a CUDA graph can capture it).
     Returns the actor head's outputs per cell."""
     channels, mask_channel, filled_channel = inputs.channels, inputs.mask_channel, inputs.filled_channel
-    box = _check_control_input(channels, inputs.box, mask_channel=mask_channel, filled_channel=filled_channel)
+    box = check_control_input(channels, inputs.box, mask_channel=mask_channel, filled_channel=filled_channel)
     for name, value in sizes.items():
         if not isinstance(value, int) or value < 1:
             raise ValueError(f"{name} must be a positive int, got {value!r}")
@@ -283,7 +283,7 @@ def _body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log
     return outputs
 
 
-def _cell_means(net: nn.Module, out: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
+def cell_means(net: nn.Module, out: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The actor head's per-cell outputs ``out [N, outputs, *box]`` on observations ``obs [N, C, *box]`` →
     (mean, mask) ``[N, A]``: a rhythm head played on the observation's clock, a wave head's strokes with the body's

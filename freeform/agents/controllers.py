@@ -43,12 +43,12 @@ from freeform.agents.controller_heads import (
     ControlInputs,
     FromInputs,
     HandSetWave,
-    _body_controller_setup,
-    _cell_means,
-    _check_control_input,
-    _env_wave,
-    _masked_pool,
+    body_controller_setup,
+    cell_means,
+    check_control_input,
+    env_wave,
     head_rule,
+    masked_pool,
 )
 from freeform.agents.networks import MLPActorCritic, rebuild
 from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
@@ -75,7 +75,7 @@ class ConvController(nn.Module):
     def __init__(self, channels: int, box: tuple[int, int, int] | list[int], mask_channel: int, filled_channel: int = 0,
                  hidden: int = 16, log_std: float = 0.0) -> None:
         super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
+        box = check_control_input(channels, box, mask_channel=mask_channel, filled_channel=filled_channel)
         if not isinstance(hidden, int) or hidden < 1:
             raise ValueError(f"hidden must be a positive int, got {hidden!r}")
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
@@ -124,7 +124,7 @@ class MLPController(nn.Module):
                  hidden: tuple[int, ...] | list[int] = (64, 64), log_std: float = 0.0) -> None:
 
         super().__init__()
-        box = _check_control_input(channels, box, mask_channel=mask_channel)
+        box = check_control_input(channels, box, mask_channel=mask_channel)
         cells = math.prod(box)
         self.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, hidden=tuple(hidden),
                                 log_std=log_std)
@@ -173,7 +173,7 @@ class ContextConvController(FromInputs, nn.Module):
     def __init__(self, inputs: ControlInputs, hidden: int = 16, blocks: int = 1, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, blocks=blocks)
+        outputs = body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, blocks=blocks)
         self.conv_in = nn.Conv3d(inputs.channels, hidden, 3, padding=1)
         self.convs = nn.ModuleList(nn.Conv3d(hidden, hidden, 3, padding=1) for _ in range(blocks))
         self.contexts = nn.ModuleList(nn.Linear(2 * hidden, hidden) for _ in range(blocks))
@@ -189,16 +189,16 @@ class ContextConvController(FromInputs, nn.Module):
                 wave: HandSetWave = DEFAULT_WAVE) -> ContextConvController:
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
-        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=_env_wave(env, head, wave))
+        return cls(ControlInputs.of(env, head), hidden, log_std=log_std, head=head, wave=env_wave(env, head, wave))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
         filled = obs[:, self.filled_channel : self.filled_channel + 1]
         x = F.relu(self.conv_in(obs)) * filled
         for conv, context in zip(self.convs, self.contexts, strict=True):
-            x = F.relu(conv(x) + context(_masked_pool(x, filled))[:, :, None, None, None]) * filled
-        pooled = _masked_pool(x, filled)
-        mean, mask = _cell_means(self, self.actor(x), obs, filled, pooled)
+            x = F.relu(conv(x) + context(masked_pool(x, filled))[:, :, None, None, None]) * filled
+        pooled = masked_pool(x, filled)
+        mean, mask = cell_means(self, self.actor(x), obs, filled, pooled)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
 
@@ -230,7 +230,7 @@ class RecurrentContextController(FromInputs, nn.Module):
     def __init__(self, inputs: ControlInputs, hidden: int = 16, memory: int = 32, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None) -> None:
         super().__init__()
-        outputs = _body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, memory=memory)
+        outputs = body_controller_setup(self, inputs, head, log_std, wave, hidden=hidden, memory=memory)
         self.memory = memory
         self.conv_in = nn.Conv3d(inputs.channels, hidden, 3, padding=1)
         self.gru = nn.GRU(2 * hidden, memory)
@@ -249,7 +249,7 @@ class RecurrentContextController(FromInputs, nn.Module):
         """The controller for a ``ControlEnv`` (its box, channels, mask and filled channels; a wave head's
         untrained ``wave``)."""
         return cls(ControlInputs.of(env, head), hidden, memory, log_std=log_std, head=head,
-                   wave=_env_wave(env, head, wave))
+                   wave=env_wave(env, head, wave))
 
     def initial_state(self, num_envs: int) -> tuple[torch.Tensor, ...]:
         """``(zeros [N, 1, memory],)``: the GRU's state at an episode's start."""
@@ -263,11 +263,11 @@ class RecurrentContextController(FromInputs, nn.Module):
         o = obs.flatten(0, 1)
         filled = o[:, self.filled_channel : self.filled_channel + 1]
         x = F.relu(self.conv_in(o)) * filled
-        pooled = _masked_pool(x, filled)
+        pooled = masked_pool(x, filled)
         m, state = run_rnn(self.gru, pooled.view(steps, n, -1), state, episode_start)
         x = F.relu(self.conv(x) + self.context(torch.cat([pooled, m.flatten(0, 1)], 1))[:, :, None, None, None]) * filled
-        body = _masked_pool(x, filled)
-        mean, mask = (t.view(steps, n, -1) for t in _cell_means(self, self.actor(x), o, filled, body))
+        body = masked_pool(x, filled)
+        mean, mask = (t.view(steps, n, -1) for t in cell_means(self, self.actor(x), o, filled, body))
         summary = torch.cat([body, m.flatten(0, 1)], 1)
         return (mean, self.log_std.expand_as(mean), mask), summary, state
 

@@ -41,7 +41,7 @@ from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
 from freeform.agents.ppo.losses import minibatch_loss
 from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map, obs_shapes
-from freeform.agents.ppo.update import MinibatchUpdate, _own_code
+from freeform.agents.ppo.update import MinibatchUpdate, own_code
 from freeform.agents.recurrent import RecurrentPolicy
 from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.envs.base import VecEnv
@@ -143,7 +143,7 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
                                  "minibatch varies in size, and a graph has fixed shapes): set agent.cuda_graph=false")
             impl["capturable"] = True  # the step count and the learning rate on the device: no sync in the graph
         self.optimizer = torch.optim.Adam([self.flat.value], lr=self._lr_value(config.lr), eps=config.adam_eps, **impl)
-        self._minibatch_loss = torch.compile(_own_code(minibatch_loss), dynamic=False) if config.compile else minibatch_loss
+        self._minibatch_loss = torch.compile(own_code(minibatch_loss), dynamic=False) if config.compile else minibatch_loss
         self._graphed = (GraphedMinibatchStep(self.policy, self.distribution, config, self.flat, self.optimizer,
                                               self._minibatch_mean, self.device) if config.cuda_graph else None)
         """The minibatch step as a CUDA graph (``agent.cuda_graph``), else None: the eager step in ``_sgd``."""

@@ -57,7 +57,7 @@ class _SequenceBatch(NamedTuple):
     counted: torch.Tensor
 
 
-def _own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
+def own_code(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``fn`` with a code object of its own. torch.compile keeps its compiled graphs per code object, and each PPO's
     graph guards on its own policy, so PPO instances sharing ``minibatch_loss``'s code would recompile one another
     and, past ``torch._dynamo.config.recompile_limit`` (8) in one process (a sweep, a test suite), silently run
@@ -295,4 +295,4 @@ class MinibatchUpdate:
         return stats
 
 
-__all__ = ["MinibatchUpdate"]
+__all__ = ["MinibatchUpdate", "own_code"]
