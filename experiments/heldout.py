@@ -74,8 +74,8 @@ def read_bodies(path: Path, materials: int) -> torch.Tensor:
 @dataclass
 class PerBody:
     """``--per-body N``: per-body controllers for the first ``n`` bodies, trained by ``freeform-train
-    experiment=<preset>`` (a bank: ``control.teachers=n``, ``copies`` environments per body, the evaluated
-    controller's episode settings) or read from ``cache`` (a run directory named by the bodies and settings, resumed
+    experiment=<preset>`` (a bank: ``control.teachers=n``, ``copies`` environments per body, the evaluation's
+    episode settings: the controller's, ``--headings`` included) or read from ``cache`` (a run directory named by the bodies and settings, resumed
     where a run stopped early)."""
 
     n: int
@@ -137,12 +137,15 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
 
 def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
     """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
-    ``bodies`` and whose observations the evaluation's (``control``: the frame they are written in)."""
+    ``bodies`` and whose interface and task the evaluation's (``control``: ``interface_differences``; teachers
+    without the response channels drive an evaluation that has them: a bank reads its own channels, the first)."""
     from freeform.body import largest_component
     from freeform.run.build import read_teacher_run
 
     teachers = read_teacher_run(run, f"--per-body-run {run}")
-    differ = interface_differences(teachers.config.control, control)
+    theirs = teachers.config.control
+    ignore = ("response",) if control.response and not theirs.response else ()
+    differ = interface_differences(theirs, control, "the teacher run", ignore)
     if differ:
         raise ValueError(f"--per-body-run {run}: its teachers were trained for another controller interface or task "
                          f"than this evaluation's — {'; '.join(differ)}: give a teacher run of the evaluated "
@@ -217,7 +220,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     control.validate()
     if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
         warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
-                      f"{saved.control.headings}, a task (and heading channels) its weights never saw", stacklevel=2)
+                      f"{saved.control.headings}, another task than the one evaluated", stacklevel=2)
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
@@ -363,6 +366,9 @@ def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
     if "" in groups or len(groups) != count:
         raise ValueError(f"--per-body-from {reference}: a pooled table of {count} sets is needed (an output folder "
                          f"of --pool), and it holds {len(groups)}")
+    if any(c not in row for rows in groups.values() for row in rows for c in PER_BODY):
+        raise ValueError(f"--per-body-from {reference}: a pooled table without per-body columns (its sets were "
+                         "evaluated without --per-body): nothing to take")
     return list(groups.values())
 
 
@@ -384,8 +390,10 @@ def _take_per_body(table: list[dict], reference: list[dict], folder: Path, sourc
 def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list[dict]:
     """Evaluations of one controller on several sets of bodies (``evaluate_bodies``' output folders) as one: their
     ``bodies.csv`` rows together (a ``set`` column: the folder's name) and a ``summary.csv`` over all the bodies —
-    the means, the fractions of per-body control, the controller over the hand-set wave, the fractions beyond
-    their own gait. Refused, naming the folder, where a set lacks a column or a value, or was evaluated with
+    the means, the mean command against the hand-set wave (paired per body, and as a ratio), the fractions beyond
+    their own gait, and where every body has per-body columns (:data:`PER_BODY`; none may have them: left out)
+    the fractions of per-body control. Refused, naming the folder, where a set lacks a column or a value, has
+    per-body values on some bodies only, or was evaluated with
     another controller kind, episode settings, episode count or seed; ``run.json`` lists each set's controller
     file (the same weights may sit in a run and in its ``controller.pt``) and each set's bodies (``sets``: the
     ``.npy`` each set was evaluated on and its body count, which ``experiments.student_scaling`` compares).
@@ -402,8 +410,12 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         if missing:
             raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
                              "controller with strokes)")
-        if any(r[c] in ("", "nan") for r in table for c in POOLED):
-            raise ValueError(f"--pool {folder}: bodies.csv lacks a value of {list(POOLED)} on some bodies")
+        gap = next(((r["body"], c) for r in table for c in POOLED if r[c] in ("", "nan")), None)
+        if gap is not None:
+            raise ValueError(f"--pool {folder}: bodies.csv has no {gap[1]} for body {gap[0]}")
+        if sum(c in table[0] for c in PER_BODY) == 1:
+            raise ValueError(f"--pool {folder}: bodies.csv has one of {list(PER_BODY)} and not the other (a table "
+                             "from before the mean command's per-body column: evaluate it again)")
         if not (Path(folder) / "run.json").is_file():
             raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
         run = json.loads((Path(folder) / "run.json").read_text())
@@ -435,10 +447,11 @@ def _per_body_columns(tables: list[list[dict]], sets: list[Path]) -> tuple[str, 
         return PER_BODY
     if not any(counts):
         return ()
-    partial = [f"{folder} ({k} of {len(t)})" for folder, k, t in zip(sets, counts, tables, strict=True) if k < len(t)]
-    raise ValueError(f"--pool: per-body columns on some bodies only — {', '.join(partial)} have them on fewer: "
-                     "evaluate every body with --per-body N (N = the set's body count), take them from an earlier "
-                     "pooled table (--per-body-from), or pool tables that have none")
+    partial = [f"{folder} has them on {k} of its {len(t)} bodies"
+               for folder, k, t in zip(sets, counts, tables, strict=True) if k < len(t)]
+    raise ValueError(f"--pool: per-body values on some bodies only ({'; '.join(partial)}): evaluate every body with "
+                     "--per-body N (N = the set's body count), take them from an earlier pooled table "
+                     "(--per-body-from), or pool evaluations without --per-body")
 
 
 def _pooled_summary(v: dict[str, np.ndarray]) -> list[dict]:

@@ -21,6 +21,7 @@ from freeform.agents.controller_file import save_controller
 from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.controllers import ContextConvController, MLPController
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv, open_loop_displacement
+from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
 
 SHORT = ControlConfig(burn_in=0.01, duration=0.05)  # four control steps (open_loop_moves refuses a burn-in of 0)
@@ -281,23 +282,31 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
     with pytest.raises(ValueError, match="not the first 2 bodies given"):
         main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])
-    # a controller of another interface than the teachers' (they read the world's frame, no open-loop or response
-    # channel): refused naming the field, before anything is played or written
-    for field, value in (("frame", "heading"), ("residual", True), ("response", True)):
+    # a controller of another interface than the teachers' (they read the world's frame, no open-loop channel, act
+    # period by period): refused naming the field, before anything is played or written
+    for field, value in (("frame", "heading"), ("residual", True), ("stroke_periods", 1)):
         save_controller(tmp_path / field / "controller.pt", net, replace(trained, **{field: value}), SimConfig())
-        with pytest.raises(ValueError, match=rf"control\.{field}: .* \(not {value!r}\)"):
+        with pytest.raises(ValueError, match=rf"control\.{field}: .* in the teacher run, {value!r} here"):
             main([args[0], str(tmp_path / field), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])
     assert not (tmp_path / "y").exists()
     # teachers of another task than the one evaluated (--headings random against teachers of any)
     with pytest.warns(UserWarning, match="trained for headings=any"), \
-            pytest.raises(ValueError, match=r"control\.headings: 'any' \(not 'random'\)"):
+            pytest.raises(ValueError, match=r"control\.headings: 'any' in the teacher run, 'random' here"):
         main([*args[:5], "random", *args[6:], f"--per-body-run={run}", "--out", str(tmp_path / "y")])
+    # ... but teachers without the response channels drive an evaluation with them (a bank reads its own channels,
+    # the first): the same per-body moves as without
+    heard = ContextConvController(ControlInputs(len(OBS_CHANNELS) + len(RESPONSE_CHANNELS), (2, 2, 1),
+                                                OBS_CHANNELS.index("actuated")), hidden=4, log_std=-1.0)
+    save_controller(tmp_path / "heard" / "controller.pt", heard, replace(trained, response=True), SimConfig())
+    main([args[0], str(tmp_path / "heard"), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "heard_eval")])
+    own = [r["per_body_mean_command"] for r in read_csv(tmp_path / "heard_eval" / "bodies.csv")]
+    assert own == [r["per_body_mean_command"] for r in rows]
 
 
 def test_the_per_body_cache_key_of_a_run_made_before_a_field_existed_still_finds_it() -> None:
     """The per-body cache is named by the bodies and the overrides of the episode's settings. The key below is the
     one caches made before ``control.frame`` existed were named by, its override list written out by hand (every
-    ControlConfig field of that time, at the population preset's values): fields added since (``frame``) stay out of the key at
+    ControlConfig field of that time, at a student's values): fields added since (``frame``) stay out of the key at
     their default, so an old cache is found; at another value they enter it."""
     import hashlib
 
@@ -375,7 +384,7 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     rows = read_csv(tmp_path / "out" / "bodies.csv")
     assert [Path(r["set"]).name for r in rows] == ["a", "b", "b"]
     c = write("c", [body(0, 0.1, 0.5, 1.0, 0.5, float("nan"), float("nan"))])
-    with pytest.raises(ValueError, match=r"per-body columns on some bodies only — .*c \(0 of 1\) have them"):
+    with pytest.raises(ValueError, match=r"per-body values on some bodies only \(.*c has them on 0 of its 1 bodies\)"):
         pool([a, c], tmp_path / "out2")
     assert not (tmp_path / "out2").exists()
     d = write("d", [body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)], seed=1)
@@ -395,6 +404,12 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     assert float(paired["mean"]) == pytest.approx(gain.mean())
     assert float(paired["band99"]) == pytest.approx(stats.t.ppf(0.995, 2) * gain.std(ddof=1) / np.sqrt(3))
     assert float(plain["controller (mean command) over the hand-set wave"]["mean"]) == pytest.approx(2.5 / 2.0)
+    with pytest.raises(ValueError, match="a pooled table without per-body columns"):
+        pool(bare, tmp_path / "out5", per_body_from=tmp_path / "plain")
+    half = body(0, 0.1, 0.5, 1.0, 0.5, 1.0, 2.0)
+    del half["per_body_mean_command"]
+    with pytest.raises(ValueError, match=r"half_old: bodies.csv has one of \['per_body', 'per_body_mean_command'\]"):
+        pool([write("half_old", [half])], tmp_path / "out5")
     for reference in (tmp_path / "out", tmp_path / "out" / "bodies.csv"):
         taken = {r["what"]: float(r["mean"]) for r in pool(bare, tmp_path / "taken", per_body_from=reference)}
         assert taken["fraction of per-body control (mean command)"] == pytest.approx((2.5 / 3) / (5.0 / 3.0))

@@ -100,15 +100,18 @@ class ControlConfig:
 #: The fields that fix what a controller reads and writes — its observation's channels (``residual``'s open-loop
 #: channel, ``response``'s six, the heading channels and the planar vectors' ``frame``), its action's layout
 #: (``stroke_periods``) — and the task its weights learnt (``headings``). A controller trained under other values of
-#: any of them is another controller's input to this env: shapes that fail deep inside, or a task it never saw.
+#: any of them reads or writes another layout than this env's (a shape error deep inside, or channels read as
+#: others), or was trained for another task.
 INTERFACE = ("headings", "frame", "residual", "response", "stroke_periods")
 
 
-def interface_differences(theirs: ControlConfig, mine: ControlConfig) -> list[str]:
-    """The :data:`INTERFACE` fields on which ``theirs`` (a saved controller's or teacher run's) differs from
-    ``mine``, as ``"control.<field>: <theirs> (not <mine>)"``; empty when a controller of ``theirs`` fits ``mine``."""
-    return [f"control.{name}: {getattr(theirs, name)!r} (not {getattr(mine, name)!r})" for name in INTERFACE
-            if getattr(theirs, name) != getattr(mine, name)]
+def interface_differences(theirs: ControlConfig, mine: ControlConfig, whose: str = "theirs",
+                          ignore: tuple[str, ...] = ()) -> list[str]:
+    """The :data:`INTERFACE` fields (less ``ignore``) on which ``theirs`` (a saved controller's or a teacher run's,
+    named ``whose``) differs from ``mine``, as ``"control.<field>: <theirs> in <whose>, <mine> here"``; empty when a
+    controller of ``theirs`` fits ``mine``."""
+    return [f"control.{name}: {getattr(theirs, name)!r} in {whose}, {getattr(mine, name)!r} here" for name in INTERFACE
+            if name not in ignore and getattr(theirs, name) != getattr(mine, name)]
 
 
 def same_config(saved: Any, mine: dict[str, Any]) -> bool:
