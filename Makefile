@@ -29,6 +29,7 @@ PYTEST    := OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(JOBS) --dist load
 SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py tests/test_packing.py
 
 test: install
+	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts  # (pinned: a newer ruff's rules do not fail CI)
 	$(PYTEST) tests
 	FREEFORM_FAST_MATH=1 $(PYTEST) $(SIM_TESTS) tests/test_native.py
 	FREEFORM_BACKEND=quadrants $(PYTEST) $(SIM_TESTS) tests/test_sim_command.py
@@ -45,7 +46,7 @@ reproduce: install
 	PYTHON=$(abspath $(BIN)/python) bash experiments/reproduce.sh
 
 lint: install
-	$(BIN)/python -m ruff check freeform tests benchmarks experiments
+	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache outputs multirun runs
