@@ -166,7 +166,7 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     if len(pos) != 3:
         raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
     check_control_input(channels, (1, 1, 1), rel_x=pos[0], rel_y=pos[1], rel_z=pos[2],
-                         material=int(wave["material_channel"]))
+                        material=int(wave["material_channel"]))
     phases = tuple(float(p) for p in wave["phases"])
     if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
         raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
@@ -255,7 +255,7 @@ def _rhythm(out: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
 
 
 def body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_std: float, wave: Any = None,
-                           **sizes: int) -> int:
+                          **sizes: int) -> int:
     """What the body controllers (context, context_gru, attention) share at construction: the input checks (``sizes``: positive ints), the box,
     channels and head, ``init_kwargs``, the masked distribution (two entries a cell for strokes), a wave head's
     body-wide wave vector (``net.wave_k``: Linear(2h→3) of the pooled features, starting near 0, added to the
@@ -284,7 +284,7 @@ def body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_
 
 
 def cell_means(net: nn.Module, out: torch.Tensor, obs: torch.Tensor, filled: torch.Tensor, pooled: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The actor head's per-cell outputs ``out [N, outputs, *box]`` on observations ``obs [N, C, *box]`` →
     (mean, mask) ``[N, A]``: a rhythm head played on the observation's clock, a wave head's strokes with the body's
     wave vector from ``pooled`` (the body's features, ``[N, 2h]``); zero outside the body."""
