@@ -31,10 +31,11 @@ COLUMNS = {"stochastic": ("controller", "per_body"), "mean_command": ("mean_comm
 """A point's figures -> bodies.csv's columns they are read from: (at 0 epochs, after training)."""
 
 
-def read_bodies(folder: Path) -> list[dict[str, str]]:
-    """``folder``'s per-body table (a pooled or single held-out evaluation), refused naming what is missing."""
+def read_bodies(folder: Path, per_body: bool = True) -> list[dict[str, str]]:
+    """``folder``'s per-body table (a pooled or single held-out evaluation), refused naming what is missing;
+    ``per_body``: whether the point reads the per-body columns (after training; its 0-epoch point reads the start's)."""
     rows = read_table(folder, str(folder), "python -m experiments.control --evaluate")
-    if rows and "per_body" not in rows[0]:
+    if per_body and rows and "per_body" not in rows[0]:
         raise ValueError(f"{folder}: no per_body column (evaluate with --per-body N --per-body-run RUN)")
     return rows
 
@@ -44,8 +45,8 @@ def read_point(start: str, spec: str) -> dict:
     epochs, sep, folder = spec.partition("=")
     if not sep or not epochs.isdigit():
         raise ValueError(f"--from {start}: a point is EPOCHS=FOLDER with EPOCHS a whole number, got {spec!r}")
-    rows = read_bodies(Path(folder))
     at = 0 if int(epochs) == 0 else 1
+    rows = read_bodies(Path(folder), per_body=at == 1)
     moves = {k: np.array([float(r[cols[at]]) for r in rows]) for k, cols in COLUMNS.items()}
     gait = np.array([float(r["open_loop"]) for r in rows])
     return {"start": start, "epochs": int(epochs), "folder": folder, "keys": body_keys(rows), "gait": gait, **moves}

@@ -466,7 +466,7 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
     """``experiments.adaptation``: a 0-epoch point is the evaluated controller (the bank's start), a later point
     the per-body column; the paired difference between starts is per body (a 3-body example worked by hand:
     differences 0.5, 0.3, 0.1 -> mean 0.3, band t(0.995, 2)·0.2/√3); tables over other bodies or without per-body
-    controllers are refused."""
+    controllers after training are refused (a 0-epoch point needs none)."""
     from experiments.adaptation import main
 
     def write(name: str, rows: list[tuple], per_body: bool = True) -> str:
@@ -502,6 +502,10 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
     with pytest.raises(ValueError, match="no per_body column"):
         main(["--from", "student", f"4={write('n', [(0, 0.5, 1, 1)], per_body=False)}", "--out", str(tmp_path / "y")])
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    # a 0-epoch point reads only the start's columns: a table without per-body ones serves (the same figures)
+    bare = write("bare", [(0, 0.5, 1.0, 1.0), (1, 0.5, 0.2, 0.4), (2, 0.5, 0.3, 0.3)], per_body=False)
+    main(["--from", "student", f"0={bare}", f"4={student}", "--out", str(tmp_path / "z")])
+    assert read_csv(tmp_path / "z" / "adaptation.csv")[0]["stochastic"] == rows[0]["stochastic"]
 
 
 def test_two_tables_compared_body_by_body(tmp_path) -> None:
