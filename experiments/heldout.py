@@ -75,8 +75,8 @@ def read_bodies(path: Path, materials: int) -> torch.Tensor:
 class PerBody:
     """``--per-body N``: per-body controllers for the first ``n`` bodies, trained by ``freeform-train
     experiment=<preset>`` (a bank: ``control.teachers=n``, ``copies`` environments per body, the evaluation's
-    episode settings: the controller's, ``--headings`` included) or read from ``cache`` (a run directory named by the bodies and settings, resumed
-    where a run stopped early)."""
+    episode settings: the controller's, ``--headings`` included) or read from ``cache`` (a run directory named by
+    the bodies and settings, resumed where a run stopped early)."""
 
     n: int
     preset: str = "control_teachers_cpu"
@@ -143,9 +143,7 @@ def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
     from freeform.run.build import read_teacher_run
 
     teachers = read_teacher_run(run, f"--per-body-run {run}")
-    theirs = teachers.config.control
-    ignore = ("response",) if control.response and not theirs.response else ()
-    differ = interface_differences(theirs, control, "the teacher run", ignore)
+    differ = interface_differences(teachers.config.control, control, "the teacher run", bank=True)
     if differ:
         raise ValueError(f"--per-body-run {run}: its teachers were trained for another controller interface or task "
                          f"than this evaluation's — {'; '.join(differ)}: give a teacher run of the evaluated "
@@ -410,7 +408,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         if missing:
             raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
                              "controller with strokes)")
-        gap = next(((r["body"], c) for r in table for c in POOLED if r[c] in ("", "nan")), None)
+        gap = next(((r["body"], c) for r in table for c in POOLED if _missing(r[c])), None)
         if gap is not None:
             raise ValueError(f"--pool {folder}: bodies.csv has no {gap[1]} for body {gap[0]}")
         if sum(c in table[0] for c in PER_BODY) == 1:
@@ -437,12 +435,14 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     return summary
 
 
+def _missing(value: str) -> bool:
+    """Whether a bodies.csv cell holds no figure (an empty cell, or the nan of a body without per-body control)."""
+    return value in ("", "nan")
+
+
 def _per_body_columns(tables: list[list[dict]], sets: list[Path]) -> tuple[str, ...]:
     """:data:`PER_BODY` where every body of every set has its values, () where none has any; refused between."""
-    def has(row: dict) -> bool:
-        return all(row.get(c, "") not in ("", "nan") for c in PER_BODY)
-
-    counts = [sum(map(has, table)) for table in tables]
+    counts = [sum(not any(_missing(row.get(c, "")) for c in PER_BODY) for row in table) for table in tables]
     if all(k == len(t) for k, t in zip(counts, tables, strict=True)):
         return PER_BODY
     if not any(counts):

@@ -105,13 +105,20 @@ class ControlConfig:
 INTERFACE = ("headings", "frame", "residual", "response", "stroke_periods")
 
 
-def interface_differences(theirs: ControlConfig, mine: ControlConfig, whose: str = "theirs",
-                          ignore: tuple[str, ...] = ()) -> list[str]:
-    """The :data:`INTERFACE` fields (less ``ignore``) on which ``theirs`` (a saved controller's or a teacher run's,
-    named ``whose``) differs from ``mine``, as ``"control.<field>: <theirs> in <whose>, <mine> here"``; empty when a
-    controller of ``theirs`` fits ``mine``."""
-    return [f"control.{name}: {getattr(theirs, name)!r} in {whose}, {getattr(mine, name)!r} here" for name in INTERFACE
-            if name not in ignore and getattr(theirs, name) != getattr(mine, name)]
+def differing_fields(theirs: Any, mine: Any, fields: tuple[str, ...], bank: bool = False) -> list[str]:
+    """The ``fields`` on which ``theirs`` and ``mine`` (``ControlConfig``s, or runs' ``control`` sections) differ.
+    ``bank``: ``theirs`` is a teacher bank's, which reads its own channels, the first ones — so the response channels
+    that ``mine`` adds after them (``response``) are no difference."""
+    return [k for k in fields if getattr(theirs, k) != getattr(mine, k)
+            and not (bank and k == "response" and mine.response)]
+
+
+def interface_differences(theirs: Any, mine: ControlConfig, whose: str = "theirs", bank: bool = False) -> list[str]:
+    """The :data:`INTERFACE` fields on which ``theirs`` (a saved controller's or a teacher run's, named ``whose``;
+    ``bank``: :func:`differing_fields`) differs from ``mine``, as ``"control.<field>: <theirs> in <whose>, <mine>
+    here"``; empty when a controller of ``theirs`` fits ``mine``."""
+    return [f"control.{k}: {getattr(theirs, k)!r} in {whose}, {getattr(mine, k)!r} here"
+            for k in differing_fields(theirs, mine, INTERFACE, bank)]
 
 
 def same_config(saved: Any, mine: dict[str, Any]) -> bool:
@@ -122,4 +129,4 @@ def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
-__all__ = ["FRAMES", "HEADINGS", "INTERFACE", "ControlConfig", "interface_differences", "same_config"]
+__all__ = ["FRAMES", "HEADINGS", "INTERFACE", "ControlConfig", "differing_fields", "interface_differences", "same_config"]

@@ -22,6 +22,7 @@ import torch
 
 from freeform.config import TrainConfig, ppo_config
 from freeform.envs.base import Task, VecEnv
+from freeform.envs.control_config import differing_fields
 from freeform.learner import LEARNERS, Learner, register_learner
 
 TaskBuilder = Callable[[TrainConfig, torch.device], Task]
@@ -425,8 +426,7 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     theirs, mine = run.config.control, cfg.control
     assert theirs is not None and mine is not None
     keys = ("teachers", "bodies", "body_seed", "top", *vars(mine.episode()))
-    # (a student may sense more than its teachers did: they read the channels before its response)
-    differ = [k for k in keys if getattr(theirs, k) != getattr(mine, k) and not (k == "response" and mine.response)]
+    differ = differing_fields(theirs, mine, keys, bank=True)  # (a student may sense more: its response channels)
     if differ:
         raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
                          + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
