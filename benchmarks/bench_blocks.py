@@ -22,6 +22,7 @@ import time
 import numpy as np
 import torch
 
+from benchmarks.bench_gpu import line
 from freeform.sim import SimConfig, Simulator, runtime
 from freeform.sim.engine import Engine
 from freeform.sim.schedules import CUDA_ROBOTS_ENV
@@ -31,24 +32,20 @@ CONTROL_DT = 1e-4  # a control period of 100 steps at a fixed dt (bench_control)
 EPOCH_BUDGET_S = 30.0  # the epoch's simulation on the block schedule is skipped when the batch-128 figure says longer
 
 
-def _line(label: str, value: str) -> None:
-    print(f"  {label:62s} {value}", flush=True)
-
-
-def _bodies(n: int, seed: int = 0) -> torch.Tensor:
+def design_bodies(n: int, seed: int = 0) -> torch.Tensor:
     from benchmarks.bench_sim import random_design_bodies
 
     return random_design_bodies(n, seed=seed)
 
 
-def _engine(grids, cfg: SimConfig, arch: str, schedule: str, block_dim: int | None = None) -> Engine:
+def engine_for(grids, cfg: SimConfig, arch: str, schedule: str, block_dim: int | None = None) -> Engine:
     if arch == "cpu":  # (the rehearsal: a compute graph's build costs ~1 min per kernel variant on a busy 2-core CPU)
         cfg = SimConfig(**{**cfg.__dict__, "graph_launches": 0})
     sim = Simulator(cfg, arch=arch, schedule=schedule)
     return Engine(sim.layout(grids), cfg, arch=arch, schedule=schedule, arrays=sim.arrays, block_dim=block_dim)
 
 
-def _us_per_step(engine: Engine, steps: int, rounds: int = 3) -> float:
+def us_per_step(engine: Engine, steps: int, rounds: int = 3) -> float:
     """Best of ``rounds`` timed ``advance(steps)``, µs a step (after one untimed: compilation, the graph)."""
     engine.advance(steps)
     runtime.sync()
@@ -65,27 +62,27 @@ def check(arch: str, rehearsal: bool) -> None:
     """Block against flat on 6 design bodies and a 6³ cube (f32 rl4design, 300 steps): the largest difference of
     any voxel (voxel lengths: rounding, as between the CPU and CUDA); a second block run: the same bits."""
     grids = torch.zeros((7, 20, 20, 20), dtype=torch.uint8)
-    grids[:6] = _bodies(6, seed=5)
+    grids[:6] = design_bodies(6, seed=5)
     grids[6, :6, :6, :6] = 2
     cfg = SimConfig(**PAPER_SIM, burn_in=100.0)
     runs = {}
     for name, schedule, block_dim in (("flat", "flat", None), ("block", "robots", None), ("block again", "robots", None),
                                       ("block B=32", "robots", 32)):
         t0 = time.perf_counter()
-        engine = _engine(grids, cfg, arch, schedule, block_dim)
+        engine = engine_for(grids, cfg, arch, schedule, block_dim)
         engine.advance(300)
         runs[name] = (engine.positions(), engine.robot_steps(), engine.block_dim)
         runtime.sync()
         what = f"{name} (B = {engine.block_dim})" if schedule == "robots" else name
-        _line(f"check: {what}, 300 steps, compilation included",
+        line(f"check: {what}, 300 steps, compilation included",
               f"{time.perf_counter() - t0:7.2f} s")
     flat = runs["flat"][0]
     for name in ("block", "block B=32"):
         d = np.abs(runs[name][0] - flat).max() / cfg.voxel_size
         same_steps = bool((runs[name][1] == runs["flat"][1]).all())
-        _line(f"check: {name} against flat, max |Δ position| (voxels); steps equal", f"{d:.2e}; {same_steps}")
+        line(f"check: {name} against flat, max |Δ position| (voxels); steps equal", f"{d:.2e}; {same_steps}")
     again = all(np.array_equal(a, b) for a, b in zip(runs["block"][:2], runs["block again"][:2], strict=True))
-    _line("check: block run twice, the same bits", str(again))
+    line("check: block run twice, the same bits", str(again))
 
 
 def step_rows(arch: str, rehearsal: bool) -> float:
@@ -95,25 +92,25 @@ def step_rows(arch: str, rehearsal: bool) -> float:
     steps = 64 if rehearsal else 512
     block128 = math.nan
     for batch in ((1, 8) if rehearsal else (1, 128, 1024)):
-        grids = _bodies(batch)
-        flat = _us_per_step(_engine(grids, cfg, arch, "flat"), steps)
-        block_engine = _engine(grids, cfg, arch, "robots")
-        block = _us_per_step(block_engine, steps)
+        grids = design_bodies(batch)
+        flat = us_per_step(engine_for(grids, cfg, arch, "flat"), steps)
+        block_engine = engine_for(grids, cfg, arch, "robots")
+        block = us_per_step(block_engine, steps)
         block128 = block if batch in (8, 128) else block128
-        _line(f"µs a step, {batch} design bodies: flat | block (B = {block_engine.block_dim})",
+        line(f"µs a step, {batch} design bodies: flat | block (B = {block_engine.block_dim})",
               f"{flat:8.1f} | {block:8.1f}")
     edge, n = (6, 2) if rehearsal else (20, 8)
     cubes = torch.full((n, edge, edge, edge), 2, dtype=torch.uint8)
     cube_cfg = SimConfig(precision="f32", burn_in=100.0)  # voxelyze, fixed dt: no serial ω² max on lane 0
-    flat = _us_per_step(_engine(cubes, cube_cfg, arch, "flat"), steps // 4)
-    block_engine = _engine(cubes, cube_cfg, arch, "robots")
-    block = _us_per_step(block_engine, steps // 4)
-    _line(f"µs a step, {n} cubes of {edge}³ (voxelyze): flat | block (B = {block_engine.block_dim})",
+    flat = us_per_step(engine_for(cubes, cube_cfg, arch, "flat"), steps // 4)
+    block_engine = engine_for(cubes, cube_cfg, arch, "robots")
+    block = us_per_step(block_engine, steps // 4)
+    line(f"µs a step, {n} cubes of {edge}³ (voxelyze): flat | block (B = {block_engine.block_dim})",
           f"{flat:8.1f} | {block:8.1f}")
     if not rehearsal:
-        grids = _bodies(128)
-        cells = [f"B={b}: {_us_per_step(_engine(grids, cfg, arch, 'robots', b), steps):.1f}" for b in (32, 64, 128)]
-        _line("µs a step, 128 design bodies, block by B", " | ".join(cells))
+        grids = design_bodies(128)
+        cells = [f"B={b}: {us_per_step(engine_for(grids, cfg, arch, 'robots', b), steps):.1f}" for b in (32, 64, 128)]
+        line("µs a step, 128 design bodies, block by B", " | ".join(cells))
     return block128
 
 
@@ -121,7 +118,7 @@ def epoch_rows(arch: str, rehearsal: bool, block_us: float) -> None:
     """The epoch's simulation (``Simulator.simulate``: 128 bodies, 5 s + 5 s; the rehearsal 8, 0.05 s + 0.05 s)."""
     batch, protocol = (8, dict(burn_in=0.05, duration=0.05)) if rehearsal else (128, dict(burn_in=5.0, duration=5.0))
     cfg = SimConfig(**PAPER_SIM, **protocol)
-    grids = _bodies(batch)
+    grids = design_bodies(batch)
     cells = []
     for schedule in ("flat", "robots"):
         if schedule == "robots" and not rehearsal and block_us * 92_418e-6 > EPOCH_BUDGET_S:
@@ -132,7 +129,7 @@ def epoch_rows(arch: str, rehearsal: bool, block_us: float) -> None:
         r = Simulator(run_cfg, arch=arch, schedule=schedule).simulate(grids)
         runtime.sync()
         cells.append(f"{time.perf_counter() - t0:6.2f} s ({int(r.steps.max())} steps)")
-    _line(f"the epoch's simulation, {batch} bodies, {cfg.burn_in:g} s + {cfg.duration:g} s: flat | block",
+    line(f"the epoch's simulation, {batch} bodies, {cfg.burn_in:g} s + {cfg.duration:g} s: flat | block",
           " | ".join(cells))
 
 
@@ -142,17 +139,17 @@ def control_rows(arch: str, rehearsal: bool) -> None:
     cfg = SimConfig(dt=CONTROL_DT, actuation="command", burn_in=0.0, duration=1000 * period)
     rounds = 3 if rehearsal else 10
     for n in ((8, 16) if rehearsal else (128, 1024)):
-        grids = _bodies(n)
+        grids = design_bodies(n)
         cells = []
         for schedule in ("flat", "robots"):
-            engine = _engine(grids, cfg, arch, schedule)
+            engine = engine_for(grids, cfg, arch, schedule)
             zero = np.zeros(engine.layout.num_voxels)
             engine.control_step(zero, period)  # compile, build the graph
             t0 = time.perf_counter()
             for _ in range(rounds):
                 engine.control_step(zero, period)
             cells.append(f"{(time.perf_counter() - t0) / rounds * 1e3:8.2f}")
-        _line(f"a control period of 100 steps, {n} bodies, ms: flat | block", " | ".join(cells))
+        line(f"a control period of 100 steps, {n} bodies, ms: flat | block", " | ".join(cells))
 
 
 def sweep_rows(arch: str, rehearsal: bool) -> None:
@@ -161,18 +158,18 @@ def sweep_rows(arch: str, rehearsal: bool) -> None:
     cfg = SimConfig(**PAPER_SIM, burn_in=100.0)
     steps = 64 if rehearsal else 512
     for batch in ((8,) if rehearsal else (128, 1024)):
-        grids = _bodies(batch)
+        grids = design_bodies(batch)
         dims = (1, 2) if rehearsal else (64, 128, 256, 512)
-        cells = [f"B={b}: {_us_per_step(_engine(grids, cfg, arch, 'robots', b), steps):.1f}" for b in dims]
-        _line(f"µs a step, {batch} design bodies, block by B", " | ".join(cells))
+        cells = [f"B={b}: {us_per_step(engine_for(grids, cfg, arch, 'robots', b), steps):.1f}" for b in dims]
+        line(f"µs a step, {batch} design bodies, block by B", " | ".join(cells))
     cube_cfg = SimConfig(precision="f32", burn_in=100.0)
     for edge, n in (((4, 2),) if rehearsal else ((8, 16), (12, 16))):
         cubes = torch.full((n, edge, edge, edge), 2, dtype=torch.uint8)
-        flat = _us_per_step(_engine(cubes, cube_cfg, arch, "flat"), steps // 4)
-        block_engine = _engine(cubes, cube_cfg, arch, "robots")
-        block = _us_per_step(block_engine, steps // 4)
+        flat = us_per_step(engine_for(cubes, cube_cfg, arch, "flat"), steps // 4)
+        block_engine = engine_for(cubes, cube_cfg, arch, "robots")
+        block = us_per_step(block_engine, steps // 4)
         links = int(np.diff(block_engine.layout.link_start).max())
-        _line(f"µs a step, {n} cubes of {edge}³ ({links} links; voxelyze): flat | block (B = {block_engine.block_dim})",
+        line(f"µs a step, {n} cubes of {edge}³ ({links} links; voxelyze): flat | block (B = {block_engine.block_dim})",
               f"{flat:8.1f} | {block:8.1f}")
 
 
@@ -198,7 +195,7 @@ def app_epoch_rows(rehearsal: bool) -> None:
         wall = time.perf_counter() - t0
         get = {k: last.get(k, math.nan) for k in ("perf/time_rollout", "perf/time_env", "perf/sim_seconds",
                                                    "perf/time_update")}
-        _line(f"{preset.split('=')[1]} epoch {cfg.trainer.epochs}, simulator {name}: "
+        line(f"{preset.split('=')[1]} epoch {cfg.trainer.epochs}, simulator {name}: "
               "rollout (env | simulation) | update",
               f"{get['perf/time_rollout']:6.2f} s ({get['perf/time_env']:.2f} | {get['perf/sim_seconds']:.2f}) | "
               f"{get['perf/time_update']:6.2f} s; {wall:.0f} s with compilation")

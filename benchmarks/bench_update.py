@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.bench_gpu import _line
+from benchmarks.bench_gpu import line
 
 NETWORK = ["experiment=paper_volume", "agent.hidden=256", "task.materials=4", "env.num_envs=128", "env.steps=100"]
 SMALL = ["env.num_envs=16", "env.steps=20"]
@@ -72,11 +72,11 @@ def agreement(variants: list[str], device: str, network: torch.nn.Module, grids:
             net.load_state_dict(reference.state_dict())
             first, second = grads(net), grads(net)
         except Exception as e:
-            _line(f"{variant}: agreement", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
+            line(f"{variant}: agreement", f"FAILED: {type(e).__name__}: {str(e)[:200]}")
             continue
         worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1.0)) for a, b in zip(first, expected, strict=True))
         same = all(torch.equal(a, b) for a, b in zip(first, second, strict=True))
-        _line(f"{variant} against conv: outputs and gradients (max rel.)", f"{worst:.1e}; twice the same bits: {same}")
+        line(f"{variant} against conv: outputs and gradients (max rel.)", f"{worst:.1e}; twice the same bits: {same}")
 
 
 def _timed(fn: Callable, times: dict[str, list[float]], name: str, device: str) -> Callable:
@@ -120,10 +120,10 @@ def update_figures(variant: str, device: str, rehearsal: bool) -> None:
             batch = cfg.env.num_envs * cfg.env.steps
             steps = cfg.agent.num_sgd_iter * (batch // min(cfg.agent.sgd_minibatch_size, batch))
             wall = statistics.median(runs)
-            _line(f"{variant}, {mode}: {steps} minibatches (first update {first:.1f} s)",
+            line(f"{variant}, {mode}: {steps} minibatches (first update {first:.1f} s)",
                   f"{wall / steps * 1e3:6.2f} ms a minibatch, {wall:.2f} s an update")
             parts = " | ".join(f"{k.strip('_')} {statistics.median(v) * 1e3:.0f}" for k, v in times.items())
-            _line("  parts, ms", parts)
+            line("  parts, ms", parts)
             graphed = getattr(ppo, "_graphed", None)
             if graphed is not None and graphed._graphs:
                 graph = next(iter(graphed._graphs.values()))
@@ -135,10 +135,10 @@ def update_figures(variant: str, device: str, rehearsal: bool) -> None:
                 end.record()
                 torch.cuda.synchronize()
                 gpu = start.elapsed_time(end) / replays
-                _line("  the captured step alone (GPU, replays back to back)",
+                line("  the captured step alone (GPU, replays back to back)",
                       f"{gpu:6.3f} ms; outside it {wall / steps * 1e3 - gpu:.3f} ms a minibatch")
         except Exception as e:  # one variant's failure is a figure too
-            _line(f"{variant}, {mode}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
+            line(f"{variant}, {mode}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
 
 
 def epochs(trunks: list[str], device: str) -> None:
@@ -153,10 +153,10 @@ def epochs(trunks: list[str], device: str) -> None:
             with tempfile.TemporaryDirectory() as run:
                 history = train(cfg, Path(run)).history
         except Exception as e:
-            _line(f"paper_locomotion, trunk={trunk}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
+            line(f"paper_locomotion, trunk={trunk}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
             continue
         for i, h in enumerate(history[1:], start=2):
-            _line(f"paper_locomotion epoch {i}, trunk={trunk}: rollout (simulation) | update",
+            line(f"paper_locomotion epoch {i}, trunk={trunk}: rollout (simulation) | update",
                   f"{h['perf/time_rollout']:.2f} ({h.get('perf/sim_seconds', float('nan')):.2f}) | "
                   f"{h['perf/time_update']:.2f} s")
 

@@ -221,8 +221,12 @@ def write_csv(path: Path, columns: dict[str, Sequence[Any]], prov: dict[str, str
 
 
 def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
-    """Write ``rows`` (dicts) as a CSV table, its columns every key in the order first met."""
+    """Write ``rows`` (dicts) as a CSV table, its columns every key in the order first met. An empty table is
+    refused (``ValueError``), the file untouched: without rows a CSV has no header, and it would read back as
+    nothing where a table was meant."""
     path = Path(path)
+    if not rows:
+        raise ValueError(f"no rows to write to {path} (an empty table has no columns); nothing written")
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for row in rows for k in row)))

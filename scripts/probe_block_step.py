@@ -7,10 +7,10 @@ import os
 import sys
 
 sys.path.insert(0, os.getcwd())
-from benchmarks.bench_blocks import _bodies, _engine, _us_per_step  # noqa: E402
+from benchmarks.bench_blocks import design_bodies, engine_for, us_per_step  # noqa: E402
 from freeform.sim import SimConfig  # noqa: E402
 
-grids = _bodies(128)
+grids = design_bodies(128)
 paper = dict(precision="f32", semantics="rl4design", burn_in=100.0, duration=5.0)
 cases = {
     "paper (rl4design, dynamic dt)": paper,
@@ -21,7 +21,7 @@ cases = {
 for name, kw in cases.items():
     for b in ((None, 64) if name.startswith("paper") else (None,)):
         try:
-            e = _engine(grids, SimConfig(**kw), "cuda", "robots", b)
-            print(f"{name:45s} B={e.block_dim:4d}: {_us_per_step(e, 1024):6.2f} us a step", flush=True)
+            e = engine_for(grids, SimConfig(**kw), "cuda", "robots", b)
+            print(f"{name:45s} B={e.block_dim:4d}: {us_per_step(e, 1024):6.2f} us a step", flush=True)
         except Exception as ex:
             print(name, "FAILED", type(ex).__name__, str(ex)[:200], flush=True)

@@ -76,6 +76,15 @@ def _fake_run(d: Path, **info) -> Path:
     return d
 
 
+def test_rows_round_trip_and_an_empty_table_is_refused_leaving_the_file(tmp_path):
+    rows = [{"a": 1, "b": 2.5}, {"a": 3, "c": "x"}]
+    path = common.write_rows(tmp_path / "t.csv", rows)
+    assert common.read_rows(path) == [{"a": "1", "b": "2.5", "c": ""}, {"a": "3", "b": "", "c": "x"}]
+    with pytest.raises(ValueError, match="no rows to write"):
+        common.write_rows(path, [])
+    assert len(common.read_rows(path)) == 2
+
+
 def test_find_runs_searches_sweeps_and_names_missing_paths(tmp_path):
     a = _fake_run(tmp_path / "sweep" / "0", seed=0)
     b = _fake_run(tmp_path / "sweep" / "1", seed=1)
@@ -171,6 +180,43 @@ def test_volume_figure_from_records(record_runs, tmp_path):
     for epoch, reward, target in zip(bodies["epoch"], bodies["reward"], bodies["epoch_mean_reward"], strict=True):
         pooled = np.concatenate([read_record(record_path(r, int(epoch))).rewards for r in record_runs])
         assert abs(reward - target) == pytest.approx(np.abs(pooled - target).min(), abs=1e-4)
+
+
+def test_design_diversity_compares_the_first_and_last_windows_of_a_run(tmp_path):
+    """Analytic spread: one body placed anywhere is one design; two bodies differing in c of the 216 cells, two
+    copies each, differ in 4 of the 6 pairs, so their distance is (4 / 6) * c / 216."""
+    from experiments import design_diversity
+    from freeform.records import EpochRecord, write_record
+
+    def body(x: int, y: int, extra: int = 0) -> np.ndarray:
+        g = np.zeros((6, 6, 6), np.uint8)
+        g[x:x + 2, y:y + 3, 0:2] = 3
+        g[x, y, 2:2 + extra] = 1  # a mast of `extra` cells: the second body's difference
+        return g
+
+    run = tmp_path / "run"
+    windows = [[body(0, 0), body(3, 2)], [body(1, 1), body(2, 3)],  # the first two epochs: one design, moved
+               [body(0, 0), body(0, 0, 3)], [body(1, 0), body(0, 2, 3)]]  # the last two: two designs, c = 3
+    for e, grids in enumerate(windows):
+        grids = np.stack(grids)
+        write_record(run, EpochRecord(epoch=e, global_step=e, actions=np.zeros((2, 1, 1), np.float32),
+                                      final_grids=grids, rewards=np.array([e, e + 1], np.float32),
+                                      values=np.zeros((2, 1), np.float32),
+                                      metrics={"volume": (grids > 0).sum((1, 2, 3)).astype(np.float32)}))
+    out = design_diversity.main([str(run), "--epochs", "2", "--out", str(tmp_path / "d.csv")])
+    first, last = common.read_rows(out)
+    assert (first["window"], first["epochs"], first["designs"]) == ("first 2 epochs", "0-1", "4")
+    assert float(first["distance"]) == 0.0 and first["distinct"] == "1"
+    assert float(first["return"]) == pytest.approx(1.0) and float(first["volume"]) == pytest.approx(12.0)
+    assert last["epochs"] == "2-3" and last["distinct"] == "2"
+    assert float(last["distance"]) == pytest.approx(4 / 6 * 3 / 216)
+    assert float(last["return"]) == pytest.approx(3.0) and float(last["volume"]) == pytest.approx(13.5)
+
+    with pytest.raises(ValueError, match="exists"):  # nothing written is overwritten
+        design_diversity.main([str(run), "--epochs", "2", "--out", str(out)])
+    with pytest.raises(ValueError, match=r"4 epochs of design records.*--epochs 3 needs at least 6"):
+        design_diversity.main([str(run), "--epochs", "3", "--out", str(tmp_path / "e.csv")])
+    assert not (tmp_path / "e.csv").exists()
 
 
 def test_locomotion_metrics_figure_from_records(record_runs, tmp_path):
