@@ -38,7 +38,7 @@ from freeform.envs.control import (
     open_loop_displacement,
     open_loop_moves,
 )
-from freeform.envs.control_config import interface_differences
+from freeform.envs.control_config import described_differences
 from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
 
@@ -137,13 +137,13 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
 
 def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
     """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
-    ``bodies`` and whose interface and task the evaluation's (``control``: ``interface_differences``; teachers
+    ``bodies`` and whose interface and task the evaluation's (``control``: ``described_differences``; teachers
     without the response channels drive an evaluation that has them: a bank reads its own channels, the first)."""
     from freeform.body import largest_component
     from freeform.run.build import read_teacher_run
 
     teachers = read_teacher_run(run, f"--per-body-run {run}")
-    differ = interface_differences(teachers.config.control, control, "the teacher run", bank=True)
+    differ = described_differences(teachers.config.control, control, "the teacher run", bank=True)
     if differ:
         raise ValueError(f"--per-body-run {run}: its teachers were trained for another controller interface or task "
                          f"than this evaluation's — {'; '.join(differ)}: give a teacher run of the evaluated "

@@ -113,12 +113,13 @@ def differing_fields(theirs: Any, mine: Any, fields: tuple[str, ...], bank: bool
             and not (bank and k == "response" and mine.response)]
 
 
-def interface_differences(theirs: Any, mine: ControlConfig, whose: str = "theirs", bank: bool = False) -> list[str]:
-    """The :data:`INTERFACE` fields on which ``theirs`` (a saved controller's or a teacher run's, named ``whose``;
-    ``bank``: :func:`differing_fields`) differs from ``mine``, as ``"control.<field>: <theirs> in <whose>, <mine>
-    here"``; empty when a controller of ``theirs`` fits ``mine``."""
+def described_differences(theirs: Any, mine: ControlConfig, whose: str = "theirs", fields: tuple[str, ...] = INTERFACE,
+                          bank: bool = False) -> list[str]:
+    """The ``fields`` (by default :data:`INTERFACE`) on which ``theirs`` (a saved controller's or a teacher run's,
+    named ``whose``; ``bank``: :func:`differing_fields`) differs from ``mine``, each as ``"control.<field>: <theirs>
+    in <whose>, <mine> here"`` — the one wording of every refusal of another run's settings; empty when they agree."""
     return [f"control.{k}: {getattr(theirs, k)!r} in {whose}, {getattr(mine, k)!r} here"
-            for k in differing_fields(theirs, mine, INTERFACE, bank)]
+            for k in differing_fields(theirs, mine, fields, bank)]
 
 
 def same_config(saved: Any, mine: dict[str, Any]) -> bool:
@@ -129,4 +130,4 @@ def same_config(saved: Any, mine: dict[str, Any]) -> bool:
     return {**saved, "control": {**vars(ControlConfig()), **saved["control"]}} == mine
 
 
-__all__ = ["FRAMES", "HEADINGS", "INTERFACE", "ControlConfig", "differing_fields", "interface_differences", "same_config"]
+__all__ = ["FRAMES", "HEADINGS", "INTERFACE", "ControlConfig", "described_differences", "differing_fields", "same_config"]

@@ -22,7 +22,7 @@ import torch
 
 from freeform.config import TrainConfig, ppo_config
 from freeform.envs.base import Task, VecEnv
-from freeform.envs.control_config import differing_fields
+from freeform.envs.control_config import described_differences
 from freeform.learner import LEARNERS, Learner, register_learner
 
 TaskBuilder = Callable[[TrainConfig, torch.device], Task]
@@ -426,12 +426,11 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     theirs, mine = run.config.control, cfg.control
     assert theirs is not None and mine is not None
     keys = ("teachers", "bodies", "body_seed", "top", *vars(mine.episode()))
-    differ = differing_fields(theirs, mine, keys, bank=True)  # (a student may sense more: its response channels)
+    # (a student may sense more: its response channels)
+    differ = described_differences(theirs, mine, "the teacher run", keys, bank=True)
     if differ:
         raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
-                         + ", ".join(f"control.{k} = {getattr(theirs, k)!r} there, {getattr(mine, k)!r} here"
-                                     for k in differ)
-                         + " (give this run the teacher run's values, or train teachers with these)")
+                         + "; ".join(differ) + " (give this run the teacher run's values, or train teachers with these)")
     _same_bodies(run.bodies, grids.cpu(), body.cpu(), run.config, cfg, source)
     return run.bank.to(device)
 
