@@ -33,12 +33,14 @@ EPOCH_BUDGET_S = 30.0  # the epoch's simulation on the block schedule is skipped
 
 
 def design_bodies(n: int, seed: int = 0) -> torch.Tensor:
+    """``n`` bodies of an untrained design policy ``[n, ρ, ρ, ρ]`` (``bench_sim.random_design_bodies``)."""
     from benchmarks.bench_sim import random_design_bodies
 
     return random_design_bodies(n, seed=seed)
 
 
 def engine_for(grids, cfg: SimConfig, arch: str, schedule: str, block_dim: int | None = None) -> Engine:
+    """An ``Engine`` of ``grids`` on ``arch`` and ``schedule`` (``block_dim`` B for the block one)."""
     if arch == "cpu":  # (the rehearsal: a compute graph's build costs ~1 min per kernel variant on a busy 2-core CPU)
         cfg = SimConfig(**{**cfg.__dict__, "graph_launches": 0})
     sim = Simulator(cfg, arch=arch, schedule=schedule)
@@ -75,7 +77,7 @@ def check(arch: str, rehearsal: bool) -> None:
         runtime.sync()
         what = f"{name} (B = {engine.block_dim})" if schedule == "robots" else name
         line(f"check: {what}, 300 steps, compilation included",
-              f"{time.perf_counter() - t0:7.2f} s")
+             f"{time.perf_counter() - t0:7.2f} s")
     flat = runs["flat"][0]
     for name in ("block", "block B=32"):
         d = np.abs(runs[name][0] - flat).max() / cfg.voxel_size
@@ -98,7 +100,7 @@ def step_rows(arch: str, rehearsal: bool) -> float:
         block = us_per_step(block_engine, steps)
         block128 = block if batch in (8, 128) else block128
         line(f"µs a step, {batch} design bodies: flat | block (B = {block_engine.block_dim})",
-              f"{flat:8.1f} | {block:8.1f}")
+             f"{flat:8.1f} | {block:8.1f}")
     edge, n = (6, 2) if rehearsal else (20, 8)
     cubes = torch.full((n, edge, edge, edge), 2, dtype=torch.uint8)
     cube_cfg = SimConfig(precision="f32", burn_in=100.0)  # voxelyze, fixed dt: no serial ω² max on lane 0
@@ -106,7 +108,7 @@ def step_rows(arch: str, rehearsal: bool) -> float:
     block_engine = engine_for(cubes, cube_cfg, arch, "robots")
     block = us_per_step(block_engine, steps // 4)
     line(f"µs a step, {n} cubes of {edge}³ (voxelyze): flat | block (B = {block_engine.block_dim})",
-          f"{flat:8.1f} | {block:8.1f}")
+         f"{flat:8.1f} | {block:8.1f}")
     if not rehearsal:
         grids = design_bodies(128)
         cells = [f"B={b}: {us_per_step(engine_for(grids, cfg, arch, 'robots', b), steps):.1f}" for b in (32, 64, 128)]
@@ -130,7 +132,7 @@ def epoch_rows(arch: str, rehearsal: bool, block_us: float) -> None:
         runtime.sync()
         cells.append(f"{time.perf_counter() - t0:6.2f} s ({int(r.steps.max())} steps)")
     line(f"the epoch's simulation, {batch} bodies, {cfg.burn_in:g} s + {cfg.duration:g} s: flat | block",
-          " | ".join(cells))
+         " | ".join(cells))
 
 
 def control_rows(arch: str, rehearsal: bool) -> None:
@@ -170,7 +172,7 @@ def sweep_rows(arch: str, rehearsal: bool) -> None:
         block = us_per_step(block_engine, steps // 4)
         links = int(np.diff(block_engine.layout.link_start).max())
         line(f"µs a step, {n} cubes of {edge}³ ({links} links; voxelyze): flat | block (B = {block_engine.block_dim})",
-              f"{flat:8.1f} | {block:8.1f}")
+             f"{flat:8.1f} | {block:8.1f}")
 
 
 def app_epoch_rows(rehearsal: bool) -> None:
@@ -196,9 +198,9 @@ def app_epoch_rows(rehearsal: bool) -> None:
         get = {k: last.get(k, math.nan) for k in ("perf/time_rollout", "perf/time_env", "perf/sim_seconds",
                                                    "perf/time_update")}
         line(f"{preset.split('=')[1]} epoch {cfg.trainer.epochs}, simulator {name}: "
-              "rollout (env | simulation) | update",
-              f"{get['perf/time_rollout']:6.2f} s ({get['perf/time_env']:.2f} | {get['perf/sim_seconds']:.2f}) | "
-              f"{get['perf/time_update']:6.2f} s; {wall:.0f} s with compilation")
+             "rollout (env | simulation) | update",
+             f"{get['perf/time_rollout']:6.2f} s ({get['perf/time_env']:.2f} | {get['perf/sim_seconds']:.2f}) | "
+             f"{get['perf/time_update']:6.2f} s; {wall:.0f} s with compilation")
     os.environ[CUDA_ROBOTS_ENV] = "1"
 
 

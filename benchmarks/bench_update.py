@@ -121,7 +121,7 @@ def update_figures(variant: str, device: str, rehearsal: bool) -> None:
             steps = cfg.agent.num_sgd_iter * (batch // min(cfg.agent.sgd_minibatch_size, batch))
             wall = statistics.median(runs)
             line(f"{variant}, {mode}: {steps} minibatches (first update {first:.1f} s)",
-                  f"{wall / steps * 1e3:6.2f} ms a minibatch, {wall:.2f} s an update")
+                 f"{wall / steps * 1e3:6.2f} ms a minibatch, {wall:.2f} s an update")
             parts = " | ".join(f"{k.strip('_')} {statistics.median(v) * 1e3:.0f}" for k, v in times.items())
             line("  parts, ms", parts)
             graphed = getattr(ppo, "_graphed", None)
@@ -136,7 +136,7 @@ def update_figures(variant: str, device: str, rehearsal: bool) -> None:
                 torch.cuda.synchronize()
                 gpu = start.elapsed_time(end) / replays
                 line("  the captured step alone (GPU, replays back to back)",
-                      f"{gpu:6.3f} ms; outside it {wall / steps * 1e3 - gpu:.3f} ms a minibatch")
+                     f"{gpu:6.3f} ms; outside it {wall / steps * 1e3 - gpu:.3f} ms a minibatch")
         except Exception as e:  # one variant's failure is a figure too
             line(f"{variant}, {mode}", f"FAILED: {type(e).__name__}: {str(e)[:300]}")
 
@@ -157,8 +157,8 @@ def epochs(trunks: list[str], device: str) -> None:
             continue
         for i, h in enumerate(history[1:], start=2):
             line(f"paper_locomotion epoch {i}, trunk={trunk}: rollout (simulation) | update",
-                  f"{h['perf/time_rollout']:.2f} ({h.get('perf/sim_seconds', float('nan')):.2f}) | "
-                  f"{h['perf/time_update']:.2f} s")
+                 f"{h['perf/time_rollout']:.2f} ({h.get('perf/sim_seconds', float('nan')):.2f}) | "
+                 f"{h['perf/time_update']:.2f} s")
 
 
 def main() -> None:

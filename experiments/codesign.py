@@ -178,7 +178,7 @@ def designed_for_controller(run: Path, episodes: int, window: Any) -> dict[str, 
             "epochs": int(last["ppo"]["epoch"]), "cfg": cfg, "task": task, "grids": grids.numpy()}
 
 
-def design_diversity(result: dict) -> dict[str, float]:
+def result_diversity(result: dict) -> dict[str, float]:
     """A method's designs' ``distance`` (mean pairwise fraction of cells that differ) and ``distinct`` count
     (``freeform.body.diversity``): a co-design that collapses onto one body shows here."""
     from freeform.body import diversity
@@ -260,7 +260,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
                      "n": len(result["score"]), "mean": float(mean), "band99": float(band), "score": score,
                      **(extra or {})})
         metrics.append({"method": method, **{k: float(np.mean(result["metrics"][k])) for k in METRICS},
-                        **design_diversity(result)})
+                        **result_diversity(result)})
         print(f"{method}: {mean:.3f} ± {band:.3f} ({score}; {budget:,.0f} robot-s)", flush=True)
 
     from freeform.envs.control import ControlConfig

@@ -42,16 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import mean_band, paired_band, pyplot, read_csv, write_csv
+from experiments.common import mean_band, paired_band, pyplot, read_csv, write_rows
 
 SETS = ("design_unseen", "grown", "hand_built")
 COLUMNS = ("open_loop", "controller", "mean_command", "untrained", "untrained_mean_command")
 PAIRS = (("mean_command", "open_loop"), ("controller", "untrained"), ("mean_command", "untrained_mean_command"))
-
-
-def write_rows(path: Path, rows: list[dict]) -> Path:
-    """``rows`` (dicts with the same keys) as ``path``'s CSV columns (``experiments.common.write_csv``)."""
-    return write_csv(path, {key: [row[key] for row in rows] for key in rows[0]})
 
 
 def body_columns(results: Path, seed: int, name: str) -> dict[str, np.ndarray]:

@@ -3,8 +3,9 @@
 pairwise fraction of cells whose material differs, bodies moved to their grid's corner; ``distinct``, how many
 different bodies) beside the window's mean return and body volume::
 
-    python -m experiments.design_diversity runs/codesign_student_steering runs/codesign_population_steering \\
-        --epochs 4 --out docs/results/codesign_student/steering/diversity.csv
+    freeform-train experiment=codesign_student_steering_cpu hydra.run.dir=runs/codesign_student_steering
+    python -m experiments.design_diversity runs/codesign_student_steering runs/<another run> --epochs 4 \\
+        --out runs/diversity.csv
 
 A co-design preset's epoch designs 64 bodies, so 4 epochs pool 256. A collapse onto one design shows as
 ``distinct`` falling towards 1 and ``distance`` towards 0 from the first window to the last (ECo-MoE's warning for a
@@ -28,6 +29,8 @@ def windows(run: Path, epochs: int) -> list[dict[str, Any]]:
     from freeform.body import diversity
     from freeform.records import list_records, read_record
 
+    if not Path(run).is_dir():
+        raise ValueError(f"{run}: no such run directory")
     paths = list_records(run)
     if len(paths) < 2 * epochs:
         raise ValueError(f"{run}: {len(paths)} epochs of design records (records/epoch_*.npz), but --epochs {epochs} "
@@ -36,6 +39,9 @@ def windows(run: Path, epochs: int) -> list[dict[str, Any]]:
     for name, chosen in (("first", paths[:epochs]), ("last", paths[-epochs:])):
         records = [read_record(p) for p in chosen]
         grids = np.concatenate([r.final_grids for r in records])
+        if len(grids) < 2:
+            raise ValueError(f"{run}: its {name} {epochs} epochs hold {len(grids)} design; a spread needs at least 2 "
+                             "(a larger --epochs)")
         volume = np.concatenate([r.metrics.get("volume", np.full(r.num_episodes, np.nan)) for r in records])
         rows.append({"run": str(run), "window": f"{name} {epochs} epochs",
                      "epochs": f"{records[0].epoch}-{records[-1].epoch}", "designs": len(grids),

@@ -214,6 +214,8 @@ def test_design_diversity_compares_the_first_and_last_windows_of_a_run(tmp_path)
 
     with pytest.raises(ValueError, match="exists"):  # nothing written is overwritten
         design_diversity.main([str(run), "--epochs", "2", "--out", str(out)])
+    with pytest.raises(ValueError, match="no such run directory"):
+        design_diversity.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "e.csv")])
     with pytest.raises(ValueError, match=r"4 epochs of design records.*--epochs 3 needs at least 6"):
         design_diversity.main([str(run), "--epochs", "3", "--out", str(tmp_path / "e.csv")])
     assert not (tmp_path / "e.csv").exists()

@@ -113,11 +113,13 @@ def differing_fields(theirs: Any, mine: Any, fields: tuple[str, ...], bank: bool
             and not (bank and k == "response" and mine.response)]
 
 
-def described_differences(theirs: Any, mine: ControlConfig, whose: str = "theirs", fields: tuple[str, ...] = INTERFACE,
+def described_differences(theirs: Any, mine: ControlConfig, whose: str, fields: tuple[str, ...] = INTERFACE,
                           bank: bool = False) -> list[str]:
-    """The ``fields`` (by default :data:`INTERFACE`) on which ``theirs`` (a saved controller's or a teacher run's,
-    named ``whose``; ``bank``: :func:`differing_fields`) differs from ``mine``, each as ``"control.<field>: <theirs>
-    in <whose>, <mine> here"`` — the one wording of every refusal of another run's settings; empty when they agree."""
+    """The ``fields`` (by default :data:`INTERFACE`) on which ``theirs`` (another run's ``control`` section, named
+    ``whose``, e.g. "the teacher run"; ``bank``: :func:`differing_fields`) differs from ``mine``, each as
+    ``"control.<field>: <theirs> in <whose>, <mine> here"`` — the one wording of a refusal of another run's
+    ``control`` settings (the distillation's teacher check, the evaluation's ``--per-body-run``); empty when they
+    agree."""
     return [f"control.{k}: {getattr(theirs, k)!r} in {whose}, {getattr(mine, k)!r} here"
             for k in differing_fields(theirs, mine, fields, bank)]
 

@@ -426,8 +426,8 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     theirs, mine = run.config.control, cfg.control
     assert theirs is not None and mine is not None
     keys = ("teachers", "bodies", "body_seed", "top", *vars(mine.episode()))
-    # (a student may sense more: its response channels)
-    differ = described_differences(theirs, mine, "the teacher run", keys, bank=True)
+    differ = described_differences(theirs, mine, "the teacher run", keys,
+                                   bank=True)  # (a student may sense more: its response channels)
     if differ:
         raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
                          + "; ".join(differ) + " (give this run the teacher run's values, or train teachers with these)")
