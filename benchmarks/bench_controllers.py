@@ -26,7 +26,8 @@ from freeform.envs.control import ControlConfig, ControlEnv
 
 WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"
 ROUNDS = 5
-WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16, "attention_gru": 32}
+WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16, "attention_gru": 32,
+          "attention_hyper": 32}
 SEQUENCE = 8  # a recurrent controller's update runs the 512 samples as 64 sequences of 8 steps (one stroke episode)
 
 

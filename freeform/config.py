@@ -141,7 +141,9 @@ class ControlRunConfig(ControlConfig):
     (``ContextConvController``: masked convolutions with the body's pooled features), ``attention``
     (``VoxelAttentionController``: attention over the body's voxels), or either with a memory of the episode
     (``context_gru``, ``attention_gru``: recurrent; ``attention_gru`` starts from an ``attention`` controller's
-    weights); all but the first two are unchanged by padding. Width: ``hidden``."""
+    weights), or ``attention_hyper`` (``HyperAttentionController``: ``attention`` whose actor each body writes, a
+    hypernetwork; also starts from an ``attention`` controller's weights); all but the first two are unchanged by
+    padding. Width: ``hidden``."""
     head: str = "direct"
     """The controller's actor head (``freeform.agents.controller_heads.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;

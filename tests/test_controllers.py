@@ -129,7 +129,7 @@ def test_controller_refusals(bad: dict) -> None:
 
 # ------------------------------------------------------------------ controllers with a view of the whole body
 
-BOX_FREE = ("context", "attention", "context_gru", "attention_gru")  # the kinds whose padding changes nothing
+BOX_FREE = ("context", "attention", "context_gru", "attention_gru", "attention_hyper")  # the kinds whose padding changes nothing
 
 
 def run(net: torch.nn.Module, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -453,6 +453,36 @@ def test_the_recurrent_controller_remembers_the_episode_and_forgets_it_at_a_rese
     grouped = replace_control(env, privileged_critic=True)
     with pytest.raises(ValueError, match=f"{kind}.*privileged"):
         build_controller(kind, grouped, hidden=8)
+
+
+def test_the_hypernetwork_starts_as_the_attention_controller_and_its_written_head_keeps_padding_out(envs_and_obs,
+                                                                                                    tmp_path) -> None:
+    """``attention_hyper`` from a trained ``attention`` controller (``control.controller_init``) gives its commands
+    and values exactly (the generator starts at 0). Once the generator is moved, the commands change (the written
+    head acts) and a body's commands and value are still the same alone in its box as padded beside a larger body
+    (the pooled mean that writes the head is over the body's tokens)."""
+    from freeform.run.build import load_controller
+
+    small, large, obs_small, obs_large = envs_and_obs
+    torch.manual_seed(7)
+    trained = build_controller("attention", large, hidden=8)
+    with torch.no_grad():
+        for p in trained.parameters():
+            p.add_(0.2 * torch.randn_like(p))
+    save_controller(tmp_path / "controller.pt", trained, large.control)
+    hyper = build_controller("attention_hyper", large, hidden=8)
+    load_controller(hyper, str(tmp_path / "controller.pt"))
+    with torch.no_grad():
+        for a, b in zip(hyper(obs_large), trained(obs_large), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+        hyper.generator.weight.normal_(0.0, 0.3)
+        hyper.generator.bias.normal_(0.0, 0.3)
+        moved, alone = hyper(obs_large), hyper(obs_small)
+    assert (moved[0] - trained(obs_large)[0]).abs().max() > 1e-3
+    cells = small.box
+    on_its_cells = moved[0][0].view(large.box)[: cells[0], : cells[1], : cells[2]].reshape(-1)
+    torch.testing.assert_close(on_its_cells, alone[0][0], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(moved[3][0], alone[3][0], rtol=1e-5, atol=1e-6)
 
 
 def test_the_attention_controller_with_memory_starts_as_the_feed_forward_one_it_grows_from(envs_and_obs,

@@ -12,7 +12,7 @@ from helpers import straight_and_resumed
 from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
 
 from freeform.agents.controller_heads import ControlInputs
-from freeform.agents.controllers import ContextConvController, VoxelAttentionController
+from freeform.agents.controllers import CONTROLLERS, ContextConvController
 from freeform.agents.ppo.losses import standardize, standardize_groups
 from freeform.agents.teachers import TEACHER, TeacherBank, TeacherIndex
 from freeform.checkpoint import load_checkpoint
@@ -42,12 +42,13 @@ def perturbed_bank(template: torch.nn.Module, teachers: int) -> TeacherBank:
     return bank
 
 
-@pytest.mark.parametrize("kind", ["context", "attention"])
+@pytest.mark.parametrize("kind", ["context", "attention", "attention_hyper"])
 def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> None:
     """Batch invariance: 4 teachers with different weights, 13 samples in a shuffled order (teacher 2 has none),
-    each sample's outputs equal its teacher's weights run alone on its samples (float rounding apart)."""
+    each sample's outputs equal its teacher's weights run alone on its samples (float rounding apart). The
+    hypernetwork's generator is perturbed with the rest, so each sample's head is written by its own body."""
     torch.manual_seed(0)
-    cls = ContextConvController if kind == "context" else VoxelAttentionController
+    cls = CONTROLLERS[kind]
     template = cls(INPUTS, hidden=8, log_std=-1.0)
     bank = perturbed_bank(template, 4)
     teacher = torch.tensor([3, 0, 1, 1, 3, 3, 0, 0, 1, 3, 3, 0, 1])
@@ -58,7 +59,7 @@ def test_a_teacher_in_the_bank_gives_what_its_weights_give_alone(kind: str) -> N
         alone = bank.member(m)(obs[teacher == m])
         for a, b in zip(outs, alone, strict=True):
             torch.testing.assert_close(a[teacher == m], b, rtol=1e-5, atol=1e-5)
-    if kind == "attention":  # the bank's fixed token count and written-out attention end with its call
+    if kind != "context":  # the bank's fixed token count and written-out attention end with its call
         assert bank.template.token_count is None and not any(b.written_out for b in bank.template.blocks)
     # and the members differ (the check above could not pass by every teacher being one)
     assert not torch.allclose(bank.member(0)(obs)[0], bank.member(1)(obs)[0])

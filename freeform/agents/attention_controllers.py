@@ -1,5 +1,6 @@
 """The voxel-token controllers: attention over a body's filled cells (:class:`VoxelAttentionController`, kind
-``attention``) and the same with a memory of the episode (:class:`RecurrentAttentionController`, ``attention_gru``).
+``attention``), the same with a memory of the episode (:class:`RecurrentAttentionController`, ``attention_gru``) and
+with an actor that each body writes (:class:`HyperAttentionController`, ``attention_hyper``).
 Registered by kind in :data:`freeform.agents.controllers.CONTROLLERS`, which documents what every controller reads
 and returns; the actor heads they share are :mod:`freeform.agents.controller_heads`'.
 """
@@ -138,15 +139,20 @@ class VoxelAttentionController(FromInputs, nn.Module):
             x = block(x, valid)
         return self._readout(obs, x, order, valid)
 
+    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, pooled: torch.Tensor) -> torch.Tensor:
+        """The actor's outputs per token ``[N, outputs, K]`` (0 on padding) from the normed tokens ``x [N, K, h]``
+        and their body's mean ``pooled [N, h]`` (which this actor, one for every body, does not read)."""
+        return self.actor(x).transpose(1, 2) * valid[:, None]
+
     def _readout(self, obs: torch.Tensor, x: torch.Tensor, order: torch.Tensor, valid: torch.Tensor
                  ) -> tuple[torch.Tensor, ...]:
         """The tokens after the blocks ``x [N, K, h]`` → (mean, log_std, mask, value), as :meth:`forward`."""
         n = obs.shape[0]
         x = self.norm(x) * valid[..., None]
-        per_token = self.actor(x).transpose(1, 2) * valid[:, None]  # [N, outputs, K]
+        pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+        per_token = self.token_actions(x, valid, pooled)  # [N, outputs, K]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
         cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
-        pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
         body = pooled  # (a wave head's: the tokens' mean and max, as the context controllers pool their cells)
         if self.wave is not None:
             body = torch.cat([pooled, x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(neginf=0.0)], 1)
@@ -154,6 +160,37 @@ class VoxelAttentionController(FromInputs, nn.Module):
         mean, mask = cell_means(self, cells.view(n, -1, *obs.shape[2:]), obs, filled, body)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
         return mean, self.log_std.expand_as(mean), mask, value
+
+
+class HyperAttentionController(VoxelAttentionController):
+    """:class:`VoxelAttentionController` whose actor each body writes: a morphology-conditioned hypernetwork
+    (HyperDistill, Xiong et al. 2024), the student kind issue 56 names beside the transformer. The body's tokens
+    after the blocks, averaged (``pooled [N, h]``), give through ``generator`` (Linear(h → (h+1)·outputs)) a matrix
+    ``W [N, h, outputs]`` and a bias, and a token's outputs are the shared actor's plus ``x_token · W + b``: the same
+    token features are read through a different head on each body, where the attention controller's one head reads
+    every body alike (its body enters only through the tokens' features and the wave vector).
+
+    The generator starts at 0, so the untrained controller is the attention controller it holds, and one started
+    from a trained ``attention`` controller (``control.controller_init``, :attr:`grows_from`) gives its commands
+    exactly until training moves the generator. Padding changes nothing, as there (the pooled mean is over the
+    body's tokens)."""
+
+    grows_from = "attention"
+    grown_prefixes = ("generator.",)
+    """The weights this kind adds to :attr:`grows_from`'s, starting silent."""
+
+    def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
+                 head: str = "direct", wave: dict[str, Any] | None = None) -> None:
+        super().__init__(inputs, hidden, heads, layers, log_std, head, wave)
+        self.generator = nn.Linear(hidden, (hidden + 1) * self.actor.out_features)
+        nn.init.zeros_(self.generator.weight)
+        nn.init.zeros_(self.generator.bias)
+
+    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, pooled: torch.Tensor) -> torch.Tensor:
+        """The shared actor's outputs plus the body's own head's, ``[N, outputs, K]`` (0 on padding)."""
+        written = self.generator(pooled).view(len(x), -1, self.actor.out_features)  # [N, h + 1, outputs]
+        own = torch.einsum("nkh,nho->nok", x, written[:, :-1]) + written[:, -1, :, None]
+        return super().token_actions(x, valid, pooled) + own * valid[:, None]
 
 
 class RecurrentAttentionController(VoxelAttentionController):
@@ -177,8 +214,8 @@ class RecurrentAttentionController(VoxelAttentionController):
 
     actor_state_size = 1
     grows_from = "attention"
-    """The feed-forward kind whose weights this one starts from: all but :attr:`memory_prefixes`'."""
-    memory_prefixes = ("gru.", "recall.")
+    """The feed-forward kind whose weights this one starts from: all but :attr:`grown_prefixes`'."""
+    grown_prefixes = ("gru.", "recall.")
 
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None, memory: int = 32) -> None:
@@ -225,4 +262,4 @@ class RecurrentAttentionController(VoxelAttentionController):
         return (*out, state)
 
 
-__all__ = ["RecurrentAttentionController", "VoxelAttentionController"]
+__all__ = ["HyperAttentionController", "RecurrentAttentionController", "VoxelAttentionController"]

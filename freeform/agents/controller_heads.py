@@ -65,10 +65,10 @@ def check_control_input(channels: int, box: Any, **channel_indices: int) -> tupl
     return box  # type: ignore[return-value]
 
 
-RHYTHM_KINDS = ("context", "attention", "context_gru", "attention_gru")
+RHYTHM_KINDS = ("context", "attention", "context_gru", "attention_gru", "attention_hyper")
 """The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
 
-WAVE_KINDS = ("context", "attention", "context_gru", "attention_gru")
+WAVE_KINDS = ("context", "attention", "context_gru", "attention_gru", "attention_hyper")
 """The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
 
 

@@ -17,7 +17,8 @@ kind           class                           one set of weights     padding ch
 =============  ==============================  =====================  ==========================================
 
 ``context_gru`` and ``attention_gru`` are ``context`` and ``attention`` with a memory of the episode (recurrent
-policies, ``freeform.agents.recurrent``); the voxel-token pair lives in :mod:`freeform.agents.attention_controllers`.
+policies, ``freeform.agents.recurrent``), ``attention_hyper`` is ``attention`` with an actor that each body writes
+(a hypernetwork); the voxel-token kinds live in :mod:`freeform.agents.attention_controllers`.
 
 "Padding changes nothing": a body's commands (on its cells) and value are the same, within float rounding,
 whether it sits alone in its own box or in the larger box of a batch with larger bodies (the env pads every body
@@ -37,7 +38,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from freeform.agents.attention_controllers import RecurrentAttentionController, VoxelAttentionController
+from freeform.agents.attention_controllers import (
+    HyperAttentionController,
+    RecurrentAttentionController,
+    VoxelAttentionController,
+)
 from freeform.agents.controller_heads import (
     DEFAULT_WAVE,
     ControlInputs,
@@ -289,7 +294,8 @@ class RecurrentContextController(FromInputs, nn.Module):
 CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPController,
                                            "context": ContextConvController, "attention": VoxelAttentionController,
                                            "context_gru": RecurrentContextController,
-                                           "attention_gru": RecurrentAttentionController}
+                                           "attention_gru": RecurrentAttentionController,
+                                           "attention_hyper": HyperAttentionController}
 """``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
 ``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
 a body changes nothing."""

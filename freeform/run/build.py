@@ -284,8 +284,9 @@ def _read_saved(source: str, field: str, box: tuple[int, int, int] | None = None
 def load_controller(controller: torch.nn.Module, source: str, frame: str = "world") -> None:
     """``control.controller_init``: a trained controller's weights into ``controller`` — from a ``controller.pt``, a
     results folder holding one, a control run's policy or a co-design run's controller part (a run's directory or
-    checkpoint file: ``freeform.agents.controller_file.read_controller``). A controller with memory (``grows_from``:
-    ``attention_gru``) also starts from its feed-forward kind's weights, its memory silent until trained."""
+    checkpoint file: ``freeform.agents.controller_file.read_controller``). A kind that grows from another
+    (``grows_from``: ``attention_gru``'s memory, ``attention_hyper``'s generator) also starts from that kind's
+    weights, what it adds silent until trained."""
     from freeform.agents.controllers import controller_kind
 
     saved = _read_saved(source, "control.controller_init")
@@ -300,7 +301,7 @@ def load_controller(controller: torch.nn.Module, source: str, frame: str = "worl
         raise ValueError(f"control.controller_init={source!r} was trained on the hand-set wave k = {theirs['k']}, "
                          f"amplitude {theirs['amplitude']}; this run's is k = {ours['k']}, amplitude "
                          f"{ours['amplitude']}: set control.wave_k and control.wave_amplitude to the file's")
-    # (a controller with memory may start from its feed-forward kind: everything but the memory, which starts silent)
+    # (a kind may start from the one it grows from: everything but what it adds, which starts silent)
     grows = getattr(controller, "grows_from", None) == controller_kind(trained)
     try:
         loaded = controller.load_state_dict(trained.state_dict(), strict=not grows)
@@ -308,7 +309,7 @@ def load_controller(controller: torch.nn.Module, source: str, frame: str = "worl
     except RuntimeError as e:
         detail = "; ".join(line.strip() for line in str(e).splitlines()[:3])
     if grows and not detail:
-        missing = [k for k in loaded.missing_keys if not k.startswith(controller.memory_prefixes)]
+        missing = [k for k in loaded.missing_keys if not k.startswith(controller.grown_prefixes)]
         detail = f"missing {missing}, unexpected {loaded.unexpected_keys}" if missing or loaded.unexpected_keys else ""
     if detail:
         raise ValueError(f"control.controller_init={source!r} holds another controller than this run builds (kind "
