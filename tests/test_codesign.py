@@ -254,7 +254,7 @@ def test_a_codesign_run_takes_the_agents_trunk() -> None:
 def test_a_codesign_run_refuses_the_mlp_controller() -> None:
     from freeform.config import compose
 
-    with pytest.raises(ValueError, match=r"control\.controller must be one of \['conv', 'context', 'attention'\] "
+    with pytest.raises(ValueError, match=r"control\.controller must be one of \['conv', 'context', 'attention', 'attention_hyper'\] "
                                          r"with bodies=codesign"):
         compose("experiment=codesign_locomotion_cpu", "control.controller=mlp")
     with pytest.raises(ValueError, match=r"control\.controller must be one of .* with bodies=codesign"):

@@ -134,7 +134,7 @@ def test_bodies_from_a_design_record_are_its_best(tmp_path: Path) -> None:
 @pytest.mark.parametrize("override, message", [
     ("algo=ga", r"algo\.name must be ppo or distill in a control run"),
     ("agent.rollout_steps=6", r"agent\.rollout_steps must be a multiple of the control episode's 4 steps"),
-    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp', 'context', 'attention', 'context_gru', 'attention_gru'\]"),
+    ("control.controller=rnn", r"control\.controller must be one of \['conv', 'mlp', 'context', 'attention', 'context_gru', 'attention_gru', 'attention_hyper'\]"),
     ("agent.obs_norm=true", r"agent\.obs_norm must be false in a control run"),
     ("control.stroke_periods=2", r"control\.head must be one of \['stroke', 'wave'\] exactly when control\.stroke_periods >= 1"),
     ("control.stroke_periods=-1", r"control\.stroke_periods must be an int >= 0"),
