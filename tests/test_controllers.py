@@ -254,15 +254,15 @@ def test_a_controller_built_for_one_box_runs_on_another_and_reads_back_for_it(tm
 @pytest.mark.parametrize("kind", BOX_FREE)
 def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
     """One PPO epoch moves every weight the loss reaches (actor head, trunk, critic, σ; the memory of
-    ``attention_gru`` after its silent recall has moved, an epoch later) and a run's checkpoint of it reads back as a
-    controller."""
+    ``attention_gru`` after its silent recall has moved, and ``attention_hyper``'s body code after its silent
+    generator, an epoch later) and a run's checkpoint of it reads back as a controller."""
     env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))
     torch.manual_seed(0)
     net = build_controller(kind, env, hidden=8)
     before = {k: v.clone() for k, v in net.state_dict().items()}
     ppo = PPO(env, net, PPOConfig(rollout_steps=4, num_sgd_iter=1, sgd_minibatch_size=8, lr=1e-3, seed=0))
     assert np.isfinite(ppo.train_epoch()["action_std"])
-    if kind == "attention_gru":
+    if kind in ("attention_gru", "attention_hyper"):
         ppo.train_epoch()
     still = [k for k, v in net.state_dict().items() if torch.equal(v, before[k])]
     assert still == []
@@ -459,8 +459,9 @@ def test_the_hypernetwork_starts_as_the_attention_controller_and_its_written_hea
                                                                                                     tmp_path) -> None:
     """``attention_hyper`` from a trained ``attention`` controller (``control.controller_init``) gives its commands
     and values exactly (the generator starts at 0). Once the generator is moved, the commands change (the written
-    head acts) and a body's commands and value are still the same alone in its box as padded beside a larger body
-    (the pooled mean that writes the head is over the body's tokens)."""
+    head acts), a body's commands and value are still the same alone in its box as padded beside a larger body
+    (the body code that writes the head is a mean over the body's tokens), and the code reads the body channels
+    alone."""
     from freeform.run.build import load_controller
 
     small, large, obs_small, obs_large = envs_and_obs
@@ -483,6 +484,20 @@ def test_the_hypernetwork_starts_as_the_attention_controller_and_its_written_hea
     on_its_cells = moved[0][0].view(large.box)[: cells[0], : cells[1], : cells[2]].reshape(-1)
     torch.testing.assert_close(on_its_cells, alone[0][0], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(moved[3][0], alone[3][0], rtol=1e-5, atol=1e-6)
+
+    # the head is written by what the body is (its voxels, materials, muscles and places), not by its state: the
+    # code is unchanged when every other channel (velocity, strain, contact, heading, clock...) changes, and moves
+    # with a material
+    assert large.channels[: hyper.body_channels] == ("filled", "material", "actuated", "rel_x", "rel_y", "rel_z")
+    _, order, valid = hyper.tokens(obs_large)
+    code = hyper.body_code(obs_large, order, valid)
+    body = obs_large[:, :hyper.body_channels]
+    state = obs_large.clone()
+    state[:, hyper.body_channels:] += torch.randn_like(state[:, hyper.body_channels:]) * (body[:, :1] > 0)
+    torch.testing.assert_close(hyper.body_code(state, order, valid), code, rtol=0, atol=0)
+    other = obs_large.clone()
+    other[:, 1] *= 0.5  # (the material channel)
+    assert (hyper.body_code(other, order, valid) - code).abs().max() > 1e-4
 
 
 def test_the_attention_controller_with_memory_starts_as_the_feed_forward_one_it_grows_from(envs_and_obs,

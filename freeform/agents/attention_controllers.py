@@ -139,9 +139,11 @@ class VoxelAttentionController(FromInputs, nn.Module):
             x = block(x, valid)
         return self._readout(obs, x, order, valid)
 
-    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, pooled: torch.Tensor) -> torch.Tensor:
+    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, obs: torch.Tensor, order: torch.Tensor
+                      ) -> torch.Tensor:
         """The actor's outputs per token ``[N, outputs, K]`` (0 on padding) from the normed tokens ``x [N, K, h]``
-        and their body's mean ``pooled [N, h]`` (which this actor, one for every body, does not read)."""
+        (this actor, one for every body, reads nothing else of the observation ``obs`` or the tokens' cells
+        ``order``)."""
         return self.actor(x).transpose(1, 2) * valid[:, None]
 
     def _readout(self, obs: torch.Tensor, x: torch.Tensor, order: torch.Tensor, valid: torch.Tensor
@@ -150,7 +152,7 @@ class VoxelAttentionController(FromInputs, nn.Module):
         n = obs.shape[0]
         x = self.norm(x) * valid[..., None]
         pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
-        per_token = self.token_actions(x, valid, pooled)  # [N, outputs, K]
+        per_token = self.token_actions(x, valid, obs, order)  # [N, outputs, K]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
         cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
         body = pooled  # (a wave head's: the tokens' mean and max, as the context controllers pool their cells)
@@ -163,34 +165,52 @@ class VoxelAttentionController(FromInputs, nn.Module):
 
 
 class HyperAttentionController(VoxelAttentionController):
-    """:class:`VoxelAttentionController` whose actor each body writes: a morphology-conditioned hypernetwork
-    (HyperDistill, Xiong et al. 2024), the student kind issue 56 names beside the transformer. The body's tokens
-    after the blocks, averaged (``pooled [N, h]``), give through ``generator`` (Linear(h → (h+1)·outputs)) a matrix
-    ``W [N, h, outputs]`` and a bias, and a token's outputs are the shared actor's plus ``x_token · W + b``: the same
-    token features are read through a different head on each body, where the attention controller's one head reads
-    every body alike (its body enters only through the tokens' features and the wave vector).
+    """:class:`VoxelAttentionController` whose actor each body writes from what it is: a morphology-conditioned
+    hypernetwork (HyperDistill, Xiong et al. 2024), the student kind issue 56 names beside the transformer.
+
+    The body's code: each token's body channels — the first ``body_channels`` of the observation, the control env's
+    ``filled, material, actuated, rel_x, rel_y, rel_z`` (its voxel, material, muscle and place relative to the centre
+    of mass; no velocity, strain, contact, heading, clock or open-loop channel) — embedded (Linear(b → h) → ReLU →
+    Linear(h → h)) and averaged over the body's tokens (:meth:`body_code`, ``[N, h]``). From it ``generator``
+    (Linear(h → (h+1)·outputs)) writes a matrix ``W [N, h, outputs]`` and a bias, and a token's outputs are the shared
+    actor's plus ``x_token · W + b``: the same token features read through a head of the body's own, set by its
+    shape and materials rather than by the moment's state (the places move a little as the body deforms).
 
     The generator starts at 0, so the untrained controller is the attention controller it holds, and one started
     from a trained ``attention`` controller (``control.controller_init``, :attr:`grows_from`) gives its commands
-    exactly until training moves the generator. Padding changes nothing, as there (the pooled mean is over the
+    exactly until training moves the generator. Padding changes nothing, as there (the code is a mean over the
     body's tokens)."""
 
     grows_from = "attention"
-    grown_prefixes = ("generator.",)
-    """The weights this kind adds to :attr:`grows_from`'s, starting silent."""
+    grown_prefixes = ("body_embed.", "generator.")
+    """The weights this kind adds to :attr:`grows_from`'s, silent at the start."""
 
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
-                 head: str = "direct", wave: dict[str, Any] | None = None) -> None:
+                 head: str = "direct", wave: dict[str, Any] | None = None, body_channels: int = 6) -> None:
         super().__init__(inputs, hidden, heads, layers, log_std, head, wave)
+        if not (isinstance(body_channels, int) and 1 <= body_channels <= inputs.channels):
+            raise ValueError(f"body_channels must be an int in 1 … {inputs.channels} (the observation's channels), "
+                             f"got {body_channels!r}")
+        self.init_kwargs["body_channels"] = self.body_channels = body_channels
+        self.body_embed = nn.Sequential(nn.Linear(body_channels, hidden), nn.ReLU(), nn.Linear(hidden, hidden))
         self.generator = nn.Linear(hidden, (hidden + 1) * self.actor.out_features)
         nn.init.zeros_(self.generator.weight)
         nn.init.zeros_(self.generator.bias)
 
-    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, pooled: torch.Tensor) -> torch.Tensor:
+    def body_code(self, obs: torch.Tensor, order: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """``[N, h]``: the mean over each body's tokens (cells ``order [N, K]``, ``valid``) of its body channels'
+        embedding."""
+        cells = obs[:, : self.body_channels].flatten(2).transpose(1, 2)  # [N, A, b]
+        own = cells.gather(1, order[..., None].expand(-1, -1, self.body_channels))  # [N, K, b]
+        embedded = self.body_embed(own) * valid[..., None]
+        return embedded.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+
+    def token_actions(self, x: torch.Tensor, valid: torch.Tensor, obs: torch.Tensor, order: torch.Tensor
+                      ) -> torch.Tensor:
         """The shared actor's outputs plus the body's own head's, ``[N, outputs, K]`` (0 on padding)."""
-        written = self.generator(pooled).view(len(x), -1, self.actor.out_features)  # [N, h + 1, outputs]
-        own = torch.einsum("nkh,nho->nok", x, written[:, :-1]) + written[:, -1, :, None]
-        return super().token_actions(x, valid, pooled) + own * valid[:, None]
+        written = self.generator(self.body_code(obs, order, valid)).view(len(x), -1, self.actor.out_features)
+        own = torch.einsum("nkh,nho->nok", x, written[:, :-1]) + written[:, -1, :, None]  # (written: [N, h+1, out])
+        return super().token_actions(x, valid, obs, order) + own * valid[:, None]
 
 
 class RecurrentAttentionController(VoxelAttentionController):

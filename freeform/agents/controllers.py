@@ -415,6 +415,6 @@ def controller_kind(controller: nn.Module) -> str:
     raise ValueError(f"{type(controller).__name__} is not one of the registered controllers {list(CONTROLLERS)}")
 
 
-__all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "MLPController", "PrivilegedCritic",
-           "RecurrentAttentionController", "RecurrentContextController", "VoxelAttentionController", "build_controller",
+__all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "HyperAttentionController",
+           "MLPController", "PrivilegedCritic", "RecurrentAttentionController", "RecurrentContextController", "VoxelAttentionController", "build_controller",
            "controller_kind", "controller_step"]
