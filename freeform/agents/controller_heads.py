@@ -66,10 +66,11 @@ def check_control_input(channels: int, box: Any, **channel_indices: int) -> tupl
 
 
 RHYTHM_KINDS = ("context", "attention", "context_gru", "attention_gru", "attention_hyper")
-"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`)."""
+"""The kinds whose actor may have a ``rhythm`` head (:data:`HEADS`): those with a view of the whole body."""
 
-WAVE_KINDS = ("context", "attention", "context_gru", "attention_gru", "attention_hyper")
-"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features)."""
+WAVE_KINDS = RHYTHM_KINDS
+"""The kinds whose actor may have a ``wave`` head (it reads the body's pooled features): the same kinds, one list, so
+that a new kind is added once."""
 
 
 def masked_pool(x: torch.Tensor, filled: torch.Tensor) -> torch.Tensor:
