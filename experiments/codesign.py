@@ -83,15 +83,36 @@ def robot_seconds(cfg: Any, epochs: int) -> float:
     return epochs * envs * control.duration + envs * control.burn_in
 
 
-def pretraining_seconds(overrides: list[str]) -> tuple[float, str]:
-    """The robot-seconds of the control run that the app's ``overrides`` describe (its preset, seed and epochs: the
-    run behind a frozen controller), and those overrides as one string."""
+def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = None) -> tuple[float, str]:
+    """The robot-seconds behind a frozen or warm-start controller, and what they count: the control run that the
+    app's ``overrides`` describe (its preset, seed and epochs), plus every run directory in ``runs`` charged the
+    epochs its last checkpoint reached — a distilled student's lineage (the population controller, each
+    generation's teachers and distillation) is such a list of runs, none of which one preset describes."""
     from freeform.config import compose
 
-    cfg = compose(*overrides)
-    if cfg.control is None:
-        raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
-    return robot_seconds(cfg, cfg.trainer.epochs), " ".join(overrides)
+    seconds, what = 0.0, []
+    if overrides:
+        cfg = compose(*overrides)
+        if cfg.control is None:
+            raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
+        seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
+    for run in runs or ():
+        if not (run / "checkpoints" / "last.pt").is_file():
+            raise SystemExit(f"--pretraining-runs {run}: no checkpoints/last.pt (a freeform-train run directory? a "
+                             "pooled teacher folder is charged by the runs it pooled)")
+        cfg, last = _last(run)
+        epochs = int(last["ppo"]["epoch"])
+        seconds += robot_seconds(cfg, epochs)
+        what.append(f"{run} ({epochs} epochs)")
+    return seconds, " + ".join(what) if what else "not counted"
+
+
+def warm_start_name(path: str) -> str:
+    """How a table names the controller a run started from: the population controller's folder as before, else
+    the folder (or file) ``control.controller_init`` names."""
+    where = Path(path)
+    name = where.parent.name if where.suffix == ".pt" else where.name
+    return "the population controller" if name == "control_population" else name
 
 
 def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None,
@@ -246,9 +267,10 @@ def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tupl
 
 def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, episodes: int, out: Path,
             designed: Path | None = None, pretraining: list[str] | None = None,
-            adapted: list[Path] | None = None) -> list[dict]:
+            adapted: list[Path] | None = None, pretraining_runs: list[Path] | None = None) -> list[dict]:
     """Every method given against open-loop design RL (module docstring); ``designed``: a design-after-control run,
-    its budget its design epochs' plus the pretraining run's (``pretraining``: that run's app overrides);
+    its budget its design epochs' plus the pretraining's (``pretraining``: that run's app overrides;
+    ``pretraining_runs``: run directories charged too, :func:`pretraining_seconds`);
     ``adapted``: control runs started from that controller (``control.controller_init``), whose controllers drive
     the same designs, their own epochs added to the budget."""
     out.mkdir(parents=True, exist_ok=True)
@@ -265,7 +287,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
 
     from freeform.envs.control import ControlConfig
 
-    before, what = pretraining_seconds(pretraining) if pretraining else (0.0, "not counted")
+    before, what = pretraining_seconds(pretraining, pretraining_runs)
     ol_cfg, _ = _last(open_loop)
 
     def sine_window(headings: str) -> ControlConfig:
@@ -283,7 +305,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         if warm:
             runs["pretraining"] = what
         budget = robot_seconds(co["cfg"], co["epochs"]) + (before if warm else 0.0)
-        name = "co-design from the population controller" if warm else "co-design"
+        name = f"co-design from {warm_start_name(co['cfg'].control.controller_init)}" if warm else "co-design"
         add(f"{name} (one PPO: body, then controller)", co, budget, trained_for(co["cfg"].control),
             {"pretraining_robot_seconds": round(before, 3)} if warm else None)
         moved, kind = gaits(co["bodies"], co["cfg"].sim, window, co["headings"])
@@ -328,7 +350,8 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
         runs["designed_for_controller"] = str(designed)
         runs["pretraining"] = what
         budget = before + robot_seconds(dc["cfg"], dc["epochs"])
-        add("design after control (frozen population controller)", dc, budget, "move in the plane, controlled",
+        frozen_name = warm_start_name(str(dc["cfg"].task.options["controller"]))
+        add(f"design after control (frozen: {frozen_name})", dc, budget, "move in the plane, controlled",
             {"pretraining_robot_seconds": round(before, 3)})
         add("  its designs, open loop", {**dc, "score": dc["gaits"]}, budget, dc["gait_kind"])
         driven = dc["task"].reward(torch.from_numpy(ol["grids"])).numpy()  # (the paper's designs, then the controller)
@@ -401,6 +424,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="the app overrides of the control run behind --designed's controller (or --codesign's warm "
                         "start), whose robot-seconds its budget includes (e.g. experiment=control_population_cpu "
                         "seed=0)")
+    p.add_argument("--pretraining-runs", type=Path, nargs="+", default=None, metavar="RUN",
+                   help="run directories charged to the warm start's budget too, each for the epochs its last "
+                        "checkpoint reached: a distilled student's lineage (teacher and distillation runs)")
     p.add_argument("--adapted", type=Path, nargs="+", default=None, metavar="RUN",
                    help="control runs started from the frozen controller (--designed's, or --codesign's warm start: "
                         "control.controller_init), e.g. adapted to designs (control.designer=DESIGNED or the "
@@ -416,13 +442,13 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.open_loop is None or (args.codesign is None and args.designed is None):
         p.error("--open-loop and --codesign or --designed are required (or --replot)")
-    if args.adapted and args.designed is None and args.pretraining is None:
+    if args.adapted and args.designed is None and args.pretraining is None and args.pretraining_runs is None:
         p.error("--adapted starts from a frozen controller: give --designed, or --codesign with --pretraining")
     for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ())):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
     compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining,
-            args.adapted)
+            args.adapted, args.pretraining_runs)
 
 
 if __name__ == "__main__":

@@ -399,7 +399,7 @@ def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -
     main(["--designed", str(tmp_path / "designed"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
           "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
     rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
-    designed = rows["design after control (frozen population controller)"]
+    designed = rows[f"design after control (frozen: {tmp_path.name})"]  # (controller.pt's folder names it)
     assert float(designed["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
     assert float(designed["robot_seconds"]) == pytest.approx(before + 2 * 4 * (0.01 + 0.0375), abs=1e-3)
     assert designed["score"] == "move in the plane, controlled" and int(designed["n"]) == 4
@@ -479,7 +479,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     main(["--codesign", str(tmp_path / "run"), "--open-loop", str(tmp_path / "open_loop"), "--episodes", "4",
           "--out", str(tmp_path / "out"), "--pretraining", *pretraining])
     rows = {r["method"].strip(): r for r in csv.DictReader(open(tmp_path / "out" / "summary.csv"))}
-    row = rows["co-design from the population controller (one PPO: body, then controller)"]
+    row = rows[f"co-design from {tmp_path.name} (one PPO: body, then controller)"]  # (its warm start's folder)
     assert float(row["pretraining_robot_seconds"]) == pytest.approx(before, abs=1e-3)
     assert float(row["robot_seconds"]) == pytest.approx(before + 4 * (0.01 + 0.0375), abs=1e-3)
     # ... and what its joint update added: its designs, and the paper's at their budget plus the warm start's,
@@ -488,6 +488,15 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     paper = float(rows["open-loop design RL (the paper's)"]["robot_seconds"])
     driven = rows["open-loop design RL's designs, driven by the warm-start controller (frozen)"]
     assert float(driven["robot_seconds"]) == pytest.approx(before + paper, abs=1e-3)
+    # a student's lineage is charged as run directories (--pretraining-runs), each for the epochs it ran: here the
+    # open-loop run and the co-design run, one epoch of 4 bodies' windows each
+    from experiments.codesign import pretraining_seconds
+
+    seconds, what = pretraining_seconds(pretraining, [tmp_path / "open_loop", tmp_path / "run"])
+    assert seconds == pytest.approx(before + 2 * 4 * (0.01 + 0.0375), abs=1e-3)
+    assert f"{tmp_path / 'run'} (1 epochs)" in what
+    with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
+        pretraining_seconds(None, [tmp_path])
 
 
 def tiny_open_loop(run, *overrides: str) -> None:
