@@ -15,6 +15,7 @@ the same rows.
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
@@ -34,18 +35,39 @@ def read_table(source: Path, who: str, made_by: str) -> list[dict[str, str]]:
     return read_rows(path)
 
 
-def body_keys(rows: list[dict[str, str]]) -> list[tuple[str, str]]:
-    """Each row's body: its set (a pooled table's: the set folder's last ``_`` part, ``eval_x_grown`` -> ``grown``;
-    none in a single set's table) and its index."""
+def set_files(source: Path) -> dict[str, str]:
+    """A pooled table's set folders -> the file name of each set's bodies, from the ``run.json`` that
+    ``experiments.heldout --pool`` writes beside its ``bodies.csv`` (kept in the results as ``<name>_run.json``
+    beside ``<name>_bodies.csv``); empty where it records none (tables pooled before it recorded its sets)."""
+    path = source.with_name(source.name.removesuffix("bodies.csv") + "run.json") if source.suffix == ".csv" else \
+        source / "run.json"
+    run = json.loads(path.read_text()) if path.is_file() else {}
+    folders, sets = run.get("pooled") or [], run.get("sets") or []
+    if len(folders) != len(sets):
+        return {}
+    return {str(folder).removesuffix("_*"): Path(str(entry["bodies"])).name  # (the results name a set's files
+            for folder, entry in zip(folders, sets, strict=True)}          # <prefix>_*, its rows <prefix>)
+
+
+def body_keys(rows: list[dict[str, str]], sets: dict[str, str] | None = None) -> list[tuple[str, str]]:
+    """Each row's body: its set and its index. A pooled table's set is its bodies' file (``sets``: the set folder
+    -> that file, :func:`set_files`) or, where either table does not record it, the set folder's last ``_`` part
+    (``eval_x_grown`` -> ``grown``); none in a single set's table."""
+    if sets:
+        return [(sets[r["set"]], r["body"]) if r.get("set") in sets else ("", r["body"]) for r in rows]
     return [(r.get("set", "").rsplit("_", 1)[-1], r["body"]) for r in rows]
 
 
-def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, name_b: str) -> None:
+def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, name_b: str,
+                sets: tuple[dict[str, str], dict[str, str]] = ({}, {})) -> None:
     """Refuse, naming the first body that differs, tables of other bodies or other episode settings (the same body
-    under the same settings walks its own gait the same)."""
+    under the same settings walks its own gait the same). ``sets``: each table's :func:`set_files`, used where both
+    record their sets (two folders of one set file then match whatever their names)."""
     if len(a) != len(b):
         raise ValueError(f"{name_a} holds {len(a)} bodies and {name_b} {len(b)}: compare tables of the same bodies")
-    for key_a, key_b, row_a, row_b in zip(body_keys(a), body_keys(b), a, b, strict=True):
+    both = all(sets)
+    keys = body_keys(a, sets[0] if both else None), body_keys(b, sets[1] if both else None)
+    for key_a, key_b, row_a, row_b in zip(*keys, a, b, strict=True):
         gait = (float(row_a["open_loop"]), float(row_b["open_loop"]))
         if key_a != key_b or not np.isclose(*gait, rtol=1e-6, atol=1e-9):
             raise ValueError(f"body {key_a} of {name_a} is not body {key_b} of {name_b} (its own gait "
@@ -62,7 +84,7 @@ def compare(a: Path, b: Path) -> list[dict[str, object]]:
         missing = [c for c in ("body", "open_loop", *COLUMNS.values()) if not rows or c not in rows[0]]
         if missing:
             raise ValueError(f"{name}: no {missing} column (a held-out bodies table of {made_by})")
-    same_bodies(rows_a, rows_b, str(a), str(b))
+    same_bodies(rows_a, rows_b, str(a), str(b), (set_files(a), set_files(b)))
     out = []
     for what, column in COLUMNS.items():
         va, vb = (np.array([float(r[column]) for r in rows]) for rows in (rows_a, rows_b))

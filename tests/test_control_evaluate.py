@@ -514,12 +514,15 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     count, or a body whose own gait differs: other bodies or other episode settings) refused naming the body."""
     from experiments.paired import main as paired
 
-    def write(name: str, gaits, stoch, mean) -> Path:
+    def write(name: str, gaits, stoch, mean, set_folder: str | None = None, set_file: str | None = None) -> Path:
         folder = tmp_path / name
         folder.mkdir()
-        rows = [{"set": f"runs/eval_{name}_grown", "body": i, "open_loop": g, "controller": s_, "mean_command": m}
+        where = set_folder or f"runs/eval_{name}_grown"
+        rows = [{"set": where, "body": i, "open_loop": g, "controller": s_, "mean_command": m}
                 for i, (g, s_, m) in enumerate(zip(gaits, stoch, mean, strict=True))]
         write_rows(folder / "bodies.csv", rows)
+        if set_file is not None:  # (experiments.heldout --pool's run.json: each set folder's bodies file)
+            (folder / "run.json").write_text(json.dumps({"pooled": [where], "sets": [{"bodies": set_file, "n": 3}]}))
         return folder
 
     a = write("a", [0.1, 0.2, 0.3], [1.0, 1.2, 0.9], [1.5, 1.1, 1.0])
@@ -549,3 +552,13 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
         compare(a, short)
     with pytest.raises(ValueError, match="no bodies.csv there"):
         compare(a, tmp_path / "nowhere")
+    # where both pooled tables record their sets' files, those name the sets, whatever the folders are called
+    # (a committed table's folder and a fresh run's); the same folder suffix over another file is another set
+    fresh = write("fresh", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_mine_design_unseen",
+                  "docs/results/heldout_bodies/design_unseen.npy")
+    kept = write("kept", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "docs/results/x/student16_all32",
+                 "docs/results/heldout_bodies/design_unseen.npy")
+    assert compare(fresh, kept)[0]["a_minus_b"] == 0
+    with pytest.raises(ValueError, match=r"body \('design_unseen.npy', '0'\) of .*fresh is not body \('grown.npy'"):
+        compare(fresh, write("other", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_x_design_unseen",
+                             "docs/results/heldout_bodies/grown.npy"))
