@@ -11,6 +11,11 @@ Three runs of ``freeform-train``, each given the same budget of simulated robot-
   designs of one epoch of a design run (``control.bodies=<design run>/records/epoch_E.npz control.top=K``); its
   budget is the design run's first E + 1 epochs plus its own.
 
+A warm-started co-design run (``control.controller_init``), or ``--designed``'s frozen controller, is charged the
+training behind its controller: ``--pretraining OVERRIDES`` (the control run one preset describes) and
+``--pretraining-runs RUN...`` (run directories, each for the epochs its last checkpoint reached: a distilled
+student's lineage of teacher and distillation runs).
+
 Every method is scored the same way: its last policy's bodies (256 designs of the design policies; the two-stage
 run's K bodies, cycled) in the co-design episode's window, stochastic policies as in training, 99 % bands. A
 controller is scored by what it was trained for: its centre of mass's move along +x (``control.headings=fixed``),
@@ -111,7 +116,9 @@ def warm_start_name(path: str) -> str:
     """How a table names the controller a run started from: the population controller's folder as before, else
     the folder (or file) ``control.controller_init`` names."""
     where = Path(path)
-    name = where.parent.name if where.suffix == ".pt" else where.name
+    if where.suffix == ".pt":  # (a controller.pt names its folder; a run's checkpoint, its run)
+        where = where.parent.parent if where.parent.name == "checkpoints" else where.parent
+    name = where.name
     return "the population controller" if name == "control_population" else name
 
 
@@ -443,8 +450,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.open_loop is None or (args.codesign is None and args.designed is None):
         p.error("--open-loop and --codesign or --designed are required (or --replot)")
     if args.adapted and args.designed is None and args.pretraining is None and args.pretraining_runs is None:
-        p.error("--adapted starts from a frozen controller: give --designed, or --codesign with --pretraining")
-    for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ())):
+        p.error("--adapted starts from a frozen controller: give --designed, or --codesign with --pretraining or "
+                "--pretraining-runs")
+    for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ()),
+                *(args.pretraining_runs or ())):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
     compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining,

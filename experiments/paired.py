@@ -43,7 +43,7 @@ def set_files(source: Path) -> dict[str, str]:
         source / "run.json"
     run = json.loads(path.read_text()) if path.is_file() else {}
     folders, sets = run.get("pooled") or [], run.get("sets") or []
-    if len(folders) != len(sets):
+    if len(folders) != len(sets) or not all(isinstance(e, dict) and e.get("bodies") for e in sets):
         return {}
     return {str(folder).removesuffix("_*"): Path(str(entry["bodies"])).name  # (the results name a set's files
             for folder, entry in zip(folders, sets, strict=True)}          # <prefix>_*, its rows <prefix>)
@@ -54,7 +54,7 @@ def body_keys(rows: list[dict[str, str]], sets: dict[str, str] | None = None) ->
     -> that file, :func:`set_files`) or, where either table does not record it, the set folder's last ``_`` part
     (``eval_x_grown`` -> ``grown``); none in a single set's table."""
     if sets:
-        return [(sets[r["set"]], r["body"]) if r.get("set") in sets else ("", r["body"]) for r in rows]
+        return [(sets[r["set"]], r["body"]) for r in rows]
     return [(r.get("set", "").rsplit("_", 1)[-1], r["body"]) for r in rows]
 
 
@@ -62,10 +62,11 @@ def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, n
                 sets: tuple[dict[str, str], dict[str, str]] = ({}, {})) -> None:
     """Refuse, naming the first body that differs, tables of other bodies or other episode settings (the same body
     under the same settings walks its own gait the same). ``sets``: each table's :func:`set_files`, used where both
-    record their sets (two folders of one set file then match whatever their names)."""
+    record the sets of all their rows (two folders of one set file then match whatever their names)."""
     if len(a) != len(b):
         raise ValueError(f"{name_a} holds {len(a)} bodies and {name_b} {len(b)}: compare tables of the same bodies")
-    both = all(sets)
+    both = all(names and all(r.get("set") in names for r in rows)  # (a map that misses a row's set: folders)
+               for names, rows in zip(sets, (a, b), strict=True))
     keys = body_keys(a, sets[0] if both else None), body_keys(b, sets[1] if both else None)
     for key_a, key_b, row_a, row_b in zip(*keys, a, b, strict=True):
         gait = (float(row_a["open_loop"]), float(row_b["open_loop"]))

@@ -497,6 +497,10 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     assert f"{tmp_path / 'run'} (1 epochs)" in what
     with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
         pretraining_seconds(None, [tmp_path])
+    from experiments.codesign import warm_start_name
+
+    assert warm_start_name("docs/results/control_population/controller.pt") == "the population controller"
+    assert warm_start_name("runs/student/checkpoints/last.pt") == warm_start_name("runs/student") == "student"
 
 
 def tiny_open_loop(run, *overrides: str) -> None:

@@ -559,6 +559,12 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     kept = write("kept", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "docs/results/x/student16_all32",
                  "docs/results/heldout_bodies/design_unseen.npy")
     assert compare(fresh, kept)[0]["a_minus_b"] == 0
+    (tmp_path / "kept_bodies.csv").write_bytes((kept / "bodies.csv").read_bytes())  # (as the results keep a table:
+    (tmp_path / "kept_run.json").write_bytes((kept / "run.json").read_bytes())      # <name>_bodies.csv, _run.json)
+    assert compare(fresh, tmp_path / "kept_bodies.csv")[0]["a_minus_b"] == 0
+    (kept / "run.json").write_text(json.dumps({"pooled": ["elsewhere"], "sets": [{"bodies": "design_unseen.npy"}]}))
+    with pytest.raises(ValueError, match=r"body \('unseen', '0'\) of .*fresh is not body \('all32', '0'\)"):
+        compare(fresh, kept)  # (a run.json that misses its rows' sets: the folders' names again)
     with pytest.raises(ValueError, match=r"body \('design_unseen.npy', '0'\) of .*fresh is not body \('grown.npy'"):
         compare(fresh, write("other", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_x_design_unseen",
                              "docs/results/heldout_bodies/grown.npy"))
