@@ -112,13 +112,17 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
     return seconds, " + ".join(what) if what else "not counted"
 
 
+def _run_of(path: str) -> Path:
+    """A run's directory from its directory or one of its checkpoints (``<run>/checkpoints/*.pt``)."""
+    p = Path(path).resolve()
+    return p.parent.parent if p.suffix == ".pt" and p.parent.name == "checkpoints" else p
+
+
 def warm_start_name(path: str) -> str:
     """How a table names the controller a run started from: the population controller's folder as before, else
     the folder (or file) ``control.controller_init`` names."""
-    where = Path(path)
-    if where.suffix == ".pt":  # (a controller.pt names its folder; a run's checkpoint, its run)
-        where = where.parent.parent if where.parent.name == "checkpoints" else where.parent
-    name = where.name
+    where = _run_of(path)  # (a run's checkpoint names its run; a controller.pt, its folder)
+    name = where.parent.name if where.suffix == ".pt" else where.name
     return "the population controller" if name == "control_population" else name
 
 
@@ -237,12 +241,6 @@ def trained_for(control: Any) -> str:
             "random": "move along its heading, controlled"}[control.headings]
 
 
-def _run_of(path: str) -> Path:
-    """A run's directory from its directory or one of its checkpoints."""
-    p = Path(path).resolve()
-    return p.parent.parent if p.is_file() and p.parent.name == "checkpoints" else p
-
-
 def adapted_rows(run: Path, designs: dict[str, tuple[dict, float]]) -> list[tuple[str, dict, float, str]]:
     """The rows of an ``--adapted`` control run (one started from the frozen controller): its controller driving
     the designs it was adapted to (``control.designer``: one of ``designs``, name → (result, budget before the
@@ -280,6 +278,7 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
     ``pretraining_runs``: run directories charged too, :func:`pretraining_seconds`);
     ``adapted``: control runs started from that controller (``control.controller_init``), whose controllers drive
     the same designs, their own epochs added to the budget."""
+    before, what = pretraining_seconds(pretraining, pretraining_runs)  # (refuses a bad run before anything is written)
     out.mkdir(parents=True, exist_ok=True)
     rows, metrics, runs = [], [], {}
 
@@ -294,7 +293,6 @@ def compare(codesign: Path | None, open_loop: Path, two_stage: Path | None, epis
 
     from freeform.envs.control import ControlConfig
 
-    before, what = pretraining_seconds(pretraining, pretraining_runs)
     ol_cfg, _ = _last(open_loop)
 
     def sine_window(headings: str) -> ControlConfig:
@@ -452,8 +450,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.adapted and args.designed is None and args.pretraining is None and args.pretraining_runs is None:
         p.error("--adapted starts from a frozen controller: give --designed, or --codesign with --pretraining or "
                 "--pretraining-runs")
-    for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ()),
-                *(args.pretraining_runs or ())):
+    for run in (args.codesign, args.open_loop, args.two_stage, args.designed, *(args.adapted or ())):
         if run is not None and not (run / "checkpoints" / "last.pt").is_file():
             raise SystemExit(f"{run}: no checkpoints/last.pt (a freeform-train run directory?)")
     compare(args.codesign, args.open_loop, args.two_stage, args.episodes, args.out, args.designed, args.pretraining,

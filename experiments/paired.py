@@ -35,18 +35,24 @@ def read_table(source: Path, who: str, made_by: str) -> list[dict[str, str]]:
     return read_rows(path)
 
 
-def set_files(source: Path) -> dict[str, str]:
-    """A pooled table's set folders -> the file name of each set's bodies, from the ``run.json`` that
-    ``experiments.heldout --pool`` writes beside its ``bodies.csv`` (kept in the results as ``<name>_run.json``
-    beside ``<name>_bodies.csv``); empty where it records none (tables pooled before it recorded its sets)."""
+def table_run(source: Path) -> dict:
+    """A held-out table's ``run.json``, found as :func:`read_table` finds its rows: beside the folder's
+    ``bodies.csv``, or ``<name>_run.json`` beside ``<name>_bodies.csv`` as the results keep a table; {} where
+    there is none."""
     path = source.with_name(source.name.removesuffix("bodies.csv") + "run.json") if source.suffix == ".csv" else \
         source / "run.json"
-    run = json.loads(path.read_text()) if path.is_file() else {}
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def set_files(source: Path) -> dict[str, str]:
+    """A pooled table's set folders -> the file name of each set's bodies, from the ``run.json`` that
+    ``experiments.heldout --pool`` writes (:func:`table_run`); empty where it records none (tables pooled before it
+    recorded its sets)."""
+    run = table_run(source)
     folders, sets = run.get("pooled") or [], run.get("sets") or []
     if len(folders) != len(sets) or not all(isinstance(e, dict) and e.get("bodies") for e in sets):
         return {}
-    return {str(folder).removesuffix("_*"): Path(str(entry["bodies"])).name  # (the results name a set's files
-            for folder, entry in zip(folders, sets, strict=True)}          # <prefix>_*, its rows <prefix>)
+    return {str(folder): Path(str(entry["bodies"])).name for folder, entry in zip(folders, sets, strict=True)}
 
 
 def body_keys(rows: list[dict[str, str]], sets: dict[str, str] | None = None) -> list[tuple[str, str]]:

@@ -20,11 +20,11 @@ point's label is its x; two points may share one (seeds).
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Any
 
 from experiments.common import read_rows, write_rows
+from experiments.paired import table_run
 
 ROWS = {
     "stochastic": "controller (stochastic)",
@@ -65,8 +65,7 @@ def read_point(label: str, folder: Path, x: str = "teachers") -> dict[str, float
 def body_sets(folder: Path) -> list[tuple[str, int]] | None:
     """The sets a pooled table was made of, as (the ``.npy``'s file name, its body count), sorted; None for a
     table pooled before ``experiments.heldout`` recorded them (only its count can then be compared)."""
-    run = folder / "run.json"
-    sets = json.loads(run.read_text()).get("sets") if run.is_file() else None
+    sets = table_run(folder).get("sets")
     if sets is None:
         return None
     return sorted((Path(str(s["bodies"])).name, int(s["n"])) for s in sets)

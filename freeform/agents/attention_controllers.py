@@ -57,6 +57,13 @@ class _AttentionBlock(nn.Module):
         return x + self.mlp(self.norm2(x))
 
 
+def token_cells(obs: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
+    """The observation ``[N, C, Bx, By, Bz]`` at the tokens' cells ``order [N, K]`` (indices into the box, C
+    order): ``[N, K, C]``."""
+    cells = obs.flatten(2).transpose(1, 2)  # [N, A, C]
+    return cells.gather(1, order[..., None].expand(-1, -1, cells.shape[2]))
+
+
 class VoxelAttentionController(FromInputs, nn.Module):
     """Attention over a body's voxels: every filled cell is a token, every token attends to every other, and the
     padding (empty cells, a larger box) is no token at all.
@@ -104,14 +111,12 @@ class VoxelAttentionController(FromInputs, nn.Module):
     def tokens(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``[N, C, Bx, By, Bz]`` → the filled cells' features ``[N, K, C]``, their cells in the box ``[N, K]``
         (a padding token's is an empty cell, each cell at most once) and ``valid [N, K]``."""
-        cells = obs.flatten(2).transpose(1, 2)  # [N, A, C]
-        filled = cells[..., self.filled_channel] > 0.5
+        filled = obs[:, self.filled_channel].flatten(1) > 0.5  # [N, A]
         count = filled.sum(1)
         k = self.token_count or max(int(count.max()), 1)
         order = torch.argsort((~filled).to(torch.int32), dim=1, stable=True)[:, :k]  # the filled cells first, in C order
-        features = cells.gather(1, order[..., None].expand(-1, -1, cells.shape[2]))
         valid = torch.arange(k, device=obs.device)[None] < count[:, None]
-        return features, order, valid
+        return token_cells(obs, order), order, valid
 
     @contextmanager
     def fixed_shapes(self, obs: torch.Tensor) -> Iterator[None]:
@@ -200,9 +205,7 @@ class HyperAttentionController(VoxelAttentionController):
     def body_code(self, obs: torch.Tensor, order: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """``[N, h]``: the mean over each body's tokens (cells ``order [N, K]``, ``valid``) of its body channels'
         embedding."""
-        cells = obs[:, : self.body_channels].flatten(2).transpose(1, 2)  # [N, A, b]
-        own = cells.gather(1, order[..., None].expand(-1, -1, self.body_channels))  # [N, K, b]
-        embedded = self.body_embed(own) * valid[..., None]
+        embedded = self.body_embed(token_cells(obs[:, : self.body_channels], order)) * valid[..., None]
         return embedded.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
 
     def token_actions(self, x: torch.Tensor, valid: torch.Tensor, obs: torch.Tensor, order: torch.Tensor

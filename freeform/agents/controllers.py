@@ -416,5 +416,5 @@ def controller_kind(controller: nn.Module) -> str:
 
 
 __all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "HyperAttentionController",
-           "MLPController", "PrivilegedCritic", "RecurrentAttentionController", "RecurrentContextController", "VoxelAttentionController", "build_controller",
-           "controller_kind", "controller_step"]
+           "MLPController", "PrivilegedCritic", "RecurrentAttentionController", "RecurrentContextController",
+           "VoxelAttentionController", "build_controller", "controller_kind", "controller_step"]
