@@ -60,6 +60,7 @@ from freeform.envs.control import (
     ControlEnv,
     open_loop_displacement,
 )
+from freeform.envs.symmetry import GROUPS
 from freeform.envs.untrained import DesignBodies, untrained_walker
 from freeform.sim import SimConfig, Simulator
 
@@ -244,17 +245,21 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--wave-k", type=float, default=None,
                    help="with --bodies: the hand-set wave's k (default: the controller's own wave, else 1.0)")
     p.add_argument("--wave-amplitude", type=float, default=1.0)
+    p.add_argument("--symmetrize", choices=GROUPS, default=None,
+                   help="with --bodies: evaluate the controller averaged over this group of the ground's turns and "
+                        "mirrors (freeform.agents.group_average): 'ground' along random headings in the world's "
+                        "frame, 'mirror' where a wave runs along x")
     args = p.parse_args(argv)
     if args.bodies and not args.evaluate:
         p.error("--bodies needs --evaluate PATH (the controller to evaluate)")
-    if args.per_body and not args.bodies:
-        p.error("--per-body needs --evaluate PATH --bodies BODIES.npy")
+    if (args.per_body or args.symmetrize) and not args.bodies:
+        p.error("--per-body and --symmetrize need --evaluate PATH --bodies BODIES.npy")
     if args.evaluate and args.bodies:
         per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
                       Path(args.per_body_cache), args.per_body_run and Path(args.per_body_run)) if args.per_body else None
         wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
         evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
-                        args.seed, per, wave)
+                        args.seed, per, wave, args.symmetrize)
         return
     if args.evaluate:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))

@@ -31,6 +31,7 @@ from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
+from freeform.agents.group_average import GroupAveraged
 from freeform.agents.networks import rebuild
 from freeform.envs.control import (
     ControlConfig,
@@ -186,8 +187,8 @@ def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWav
 
 @torch.no_grad()
 def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
-                    seed: int = 0, per_body: PerBody | None = None,
-                    wave: HandSetWave | None = None) -> tuple[list[dict], list[dict]]:
+                    seed: int = 0, per_body: PerBody | None = None, wave: HandSetWave | None = None,
+                    symmetrize: str | None = None) -> tuple[list[dict], list[dict]]:
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
     control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
     each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
@@ -198,7 +199,10 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     does before learning: the open-loop gait for most heads, the hand-set travelling wave for a ``wave`` head), the
     hand-set wave's mean command whatever the controller's head (:func:`hand_set_wave`; with strokes), and with
     ``per_body`` each of the first N bodies' own controller (:class:`PerBody`, stochastic). The box is the one the
-    controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box).
+    controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box). With
+    ``symmetrize`` (a group of ``freeform.envs.symmetry.GROUPS``) the trained controller's three groups are its
+    average over that group's turns and mirrors (:class:`~freeform.agents.group_average.GroupAveraged`); the
+    untrained and reference controllers are not averaged.
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
     the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean
@@ -230,6 +234,9 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     blocks = len(groups) + (control.stroke_periods >= 1) + 2 * (bank is not None)  # (one block of rows a group)
     env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=seed,
                      box=box, first_env=np.tile(np.arange(m * n), blocks))
+    if symmetrize:
+        averaged = GroupAveraged(controller, env.symmetry(symmetrize))
+        groups = [(name, averaged if net is controller else net, *how) for name, net, *how in groups]
     if control.stroke_periods >= 1:
         groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
     if bank is not None:
@@ -244,8 +251,10 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     if bank is not None:
         per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
     rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
-    summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0)
-    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "bodies": str(bodies),
+    summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0,
+                       symmetrize)
+    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": symmetrize,
+                                "bodies": str(bodies),
                                 "body_count": m, "episodes_per_body": n, "box": list(box), "trained_box": list(trained),
                                 "seed": seed, "control": vars(control),
                                 "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
@@ -297,15 +306,17 @@ def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs
     return rows
 
 
-def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int) -> list[dict]:
+def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int,
+             symmetrize: str | None = None) -> list[dict]:
     """``summary.csv``: the means over the bodies (99 % bands across bodies), then the paired differences per body
     (each body against itself: same headings, same noise streams, so the across-body spread cancels), the
     fractions of bodies beyond their own gait, and with per-body controllers on the first ``n_own`` bodies the
     controller and theirs there (and theirs beyond the gait) and the fraction reached."""
     body = {name: v.mean(1) for name, v in per_group.items()}
+    trained = f"{kind}, averaged over the {symmetrize} group" if symmetrize else kind
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
-               summary_row(f"controller ({kind}, stochastic)", body["controller"]),
-               summary_row(f"controller ({kind}, mean command)", body["mean_command"]),
+               summary_row(f"controller ({trained}, stochastic)", body["controller"]),
+               summary_row(f"controller ({trained}, mean command)", body["mean_command"]),
                summary_row("controller, sensed channels zeroed (rel, vel, strain, contact)", body["zeroed"]),
                summary_row(f"untrained controller ({kind}, seed {seed}, stochastic)", body["untrained"]),
                summary_row(f"untrained controller ({kind}, seed {seed}, mean command)", body["untrained_mean_command"]),
@@ -417,7 +428,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         if not (Path(folder) / "run.json").is_file():
             raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
         run = json.loads((Path(folder) / "run.json").read_text())
-        setting = {k: run.get(k) for k in ("kind", "control", "episodes_per_body", "seed")}
+        setting = {k: run.get(k) for k in ("kind", "symmetrize", "control", "episodes_per_body", "seed")}
         if settings and setting != settings[0]:
             differ = [k for k in setting if setting[k] != settings[0][k]]
             raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ): "

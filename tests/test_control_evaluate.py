@@ -568,3 +568,42 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"body \('design_unseen.npy', '0'\) of .*fresh is not body \('grown.npy'"):
         compare(fresh, write("other", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_x_design_unseen",
                              "docs/results/heldout_bodies/grown.npy"))
+
+
+def test_symmetrize_averages_the_controller_and_keeps_an_equivariant_one(tmp_path) -> None:
+    """--symmetrize ground evaluates the controller averaged over the ground's turns and mirrors. Independent truth:
+    the hand-set travelling wave, which along random headings in the world's frame turns with the heading, so its
+    average is itself: saved as the controller, its mean command moves every body as the unaveraged one does and as
+    the hand-set wave row; ``run.json`` and the summary say what was averaged; without --bodies it is refused."""
+    from experiments.heldout import hand_set_wave
+
+    control = replace(SHORT, headings="random", stroke_periods=1, residual=True)
+    env = ControlEnv(tiny_bodies()[:2], control=control)
+    assert env.box == (2, 2, 1)
+    save_controller(tmp_path / "controller.pt", hand_set_wave(env, None, None), control, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    args = ["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--eval-episodes", "1"]
+    main([*args, "--out", str(tmp_path / "plain")])
+    main([*args, "--symmetrize", "ground", "--out", str(tmp_path / "averaged")])
+    plain, averaged = (read_csv(tmp_path / d / "bodies.csv") for d in ("plain", "averaged"))
+    moved = [float(r["mean_command"]) for r in averaged]
+    np.testing.assert_allclose(moved, [float(r["mean_command"]) for r in plain], rtol=1e-4, atol=1e-7)
+    np.testing.assert_allclose(moved, [float(r["hand_set_wave"]) for r in averaged], rtol=1e-4, atol=1e-7)
+    assert max(abs(m) for m in moved) > 1e-3
+    torch.manual_seed(0)  # a controller that is not equivariant: averaged, it moves the bodies otherwise
+    skewed = ContextConvController(ControlInputs.of(env, "stroke"), hidden=4, head="stroke")
+    with torch.no_grad():  # (its actor starts near 0: commands worth averaging need weights of some size)
+        for weight in skewed.actor.parameters():
+            weight.normal_(0.0, 0.2)
+    save_controller(tmp_path / "skewed.pt", skewed, control, SimConfig())
+    skew = ["--evaluate", str(tmp_path / "skewed.pt"), *args[2:]]
+    main([*skew, "--out", str(tmp_path / "skewed")])
+    main([*skew, "--symmetrize", "ground", "--out", str(tmp_path / "skewed_averaged")])
+    one, other = ([float(r["mean_command"]) for r in read_csv(tmp_path / d / "bodies.csv")]
+                  for d in ("skewed", "skewed_averaged"))
+    assert max(abs(a - b) for a, b in zip(one, other, strict=True)) > 1e-4
+    assert json.loads((tmp_path / "averaged" / "run.json").read_text())["symmetrize"] == "ground"
+    summary = [r["what"] for r in read_csv(tmp_path / "averaged" / "summary.csv")]
+    assert "controller (context, averaged over the ground group, mean command)" in summary
+    with pytest.raises(SystemExit):
+        main(["--evaluate", str(tmp_path), "--symmetrize", "ground", "--out", str(tmp_path / "refused")])

@@ -160,3 +160,49 @@ def test_distillation_regresses_turned_samples_onto_turned_labels(monkeypatch: p
     with pytest.raises(ValueError, match="declares its symmetry"):  # an env without one is refused
         Distillation(cartpole(), build_controller("context", env), teacher, PPOConfig(rollout_steps=2),
                      DistillConfig(symmetry="ground"))
+
+
+def test_the_inverse_undoes_each_element() -> None:
+    sym = PlanarSymmetry((3, 3, 2), ())
+    probe = torch.arange(18, dtype=torch.float32)[None]
+    for g in range(8):
+        h = torch.tensor([sym.inverse(g)])
+        assert torch.equal(sym.matrix(g) @ sym.matrix(int(h)), torch.eye(2, dtype=torch.float64))
+        assert torch.equal(sym.cells(sym.cells(probe, torch.tensor([g])), h), probe)
+
+
+def wave_env(headings: str) -> ControlEnv:
+    control = ControlConfig(headings=headings, duration=0.1, burn_in=0.05, residual=True, stroke_periods=2)
+    return ControlEnv(np.stack([BODY, numpy_element(BODY, 6)]), control=control)
+
+
+@pytest.mark.parametrize(("headings", "group", "kept"), [("random", "ground", True), ("any", "mirror", True),
+                                                          ("any", "ground", False)])
+def test_a_group_average_keeps_an_equivariant_controller_and_makes_any_one_equivariant(
+        headings: str, group: str, kept: bool) -> None:
+    """Independent truth: the hand-set travelling wave. Along a heading in the world's frame its wave turns with the
+    heading, so the wave is equivariant under every turn and mirror and its group average is the wave itself; under
+    ``headings="any"`` it runs along x, which the mirror y → −y keeps and a quarter turn does not. And an untrained
+    transformer, not equivariant, becomes so averaged: commanding a turned body its commands turned."""
+    from experiments.heldout import hand_set_wave
+    from freeform.agents import build_controller
+    from freeform.agents.group_average import GroupAveraged
+
+    env = wave_env(headings)
+    obs, sym = env.reset(seed=0), env.symmetry(group)
+    with torch.no_grad():
+        wave = hand_set_wave(env, None, None)
+        difference = float((GroupAveraged(wave, sym)(obs)[0] - wave(obs)[0]).abs().max())
+        assert (difference < 1e-5) == kept and float(wave(obs)[0].abs().max()) > 0.5
+        torch.manual_seed(0)
+        net = build_controller("attention", env, head="wave").eval()
+        averaged = GroupAveraged(net, sym)
+        for g in range(1, sym.size):
+            element = torch.full((2,), g)
+            turned_first = averaged(sym.observations(obs, element))
+            assert torch.allclose(turned_first[0], sym.cells(averaged(obs)[0], element), atol=1e-5)
+            assert torch.allclose(turned_first[3], averaged(obs)[3], atol=1e-5)
+            assert float((net(sym.observations(obs, element))[0] - sym.cells(net(obs)[0], element)).abs().max()) > 1e-3
+    gru = build_controller("attention_gru", env, head="wave")
+    with pytest.raises(ValueError, match="feed-forward controller"):
+        GroupAveraged(gru, sym)

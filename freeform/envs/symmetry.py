@@ -79,6 +79,12 @@ class PlanarSymmetry:
             raise ValueError(f"element must be in [0, {self.size}), got {g!r}")
         return bool(g & 4), bool(g & 2), bool(g & 1)  # (without a swap: 0..3 in both group sizes; mirror: 0, 1)
 
+    def inverse(self, g: int) -> int:
+        """The element that undoes element ``g``: a mirror or the half turn is its own; a swap followed by flips
+        (a quarter turn, a diagonal mirror) is undone by the swap followed by the other axis' flips."""
+        swap, fx, fy = self.element(g)
+        return 4 * swap + 2 * (fy if swap else fx) + (fx if swap else fy)
+
     def matrix(self, g: int) -> torch.Tensor:
         """Element g's 2×2 matrix on planar vectors (float64)."""
         swap, fx, fy = self.element(g)
