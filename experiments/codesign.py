@@ -67,9 +67,11 @@ def design_stage(control_cfg: Any) -> tuple[Path, int] | None:
 def robot_seconds(cfg: Any, epochs: int) -> float:
     """The simulated robot-seconds ``epochs`` epochs of a run cost: a co-design or design epoch simulates every
     environment's body through its window (settling included; a design scored by a controller, through that
-    controller's episode); a control epoch only the control window (each body settles once, when the env is built —
-    every environment's copy, a body repeated over environments included — and is restored from that state at every
-    episode); a population run's, every cohort it played settled once (``freeform.envs.population.robot_seconds``)."""
+    controller's episode); a control epoch only the control windows its rollout plays (``agent.rollout_steps``
+    decisions an environment, whole episodes of ``control.steps``: the teacher and distillation presets play 4 an
+    epoch), each body settling once, when the env is built — every environment's copy, a body repeated over
+    environments included — and restored from that state at every episode; a population run's, every cohort it
+    played settled once (``freeform.envs.population.robot_seconds``)."""
     envs = cfg.env.num_envs
     if cfg.control is None:
         if cfg.task.name == "controlled_locomotion":  # design after control: each design a controlled episode
@@ -85,7 +87,8 @@ def robot_seconds(cfg: Any, epochs: int) -> float:
         from freeform.envs.population import robot_seconds as stream_seconds
 
         return stream_seconds(epochs * cfg.agent.rollout_steps // control.steps, envs, control, cfg.seed)
-    return epochs * envs * control.duration + envs * control.burn_in
+    episodes = (cfg.agent.rollout_steps or control.steps) / control.steps  # (None: one episode, the env's steps)
+    return epochs * envs * episodes * control.duration + envs * control.burn_in
 
 
 def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = None) -> tuple[float, str]:

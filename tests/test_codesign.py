@@ -309,7 +309,8 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
                             f"sim.burn_in={burn_in}", f"sim.duration={duration}", *common), tmp_path / "open_loop")
     record = tmp_path / "open_loop" / "records" / "epoch_000000.npz"
     train_mod.train(compose("experiment=control_locomotion_cpu", f"control.bodies={record}", "control.top=2",
-                            "trainer.epochs=1", "agent.hidden=4", *window, *common), tmp_path / "two_stage")
+                            "trainer.epochs=1", "agent.hidden=4", "agent.rollout_steps=6", *window, *common),
+                    tmp_path / "two_stage")  # (a rollout of two episodes of 3 decisions an environment)
     main(["--codesign", str(tmp_path / "codesign"), "--open-loop", str(tmp_path / "open_loop"),
           "--two-stage", str(tmp_path / "two_stage"), "--episodes", "8", "--out", str(tmp_path / "out")])
     rows = list(csv.DictReader(open(tmp_path / "out" / "summary.csv")))
@@ -325,7 +326,11 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * window_s, abs=1e-3)
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
     assert seconds["design, then control (2 best designs)"] == pytest.approx(
-        1 * 4 * window_s + 1 * 4 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles)
+        1 * 4 * window_s + 1 * 4 * 2 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles once)
+    from freeform.checkpoint import load_checkpoint  # the same from the steps the run took: 0.0125 s a decision
+
+    played = load_checkpoint(tmp_path / "two_stage" / "checkpoints" / "last.pt")["ppo"]["global_step"] * 0.0125
+    assert seconds["design, then control (2 best designs)"] == pytest.approx(1 * 4 * window_s + played + 4 * burn_in)
     assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])
     metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))
     assert len(metrics) == len(rows) and float(metrics[2]["volume"]) > 0
