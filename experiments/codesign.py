@@ -65,30 +65,32 @@ def design_stage(control_cfg: Any) -> tuple[Path, int] | None:
 
 
 def robot_seconds(cfg: Any, epochs: int) -> float:
-    """The simulated robot-seconds ``epochs`` epochs of a run cost: a co-design or design epoch simulates every
-    environment's body through its window (settling included; a design scored by a controller, through that
-    controller's episode); a control epoch only the control windows its rollout plays (``agent.rollout_steps``
-    decisions an environment, whole episodes of ``control.steps``: the teacher and distillation presets play 4 an
-    epoch), each body settling once, when the env is built — every environment's copy, a body repeated over
-    environments included — and restored from that state at every episode; a population run's, every cohort it
-    played settled once (``freeform.envs.population.robot_seconds``)."""
-    envs = cfg.env.num_envs
+    """The simulated robot-seconds ``epochs`` epochs of a run cost. An epoch plays ``agent.rollout_steps`` steps an
+    environment, whole episodes of the run's env (None: one; the teacher and distillation presets play 4). A
+    co-design or design episode simulates its body through its window (settling included; a design scored by a
+    controller, through that controller's episode); a control episode only the control window, each body settling
+    once, when the env is built — every environment's copy, a body repeated over environments included — and
+    restored from that state at every episode; a population run's, every cohort it played settled once
+    (``freeform.envs.population.robot_seconds``)."""
+    from freeform.config import episode_steps
+
+    envs, episode = cfg.env.num_envs, episode_steps(cfg)
+    episodes = epochs * (cfg.agent.rollout_steps or episode) / episode  # (each environment's; a control run's whole)
     if cfg.control is None:
         if cfg.task.name == "controlled_locomotion":  # design after control: each design a controlled episode
             from freeform.agents.controller_file import read_controller
 
-            episode = read_controller(cfg.task.options["controller"]).control
-            return epochs * envs * (episode.burn_in + episode.duration)
-        return epochs * envs * (cfg.sim.burn_in + cfg.sim.duration)  # open-loop design RL
+            scored = read_controller(cfg.task.options["controller"]).control
+            return episodes * envs * (scored.burn_in + scored.duration)
+        return episodes * envs * (cfg.sim.burn_in + cfg.sim.duration)  # open-loop design RL
     control = cfg.control
     if control.codesign:
-        return epochs * envs * (control.burn_in + control.duration)
+        return episodes * envs * (control.burn_in + control.duration)
     if control.bodies == "population":
         from freeform.envs.population import robot_seconds as stream_seconds
 
-        return stream_seconds(epochs * cfg.agent.rollout_steps // control.steps, envs, control, cfg.seed)
-    episodes = (cfg.agent.rollout_steps or control.steps) / control.steps  # (None: one episode, the env's steps)
-    return epochs * envs * episodes * control.duration + envs * control.burn_in
+        return stream_seconds(round(episodes), envs, control, cfg.seed)
+    return episodes * envs * control.duration + envs * control.burn_in
 
 
 def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = None) -> tuple[float, str]:

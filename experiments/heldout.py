@@ -31,7 +31,7 @@ from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
-from freeform.agents.group_average import GroupAveraged
+from freeform.agents.group_average import GroupAveraged, check_turnable
 from freeform.agents.networks import rebuild
 from freeform.envs.control import (
     ControlConfig,
@@ -223,6 +223,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
         warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
                       f"{saved.control.headings}, another task than the one evaluated", stacklevel=2)
+    if symmetrize:  # (before any per-body bank is trained: a group that changes the task is refused first)
+        check_turnable("--symmetrize", symmetrize, control.headings, control.frame, {"the controller": saved.kind})
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = saved.controller.eval()
     torch.manual_seed(seed)
@@ -432,7 +434,8 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         if settings and setting != settings[0]:
             differ = [k for k in setting if setting[k] != settings[0][k]]
             raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ): "
-                             "evaluate every set with the same controller, --headings, --eval-episodes and seed")
+                             "evaluate every set with the same controller, --headings, --symmetrize, "
+                             "--eval-episodes and seed")
         settings.append(setting)
         controllers.append(run.get("controller"))
         sources.append({"bodies": run.get("bodies"), "n": len(table)})
@@ -441,8 +444,9 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     rows = [{"set": str(folder), **{c: r[c] for c in ("body", *columns)}}
             for folder, table in zip(sets, tables, strict=True) for r in table]
     summary = _pooled_summary({c: np.array([float(r[c]) for r in rows]) for c in columns})
-    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers, "bodies": len(rows),
-                                "sets": sources, "per_body_from": per_body_from and str(per_body_from)})
+    _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers,
+                                "symmetrize": settings[0]["symmetrize"], "bodies": len(rows), "sets": sources,
+                                "per_body_from": per_body_from and str(per_body_from)})
     return summary
 
 

@@ -304,7 +304,8 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
               "agent.sgd_minibatch_size=8", "trainer.progress=false", "trainer.print_every=0", "trainer.threads=1"]
     window = [f"control.burn_in={burn_in}", f"control.duration={duration}"]
     train_mod.train(compose("experiment=codesign_locomotion_cpu", "trainer.epochs=1", "agent.hidden=8",
-                            "control.hidden=4", *window, *common), tmp_path / "codesign")
+                            "control.hidden=4", f"agent.rollout_steps={2 * (T + 3)}", *window, *common),
+                    tmp_path / "codesign")  # (two episodes an epoch: T design steps and 3 control decisions each)
     train_mod.train(compose("experiment=locomotion_cpu", "trainer.epochs=2", "agent.hidden=8", "+task.options.measure=com",
                             f"sim.burn_in={burn_in}", f"sim.duration={duration}", *common), tmp_path / "open_loop")
     record = tmp_path / "open_loop" / "records" / "epoch_000000.npz"
@@ -323,12 +324,13 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
                                           "move in the plane, sine gait", "move along +x, controlled",
                                           "move in the plane, sine gait"]  # (each what it was trained for)
     window_s = burn_in + duration
-    assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * window_s, abs=1e-3)
+    assert seconds["co-design (one PPO: body, then controller)"] == pytest.approx(1 * 4 * 2 * window_s, abs=1e-3)
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
     assert seconds["design, then control (2 best designs)"] == pytest.approx(
         1 * 4 * window_s + 1 * 4 * 2 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles once)
-    from freeform.checkpoint import load_checkpoint  # the same from the steps the run took: 0.0125 s a decision
+    from freeform.checkpoint import load_checkpoint
 
+    # the same from the steps the run took: 0.0125 s a decision
     played = load_checkpoint(tmp_path / "two_stage" / "checkpoints" / "last.pt")["ppo"]["global_step"] * 0.0125
     assert seconds["design, then control (2 best designs)"] == pytest.approx(1 * 4 * window_s + played + 4 * burn_in)
     assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])

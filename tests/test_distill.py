@@ -231,7 +231,11 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                  "algo.symmetry=ground", "control.controller=conv"))
     with pytest.raises(ValueError, match=r"control.controller is 'conv'"):
         build(conv, torch.device("cpu"))
-    from freeform.run.build import _check_turnable  # (a teacher run with fixed headings: the same rule)
+    from freeform.agents.group_average import check_turnable
+
+    # a teacher run with fixed headings: the same rule
+    def _check_turnable(student: str, teacher: str, group: str, headings: str, frame: str = "world") -> None:
+        check_turnable("algo.symmetry", group, headings, frame, {"student": student, "teacher": teacher})
 
     with pytest.raises(ValueError, match=r"headings=fixed rewards \+x alone: use algo.symmetry=mirror"):
         _check_turnable("context", "context", "ground", "fixed")

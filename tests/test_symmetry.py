@@ -171,6 +171,18 @@ def test_the_inverse_undoes_each_element() -> None:
         assert torch.equal(sym.cells(sym.cells(probe, torch.tensor([g])), h), probe)
 
 
+class PerCellSigma(torch.nn.Module):
+    """A controller whose log σ differs per cell (half its mean): what an average must move back like the mean."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        mean, _, mask, value = self.net(obs)
+        return mean, 0.5 * mean, mask, value
+
+
 def wave_env(headings: str) -> ControlEnv:
     control = ControlConfig(headings=headings, duration=0.1, burn_in=0.05, residual=True, stroke_periods=2)
     return ControlEnv(np.stack([BODY, numpy_element(BODY, 6)]), control=control)
@@ -196,12 +208,16 @@ def test_a_group_average_keeps_an_equivariant_controller_and_makes_any_one_equiv
         assert (difference < 1e-5) == kept and float(wave(obs)[0].abs().max()) > 0.5
         torch.manual_seed(0)
         net = build_controller("attention", env, head="wave").eval()
-        averaged = GroupAveraged(net, sym)
+        averaged = GroupAveraged(PerCellSigma(net), sym)
+        mask = obs[:, env.mask_channel].flatten(1).repeat(1, 2)  # (a stroke's a and b)
+        assert torch.equal(averaged(obs)[2], mask)
         for g in range(1, sym.size):
             element = torch.full((2,), g)
-            turned_first = averaged(sym.observations(obs, element))
-            assert torch.allclose(turned_first[0], sym.cells(averaged(obs)[0], element), atol=1e-5)
-            assert torch.allclose(turned_first[3], averaged(obs)[3], atol=1e-5)
+            turned_first, then_turned = averaged(sym.observations(obs, element)), averaged(obs)
+            for k in (0, 1):  # the mean and the per-cell log σ move with the cells
+                assert torch.allclose(turned_first[k], sym.cells(then_turned[k], element), atol=1e-5)
+            assert torch.equal(turned_first[2], sym.cells(mask, element))
+            assert torch.allclose(turned_first[3], then_turned[3], atol=1e-5)
             assert float((net(sym.observations(obs, element))[0] - sym.cells(net(obs)[0], element)).abs().max()) > 1e-3
     gru = build_controller("attention_gru", env, head="wave")
     with pytest.raises(ValueError, match="feed-forward controller"):

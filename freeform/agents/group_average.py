@@ -13,12 +13,34 @@ head's wave runs along x whatever the turn, so only the ``mirror`` group keeps a
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import torch
 from torch import nn
 
 from freeform.agents.recurrent import RecurrentPolicy
+
+
+def check_turnable(key: str, group: str, headings: str, frame: str, controllers: Mapping[str, str]) -> None:
+    """Refuses a group of turns (``key``: the option that asked for it) where turning a body changes its task or its
+    controller: a turned body walks the turned way, which a fixed heading (+x) does not reward, nor the heading's
+    frame (its task is +x, the heading no channel that turns along) — there only the mirror y → −y keeps the task;
+    and a turned body sits elsewhere in its padded box (a flip reverses the whole box), which only a controller that
+    the padding does not change sees as the same body (``controllers``: who → kind, each checked)."""
+    from freeform.agents.controllers import CONTROLLERS
+
+    if headings == "fixed" and group != "mirror":
+        raise ValueError(f"{key}={group} turns the way a body walks, and control.headings=fixed rewards +x alone: use "
+                         f"{key}=mirror (y -> -y keeps +x), or headings any or random")
+    if frame == "heading" and headings != "any" and group != "mirror":
+        raise ValueError(f"{key}={group} turns the way a body walks, and in control.frame=heading every task is +x of "
+                         f"the heading's frame: use {key}=mirror (y -> -y keeps +x)")
+    for who, kind in controllers.items():
+        if not CONTROLLERS[kind].padding_invariant:
+            raise ValueError(f"{key}={group} turns each body within its padded box, which only a controller that the "
+                             f"padding does not change sees as the same body; {who} is {kind!r} (use "
+                             f"{[k for k, c in CONTROLLERS.items() if c.padding_invariant]}, or no symmetry)")
 
 
 class TurnsCells(Protocol):
@@ -62,4 +84,4 @@ class GroupAveraged(nn.Module):
         return average(mean), average(log_std), mask[:n], value.view(size, n).mean(0)
 
 
-__all__ = ["GroupAveraged"]
+__all__ = ["GroupAveraged", "check_turnable"]

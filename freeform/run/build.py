@@ -381,6 +381,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
     controller ``control.controller`` / ``control.head`` (``freeform.agents.distill``)."""
     from freeform.agents import build_controller
     from freeform.agents.distill import BankTeacher, Distillation, DistillConfig
+    from freeform.agents.group_average import check_turnable
 
     control = cfg.control
     assert control is not None and control.teachers
@@ -391,31 +392,11 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
     if control.controller_init is not None:
         load_controller(student, control.controller_init, control.frame)
     if cfg.algo.symmetry != "none":
-        _check_turnable(control.controller, bank.init_kwargs["kind"], cfg.algo.symmetry, control.headings,
-                        control.frame)
+        check_turnable("algo.symmetry", cfg.algo.symmetry, control.headings, control.frame,
+                       {"control.controller": control.controller,
+                        "the teacher run's controller": bank.init_kwargs["kind"]})
     return Distillation(env.env, student, BankTeacher(bank, env.teacher), ppo_config(cfg, device=str(device)),
                         DistillConfig.from_algo(cfg.algo), first_env=envs[0], total_envs=cfg.env.num_envs)
-
-
-def _check_turnable(student: str, teacher: str, symmetry: str, headings: str, frame: str = "world") -> None:
-    """A turned sample puts its body elsewhere in the padded box than the env ever does (a flip reverses the whole
-    box): only a controller that the padding does not change sees it as the same body. And a turned label walks
-    the turned way, which a fixed heading (+x) does not reward, nor the heading's frame (its task is +x, the
-    heading no channel that turns along): there only the mirror y → −y keeps the task."""
-    from freeform.agents.controllers import CONTROLLERS
-
-    if headings == "fixed" and symmetry != "mirror":
-        raise ValueError(f"algo.symmetry={symmetry} turns the way a body walks, and control.headings=fixed rewards +x "
-                         "alone: use algo.symmetry=mirror (y -> -y keeps +x), or headings any or random")
-    if frame == "heading" and headings != "any" and symmetry != "mirror":
-        raise ValueError(f"algo.symmetry={symmetry} turns the way a body walks, and in control.frame=heading every "
-                         "task is +x of the heading's frame: use algo.symmetry=mirror (y -> -y keeps +x)")
-    for who, kind in (("control.controller", student), ("the teacher run's controller", teacher)):
-        if not CONTROLLERS[kind].padding_invariant:
-            raise ValueError(f"algo.symmetry={symmetry} turns each body within its padded box, which only a "
-                             f"controller that the padding does not change sees as the same body; {who} is {kind!r} "
-                             f"(use {[k for k, c in CONTROLLERS.items() if c.padding_invariant]}, or "
-                             "algo.symmetry=none)")
 
 
 def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, body: torch.Tensor) -> Any:
