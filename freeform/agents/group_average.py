@@ -5,8 +5,9 @@ Where the task is unchanged by the group (steering along a heading that turns wi
 ``freeform.envs.symmetry``) the best controller commands a turned body its commands turned, and the average is the
 projection of any controller onto such equivariant ones: exactly equivariant whatever it averages, equal to the
 controller where that already was. A distillation with ``algo.symmetry`` teaches the student the same thing from
-turned samples; this imposes it when acting, at ``size`` forward passes a step. Under ``headings="any"`` the wave
-head's wave runs along x whatever the turn, so only the ``mirror`` group keeps a wave-head controller's gait.
+turned samples; this imposes it when acting, one forward pass over ``size`` · N samples a step. Under
+``headings="any"`` the wave head's wave runs along x whatever the turn, so only the ``mirror`` group keeps a wave-head
+controller's gait.
 
     python -m experiments.control --evaluate RUN --bodies BODIES.npy --headings random --symmetrize ground ...
 """
