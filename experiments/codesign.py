@@ -75,7 +75,9 @@ def robot_seconds(cfg: Any, epochs: int) -> float:
     from freeform.config import episode_steps
 
     envs, episode = cfg.env.num_envs, episode_steps(cfg)
-    episodes = epochs * (cfg.agent.rollout_steps or episode) / episode  # (each environment's; a control run's whole)
+    # episodes each environment played (whole ones in a control run, whose rollout config.py keeps a multiple of
+    # its episode; a design rollout may end mid-episode, which counts its fraction)
+    episodes = epochs * (cfg.agent.rollout_steps or episode) / episode
     if cfg.control is None:
         if cfg.task.name == "controlled_locomotion":  # design after control: each design a controlled episode
             from freeform.agents.controller_file import read_controller

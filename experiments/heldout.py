@@ -256,9 +256,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0,
                        symmetrize)
     _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": symmetrize,
-                                "bodies": str(bodies),
-                                "body_count": m, "episodes_per_body": n, "box": list(box), "trained_box": list(trained),
-                                "seed": seed, "control": vars(control),
+                                "bodies": str(bodies), "body_count": m, "episodes_per_body": n, "box": list(box),
+                                "trained_box": list(trained), "seed": seed, "control": vars(control),
                                 "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
     return rows, summary
 

@@ -328,10 +328,11 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
     assert seconds["design, then control (2 best designs)"] == pytest.approx(
         1 * 4 * window_s + 1 * 4 * 2 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles once)
-    from freeform.checkpoint import load_checkpoint
+    from experiments.codesign import _last
 
-    # the same from the steps the run took: 0.0125 s a decision
-    played = load_checkpoint(tmp_path / "two_stage" / "checkpoints" / "last.pt")["ppo"]["global_step"] * 0.0125
+    # the same from the steps the run took, a control period each
+    two_stage, last = _last(tmp_path / "two_stage")
+    played = last["ppo"]["global_step"] * two_stage.control.period
     assert seconds["design, then control (2 best designs)"] == pytest.approx(1 * 4 * window_s + played + 4 * burn_in)
     assert all(float(r["mean"]) >= 0 for r in rows if "open loop" in r["score"] or "sine" in r["score"])
     metrics = list(csv.DictReader(open(tmp_path / "out" / "metrics.csv")))

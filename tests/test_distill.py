@@ -233,17 +233,17 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
         build(conv, torch.device("cpu"))
     from freeform.agents.group_average import check_turnable
 
-    # a teacher run with fixed headings: the same rule
-    def _check_turnable(student: str, teacher: str, group: str, headings: str, frame: str = "world") -> None:
-        check_turnable("algo.symmetry", group, headings, frame, {"student": student, "teacher": teacher})
+    def kinds(student: str, teacher: str) -> dict[str, str]:
+        return {"control.controller": student, "the teacher run's controller": teacher}
 
+    # a teacher run with fixed headings: the same rule
     with pytest.raises(ValueError, match=r"headings=fixed rewards \+x alone: use algo.symmetry=mirror"):
-        _check_turnable("context", "context", "ground", "fixed")
-    _check_turnable("context", "attention", "mirror", "fixed")
+        check_turnable("algo.symmetry", "ground", "fixed", "world", kinds("context", "context"))
+    check_turnable("algo.symmetry", "mirror", "fixed", "world", kinds("context", "attention"))
     with pytest.raises(ValueError, match=r"control.frame=heading every task is \+x"):  # (steering, turned to +x)
-        _check_turnable("attention", "attention", "ground", "random", "heading")
-    _check_turnable("attention", "attention", "mirror", "random", "heading")
-    _check_turnable("attention", "attention", "ground", "any", "heading")  # (no heading: the world's frame)
+        check_turnable("algo.symmetry", "ground", "random", "heading", kinds("attention", "attention"))
+    check_turnable("algo.symmetry", "mirror", "random", "heading", kinds("attention", "attention"))
+    check_turnable("algo.symmetry", "ground", "any", "heading", kinds("attention", "attention"))  # (no heading)
     with pytest.raises(ValueError, match=r"algo.symmetry must be one of \['none', 'ground', 'mirror'\]"):
         compose(*tiny_control(bodies, *TEACH, "algo=distill", "algo.teacher=x", "algo.symmetry=turns"))
     # a student may sense more than its teachers did (control.response): they label what they read before it
