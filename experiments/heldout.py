@@ -279,11 +279,13 @@ def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[
     states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
     for _ in range(steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
+        # One draw a step for every group (common random numbers): a stochastic group's episode is the same whichever
+        # other groups run beside it, and the paired differences between stochastic groups leave the noise out.
+        noise = torch.randn((env.num_envs // len(groups), env.action_dim), generator=generator)
         actions = []
         for g, ((_, net, zeroed, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
             outputs, states[g] = controller_step(net, view(part, zeroed), states[g])
             params = outputs[:3]
-            noise = torch.randn(params[0].shape, generator=generator)  # (drawn for every group: the same streams)
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
         total += reward.double()

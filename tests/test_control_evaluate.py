@@ -277,6 +277,11 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
         np.testing.assert_allclose(float(beyond["mean"]), expected)
         assert beyond["n"] == "2"
     assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
+    # the per-body groups share every draw with the others (common random numbers): the controller's and the
+    # references' columns, stochastic ones included, are those of the same evaluation without them
+    main([*args[:8], "--out", str(tmp_path / "alone")])
+    alone = read_csv(tmp_path / "alone" / "bodies.csv")
+    assert [{k: r[k] for k in a} for r, a in zip(rows, alone, strict=True)] == alone
     main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named
     assert read_csv(tmp_path / "from_run" / "bodies.csv") == rows
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
