@@ -280,7 +280,7 @@ def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[
     for _ in range(steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         # One draw a step for every group (common random numbers): a stochastic group's episode is the same whichever
-        # other groups run beside it, and the paired differences between stochastic groups leave the noise out.
+        # other groups run beside it, and stochastic groups share the noise, so their paired differences carry less of it.
         noise = torch.randn((env.num_envs // len(groups), env.action_dim), generator=generator)
         actions = []
         for g, ((_, net, zeroed, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
