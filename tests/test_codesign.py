@@ -295,7 +295,7 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     are the hand count of each run's simulated windows."""
     import csv
 
-    from experiments.codesign import main
+    from experiments.codesign import _last, main
     from freeform import train as train_mod
     from freeform.config import compose
 
@@ -328,8 +328,6 @@ def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_t
     assert seconds["open-loop design RL (the paper's)"] == pytest.approx(2 * 4 * window_s, abs=1e-3)
     assert seconds["design, then control (2 best designs)"] == pytest.approx(
         1 * 4 * window_s + 1 * 4 * 2 * duration + 4 * burn_in, abs=1e-3)  # (each of the 4 envs' copies settles once)
-    from experiments.codesign import _last
-
     # the same from the steps the run took, a control period each
     two_stage, last = _last(tmp_path / "two_stage")
     played = last["ppo"]["global_step"] * two_stage.control.period

@@ -252,8 +252,9 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     save_controller(tmp_path / "controller.pt", net, trained, SimConfig())
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     cache = tmp_path / "cache"
-    args = ["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "any",
-            "--eval-episodes", "2", "--per-body", "2", "--per-body-cache", str(cache),
+    plain = ["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "any",
+             "--eval-episodes", "2"]
+    args = [*plain, "--per-body", "2", "--per-body-cache", str(cache),
             *[f"--per-body-set={o}" for o in ("control.controller_init=null", "control.head=direct",
                                               "agent.hidden=4", "trainer.epochs=1", "agent.rollout_steps=4",
                                               "trainer.threads=1")]]
@@ -279,7 +280,7 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     assert read_csv(tmp_path / "again" / "bodies.csv") == rows  # the same episodes, the same controllers
     # the per-body groups share every draw with the others (common random numbers): the controller's and the
     # references' columns, stochastic ones included, are those of the same evaluation without them
-    main([*args[:8], "--out", str(tmp_path / "alone")])
+    main([*plain, "--out", str(tmp_path / "alone")])
     alone = read_csv(tmp_path / "alone" / "bodies.csv")
     assert [{k: r[k] for k in a} for r, a in zip(rows, alone, strict=True)] == alone
     main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import torch
 from torch import nn
 
+from freeform.agents.controllers import CONTROLLERS
 from freeform.agents.recurrent import RecurrentPolicy
 
 
@@ -29,8 +30,6 @@ def check_turnable(key: str, group: str, headings: str, frame: str, controllers:
     frame (its task is +x, the heading no channel that turns along) — there only the mirror y → −y keeps the task;
     and a turned body sits elsewhere in its padded box (a flip reverses the whole box), which only a controller that
     the padding does not change sees as the same body (``controllers``: who → kind, each checked)."""
-    from freeform.agents.controllers import CONTROLLERS
-
     if headings == "fixed" and group != "mirror":
         raise ValueError(f"{key}={group} turns the way a body walks, and control.headings=fixed rewards +x alone: use "
                          f"{key}=mirror (y -> -y keeps +x), or headings any or random")
