@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -108,15 +109,41 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
         if cfg.control is None:
             raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
         seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
-    for run in runs or ():
-        if not (run / "checkpoints" / "last.pt").is_file():
-            raise SystemExit(f"--pretraining-runs {run}: no checkpoints/last.pt (a freeform-train run directory? a "
-                             "pooled teacher folder is charged by the runs it pooled)")
+    charged: set[Path] = set()
+    for run, epochs, pooled in _lineage(runs or ()):
+        if run.resolve() in charged:  # (a run named twice, or named and pooled: its rollouts happened once)
+            raise SystemExit(f"--pretraining-runs: {run} is charged twice (named twice, or named beside a pooled "
+                             "folder that holds its teachers)")
+        charged.add(run.resolve())
         cfg, last = _last(run)
-        epochs = int(last["ppo"]["epoch"])
+        epochs = int(last["ppo"]["epoch"] if epochs is None else epochs)
         seconds += robot_seconds(cfg, epochs)
-        what.append(f"{run} ({epochs} epochs)")
+        what.append(f"{run} ({epochs} epochs{f', pooled in {pooled}' if pooled else ''})")
     return seconds, " + ".join(what) if what else "not counted"
+
+
+def _lineage(runs: Iterable[Path]) -> Iterator[tuple[Path, int | None, Path | None]]:
+    """Each run to charge, the epochs to charge it (None: its last checkpoint's) and the pooled folder it came
+    through: a pooled teacher folder (``freeform.run.teacher_runs``) stands for the runs it pooled, each at the
+    epoch its teachers were taken (its own checkpoint is a copy: nothing was rolled out for it)."""
+    from freeform.run.teacher_runs import POOLED
+
+    for run in runs:
+        if (run / POOLED).is_file():
+            for source in json.loads((run / POOLED).read_text())["sources"]:
+                src = Path(source["run"])
+                if (src / POOLED).is_file():  # (a pool of pools: charged by what the inner one pooled)
+                    yield from _lineage([src])
+                elif not (src / "checkpoints" / "last.pt").is_file():
+                    raise SystemExit(f"--pretraining-runs {run}: it pooled {src}, which has no checkpoints/last.pt "
+                                     "here (run from the directory it was pooled in, or name the runs themselves)")
+                else:
+                    yield src, source["epoch"], run
+        elif not (run / "checkpoints" / "last.pt").is_file():
+            raise SystemExit(f"--pretraining-runs {run}: no checkpoints/last.pt and no {POOLED} (a freeform-train "
+                             "run directory, or a pooled teacher folder?)")
+        else:
+            yield run, None, None
 
 
 def _run_of(path: str) -> Path:

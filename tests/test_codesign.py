@@ -5,6 +5,7 @@ the whole thing."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -503,6 +504,17 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     assert f"{tmp_path / 'run'} (1 epochs)" in what
     with pytest.raises(SystemExit, match="no checkpoints/last.pt"):
         pretraining_seconds(None, [tmp_path])
+    # a pooled teacher folder stands for the runs it pooled, each at the epoch its teachers were taken (here 2, where
+    # the run itself stopped at 1); a run named beside the pool that holds it would be charged twice
+    pooled = tmp_path / "pooled"
+    pooled.mkdir()
+    (pooled / "pooled.json").write_text(json.dumps({"teachers": 4, "sources": [
+        {"run": str(tmp_path / "run"), "teachers": [0, 4], "epoch": 2}]}))
+    one_epoch = pretraining_seconds(None, [tmp_path / "run"])[0]
+    seconds, what = pretraining_seconds(None, [pooled])
+    assert seconds == pytest.approx(2 * one_epoch) and f"(2 epochs, pooled in {pooled})" in what
+    with pytest.raises(SystemExit, match="charged twice"):
+        pretraining_seconds(None, [pooled, tmp_path / "run"])
     from experiments.codesign import warm_start_name
 
     assert warm_start_name("docs/results/control_population/controller.pt") == "the population controller"
