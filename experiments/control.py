@@ -249,17 +249,20 @@ def main(argv: list[str] | None = None) -> None:
                    help="with --bodies: evaluate the controller averaged over this group of the ground's turns and "
                         "mirrors (freeform.agents.group_average): 'ground' along random headings in the world's "
                         "frame, 'mirror' where a wave runs along x")
+    p.add_argument("--wave-gain", type=float, default=None, metavar="G",
+                   help="with --bodies: the controller's wave head played at gain G (the hand-set wave plus G x what "
+                        "it learnt: freeform.agents.controllers.with_wave_gain); default: the file's own")
     args = p.parse_args(argv)
     if args.bodies and not args.evaluate:
         p.error("--bodies needs --evaluate PATH (the controller to evaluate)")
-    if (args.per_body or args.symmetrize) and not args.bodies:
-        p.error("--per-body and --symmetrize need --evaluate PATH --bodies BODIES.npy")
+    if (args.per_body or args.symmetrize or args.wave_gain is not None) and not args.bodies:
+        p.error("--per-body, --symmetrize and --wave-gain need --evaluate PATH --bodies BODIES.npy")
     if args.evaluate and args.bodies:
         per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
                       Path(args.per_body_cache), args.per_body_run and Path(args.per_body_run)) if args.per_body else None
         wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
         evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
-                        args.seed, per, wave, args.symmetrize)
+                        args.seed, per, wave, args.symmetrize, args.wave_gain)
         return
     if args.evaluate:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))

@@ -30,7 +30,7 @@ from experiments.common import mean_band, summary_row, write_rows
 from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
-from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step
+from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step, with_wave_gain
 from freeform.agents.group_average import GroupAveraged, check_turnable
 from freeform.agents.networks import rebuild
 from freeform.envs.control import (
@@ -188,7 +188,7 @@ def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWav
 @torch.no_grad()
 def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
                     seed: int = 0, per_body: PerBody | None = None, wave: HandSetWave | None = None,
-                    symmetrize: str | None = None) -> tuple[list[dict], list[dict]]:
+                    symmetrize: str | None = None, wave_gain: float | None = None) -> tuple[list[dict], list[dict]]:
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
     control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
     each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
@@ -202,7 +202,8 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box). With
     ``symmetrize`` (a group of ``freeform.envs.symmetry.GROUPS``) the trained controller's three groups are its
     average over that group's turns and mirrors (:class:`~freeform.agents.group_average.GroupAveraged`); the
-    untrained and reference controllers are not averaged.
+    untrained and reference controllers are not averaged. With ``wave_gain`` the trained controller's wave head plays
+    at that gain (:func:`~freeform.agents.controllers.with_wave_gain`: the hand-set wave plus the gain × what it learnt).
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
     the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean
@@ -226,7 +227,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     if symmetrize:  # (before any per-body bank is trained: a group that changes the task is refused first)
         check_turnable("--symmetrize", symmetrize, control.headings, control.frame, {"the controller": saved.kind})
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
-    controller = saved.controller.eval()
+    controller = (saved.controller if wave_gain is None else with_wave_gain(saved.controller, wave_gain)).eval()
     torch.manual_seed(seed)
     untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
     bank = per_body_bank(grids, per_body, control, sim) if per_body is not None else None
@@ -254,8 +255,9 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
         per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
     rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
     summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0,
-                       symmetrize)
+                       symmetrize, wave_gain)
     _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": symmetrize,
+                                "wave_gain": wave_gain,
                                 "bodies": str(bodies), "body_count": m, "episodes_per_body": n, "box": list(box),
                                 "trained_box": list(trained), "seed": seed, "control": vars(control),
                                 "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
@@ -310,13 +312,14 @@ def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs
 
 
 def _summary(per_group: dict[str, np.ndarray], open_loop: np.ndarray, kind: str, seed: int, n_own: int,
-             symmetrize: str | None = None) -> list[dict]:
+             symmetrize: str | None = None, wave_gain: float | None = None) -> list[dict]:
     """``summary.csv``: the means over the bodies (99 % bands across bodies), then the paired differences per body
     (each body against itself: same headings, same noise streams, so the across-body spread cancels), the
     fractions of bodies beyond their own gait, and with per-body controllers on the first ``n_own`` bodies the
     controller and theirs there (and theirs beyond the gait) and the fraction reached."""
     body = {name: v.mean(1) for name, v in per_group.items()}
     trained = f"{kind}, averaged over the {symmetrize} group" if symmetrize else kind
+    trained += f", wave gain {wave_gain:g}" if wave_gain is not None else ""
     summary = [summary_row("open loop (each body's sine gait, same window and headings)", open_loop),
                summary_row(f"controller ({trained}, stochastic)", body["controller"]),
                summary_row(f"controller ({trained}, mean command)", body["mean_command"]),
@@ -431,12 +434,12 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         if not (Path(folder) / "run.json").is_file():
             raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
         run = json.loads((Path(folder) / "run.json").read_text())
-        setting = {k: run.get(k) for k in ("kind", "symmetrize", "control", "episodes_per_body", "seed")}
+        setting = {k: run.get(k) for k in ("kind", "symmetrize", "wave_gain", "control", "episodes_per_body", "seed")}
         if settings and setting != settings[0]:
             differ = [k for k in setting if setting[k] != settings[0][k]]
             raise ValueError(f"--pool {folder}: evaluated with other settings than {sets[0]} ({differ} differ): "
                              "evaluate every set with the same controller, --headings, --symmetrize, "
-                             "--eval-episodes and seed")
+                             "--wave-gain, --eval-episodes and seed")
         settings.append(setting)
         controllers.append(run.get("controller"))
         sources.append({"bodies": run.get("bodies"), "n": len(table)})

@@ -158,6 +158,9 @@ class ControlRunConfig(ControlConfig):
     wave_amplitude: float = 1.0
     """``head=wave``: the amplitude of the wave the untrained controller plays (> 0; what a muscle receives stays
     within [−1, 1] and its bandwidth, so > 1 is a fuller stroke than the sine: ``docs/control.md``, "Steering")."""
+    wave_gain: float = 1.0
+    """``head=wave``: how far the trained head's mean command goes from the hand-set wave — the wave's strokes plus
+    ``wave_gain`` × the head's change to them (>= 0; 1: as trained; ``HandSetWave.gain``)."""
     init_log_std: float = -0.5
     """The controller's initial log σ (commands lie in [−1, 1])."""
     hidden: int | None = None
@@ -180,8 +183,8 @@ class ControlRunConfig(ControlConfig):
 
     @property
     def hand_set_wave(self) -> HandSetWave:
-        """What a ``head=wave`` controller plays untrained (``wave_k``, ``wave_amplitude``)."""
-        return HandSetWave(self.wave_k, self.wave_amplitude)
+        """What a ``head=wave`` controller plays untrained (``wave_k``, ``wave_amplitude``), and its ``wave_gain``."""
+        return HandSetWave(self.wave_k, self.wave_amplitude, self.wave_gain)
 
     def validate(self, key: str = "control") -> None:
         super().validate(key)
@@ -205,6 +208,8 @@ class ControlRunConfig(ControlConfig):
         require(math.isfinite(self.wave_k), f"{key}.wave_k", "a finite wave number (rad per voxel length)", self.wave_k)
         require(math.isfinite(self.wave_amplitude) and self.wave_amplitude > 0, f"{key}.wave_amplitude",
                 "a finite amplitude > 0", self.wave_amplitude)
+        require(math.isfinite(self.wave_gain) and self.wave_gain >= 0, f"{key}.wave_gain", "a finite gain >= 0",
+                self.wave_gain)
         require(self.designer is None or (isinstance(self.designer, str) and self.designer != ""
                                           and self.bodies == "population"),
                 f"{key}.designer", "None or a path to a design run or checkpoint (with bodies=population)",

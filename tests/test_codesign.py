@@ -470,10 +470,13 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
         assert torch.equal(start[f"controller.{name}"], tensor), name
     saved = read_controller(tmp_path / "run")
     assert saved.kind == "context" and saved.controller.head == "wave"
-    with pytest.raises(ValueError, match=r"hand-set wave k = 1.0, amplitude 1.0; this run's is k = 1.0, amplitude "
-                                         r"1.6: set control.wave_k and control.wave_amplitude"):
-        train_mod.train(compose(*overrides, f"control.controller_init={tmp_path / 'controller.pt'}",
-                                "control.wave_amplitude=1.6"), tmp_path / "other_wave")
+    for other, theirs in (("control.wave_amplitude=1.6", "amplitude 1.6, gain 1.0"),
+                          ("control.wave_gain=2.0", "amplitude 1.0, gain 2.0")):
+        with pytest.raises(ValueError, match=rf"hand-set wave k = 1.0, amplitude 1.0 at gain 1.0; this run's is k = "
+                                             rf"1.0, {theirs}: set control.wave_k, control.wave_amplitude and "
+                                             r"control.wave_gain"):
+            train_mod.train(compose(*overrides, f"control.controller_init={tmp_path / 'controller.pt'}", other),
+                            tmp_path / "other_wave")
     # the comparison charges the warm start's training to co-design's budget (--pretraining)
     import csv
 

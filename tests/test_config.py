@@ -233,7 +233,7 @@ def test_every_preset_warm_start_is_a_committed_controller_of_the_kind_it_builds
         kwargs = saved.controller.init_kwargs
         assert (saved.kind, kwargs["hidden"], kwargs["head"]) == (cfg.control.controller, width, cfg.control.head), \
             path.stem
-        assert (kwargs["wave"]["k"], kwargs["wave"]["amplitude"]) == (cfg.control.wave_k, cfg.control.wave_amplitude), \
-            path.stem
+        assert (kwargs["wave"]["k"], kwargs["wave"]["amplitude"], kwargs["wave"].get("gain", 1.0)) == \
+            (cfg.control.wave_k, cfg.control.wave_amplitude, cfg.control.wave_gain), path.stem
         checked += 1
     assert checked >= 6

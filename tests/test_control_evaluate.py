@@ -353,6 +353,19 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     assert any(abs(float(r["mean_command"])) > 1e-4 for r in rows)  # (the wave moves them: 0 = 0 would pass)
     np.testing.assert_allclose([float(r["hand_set_wave"]) for r in rows], [float(r["mean_command"]) for r in rows],
                                rtol=1e-5, atol=1e-7)
+    # a head that learnt something, played at gain 0 (--wave-gain), is the hand-set wave again; at its own gain not
+    with torch.no_grad():
+        for layer in (net.actor, net.wave_k):
+            layer.weight.normal_(std=0.5)
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    for gain in ("0", "1"):
+        main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
+              "--eval-episodes", "1", "--wave-gain", gain, "--out", str(tmp_path / f"gain{gain}")])
+    at = {g: read_csv(tmp_path / f"gain{g}" / "bodies.csv") for g in ("0", "1")}
+    np.testing.assert_allclose([float(r["mean_command"]) for r in at["0"]], [float(r["hand_set_wave"]) for r in rows],
+                               rtol=1e-5, atol=1e-7)
+    assert max(abs(float(a["mean_command"]) - float(b["mean_command"])) for a, b in zip(at["0"], at["1"])) > 1e-3
+    assert json.loads((tmp_path / "gain0" / "run.json").read_text())["wave_gain"] == 0.0
 
 
 def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:

@@ -14,7 +14,7 @@ from torch.distributions import Normal, kl_divergence
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
-from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
+from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step, with_wave_gain
 from freeform.agents.networks import rebuild
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
 from freeform.distributions import MaskedDiagGaussian, from_spec
@@ -313,7 +313,9 @@ def test_the_registry_names_reach_the_config() -> None:
                        (dict(controller="context", head="wave", stroke_periods=10, wave_k=float("nan")),
                         "control.wave_k"),
                        (dict(controller="context", head="wave", stroke_periods=10, wave_amplitude=0.0),
-                        "control.wave_amplitude")):
+                        "control.wave_amplitude"),
+                       (dict(controller="context", head="wave", stroke_periods=10, wave_gain=-0.5),
+                        "control.wave_gain.*a finite gain >= 0")):
         with pytest.raises(ValueError, match=match):
             ControlRunConfig(**bad).validate()
 
@@ -414,6 +416,42 @@ def test_a_wave_head_plays_a_travelling_wave_and_padding_changes_nothing(kind, r
         build_controller("conv", large, hidden=8, head="wave")
     with pytest.raises(ValueError, match="exactly when control.stroke_periods >= 1"):
         build_controller(kind, two_boxes()[1], hidden=8, head="wave")
+
+
+@pytest.mark.parametrize("kind", WAVE_KINDS)
+def test_a_wave_gain_scales_what_the_head_learnt_beyond_the_hand_set_wave(kind, tmp_path) -> None:
+    """Truth: the hand-set wave is the head with its learnt parts zeroed (the evaluation's hand-set row). At gain g a
+    trained head commands that wave plus g × (its commands at gain 1 − the wave), along random headings (the wave
+    turned by each body's heading): g = 0 is the wave, g = 2.5 extrapolates. The gain travels in controller.pt, a
+    file at gain 1 holds no gain key (files as before), and a head without a wave or a negative gain is refused."""
+    env = replace_control(two_boxes()[1], stroke_periods=2, residual=True, headings="random")
+    obs = env.reset()
+    torch.manual_seed(3)
+    net = build_controller(kind, env, hidden=8, head="wave", wave=HandSetWave(k=1.5, amplitude=1.6))
+    with torch.no_grad():
+        for layer in (net.actor, net.wave_k):  # (a head that learnt something: its own wave vector and strokes)
+            layer.weight.normal_(std=0.3)
+            layer.bias.normal_(std=0.3)
+        trained = run(net, obs)[0]
+        hand = build_controller(kind, env, hidden=8, head="wave", wave=HandSetWave(k=1.5, amplitude=1.6))
+        for layer in (hand.actor, hand.wave_k):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        wave = run(hand, obs)[0]
+        assert (trained - wave).abs().max() > 0.1  # (the head moved off the wave: 0 = 0 would pass)
+        torch.testing.assert_close(run(with_wave_gain(net, 0.0), obs)[0], wave)
+        torch.testing.assert_close(run(with_wave_gain(net, 2.5), obs)[0], wave + 2.5 * (trained - wave))
+        torch.testing.assert_close(run(with_wave_gain(net, 1.0), obs)[0], trained)
+    assert "gain" not in net.init_kwargs["wave"]
+    save_controller(tmp_path / "controller.pt", with_wave_gain(net, 2.5), env.control, env.sim_config)
+    saved = read_controller(tmp_path).controller
+    assert saved.wave["gain"] == 2.5
+    with torch.no_grad():
+        torch.testing.assert_close(run(saved, obs)[0], wave + 2.5 * (trained - wave))
+    with pytest.raises(ValueError, match="wave gain must be finite and >= 0"):
+        with_wave_gain(net, -1.0)
+    with pytest.raises(ValueError, match="a wave gain needs a wave head"):
+        with_wave_gain(build_controller(kind, env, hidden=8, head="stroke"), 2.0)
 
 
 def replace_control(env: ControlEnv, **changes) -> ControlEnv:

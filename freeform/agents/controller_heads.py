@@ -139,12 +139,18 @@ class HandSetWave:
 
     k: float = 1.0
     amplitude: float = 1.0
+    gain: float = 1.0
+    """How far a trained head's mean command goes from this wave: the wave's strokes plus ``gain`` × the head's
+    change to them (1: the head as trained; 0: the wave itself; > 1 extrapolates what the head learnt, as a
+    student distilled from many teachers learns a shrunk change: ``docs/control.md``, "Steering")."""
 
     def __post_init__(self) -> None:
         if not math.isfinite(float(self.k)):
             raise ValueError(f"wave k (rad per voxel length) must be finite, got {self.k!r}")
         if not (math.isfinite(float(self.amplitude)) and self.amplitude > 0):
             raise ValueError(f"wave amplitude must be finite and > 0, got {self.amplitude!r}")
+        if not (math.isfinite(float(self.gain)) and self.gain >= 0):
+            raise ValueError(f"wave gain must be finite and >= 0, got {self.gain!r}")
 
 
 DEFAULT_WAVE = HandSetWave()
@@ -160,9 +166,9 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     if head != "wave":
         return None
     keys = {"pos_channels", "material_channel", "phases", "residual", "k"}
-    if not isinstance(wave, dict) or not keys <= set(wave) <= keys | {"heading_channels", "amplitude"}:
+    if not isinstance(wave, dict) or not keys <= set(wave) <= keys | {"heading_channels", "amplitude", "gain"}:
         raise ValueError(f"a wave head needs wave = a dict with the keys {sorted(keys)} and optionally "
-                         f"heading_channels and amplitude (build_controller fills it from the env), got {wave!r}")
+                         f"heading_channels, amplitude and gain (build_controller fills it from the env), got {wave!r}")
     pos = tuple(int(c) for c in wave["pos_channels"])
     if len(pos) != 3:
         raise ValueError(f"wave pos_channels must be the 3 channels rel_x, rel_y, rel_z, got {wave['pos_channels']!r}")
@@ -171,9 +177,9 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     phases = tuple(float(p) for p in wave["phases"])
     if len(phases) < 2 or not all(math.isfinite(p) for p in phases):
         raise ValueError(f"wave phases must be finite, one per material index (index 0 empty), got {wave['phases']!r}")
-    start = HandSetWave(float(wave["k"]), float(wave.get("amplitude", 1.0)))
+    start = HandSetWave(float(wave["k"]), float(wave.get("amplitude", 1.0)), float(wave.get("gain", 1.0)))
     setup = dict(pos_channels=pos, material_channel=int(wave["material_channel"]), phases=phases,
-                 residual=bool(wave["residual"]), k=start.k, amplitude=start.amplitude)
+                 residual=bool(wave["residual"]), k=start.k, amplitude=start.amplitude, gain=start.gain)
     if wave.get("heading_channels") is not None:  # (a file from before steering has no key: its wave stays along x)
         heading = tuple(int(c) for c in wave["heading_channels"])
         if len(heading) != 2:
@@ -196,7 +202,8 @@ def env_wave(env: Any, head: str, start: HandSetWave) -> dict[str, Any] | None:
         return None
     wave = dict(pos_channels=tuple(env.channels.index(c) for c in ("rel_x", "rel_y", "rel_z")),
                 material_channel=env.channels.index("material"), phases=tuple(env.material_phases),
-                residual=bool(env.control.residual), k=float(start.k), amplitude=float(start.amplitude))
+                residual=bool(env.control.residual), k=float(start.k), amplitude=float(start.amplitude),
+                **({"gain": float(start.gain)} if start.gain != 1.0 else {}))
     if wave_follows_heading(env.control):
         wave["heading_channels"] = (env.channels.index("heading_cos"), env.channels.index("heading_sin"))
     return wave
@@ -273,7 +280,8 @@ def body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_
     net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                            **sizes, log_std=log_std, head=head, clock_channels=net.clock)
     if net.wave is not None:  # (absent otherwise: the files of the other heads stay as they were)
-        net.init_kwargs["wave"] = dict(net.wave)
+        # (gain 1 left out: a file, and a teacher bank's kwargs that pooling compares, as before the gain)
+        net.init_kwargs["wave"] = {k: v for k, v in net.wave.items() if k != "gain" or v != 1.0}
         net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
         nn.init.normal_(net.wave_k.weight, std=0.01)
         nn.init.zeros_(net.wave_k.bias)
@@ -293,5 +301,10 @@ def cell_means(net: nn.Module, out: torch.Tensor, obs: torch.Tensor, filled: tor
         out = _rhythm(out, obs[:, list(net.clock)])[:, None]
     if net.wave is not None:
         k = _wave_vector(net.wave_k(pooled) + net.wave_k0, obs, filled, net.wave)
-        out = _wave_strokes(out, k, obs, net.wave, net.wave_phases)
+        strokes = _wave_strokes(out, k, obs, net.wave, net.wave_phases)
+        if net.wave["gain"] != 1.0:  # (the hand-set wave's strokes, then gain × the head's change to them)
+            still = _wave_vector(net.wave_k0.expand(len(obs), 3), obs, filled, net.wave)
+            hand = _wave_strokes(torch.zeros_like(out), still, obs, net.wave, net.wave_phases)
+            strokes = hand + net.wave["gain"] * (strokes - hand)
+        out = strokes
     return _per_cell_mean((out * filled).flatten(2), obs[:, net.mask_channel].flatten(1), net.head)

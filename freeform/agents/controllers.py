@@ -415,6 +415,20 @@ def controller_kind(controller: nn.Module) -> str:
     raise ValueError(f"{type(controller).__name__} is not one of the registered controllers {list(CONTROLLERS)}")
 
 
+def with_wave_gain(controller: nn.Module, gain: float) -> nn.Module:
+    """A copy of ``controller`` (a wave-head body controller) whose wave plays at ``gain`` (``HandSetWave.gain``): the
+    same weights, its mean command the hand-set wave's strokes plus ``gain`` × the head's change to them."""
+    wave = getattr(controller, "wave", None)
+    if wave is None:
+        raise ValueError(f"a wave gain needs a wave head; this {type(controller).__name__}'s head is "
+                         f"{getattr(controller, 'head', None)!r}")
+    HandSetWave(wave["k"], wave["amplitude"], gain)  # (checked as the config's wave_gain is)
+    out = rebuild(type(controller), {**controller.init_kwargs, "wave": {**wave, "gain": float(gain)}})
+    out.load_state_dict(controller.state_dict())
+    return out
+
+
 __all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "HyperAttentionController",
            "MLPController", "PrivilegedCritic", "RecurrentAttentionController", "RecurrentContextController",
-           "VoxelAttentionController", "build_controller", "controller_kind", "controller_step"]
+           "VoxelAttentionController", "build_controller", "controller_kind", "controller_step",
+           "with_wave_gain"]

@@ -296,11 +296,13 @@ def load_controller(controller: torch.nn.Module, source: str, frame: str = "worl
             "control.controller_init=%r was trained on observations in the %s frame and this run's are in the %s "
             "frame (control.frame): its weights start reading turned vectors", source, saved.control.frame, frame)
     ours, theirs = getattr(controller, "wave", None), getattr(trained, "wave", None)
-    if ours is not None and theirs is not None and (ours["k"], ours["amplitude"]) != (theirs["k"], theirs["amplitude"]):
-        # (the hand-set wave is no weight: loaded under another, the trained heads would play another gait)
-        raise ValueError(f"control.controller_init={source!r} was trained on the hand-set wave k = {theirs['k']}, "
-                         f"amplitude {theirs['amplitude']}; this run's is k = {ours['k']}, amplitude "
-                         f"{ours['amplitude']}: set control.wave_k and control.wave_amplitude to the file's")
+    wave = ("k", "amplitude", "gain")
+    if ours is not None and theirs is not None and [ours[k] for k in wave] != [theirs[k] for k in wave]:
+        # (the hand-set wave and its gain are no weights: loaded under others, the heads would play another gait)
+        raise ValueError(f"control.controller_init={source!r} plays the hand-set wave k = {theirs['k']}, amplitude "
+                         f"{theirs['amplitude']} at gain {theirs['gain']}; this run's is k = {ours['k']}, amplitude "
+                         f"{ours['amplitude']}, gain {ours['gain']}: set control.wave_k, control.wave_amplitude and "
+                         "control.wave_gain to the file's")
     # (a kind may start from the one it grows from: everything but what it adds, which starts silent)
     grows = getattr(controller, "grows_from", None) == controller_kind(trained)
     try:
