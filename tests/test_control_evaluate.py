@@ -364,7 +364,7 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     at = {g: read_csv(tmp_path / f"gain{g}" / "bodies.csv") for g in ("0", "1")}
     np.testing.assert_allclose([float(r["mean_command"]) for r in at["0"]], [float(r["hand_set_wave"]) for r in rows],
                                rtol=1e-5, atol=1e-7)
-    assert max(abs(float(a["mean_command"]) - float(b["mean_command"])) for a, b in zip(at["0"], at["1"])) > 1e-3
+    assert max(abs(float(a["mean_command"]) - float(b["mean_command"])) for a, b in zip(at["0"], at["1"], strict=True)) > 1e-3
     assert json.loads((tmp_path / "gain0" / "run.json").read_text())["wave_gain"] == 0.0
 
 
