@@ -131,7 +131,7 @@ def _lineage(runs: Iterable[Path]) -> Iterator[tuple[Path, int | None, Path | No
     for run in runs:
         if (run / POOLED).is_file():
             for source in json.loads((run / POOLED).read_text())["sources"]:
-                src = Path(source["run"])
+                src = _run_of(source["run"])  # (a pooled source may be named by one of its checkpoints)
                 if (src / POOLED).is_file():  # (a pool of pools: charged by what the inner one pooled)
                     yield from _lineage([src])
                 elif not (src / "checkpoints" / "last.pt").is_file():

@@ -229,7 +229,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = (saved.controller if wave_gain is None else with_wave_gain(saved.controller, wave_gain)).eval()
     torch.manual_seed(seed)
-    untrained = rebuild(CONTROLLERS[saved.kind], controller.init_kwargs).eval()
+    untrained = rebuild(CONTROLLERS[saved.kind], _at_gain_one(controller.init_kwargs)).eval()
     bank = per_body_bank(grids, per_body, control, sim) if per_body is not None else None
     groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
               ("zeroed", controller, True, True), ("untrained", untrained, False, True),
@@ -255,13 +255,28 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
         per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
     rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
     summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0,
-                       symmetrize, wave_gain)
+                       symmetrize, played_gain(controller))
     _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": symmetrize,
-                                "wave_gain": wave_gain,
+                                "wave_gain": played_gain(controller),
                                 "bodies": str(bodies), "body_count": m, "episodes_per_body": n, "box": list(box),
                                 "trained_box": list(trained), "seed": seed, "control": vars(control),
                                 "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
     return rows, summary
+
+
+def played_gain(controller: torch.nn.Module) -> float | None:
+    """The wave gain ``controller`` plays at (``HandSetWave.gain``), None at 1 or without a wave head: what a table
+    records, so that tables of one controller pool whether its gain came from its file or from ``--wave-gain``."""
+    gain = (getattr(controller, "wave", None) or {}).get("gain", 1.0)
+    return None if gain == 1.0 else float(gain)
+
+
+def _at_gain_one(kwargs: dict) -> dict:
+    """A controller's ``init_kwargs`` with its wave (if any) at gain 1: the untrained controller plays the hand-set
+    wave plus its initial weights' small change, not that change amplified."""
+    if "wave" not in kwargs:
+        return kwargs
+    return {**kwargs, "wave": {k: v for k, v in kwargs["wave"].items() if k != "gain"}}
 
 
 def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
@@ -449,7 +464,8 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
             for folder, table in zip(sets, tables, strict=True) for r in table]
     summary = _pooled_summary({c: np.array([float(r[c]) for r in rows]) for c in columns})
     _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers,
-                                "symmetrize": settings[0]["symmetrize"], "bodies": len(rows), "sets": sources,
+                                "symmetrize": settings[0]["symmetrize"], "wave_gain": settings[0]["wave_gain"],
+                                "bodies": len(rows), "sets": sources,
                                 "per_body_from": per_body_from and str(per_body_from)})
     return summary
 

@@ -354,9 +354,11 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     np.testing.assert_allclose([float(r["hand_set_wave"]) for r in rows], [float(r["mean_command"]) for r in rows],
                                rtol=1e-5, atol=1e-7)
     # a head that learnt something, played at gain 0 (--wave-gain), is the hand-set wave again; at its own gain not
+    torch.manual_seed(0)  # (weights that move these short episodes measurably off the wave)
     with torch.no_grad():
         for layer in (net.actor, net.wave_k):
             layer.weight.normal_(std=0.5)
+            layer.bias.normal_(std=0.5)
     save_controller(tmp_path / "controller.pt", net, control, SimConfig())
     for gain in ("0", "1"):
         main(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
@@ -364,8 +366,19 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     at = {g: read_csv(tmp_path / f"gain{g}" / "bodies.csv") for g in ("0", "1")}
     np.testing.assert_allclose([float(r["mean_command"]) for r in at["0"]], [float(r["hand_set_wave"]) for r in rows],
                                rtol=1e-5, atol=1e-7)
-    assert max(abs(float(a["mean_command"]) - float(b["mean_command"])) for a, b in zip(at["0"], at["1"], strict=True)) > 1e-3
+    moved = max(abs(float(a["mean_command"]) - float(b["mean_command"])) for a, b in zip(at["0"], at["1"], strict=True))
+    assert moved > 1e-3, moved
     assert json.loads((tmp_path / "gain0" / "run.json").read_text())["wave_gain"] == 0.0
+    # the untrained controller plays at gain 1 whatever the trained one's gain; a file saved at a gain records it
+    assert [r["untrained_mean_command"] for r in at["0"]] == [r["untrained_mean_command"] for r in at["1"]]
+    from freeform.agents.controllers import with_wave_gain
+
+    save_controller(tmp_path / "g0" / "controller.pt", with_wave_gain(net, 0.0), control, SimConfig())
+    main(["--evaluate", str(tmp_path / "g0"), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
+          "--eval-episodes", "1", "--out", str(tmp_path / "file_gain0")])
+    assert json.loads((tmp_path / "file_gain0" / "run.json").read_text())["wave_gain"] == 0.0
+    assert [r["mean_command"] for r in read_csv(tmp_path / "file_gain0" / "bodies.csv")] == \
+        [r["mean_command"] for r in at["0"]]
 
 
 def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
