@@ -29,7 +29,7 @@ import torch
 from experiments.common import mean_band, summary_row, write_rows
 from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
-from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
+from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave, wave_at_gain
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step, with_wave_gain
 from freeform.agents.group_average import GroupAveraged, check_turnable
 from freeform.agents.networks import rebuild
@@ -229,7 +229,9 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     m, n, box = len(grids), episodes, tuple(saved.controller.box)
     controller = (saved.controller if wave_gain is None else with_wave_gain(saved.controller, wave_gain)).eval()
     torch.manual_seed(seed)
-    untrained = rebuild(CONTROLLERS[saved.kind], _at_gain_one(controller.init_kwargs)).eval()
+    kwargs = controller.init_kwargs  # (untrained at gain 1: the hand-set wave plus its initial weights' small change)
+    untrained = rebuild(CONTROLLERS[saved.kind], {**kwargs, "wave": wave_at_gain(kwargs["wave"], 1.0)}
+                        if "wave" in kwargs else kwargs).eval()
     bank = per_body_bank(grids, per_body, control, sim) if per_body is not None else None
     groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
               ("zeroed", controller, True, True), ("untrained", untrained, False, True),
@@ -269,14 +271,6 @@ def played_gain(controller: torch.nn.Module) -> float | None:
     records, so that tables of one controller pool whether its gain came from its file or from ``--wave-gain``."""
     gain = (getattr(controller, "wave", None) or {}).get("gain", 1.0)
     return None if gain == 1.0 else float(gain)
-
-
-def _at_gain_one(kwargs: dict) -> dict:
-    """A controller's ``init_kwargs`` with its wave (if any) at gain 1: the untrained controller plays the hand-set
-    wave plus its initial weights' small change, not that change amplified."""
-    if "wave" not in kwargs:
-        return kwargs
-    return {**kwargs, "wave": {k: v for k, v in kwargs["wave"].items() if k != "gain"}}
 
 
 def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:

@@ -190,6 +190,13 @@ def _wave_setup(channels: int, head: str, wave: Any) -> dict[str, Any] | None:
     return setup
 
 
+def wave_at_gain(wave: dict[str, Any], gain: float) -> dict[str, Any]:
+    """A wave head's ``wave`` (its ``init_kwargs["wave"]``) playing at ``gain``, in a file's form: no gain key at 1, so
+    files, and the teacher banks' kwargs that pooling compares, read as they did before the gain."""
+    rest = {k: v for k, v in wave.items() if k != "gain"}
+    return rest if gain == 1.0 else {**rest, "gain": float(gain)}
+
+
 def wave_follows_heading(control: Any) -> bool:
     """Whether a wave head for an env of ``control`` (a ``ControlConfig``) turns its wave with the observation's
     heading channels: where there is a heading and the observation is in the world's frame (in the heading's frame
@@ -280,8 +287,7 @@ def body_controller_setup(net: nn.Module, inputs: ControlInputs, head: str, log_
     net.init_kwargs = dict(channels=channels, box=box, mask_channel=mask_channel, filled_channel=filled_channel,
                            **sizes, log_std=log_std, head=head, clock_channels=net.clock)
     if net.wave is not None:  # (absent otherwise: the files of the other heads stay as they were)
-        # (gain 1 left out: a file, and a teacher bank's kwargs that pooling compares, as before the gain)
-        net.init_kwargs["wave"] = {k: v for k, v in net.wave.items() if k != "gain" or v != 1.0}
+        net.init_kwargs["wave"] = wave_at_gain(net.wave, net.wave["gain"])
         net.wave_k = nn.Linear(2 * sizes["hidden"], 3)
         nn.init.normal_(net.wave_k.weight, std=0.01)
         nn.init.zeros_(net.wave_k.bias)

@@ -54,6 +54,7 @@ from freeform.agents.controller_heads import (
     env_wave,
     head_rule,
     masked_pool,
+    wave_at_gain,
 )
 from freeform.agents.networks import MLPActorCritic, rebuild
 from freeform.agents.observation_groups import CRITIC, POLICY, is_grouped
@@ -418,12 +419,12 @@ def controller_kind(controller: nn.Module) -> str:
 def with_wave_gain(controller: nn.Module, gain: float) -> nn.Module:
     """A copy of ``controller`` (a wave-head body controller) whose wave plays at ``gain`` (``HandSetWave.gain``): the
     same weights, its mean command the hand-set wave's strokes plus ``gain`` × the head's change to them."""
-    wave = getattr(controller, "wave", None)
-    if wave is None:
+    if getattr(controller, "wave", None) is None:
         raise ValueError(f"a wave gain needs a wave head; this {type(controller).__name__}'s head is "
-                         f"{getattr(controller, 'head', None)!r}")
-    HandSetWave(wave["k"], wave["amplitude"], gain)  # (checked as the config's wave_gain is)
-    out = rebuild(type(controller), {**controller.init_kwargs, "wave": {**wave, "gain": float(gain)}})
+                         f"{getattr(controller, 'head', None)!r} (gain applies to controllers trained with "
+                         "control.head=wave: evaluate this one without --wave-gain)")
+    kwargs = controller.init_kwargs  # (the gain is checked where the head reads it, as the config's wave_gain is)
+    out = rebuild(type(controller), {**kwargs, "wave": wave_at_gain(kwargs["wave"], gain)})
     out.load_state_dict(controller.state_dict())
     return out
 
