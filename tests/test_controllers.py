@@ -538,6 +538,52 @@ def test_the_hypernetwork_starts_as_the_attention_controller_and_its_written_hea
     assert (hyper.body_code(other, order, valid) - code).abs().max() > 1e-4
 
 
+@pytest.mark.parametrize("kind", ["attention", "attention_hyper"])
+def test_a_hidden_voxel_is_seen_by_no_other_yet_commands_its_own_cell(kind) -> None:
+    """Token dropout's truth (``hiding``, ``algo.token_dropout``): with one voxel of the larger body hidden, any
+    change to that voxel's own observation (every channel but ``filled`` and the heading, which every cell of a
+    body carries alike) leaves every other cell's command, the body's
+    wave vector and the value exactly as they were — it is no key and no part of any pooled summary — while its own
+    command still moves (it reads the others); the other body in the batch is untouched by the hiding. Hiding
+    nothing is the plain forward to the bit, and hiding every voxel of a body is seeing it whole."""
+    large = replace_control(two_boxes()[1], stroke_periods=2)
+    obs = large.reset()
+    torch.manual_seed(3)
+    net = build_controller(kind, large, hidden=8, head="wave")
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.3 * torch.randn_like(p))  # (a trained-looking controller: every term acts)
+    cells = math.prod(large.box)
+    filled = obs[:, large.filled_channel].flatten(1) > 0.5
+    hidden_cell = int(filled[1].nonzero()[2])
+    hide = torch.zeros(2, cells, dtype=torch.bool)
+    hide[1, hidden_cell] = True
+    changed = obs.clone()
+    view = changed[1].flatten(1)  # [C, cells]
+    body_wide = (large.filled_channel, *net.wave.get("heading_channels", ()))
+    own = [c for c in range(view.shape[0]) if c not in body_wide]
+    view[own, hidden_cell] += torch.randn(len(own))  # (not filled: it stays a voxel; not the body's heading)
+    others = torch.ones(cells, dtype=torch.bool)
+    others[hidden_cell] = False
+    with torch.no_grad():
+        plain = net(obs)
+        with net.hiding(hide):
+            before, after = net(obs), net(changed)
+        with net.hiding(torch.zeros(2, cells, dtype=torch.bool)):
+            nothing = net(obs)
+        with net.hiding(filled.clone()):
+            everything = net(obs)
+    strokes = (before[0].view(2, 2, cells), after[0].view(2, 2, cells))
+    torch.testing.assert_close(strokes[1][1][:, others], strokes[0][1][:, others], rtol=0, atol=0)
+    torch.testing.assert_close(after[3][1], before[3][1], rtol=0, atol=0)  # (the critic's pooled tokens)
+    assert (strokes[1][1][:, hidden_cell] - strokes[0][1][:, hidden_cell]).abs().max() > 1e-4
+    assert (plain[0][1] - before[0][1]).abs().max() > 1e-4  # (hiding changes what the body's other voxels see)
+    torch.testing.assert_close(before[0][0], plain[0][0], rtol=0, atol=0)  # (body 0 hides nothing)
+    for a, b in ((nothing, plain), (everything, plain)):
+        for x, y in zip(a, b, strict=True):
+            torch.testing.assert_close(x, y, rtol=0, atol=0)
+
+
 def test_the_attention_controller_with_memory_starts_as_the_feed_forward_one_it_grows_from(envs_and_obs,
                                                                                            tmp_path) -> None:
     """control.controller_init of a trained feed-forward ``attention`` controller into ``attention_gru``: every

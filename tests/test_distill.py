@@ -262,6 +262,43 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
         build(distill, torch.device("cpu"))
 
 
+def test_token_dropout_hides_voxels_from_the_student_and_resumes_bit_for_bit(bodies: Path,  # noqa: F811
+                                                                             tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """algo.token_dropout into an attention student: two rounds straight equal one plus a resumed one (its draws
+    come from the shared generator, as the symmetry's); every regression forward hides about that fraction of its
+    samples' cells and no rollout forward hides any; a student without voxel tokens, a recurrent one and a
+    probability out of [0, 1) are refused, naming the field."""
+    from freeform.agents.attention_controllers import VoxelAttentionController
+    from freeform.run.build import build
+
+    hidden: list[float] = []
+    hiding = VoxelAttentionController.hiding
+
+    def recorded(self: VoxelAttentionController, cells: torch.Tensor) -> Any:
+        hidden.append(float(cells.float().mean()))
+        return hiding(self, cells)
+
+    monkeypatch.setattr(VoxelAttentionController, "hiding", recorded)
+    forwards = []
+    forward = VoxelAttentionController.forward
+    monkeypatch.setattr(VoxelAttentionController, "forward",
+                        lambda self, obs: forwards.append(self.hidden_cells is not None) or forward(self, obs))
+    distill, a = distilled_straight_and_resumed(bodies, tmp_path, "control.controller=attention",
+                                                "algo.token_dropout=0.5")
+    assert a["policy_class"].endswith(":VoxelAttentionController") and distill.algo.token_dropout == 0.5
+    assert len(hidden) == sum(forwards) > 0 and 0.45 < np.mean(hidden) < 0.55  # (the regression's forwards)
+    assert not all(forwards)  # (the rollouts' forwards hide nothing)
+    for student, why in (("control.controller=context", "has no tokens to hide"),
+                         ("control.controller=attention_gru", "is recurrent")):
+        refused = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                        "algo.token_dropout=0.2", student))
+        with pytest.raises(ValueError, match=rf"algo.token_dropout hides voxels .* {why}"):
+            build(refused, torch.device("cpu"))
+    with pytest.raises(ValueError, match=r"algo.token_dropout must be a probability in \[0, 1\)"):  # (composing)
+        compose(*tiny_control(bodies, *TEACH, "algo=distill", "algo.teacher=x", "algo.token_dropout=1.0"))
+
+
 def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
     """algo=distill into an attention_gru student (chunks of 3 steps in episodes of 4, so chunks begin mid-episode;
     samples turned by the ground's symmetries, a chunk as one; the first epoch's gait rendered, the student driving

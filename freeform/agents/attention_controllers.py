@@ -84,6 +84,8 @@ class VoxelAttentionController(FromInputs, nn.Module):
     padding_invariant = True
     token_count: int | None = None
     """Tokens per body when set (:meth:`fixed_shapes`); otherwise the batch's largest voxel count."""
+    hidden_cells: torch.Tensor | None = None
+    """Cells ``[N, Bx·By·Bz]`` (bool) hidden from the body's other voxels when set (:meth:`hiding`)."""
 
     def __init__(self, inputs: ControlInputs, hidden: int = 32, heads: int = 4, layers: int = 2, log_std: float = 0.0,
                  head: str = "direct", wave: dict[str, Any] | None = None) -> None:
@@ -136,13 +138,35 @@ class VoxelAttentionController(FromInputs, nn.Module):
             for block, was in zip(self.blocks, before[1], strict=True):
                 block.written_out = was
 
+    @contextmanager
+    def hiding(self, cells: torch.Tensor) -> Iterator[None]:
+        """Inside, every forward of ``N`` bodies hides the voxels at ``cells [N, Bx·By·Bz]`` (bool) from the rest of
+        their body: a hidden voxel's token is no key of the attention and no part of the body's pooled summary (the
+        wave vector, a hypernetwork's body code, the critic's input), yet it still reads the voxels it sees and
+        commands its own cell. A body whose voxels are all hidden is seen whole. Distillation's token dropout
+        (``algo.token_dropout``): the student learns a body's gait from parts of it. Restored on exit."""
+        before, self.hidden_cells = self.hidden_cells, cells
+        try:
+            yield
+        finally:
+            self.hidden_cells = before
+
+    def seen(self, order: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """The tokens the others see, ``[N, K]``: ``valid`` less those :meth:`hiding` hides (all of a body's
+        valid tokens where it would hide every one)."""
+        if self.hidden_cells is None:
+            return valid
+        seen = valid & ~self.hidden_cells.gather(1, order)
+        return torch.where(seen.any(1, keepdim=True), seen, valid)
+
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``[N, C, Bx, By, Bz]`` → (mean, log_std, mask ``[N, Bx·By·Bz]``, value ``[N]``)."""
         features, order, valid = self.tokens(obs)
+        seen = self.seen(order, valid)
         x = self.embed(features)
         for block in self.blocks:
-            x = block(x, valid)
-        return self._readout(obs, x, order, valid)
+            x = block(x, seen)
+        return self._readout(obs, x, order, valid, seen)
 
     def token_actions(self, x: torch.Tensor, valid: torch.Tensor, obs: torch.Tensor, order: torch.Tensor
                       ) -> torch.Tensor:
@@ -151,18 +175,19 @@ class VoxelAttentionController(FromInputs, nn.Module):
         ``order``)."""
         return self.actor(x).transpose(1, 2) * valid[:, None]
 
-    def _readout(self, obs: torch.Tensor, x: torch.Tensor, order: torch.Tensor, valid: torch.Tensor
-                 ) -> tuple[torch.Tensor, ...]:
-        """The tokens after the blocks ``x [N, K, h]`` → (mean, log_std, mask, value), as :meth:`forward`."""
-        n = obs.shape[0]
+    def _readout(self, obs: torch.Tensor, x: torch.Tensor, order: torch.Tensor, valid: torch.Tensor,
+                 seen: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """The tokens after the blocks ``x [N, K, h]`` → (mean, log_std, mask, value), as :meth:`forward`; the
+        body's summaries pool the ``seen`` tokens (default: every valid one)."""
+        n, seen = obs.shape[0], valid if seen is None else seen
         x = self.norm(x) * valid[..., None]
-        pooled = x.sum(1) / valid.sum(1, keepdim=True).clamp_min(1)
+        pooled = (x * seen[..., None]).sum(1) / seen.sum(1, keepdim=True).clamp_min(1)
         per_token = self.token_actions(x, valid, obs, order)  # [N, outputs, K]
         cells = per_token.new_zeros(n, per_token.shape[1], math.prod(obs.shape[2:]))
         cells = cells.scatter(2, order[:, None].expand(-1, per_token.shape[1], -1), per_token)
         body = pooled  # (a wave head's: the tokens' mean and max, as the context controllers pool their cells)
         if self.wave is not None:
-            body = torch.cat([pooled, x.masked_fill(~valid[..., None], float("-inf")).amax(1).nan_to_num(neginf=0.0)], 1)
+            body = torch.cat([pooled, x.masked_fill(~seen[..., None], float("-inf")).amax(1).nan_to_num(neginf=0.0)], 1)
         filled = obs[:, self.filled_channel: self.filled_channel + 1]
         mean, mask = cell_means(self, cells.view(n, -1, *obs.shape[2:]), obs, filled, body)
         value = self.critic_out(torch.tanh(self.critic_fc(pooled))).squeeze(-1)
@@ -211,7 +236,8 @@ class HyperAttentionController(VoxelAttentionController):
     def token_actions(self, x: torch.Tensor, valid: torch.Tensor, obs: torch.Tensor, order: torch.Tensor
                       ) -> torch.Tensor:
         """The shared actor's outputs plus the body's own head's, ``[N, outputs, K]`` (0 on padding)."""
-        written = self.generator(self.body_code(obs, order, valid)).view(len(x), -1, self.actor.out_features)
+        written = self.generator(self.body_code(obs, order, self.seen(order, valid))).view(len(x), -1,
+                                                                                           self.actor.out_features)
         own = torch.einsum("nkh,nho->nok", x, written[:, :-1]) + written[:, -1, :, None]  # (written: [N, h+1, out])
         return super().token_actions(x, valid, obs, order) + own * valid[:, None]
 

@@ -27,7 +27,9 @@ Shapes: ``T`` = ``rollout_steps``, ``N`` = environments, ``K`` = ``buffer · T``
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
@@ -65,6 +67,11 @@ class DistillConfig:
     mirrors —, ``mirror`` — y → −y alone; ``freeform.envs.symmetry.GROUPS``): each regression sample turned by a
     random element of it, its observation and its label alike (:class:`Symmetry`), so that one labelled body
     teaches its turned and mirrored selves too."""
+    token_dropout: float = 0.0
+    """The probability that a regression sample's voxel is hidden from the rest of its body (a voxel-token
+    student's :meth:`~freeform.agents.attention_controllers.VoxelAttentionController.hiding`; each cell of each
+    sample drawn apart, every round): the student learns the label's gait from parts of the body, a regulariser of
+    the map from shapes to gaits. Feed-forward voxel-token students only; 0: none (no draw)."""
 
     def validate(self, key: str = "algo") -> None:
         if self.loss not in LOSSES:
@@ -75,6 +82,9 @@ class DistillConfig:
                 raise ValueError(f"{key}.{name} must be a probability in [0, 1], got {value!r}")
         if not (isinstance(self.buffer, int) and self.buffer >= 1):
             raise ValueError(f"{key}.buffer must be an integer >= 1 (rounds kept), got {self.buffer!r}")
+        if not (isinstance(self.token_dropout, (int, float)) and 0.0 <= self.token_dropout < 1.0):
+            raise ValueError(f"{key}.token_dropout must be a probability in [0, 1) (0: none), got "
+                             f"{self.token_dropout!r}")
         if not (isinstance(self.symmetry, str) and self.symmetry):
             raise ValueError(f"{key}.symmetry must be 'none' or a group of the env's symmetries (a control env's: "
                              f"'ground', 'mirror'), got {self.symmetry!r}")
@@ -83,7 +93,7 @@ class DistillConfig:
     def from_algo(cls, algo: Any) -> DistillConfig:
         """The fields of a run's ``algo`` section (``freeform.evolve.config.AlgoConfig``) that are DAgger's."""
         return cls(loss=algo.loss, beta=algo.beta, beta_decay=algo.beta_decay, buffer=algo.buffer,
-                   symmetry=algo.symmetry)
+                   symmetry=algo.symmetry, token_dropout=algo.token_dropout)
 
     def beta_at(self, round_: int) -> float:
         return float(self.beta * self.beta_decay ** round_)
@@ -232,6 +242,11 @@ class Distillation(PPO):
         if self.distill.loss == "mse" and not isinstance(self.distribution, DiagGaussian):
             raise ValueError(f"algo.loss=mse regresses a Gaussian's means; this student's actions are a "
                              f"{self.distribution}: use algo.loss=kl")
+        if self.distill.token_dropout and (self.recurrent or not callable(getattr(student, "hiding", None))):
+            raise ValueError(f"algo.token_dropout hides voxels from a feed-forward voxel-token student's attention "
+                             f"(control.controller=attention or attention_hyper); {type(student).__name__} "
+                             f"{'is recurrent' if self.recurrent else 'has no tokens to hide'}: set "
+                             f"algo.token_dropout=0")
         mixing.distribution = self.distribution
         self.teacher = teacher
         self.dataset: dict[str, Any] = {}
@@ -280,12 +295,15 @@ class Distillation(PPO):
         for _ in range(cfg.num_sgd_iter):
             order = torch.randperm(size, generator=self.generator, device=self.device)
             for i in range(size // minibatch):
-                idx, g = dp.local_share(order[i * minibatch: (i + 1) * minibatch], self._elements(minibatch))
+                draws = (self._elements(minibatch), *self._hidden_cells(minibatch, obs))
+                idx, g, *hidden = dp.local_share(order[i * minibatch: (i + 1) * minibatch], *draws)
                 flat.zero_grad()
                 if idx.numel():  # (a rank may hold none of a minibatch; it then adds zero gradients)
                     batch, labels = self._turned(obs, params, idx, g)
-                    loss, stats = distill_loss(tuple(self.policy(batch)), labels, value.index_select(0, idx),
-                                               self.distribution, self.distill.loss, cfg.vf_loss_coeff, reduce)
+                    with self.policy.hiding(hidden[0]) if hidden else nullcontext():
+                        student = tuple(self.policy(batch))
+                    loss, stats = distill_loss(student, labels, value.index_select(0, idx), self.distribution,
+                                               self.distill.loss, cfg.vf_loss_coeff, reduce)
                     loss.backward()
                     totals += stats
                 self._step(flat)
@@ -370,6 +388,19 @@ class Distillation(PPO):
         if self.symmetry is None:
             return torch.zeros(minibatch, dtype=torch.long, device=self.device)
         return torch.randint(self.symmetry.size, (minibatch,), generator=self.generator, device=self.device)
+
+    def _hidden_cells(self, minibatch: int, obs: Observation) -> tuple[torch.Tensor, ...]:
+        """Token dropout's hidden cells for each sample of a global minibatch, ``([minibatch, Bx·By·Bz] bool,)``
+        (``()`` without it: no draw, so a run without it draws as before); from the shared generator, as
+        :meth:`_elements`."""
+        p = self.distill.token_dropout
+        if not p:
+            return ()
+        if isinstance(obs, Mapping):
+            raise ValueError(f"algo.token_dropout hides cells of a single observation tensor; this env observes "
+                             f"groups {sorted(obs)}")
+        cells = math.prod(obs.shape[2:])
+        return (torch.rand(minibatch, cells, generator=self.generator, device=self.device) < p,)
 
     def _turned(self, obs: Observation, params: list[torch.Tensor], idx: torch.Tensor, g: torch.Tensor
                 ) -> tuple[Observation, tuple[torch.Tensor, ...]]:

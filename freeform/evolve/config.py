@@ -57,6 +57,9 @@ class AlgoConfig:
     """distill: ``ground`` — each regression sample turned about the vertical or mirrored at random, its label alike
     (a body turned is as good a body: ``freeform.envs.symmetry``); ``mirror`` — mirrored y → −y alone (keeps a wave
     along x); ``none``."""
+    token_dropout: float = 0.0
+    """distill: the probability that a regression sample's voxel is hidden from the rest of its body (a voxel-token
+    student's attention and pooled summaries; ``freeform.agents.distill.DistillConfig.token_dropout``); 0: none."""
 
     def validate(self, key: str = "algo", num_envs: int | None = None, names: Sequence[str] = ALGORITHMS) -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
