@@ -110,6 +110,7 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
             raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
         seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
     charged: set[Path] = set()
+    origins: dict[Any, tuple[float, int, str]] = {}  # (a run's origin -> the seconds, epochs and name charged for it)
     for run, epochs, pooled in _lineage(runs or ()):
         if run.resolve() in charged:  # (a run named twice, or named and pooled: its rollouts happened once)
             raise SystemExit(f"--pretraining-runs: {run} is charged twice (named twice, or named beside a pooled "
@@ -117,9 +118,31 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
         charged.add(run.resolve())
         cfg, last = _last(run)
         epochs = int(last["ppo"]["epoch"] if epochs is None else epochs)
-        seconds += robot_seconds(cfg, epochs)
-        what.append(f"{run} ({epochs} epochs{f', pooled in {pooled}' if pooled else ''})")
+        name = f"{run} ({epochs} epochs{f', pooled in {pooled}' if pooled else ''})"
+        # A copied run directory (trained on from where it was copied) shares its first epochs with the original:
+        # one origin is charged once, for the most epochs any copy of it reached.
+        origin = _origin(run) or run.resolve()
+        if origin in origins:
+            before = origins[origin]
+            name = f"{name}, the same run as {before[2]} (a copy): charged once, at its most epochs"
+            if epochs <= before[1]:
+                what.append(name)
+                continue
+            seconds -= before[0]
+        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run))
+        seconds += origins[origin][0]
+        what.append(name)
     return seconds, " + ".join(what) if what else "not counted"
+
+
+def _origin(run: Path) -> tuple[str, ...] | None:
+    """What identifies the run that ``run`` is (or was copied from): the start time, host and command its
+    ``run_info.json`` records, which a copy keeps and a resume leaves alone; None without one."""
+    info = run / "run_info.json"
+    if not info.is_file():
+        return None
+    record = json.loads(info.read_text())
+    return (str(record.get("start_time")), str(record.get("hostname")), json.dumps(record.get("command")))
 
 
 def _lineage(runs: Iterable[Path]) -> Iterator[tuple[Path, int | None, Path | None]]:

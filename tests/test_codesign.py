@@ -518,6 +518,15 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     assert seconds == pytest.approx(2 * one_epoch) and f"(2 epochs, pooled in {pooled})" in what
     with pytest.raises(SystemExit, match="charged twice"):
         pretraining_seconds(None, [pooled, tmp_path / "run"])
+    # a copy of a run (trained on from where it was copied) shares its rollouts up to there: one origin is charged
+    # once, for the most epochs any copy reached — the pool's 2 epochs of the run, then its copy's 1, in either order
+    import shutil
+
+    shutil.copytree(tmp_path / "run", tmp_path / "run_copy")
+    assert pretraining_seconds(None, [tmp_path / "run", tmp_path / "run_copy"])[0] == pytest.approx(one_epoch)
+    for order in ([pooled, tmp_path / "run_copy"], [tmp_path / "run_copy", pooled]):
+        seconds, what = pretraining_seconds(None, order)
+        assert seconds == pytest.approx(2 * one_epoch) and "(a copy): charged once" in what
     from experiments.codesign import warm_start_name
 
     assert warm_start_name("docs/results/control_population/controller.pt") == "the population controller"
