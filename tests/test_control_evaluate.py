@@ -446,9 +446,18 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
         taken = {r["what"]: float(r["mean"]) for r in pool(bare, tmp_path / "taken", per_body_from=reference)}
         assert taken["fraction of per-body control (mean command)"] == pytest.approx((2.5 / 3) / (5.0 / 3.0))
         assert taken["per-body controllers (stochastic)"] == pytest.approx(1.0)
-    moved = write("b_moved", [body(0, 0.9, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.25, 0.5, 1.0, 1.0, 1.0, 2.0)])
-    with pytest.raises(ValueError, match=r"body 1 of .*b_moved walked its own gait 0.250000 here and 0.200000 there"):
+    moved = write("b_moved", [body(0, 0.9, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.35, 0.5, 1.0, 1.0, 1.0, 2.0)])
+    with pytest.raises(ValueError, match=r"body 1 of .*b_moved walked its own gait 0.350000 here and 0.200000 there"):
         pool([bare[0], moved], tmp_path / "out4", per_body_from=tmp_path / "out")
+    # another host's floating point moves a gait in its fourth digit: taken, and warned with the drift; a whole
+    # set moved by a little more than that is refused (other episode settings)
+    drifted = write("b_drift", [body(0, 0.9002, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.2001, 0.5, 1.0, 1.0, 1.0, 2.0)])
+    with pytest.warns(UserWarning, match=r"b_drift's bodies walked their own gaits within the floating point of "
+                                         r"another host \(median \|Δ\| 1.5e-04, largest 2.0e-04"):
+        pool([bare[0], drifted], tmp_path / "out6", per_body_from=tmp_path / "out")
+    shifted = write("b_shift", [body(0, 0.93, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.23, 0.5, 1.0, 1.0, 1.0, 2.0)])
+    with pytest.raises(ValueError, match=r"b_shift walked their own gaits a median 0.0300 from there"):
+        pool([bare[0], shifted], tmp_path / "out7", per_body_from=tmp_path / "out")
     with pytest.raises(ValueError, match=r"a pooled table of 1 sets is needed .* it holds 2"):
         pool([a], tmp_path / "out4", per_body_from=tmp_path / "out")
     # the scaling curve reads pooled tables: its columns are the pooled figures, points over other bodies refused
