@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from experiments.common import mean_band, summary_row, write_rows
-from experiments.paired import read_table
+from experiments.paired import check_drift, read_table, same_gait
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave, wave_at_gain
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step, with_wave_gain
@@ -377,12 +377,7 @@ def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
 POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave")
 """The ``bodies.csv`` columns a pooled table reads (each set must have them: a controller with strokes)."""
 PER_BODY = ("per_body", "per_body_mean_command")
-HOST_DRIFT = {"atol": 0.05, "rtol": 0.05, "median": 0.005}
-"""How far the same body's own gait may move between hosts (voxel lengths): the production step's fast-math
-floating point differs with the CPU it was compiled for, and a 2 s episode of contacts carries a last-bit change
-to the fourth digit — median |Δ| 9e-5, largest 0.035 over the 93 held-out bodies between two AVX-512 hosts
-(2026-12-01) — while another body, or other episode settings, moves it by tenths (median 0.28). A per-body
-column taken across hosts is kept within ``atol + rtol·|gait|`` for every body and ``median`` over the set."""
+
 """The per-body columns, pooled where every body of every set has them (``--per-body N``, N its body count, or
 ``--per-body-from``) and left out where no body has them (a table with no per-body reference)."""
 
@@ -405,7 +400,7 @@ def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
 def _take_per_body(table: list[dict], reference: list[dict], folder: Path, source: Path) -> None:
     """Each body's per-body columns from ``reference`` (the same set in an earlier pooled table), in place; the same
     body under the same episode settings walks its own gait the same — to the bit on one host, within
-    :data:`HOST_DRIFT` on another (then warned, with the drift) —, so the open-loop figures must agree."""
+    :data:`experiments.paired.HOST_DRIFT` on another (then warned) —, so the open-loop figures must agree."""
     if len(reference) != len(table):
         raise ValueError(f"--per-body-from {source}: its set for {folder} holds {len(reference)} bodies, and "
                          f"{folder} {len(table)}")
@@ -413,20 +408,12 @@ def _take_per_body(table: list[dict], reference: list[dict], folder: Path, sourc
     for mine, theirs in zip(table, reference, strict=True):
         gait = (float(mine["open_loop"]), float(theirs["open_loop"]))
         drift.append(abs(gait[0] - gait[1]))
-        if mine["body"] != theirs["body"] or not np.isclose(*gait, rtol=HOST_DRIFT["rtol"], atol=HOST_DRIFT["atol"]):
+        if mine["body"] != theirs["body"] or not same_gait(*gait):
             raise ValueError(f"--per-body-from {source}: body {mine['body']} of {folder} walked its own gait "
                              f"{gait[0]:.6f} here and {gait[1]:.6f} there: not the same bodies, or other episode "
                              "settings (evaluate with the reference's --headings, --eval-episodes and seed)")
         mine["per_body"], mine["per_body_mean_command"] = theirs["per_body"], theirs["per_body_mean_command"]
-    if np.median(drift) > HOST_DRIFT["median"]:
-        raise ValueError(f"--per-body-from {source}: the bodies of {folder} walked their own gaits a median "
-                         f"{np.median(drift):.4f} from there (the same bodies on another host: < "
-                         f"{HOST_DRIFT['median']}): other episode settings (evaluate with the reference's "
-                         "--headings, --eval-episodes and seed)")
-    if max(drift) > 1e-9:
-        warnings.warn(f"--per-body-from {source}: {folder}'s bodies walked their own gaits within the floating "
-                      f"point of another host (median |Δ| {np.median(drift):.1e}, largest {max(drift):.1e} voxel "
-                      "lengths): its per-body columns were measured there", stacklevel=2)
+    check_drift(drift, f"--per-body-from {source}: {folder}")
 
 
 def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list[dict]:

@@ -452,11 +452,11 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     # another host's floating point moves a gait in its fourth digit: taken, and warned with the drift; a whole
     # set moved by a little more than that is refused (other episode settings)
     drifted = write("b_drift", [body(0, 0.9002, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.2001, 0.5, 1.0, 1.0, 1.0, 2.0)])
-    with pytest.warns(UserWarning, match=r"b_drift's bodies walked their own gaits within the floating point of "
+    with pytest.warns(UserWarning, match=r"b_drift: the bodies walked their own gaits within the floating point of "
                                          r"another host \(median \|Δ\| 1.5e-04, largest 2.0e-04"):
         pool([bare[0], drifted], tmp_path / "out6", per_body_from=tmp_path / "out")
     shifted = write("b_shift", [body(0, 0.93, 0.5, 1.0, 0.5, 1.0, 1.0), body(1, 0.23, 0.5, 1.0, 1.0, 1.0, 2.0)])
-    with pytest.raises(ValueError, match=r"b_shift walked their own gaits a median 0.0300 from there"):
+    with pytest.raises(ValueError, match=r"b_shift: the bodies walked their own gaits a median 0.0300 apart"):
         pool([bare[0], shifted], tmp_path / "out7", per_body_from=tmp_path / "out")
     with pytest.raises(ValueError, match=r"a pooled table of 1 sets is needed .* it holds 2"):
         pool([a], tmp_path / "out4", per_body_from=tmp_path / "out")
@@ -552,7 +552,8 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
 def test_two_tables_compared_body_by_body(tmp_path) -> None:
     """``experiments.paired``: A − B per body with Student's t band (scipy's, 2 degrees of freedom for 3 bodies),
     the fraction of bodies A moves further; a folder and a bodies CSV read alike; tables of other bodies (another
-    count, or a body whose own gait differs: other bodies or other episode settings) refused naming the body."""
+    count, or a body whose own gait differs: other bodies or other episode settings) refused naming the body; the
+    same bodies from another host (gaits within its floating point) compared and warned."""
     from experiments.paired import main as paired
 
     def write(name: str, gaits, stoch, mean, set_folder: str | None = None, set_file: str | None = None) -> Path:
@@ -577,14 +578,20 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     assert float(rows["stochastic"]["a_further"]) == pytest.approx(2 / 3, abs=1e-4)
     assert float(rows["mean command"]["a_minus_b"]) == pytest.approx(0.2, abs=1e-4)
     assert float(rows["mean command"]["a"]) == pytest.approx(3.6 / 3, abs=1e-4)
-    moved = write("moved", [0.1, 0.25, 0.3], [1, 1, 1], [1, 1, 1])
+    moved = write("moved", [0.1, 0.35, 0.3], [1, 1, 1], [1, 1, 1])
     with pytest.raises(SystemExit):  # (the command line: argparse's error, naming the body)
         paired([str(a), str(moved)])
     from experiments.paired import compare
 
     with pytest.raises(ValueError, match=r"body \('grown', '1'\) of .*a is not body .* \(its own gait 0.200000 against "
-                                         r"0.250000\)"):
+                                         r"0.350000\)"):
         compare(a, moved)
+    # the same bodies evaluated on another host (its floating point moves a gait in the fourth digit): compared, and
+    # warned; a whole set moved by more than that is other episode settings, refused
+    with pytest.warns(UserWarning, match=r"within the floating point of another host \(median \|Δ\| 1.0e-04"):
+        assert compare(a, write("host", [0.1001, 0.2001, 0.3001], [1.0, 1.2, 0.9], [1.5, 1.1, 1.0]))[0]["a_minus_b"] == 0
+    with pytest.raises(ValueError, match=r"the bodies walked their own gaits a median 0.0200 apart"):
+        compare(a, write("settings", [0.12, 0.22, 0.32], [1, 1, 1], [1, 1, 1]))
     (tmp_path / "summary.csv").write_text("what,n,mean\ncontroller,3,1.0\n")  # (the wrong file of a folder)
     with pytest.raises(ValueError, match=r"summary.csv: no \['body', 'open_loop', 'controller', 'mean_command'\]"):
         compare(a, tmp_path / "summary.csv")
