@@ -110,7 +110,7 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
             raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
         seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
     charged: set[Path] = set()
-    origins: dict[Any, tuple[float, int, str]] = {}  # (a run's origin -> the seconds, epochs and name charged for it)
+    origins: dict[Any, tuple[float, int, str, str]] = {}  # (a run's origin -> its seconds, epochs, run, entry)
     for run, epochs, pooled in _lineage(runs or ()):
         if run.resolve() in charged:  # (a run named twice, or named and pooled: its rollouts happened once)
             raise SystemExit(f"--pretraining-runs: {run} is charged twice (named twice, or named beside a pooled "
@@ -120,16 +120,18 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
         epochs = int(last["ppo"]["epoch"] if epochs is None else epochs)
         name = f"{run} ({epochs} epochs{f', pooled in {pooled}' if pooled else ''})"
         # A copied run directory (trained on from where it was copied) shares its first epochs with the original:
-        # one origin is charged once, for the most epochs any copy of it reached.
+        # one origin is charged once, for the most epochs any copy of it reached — exact where one of them stopped
+        # where the copy was made (a bank copied and trained on); two branches both trained past the copy would
+        # each have rolled out their own epochs after it, and the shorter branch's are not charged.
         origin = _origin(run) or run.resolve()
         if origin in origins:
             before = origins[origin]
-            name = f"{name}, the same run as {before[2]} (a copy): charged once, at its most epochs"
             if epochs <= before[1]:
-                what.append(name)
+                what.append(f"{name}: the same run as {before[2]} (copied), charged there")
                 continue
             seconds -= before[0]
-        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run))
+            what[what.index(before[3])] = f"{before[3]}: the same run as {run} (copied), charged there"
+        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run), name)
         seconds += origins[origin][0]
         what.append(name)
     return seconds, " + ".join(what) if what else "not counted"

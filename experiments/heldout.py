@@ -377,7 +377,6 @@ def _write(out: Path, rows: list[dict], summary: list[dict], run: dict) -> None:
 POOLED = ("open_loop", "controller", "mean_command", "hand_set_wave")
 """The ``bodies.csv`` columns a pooled table reads (each set must have them: a controller with strokes)."""
 PER_BODY = ("per_body", "per_body_mean_command")
-
 """The per-body columns, pooled where every body of every set has them (``--per-body N``, N its body count, or
 ``--per-body-from``) and left out where no body has them (a table with no per-body reference)."""
 

@@ -52,7 +52,7 @@ def check_drift(drift: list[float], where: str) -> None:
     if drift and max(drift) > 1e-9:
         warnings.warn(f"{where}: the bodies walked their own gaits within the floating point of another host "
                       f"(median |Δ| {median:.1e}, largest {max(drift):.1e} voxel lengths): the tables were measured "
-                      "on two hosts", stacklevel=3)
+                      "on two hosts", stacklevel=4)
 
 
 def read_table(source: Path, who: str, made_by: str) -> list[dict[str, str]]:
@@ -103,15 +103,16 @@ def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, n
     both = all(names and all(r.get("set") in names for r in rows)  # (a map that misses a row's set: folders)
                for names, rows in zip(sets, (a, b), strict=True))
     keys = body_keys(a, sets[0] if both else None), body_keys(b, sets[1] if both else None)
-    drift = []
+    drift: dict[str, list[float]] = {}  # (per set: a set evaluated under other settings moves as a whole)
     for key_a, key_b, row_a, row_b in zip(*keys, a, b, strict=True):
         gait = (float(row_a["open_loop"]), float(row_b["open_loop"]))
-        drift.append(abs(gait[0] - gait[1]))
+        drift.setdefault(key_a[0], []).append(abs(gait[0] - gait[1]))
         if key_a != key_b or not same_gait(*gait):
             raise ValueError(f"body {key_a} of {name_a} is not body {key_b} of {name_b} (its own gait "
                              f"{gait[0]:.6f} against {gait[1]:.6f}): the same bodies in the same order, evaluated "
                              "with the same --headings, --eval-episodes and seed")
-    check_drift(drift, f"{name_a} against {name_b}")
+    for set_name, moved in drift.items():
+        check_drift(moved, f"{name_a} against {name_b}{f' (set {set_name})' if set_name else ''}")
 
 
 def compare(a: Path, b: Path) -> list[dict[str, object]]:

@@ -526,7 +526,8 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     assert pretraining_seconds(None, [tmp_path / "run", tmp_path / "run_copy"])[0] == pytest.approx(one_epoch)
     for order in ([pooled, tmp_path / "run_copy"], [tmp_path / "run_copy", pooled]):
         seconds, what = pretraining_seconds(None, order)
-        assert seconds == pytest.approx(2 * one_epoch) and "(a copy): charged once" in what
+        assert seconds == pytest.approx(2 * one_epoch) and what.count("charged there") == 1
+        assert f"{tmp_path / 'run_copy'} (1 epochs): the same run as {tmp_path / 'run'} (copied), charged there" in what
     from experiments.codesign import warm_start_name
 
     assert warm_start_name("docs/results/control_population/controller.pt") == "the population controller"

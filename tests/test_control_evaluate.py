@@ -592,6 +592,14 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
         assert compare(a, write("host", [0.1001, 0.2001, 0.3001], [1.0, 1.2, 0.9], [1.5, 1.1, 1.0]))[0]["a_minus_b"] == 0
     with pytest.raises(ValueError, match=r"the bodies walked their own gaits a median 0.0200 apart"):
         compare(a, write("settings", [0.12, 0.22, 0.32], [1, 1, 1], [1, 1, 1]))
+    # ... set by set: one set of a pooled table moved as a whole is refused, however many bodies the others hold
+    two = [{"set": f"runs/eval_{s_}", "body": i, "open_loop": 0.1 * (i + 1), "controller": 1, "mean_command": 1}
+           for s_ in ("x_grown", "x_hand_built") for i in range(3)]
+    write_rows(tmp_path / "two.csv", two)
+    write_rows(tmp_path / "two_moved.csv", [dict(r, open_loop=r["open_loop"] + 0.02 * ("hand" in r["set"]))
+                                             for r in two])
+    with pytest.raises(ValueError, match=r"\(set built\): the bodies walked their own gaits a median 0.0200 apart"):
+        compare(tmp_path / "two.csv", tmp_path / "two_moved.csv")
     (tmp_path / "summary.csv").write_text("what,n,mean\ncontroller,3,1.0\n")  # (the wrong file of a folder)
     with pytest.raises(ValueError, match=r"summary.csv: no \['body', 'open_loop', 'controller', 'mean_command'\]"):
         compare(a, tmp_path / "summary.csv")
