@@ -110,7 +110,7 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
             raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
         seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
     charged: set[Path] = set()
-    origins: dict[Any, tuple[float, int, str, str]] = {}  # (a run's origin -> its seconds, epochs, run, entry)
+    origins: dict[Any, tuple[float, int, str, int]] = {}  # (a run's origin -> its seconds, epochs, run, its entry)
     for run, epochs, pooled in _lineage(runs or ()):
         if run.resolve() in charged:  # (a run named twice, or named and pooled: its rollouts happened once)
             raise SystemExit(f"--pretraining-runs: {run} is charged twice (named twice, or named beside a pooled "
@@ -130,8 +130,8 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
                 what.append(f"{name}: the same run as {before[2]} (copied), charged there")
                 continue
             seconds -= before[0]
-            what[what.index(before[3])] = f"{before[3]}: the same run as {run} (copied), charged there"
-        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run), name)
+            what[before[3]] += f": the same run as {run} (copied), charged there"
+        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run), len(what))
         seconds += origins[origin][0]
         what.append(name)
     return seconds, " + ".join(what) if what else "not counted"

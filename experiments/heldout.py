@@ -403,16 +403,15 @@ def _take_per_body(table: list[dict], reference: list[dict], folder: Path, sourc
     if len(reference) != len(table):
         raise ValueError(f"--per-body-from {source}: its set for {folder} holds {len(reference)} bodies, and "
                          f"{folder} {len(table)}")
-    drift = []
     for mine, theirs in zip(table, reference, strict=True):
         gait = (float(mine["open_loop"]), float(theirs["open_loop"]))
-        drift.append(abs(gait[0] - gait[1]))
         if mine["body"] != theirs["body"] or not same_gait(*gait):
             raise ValueError(f"--per-body-from {source}: body {mine['body']} of {folder} walked its own gait "
                              f"{gait[0]:.6f} here and {gait[1]:.6f} there: not the same bodies, or other episode "
                              "settings (evaluate with the reference's --headings, --eval-episodes and seed)")
         mine["per_body"], mine["per_body_mean_command"] = theirs["per_body"], theirs["per_body_mean_command"]
-    check_drift(drift, f"--per-body-from {source}: {folder}")
+    check_drift([float(r["open_loop"]) for r in table], [float(r["open_loop"]) for r in reference],
+                f"--per-body-from {source}: {folder}")
 
 
 def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list[dict]:

@@ -40,16 +40,17 @@ def same_gait(a: float, b: float) -> bool:
     return bool(np.isclose(a, b, rtol=HOST_DRIFT["rtol"], atol=HOST_DRIFT["atol"]))
 
 
-def check_drift(drift: list[float], where: str) -> None:
-    """After every body passed :func:`same_gait`, its ``drift`` ``|Δ|`` over a set: a set moved as a whole
-    (median beyond :data:`HOST_DRIFT`'s) is other episode settings, refused naming ``where``; a set moved at all
-    was evaluated on another host, warned with the drift."""
-    median = float(np.median(drift)) if drift else 0.0
+def check_drift(gaits_a: list[float], gaits_b: list[float], where: str) -> None:
+    """One set's own-gait figures in two tables, after every body passed :func:`same_gait`: a set moved as a whole
+    (the median |Δ| beyond :data:`HOST_DRIFT`'s) is other episode settings, refused naming ``where``; a set moved
+    at all was evaluated on another host, warned with the drift."""
+    drift = np.abs(np.asarray(gaits_a, dtype=float) - np.asarray(gaits_b, dtype=float))
+    median = float(np.median(drift)) if drift.size else 0.0
     if median > HOST_DRIFT["median"]:
         raise ValueError(f"{where}: the bodies walked their own gaits a median {median:.4f} apart (the same bodies on "
                          f"another host: < {HOST_DRIFT['median']}): other episode settings (evaluate with the same "
                          "--headings, --eval-episodes and seed)")
-    if drift and max(drift) > 1e-9:
+    if drift.size and drift.max() > 0.0:  # (one host: the same bits, so the same figures to the digit)
         warnings.warn(f"{where}: the bodies walked their own gaits within the floating point of another host "
                       f"(median |Δ| {median:.1e}, largest {max(drift):.1e} voxel lengths): the tables were measured "
                       "on two hosts", stacklevel=4)
@@ -103,16 +104,16 @@ def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, n
     both = all(names and all(r.get("set") in names for r in rows)  # (a map that misses a row's set: folders)
                for names, rows in zip(sets, (a, b), strict=True))
     keys = body_keys(a, sets[0] if both else None), body_keys(b, sets[1] if both else None)
-    drift: dict[str, list[float]] = {}  # (per set: a set evaluated under other settings moves as a whole)
     for key_a, key_b, row_a, row_b in zip(*keys, a, b, strict=True):
         gait = (float(row_a["open_loop"]), float(row_b["open_loop"]))
-        drift.setdefault(key_a[0], []).append(abs(gait[0] - gait[1]))
         if key_a != key_b or not same_gait(*gait):
             raise ValueError(f"body {key_a} of {name_a} is not body {key_b} of {name_b} (its own gait "
                              f"{gait[0]:.6f} against {gait[1]:.6f}): the same bodies in the same order, evaluated "
                              "with the same --headings, --eval-episodes and seed")
-    for set_name, moved in drift.items():
-        check_drift(moved, f"{name_a} against {name_b}{f' (set {set_name})' if set_name else ''}")
+    for name in dict.fromkeys(key[0] for key in keys[0]):  # (set by set: a set under other settings moves whole)
+        rows = [i for i, key in enumerate(keys[0]) if key[0] == name]
+        check_drift([float(a[i]["open_loop"]) for i in rows], [float(b[i]["open_loop"]) for i in rows],
+                    f"{name_a} against {name_b}{f' (set {name})' if name else ''}")
 
 
 def compare(a: Path, b: Path) -> list[dict[str, object]]:

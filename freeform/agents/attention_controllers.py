@@ -144,8 +144,9 @@ class VoxelAttentionController(FromInputs, nn.Module):
         their body: a hidden voxel's token is no key of the attention and no part of the body's pooled summary (the
         wave vector's features, a hypernetwork's body code, the critic's input), yet it still reads the voxels it
         sees and commands its own cell (its place, ``rel_x/y/z``, is still from the whole body's centre of mass, and
-        the heading every cell carries is read from all of them). A body whose voxels are all hidden is seen whole. Distillation's token dropout
-        (``algo.token_dropout``): the student learns a body's gait from parts of it. Restored on exit."""
+        the heading every cell carries is read from all of them). A body whose voxels are all hidden is seen whole.
+        Distillation's token dropout (``algo.token_dropout``): the student learns a body's gait from parts of it.
+        Restored on exit."""
         before, self.hidden_cells = self.hidden_cells, cells
         try:
             yield

@@ -242,11 +242,18 @@ class Distillation(PPO):
         if self.distill.loss == "mse" and not isinstance(self.distribution, DiagGaussian):
             raise ValueError(f"algo.loss=mse regresses a Gaussian's means; this student's actions are a "
                              f"{self.distribution}: use algo.loss=kl")
-        if self.distill.token_dropout and (self.recurrent or not callable(getattr(student, "hiding", None))):
-            raise ValueError(f"algo.token_dropout hides voxels from a feed-forward voxel-token student's attention "
-                             f"(control.controller=attention or attention_hyper); {type(student).__name__} "
-                             f"{'is recurrent' if self.recurrent else 'has no tokens to hide'}: set "
-                             f"algo.token_dropout=0")
+        if self.distill.token_dropout:  # (refused here, before a round is collected, rather than at its regression)
+            why = None
+            if self.recurrent:
+                why = "is recurrent"
+            elif not callable(getattr(student, "hiding", None)):
+                why = "has no tokens to hide"
+            elif isinstance(self.obs, Mapping):
+                why = f"reads observation groups {sorted(self.obs)}"
+            if why:
+                raise ValueError(f"algo.token_dropout hides voxels from a feed-forward voxel-token student's attention "
+                                 f"(control.controller=attention or attention_hyper) over one observation tensor; "
+                                 f"{type(student).__name__} {why}: set algo.token_dropout=0")
         mixing.distribution = self.distribution
         self.teacher = teacher
         self.dataset: dict[str, Any] = {}
@@ -389,18 +396,15 @@ class Distillation(PPO):
             return torch.zeros(minibatch, dtype=torch.long, device=self.device)
         return torch.randint(self.symmetry.size, (minibatch,), generator=self.generator, device=self.device)
 
-    def _hidden_cells(self, minibatch: int, obs: Observation) -> tuple[torch.Tensor, ...]:
-        """Token dropout's hidden cells for each sample of a global minibatch, ``([minibatch, Bx·By·Bz] bool,)``
-        (``()`` without it: no draw, so a run without it draws as before); from the shared generator, as
+    def _hidden_cells(self, minibatch: int, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Token dropout's hidden cells for each sample of a global minibatch of the dataset's observations ``obs
+        [K·n, C, Bx, By, Bz]``: ``([minibatch, Bx·By·Bz] bool,)`` (``()`` without it: no draw, so a run without it
+        draws as before; a single observation tensor, as ``__init__`` checked); from the shared generator, as
         :meth:`_elements`."""
         p = self.distill.token_dropout
         if not p:
             return ()
-        if isinstance(obs, Mapping):
-            raise ValueError(f"algo.token_dropout hides cells of a single observation tensor; this env observes "
-                             f"groups {sorted(obs)}")
-        cells = math.prod(obs.shape[2:])
-        return (torch.rand(minibatch, cells, generator=self.generator, device=self.device) < p,)
+        return (torch.rand(minibatch, math.prod(obs.shape[2:]), generator=self.generator, device=self.device) < p,)
 
     def _turned(self, obs: Observation, params: list[torch.Tensor], idx: torch.Tensor, g: torch.Tensor
                 ) -> tuple[Observation, tuple[torch.Tensor, ...]]:
