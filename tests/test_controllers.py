@@ -14,9 +14,16 @@ from torch.distributions import Normal, kl_divergence
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.controller_file import read_controller, save_controller
 from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
-from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step, with_wave_gain
+from freeform.agents.controllers import (
+    CONTROLLERS,
+    PrivilegedCritic,
+    build_controller,
+    controller_step,
+    with_wave_gain,
+)
 from freeform.agents.networks import rebuild
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
+from freeform.agents.recurrent import RecurrentPolicy
 from freeform.distributions import MaskedDiagGaussian, from_spec
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig
@@ -448,6 +455,14 @@ def test_a_wave_gain_scales_what_the_head_learnt_beyond_the_hand_set_wave(kind, 
     assert saved.wave["gain"] == 2.5
     with torch.no_grad():
         torch.testing.assert_close(run(saved, obs)[0], wave + 2.5 * (trained - wave))
+    if not isinstance(net, RecurrentPolicy):  # (a teacher's privileged critic around it: the gain reaches the actor)
+        privileged = PrivilegedCritic(kind, net.init_kwargs, critic_dim=3, hidden=4)
+        privileged.controller.load_state_dict(net.state_dict())
+        gained = with_wave_gain(privileged, 2.5)
+        assert isinstance(gained, PrivilegedCritic) and gained.controller.wave["gain"] == 2.5
+        with torch.no_grad():
+            torch.testing.assert_close(gained.action_params({"policy": obs, "critic": torch.zeros(len(obs), 3)})[0],
+                                       wave + 2.5 * (trained - wave))
     with pytest.raises(ValueError, match="wave gain must be finite and >= 0"):
         with_wave_gain(net, -1.0)
     with pytest.raises(ValueError, match="a wave gain needs a wave head"):

@@ -267,8 +267,8 @@ def test_token_dropout_hides_voxels_from_the_student_and_resumes_bit_for_bit(bod
                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """algo.token_dropout into an attention student: two rounds straight equal one plus a resumed one (its draws
     come from the shared generator, as the symmetry's); every regression forward hides about that fraction of its
-    samples' cells and no rollout forward hides any; a student without voxel tokens, a recurrent one and a
-    probability out of [0, 1) are refused, naming the field."""
+    samples' cells and no forward outside it (acting, labelling: without gradients) hides any; a student without
+    voxel tokens, a recurrent one and a probability out of [0, 1) are refused, naming the field."""
     from freeform.agents.attention_controllers import VoxelAttentionController
     from freeform.run.build import build
 
@@ -283,12 +283,14 @@ def test_token_dropout_hides_voxels_from_the_student_and_resumes_bit_for_bit(bod
     forwards = []
     forward = VoxelAttentionController.forward
     monkeypatch.setattr(VoxelAttentionController, "forward",
-                        lambda self, obs: forwards.append(self.hidden_cells is not None) or forward(self, obs))
+                        lambda self, obs: forwards.append((self.hidden_cells is not None, torch.is_grad_enabled()))
+                        or forward(self, obs))
     distill, a = distilled_straight_and_resumed(bodies, tmp_path, "control.controller=attention",
                                                 "algo.token_dropout=0.5")
     assert a["policy_class"].endswith(":VoxelAttentionController") and distill.algo.token_dropout == 0.5
-    assert len(hidden) == sum(forwards) > 0 and 0.45 < np.mean(hidden) < 0.55  # (the regression's forwards)
-    assert not all(forwards)  # (the rollouts' forwards hide nothing)
+    hides = [h for h, _ in forwards]
+    assert len(hidden) == sum(hides) > 0 and 0.45 < np.mean(hidden) < 0.55  # (the regression's forwards)
+    assert sum(not g for _, g in forwards) > 0 and all(h == g for h, g in forwards)  # (acting, labelling: none)
     for student, why in (("control.controller=context", "has no tokens to hide"),
                          ("control.controller=attention_gru", "is recurrent")):
         refused = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",

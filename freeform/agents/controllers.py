@@ -384,8 +384,6 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
         view = _PolicyView(env, shape[POLICY])
         inner = build_controller(kind, view, hidden, log_std, head, wave)
         return PrivilegedCritic(kind, dict(inner.init_kwargs), int(math.prod(shape[CRITIC])))
-    if kind not in CONTROLLERS:
-        raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     allowed = head_rule(kind, head, strokes=getattr(env, "action_channels", 1) == 2)
     if allowed is not None:
         raise ValueError(f"head must be {allowed}, got {head!r}")
@@ -417,14 +415,19 @@ def controller_kind(controller: nn.Module) -> str:
 
 
 def with_wave_gain(controller: nn.Module, gain: float) -> nn.Module:
-    """A copy of ``controller`` (a wave-head body controller) whose wave plays at ``gain`` (``HandSetWave.gain``): the
-    same weights, its mean command the hand-set wave's strokes plus ``gain`` × the head's change to them."""
-    if getattr(controller, "wave", None) is None:
-        raise ValueError(f"a wave gain needs a wave head; this {type(controller).__name__}'s head is "
-                         f"{getattr(controller, 'head', None)!r} (gain applies to controllers trained with "
+    """A copy of ``controller`` (a wave-head body controller, or a :class:`PrivilegedCritic` around one) whose wave
+    plays at ``gain`` (``HandSetWave.gain``): the same weights, its mean command the hand-set wave's strokes plus
+    ``gain`` × the head's change to them."""
+    privileged = isinstance(controller, PrivilegedCritic)
+    actor = controller.controller if privileged else controller
+    if getattr(actor, "wave", None) is None:
+        raise ValueError(f"a wave gain needs a wave head; this {type(actor).__name__}'s head is "
+                         f"{getattr(actor, 'head', None)!r} (gain applies to controllers trained with "
                          "control.head=wave: evaluate this one without --wave-gain)")
-    kwargs = controller.init_kwargs  # (the gain is checked where the head reads it, as the config's wave_gain is)
-    out = rebuild(type(controller), {**kwargs, "wave": wave_at_gain(kwargs["wave"], gain)})
+    kwargs = actor.init_kwargs  # (the gain is checked where the head reads it, as the config's wave_gain is)
+    kwargs = {**kwargs, "wave": wave_at_gain(kwargs["wave"], gain)}
+    out = (rebuild(PrivilegedCritic, {**controller.init_kwargs, "controller": kwargs}) if privileged
+           else rebuild(type(controller), kwargs))
     out.load_state_dict(controller.state_dict())
     return out
 
