@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from experiments.common import summary_row, write_rows
-from experiments.heldout import PerBody, evaluate_bodies
+from experiments.heldout import Evaluation, PerBody, evaluate_bodies
 from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, read_controller, save_controller
 from freeform.agents.controller_heads import HandSetWave
@@ -261,8 +261,8 @@ def main(argv: list[str] | None = None) -> None:
         per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
                       Path(args.per_body_cache), args.per_body_run and Path(args.per_body_run)) if args.per_body else None
         wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
-        evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), args.eval_episodes, args.headings,
-                        args.seed, per, wave, args.symmetrize, args.wave_gain)
+        how = Evaluation(args.eval_episodes, args.headings, args.seed, args.symmetrize, args.wave_gain)
+        evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), how, per, wave)
         return
     if args.evaluate:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))

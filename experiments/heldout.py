@@ -185,25 +185,39 @@ def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWav
     return net
 
 
+@dataclass(frozen=True)
+class Evaluation:
+    """How :func:`evaluate_bodies` plays the bodies: ``episodes`` per body, the heading task (None: the
+    controller's own), the seed of its untrained controller, its episodes and noise, the group the trained
+    controller is averaged over (None: none) and the wave gain it plays at (None: its file's)."""
+
+    episodes: int
+    headings: str | None = None
+    seed: int = 0
+    symmetrize: str | None = None
+    wave_gain: float | None = None
+
+
 @torch.no_grad()
-def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headings: str | None = None,
-                    seed: int = 0, per_body: PerBody | None = None, wave: HandSetWave | None = None,
-                    symmetrize: str | None = None, wave_gain: float | None = None) -> tuple[list[dict], list[dict]]:
+def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_body: PerBody | None = None,
+                    wave: HandSetWave | None = None) -> tuple[list[dict], list[dict]]:
     """Zero-shot evaluation of a saved controller (``source``: a ``controller.pt``, a folder holding one, or a
-    control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``episodes`` stochastic episodes
-    each, under the controller's own ``ControlConfig`` (``headings`` overrides its heading task). One env runs every
+    control run's directory) on the bodies of ``bodies`` (:func:`read_bodies`), ``how.episodes`` stochastic
+    episodes each (:class:`Evaluation`), under the controller's own ``ControlConfig`` (``how.headings`` overrides its
+    heading task). One env runs every
     body × episode once per group, the groups with the same headings (the same draws): the controller, the
     controller's mean command (deterministic: what it learned, without its exploration noise), the controller with
     its sensed channels zeroed (:data:`SENSED`: a controller that only replays the clock loses nothing), an untrained
-    controller of the same architecture (seeded ``seed``), stochastic and its mean command (what the architecture
+    controller of the same architecture (seeded ``how.seed``), stochastic and its mean command (what the architecture
     does before learning: the open-loop gait for most heads, the hand-set travelling wave for a ``wave`` head), the
     hand-set wave's mean command whatever the controller's head (:func:`hand_set_wave`; with strokes), and with
     ``per_body`` each of the first N bodies' own controller (:class:`PerBody`, stochastic). The box is the one the
     controller trained in where the bodies fit it, else theirs (refused for the MLP, which fits one box). With
-    ``symmetrize`` (a group of ``freeform.envs.symmetry.GROUPS``) the trained controller's three groups are its
+    ``how.symmetrize`` (a group of ``freeform.envs.symmetry.GROUPS``) the trained controller's three groups are its
     average over that group's turns and mirrors (:class:`~freeform.agents.group_average.GroupAveraged`); the
-    untrained and reference controllers are not averaged. With ``wave_gain`` the trained controller's wave head plays
-    at that gain (:func:`~freeform.agents.controllers.with_wave_gain`: the hand-set wave plus the gain × what it learnt).
+    untrained and reference controllers are not averaged. With ``how.wave_gain`` the trained controller's wave head
+    plays at that gain (:func:`~freeform.agents.controllers.with_wave_gain`: the hand-set wave plus the gain × what
+    it learnt).
 
     Writes ``out/bodies.csv`` (per body: its voxels and actuated voxels as simulated, its open-loop sine gait over
     the same window and headings, the controller's mean over its episodes and that mean's 99 % band, its mean
@@ -219,36 +233,25 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     grids = read_bodies(bodies, len(sim.materials))
     trained = tuple(saved.controller.box)
     saved = controller_for(saved.path, grids)  # (its own box where the bodies fit it; the MLP refused otherwise)
-    control = replace(saved.control, headings=headings or saved.control.headings)
-    control.validate()
-    if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
-        warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
-                      f"{saved.control.headings}, another task than the one evaluated", stacklevel=2)
-    if symmetrize:  # (before any per-body bank is trained: a group that changes the task is refused first)
-        check_turnable("--symmetrize", symmetrize, control.headings, control.frame, {"the controller": saved.kind})
-    m, n, box = len(grids), episodes, tuple(saved.controller.box)
-    controller = (saved.controller if wave_gain is None else with_wave_gain(saved.controller, wave_gain)).eval()
-    torch.manual_seed(seed)
-    kwargs = controller.init_kwargs  # (untrained at gain 1: the hand-set wave plus its initial weights' small change)
-    untrained = rebuild(CONTROLLERS[saved.kind], {**kwargs, "wave": wave_at_gain(kwargs["wave"], 1.0)}
-                        if "wave" in kwargs else kwargs).eval()
+    control = _evaluated_control(saved, how)
+    m, n, box = len(grids), how.episodes, tuple(saved.controller.box)
+    controller = (saved.controller if how.wave_gain is None else with_wave_gain(saved.controller, how.wave_gain))
+    controller = controller.eval()
+    groups = _groups(controller, saved.kind, how.seed)  # (seeded before the bank, which may train)
     bank = per_body_bank(grids, per_body, control, sim) if per_body is not None else None
-    groups = [("controller", controller, False, True), ("mean_command", controller, False, False),
-              ("zeroed", controller, True, True), ("untrained", untrained, False, True),
-              ("untrained_mean_command", untrained, False, False)]
     blocks = len(groups) + (control.stroke_periods >= 1) + 2 * (bank is not None)  # (one block of rows a group)
-    env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=seed,
+    env = ControlEnv(grids.repeat_interleave(n, 0).repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=how.seed,
                      box=box, first_env=np.tile(np.arange(m * n), blocks))
-    if symmetrize:
-        averaged = GroupAveraged(controller, env.symmetry(symmetrize))
-        groups = [(name, averaged if net is controller else net, *how) for name, net, *how in groups]
+    if how.symmetrize:
+        averaged = GroupAveraged(controller, env.symmetry(how.symmetrize))
+        groups = [(name, averaged if net is controller else net, *rest) for name, net, *rest in groups]
     if control.stroke_periods >= 1:
         groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
     if bank is not None:
         rows_body = torch.arange(m).repeat_interleave(n)
         own = _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
         groups += [("per_body", own, False, True), ("per_body_mean_command", own, False, False)]
-    returns, obs, heading = _play(env, groups, control.steps, seed)
+    returns, obs, heading = _play(env, groups, control.steps, how.seed)
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
     along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
                                    planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
@@ -256,14 +259,41 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, episodes: int, headin
     if bank is not None:
         per_group["per_body"][per_body.n:] = per_group["per_body_mean_command"][per_body.n:] = np.nan
     rows = _body_rows(per_group, along.mean(1), obs[: m * n : n], env)
-    summary = _summary(per_group, along.mean(1), saved.kind, seed, per_body.n if bank is not None else 0,
-                       symmetrize, played_gain(controller))
-    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": symmetrize,
+    summary = _summary(per_group, along.mean(1), saved.kind, how.seed, per_body.n if bank is not None else 0,
+                       how.symmetrize, played_gain(controller))
+    _write(out, rows, summary, {"controller": str(saved.path), "kind": saved.kind, "symmetrize": how.symmetrize,
                                 "wave_gain": played_gain(controller),
                                 "bodies": str(bodies), "body_count": m, "episodes_per_body": n, "box": list(box),
-                                "trained_box": list(trained), "seed": seed, "control": vars(control),
+                                "trained_box": list(trained), "seed": how.seed, "control": vars(control),
                                 "per_body": None if per_body is None else {**vars(per_body), "cache": str(per_body.cache)}})
     return rows, summary
+
+
+def _evaluated_control(saved: Any, how: Evaluation) -> ControlConfig:
+    """The episode the bodies are played in: the controller's own, along ``how.headings`` where given (warned: another
+    task than it trained for); a ``how.symmetrize`` group that changes the task is refused here, before any per-body
+    bank is trained."""
+    control = replace(saved.control, headings=how.headings or saved.control.headings)
+    control.validate()
+    if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
+        warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
+                      f"{saved.control.headings}, another task than the one evaluated", stacklevel=3)
+    if how.symmetrize:
+        check_turnable("--symmetrize", how.symmetrize, control.headings, control.frame, {"the controller": saved.kind})
+    return control
+
+
+def _groups(controller: torch.nn.Module, kind: str, seed: int) -> list[tuple]:
+    """The groups every evaluation plays, ``(name, net, sensed channels zeroed, stochastic)``: the controller, its
+    mean command, it with its sensed channels zeroed, and an untrained controller of its kind (seeded ``seed``, at
+    gain 1: the hand-set wave plus its initial weights' small change), stochastic and by its mean command."""
+    torch.manual_seed(seed)
+    kwargs = controller.init_kwargs
+    untrained = rebuild(CONTROLLERS[kind], {**kwargs, "wave": wave_at_gain(kwargs["wave"], 1.0)}
+                        if "wave" in kwargs else kwargs).eval()
+    return [("controller", controller, False, True), ("mean_command", controller, False, False),
+            ("zeroed", controller, True, True), ("untrained", untrained, False, True),
+            ("untrained_mean_command", untrained, False, False)]
 
 
 def played_gain(controller: torch.nn.Module) -> float | None:
