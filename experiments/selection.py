@@ -1,0 +1,161 @@
+"""Each body the best of several controllers, chosen by one trial each (few-shot selection, no learning)::
+
+    python -m experiments.selection TABLE_A TABLE_B ... --out DIR [--names A B ...]
+
+The tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies`` or
+``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results keep them), one per
+controller. A body's trial is its table's mean-command episode: the simulator and a controller's mean command are
+deterministic (two evaluation episodes of one body give the same figure to the bit), so the episode that chooses a
+body's controller is the episode that controller then walks — the chosen figure is what a user who tries each
+controller once on the body and keeps the best gets, not an optimistic draw. The stochastic column has no such
+property (the best of noisy draws is biased upwards) and is not selected on.
+
+Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
+mean commands where the tables have them, each controller's mean command, the one chosen and its figure),
+``DIR/best_of_k.csv`` (for k = 1 … C controllers, the mean over bodies of the expected best of k controllers drawn
+at random among the C — exactly, not sampled: :func:`best_of_k` — with the fraction of per-body control, × the
+hand-set wave and the fraction of bodies beyond their own gait), ``DIR/summary.csv`` (the chosen controllers' mean
+with its 99 % band, the same fractions, how often each controller was chosen), ``DIR/run.json`` and the curve drawn,
+``DIR/best_of_k.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from math import comb
+from pathlib import Path
+
+import numpy as np
+
+from experiments.common import summary_row, write_rows
+from experiments.paired import read_table, same_bodies, set_files, table_run
+
+MADE_BY = "python -m experiments.control --evaluate ... --bodies, or experiments.heldout --pool"
+REFERENCES = ("open_loop", "hand_set_wave", "per_body_mean_command")
+"""The columns that describe a body rather than a controller, taken from the first table."""
+
+
+def best_of_k(values: np.ndarray, k: int) -> np.ndarray:
+    """The expected best of ``k`` controllers drawn at random without replacement among C: ``values`` ``[C, M]``
+    (each controller's figure on each of M bodies) → ``[M]``. With a body's figures sorted, v₍₁₎ ≤ … ≤ v₍C₎, the
+    i-th is the best of a k-subset when the subset holds it and k − 1 of the i − 1 below it:
+    E = Σᵢ v₍ᵢ₎ · C(i − 1, k − 1) / C(C, k). k = 1 is the controllers' mean, k = C their best."""
+    values = np.asarray(values, dtype=np.float64)
+    count = values.shape[0]
+    if not 1 <= k <= count:
+        raise ValueError(f"best of k: k must be in [1, {count}] (the controllers given), got {k}")
+    weights = np.array([comb(i, k - 1) for i in range(count)], dtype=np.float64) / comb(count, k)
+    return weights @ np.sort(values, axis=0)
+
+
+def beyond_best_of_k(values: np.ndarray, gaits: np.ndarray, k: int) -> float:
+    """The expected fraction of bodies on which the best of ``k`` random controllers among C moves beyond the body's
+    own gait (``values`` ``[C, M]``, ``gaits`` ``[M]``): the best fails only when all k are among the n_b
+    controllers at or below the gait, with probability C(n_b, k) / C(C, k)."""
+    count = values.shape[0]
+    at_or_below = (np.asarray(values) <= np.asarray(gaits)[None]).sum(0)
+    return float(np.mean([1.0 - comb(int(n), k) / comb(count, k) for n in at_or_below]))
+
+
+def _fractions(chosen: np.ndarray, body: dict[str, np.ndarray], beyond: float | None = None) -> dict[str, float]:
+    """Mean-command figures of one choice against the bodies' references: the fraction of per-body control (sums,
+    as the held-out tables' summary), × the hand-set wave, and the fraction of bodies beyond their own gait
+    (``beyond`` where ``chosen`` is an expectation, whose own comparison with the gait would not be one)."""
+    beyond = float(np.mean(chosen > body["open_loop"])) if beyond is None else beyond
+    out = {"mean": float(chosen.mean()), "beyond_own_gait": beyond}
+    if "per_body_mean_command" in body:
+        out["fraction_of_per_body"] = float(chosen.sum() / body["per_body_mean_command"].sum())
+    if "hand_set_wave" in body:
+        out["over_hand_set_wave"] = float(chosen.mean() / body["hand_set_wave"].mean())
+    return out
+
+
+def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[str, np.ndarray]]:
+    """(the first table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
+    checked to hold the same bodies in the same order (:func:`experiments.paired.same_bodies`)."""
+    rows = [read_table(t, str(t), MADE_BY) for t in tables]
+    for table, r in zip(tables, rows, strict=True):
+        missing = [c for c in ("body", "open_loop", "mean_command") if not r or c not in r[0]]
+        if missing:
+            raise ValueError(f"{table}: no {missing} column (a held-out bodies table of {MADE_BY})")
+    for table, r in zip(tables[1:], rows[1:], strict=True):
+        same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
+    values = np.array([[float(row["mean_command"]) for row in r] for r in rows])
+    first = rows[0]
+    body = {c: np.array([float(row[c]) for row in first]) for c in REFERENCES
+            if c in first[0] and all(row[c] not in ("", "nan") for row in first)}
+    return first, values, body
+
+
+def select(tables: list[Path], out: Path, names: list[str] | None = None) -> list[dict]:
+    """Choose each body's controller among ``tables`` (one per controller, named ``names`` or by their files) and
+    write the module's three tables to ``out``. Returns ``best_of_k.csv``'s rows."""
+    if len(tables) < 2:
+        raise ValueError(f"select among at least two controllers' tables, got {len(tables)}")
+    names = names or [t.name.removesuffix("_bodies.csv").removesuffix(".csv") for t in tables]
+    if len(names) != len(tables) or len(set(names)) != len(names):
+        raise ValueError(f"--names: one distinct name a table ({len(tables)} tables), got {names}")
+    first, values, body = _read(tables)
+    choice = values.argmax(0)
+    chosen = values[choice, np.arange(values.shape[1])]
+    rows = [{"set": r.get("set", ""), "body": r["body"], **{c: float(body[c][i]) for c in body},
+             **{f"mean_command_{n}": float(values[c, i]) for c, n in enumerate(names)},
+             "chosen": names[choice[i]], "mean_command": float(chosen[i])} for i, r in enumerate(first)]
+    curve = [{"k": k, **_fractions(best_of_k(values, k), body, beyond_best_of_k(values, body["open_loop"], k))}
+             for k in range(1, len(tables) + 1)]
+    summary = [summary_row("chosen controller (mean command)", chosen),
+               *({"what": what, "n": len(chosen), "mean": value} for what, value in _fractions(chosen, body).items()
+                 if what != "mean"),
+               *({"what": f"chosen: {n}", "n": len(chosen), "mean": float(np.mean(choice == c))}
+                 for c, n in enumerate(names))]
+    write_rows(out / "bodies.csv", rows)
+    write_rows(out / "best_of_k.csv", curve)
+    write_rows(out / "summary.csv", summary)
+    run = {"tables": [str(t) for t in tables], "names": names, "bodies": len(first),
+           "controllers": [table_run(t).get("controllers") or table_run(t).get("controller") for t in tables]}
+    (out / "run.json").write_text(json.dumps(run, indent=1))
+    return curve
+
+
+def plot(curve: list[dict], path: Path) -> None:
+    """``best_of_k.csv`` drawn: the fraction of per-body control (or, without per-body columns, × the hand-set wave)
+    and the fraction of bodies beyond their own gait against k."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = [row["k"] for row in curve]
+    measure = "fraction_of_per_body" if "fraction_of_per_body" in curve[0] else "over_hand_set_wave"
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(k, [row[measure] for row in curve], "o-", color="k", label=measure.replace("_", " "))
+    ax.plot(k, [row["beyond_own_gait"] for row in curve], "s--", color="0.5", label="bodies beyond their own gait")
+    ax.axhline(1.0, color="0.8", lw=0.8)
+    ax.set_xlabel("k: controllers tried once on each body, the best kept")
+    ax.set_xticks(k)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m experiments.selection", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("tables", nargs="+", type=Path, help="held-out tables of the same bodies, one per controller")
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--names", nargs="+", default=None, help="a name per table (default: the file's)")
+    args = p.parse_args(argv)
+    try:
+        curve = select(args.tables, args.out, args.names)
+    except ValueError as e:
+        p.error(str(e))
+    plot(curve, args.out / "best_of_k.png")
+    for row in (curve[0], curve[-1]):
+        shown = ", ".join(f"{k} {v:.3f}" for k, v in row.items() if k != "k")
+        print(f"best of {row['k']} (of {len(curve)}): {shown}")
+
+
+if __name__ == "__main__":
+    main()

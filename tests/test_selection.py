@@ -1,0 +1,79 @@
+"""experiments.selection: each body the best of several controllers' tables, and the exact best of k."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiments.common import read_rows, write_rows
+from experiments.selection import best_of_k, beyond_best_of_k, main, select
+
+
+def test_the_best_of_k_and_its_passing_the_gait_are_the_means_over_every_k_subset() -> None:
+    """Truth: enumerate every k-subset of C controllers (itertools.combinations), take each body's best in it, and
+    average it, and its passing the body's gait; ties included (two controllers equal on a body)."""
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(6, 9))
+    values[2, 0] = values[4, 0]
+    for k in range(1, 7):
+        brute = np.mean([values[list(s)].max(0) for s in itertools.combinations(range(6), k)], axis=0)
+        np.testing.assert_allclose(best_of_k(values, k), brute, rtol=1e-12)
+    np.testing.assert_allclose(best_of_k(values, 1), values.mean(0))
+    gaits = rng.normal(size=9)
+    for k in range(1, 7):  # (the chance that a k-subset's best passes the body's gait, over bodies)
+        brute = np.mean([values[list(s)].max(0) > gaits for s in itertools.combinations(range(6), k)])
+        assert beyond_best_of_k(values, gaits, k) == pytest.approx(brute, rel=1e-12)
+    with pytest.raises(ValueError, match=r"k must be in \[1, 6\]"):
+        best_of_k(values, 7)
+
+
+def table(path: Path, moves: list[float], gaits: list[float], per_body: list[float] | None = None) -> Path:
+    rows = [{"set": "s", "body": i, "open_loop": g, "controller": m - 0.1, "mean_command": m, "hand_set_wave": 1.0,
+             **({"per_body_mean_command": per_body[i]} if per_body else {})}
+            for i, (m, g) in enumerate(zip(moves, gaits, strict=True))]
+    return write_rows(path, rows)
+
+
+def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_to_that(tmp_path: Path) -> None:
+    """Three controllers on four bodies: body by body the chosen one is the table of the largest mean command; the
+    curve's k = 1 is the controllers' mean and k = 3 the chosen mean; the fractions are sums against per-body
+    control, means against the hand-set wave, counts beyond the gait; shares of choices sum to 1."""
+    gaits, per = [0.5, 0.2, 0.9, 0.1], [2.0, 2.0, 2.0, 2.0]
+    moves = np.array([[1.0, 0.1, 0.8, 2.0], [0.4, 0.3, 1.2, 1.0], [0.9, 0.25, 0.7, 0.0]])
+    tables = [table(tmp_path / f"{n}_bodies.csv", list(m), gaits, per) for n, m in zip("abc", moves, strict=True)]
+    curve = select(tables, tmp_path / "out")
+    rows = read_rows(tmp_path / "out" / "bodies.csv")
+    assert [r["chosen"] for r in rows] == ["a", "b", "b", "a"]
+    np.testing.assert_allclose([float(r["mean_command"]) for r in rows], moves.max(0))
+    assert [float(r["mean_command_c"]) for r in rows] == list(moves[2])
+    assert [c["k"] for c in curve] == [1, 2, 3]
+    assert curve[0]["mean"] == pytest.approx(moves.mean())
+    best = moves.max(0)
+    assert curve[2] == pytest.approx({"k": 3, "mean": best.mean(), "beyond_own_gait": 1.0,
+                                      "fraction_of_per_body": best.sum() / 8.0, "over_hand_set_wave": best.mean()})
+    assert curve[0]["beyond_own_gait"] == pytest.approx(np.mean(moves > np.array(gaits)))
+    summary = {r["what"]: float(r["mean"]) for r in read_rows(tmp_path / "out" / "summary.csv")}
+    assert summary["chosen: a"] == 0.5 and summary["chosen: b"] == 0.5 and summary["chosen: c"] == 0.0
+    assert json.loads((tmp_path / "out" / "run.json").read_text())["names"] == ["a", "b", "c"]
+
+
+def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_path: Path, capsys) -> None:
+    """A table whose body walks another gait (another body, or other episode settings), a single table, names that
+    do not match the tables and a table without the mean command are refused; nothing is written."""
+    a = table(tmp_path / "a_bodies.csv", [1.0, 1.0], [0.5, 0.2])
+    other = table(tmp_path / "other_bodies.csv", [1.0, 1.0], [0.5, 0.9])
+    with pytest.raises(ValueError, match=r"body \('s', '1'\) of .*a_bodies.csv is not body"):
+        select([a, other], tmp_path / "out")
+    with pytest.raises(ValueError, match="at least two controllers' tables"):
+        select([a], tmp_path / "out")
+    with pytest.raises(ValueError, match="one distinct name a table"):
+        select([a, a], tmp_path / "out", ["x", "x"])
+    write_rows(tmp_path / "bare.csv", [{"body": 0, "open_loop": 0.5}, {"body": 1, "open_loop": 0.2}])
+    with pytest.raises(SystemExit):
+        main([str(a), str(tmp_path / "bare.csv"), "--out", str(tmp_path / "out")])
+    assert "no ['mean_command'] column" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
