@@ -8,7 +8,8 @@ controller. A body's trial is its table's mean-command episode: the simulator an
 deterministic (two evaluation episodes of one body give the same figure to the bit), so the episode that chooses a
 body's controller is the episode that controller then walks — the chosen figure is what a user who tries each
 controller once on the body and keeps the best gets, not an optimistic draw. The stochastic column has no such
-property (the best of noisy draws is biased upwards) and is not selected on.
+property (the best of noisy draws is biased upwards) and is not selected on, nor are tables along random headings
+(one draw of headings a body; refused where the table's ``run.json`` records them).
 
 Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
 mean commands where the tables have them, each controller's mean command, the one chosen and its figure),
@@ -38,8 +39,8 @@ REFERENCES = ("open_loop", "hand_set_wave", "per_body_mean_command")
 
 def best_of_k(values: np.ndarray, k: int) -> np.ndarray:
     """The expected best of ``k`` controllers drawn at random without replacement among C: ``values`` ``[C, M]``
-    (each controller's figure on each of M bodies) → ``[M]``. With a body's figures sorted, v₍₁₎ ≤ … ≤ v₍C₎, the
-    i-th is the best of a k-subset when the subset holds it and k − 1 of the i − 1 below it:
+    (each controller's figure on each of M bodies) → ``[M]``. With a body's figures sorted, v₍₁₎ ≤ … ≤ v₍C₎,
+    the i-th is the best of a k-subset when the subset holds it and k − 1 of the i − 1 below it:
     E = Σᵢ v₍ᵢ₎ · C(i − 1, k − 1) / C(C, k). k = 1 is the controllers' mean, k = C their best."""
     values = np.asarray(values, dtype=np.float64)
     count = values.shape[0]
@@ -75,6 +76,11 @@ def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[st
     """(the first table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
     checked to hold the same bodies in the same order (:func:`experiments.paired.same_bodies`)."""
     rows = [read_table(t, str(t), MADE_BY) for t in tables]
+    drawn = [str(t) for t in tables if (table_run(t).get("control") or {}).get("headings") == "random"]
+    if drawn:
+        raise ValueError(f"{drawn[0]}: evaluated along random headings, one draw of them a body: the best of several "
+                         "controllers on one draw is biased upwards on the next, so it is not a trial (select on "
+                         "tables of a fixed task: --headings any or none)")
     for table, r in zip(tables, rows, strict=True):
         missing = [c for c in ("body", "open_loop", "mean_command") if not r or c not in r[0]]
         if missing:

@@ -63,7 +63,8 @@ def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_t
 
 def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_path: Path, capsys) -> None:
     """A table whose body walks another gait (another body, or other episode settings), a single table, names that
-    do not match the tables and a table without the mean command are refused; nothing is written."""
+    do not match the tables, a table along random headings (its trial one draw) and a table without the mean
+    command are refused; nothing is written."""
     a = table(tmp_path / "a_bodies.csv", [1.0, 1.0], [0.5, 0.2])
     other = table(tmp_path / "other_bodies.csv", [1.0, 1.0], [0.5, 0.9])
     with pytest.raises(ValueError, match=r"body \('s', '1'\) of .*a_bodies.csv is not body"):
@@ -72,8 +73,43 @@ def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_pa
         select([a], tmp_path / "out")
     with pytest.raises(ValueError, match="one distinct name a table"):
         select([a, a], tmp_path / "out", ["x", "x"])
+    steering = table(tmp_path / "steer_bodies.csv", [1.0, 1.0], [0.5, 0.2])
+    (tmp_path / "steer_run.json").write_text(json.dumps({"control": {"headings": "random"}}))
+    with pytest.raises(ValueError, match="steer_bodies.csv: evaluated along random headings"):
+        select([a, steering], tmp_path / "out")
     write_rows(tmp_path / "bare.csv", [{"body": 0, "open_loop": 0.5}, {"body": 1, "open_loop": 0.2}])
     with pytest.raises(SystemExit):
         main([str(a), str(tmp_path / "bare.csv"), "--out", str(tmp_path / "out")])
     assert "no ['mean_command'] column" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_mean_command_episode_repeats_to_the_bit_so_a_trial_is_the_figure(tmp_path: Path) -> None:
+    """The premise of selecting on a table: a controller's mean command walks each body the same in every episode
+    (the simulator and the mean are deterministic; the evaluation's noise reaches the stochastic groups alone), so
+    two episodes' mean equals one episode's, body by body, while the stochastic column moves."""
+    from dataclasses import replace
+
+    import torch
+
+    from experiments.control import main as evaluate
+    from freeform.agents.controller_file import save_controller
+    from freeform.agents.controller_heads import HandSetWave
+    from freeform.agents.controllers import ContextConvController
+    from freeform.envs.control import ControlEnv
+    from freeform.sim import SimConfig
+    from tests.test_control_evaluate import SHORT, tiny_bodies
+
+    control = replace(SHORT, stroke_periods=1)
+    env = ControlEnv(tiny_bodies(), control=control)
+    torch.manual_seed(0)  # (a wave head: its mean command moves the bodies)
+    net = ContextConvController.for_env(env, hidden=4, log_std=-1.0, head="wave", wave=HandSetWave(1.5, 1.2))
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    for n in ("1", "2"):
+        evaluate(["--evaluate", str(tmp_path), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "any",
+                  "--eval-episodes", n, "--out", str(tmp_path / n)])
+    one, two = (read_rows(tmp_path / n / "bodies.csv") for n in ("1", "2"))
+    assert any(abs(float(r["mean_command"])) > 1e-4 for r in one)  # (they move: 0 = 0 would pass)
+    assert [r["mean_command"] for r in one] == [r["mean_command"] for r in two]
+    assert [r["controller"] for r in one] != [r["controller"] for r in two]
