@@ -94,12 +94,20 @@ def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[st
     return first, values, body
 
 
+def table_name(table: Path) -> str:
+    """A table's name: its folder's (``runs/try_gen4`` or ``runs/try_gen4/bodies.csv`` → ``try_gen4``), or its file's
+    as the results keep one (``heldout93/student64_gen4_bodies.csv`` → ``student64_gen4``)."""
+    if table.suffix != ".csv" or table.name == "bodies.csv":
+        return (table.parent if table.suffix == ".csv" else table).name
+    return table.name.removesuffix("_bodies.csv").removesuffix(".csv")
+
+
 def select(tables: list[Path], out: Path, names: list[str] | None = None) -> list[dict]:
     """Choose each body's controller among ``tables`` (one per controller, named ``names`` or by their files) and
     write the module's three tables to ``out``. Returns ``best_of_k.csv``'s rows."""
     if len(tables) < 2:
         raise ValueError(f"select among at least two controllers' tables, got {len(tables)}")
-    names = names or [t.name.removesuffix("_bodies.csv").removesuffix(".csv") for t in tables]
+    names = names or [table_name(t) for t in tables]
     if len(names) != len(tables) or len(set(names)) != len(names):
         raise ValueError(f"--names: one distinct name a table ({len(tables)} tables), got {names}")
     first, values, body = _read(tables)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from experiments.common import read_rows, write_rows
-from experiments.selection import best_of_k, beyond_best_of_k, main, select
+from experiments.selection import best_of_k, beyond_best_of_k, main, select, table_name
 
 
 def test_the_best_of_k_and_its_passing_the_gait_are_the_means_over_every_k_subset() -> None:
@@ -59,6 +59,8 @@ def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_t
     summary = {r["what"]: float(r["mean"]) for r in read_rows(tmp_path / "out" / "summary.csv")}
     assert summary["chosen: a"] == 0.5 and summary["chosen: b"] == 0.5 and summary["chosen: c"] == 0.0
     assert json.loads((tmp_path / "out" / "run.json").read_text())["names"] == ["a", "b", "c"]
+    assert [table_name(Path(p)) for p in ("runs/try_g4", "runs/try_g4/bodies.csv", "h/s64_g4_bodies.csv")] == \
+        ["try_g4", "try_g4", "s64_g4"]
 
 
 def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_path: Path, capsys) -> None:
