@@ -261,7 +261,8 @@ def main(argv: list[str] | None = None) -> None:
         per = PerBody(args.per_body, args.per_body_preset, args.per_body_copies, tuple(args.per_body_set),
                       Path(args.per_body_cache), args.per_body_run and Path(args.per_body_run)) if args.per_body else None
         wave = HandSetWave(args.wave_k, args.wave_amplitude) if args.wave_k is not None else None
-        how = Evaluation(args.eval_episodes, args.headings, args.seed, args.symmetrize, args.wave_gain)
+        how = Evaluation(episodes=args.eval_episodes, headings=args.headings, seed=args.seed,
+                         symmetrize=args.symmetrize, wave_gain=args.wave_gain)
         evaluate_bodies(Path(args.evaluate), Path(args.bodies), Path(args.out), how, per, wave)
         return
     if args.evaluate:

@@ -491,6 +491,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
             for folder, table in zip(sets, tables, strict=True) for r in table]
     summary = _pooled_summary({c: np.array([float(r[c]) for r in rows]) for c in columns})
     _write(out, rows, summary, {"pooled": [str(p) for p in sets], "controllers": controllers,
+                                "control": settings[0]["control"],  # (every set's: checked above)
                                 "symmetrize": settings[0]["symmetrize"], "wave_gain": settings[0]["wave_gain"],
                                 "bodies": len(rows), "sets": sources,
                                 "per_body_from": per_body_from and str(per_body_from)})

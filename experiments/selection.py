@@ -5,11 +5,14 @@
 The tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies`` or
 ``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results keep them), one per
 controller. A body's trial is its table's mean-command episode: the simulator and a controller's mean command are
-deterministic (two evaluation episodes of one body give the same figure to the bit), so the episode that chooses a
-body's controller is the episode that controller then walks — the chosen figure is what a user who tries each
-controller once on the body and keeps the best gets, not an optimistic draw. The stochastic column has no such
-property (the best of noisy draws is biased upwards) and is not selected on, nor are tables along random headings
-(one draw of headings a body; refused where the table's ``run.json`` records them).
+deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
+episode that chooses a body's controller is the episode that controller then walks there — the chosen figure is
+what a user who tries each controller once on the body and keeps the best gets on that host, not an optimistic draw.
+Across hosts the fast-math step moves a body's figure (the committed student's two tables of the 93, two AVX-512
+hosts: median |Δ| 4e-4, one body 0.22), which makes a choice among tables of two hosts a little optimistic (≈ 0.1
+point of per-body control for the best of 17, estimated). The stochastic column has no such property (the best of
+noisy draws is biased upwards) and is not selected on, nor are tables along random headings (one draw of headings a
+body; refused where the table's ``run.json`` records the task, warned where it does not).
 
 Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
 mean commands where the tables have them, each controller's mean command, the one chosen and its figure),
@@ -24,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import warnings
 from math import comb
 from pathlib import Path
 
@@ -55,6 +59,8 @@ def beyond_best_of_k(values: np.ndarray, gaits: np.ndarray, k: int) -> float:
     own gait (``values`` ``[C, M]``, ``gaits`` ``[M]``): the best fails only when all k are among the n_b
     controllers at or below the gait, with probability C(n_b, k) / C(C, k)."""
     count = values.shape[0]
+    if not 1 <= k <= count:
+        raise ValueError(f"best of k: k must be in [1, {count}] (the controllers given), got {k}")
     at_or_below = (np.asarray(values) <= np.asarray(gaits)[None]).sum(0)
     return float(np.mean([1.0 - comb(int(n), k) / comb(count, k) for n in at_or_below]))
 
@@ -76,22 +82,58 @@ def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[st
     """(the first table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
     checked to hold the same bodies in the same order (:func:`experiments.paired.same_bodies`)."""
     rows = [read_table(t, str(t), MADE_BY) for t in tables]
-    drawn = [str(t) for t in tables if (table_run(t).get("control") or {}).get("headings") == "random"]
-    if drawn:
-        raise ValueError(f"{drawn[0]}: evaluated along random headings, one draw of them a body: the best of several "
-                         "controllers on one draw is biased upwards on the next, so it is not a trial (select on "
-                         "tables of a fixed task: --headings any or none)")
+    _check_task(tables)
     for table, r in zip(tables, rows, strict=True):
         missing = [c for c in ("body", "open_loop", "mean_command") if not r or c not in r[0]]
         if missing:
             raise ValueError(f"{table}: no {missing} column (a held-out bodies table of {MADE_BY})")
+        empty = next((row["body"] for row in r if not np.isfinite(_number(row["mean_command"]))), None)
+        if empty is not None:
+            raise ValueError(f"{table}: body {empty} has no mean command (an empty or NaN figure cannot be a trial)")
     for table, r in zip(tables[1:], rows[1:], strict=True):
         same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
     values = np.array([[float(row["mean_command"]) for row in r] for r in rows])
-    first = rows[0]
-    body = {c: np.array([float(row[c]) for row in first]) for c in REFERENCES
-            if c in first[0] and all(row[c] not in ("", "nan") for row in first)}
-    return first, values, body
+    return rows[0], values, _references(tables, rows)
+
+
+def _number(value: str) -> float:
+    try:
+        return float(value)
+    except ValueError:
+        return float("nan")
+
+
+def _check_task(tables: list[Path]) -> None:
+    """Refuse tables along random headings (where their ``run.json`` records the task): one draw of headings a
+    body, on which the best of several controllers is biased upwards for the next draw, so it is no trial. Tables
+    that record no task (pooled before 2026-12-01) are warned about."""
+    tasks = [(table_run(t).get("control") or {}).get("headings") for t in tables]
+    drawn = [str(t) for t, task in zip(tables, tasks, strict=True) if task == "random"]
+    if drawn:
+        raise ValueError(f"{drawn[0]}: evaluated along random headings, one draw of them a body: the best of several "
+                         "controllers on one draw is biased upwards on the next, so it is not a trial (select on "
+                         "tables of a fixed task: --headings any or none)")
+    unknown = [str(t) for t, task in zip(tables, tasks, strict=True) if task is None]
+    if unknown:
+        warnings.warn(f"{len(unknown)} of the tables ({unknown[0]}, ...) record no task in their run.json (pooled "
+                      "before it was recorded): select on them only if they were evaluated along a fixed task "
+                      "(--headings any or none), not random headings", stacklevel=3)
+
+
+def _references(tables: list[Path], rows: list[list[dict[str, str]]]) -> dict[str, np.ndarray]:
+    """Each of :data:`REFERENCES` from the first table that has it for every body (the same bodies: any table's
+    figure is theirs); a column some table has for part of the bodies only (``--per-body N`` with N < M) is warned
+    about and left out."""
+    body: dict[str, np.ndarray] = {}
+    for column in REFERENCES:
+        present = [(t, r) for t, r in zip(tables, rows, strict=True) if column in r[0]]
+        whole = next((r for _, r in present if all(np.isfinite(_number(row[column])) for row in r)), None)
+        if whole is not None:
+            body[column] = np.array([float(row[column]) for row in whole])
+        elif present:
+            warnings.warn(f"{present[0][0]}: {column} is there for part of the bodies only; the fractions that need "
+                          "it are left out (evaluate one table with --per-body M, every body)", stacklevel=3)
+    return body
 
 
 def table_name(table: Path) -> str:
@@ -103,8 +145,8 @@ def table_name(table: Path) -> str:
 
 
 def select(tables: list[Path], out: Path, names: list[str] | None = None) -> list[dict]:
-    """Choose each body's controller among ``tables`` (one per controller, named ``names`` or by their files) and
-    write the module's three tables to ``out``. Returns ``best_of_k.csv``'s rows."""
+    """Choose each body's controller among ``tables`` (one per controller, named ``names`` or by their files; a tie
+    goes to the earlier table) and write the module's tables to ``out``. Returns ``best_of_k.csv``'s rows."""
     if len(tables) < 2:
         raise ValueError(f"select among at least two controllers' tables, got {len(tables)}")
     names = names or [table_name(t) for t in tables]

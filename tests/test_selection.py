@@ -31,11 +31,33 @@ def test_the_best_of_k_and_its_passing_the_gait_are_the_means_over_every_k_subse
         best_of_k(values, 7)
 
 
-def table(path: Path, moves: list[float], gaits: list[float], per_body: list[float] | None = None) -> Path:
+def table(path: Path, moves: list[float], gaits: list[float], per_body: list[float] | None = None,
+          headings: str | None = "any") -> Path:
+    """A held-out table as the results keep one (``<name>_bodies.csv`` beside ``<name>_run.json``, which records
+    the task unless ``headings`` is None)."""
     rows = [{"set": "s", "body": i, "open_loop": g, "controller": m - 0.1, "mean_command": m, "hand_set_wave": 1.0,
              **({"per_body_mean_command": per_body[i]} if per_body else {})}
             for i, (m, g) in enumerate(zip(moves, gaits, strict=True))]
+    if headings is not None:
+        path.with_name(path.name.replace("bodies.csv", "run.json")).write_text(
+            json.dumps({"control": {"headings": headings}}))
     return write_rows(path, rows)
+
+
+def pooled_table(tmp_path: Path, headings: str) -> Path:
+    """Two one-body sets pooled by ``experiments.heldout.pool``, their run.json recording the task."""
+    from experiments.heldout import pool
+
+    sets = []
+    for name, gait in (("x", 0.3), ("y", 0.4)):
+        folder = tmp_path / f"{headings}_{name}"
+        write_rows(folder / "bodies.csv", [{"body": 0, "open_loop": gait, "controller": 1.0, "mean_command": 1.2,
+                                            "hand_set_wave": 1.0}])
+        (folder / "run.json").write_text(json.dumps({"controller": "c.pt", "kind": "attention", "seed": 0,
+                                                     "control": {"headings": headings}, "bodies": f"{name}.npy"}))
+        sets.append(folder)
+    pool(sets, tmp_path / f"pooled_{headings}")
+    return tmp_path / f"pooled_{headings}"
 
 
 def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_to_that(tmp_path: Path) -> None:
@@ -75,12 +97,17 @@ def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_pa
         select([a], tmp_path / "out")
     with pytest.raises(ValueError, match="one distinct name a table"):
         select([a, a], tmp_path / "out", ["x", "x"])
-    steering = table(tmp_path / "steer_bodies.csv", [1.0, 1.0], [0.5, 0.2])
-    (tmp_path / "steer_run.json").write_text(json.dumps({"control": {"headings": "random"}}))
+    steering = table(tmp_path / "steer_bodies.csv", [1.0, 1.0], [0.5, 0.2], headings="random")
     with pytest.raises(ValueError, match="steer_bodies.csv: evaluated along random headings"):
         select([a, steering], tmp_path / "out")
+    pooled = pooled_table(tmp_path, "random")  # (as experiments.heldout --pool records the task)
+    with pytest.raises(ValueError, match="pooled_random: evaluated along random headings"):
+        select([pooled, pooled_table(tmp_path, "any")], tmp_path / "out")
+    gap = table(tmp_path / "gap_bodies.csv", [1.0, float("nan")], [0.5, 0.2])
+    with pytest.raises(ValueError, match="gap_bodies.csv: body 1 has no mean command"):
+        select([a, gap], tmp_path / "out")
     write_rows(tmp_path / "bare.csv", [{"body": 0, "open_loop": 0.5}, {"body": 1, "open_loop": 0.2}])
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit), pytest.warns(UserWarning, match="record no task"):
         main([str(a), str(tmp_path / "bare.csv"), "--out", str(tmp_path / "out")])
     assert "no ['mean_command'] column" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
@@ -115,3 +142,22 @@ def test_a_mean_command_episode_repeats_to_the_bit_so_a_trial_is_the_figure(tmp_
     assert any(abs(float(r["mean_command"])) > 1e-4 for r in one)  # (they move: 0 = 0 would pass)
     assert [r["mean_command"] for r in one] == [r["mean_command"] for r in two]
     assert [r["controller"] for r in one] != [r["controller"] for r in two]
+
+
+def test_a_partial_reference_or_an_unrecorded_task_is_warned_about_and_a_tie_goes_to_the_first(tmp_path: Path) -> None:
+    """A per-body column on part of the bodies leaves the fraction of per-body control out, warned; a table that
+    records no task is warned about; one whose per-body column is whole gives it wherever it stands; on a tie the
+    earlier table is chosen; a body whose best only equals its gait is not beyond it."""
+    a = table(tmp_path / "a_bodies.csv", [1.0, 0.2], [0.5, 0.2], per_body=[2.0, float("nan")])
+    b = table(tmp_path / "b_bodies.csv", [1.0, 0.1], [0.5, 0.2])
+    with pytest.warns(UserWarning, match="per_body_mean_command is there for part of the bodies only"):
+        curve = select([a, b], tmp_path / "out")
+    assert "fraction_of_per_body" not in curve[0]
+    assert [r["chosen"] for r in read_rows(tmp_path / "out" / "bodies.csv")] == ["a", "a"]
+    assert curve[-1]["beyond_own_gait"] == 0.5  # (body 1's best, 0.2, equals its gait)
+    whole = table(tmp_path / "w_bodies.csv", [0.5, 0.0], [0.5, 0.2], per_body=[2.0, 2.0])
+    curve = select([b, whole], tmp_path / "out2")
+    assert curve[-1]["fraction_of_per_body"] == pytest.approx(1.1 / 4.0)
+    bare = table(tmp_path / "n_bodies.csv", [1.0, 0.1], [0.5, 0.2], headings=None)
+    with pytest.warns(UserWarning, match="1 of the tables .* record no task"):
+        select([b, bare], tmp_path / "out3")
