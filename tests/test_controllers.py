@@ -460,6 +460,9 @@ def test_a_wave_gain_scales_what_the_head_learnt_beyond_the_hand_set_wave(kind, 
         privileged.controller.load_state_dict(net.state_dict())
         gained = with_wave_gain(privileged, 2.5)
         assert isinstance(gained, PrivilegedCritic) and gained.controller.wave["gain"] == 2.5
+        with torch.no_grad():  # (its critic kept: the head's weights, not a fresh one's)
+            privileged.critic_head[-1].weight.fill_(0.7)
+        assert torch.equal(with_wave_gain(privileged, 2.5).critic_head[-1].weight, privileged.critic_head[-1].weight)
         with torch.no_grad():
             torch.testing.assert_close(gained.action_params({"policy": obs, "critic": torch.zeros(len(obs), 3)})[0],
                                        wave + 2.5 * (trained - wave))
