@@ -15,7 +15,8 @@ noisy draws is biased upwards) and is not selected on, nor are tables along rand
 body; refused where the table's ``run.json`` records the task, warned where it does not).
 
 Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
-mean commands where the tables have them, each controller's mean command, the one chosen and its figure),
+mean commands where the tables have them, each controller's mean command, the one chosen, its figure and its
+controller file where the table's ``run.json`` records it),
 ``DIR/best_of_k.csv`` (for k = 1 … C controllers, the mean over bodies of the expected best of k controllers drawn
 at random among the C — exactly, not sampled: :func:`best_of_k` — with the fraction of per-body control, × the
 hand-set wave and the fraction of bodies beyond their own gait), ``DIR/summary.csv`` (the chosen controllers' mean
@@ -78,8 +79,8 @@ def _fractions(chosen: np.ndarray, body: dict[str, np.ndarray], beyond: float | 
     return out
 
 
-def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[str, np.ndarray]]:
-    """(the first table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
+def _read(tables: list[Path]) -> tuple[list[list[dict[str, str]]], np.ndarray, dict[str, np.ndarray]]:
+    """(each table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
     checked to hold the same bodies in the same order (:func:`experiments.paired.same_bodies`)."""
     rows = [read_table(t, str(t), MADE_BY) for t in tables]
     _check_task(tables)
@@ -93,7 +94,17 @@ def _read(tables: list[Path]) -> tuple[list[dict[str, str]], np.ndarray, dict[st
     for table, r in zip(tables[1:], rows[1:], strict=True):
         same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
     values = np.array([[float(row["mean_command"]) for row in r] for r in rows])
-    return rows[0], values, _references(tables, rows)
+    return rows, values, _references(tables, rows)
+
+
+def _controller_files(table: Path, rows: list[dict[str, str]]) -> list[str]:
+    """The controller file each of ``table``'s rows was evaluated with, from its ``run.json`` (a set's
+    ``controller``, or a pooled table's ``controllers``, one per set folder of ``pooled``); "" where unrecorded."""
+    run = table_run(table)
+    if run.get("controller"):
+        return [str(run["controller"])] * len(rows)
+    files = dict(zip(map(str, run.get("pooled") or []), map(str, run.get("controllers") or []), strict=False))
+    return [files.get(r.get("set", ""), "") for r in rows]
 
 
 def _number(value: str) -> float:
@@ -152,12 +163,15 @@ def select(tables: list[Path], out: Path, names: list[str] | None = None) -> lis
     names = names or [table_name(t) for t in tables]
     if len(names) != len(tables) or len(set(names)) != len(names):
         raise ValueError(f"--names: one distinct name a table ({len(tables)} tables), got {names}")
-    first, values, body = _read(tables)
+    tables_rows, values, body = _read(tables)
+    first = tables_rows[0]
+    files = [_controller_files(t, r) for t, r in zip(tables, tables_rows, strict=True)]
     choice = values.argmax(0)
     chosen = values[choice, np.arange(values.shape[1])]
     rows = [{"set": r.get("set", ""), "body": r["body"], **{c: float(body[c][i]) for c in body},
              **{f"mean_command_{n}": float(values[c, i]) for c, n in enumerate(names)},
-             "chosen": names[choice[i]], "mean_command": float(chosen[i])} for i, r in enumerate(first)]
+             "chosen": names[choice[i]], "mean_command": float(chosen[i]), "controller": files[choice[i]][i]}
+            for i, r in enumerate(first)]
     curve = [{"k": k, **_fractions(best_of_k(values, k), body, beyond_best_of_k(values, body["open_loop"], k))}
              for k in range(1, len(tables) + 1)]
     summary = [summary_row("chosen controller (mean command)", chosen),

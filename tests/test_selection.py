@@ -44,20 +44,21 @@ def table(path: Path, moves: list[float], gaits: list[float], per_body: list[flo
     return write_rows(path, rows)
 
 
-def pooled_table(tmp_path: Path, headings: str) -> Path:
-    """Two one-body sets pooled by ``experiments.heldout.pool``, their run.json recording the task."""
+def pooled_table(tmp_path: Path, headings: str, file: str = "c.pt", moves: tuple[float, float] = (1.2, 1.2)) -> Path:
+    """Two one-body sets (bodies of ``x.npy`` and ``y.npy``) evaluated with the controller ``file``, pooled by
+    ``experiments.heldout.pool``, their run.json recording the task."""
     from experiments.heldout import pool
 
-    sets = []
-    for name, gait in (("x", 0.3), ("y", 0.4)):
-        folder = tmp_path / f"{headings}_{name}"
-        write_rows(folder / "bodies.csv", [{"body": 0, "open_loop": gait, "controller": 1.0, "mean_command": 1.2,
+    sets, where = [], tmp_path / f"pooled_{headings}_{Path(file).stem}"
+    for name, gait, move in zip("xy", (0.3, 0.4), moves, strict=True):
+        folder = where.with_name(f"{where.name}_{name}")
+        write_rows(folder / "bodies.csv", [{"body": 0, "open_loop": gait, "controller": 1.0, "mean_command": move,
                                             "hand_set_wave": 1.0}])
-        (folder / "run.json").write_text(json.dumps({"controller": "c.pt", "kind": "attention", "seed": 0,
+        (folder / "run.json").write_text(json.dumps({"controller": file, "kind": "attention", "seed": 0,
                                                      "control": {"headings": headings}, "bodies": f"{name}.npy"}))
         sets.append(folder)
-    pool(sets, tmp_path / f"pooled_{headings}")
-    return tmp_path / f"pooled_{headings}"
+    pool(sets, where)
+    return where
 
 
 def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_to_that(tmp_path: Path) -> None:
@@ -81,6 +82,9 @@ def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_t
     summary = {r["what"]: float(r["mean"]) for r in read_rows(tmp_path / "out" / "summary.csv")}
     assert summary["chosen: a"] == 0.5 and summary["chosen: b"] == 0.5 and summary["chosen: c"] == 0.0
     assert json.loads((tmp_path / "out" / "run.json").read_text())["names"] == ["a", "b", "c"]
+    assert [r["controller"] for r in rows] == ["", "", "", ""]  # (these tables' run.json names no file)
+    select([pooled_table(tmp_path, "any", "c.pt"), pooled_table(tmp_path, "any", "d.pt", (0.0, 2.0))], tmp_path / "f")
+    assert [r["controller"] for r in read_rows(tmp_path / "f" / "bodies.csv")] == ["c.pt", "d.pt"]
     assert [table_name(Path(p)) for p in ("runs/try_g4", "runs/try_g4/bodies.csv", "h/s64_g4_bodies.csv")] == \
         ["try_g4", "try_g4", "s64_g4"]
 
@@ -101,7 +105,7 @@ def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_pa
     with pytest.raises(ValueError, match="steer_bodies.csv: evaluated along random headings"):
         select([a, steering], tmp_path / "out")
     pooled = pooled_table(tmp_path, "random")  # (as experiments.heldout --pool records the task)
-    with pytest.raises(ValueError, match="pooled_random: evaluated along random headings"):
+    with pytest.raises(ValueError, match="pooled_random_c: evaluated along random headings"):
         select([pooled, pooled_table(tmp_path, "any")], tmp_path / "out")
     gap = table(tmp_path / "gap_bodies.csv", [1.0, float("nan")], [0.5, 0.2])
     with pytest.raises(ValueError, match="gap_bodies.csv: body 1 has no mean command"):
