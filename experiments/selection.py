@@ -15,8 +15,9 @@ noisy draws is biased upwards) and is not selected on, nor are tables along rand
 body; refused where the table's ``run.json`` records the task, warned where it does not).
 
 Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
-mean commands where the tables have them, each controller's mean command, the one chosen, its figure and its
-controller file where the table's ``run.json`` records it),
+mean commands where the tables have them, each controller's mean command, the one chosen, its figure and
+``controller_file``, the file its table's ``run.json`` records it was evaluated from — as recorded then: a file since
+moved keeps its old path),
 ``DIR/best_of_k.csv`` (for k = 1 … C controllers, the mean over bodies of the expected best of k controllers drawn
 at random among the C — exactly, not sampled: :func:`best_of_k` — with the fraction of per-body control, × the
 hand-set wave and the fraction of bodies beyond their own gait), ``DIR/summary.csv`` (the chosen controllers' mean
@@ -103,8 +104,11 @@ def _controller_files(table: Path, rows: list[dict[str, str]]) -> list[str]:
     run = table_run(table)
     if run.get("controller"):
         return [str(run["controller"])] * len(rows)
-    files = dict(zip(map(str, run.get("pooled") or []), map(str, run.get("controllers") or []), strict=False))
-    return [files.get(r.get("set", ""), "") for r in rows]
+    pooled, files = run.get("pooled") or [], run.get("controllers") or []
+    if len(pooled) != len(files):  # (a record that does not pair sets with files names none)
+        return [""] * len(rows)
+    by_set = {str(folder): "" if file is None else str(file) for folder, file in zip(pooled, files, strict=True)}
+    return [by_set.get(r.get("set", ""), "") for r in rows]
 
 
 def _number(value: str) -> float:
@@ -170,7 +174,7 @@ def select(tables: list[Path], out: Path, names: list[str] | None = None) -> lis
     chosen = values[choice, np.arange(values.shape[1])]
     rows = [{"set": r.get("set", ""), "body": r["body"], **{c: float(body[c][i]) for c in body},
              **{f"mean_command_{n}": float(values[c, i]) for c, n in enumerate(names)},
-             "chosen": names[choice[i]], "mean_command": float(chosen[i]), "controller": files[choice[i]][i]}
+             "chosen": names[choice[i]], "mean_command": float(chosen[i]), "controller_file": files[choice[i]][i]}
             for i, r in enumerate(first)]
     curve = [{"k": k, **_fractions(best_of_k(values, k), body, beyond_best_of_k(values, body["open_loop"], k))}
              for k in range(1, len(tables) + 1)]

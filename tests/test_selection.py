@@ -44,17 +44,18 @@ def table(path: Path, moves: list[float], gaits: list[float], per_body: list[flo
     return write_rows(path, rows)
 
 
-def pooled_table(tmp_path: Path, headings: str, file: str = "c.pt", moves: tuple[float, float] = (1.2, 1.2)) -> Path:
-    """Two one-body sets (bodies of ``x.npy`` and ``y.npy``) evaluated with the controller ``file``, pooled by
-    ``experiments.heldout.pool``, their run.json recording the task."""
+def pooled_table(tmp_path: Path, headings: str, file: str = "c.pt", moves: tuple[float, float] = (1.2, 1.2),
+                 files: tuple[str, str] | None = None) -> Path:
+    """Two one-body sets (bodies of ``x.npy`` and ``y.npy``) evaluated with the controller ``file`` (each set its
+    own of ``files`` where given), pooled by ``experiments.heldout.pool``, their run.json recording the task."""
     from experiments.heldout import pool
 
     sets, where = [], tmp_path / f"pooled_{headings}_{Path(file).stem}"
-    for name, gait, move in zip("xy", (0.3, 0.4), moves, strict=True):
+    for name, gait, move, each in zip("xy", (0.3, 0.4), moves, files or (file, file), strict=True):
         folder = where.with_name(f"{where.name}_{name}")
         write_rows(folder / "bodies.csv", [{"body": 0, "open_loop": gait, "controller": 1.0, "mean_command": move,
                                             "hand_set_wave": 1.0}])
-        (folder / "run.json").write_text(json.dumps({"controller": file, "kind": "attention", "seed": 0,
+        (folder / "run.json").write_text(json.dumps({"controller": each, "kind": "attention", "seed": 0,
                                                      "control": {"headings": headings}, "bodies": f"{name}.npy"}))
         sets.append(folder)
     pool(sets, where)
@@ -82,9 +83,18 @@ def test_each_body_gets_its_best_controller_and_the_curve_runs_from_their_mean_t
     summary = {r["what"]: float(r["mean"]) for r in read_rows(tmp_path / "out" / "summary.csv")}
     assert summary["chosen: a"] == 0.5 and summary["chosen: b"] == 0.5 and summary["chosen: c"] == 0.0
     assert json.loads((tmp_path / "out" / "run.json").read_text())["names"] == ["a", "b", "c"]
-    assert [r["controller"] for r in rows] == ["", "", "", ""]  # (these tables' run.json names no file)
-    select([pooled_table(tmp_path, "any", "c.pt"), pooled_table(tmp_path, "any", "d.pt", (0.0, 2.0))], tmp_path / "f")
-    assert [r["controller"] for r in read_rows(tmp_path / "f" / "bodies.csv")] == ["c.pt", "d.pt"]
+    assert [r["controller_file"] for r in rows] == ["", "", "", ""]  # (these tables' run.json names no file)
+    c = pooled_table(tmp_path, "any", "c.pt", files=("c_x.pt", "c_y.pt"))
+    d = pooled_table(tmp_path, "any", "d.pt", (0.0, 2.0))
+    select([c, d], tmp_path / "f")
+    assert [r["controller_file"] for r in read_rows(tmp_path / "f" / "bodies.csv")] == ["c_x.pt", "d.pt"]
+    alone = tmp_path / "alone"  # (one set's table: its run.json's controller)
+    write_rows(alone / "bodies.csv", [{"set": "s", "body": 0, "open_loop": 0.3, "mean_command": 0.1},
+                                      {"set": "s", "body": 1, "open_loop": 0.4, "mean_command": 9.0}])
+    (alone / "run.json").write_text(json.dumps({"controller": "e.pt", "control": {"headings": "any"}}))
+    twin = table(tmp_path / "twin_bodies.csv", [0.2, 0.0], [0.3, 0.4])
+    select([twin, alone], tmp_path / "g")
+    assert [r["controller_file"] for r in read_rows(tmp_path / "g" / "bodies.csv")] == ["", "e.pt"]
     assert [table_name(Path(p)) for p in ("runs/try_g4", "runs/try_g4/bodies.csv", "h/s64_g4_bodies.csv")] == \
         ["try_g4", "try_g4", "s64_g4"]
 
