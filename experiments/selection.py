@@ -92,8 +92,13 @@ def _read(tables: list[Path]) -> tuple[list[list[dict[str, str]]], np.ndarray, d
         empty = next((row["body"] for row in r if not np.isfinite(_number(row["mean_command"]))), None)
         if empty is not None:
             raise ValueError(f"{table}: body {empty} has no mean command (an empty or NaN figure cannot be a trial)")
-    for table, r in zip(tables[1:], rows[1:], strict=True):
-        same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
+    with warnings.catch_warnings(record=True) as drifts:  # (one word for all, not one a table and set)
+        warnings.simplefilter("always")
+        for table, r in zip(tables[1:], rows[1:], strict=True):
+            same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
+    if drifts:
+        warnings.warn(f"{len(drifts)} table-and-set pairs of these tables were measured on two hosts (their bodies' "
+                      f"own gaits within floating point of each other), the first: {drifts[0].message}", stacklevel=3)
     values = np.array([[float(row["mean_command"]) for row in r] for r in rows])
     return rows, values, _references(tables, rows)
 

@@ -161,7 +161,8 @@ def test_a_mean_command_episode_repeats_to_the_bit_so_a_trial_is_the_figure(tmp_
 def test_a_partial_reference_or_an_unrecorded_task_is_warned_about_and_a_tie_goes_to_the_first(tmp_path: Path) -> None:
     """A per-body column on part of the bodies leaves the fraction of per-body control out, warned; a table that
     records no task is warned about; one whose per-body column is whole gives it wherever it stands; on a tie the
-    earlier table is chosen; a body whose best only equals its gait is not beyond it."""
+    earlier table is chosen; a body whose best only equals its gait is not beyond it; tables of two hosts are
+    warned about once."""
     a = table(tmp_path / "a_bodies.csv", [1.0, 0.2], [0.5, 0.2], per_body=[2.0, float("nan")])
     b = table(tmp_path / "b_bodies.csv", [1.0, 0.1], [0.5, 0.2])
     with pytest.warns(UserWarning, match="per_body_mean_command is there for part of the bodies only"):
@@ -175,3 +176,7 @@ def test_a_partial_reference_or_an_unrecorded_task_is_warned_about_and_a_tie_goe
     bare = table(tmp_path / "n_bodies.csv", [1.0, 0.1], [0.5, 0.2], headings=None)
     with pytest.warns(UserWarning, match="1 of the tables .* record no task"):
         select([b, bare], tmp_path / "out3")
+    drifted = table(tmp_path / "h_bodies.csv", [1.0, 0.1], [0.5001, 0.2001])  # (another host's floating point)
+    with pytest.warns(UserWarning, match="1 table-and-set pairs of these tables were measured on two hosts") as said:
+        select([b, drifted], tmp_path / "out4")
+    assert sum("two hosts" in str(w.message) for w in said) == 1
