@@ -37,7 +37,7 @@ import json
 import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -110,7 +110,7 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
             raise SystemExit(f"--pretraining {' '.join(overrides)}: not a control run (no control section)")
         seconds, what = robot_seconds(cfg, cfg.trainer.epochs), [" ".join(overrides)]
     charged: set[Path] = set()
-    origins: dict[Any, tuple[float, int, str, int]] = {}  # (a run's origin -> its seconds, epochs, run, its entry)
+    origins: dict[Any, _Charged] = {}  # (a run's origin -> what is charged for it)
     for run, epochs, pooled in _lineage(runs or ()):
         if run.resolve() in charged:  # (a run named twice, or named and pooled: its rollouts happened once)
             raise SystemExit(f"--pretraining-runs: {run} is charged twice (named twice, or named beside a pooled "
@@ -124,17 +124,26 @@ def pretraining_seconds(overrides: list[str] | None, runs: list[Path] | None = N
         # where the copy was made (a bank copied and trained on); two branches both trained past the copy would
         # each have rolled out their own epochs after it, and the shorter branch's are not charged.
         origin = _origin(run) or run.resolve()
-        if origin in origins:
-            before = origins[origin]
-            if epochs <= before[1]:
-                what.append(f"{name}: the same run as {before[2]} (copied), charged there")
-                continue
-            seconds -= before[0]
-            what[before[3]] += f": the same run as {run} (copied), charged there"
-        origins[origin] = (robot_seconds(cfg, epochs), epochs, str(run), len(what))
-        seconds += origins[origin][0]
+        before = origins.get(origin)
+        if before is not None and epochs <= before.epochs:
+            what.append(f"{name}: the same run as {before.run} (copied), charged there")
+            continue
+        if before is not None:  # (this copy reached further: charged instead, the other's entry says so)
+            what[before.entry] += f": the same run as {run} (copied), charged there"
+        origins[origin] = _Charged(robot_seconds(cfg, epochs), epochs, str(run), len(what))
         what.append(name)
+    seconds += sum(charged_run.seconds for charged_run in origins.values())
     return seconds, " + ".join(what) if what else "not counted"
+
+
+class _Charged(NamedTuple):
+    """What :func:`pretraining_seconds` charges for one run origin: its robot-seconds at the most epochs any copy
+    reached, those epochs, the run charged and its entry in the description."""
+
+    seconds: float
+    epochs: int
+    run: str
+    entry: int
 
 
 def _origin(run: Path) -> tuple[str, ...] | None:

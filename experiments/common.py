@@ -235,6 +235,12 @@ def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
     return path
 
 
+def missing_figure(value: str) -> bool:
+    """Whether a table's cell holds no figure: an empty cell, or the ``nan`` :func:`write_rows` writes for one (a
+    body without per-body control)."""
+    return value in ("", "nan")
+
+
 def read_rows(path: Path) -> list[dict[str, str]]:
     """Inverse of :func:`write_rows`: the table's rows as dicts of strings."""
     with open(path, newline="") as f:

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from experiments.common import mean_band, summary_row, write_rows
-from experiments.paired import check_drift, read_table, same_gait
+from experiments.common import mean_band, missing_figure, summary_row, write_rows
+from experiments.paired import check_drift, read_table, same_gait, warn_hosts
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave, wave_at_gain
 from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step, with_wave_gain
@@ -426,10 +426,11 @@ def _reference_sets(reference: Path, count: int) -> list[list[dict]]:
     return list(groups.values())
 
 
-def _take_per_body(table: list[dict], reference: list[dict], folder: Path, source: Path) -> None:
+def _take_per_body(table: list[dict], reference: list[dict], folder: Path, source: Path) -> str | None:
     """Each body's per-body columns from ``reference`` (the same set in an earlier pooled table), in place; the same
     body under the same episode settings walks its own gait the same — to the bit on one host, within
-    :data:`experiments.paired.HOST_DRIFT` on another (then warned) —, so the open-loop figures must agree."""
+    :data:`experiments.paired.HOST_DRIFT` on another —, so the open-loop figures must agree. Returns the drift of
+    another host in words (:func:`~experiments.paired.check_drift`), None on one host."""
     if len(reference) != len(table):
         raise ValueError(f"--per-body-from {source}: its set for {folder} holds {len(reference)} bodies, and "
                          f"{folder} {len(table)}")
@@ -440,8 +441,8 @@ def _take_per_body(table: list[dict], reference: list[dict], folder: Path, sourc
                              f"{gait[0]:.6f} here and {gait[1]:.6f} there: not the same bodies, or other episode "
                              "settings (evaluate with the reference's --headings, --eval-episodes and seed)")
         mine["per_body"], mine["per_body_mean_command"] = theirs["per_body"], theirs["per_body_mean_command"]
-    check_drift([float(r["open_loop"]) for r in table], [float(r["open_loop"]) for r in reference],
-                f"--per-body-from {source}: {folder}")
+    return check_drift([float(r["open_loop"]) for r in table], [float(r["open_loop"]) for r in reference],
+                       f"--per-body-from {source}: {folder}")
 
 
 def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list[dict]:
@@ -458,16 +459,16 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     taken instead of the sets' own (sets evaluated without ``--per-body``: no per-body controllers trained
     again); each body's open-loop figure must equal the reference's."""
     reference = _reference_sets(per_body_from, len(sets)) if per_body_from is not None else None
-    tables, controllers, settings, sources = [], [], [], []
+    tables, controllers, settings, sources, drifts = [], [], [], [], []
     for i, folder in enumerate(sets):
         table = read_table(Path(folder) / "bodies.csv", f"--pool {folder}", "--evaluate PATH --bodies ...")
         if reference is not None:
-            _take_per_body(table, reference[i], folder, per_body_from)
+            drifts.append(_take_per_body(table, reference[i], folder, per_body_from))
         missing = [c for c in POOLED if not table or c not in table[0]]
         if missing:
             raise ValueError(f"--pool {folder}: bodies.csv lacks {missing} (the hand-set wave's column needs a "
                              "controller with strokes)")
-        gap = next(((r["body"], c) for r in table for c in POOLED if _missing(r[c])), None)
+        gap = next(((r["body"], c) for r in table for c in POOLED if missing_figure(r[c])), None)
         if gap is not None:
             raise ValueError(f"--pool {folder}: bodies.csv has no {gap[1]} for body {gap[0]}")
         if sum(c in table[0] for c in PER_BODY) == 1:
@@ -486,6 +487,7 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
         controllers.append(run.get("controller"))
         sources.append({"bodies": run.get("bodies"), "n": len(table)})
         tables.append(table)
+    warn_hosts([d for d in drifts if d])
     columns = (*POOLED, *_per_body_columns(tables, sets))
     rows = [{"set": str(folder), **{c: r[c] for c in ("body", *columns)}}
             for folder, table in zip(sets, tables, strict=True) for r in table]
@@ -498,14 +500,9 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
     return summary
 
 
-def _missing(value: str) -> bool:
-    """Whether a bodies.csv cell holds no figure (an empty cell, or the nan of a body without per-body control)."""
-    return value in ("", "nan")
-
-
 def _per_body_columns(tables: list[list[dict]], sets: list[Path]) -> tuple[str, ...]:
     """:data:`PER_BODY` where every body of every set has its values, () where none has any; refused between."""
-    counts = [sum(not any(_missing(row.get(c, "")) for c in PER_BODY) for row in table) for table in tables]
+    counts = [sum(not any(missing_figure(row.get(c, "")) for c in PER_BODY) for row in table) for table in tables]
     if all(k == len(t) for k, t in zip(counts, tables, strict=True)):
         return PER_BODY
     if not any(counts):

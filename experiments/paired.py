@@ -40,20 +40,28 @@ def same_gait(a: float, b: float) -> bool:
     return bool(np.isclose(a, b, rtol=HOST_DRIFT["rtol"], atol=HOST_DRIFT["atol"]))
 
 
-def check_drift(gaits_a: list[float], gaits_b: list[float], where: str) -> None:
+def check_drift(gaits_a: list[float], gaits_b: list[float], where: str) -> str | None:
     """One set's own-gait figures in two tables, after every body passed :func:`same_gait`: a set moved as a whole
     (the median |Δ| beyond :data:`HOST_DRIFT`'s) is other episode settings, refused naming ``where``; a set moved
-    at all was evaluated on another host, warned with the drift."""
+    at all was evaluated on another host, which is returned in words (None where every figure is equal) for the
+    caller to warn about once (:func:`warn_hosts`)."""
     drift = np.abs(np.asarray(gaits_a, dtype=float) - np.asarray(gaits_b, dtype=float))
     median = float(np.median(drift)) if drift.size else 0.0
     if median > HOST_DRIFT["median"]:
         raise ValueError(f"{where}: the bodies walked their own gaits a median {median:.4f} apart (the same bodies on "
                          f"another host: < {HOST_DRIFT['median']}): other episode settings (evaluate with the same "
                          "--headings, --eval-episodes and seed)")
-    if drift.size and drift.max() > 0.0:  # (one host: the same bits, so the same figures to the digit)
-        warnings.warn(f"{where}: the bodies walked their own gaits within the floating point of another host "
-                      f"(median |Δ| {median:.1e}, largest {max(drift):.1e} voxel lengths): the tables were measured "
-                      "on two hosts", stacklevel=4)
+    if not (drift.size and drift.max() > 0.0):  # (one host: the same bits, so the same figures to the digit)
+        return None
+    return (f"{where}: the bodies walked their own gaits within the floating point of another host (median |Δ| "
+            f"{median:.1e}, largest {drift.max():.1e} voxel lengths)")
+
+
+def warn_hosts(drifts: list[str]) -> None:
+    """One warning for every set of :func:`check_drift`'s that was measured on another host (none: no warning)."""
+    if drifts:
+        warnings.warn(f"{len(drifts)} table-and-set pairs of these tables were measured on two hosts (their bodies' "
+                      f"own gaits within floating point of each other), the first: {drifts[0]}", stacklevel=3)
 
 
 def read_table(source: Path, who: str, made_by: str) -> list[dict[str, str]]:
@@ -95,9 +103,10 @@ def body_keys(rows: list[dict[str, str]], sets: dict[str, str] | None = None) ->
 
 
 def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, name_b: str,
-                sets: tuple[dict[str, str], dict[str, str]] = ({}, {})) -> None:
+                sets: tuple[dict[str, str], dict[str, str]] = ({}, {})) -> list[str]:
     """Refuse, naming the first body that differs, tables of other bodies or other episode settings (the same body
-    under the same settings walks its own gait the same). ``sets``: each table's :func:`set_files`, used where both
+    under the same settings walks its own gait the same); returns the sets measured on two hosts, in words
+    (:func:`check_drift`). ``sets``: each table's :func:`set_files`, used where both
     record the sets of all their rows (two folders of one set file then match whatever their names)."""
     if len(a) != len(b):
         raise ValueError(f"{name_a} holds {len(a)} bodies and {name_b} {len(b)}: compare tables of the same bodies")
@@ -110,10 +119,12 @@ def same_bodies(a: list[dict[str, str]], b: list[dict[str, str]], name_a: str, n
             raise ValueError(f"body {key_a} of {name_a} is not body {key_b} of {name_b} (its own gait "
                              f"{gait[0]:.6f} against {gait[1]:.6f}): the same bodies in the same order, evaluated "
                              "with the same --headings, --eval-episodes and seed")
+    drifts = []
     for name in dict.fromkeys(key[0] for key in keys[0]):  # (set by set: a set under other settings moves whole)
         rows = [i for i, key in enumerate(keys[0]) if key[0] == name]
-        check_drift([float(a[i]["open_loop"]) for i in rows], [float(b[i]["open_loop"]) for i in rows],
-                    f"{name_a} against {name_b}{f' (set {name})' if name else ''}")
+        drifts.append(check_drift([float(a[i]["open_loop"]) for i in rows], [float(b[i]["open_loop"]) for i in rows],
+                                  f"{name_a} against {name_b}{f' (set {name})' if name else ''}"))
+    return [d for d in drifts if d]
 
 
 def compare(a: Path, b: Path) -> list[dict[str, object]]:
@@ -125,7 +136,7 @@ def compare(a: Path, b: Path) -> list[dict[str, object]]:
         missing = [c for c in ("body", "open_loop", *COLUMNS.values()) if not rows or c not in rows[0]]
         if missing:
             raise ValueError(f"{name}: no {missing} column (a held-out bodies table of {made_by})")
-    same_bodies(rows_a, rows_b, str(a), str(b), (set_files(a), set_files(b)))
+    warn_hosts(same_bodies(rows_a, rows_b, str(a), str(b), (set_files(a), set_files(b))))
     out = []
     for what, column in COLUMNS.items():
         va, vb = (np.array([float(r[column]) for r in rows]) for rows in (rows_a, rows_b))

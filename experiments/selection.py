@@ -35,8 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import summary_row, write_rows
-from experiments.paired import read_table, same_bodies, set_files, table_run
+from experiments.common import missing_figure, summary_row, write_rows
+from experiments.paired import read_table, same_bodies, set_files, table_run, warn_hosts
 
 MADE_BY = "python -m experiments.control --evaluate ... --bodies, or experiments.heldout --pool"
 REFERENCES = ("open_loop", "hand_set_wave", "per_body_mean_command")
@@ -49,9 +49,7 @@ def best_of_k(values: np.ndarray, k: int) -> np.ndarray:
     the i-th is the best of a k-subset when the subset holds it and k − 1 of the i − 1 below it:
     E = Σᵢ v₍ᵢ₎ · C(i − 1, k − 1) / C(C, k). k = 1 is the controllers' mean, k = C their best."""
     values = np.asarray(values, dtype=np.float64)
-    count = values.shape[0]
-    if not 1 <= k <= count:
-        raise ValueError(f"best of k: k must be in [1, {count}] (the controllers given), got {k}")
+    count = _check_k(values, k)
     weights = np.array([comb(i, k - 1) for i in range(count)], dtype=np.float64) / comb(count, k)
     return weights @ np.sort(values, axis=0)
 
@@ -60,11 +58,17 @@ def beyond_best_of_k(values: np.ndarray, gaits: np.ndarray, k: int) -> float:
     """The expected fraction of bodies on which the best of ``k`` random controllers among C moves beyond the body's
     own gait (``values`` ``[C, M]``, ``gaits`` ``[M]``): the best fails only when all k are among the n_b
     controllers at or below the gait, with probability C(n_b, k) / C(C, k)."""
-    count = values.shape[0]
+    count = _check_k(values, k)
+    fails = np.array([comb(n, k) for n in range(count + 1)], dtype=np.float64) / comb(count, k)  # [n_b = 0 … C]
+    return float(np.mean(1.0 - fails[(np.asarray(values) <= np.asarray(gaits)[None]).sum(0)]))
+
+
+def _check_k(values: np.ndarray, k: int) -> int:
+    """The number of controllers C of ``values [C, M]``, refusing a k that is no subset's size."""
+    count = np.shape(values)[0]
     if not 1 <= k <= count:
         raise ValueError(f"best of k: k must be in [1, {count}] (the controllers given), got {k}")
-    at_or_below = (np.asarray(values) <= np.asarray(gaits)[None]).sum(0)
-    return float(np.mean([1.0 - comb(int(n), k) / comb(count, k) for n in at_or_below]))
+    return count
 
 
 def _fractions(chosen: np.ndarray, body: dict[str, np.ndarray], beyond: float | None = None) -> dict[str, float]:
@@ -84,29 +88,23 @@ def _read(tables: list[Path]) -> tuple[list[list[dict[str, str]]], np.ndarray, d
     """(each table's rows, each controller's mean command ``[C, M]``, the bodies' reference columns) of tables
     checked to hold the same bodies in the same order (:func:`experiments.paired.same_bodies`)."""
     rows = [read_table(t, str(t), MADE_BY) for t in tables]
-    _check_task(tables)
     for table, r in zip(tables, rows, strict=True):
         missing = [c for c in ("body", "open_loop", "mean_command") if not r or c not in r[0]]
         if missing:
             raise ValueError(f"{table}: no {missing} column (a held-out bodies table of {MADE_BY})")
-        empty = next((row["body"] for row in r if not np.isfinite(_number(row["mean_command"]))), None)
+        empty = next((row["body"] for row in r if missing_figure(row["mean_command"])), None)
         if empty is not None:
             raise ValueError(f"{table}: body {empty} has no mean command (an empty or NaN figure cannot be a trial)")
-    with warnings.catch_warnings(record=True) as drifts:  # (one word for all, not one a table and set)
-        warnings.simplefilter("always")
-        for table, r in zip(tables[1:], rows[1:], strict=True):
-            same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]), set_files(table)))
-    if drifts:
-        warnings.warn(f"{len(drifts)} table-and-set pairs of these tables were measured on two hosts (their bodies' "
-                      f"own gaits within floating point of each other), the first: {drifts[0].message}", stacklevel=3)
+    warn_hosts([drift for table, r in zip(tables[1:], rows[1:], strict=True)
+                for drift in same_bodies(rows[0], r, str(tables[0]), str(table), (set_files(tables[0]),
+                                                                                   set_files(table)))])
     values = np.array([[float(row["mean_command"]) for row in r] for r in rows])
     return rows, values, _references(tables, rows)
 
 
-def _controller_files(table: Path, rows: list[dict[str, str]]) -> list[str]:
-    """The controller file each of ``table``'s rows was evaluated with, from its ``run.json`` (a set's
+def _controller_files(run: dict, rows: list[dict[str, str]]) -> list[str]:
+    """The controller file each of a table's rows was evaluated with, from its ``run.json`` (``run``: a set's
     ``controller``, or a pooled table's ``controllers``, one per set folder of ``pooled``); "" where unrecorded."""
-    run = table_run(table)
     if run.get("controller"):
         return [str(run["controller"])] * len(rows)
     pooled, files = run.get("pooled") or [], run.get("controllers") or []
@@ -116,18 +114,11 @@ def _controller_files(table: Path, rows: list[dict[str, str]]) -> list[str]:
     return [by_set.get(r.get("set", ""), "") for r in rows]
 
 
-def _number(value: str) -> float:
-    try:
-        return float(value)
-    except ValueError:
-        return float("nan")
-
-
-def _check_task(tables: list[Path]) -> None:
-    """Refuse tables along random headings (where their ``run.json`` records the task): one draw of headings a
-    body, on which the best of several controllers is biased upwards for the next draw, so it is no trial. Tables
-    that record no task (pooled before 2026-12-01) are warned about."""
-    tasks = [(table_run(t).get("control") or {}).get("headings") for t in tables]
+def _check_task(tables: list[Path], runs: list[dict]) -> None:
+    """Refuse tables along random headings (where their ``run.json``, ``runs``, records the task): one draw of
+    headings a body, on which the best of several controllers is biased upwards for the next draw, so it is no
+    trial. Tables that record no task (pooled before 2026-12-01) are warned about."""
+    tasks = [(run.get("control") or {}).get("headings") for run in runs]
     drawn = [str(t) for t, task in zip(tables, tasks, strict=True) if task == "random"]
     if drawn:
         raise ValueError(f"{drawn[0]}: evaluated along random headings, one draw of them a body: the best of several "
@@ -147,7 +138,7 @@ def _references(tables: list[Path], rows: list[list[dict[str, str]]]) -> dict[st
     body: dict[str, np.ndarray] = {}
     for column in REFERENCES:
         present = [(t, r) for t, r in zip(tables, rows, strict=True) if column in r[0]]
-        whole = next((r for _, r in present if all(np.isfinite(_number(row[column])) for row in r)), None)
+        whole = next((r for _, r in present if not any(missing_figure(row[column]) for row in r)), None)
         if whole is not None:
             body[column] = np.array([float(row[column]) for row in whole])
         elif present:
@@ -172,9 +163,11 @@ def select(tables: list[Path], out: Path, names: list[str] | None = None) -> lis
     names = names or [table_name(t) for t in tables]
     if len(names) != len(tables) or len(set(names)) != len(names):
         raise ValueError(f"--names: one distinct name a table ({len(tables)} tables), got {names}")
+    runs = [table_run(t) for t in tables]
+    _check_task(tables, runs)
     tables_rows, values, body = _read(tables)
     first = tables_rows[0]
-    files = [_controller_files(t, r) for t, r in zip(tables, tables_rows, strict=True)]
+    files = [_controller_files(run, r) for run, r in zip(runs, tables_rows, strict=True)]
     choice = values.argmax(0)
     chosen = values[choice, np.arange(values.shape[1])]
     rows = [{"set": r.get("set", ""), "body": r["body"], **{c: float(body[c][i]) for c in body},
@@ -191,9 +184,9 @@ def select(tables: list[Path], out: Path, names: list[str] | None = None) -> lis
     write_rows(out / "bodies.csv", rows)
     write_rows(out / "best_of_k.csv", curve)
     write_rows(out / "summary.csv", summary)
-    run = {"tables": [str(t) for t in tables], "names": names, "bodies": len(first),
-           "controllers": [table_run(t).get("controllers") or table_run(t).get("controller") for t in tables]}
-    (out / "run.json").write_text(json.dumps(run, indent=1))
+    record = {"tables": [str(t) for t in tables], "names": names, "bodies": len(first),
+              "controllers": [run.get("controllers") or run.get("controller") for run in runs]}
+    (out / "run.json").write_text(json.dumps(record, indent=1))
     return curve
 
 
