@@ -21,7 +21,7 @@ import json
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -233,7 +233,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
     grids = read_bodies(bodies, len(sim.materials))
     trained = tuple(saved.controller.box)
     saved = controller_for(saved.path, grids)  # (its own box where the bodies fit it; the MLP refused otherwise)
-    control = _evaluated_control(saved, how)
+    control = evaluated_control(saved, how)
     m, n, box = len(grids), how.episodes, tuple(saved.controller.box)
     controller = (saved.controller if how.wave_gain is None else with_wave_gain(saved.controller, how.wave_gain))
     controller = controller.eval()
@@ -251,7 +251,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
         rows_body = torch.arange(m).repeat_interleave(n)
         own = _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
         groups += [("per_body", own, False, True), ("per_body_mean_command", own, False, False)]
-    returns, obs, heading = _play(env, groups, control.steps, how.seed)
+    returns, _, obs, heading = play(env, groups, control.steps, how.seed)
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
     along = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=heading[: m * n],
                                    planar=control.headings == "any", moves=np.repeat(moves, n, 0)).reshape(m, n)
@@ -269,7 +269,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
     return rows, summary
 
 
-def _evaluated_control(saved: Any, how: Evaluation) -> ControlConfig:
+def evaluated_control(saved: Any, how: Evaluation) -> ControlConfig:
     """The episode the bodies are played in: the controller's own, along ``how.headings`` where given (warned: another
     task than it trained for); a ``how.symmetrize`` group that changes the task is refused here, before any per-body
     bank is trained."""
@@ -303,9 +303,19 @@ def played_gain(controller: torch.nn.Module) -> float | None:
     return None if gain == 1.0 else float(gain)
 
 
-def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[np.ndarray, torch.Tensor, np.ndarray]:
+class Played(NamedTuple):
+    """What :func:`play` returns: each group's return ``[G, rows]``, the return after each decision
+    ``[steps, G, rows]`` (the last equals ``returns``), the last observation and the episode's headings."""
+
+    returns: np.ndarray
+    after: np.ndarray
+    last_obs: torch.Tensor
+    heading: np.ndarray
+
+
+def play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> Played:
     """One episode of every group ``(name, net, sensed channels zeroed, stochastic)`` on its block of ``env``'s
-    rows. Returns the returns ``[G, rows]``, the last observation and the episode's headings."""
+    rows (block g is rows ``g·R/G … (g+1)·R/G``)."""
     sensed = [env.channels.index(c) for c in SENSED if c in env.channels]
 
     def view(obs: torch.Tensor, zeroed: bool) -> torch.Tensor:
@@ -318,6 +328,7 @@ def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[
     generator = torch.Generator().manual_seed(seed)
     obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
     states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
+    after = []
     for _ in range(steps):
         heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
         # One draw a step for every group (common random numbers): a stochastic group's episode is the same whichever
@@ -330,7 +341,8 @@ def _play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> tuple[
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
         total += reward.double()
-    return total.numpy().reshape(len(groups), -1), obs, heading
+        after.append(total.numpy().reshape(len(groups), -1).copy())
+    return Played(after[-1], np.stack(after), obs, heading)
 
 
 def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs: torch.Tensor,

@@ -1,8 +1,18 @@
 """Each body the best of several controllers, chosen by one trial each (few-shot selection, no learning)::
 
+    python -m experiments.selection --try CONTROLLER_A CONTROLLER_B ... --bodies BODIES.npy --out DIR
+        [--trial-decisions D] [--reference TABLE] [--names A B ...] [--headings any|none]
     python -m experiments.selection TABLE_A TABLE_B ... --out DIR [--names A B ...]
 
-The tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies`` or
+With ``--try`` (:func:`try_controllers`) the controllers are played here, each by its mean command for one episode
+on every body, all in one env (on the 2-core host, 17 students on the 93 held-out bodies in about 3 minutes, where
+17 evaluations take about 40), and each body's controller is chosen by its move after ``D`` decisions (default: the
+whole episode), then scored by its whole episode; ``moves.npy`` keeps every controller's move after each decision.
+The bodies' own gaits and the hand-set wave come with it; ``--reference``, a held-out table of the same bodies
+evaluated with ``--per-body``, adds the fraction of per-body control. ``DIR/bodies.csv``'s ``controller_file`` is the
+file to drive each body with.
+
+Without it, the tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies`` or
 ``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results keep them), one per
 controller. A body's trial is its table's mean-command episode: the simulator and a controller's mean command are
 deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
@@ -30,37 +40,60 @@ from __future__ import annotations
 import argparse
 import json
 import warnings
+from dataclasses import fields, replace
 from math import comb
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
+import torch
 
 from experiments.common import missing_figure, summary_row, write_rows
+from experiments.heldout import Evaluation, evaluated_control, hand_set_wave, play, read_bodies
 from experiments.paired import read_table, same_bodies, set_files, table_run, warn_hosts
+from freeform.agents.controller_file import controller_for, read_controller
+from freeform.envs.control import ControlConfig, ControlEnv, open_loop_displacement, open_loop_moves
+from freeform.envs.control_config import described_differences
+from freeform.sim import SimConfig
 
 MADE_BY = "python -m experiments.control --evaluate ... --bodies, or experiments.heldout --pool"
 REFERENCES = ("open_loop", "hand_set_wave", "per_body_mean_command")
 """The columns that describe a body rather than a controller, taken from the first table."""
 
 
-def best_of_k(values: np.ndarray, k: int) -> np.ndarray:
-    """The expected best of ``k`` controllers drawn at random without replacement among C: ``values`` ``[C, M]``
-    (each controller's figure on each of M bodies) → ``[M]``. With a body's figures sorted, v₍₁₎ ≤ … ≤ v₍C₎,
-    the i-th is the best of a k-subset when the subset holds it and k − 1 of the i − 1 below it:
-    E = Σᵢ v₍ᵢ₎ · C(i − 1, k − 1) / C(C, k). k = 1 is the controllers' mean, k = C their best."""
+def best_of_k(values: np.ndarray, k: int, by: np.ndarray | None = None) -> np.ndarray:
+    """The expected figure of the best of ``k`` controllers drawn at random without replacement among C: ``values``
+    ``[C, M]`` (each controller's figure on each of M bodies) → ``[M]``; "best" by ``by`` ``[C, M]`` (a trial's
+    figure, None: ``values`` themselves), a tie to the earlier controller. With a body's controllers ordered by ``by``,
+    the i-th is chosen from a k-subset when the subset holds it and k − 1 of the i − 1 before it:
+    E = Σᵢ v₍ᵢ₎ · C(i − 1, k − 1) / C(C, k). k = 1 is the controllers' mean, k = C the chosen one's figure."""
+    return _choice_weights(values, k) @ _ordered(values, values if by is None else by)
+
+
+def beyond_best_of_k(values: np.ndarray, gaits: np.ndarray, k: int, by: np.ndarray | None = None) -> float:
+    """The expected fraction of bodies on which the best of ``k`` random controllers among C (by ``by``, as
+    :func:`best_of_k`) moves beyond the body's own gait (``values`` ``[C, M]``, ``gaits`` ``[M]``)."""
     values = np.asarray(values, dtype=np.float64)
-    count = _check_k(values, k)
-    weights = np.array([comb(i, k - 1) for i in range(count)], dtype=np.float64) / comb(count, k)
-    return weights @ np.sort(values, axis=0)
+    beyond = _ordered(values, values if by is None else by) > np.asarray(gaits)[None]
+    return float(np.mean(_choice_weights(values, k) @ beyond))
 
 
-def beyond_best_of_k(values: np.ndarray, gaits: np.ndarray, k: int) -> float:
-    """The expected fraction of bodies on which the best of ``k`` random controllers among C moves beyond the body's
-    own gait (``values`` ``[C, M]``, ``gaits`` ``[M]``): the best fails only when all k are among the n_b
-    controllers at or below the gait, with probability C(n_b, k) / C(C, k)."""
+def _choice_weights(values: np.ndarray, k: int) -> np.ndarray:
+    """[C]: the chance that the i-th of C ordered controllers is the last of a random k-subset, C(i, k − 1) / C(C, k)
+    for i = 0 … C − 1."""
     count = _check_k(values, k)
-    fails = np.array([comb(n, k) for n in range(count + 1)], dtype=np.float64) / comb(count, k)  # [n_b = 0 … C]
-    return float(np.mean(1.0 - fails[(np.asarray(values) <= np.asarray(gaits)[None]).sum(0)]))
+    return np.array([comb(i, k - 1) for i in range(count)], dtype=np.float64) / comb(count, k)
+
+
+def _ordered(values: np.ndarray, by: np.ndarray) -> np.ndarray:
+    """``values`` [C, M] reordered on each body by ``by`` ascending, ties with the earlier controller last (so that
+    the last of any subset is the one an argmax over it, in the controllers' order, picks)."""
+    values, by = np.asarray(values, dtype=np.float64), np.asarray(by, dtype=np.float64)
+    if by.shape != values.shape:
+        raise ValueError(f"best of k: the trial's figures {by.shape} are not the values' {values.shape}")
+    index = np.broadcast_to(np.arange(len(values))[:, None], values.shape)
+    order = np.lexsort((-index, by), axis=0)
+    return np.take_along_axis(values, order, axis=0)
 
 
 def _check_k(values: np.ndarray, k: int) -> int:
@@ -155,39 +188,176 @@ def table_name(table: Path) -> str:
     return table.name.removesuffix("_bodies.csv").removesuffix(".csv")
 
 
+def controller_name(source: Path) -> str:
+    """A controller's name: its folder's for a folder or a ``controller.pt`` (``iterated64/gen4/controller.pt`` →
+    ``gen4``), its run's for a checkpoint (``runs/s64/checkpoints/last.pt`` → ``s64``), else the file's stem."""
+    if source.suffix != ".pt":
+        return source.name
+    if source.parent.name == "checkpoints":
+        return source.parent.parent.name
+    return source.parent.name if source.name == "controller.pt" else source.stem
+
+
 def select(tables: list[Path], out: Path, names: list[str] | None = None) -> list[dict]:
     """Choose each body's controller among ``tables`` (one per controller, named ``names`` or by their files; a tie
     goes to the earlier table) and write the module's tables to ``out``. Returns ``best_of_k.csv``'s rows."""
     if len(tables) < 2:
         raise ValueError(f"select among at least two controllers' tables, got {len(tables)}")
-    names = names or [table_name(t) for t in tables]
-    if len(names) != len(tables) or len(set(names)) != len(names):
-        raise ValueError(f"--names: one distinct name a table ({len(tables)} tables), got {names}")
+    names = _names(names, [table_name(t) for t in tables], "table")
     runs = [table_run(t) for t in tables]
     _check_task(tables, runs)
     tables_rows, values, body = _read(tables)
-    first = tables_rows[0]
     files = [_controller_files(run, r) for run, r in zip(runs, tables_rows, strict=True)]
-    choice = values.argmax(0)
-    chosen = values[choice, np.arange(values.shape[1])]
-    rows = [{"set": r.get("set", ""), "body": r["body"], **{c: float(body[c][i]) for c in body},
-             **{f"mean_command_{n}": float(values[c, i]) for c, n in enumerate(names)},
-             "chosen": names[choice[i]], "mean_command": float(chosen[i]), "controller_file": files[choice[i]][i]}
-            for i, r in enumerate(first)]
-    curve = [{"k": k, **_fractions(best_of_k(values, k), body, beyond_best_of_k(values, body["open_loop"], k))}
-             for k in range(1, len(tables) + 1)]
+    record = {"tables": [str(t) for t in tables], "names": names, "bodies": len(tables_rows[0]),
+              "controllers": [run.get("controllers") or run.get("controller") for run in runs]}
+    return _choose(Choice(values, body, names, [{"set": r.get("set", ""), "body": r["body"]} for r in tables_rows[0]],
+                          files), out, record)
+
+
+def _names(names: list[str] | None, default: list[str], each: str) -> list[str]:
+    """``--names`` (one distinct name ``each``: a table, a controller) or the default."""
+    names = names or default
+    if len(names) != len(default) or len(set(names)) != len(names):
+        raise ValueError(f"--names: one distinct name a {each} ({len(default)} {each}s; give --names where the "
+                         f"default names repeat), got {names}")
+    return names
+
+
+class Choice(NamedTuple):
+    """What a choice is made from: the controllers' figures ``values`` [C, M] (mean command, whole episodes), the
+    bodies' reference columns (:data:`REFERENCES`, [M] each), the controllers' names, each body's ``set`` and
+    ``body``, each controller's file per body, and the trial ``by`` [C, M] it is chosen by (None: ``values``)."""
+
+    values: np.ndarray
+    body: dict[str, np.ndarray]
+    names: list[str]
+    keys: list[dict]
+    files: list[list[str]]
+    by: np.ndarray | None = None
+
+
+def _choose(c: Choice, out: Path, record: dict) -> list[dict]:
+    """Each body the controller whose trial moved it furthest (a tie to the earlier one), scored by its whole
+    episode; writes ``out``'s tables (the module's docstring) and returns ``best_of_k.csv``'s rows."""
+    by = c.values if c.by is None else c.by
+    choice = by.argmax(0)
+    chosen = c.values[choice, np.arange(c.values.shape[1])]
+    trials = {} if c.by is None else {f"trial_{n}": c.by[i] for i, n in enumerate(c.names)}
+    rows = [{**key, **{r: float(c.body[r][i]) for r in c.body},
+             **{f"mean_command_{n}": float(c.values[j, i]) for j, n in enumerate(c.names)},
+             **{t: float(v[i]) for t, v in trials.items()},
+             "chosen": c.names[choice[i]], "mean_command": float(chosen[i]), "controller_file": c.files[choice[i]][i]}
+            for i, key in enumerate(c.keys)]
+    curve = [{"k": k, **_fractions(best_of_k(c.values, k, c.by), c.body,
+                                   beyond_best_of_k(c.values, c.body["open_loop"], k, c.by))}
+             for k in range(1, len(c.names) + 1)]
     summary = [summary_row("chosen controller (mean command)", chosen),
-               *({"what": what, "n": len(chosen), "mean": value} for what, value in _fractions(chosen, body).items()
+               *({"what": what, "n": len(chosen), "mean": value} for what, value in _fractions(chosen, c.body).items()
                  if what != "mean"),
-               *({"what": f"chosen: {n}", "n": len(chosen), "mean": float(np.mean(choice == c))}
-                 for c, n in enumerate(names))]
+               *({"what": f"chosen: {n}", "n": len(chosen), "mean": float(np.mean(choice == j))}
+                 for j, n in enumerate(c.names))]
     write_rows(out / "bodies.csv", rows)
     write_rows(out / "best_of_k.csv", curve)
     write_rows(out / "summary.csv", summary)
-    record = {"tables": [str(t) for t in tables], "names": names, "bodies": len(first),
-              "controllers": [run.get("controllers") or run.get("controller") for run in runs]}
     (out / "run.json").write_text(json.dumps(record, indent=1))
     return curve
+
+
+@torch.no_grad()
+def try_controllers(sources: list[Path], bodies: Path, out: Path, trial: int | None = None,
+                    names: list[str] | None = None, headings: str | None = None,
+                    reference: Path | None = None) -> list[dict]:
+    """Play every controller of ``sources`` (``controller.pt`` files, folders holding one, or control runs) by its
+    mean command, one episode on each body of ``bodies`` (:func:`experiments.heldout.read_bodies`), all in one env
+    — a block of rows a controller, the hand-set wave's block beside them where the actions are strokes — and
+    choose each body's controller by its move after ``trial`` decisions (None: the whole episode), scored by its
+    whole episode. The controllers must play the same episode (one ``ControlConfig`` and ``SimConfig``, the
+    headings ``headings`` or their own, not random: one draw is no trial) in one box. ``reference``: a held-out
+    table of the same bodies (checked body by body) whose per-body column gives the fraction of per-body control.
+    Writes what :func:`select` writes (``bodies.csv`` with ``trial_<name>`` columns when ``trial`` is set) and
+    ``moves.npy`` (float64 ``[C, decisions, M]``: each controller's move after each decision). Returns
+    ``best_of_k.csv``'s rows."""
+    if len(sources) < 2:
+        raise ValueError(f"--try: at least two controllers to choose among, got {len(sources)}")
+    names = _names(names, [controller_name(Path(s)) for s in sources], "controller")
+    saved = [read_controller(Path(s)) for s in sources]
+    sim = saved[0].sim or SimConfig()
+    grids = read_bodies(bodies, len(sim.materials))
+    saved = [controller_for(s.path, grids) for s in saved]
+    control = _one_episode(saved, sim, headings)
+    ref_rows = _reference_rows(reference, len(grids)) if reference is not None else None
+    if trial is not None and not 1 <= trial <= control.steps:
+        raise ValueError(f"--trial-decisions must be in [1, {control.steps}] (the episode's decisions), got {trial}")
+    box = tuple(saved[0].controller.box)
+    other = next((s for s in saved if tuple(s.controller.box) != box), None)
+    if other is not None:
+        raise ValueError(f"--try: {other.path} plays in box {tuple(other.controller.box)}, {saved[0].path} in {box}: "
+                         "one env holds one box (try them apart)")
+    m, nets = len(grids), [s.controller.eval() for s in saved]
+    blocks = len(nets) + (control.stroke_periods >= 1)
+    env = ControlEnv(grids.repeat(blocks, 1, 1, 1), sim=sim, control=control, seed=0, box=box,
+                     first_env=np.tile(np.arange(m), blocks))
+    groups = [(n, net, False, False) for n, net in zip(names, nets, strict=True)]
+    if control.stroke_periods >= 1:
+        groups.append(("hand_set_wave", hand_set_wave(env, nets[0], None), False, False))
+    played = play(env, groups, control.steps, seed=0)
+    body = {"open_loop": open_loop_displacement(grids, sim, control, headings=played.heading[:m],
+                                                planar=control.headings == "any",
+                                                moves=open_loop_moves(grids, sim, control))}
+    if control.stroke_periods >= 1:
+        body["hand_set_wave"] = played.returns[-1]
+    keys = [{"set": "", "body": i} for i in range(m)]
+    if ref_rows is not None:
+        keys = _reference_columns(ref_rows, reference, body)
+    after = played.after[:, : len(nets)].transpose(1, 0, 2)  # [C, decisions, M]
+    out.mkdir(parents=True, exist_ok=True)
+    np.save(out / "moves.npy", after)
+    record = {"tried": [str(s.path) for s in saved], "names": names, "bodies": str(bodies), "body_count": m,
+              "trial_decisions": trial, "decisions": control.steps, "reference": str(reference) if reference else None,
+              "box": list(box), "control": vars(control)}
+    return _choose(Choice(after[:, -1], body, names, keys, [[str(s.path)] * m for s in saved],
+                          None if trial is None else after[:, trial - 1]), out, record)
+
+
+def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlConfig:
+    """The one episode every controller of ``saved`` is tried in: the first's ``ControlConfig`` along ``headings``
+    (or its own; another task than it trained for warned, as the evaluation does), which every other controller's must equal, as its simulator settings must ``sim``; random
+    headings refused (the best of several controllers on one draw of headings is biased upwards on the next)."""
+    control = evaluated_control(saved[0], Evaluation(episodes=1, headings=headings))  # (another task warned)
+    if control.headings == "random":
+        raise ValueError("--try along random headings: the best of several controllers on one draw of headings is "
+                         "biased upwards on the next, so it is not a trial (--headings any or none)")
+    every = tuple(f.name for f in fields(ControlConfig))
+    for s in saved[1:]:
+        differ = described_differences(replace(s.control, headings=control.headings), control, str(s.path), every)
+        if differ or (s.sim or SimConfig()) != sim:
+            raise ValueError(f"--try: {s.path} plays another episode than {saved[0].path} — "
+                             f"{'; '.join(differ) or 'its simulator settings differ'}: try controllers of one episode")
+    return control
+
+
+def _reference_rows(reference: Path, count: int) -> list[dict[str, str]]:
+    """The rows of ``reference`` (a held-out table of the ``count`` bodies tried, in their order, with a per-body
+    column for every body), refused before anything is played when it cannot be one."""
+    rows = read_table(reference, f"--reference {reference}", MADE_BY)
+    column = "per_body_mean_command"
+    if len(rows) != count or "open_loop" not in rows[0]:
+        raise ValueError(f"--reference {reference}: {len(rows)} bodies with their own gaits, not the {count} tried "
+                         "(a held-out table of the same bodies, in the same order)")
+    if column not in rows[0] or any(missing_figure(r[column]) for r in rows):
+        raise ValueError(f"--reference {reference}: no {column} for every body (evaluate it with --per-body M, "
+                         "every body)")
+    return rows
+
+
+def _reference_columns(rows: list[dict[str, str]], reference: Path, body: dict[str, np.ndarray]) -> list[dict]:
+    """Add the reference's per-body control column to ``body`` once its bodies are shown to be the ones tried
+    (their own gaits, :func:`experiments.paired.same_bodies`); returns its ``set`` and ``body`` keys."""
+    mine = [{"set": r.get("set", ""), "body": r["body"], "open_loop": repr(float(g))}  # (its keys: gaits compared)
+            for r, g in zip(rows, body["open_loop"], strict=True)]
+    warn_hosts(same_bodies(rows, mine, str(reference), "the bodies tried"))
+    body["per_body_mean_command"] = np.array([float(r["per_body_mean_command"]) for r in rows])
+    return [{"set": r.get("set", ""), "body": r["body"]} for r in rows]
 
 
 def plot(curve: list[dict], path: Path) -> None:
@@ -215,12 +385,27 @@ def plot(curve: list[dict], path: Path) -> None:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m experiments.selection", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("tables", nargs="+", type=Path, help="held-out tables of the same bodies, one per controller")
+    p.add_argument("tables", nargs="*", type=Path, help="held-out tables of the same bodies, one per controller")
     p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--names", nargs="+", default=None, help="a name per table (default: the file's)")
+    p.add_argument("--names", nargs="+", default=None, help="a name per table or controller (default: the file's)")
+    p.add_argument("--try", dest="tried", nargs="+", type=Path, default=None, metavar="CONTROLLER",
+                   help="play these controllers on --bodies instead of reading tables")
+    p.add_argument("--bodies", type=Path, default=None, help="with --try: the bodies (.npy)")
+    p.add_argument("--trial-decisions", type=int, default=None,
+                   help="with --try: choose by the move after this many decisions (default: the whole episode)")
+    p.add_argument("--headings", choices=("any", "none"), default=None, help="with --try: the task (default: theirs)")
+    p.add_argument("--reference", type=Path, default=None,
+                   help="with --try: a held-out table of the same bodies with a per-body column")
     args = p.parse_args(argv)
+    tried = args.tried is not None
+    extra = [f"--{k.replace('_', '-')}" for k in ("bodies", "trial_decisions", "headings", "reference")
+             if getattr(args, k) is not None]
+    if tried == bool(args.tables) or (tried and args.bodies is None) or (not tried and extra):
+        p.error("give tables, or --try CONTROLLER ... --bodies BODIES.npy (--bodies, --trial-decisions, --headings "
+                f"and --reference go with --try{'; got ' + ' '.join(extra) if extra and not tried else ''})")
     try:
-        curve = select(args.tables, args.out, args.names)
+        curve = (try_controllers(args.tried, args.bodies, args.out, args.trial_decisions, args.names, args.headings,
+                                 args.reference) if tried else select(args.tables, args.out, args.names))
     except ValueError as e:
         p.error(str(e))
     plot(curve, args.out / "best_of_k.png")

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from experiments.common import read_rows, write_rows
-from experiments.selection import best_of_k, beyond_best_of_k, main, select, table_name
+from experiments.selection import best_of_k, beyond_best_of_k, main, select, table_name, try_controllers
 
 
 def test_the_best_of_k_and_its_passing_the_gait_are_the_means_over_every_k_subset() -> None:
@@ -180,3 +180,124 @@ def test_a_partial_reference_or_an_unrecorded_task_is_warned_about_and_a_tie_goe
     with pytest.warns(UserWarning, match="1 table-and-set pairs of these tables were measured on two hosts") as said:
         select([b, drifted], tmp_path / "out4")
     assert sum("two hosts" in str(w.message) for w in said) == 1
+
+
+def wave_controllers(tmp_path: Path, seeds: tuple[int, ...]) -> list[Path]:
+    """Tiny wave-head controllers (their mean commands move the bodies), one file each, of one episode."""
+    from dataclasses import replace
+
+    import torch
+
+    from freeform.agents.controller_file import save_controller
+    from freeform.agents.controller_heads import HandSetWave
+    from freeform.agents.controllers import ContextConvController
+    from freeform.envs.control import ControlEnv
+    from freeform.sim import SimConfig
+    from tests.test_control_evaluate import SHORT, tiny_bodies
+
+    control = replace(SHORT, stroke_periods=1)
+    env = ControlEnv(tiny_bodies(), control=control)
+    files = []
+    for seed in seeds:
+        torch.manual_seed(seed)
+        net = ContextConvController.for_env(env, hidden=4, log_std=-1.0, head="wave", wave=HandSetWave(1.5, 1.2))
+        with torch.no_grad():  # (the learnt parts large enough that the two walk the bodies apart)
+            for layer in (net.actor, net.wave_k):
+                layer.weight.mul_(20.0)
+        files.append(save_controller(tmp_path / f"c{seed}" / "controller.pt", net, control, SimConfig()))
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    return files
+
+
+def test_trying_controllers_in_one_env_gives_each_the_figure_its_own_evaluation_gives(tmp_path: Path) -> None:
+    """Truth: each controller's own zero-shot evaluation (experiments.control --evaluate, one episode a body, run
+    alone). Tried together, each controller's mean command, the hand-set wave and the bodies' own gaits equal its
+    table's, body by body; the choice is the larger; the moves after each decision end at the episode's figure; a
+    choice by the first decision is scored by the whole episode, and its best of k follows that trial."""
+    from experiments.control import main as evaluate
+
+    files = wave_controllers(tmp_path, (0, 2))
+    bodies = tmp_path / "bodies.npy"
+    tables = []
+    for f in files:
+        evaluate(["--evaluate", str(f), "--bodies", str(bodies), "--headings", "any", "--eval-episodes", "1",
+                  "--out", str(f.parent / "table")])
+        tables.append(read_rows(f.parent / "table" / "bodies.csv"))
+    main(["--try", *map(str, files), "--bodies", str(bodies), "--headings", "any", "--out", str(tmp_path / "tried"),
+          "--names", "a", "b"])
+    rows = read_rows(tmp_path / "tried" / "bodies.csv")
+    values = np.array([[float(r[f"mean_command_{n}"]) for r in rows] for n in "ab"])
+    np.testing.assert_array_equal(values, [[float(r["mean_command"]) for r in t] for t in tables])
+    assert not np.allclose(values[0], values[1])  # (two controllers that walk apart: a choice to make)
+    for column in ("hand_set_wave", "open_loop"):
+        np.testing.assert_allclose([float(r[column]) for r in rows], [float(r[column]) for r in tables[0]],
+                                   rtol=1e-12)
+    assert [r["chosen"] for r in rows] == ["ab"[i] for i in values.argmax(0)]
+    assert [r["controller_file"] for r in rows] == [str(files[i]) for i in values.argmax(0)]
+    moves = np.load(tmp_path / "tried" / "moves.npy")
+    assert moves.shape == (2, 4, len(rows))
+    np.testing.assert_allclose(moves[:, -1], values, rtol=1e-12)
+    main(["--try", *map(str, files), "--bodies", str(bodies), "--headings", "any", "--trial-decisions", "1",
+          "--out", str(tmp_path / "first")])
+    first = read_rows(tmp_path / "first" / "bodies.csv")
+    picked = moves[:, 0].argmax(0)
+    assert (picked != values.argmax(0)).any()  # (the first decision chooses otherwise than the whole episode)
+    assert [r["chosen"] for r in first] == [("c0", "c2")[i] for i in picked]
+    np.testing.assert_allclose([float(r["mean_command"]) for r in first], values[picked, np.arange(len(rows))])
+    np.testing.assert_allclose([float(r["trial_c2"]) for r in first], moves[1, 0])
+    curve = read_rows(tmp_path / "first" / "best_of_k.csv")
+    assert float(curve[-1]["mean"]) == pytest.approx(values[picked, np.arange(len(rows))].mean())
+
+
+def test_the_best_of_k_by_a_trial_is_the_mean_over_every_k_subset_of_the_trials_choice() -> None:
+    """Truth: enumerate every k-subset; in each, the controller with the best trial (the earlier on a tie) is
+    chosen and scored by its whole figure; the expectation and its passing the gait are the means over subsets."""
+    rng = np.random.default_rng(1)
+    values, trial = rng.normal(size=(5, 7)), rng.normal(size=(5, 7))
+    trial[1, 0] = trial[3, 0]
+    gaits = rng.normal(size=7)
+    for k in range(1, 6):
+        picks = [np.array(s)[trial[list(s)].argmax(0)] for s in itertools.combinations(range(5), k)]
+        scored = np.array([values[p, np.arange(7)] for p in picks])
+        np.testing.assert_allclose(best_of_k(values, k, trial), scored.mean(0), rtol=1e-12)
+        assert beyond_best_of_k(values, gaits, k, trial) == pytest.approx(np.mean(scored > gaits), rel=1e-12)
+    with pytest.raises(ValueError, match="the trial's figures"):
+        best_of_k(values, 2, trial[:, :3])
+
+
+def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) -> None:
+    """One controller, a trial longer than the episode, random headings, controllers of two episodes, a reference
+    of other bodies or without per-body control, and tables with --try are refused naming the problem; nothing is
+    written."""
+    from dataclasses import replace
+
+    from freeform.agents.controller_file import read_controller, save_controller
+
+    files = wave_controllers(tmp_path, (0,)) * 2
+    bodies, out = tmp_path / "bodies.npy", tmp_path / "out"
+    with pytest.raises(ValueError, match="at least two controllers"):
+        try_controllers(files[:1], bodies, out)
+    with pytest.raises(ValueError, match=r"--trial-decisions must be in \[1, 4\]"):
+        try_controllers(files, bodies, out, trial=5, names=["a", "b"])
+    with pytest.raises(ValueError, match="along random headings"):
+        try_controllers(files, bodies, out, names=["a", "b"], headings="random")
+    saved = read_controller(files[0])
+    longer = save_controller(tmp_path / "longer.pt", saved.controller, replace(saved.control, duration=0.1),
+                             saved.sim)
+    with pytest.raises(ValueError, match="plays another episode .* control.duration"):
+        try_controllers([files[0], longer], bodies, out)
+    few = table(tmp_path / "few_bodies.csv", [1.0], [0.5], per_body=[2.0])
+    with pytest.raises(ValueError, match="1 bodies with their own gaits, not the 3 tried"):
+        try_controllers(files, bodies, out, names=["a", "b"], reference=few)
+    bare = table(tmp_path / "bare_bodies.csv", [1.0] * 3, [0.5] * 3)
+    with pytest.raises(ValueError, match="no per_body_mean_command for every body"):
+        try_controllers(files, bodies, out, names=["a", "b"], reference=bare)
+    other = table(tmp_path / "o_bodies.csv", [1.0] * 3, [0.5] * 3, per_body=[2.0] * 3)
+    with pytest.raises(ValueError, match="is not body"):
+        try_controllers(files, bodies, out, names=["a", "b"], reference=other)
+    with pytest.raises(SystemExit):
+        main([str(few), "--try", str(files[0]), "--bodies", str(bodies), "--out", str(out)])
+    with pytest.raises(SystemExit):
+        main([str(few), str(bare), "--bodies", str(bodies), "--out", str(out)])
+    assert "go with --try; got --bodies" in capsys.readouterr().err
+    assert not out.exists()

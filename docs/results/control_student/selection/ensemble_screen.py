@@ -9,7 +9,7 @@ import numpy as np, torch, torch.nn as nn
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.envs.control import ControlEnv
 from freeform.sim import SimConfig
-from experiments.heldout import read_bodies, _play
+from experiments.heldout import read_bodies, play
 
 class Ensemble(nn.Module):
     def __init__(self, members):
@@ -35,7 +35,7 @@ m, n = len(grids), 2
 env = ControlEnv(grids.repeat_interleave(n, 0).repeat(len(groups), 1, 1, 1), sim=sim, control=control, seed=0,
                  box=box, first_env=np.tile(np.arange(m * n), len(groups)))
 with torch.no_grad():
-    returns, _, _ = _play(env, groups, control.steps, 0)
+    returns = play(env, groups, control.steps, 0).returns
 full = returns.reshape(len(groups), m, n); print("episode spread", float(np.abs(full[..., 0] - full[..., 1]).max())); per = full.mean(2)
 np.save(out, per)
 print(json.dumps({g[0]: float(per[i].mean()) for i, g in enumerate(groups)}))
