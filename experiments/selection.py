@@ -5,8 +5,8 @@
     python -m experiments.selection TABLE_A TABLE_B ... --out DIR [--names A B ...]
 
 With ``--try`` (:func:`try_controllers`) the controllers are played here, each by its mean command for one episode
-on every body, all in one env (on the 2-core host, 17 students on the 93 held-out bodies in about 3 minutes, where
-17 evaluations take about 40), and each body's controller is chosen by its move after ``D`` decisions (default: the
+on every body, all in one env (on the 2-core host, 17 students on the 93 held-out bodies in 3 min 38 s; their 17
+evaluations, ``--eval-episodes 2``, which play six other groups beside the mean command, take about 2 min each), and each body's controller is chosen by its move after ``D`` decisions (default: the
 whole episode), then scored by its whole episode; ``moves.npy`` keeps every controller's move after each decision.
 The bodies' own gaits and the hand-set wave come with it; ``--reference``, a held-out table of the same bodies
 evaluated with ``--per-body``, adds the fraction of per-body control. ``DIR/bodies.csv``'s ``controller_file`` is the
