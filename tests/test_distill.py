@@ -312,3 +312,60 @@ def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path,
     assert a["policy_class"].endswith(":RecurrentAttentionController")
     data = a["ppo"]["distill"]["per_env"]
     assert data["starts"].shape == (4, 8) and data["starts"][:, ::4].all() and not data["starts"][:, 1::4].any()
+
+
+def test_a_selection_teaches_each_body_by_its_chosen_controller(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
+    """algo.teacher may name an ``experiments.selection --try`` folder: environment i is labelled by the controller
+    chosen for its body (i mod M), its outputs on that observation exactly; a round of DAgger runs on it. A run of
+    another episode, other bodies or a recurrent controller among those tried is refused, naming the problem."""
+    import csv
+
+    from experiments.selection import try_controllers
+    from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.controllers import ContextConvController
+    from freeform.run.build import build
+
+    run = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}"))
+    plain = compose(*tiny_control(bodies, *TEACH))
+    env, _ = build(plain, torch.device("cpu"))
+    files = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        net = ContextConvController.for_env(env.env, hidden=4)
+        files.append(save_controller(tmp_path / f"c{seed}" / "controller.pt", net, plain.control, plain.sim))
+    try_controllers(files, bodies, tmp_path / "chosen")
+    table = tmp_path / "chosen" / "bodies.csv"
+    rows = list(csv.DictReader(open(table)))
+    rows[0]["chosen"], rows[1]["chosen"] = "c1", "c0"  # (each body another controller: the mapping is what is tested)
+    with open(table, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    _, learner = build(run, torch.device("cpu"))
+    obs, envs = learner.env.reset(), torch.arange(4)
+    labels = learner.teacher(obs, envs)
+    nets = [read_controller(f).controller.eval() for f in files]
+    with torch.no_grad():
+        for i in range(4):
+            want = nets[(1, 0)[i % 2]](obs[i:i + 1])
+            for a, b in zip(labels, want, strict=True):
+                torch.testing.assert_close(a[i:i + 1], b)
+    learner.train_epoch()
+    assert learner.dataset["obs"].shape[:2] == (4, 4)
+    other = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}",
+                                  "control.duration=0.025"))
+    with pytest.raises(ValueError, match=r"tried in another episode than this run's: control\.duration: 0\.05 in the "
+                                         r"selection, 0\.025 here"):
+        build(other, torch.device("cpu"))
+    swapped = tmp_path / "swapped.npy"
+    np.save(swapped, np.load(bodies)[::-1].copy())
+    elsewhere = compose(*tiny_control(swapped, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}"))
+    with pytest.raises(ValueError, match=r"its 2 bodies .* are not this run's 2"):
+        build(elsewhere, torch.device("cpu"))
+    from freeform.agents.controllers import RecurrentContextController
+
+    memory = save_controller(tmp_path / "gru" / "controller.pt", RecurrentContextController.for_env(env.env, hidden=4),
+                             plain.control, plain.sim)
+    try_controllers([files[0], memory], bodies, tmp_path / "chosen")
+    with pytest.raises(ValueError, match=r"gru/controller.pt is recurrent"):
+        build(run, torch.device("cpu"))

@@ -37,6 +37,7 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.distributed import PER_ENV
+from freeform.agents.observation_groups import POLICY
 from freeform.agents.ppo import PPO, PPOConfig
 from freeform.agents.ppo.losses import masked_mean
 from freeform.agents.ppo.rollout import Observation, chunked, obs_map
@@ -131,6 +132,35 @@ class BankTeacher:
     def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
         groups = dict(obs) if isinstance(obs, Mapping) else {"policy": obs}
         return tuple(self.bank({TEACHER: self.of_env.to(envs.device)[envs], **groups}))
+
+
+class ChosenTeacher:
+    """Several saved controllers as a :class:`Teacher`: environment i is taught by controller
+    ``choice[of_env[i]]`` — each body's own controller among them, chosen by trial (``python -m experiments.selection
+    --try``: a teacher for every body at the cost of one episode a controller, where a trained teacher costs
+    epochs). Feed-forward controllers of the run's observation (its ``"policy"`` group); each labels its own rows."""
+
+    def __init__(self, controllers: list[nn.Module], choice: torch.Tensor, of_env: torch.Tensor) -> None:
+        self.controllers = [c.eval() for c in controllers]
+        self.choice = torch.as_tensor(choice, dtype=torch.long)
+        self.of_env = torch.as_tensor(of_env, dtype=torch.long)
+        if self.choice.numel() and not 0 <= int(self.choice.min()) <= int(self.choice.max()) < len(controllers):
+            raise ValueError(f"a body's chosen controller must be one of the {len(controllers)} given")
+
+    @torch.no_grad()
+    def __call__(self, obs: Observation, envs: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        policy = obs[POLICY] if isinstance(obs, Mapping) else obs
+        who = self.choice.to(envs.device)[self.of_env.to(envs.device)[envs]]
+        out: list[torch.Tensor] | None = None
+        for c in torch.unique(who).tolist():
+            rows = (who == c).nonzero().squeeze(1)
+            part = self.controllers[c](policy[rows])
+            if out is None:
+                out = [p.new_zeros((len(who), *p.shape[1:])) for p in part]
+            for o, p in zip(out, part, strict=True):
+                o[rows] = p
+        assert out is not None, "no environments to label"
+        return tuple(out)
 
 
 class TeacherMixing:

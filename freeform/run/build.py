@@ -11,6 +11,8 @@ Every trajectory reward registered with ``freeform.envs.trajectory.trajectory_re
 
 from __future__ import annotations
 
+import csv
+import json
 import logging
 import random
 from collections.abc import Callable
@@ -387,7 +389,11 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
 
     control = cfg.control
     assert control is not None and control.teachers
-    bank = teacher_bank(cfg, device, env.env.grids, env.teacher)
+    if is_selection(Path(str(cfg.algo.teacher))):
+        teacher, kind = chosen_teacher(cfg, device, env)
+    else:
+        bank = teacher_bank(cfg, device, env.env.grids, env.teacher)
+        teacher, kind = BankTeacher(bank, env.teacher), bank.init_kwargs["kind"]
     width = control.hidden if control.hidden is not None else cfg.agent.hidden
     student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
                                control.hand_set_wave)
@@ -395,9 +401,8 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
         load_controller(student, control.controller_init, control.frame)
     if cfg.algo.symmetry != "none":
         check_turnable("algo.symmetry", cfg.algo.symmetry, control.headings, control.frame,
-                       {"control.controller": control.controller,
-                        "the teacher run's controller": bank.init_kwargs["kind"]})
-    return Distillation(env.env, student, BankTeacher(bank, env.teacher), ppo_config(cfg, device=str(device)),
+                       {"control.controller": control.controller, "the teacher run's controller": kind})
+    return Distillation(env.env, student, teacher, ppo_config(cfg, device=str(device)),
                         DistillConfig.from_algo(cfg.algo), first_env=envs[0], total_envs=cfg.env.num_envs)
 
 
@@ -417,6 +422,51 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
                          + "; ".join(differ) + " (give this run the teacher run's values, or train teachers with these)")
     _same_bodies(run.bodies, grids.cpu(), body.cpu(), run.config, cfg, source)
     return run.bank.to(device)
+
+
+def is_selection(source: Path) -> bool:
+    """Whether ``algo.teacher`` names an ``experiments.selection --try`` folder (each body's controller chosen by
+    trial) rather than a teacher run."""
+    return (source / "run.json").is_file() and "tried" in json.loads((source / "run.json").read_text())
+
+
+def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[Any, str]:
+    """``algo.teacher``'s selection (:func:`is_selection`) as a teacher: body m taught by the controller chosen for
+    it. Checked against this run: the same bodies (its ``--bodies`` file, read as it read them, grid for grid with
+    this run's) and episode (every field that differs named); recurrent controllers refused (a teacher here labels
+    each observation alone). Returns (the teacher, the first controller's kind)."""
+    from freeform.agents.distill import ChosenTeacher
+    from freeform.agents.recurrent import RecurrentPolicy
+    from freeform.body import largest_component
+    from freeform.envs.control import ControlConfig
+
+    source = Path(str(cfg.algo.teacher))
+    run = json.loads((source / "run.json").read_text())
+    with open(source / "bodies.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    name = f"algo.teacher={source}"
+    if not Path(run["bodies"]).is_file():
+        raise ValueError(f"{name}: its bodies file {run['bodies']} is not there (run from where it was tried)")
+    theirs = largest_component(torch.from_numpy(np.load(run["bodies"], allow_pickle=False)))  # (as it read them)
+    mine = largest_component(env.env.grids.cpu())
+    if len(theirs) != cfg.control.teachers or theirs.shape[1:] != mine.shape[1:] or \
+            not torch.equal(theirs[env.teacher.cpu()], mine):
+        raise ValueError(f"{name}: its {len(theirs)} bodies ({run['bodies']}) are not this run's "
+                         f"{cfg.control.teachers} (control.teachers, control.bodies={cfg.control.bodies!r}): give "
+                         "control.bodies its --bodies file and control.teachers its body count")
+    episode = ControlConfig(**{**vars(cfg.control.episode()), **{k: v for k, v in run["control"].items()
+                                                                if k in vars(cfg.control.episode())}})
+    differ = described_differences(episode, cfg.control.episode(), "the selection", tuple(vars(episode)))
+    if differ:
+        raise ValueError(f"{name}: its controllers were tried in another episode than this run's: " + "; ".join(differ))
+    saved = [_read_saved(str(p), "algo.teacher", box=tuple(env.env.box)) for p in run["tried"]]
+    nets = [s.controller.to(device) for s in saved]
+    recurrent = [p for p, n in zip(run["tried"], nets, strict=True) if isinstance(n, RecurrentPolicy)]
+    if recurrent:
+        raise ValueError(f"{name}: {recurrent[0]} is recurrent; a chosen teacher labels each observation alone "
+                         "(select among feed-forward controllers)")
+    choice = torch.tensor([run["names"].index(r["chosen"]) for r in rows])
+    return ChosenTeacher(nets, choice, env.teacher), saved[0].kind
 
 
 class TeacherRun(NamedTuple):
