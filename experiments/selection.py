@@ -6,16 +6,17 @@
 
 With ``--try`` (:func:`try_controllers`) the controllers are played here, each by its mean command for one episode
 on every body, all in one env (on the 2-core host, 17 students on the 93 held-out bodies in 3 min 38 s; their 17
-evaluations, ``--eval-episodes 2``, which play six other groups beside the mean command, take about 2 min each), and each body's controller is chosen by its move after ``D`` decisions (default: the
-whole episode), then scored by its whole episode; ``moves.npy`` keeps every controller's move after each decision.
+evaluations, ``--eval-episodes 2``, which play six other groups beside the mean command, take about 2 min each),
+and each body's controller is chosen by its move after ``D`` decisions (default: the whole episode), then scored by
+its whole episode; ``moves.npy`` keeps every controller's move after each decision.
 The bodies' own gaits and the hand-set wave come with it; ``--reference``, a held-out table of the same bodies
 evaluated with ``--per-body``, adds the fraction of per-body control. ``DIR/bodies.csv``'s ``controller_file`` is the
 file to drive each body with.
 
-Without it, the tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies`` or
-``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results keep them), one per
-controller. A body's trial is its table's mean-command episode: the simulator and a controller's mean command are
-deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
+Without it, the tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ...
+--bodies`` or ``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results
+keep them), one per controller. A body's trial is its table's mean-command episode: the simulator and a
+controller's mean command are deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
 episode that chooses a body's controller is the episode that controller then walks there — the chosen figure is
 what a user who tries each controller once on the body and keeps the best gets on that host, not an optimistic draw.
 Across hosts the fast-math step moves a body's figure (the committed student's two tables of the 93, two AVX-512
@@ -321,8 +322,9 @@ def try_controllers(sources: list[Path], bodies: Path, out: Path, trial: int | N
 
 def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlConfig:
     """The one episode every controller of ``saved`` is tried in: the first's ``ControlConfig`` along ``headings``
-    (or its own; another task than it trained for warned, as the evaluation does), which every other controller's must equal, as its simulator settings must ``sim``; random
-    headings refused (the best of several controllers on one draw of headings is biased upwards on the next)."""
+    (or its own; another task than it trained for warned, as the evaluation does), which every other controller's
+    must equal, as its simulator settings must ``sim``; random headings refused (the best of several controllers on
+    one draw of headings is biased upwards on the next)."""
     control = evaluated_control(saved[0], Evaluation(episodes=1, headings=headings))  # (another task warned)
     if control.headings == "random":
         raise ValueError("--try along random headings: the best of several controllers on one draw of headings is "
