@@ -13,17 +13,17 @@ The bodies' own gaits and the hand-set wave come with it; ``--reference``, a hel
 evaluated with ``--per-body``, adds the fraction of per-body control. ``DIR/bodies.csv``'s ``controller_file`` is the
 file to drive each body with.
 
-Without it, the tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ...
---bodies`` or ``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results
-keep them), one per controller. A body's trial is its table's mean-command episode: the simulator and a
-controller's mean command are deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
-episode that chooses a body's controller is the episode that controller then walks there — the chosen figure is
-what a user who tries each controller once on the body and keeps the best gets on that host, not an optimistic draw.
-Across hosts the fast-math step moves a body's figure (the committed student's two tables of the 93, two AVX-512
-hosts: median |Δ| 4e-4, one body 0.22), which makes a choice among tables of two hosts a little optimistic (≈ 0.1
-point of per-body control for the best of 17, estimated). The stochastic column has no such property (the best of
-noisy draws is biased upwards) and is not selected on, nor are tables along random headings (one draw of headings a
-body; refused where the table's ``run.json`` records the task, warned where it does not).
+Without it, the tables are held-out tables of the same bodies (``python -m experiments.control --evaluate ... --bodies``
+or ``experiments.heldout --pool`` output folders, or ``heldout93/<name>_bodies.csv`` as the results keep them), one per
+controller. A body's trial is its table's mean-command episode: the simulator and a controller's mean command are
+deterministic on one host and build (two evaluation episodes of one body give the same figure to the bit), so the
+episode that chooses a body's controller is the episode that controller then walks there — the chosen figure is what a
+user who tries each controller once on the body and keeps the best gets on that host, not an optimistic draw. Across
+hosts the fast-math step moves a body's figure (the committed student's two tables of the 93, two AVX-512 hosts: median
+|Δ| 4e-4, one body 0.22), which makes a choice among tables of two hosts a little optimistic (≈ 0.1 point of per-body
+control for the best of 17, estimated). The stochastic column has no such property (the best of noisy draws is biased
+upwards) and is not selected on, nor are tables along random headings (one draw of headings a body; refused where the
+table's ``run.json`` records the task, warned where it does not).
 
 Writes ``DIR/bodies.csv`` (per body: its set and index, own gait, the hand-set wave's and the per-body controller's
 mean commands where the tables have them, each controller's mean command, the one chosen, its figure and
