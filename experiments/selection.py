@@ -1,7 +1,7 @@
 """Each body the best of several controllers, chosen by one trial each (few-shot selection, no learning)::
 
     python -m experiments.selection --try CONTROLLER_A CONTROLLER_B ... --bodies BODIES.npy --out DIR
-        [--trial-decisions D] [--reference TABLE] [--names A B ...] [--headings any|none]
+        [--trial-decisions D] [--reference TABLE] [--names A B ...] [--headings any|fixed]
     python -m experiments.selection TABLE_A TABLE_B ... --out DIR [--names A B ...]
 
 With ``--try`` (:func:`try_controllers`) the controllers are played here, each by its mean command for one episode
@@ -328,7 +328,7 @@ def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlCo
     control = evaluated_control(saved[0], Evaluation(episodes=1, headings=headings))  # (another task warned)
     if control.headings == "random":
         raise ValueError("--try along random headings: the best of several controllers on one draw of headings is "
-                         "biased upwards on the next, so it is not a trial (--headings any or none)")
+                         "biased upwards on the next, so it is not a trial (--headings any or fixed)")
     every = tuple(f.name for f in fields(ControlConfig))
     for s in saved[1:]:
         differ = described_differences(replace(s.control, headings=control.headings), control, str(s.path), every)
@@ -343,9 +343,12 @@ def _reference_rows(reference: Path, count: int) -> list[dict[str, str]]:
     column for every body), refused before anything is played when it cannot be one."""
     rows = read_table(reference, f"--reference {reference}", MADE_BY)
     column = "per_body_mean_command"
-    if len(rows) != count or "open_loop" not in rows[0]:
-        raise ValueError(f"--reference {reference}: {len(rows)} bodies with their own gaits, not the {count} tried "
-                         "(a held-out table of the same bodies, in the same order)")
+    if len(rows) != count:
+        raise ValueError(f"--reference {reference}: {len(rows)} bodies, not the {count} tried (a held-out table of the "
+                         "same bodies, in the same order)")
+    if "open_loop" not in rows[0]:
+        raise ValueError(f"--reference {reference}: no open_loop column, by which its bodies are checked to be the ones "
+                         f"tried (a held-out table of {MADE_BY})")
     if column not in rows[0] or any(missing_figure(r[column]) for r in rows):
         raise ValueError(f"--reference {reference}: no {column} for every body (evaluate it with --per-body M, "
                          "every body)")
@@ -395,7 +398,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--bodies", type=Path, default=None, help="with --try: the bodies (.npy)")
     p.add_argument("--trial-decisions", type=int, default=None,
                    help="with --try: choose by the move after this many decisions (default: the whole episode)")
-    p.add_argument("--headings", choices=("any", "none"), default=None, help="with --try: the task (default: theirs)")
+    p.add_argument("--headings", choices=("any", "fixed"), default=None, help="with --try: the task (default: theirs)")
     p.add_argument("--reference", type=Path, default=None,
                    help="with --try: a held-out table of the same bodies with a per-body column")
     args = p.parse_args(argv)
@@ -403,8 +406,8 @@ def main(argv: list[str] | None = None) -> None:
     extra = [f"--{k.replace('_', '-')}" for k in ("bodies", "trial_decisions", "headings", "reference")
              if getattr(args, k) is not None]
     if tried == bool(args.tables) or (tried and args.bodies is None) or (not tried and extra):
-        p.error("give tables, or --try CONTROLLER ... --bodies BODIES.npy (--bodies, --trial-decisions, --headings "
-                f"and --reference go with --try{'; got ' + ' '.join(extra) if extra and not tried else ''})")
+        p.error("give tables, or --try CONTROLLER ... --bodies BODIES.npy, not both (--bodies, --trial-decisions, "
+                f"--headings and --reference go with --try{'; got ' + ' '.join(extra) if extra and not tried else ''})")
     try:
         curve = (try_controllers(args.tried, args.bodies, args.out, args.trial_decisions, args.names, args.headings,
                                  args.reference) if tried else select(args.tables, args.out, args.names))

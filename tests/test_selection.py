@@ -268,7 +268,8 @@ def test_the_best_of_k_by_a_trial_is_the_mean_over_every_k_subset_of_the_trials_
 def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) -> None:
     """One controller, a trial longer than the episode, random headings, controllers of two episodes, a reference
     of other bodies or without per-body control, and tables with --try are refused naming the problem; nothing is
-    written."""
+    written (all before the play but the reference of other bodies, whose gaits are compared with the played ones).
+    Fixed headings, the other task with no draw, play."""
     from dataclasses import replace
 
     from freeform.agents.controller_file import read_controller, save_controller
@@ -287,7 +288,7 @@ def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) 
     with pytest.raises(ValueError, match="plays another episode .* control.duration"):
         try_controllers([files[0], longer], bodies, out)
     few = table(tmp_path / "few_bodies.csv", [1.0], [0.5], per_body=[2.0])
-    with pytest.raises(ValueError, match="1 bodies with their own gaits, not the 3 tried"):
+    with pytest.raises(ValueError, match="1 bodies, not the 3 tried"):
         try_controllers(files, bodies, out, names=["a", "b"], reference=few)
     bare = table(tmp_path / "bare_bodies.csv", [1.0] * 3, [0.5] * 3)
     with pytest.raises(ValueError, match="no per_body_mean_command for every body"):
@@ -296,8 +297,12 @@ def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) 
     with pytest.raises(ValueError, match="is not body"):
         try_controllers(files, bodies, out, names=["a", "b"], reference=other)
     with pytest.raises(SystemExit):
-        main([str(few), "--try", str(files[0]), "--bodies", str(bodies), "--out", str(out)])
+        main([str(few), "--try", *map(str, files), "--bodies", str(bodies), "--out", str(out)])
+    assert "not both" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([str(few), str(bare), "--bodies", str(bodies), "--out", str(out)])
     assert "go with --try; got --bodies" in capsys.readouterr().err
+    fixed = tmp_path / "fixed"
+    try_controllers(files, bodies, fixed, names=["a", "b"], headings="fixed")  # (the other fixed task: it plays)
+    assert json.loads((fixed / "run.json").read_text())["control"]["headings"] == "fixed"
     assert not out.exists()

@@ -447,7 +447,8 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     name = f"algo.teacher={source}"
     if not Path(run["bodies"]).is_file():
         raise ValueError(f"{name}: its bodies file {run['bodies']} is not there (run from where it was tried)")
-    theirs = largest_component(torch.from_numpy(np.load(run["bodies"], allow_pickle=False)))  # (as it read them)
+    grids = np.load(run["bodies"], allow_pickle=False)
+    theirs = largest_component(torch.from_numpy((grids[None] if grids.ndim == 3 else grids).astype(np.uint8)))
     mine = largest_component(env.env.grids.cpu())
     if len(theirs) != cfg.control.teachers or theirs.shape[1:] != mine.shape[1:] or \
             not torch.equal(theirs[env.teacher.cpu()], mine):
@@ -465,6 +466,10 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     if recurrent:
         raise ValueError(f"{name}: {recurrent[0]} is recurrent; a chosen teacher labels each observation alone "
                          "(select among feed-forward controllers)")
+    unknown = sorted({r["chosen"] for r in rows} - set(run["names"]))
+    if len(rows) != len(theirs) or unknown:
+        raise ValueError(f"{name}: its bodies.csv has {len(rows)} rows for {len(theirs)} bodies"
+                         f"{f', and chooses {unknown} among none tried' if unknown else ''} (re-make it with --try)")
     choice = torch.tensor([run["names"].index(r["chosen"]) for r in rows])
     return ChosenTeacher(nets, choice, env.teacher), saved[0].kind
 
