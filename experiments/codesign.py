@@ -147,12 +147,16 @@ class _Charged(NamedTuple):
 
 
 def _origin(run: Path) -> tuple[str, ...] | None:
-    """What identifies the run that ``run`` is (or was copied from): the start time, host and command its
-    ``run_info.json`` records, which a copy keeps and a resume leaves alone; None without one."""
+    """What identifies the run that ``run`` is (or was copied from): the ``run_id`` its ``run_info.json`` records,
+    which a copy keeps and a resume leaves alone — or, for runs from before it was recorded, their start time (to
+    the second), host and command, which two runs of one process started within a second share; None without
+    one."""
     info = run / "run_info.json"
     if not info.is_file():
         return None
     record = json.loads(info.read_text())
+    if record.get("run_id"):
+        return (str(record["run_id"]),)
     return (str(record.get("start_time")), str(record.get("hostname")), json.dumps(record.get("command")))
 
 

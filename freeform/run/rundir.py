@@ -14,6 +14,7 @@ import platform
 import socket
 import subprocess
 import sys
+import uuid
 from collections.abc import Callable
 from datetime import datetime, timezone
 from importlib import metadata
@@ -164,6 +165,7 @@ def run_info(cfg: TrainConfig, device: torch.device) -> dict[str, Any]:
         "python": platform.python_version(),
         "git_commit": commit,
         "git_dirty": dirty,
+        "run_id": uuid.uuid4().hex,  # (a run's identity: two runs of one process can start in one second)
         "start_time": _now(),
         "hostname": socket.gethostname(),
         "command": sys.argv,
