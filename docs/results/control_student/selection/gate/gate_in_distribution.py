@@ -1,5 +1,5 @@
 """The gate screen's gates inside the training bodies' own distribution: leave one training body out (seconds).
-    python docs/results/control_student/selection/gate/gate_in_distribution.py"""
+    PYTHONPATH=. python docs/results/control_student/selection/gate/gate_in_distribution.py"""
 import runpy
 from pathlib import Path
 

@@ -11,12 +11,14 @@ Targets: a student's move on a body over the students' mean move there (the body
 best student on the training bodies (the baseline a gate must beat), k-nearest neighbours on the shape features,
 and ridge regression of each student's relative move on the features (λ by leave-one-out on the training bodies).
 From the repository root (seconds):
-    python docs/results/control_student/selection/gate/gate_screen.py
+    PYTHONPATH=. python docs/results/control_student/selection/gate/gate_screen.py
 """
 import csv
 from pathlib import Path
 
 import numpy as np
+
+from experiments.common import write_rows
 
 HERE = Path(__file__).parent
 ROOT = HERE.parents[4]
@@ -115,10 +117,7 @@ for where, (table, grid_files) in sets.items():
     for what, pick in picks.items():
         chosen = moves.mean(0) if pick is None else moves[pick, cols]
         out.append({"bodies": where, "gate": what, **scored(chosen, body)})
-with open(HERE / "gate_screen.csv", "w", newline="") as f:
-    w = csv.DictWriter(f, fieldnames=list(out[0]))
-    w.writeheader()
-    w.writerows(out)
+write_rows(HERE / "gate_screen.csv", out)
 for r in out:
     print(f"{r['bodies']:>14} {r['gate']:<52} {r['fraction_of_per_body']:.3f} x{r['over_hand_set_wave']:.2f} "
           f"{r['beyond_own_gait']:.2f}")

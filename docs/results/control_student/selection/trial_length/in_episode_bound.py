@@ -14,12 +14,14 @@ play and whom to keep. No chooser that tries these candidates in this order, one
 learned or hand-set — beats that row; one that knew a body's best candidate without trying it would be a gate on the
 body (`../gate_cv.py`: a k-NN gate on its shape found little).
 From the repository root (seconds):
-    python docs/results/control_student/selection/trial_length/in_episode_bound.py
+    PYTHONPATH=. python docs/results/control_student/selection/trial_length/in_episode_bound.py
 """
 import csv
 from pathlib import Path
 
 import numpy as np
+
+from experiments.common import write_rows
 
 HERE = Path(__file__).parent
 RANKED = ["reptile2", "reptile3_fresh_bodies", "reptile1", "student64_gen3_seed1", "student64_gen4_hyper",
@@ -61,10 +63,7 @@ for e in range(1, steps + 1):
 out.append({"trials": "per body", "choice": "omniscient stopper", **scored(np.max(best_e, axis=0))})
 clairvoyant = after[:, -1].max(0)
 out.append({"trials": 0, "choice": "best of 17 from the start (few-shot selection)", **scored(clairvoyant)})
-with open(HERE / "in_episode_bound.csv", "w", newline="") as f:
-    w = csv.DictWriter(f, fieldnames=list(out[0]))
-    w.writeheader()
-    w.writerows(out)
+write_rows(HERE / "in_episode_bound.csv", out)
 for r in out:
     print(f"{r['trials']!s:>9} {r['choice']:<48} {r['fraction_of_per_body']:.3f}  x{r['over_hand_set_wave']:.2f}  "
           f"{r['beyond_own_gait']:.2f}")
