@@ -390,10 +390,10 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
     control = cfg.control
     assert control is not None and control.teachers
     if is_selection(Path(str(cfg.algo.teacher))):
-        teacher, kind = chosen_teacher(cfg, device, env)
+        teacher, kinds = chosen_teacher(cfg, device, env)
     else:
         bank = teacher_bank(cfg, device, env.env.grids, env.teacher)
-        teacher, kind = BankTeacher(bank, env.teacher), bank.init_kwargs["kind"]
+        teacher, kinds = BankTeacher(bank, env.teacher), {"the teacher run's controller": bank.init_kwargs["kind"]}
     width = control.hidden if control.hidden is not None else cfg.agent.hidden
     student = build_controller(control.controller, env.env, width, control.init_log_std, control.head,
                                control.hand_set_wave)
@@ -401,7 +401,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
         load_controller(student, control.controller_init, control.frame)
     if cfg.algo.symmetry != "none":
         check_turnable("algo.symmetry", cfg.algo.symmetry, control.headings, control.frame,
-                       {"control.controller": control.controller, "the teacher run's controller": kind})
+                       {"control.controller": control.controller, **kinds})
     return Distillation(env.env, student, teacher, ppo_config(cfg, device=str(device)),
                         DistillConfig.from_algo(cfg.algo), first_env=envs[0], total_envs=cfg.env.num_envs)
 
@@ -430,15 +430,16 @@ def is_selection(source: Path) -> bool:
     return (source / "run.json").is_file() and "tried" in json.loads((source / "run.json").read_text())
 
 
-def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[Any, str]:
+def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[Any, dict[str, str]]:
     """``algo.teacher``'s selection (:func:`is_selection`) as a teacher: body m taught by the controller chosen for
     it. Checked against this run: the same bodies (its ``--bodies`` file, read as it read them, grid for grid with
-    this run's) and episode (every field that differs named); recurrent controllers refused (a teacher here labels
-    each observation alone). Returns (the teacher, the first controller's kind)."""
+    this run's), episode and simulator (every field that differs named); recurrent controllers refused (a teacher
+    here labels each observation alone). Returns (the teacher, each tried controller's kind by its file)."""
     from freeform.agents.distill import ChosenTeacher
     from freeform.agents.recurrent import RecurrentPolicy
     from freeform.body import largest_component
     from freeform.envs.control import ControlConfig
+    from freeform.sim import SimConfig
 
     source = Path(str(cfg.algo.teacher))
     run = json.loads((source / "run.json").read_text())
@@ -461,6 +462,11 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     if differ:
         raise ValueError(f"{name}: its controllers were tried in another episode than this run's: " + "; ".join(differ))
     saved = [_read_saved(str(p), "algo.teacher", box=tuple(env.env.box)) for p in run["tried"]]
+    played = saved[0].sim or SimConfig()  # (the selection plays every controller in the first one's simulator)
+    if other := played.physics_differences(cfg.sim):
+        raise ValueError(f"{name}: its controllers were tried in another simulator than this run's: "
+                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in the selection, {getattr(cfg.sim, k)!r} here"
+                                     for k in other))
     nets = [s.controller.to(device) for s in saved]
     recurrent = [p for p, n in zip(run["tried"], nets, strict=True) if isinstance(n, RecurrentPolicy)]
     if recurrent:
@@ -471,7 +477,7 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
         raise ValueError(f"{name}: its bodies.csv has {len(rows)} rows for {len(theirs)} bodies"
                          f"{f', and chooses {unknown} among none tried' if unknown else ''} (re-make it with --try)")
     choice = torch.tensor([run["names"].index(r["chosen"]) for r in rows])
-    return ChosenTeacher(nets, choice, env.teacher), saved[0].kind
+    return ChosenTeacher(nets, choice, env.teacher), {str(p): s.kind for p, s in zip(run["tried"], saved, strict=True)}
 
 
 class TeacherRun(NamedTuple):

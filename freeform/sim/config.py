@@ -24,6 +24,8 @@ PRECISIONS = ("f32", "f64")
 SCHEDULES = ("auto", "robots", "flat", "native")
 # the least step cap accepted: a fixed-dt robot needs floor(T/dt) + 1 steps, and the clock's rounding may add one
 MIN_STEP_CAP = 1.5
+# the fields that say how the steps run, not what is simulated (SimConfig's docstring: "Not physics")
+HOW_IT_RUNS = ("chunk_steps", "graph_launches", "backend", "schedule")
 
 
 @dataclass
@@ -112,6 +114,11 @@ class SimConfig:
     step_cap: float = 3.0
     backend: str | None = None
     schedule: str = "auto"
+
+    def physics_differences(self, other: SimConfig) -> list[str]:
+        """The fields on which ``other`` simulates another physics than this config: every field but
+        :data:`HOW_IT_RUNS` (a run of another schedule or backend plays the same robot)."""
+        return [k for k in vars(self) if k not in HOW_IT_RUNS and getattr(self, k) != getattr(other, k)]
 
     def validate(self, key: str = "SimConfig") -> None:
         """Raise ``ValueError`` naming ``<key>.<field>`` for the first value outside its allowed values
