@@ -317,7 +317,8 @@ def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path,
 def test_a_selection_teaches_each_body_by_its_chosen_controller(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
     """algo.teacher may name an ``experiments.selection --try`` folder: environment i is labelled by the controller
     chosen for its body (i mod M), its outputs on that observation exactly; a round of DAgger runs on it. A run of
-    another episode or simulator, other bodies or a recurrent controller among those tried is refused, naming the problem."""
+    another episode or simulator, other bodies or a recurrent controller among those tried is refused, naming the
+    problem."""
     import csv
 
     from experiments.selection import try_controllers
@@ -360,7 +361,7 @@ def test_a_selection_teaches_each_body_by_its_chosen_controller(bodies: Path, tm
     lighter = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}",
                                     "sim.gravity=-5.0", "sim.schedule=robots"))
     with pytest.raises(ValueError, match=r"tried in another simulator than this run's: sim\.gravity: -9\.81 in the "
-                                         r"selection, -5\.0 here$"):  # (the schedule is not physics: not named)
+                                         r"selection, -5\.0 here \(give this run"):  # (the schedule: not named)
         build(lighter, torch.device("cpu"))
     swapped = tmp_path / "swapped.npy"
     np.save(swapped, np.load(bodies)[::-1].copy())

@@ -438,7 +438,7 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     from freeform.agents.distill import ChosenTeacher
     from freeform.agents.recurrent import RecurrentPolicy
     from freeform.body import largest_component
-    from freeform.envs.control import ControlConfig
+    from freeform.envs.control import ControlConfig, ControlEnv
     from freeform.sim import SimConfig
 
     source = Path(str(cfg.algo.teacher))
@@ -462,11 +462,14 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     if differ:
         raise ValueError(f"{name}: its controllers were tried in another episode than this run's: " + "; ".join(differ))
     saved = [_read_saved(str(p), "algo.teacher", box=tuple(env.env.box)) for p in run["tried"]]
-    played = saved[0].sim or SimConfig()  # (the selection plays every controller in the first one's simulator)
-    if other := played.physics_differences(cfg.sim):
+    # What the control env simulates, not the raw sections: it sets the actuation, burn-in and duration itself; the
+    # selection played every controller in the first one's simulator.
+    played, mine = (ControlEnv.simulation(s, episode) for s in (saved[0].sim or SimConfig(), cfg.sim))
+    if other := played.physics_differences(mine):
         raise ValueError(f"{name}: its controllers were tried in another simulator than this run's: "
-                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in the selection, {getattr(cfg.sim, k)!r} here"
-                                     for k in other))
+                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in the selection, {getattr(mine, k)!r} here"
+                                     for k in other) + " (give this run the selection's sim values, or re-make the "
+                         "selection with --try under this run's)")
     nets = [s.controller.to(device) for s in saved]
     recurrent = [p for p, n in zip(run["tried"], nets, strict=True) if isinstance(n, RecurrentPolicy)]
     if recurrent:
