@@ -226,6 +226,13 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                   "control.duration=0.025"))
     with pytest.raises(ValueError, match=r"control\.duration: 0\.05 in the teacher run, 0\.025 here"):
         build(other, torch.device("cpu"))
+    # ... and one of another simulator, naming the physics field; how it runs (the schedule) may differ
+    lighter = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
+                                    "sim.gravity=-5.0", "sim.schedule=robots"))
+    with pytest.raises(ValueError, match=r"its teachers were trained in another simulator than this run's: "
+                                         r"sim\.gravity: -9\.81 in the teacher run, -5\.0 here \(give") as refused:
+        build(lighter, torch.device("cpu"))
+    assert "schedule" not in str(refused.value)
     # a turned body sits elsewhere in its padded box: a student that the padding changes is refused
     conv = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'teachers'}",
                                  "algo.symmetry=ground", "control.controller=conv"))

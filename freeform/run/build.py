@@ -420,8 +420,24 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     if differ:
         raise ValueError(f"algo.teacher={source}: its teachers were trained with other settings than this run's: "
                          + "; ".join(differ) + " (give this run the teacher run's values, or train teachers with these)")
+    _same_physics(run.config.sim, cfg.sim, mine.episode(), f"algo.teacher={source}: its teachers were trained",
+                  "the teacher run", "train teachers under this run's")
     _same_bodies(run.bodies, grids.cpu(), body.cpu(), run.config, cfg, source)
     return run.bank.to(device)
+
+
+def _same_physics(theirs: Any, mine: Any, episode: Any, who: str, whose: str, remedy: str) -> None:
+    """Refuses teachers that moved in another simulator than this run's (``theirs``, ``mine``: ``SimConfig``), each
+    physics field that differs named; how it runs (schedule, backend: ``SimConfig.physics_differences``) may differ.
+    What the control env simulates is compared, not the raw sections: it sets the actuation, burn-in and duration
+    itself (``episode``)."""
+    from freeform.envs.control import ControlEnv
+
+    played, here = (ControlEnv.simulation(s, episode) for s in (theirs, mine))
+    if other := played.physics_differences(here):
+        raise ValueError(f"{who} in another simulator than this run's: "
+                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in {whose}, {getattr(here, k)!r} here"
+                                     for k in other) + f" (give this run {whose}'s sim values, or {remedy})")
 
 
 def is_selection(source: Path) -> bool:
@@ -438,7 +454,7 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     from freeform.agents.distill import ChosenTeacher
     from freeform.agents.recurrent import RecurrentPolicy
     from freeform.body import largest_component
-    from freeform.envs.control import ControlConfig, ControlEnv
+    from freeform.envs.control import ControlConfig
     from freeform.sim import SimConfig
 
     source = Path(str(cfg.algo.teacher))
@@ -462,14 +478,9 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     if differ:
         raise ValueError(f"{name}: its controllers were tried in another episode than this run's: " + "; ".join(differ))
     saved = [_read_saved(str(p), "algo.teacher", box=tuple(env.env.box)) for p in run["tried"]]
-    # What the control env simulates, not the raw sections: it sets the actuation, burn-in and duration itself; the
-    # selection played every controller in the first one's simulator.
-    played, mine = (ControlEnv.simulation(s, episode) for s in (saved[0].sim or SimConfig(), cfg.sim))
-    if other := played.physics_differences(mine):
-        raise ValueError(f"{name}: its controllers were tried in another simulator than this run's: "
-                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in the selection, {getattr(mine, k)!r} here"
-                                     for k in other) + " (give this run the selection's sim values, or re-make the "
-                         "selection with --try under this run's)")
+    # (the selection played every controller in the first one's simulator)
+    _same_physics(saved[0].sim or SimConfig(), cfg.sim, episode, f"{name}: its controllers were tried",
+                  "the selection", "re-make the selection with --try under this run's")
     nets = [s.controller.to(device) for s in saved]
     recurrent = [p for p, n in zip(run["tried"], nets, strict=True) if isinstance(n, RecurrentPolicy)]
     if recurrent:
