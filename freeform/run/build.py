@@ -17,7 +17,7 @@ import logging
 import random
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
@@ -26,6 +26,10 @@ from freeform.config import TrainConfig, ppo_config
 from freeform.envs.base import Task, VecEnv
 from freeform.envs.control_config import described_differences
 from freeform.learner import LEARNERS, Learner, register_learner
+
+if TYPE_CHECKING:
+    from freeform.envs.control_config import ControlConfig
+    from freeform.sim import SimConfig
 
 TaskBuilder = Callable[[TrainConfig, torch.device], Task]
 TASKS: dict[str, TaskBuilder] = {}
@@ -426,7 +430,8 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
     return run.bank.to(device)
 
 
-def _same_physics(theirs: Any, mine: Any, episode: Any, who: str, whose: str, remedy: str) -> None:
+def _same_physics(theirs: SimConfig, mine: SimConfig, episode: ControlConfig, who: str, whose: str,
+                  remedy: str) -> None:
     """Refuses teachers that moved in another simulator than this run's (``theirs``, ``mine``: ``SimConfig``), each
     physics field that differs named; how it runs (schedule, backend: ``SimConfig.physics_differences``) may differ.
     What the control env simulates is compared, not the raw sections: it sets the actuation, burn-in and duration

@@ -91,33 +91,39 @@ def scored(chosen: np.ndarray, body: dict) -> dict:
             "beyond_own_gait": float(np.mean(chosen > body["open_loop"]))}
 
 
-train_grids = np.load(HERE / "gate_bodies256.npy")
-train_moves = np.load(HERE / "gate_moves256.npy")[:, -1].astype(np.float64)  # [17, 256]: whole episodes
-x_train = np.array([features(g) for g in train_grids])
-mu, sd = x_train.mean(0), x_train.std(0) + 1e-9
-x_train = (x_train - mu) / sd
-y_train = relative(train_moves).T  # [256, 17]
-lam = ridge_loo_lambda(x_train, y_train, [1.0, 10.0, 100.0, 1000.0])
-weights = ridge(x_train, y_train, lam)
-best_single = int(np.argmax(y_train.mean(0)))
-NAMES = students(HERE.parent / "bodies.csv")  # (the order the 17 were played in on the training bodies)
+def main() -> None:
+    """The screen: fit the gates, score them, write ``gate_screen.csv``."""
+    train_grids = np.load(HERE / "gate_bodies256.npy")
+    train_moves = np.load(HERE / "gate_moves256.npy")[:, -1].astype(np.float64)  # [17, 256]: whole episodes
+    x_train = np.array([features(g) for g in train_grids])
+    mu, sd = x_train.mean(0), x_train.std(0) + 1e-9
+    x_train = (x_train - mu) / sd
+    y_train = relative(train_moves).T  # [256, 17]
+    lam = ridge_loo_lambda(x_train, y_train, [1.0, 10.0, 100.0, 1000.0])
+    weights = ridge(x_train, y_train, lam)
+    best_single = int(np.argmax(y_train.mean(0)))
+    NAMES = students(HERE.parent / "bodies.csv")  # (the order the 17 were played in on the training bodies)
 
-out = []
-sets = {"heldout93": (HERE.parent / "bodies.csv", [ROOT / f"docs/results/heldout_bodies/{s}.npy"
-                                                    for s in ("design_unseen", "grown", "hand_built")]),
-        "fresh_grown32": (HERE.parent / "fresh_grown32/bodies.csv", [HERE.parent / "fresh_grown32/grown_seed7.npy"])}
-for where, (table, grid_files) in sets.items():
-    moves, body = held_out(table, NAMES)
-    grids = np.concatenate([np.load(f) for f in grid_files])
-    x = (np.array([features(g) for g in grids]) - mu) / sd
-    cols = np.arange(moves.shape[1])
-    picks = {"mean student": None, f"best on the training bodies ({NAMES[best_single]})": np.full(len(cols), best_single),
-             "k-NN gate (k = 7)": knn_pick(x_train, y_train, x, 7), f"ridge gate (λ = {lam:g})":
-             (np.c_[np.ones(len(x)), x] @ weights).argmax(1), "oracle (best of 17, few-shot)": moves.argmax(0)}
-    for what, pick in picks.items():
-        chosen = moves.mean(0) if pick is None else moves[pick, cols]
-        out.append({"bodies": where, "gate": what, **scored(chosen, body)})
-write_rows(HERE / "gate_screen.csv", out)
-for r in out:
-    print(f"{r['bodies']:>14} {r['gate']:<52} {r['fraction_of_per_body']:.3f} x{r['over_hand_set_wave']:.2f} "
-          f"{r['beyond_own_gait']:.2f}")
+    out = []
+    sets = {"heldout93": (HERE.parent / "bodies.csv", [ROOT / f"docs/results/heldout_bodies/{s}.npy"
+                                                        for s in ("design_unseen", "grown", "hand_built")]),
+            "fresh_grown32": (HERE.parent / "fresh_grown32/bodies.csv", [HERE.parent / "fresh_grown32/grown_seed7.npy"])}
+    for where, (table, grid_files) in sets.items():
+        moves, body = held_out(table, NAMES)
+        grids = np.concatenate([np.load(f) for f in grid_files])
+        x = (np.array([features(g) for g in grids]) - mu) / sd
+        cols = np.arange(moves.shape[1])
+        picks = {"mean student": None, f"best on the training bodies ({NAMES[best_single]})": np.full(len(cols), best_single),
+                 "k-NN gate (k = 7)": knn_pick(x_train, y_train, x, 7), f"ridge gate (λ = {lam:g})":
+                 (np.c_[np.ones(len(x)), x] @ weights).argmax(1), "oracle (best of 17, few-shot)": moves.argmax(0)}
+        for what, pick in picks.items():
+            chosen = moves.mean(0) if pick is None else moves[pick, cols]
+            out.append({"bodies": where, "gate": what, **scored(chosen, body)})
+    write_rows(HERE / "gate_screen.csv", out)
+    for r in out:
+        print(f"{r['bodies']:>14} {r['gate']:<52} {r['fraction_of_per_body']:.3f} x{r['over_hand_set_wave']:.2f} "
+              f"{r['beyond_own_gait']:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -26,9 +26,8 @@ import torch
 HERE = Path(__file__).parent
 GATE = HERE.parent / "gate"
 ROOT = HERE.parents[4]
-sys.argv = sys.argv[:1]
 sys.path.insert(0, str(GATE))
-import gate_screen as shape  # noqa: E402  (its features, gates and scores; running it rewrites its own table)
+import gate_screen as shape  # noqa: E402  (its features, gates and scores)
 
 from experiments.common import write_rows  # noqa: E402
 from freeform.agents.controller_file import read_controller  # noqa: E402
