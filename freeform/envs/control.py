@@ -405,6 +405,39 @@ class ControlEnv:
     def _config(self) -> dict[str, Any]:
         return {"control": vars(self.control).copy(), "box": list(self.box)}
 
+    # ------------------------------------------------------------------ branches
+    def snapshot(self) -> dict[str, Any]:
+        """The episode's whole state now, mid-episode too: the engine's (:meth:`Engine.snapshot`), the env's clock,
+        commands in flight (a muscle's bandwidth and ramp start from them), centres of mass, headings and sensed
+        response. :meth:`restore` returns to it, so that what follows is what would have followed, bit for bit:
+        several futures of one state (what each of several controllers would do from here) cost one episode each
+        and no settling. Between episodes :meth:`state_dict` is the checkpoint; this is for branching within one."""
+        if self.engine is None:
+            raise RuntimeError("call reset() before snapshot()")
+        copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)  # (a residual env's _received is an array)
+        obs = self.observation
+        return {"engine": self.engine.snapshot(), "episode": self.episode, "t": self.t, "periods": self._periods,
+                "heading": self.heading.copy(), "command": self._command.copy(), "received": copy(self._received),
+                "com": self._com.copy(), "start": self._start.copy(), "open_loop": self._open_loop.copy(),
+                "observation": {k: v.clone() for k, v in obs.items()} if isinstance(obs, dict) else obs.clone(),
+                "response": self._response.state() if self._response is not None else None}
+
+    def restore(self, snapshot: dict[str, Any]) -> torch.Tensor:
+        """Return to :meth:`snapshot` (of this env); returns the observation the next action acts on."""
+        if self.engine is None or not self.engine.current:
+            raise RuntimeError("restore() needs this env's engine: restore a snapshot of this env, mid-episode")
+        self.engine.restore(snapshot["engine"])
+        self.episode, self.t, self._periods = snapshot["episode"], snapshot["t"], snapshot["periods"]
+        copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)
+        self.heading, self._command = snapshot["heading"].copy(), snapshot["command"].copy()
+        self._received, self._com = copy(snapshot["received"]), snapshot["com"].copy()
+        self._start, self._open_loop = snapshot["start"].copy(), snapshot["open_loop"].copy()
+        if self._response is not None:
+            self._response.restore(snapshot["response"])
+        obs = snapshot["observation"]
+        self.observation = {k: v.clone() for k, v in obs.items()} if isinstance(obs, dict) else obs.clone()
+        return self.observation
+
     @torch.no_grad()
     def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:
         """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
