@@ -130,9 +130,9 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
         with torch.enable_grad():  # (called from the evaluation, which computes no gradients)
             train(cfg, run)  # (trainer.resume=auto continues a run that stopped early)
     payload = load_checkpoint(last)
-    if ControlEnv.simulation(from_container(payload["config"]).sim, control) != ControlEnv.simulation(sim, control):
-        raise ValueError(f"--per-body: the per-body controllers in {run} were trained with another sim section than "
-                         "the evaluated controller's: give its sim.* values with --per-body-set")
+    if other := ControlEnv.physics_differences(from_container(payload["config"]).sim, sim, control, "the cache"):
+        raise ValueError(f"--per-body: the per-body controllers in {run} were trained in another simulator than the "
+                         f"evaluated controller's: {other} (give its sim.* values with --per-body-set)")
     return bank_from_checkpoint(payload, str(run))
 
 

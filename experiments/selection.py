@@ -323,7 +323,8 @@ def try_controllers(sources: list[Path], bodies: Path, out: Path, trial: int | N
 def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlConfig:
     """The one episode every controller of ``saved`` is tried in: the first's ``ControlConfig`` along ``headings``
     (or its own; another task than it trained for warned, as the evaluation does), which every other controller's
-    must equal, as its simulator settings must ``sim``; random headings refused (the best of several controllers on
+    must equal, as its simulator's physics must ``sim``'s (``ControlEnv.physics_differences``: the schedule and backend
+    may differ); random headings refused (the best of several controllers on
     one draw of headings is biased upwards on the next)."""
     control = evaluated_control(saved[0], Evaluation(episodes=1, headings=headings))  # (another task warned)
     if control.headings == "random":
@@ -332,9 +333,10 @@ def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlCo
     every = tuple(f.name for f in fields(ControlConfig))
     for s in saved[1:]:
         differ = described_differences(replace(s.control, headings=control.headings), control, str(s.path), every)
-        if differ or (s.sim or SimConfig()) != sim:
+        physics = ControlEnv.physics_differences(s.sim or SimConfig(), sim, control, str(s.path))
+        if differ or physics:
             raise ValueError(f"--try: {s.path} plays another episode than {saved[0].path} — "
-                             f"{'; '.join(differ) or 'its simulator settings differ'}: try controllers of one episode")
+                             f"{'; '.join([*differ, *([physics] if physics else [])])}: try controllers of one episode")
     return control
 
 

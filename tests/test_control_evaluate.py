@@ -263,6 +263,14 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     stamp = (run / "checkpoints" / "last.pt").stat().st_mtime_ns
     main([*args, "--out", str(tmp_path / "again")])
     assert (run / "checkpoints" / "last.pt").stat().st_mtime_ns == stamp  # read from the cache
+    # the cached controllers moved in the default simulator: a controller of another physics is refused naming the
+    # field; one run by another schedule (how it runs, not what) is measured against them
+    for name, sim in (("heavier", SimConfig(gravity=-1.0)), ("scheduled", SimConfig(schedule="robots"))):
+        save_controller(tmp_path / name / "controller.pt", net, trained, sim)
+    with pytest.raises(ValueError, match=r"another simulator .* sim\.gravity: -9\.81 in the cache, -1\.0 here"):
+        main([args[0], str(tmp_path / "heavier"), *args[2:], "--out", str(tmp_path / "heavier_eval")])
+    main([args[0], str(tmp_path / "scheduled"), *args[2:], "--out", str(tmp_path / "scheduled_eval")])
+    assert (run / "checkpoints" / "last.pt").stat().st_mtime_ns == stamp
     rows = read_csv(tmp_path / "eval" / "bodies.csv")
     assert [r["per_body"] for r in rows][2] == "nan" and all(np.isfinite(float(r["per_body"])) for r in rows[:2])
     summary = {r["what"]: r for r in read_csv(tmp_path / "eval" / "summary.csv")}

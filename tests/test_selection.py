@@ -266,7 +266,8 @@ def test_the_best_of_k_by_a_trial_is_the_mean_over_every_k_subset_of_the_trials_
 
 
 def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) -> None:
-    """One controller, a trial longer than the episode, random headings, controllers of two episodes, a reference
+    """One controller, a trial longer than the episode, random headings, controllers of two episodes or simulators
+    (the physics field named; another schedule plays: it runs the same physics), a reference
     of other bodies or without per-body control, and tables with --try are refused naming the problem; nothing is
     written (all before the play but the reference of other bodies, whose gaits are compared with the played ones).
     Fixed headings, the other task with no draw, play."""
@@ -287,6 +288,10 @@ def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) 
                              saved.sim)
     with pytest.raises(ValueError, match="plays another episode .* control.duration"):
         try_controllers([files[0], longer], bodies, out)
+    heavier = save_controller(tmp_path / "heavier.pt", saved.controller, saved.control,
+                              replace(saved.sim, gravity=-1.0, schedule="robots"))
+    with pytest.raises(ValueError, match=r"plays another episode .* sim\.gravity: -1\.0 in .*heavier.pt, -9\.81 here: try"):
+        try_controllers([files[0], heavier], bodies, out)  # (the physics named, the schedule not: how it runs)
     few = table(tmp_path / "few_bodies.csv", [1.0], [0.5], per_body=[2.0])
     with pytest.raises(ValueError, match="1 bodies, not the 3 tried"):
         try_controllers(files, bodies, out, names=["a", "b"], reference=few)
@@ -304,5 +309,8 @@ def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) 
     assert "go with --try; got --bodies" in capsys.readouterr().err
     fixed = tmp_path / "fixed"
     try_controllers(files, bodies, fixed, names=["a", "b"], headings="fixed")  # (the other fixed task: it plays)
+    scheduled = save_controller(tmp_path / "scheduled.pt", saved.controller, saved.control,
+                                replace(saved.sim, schedule="robots" if saved.sim.schedule != "robots" else "auto"))
+    try_controllers([files[0], scheduled], bodies, tmp_path / "scheduled", names=["a", "b"])  # (the same physics)
     assert json.loads((fixed / "run.json").read_text())["control"]["headings"] == "fixed"
     assert not out.exists()

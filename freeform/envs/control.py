@@ -223,6 +223,17 @@ class ControlEnv:
         config.validate("sim")
         return config
 
+    @staticmethod
+    def physics_differences(theirs: SimConfig, mine: SimConfig, control: ControlConfig, whose: str) -> str:
+        """Where an env of ``theirs`` simulates another physics than one of ``mine`` under ``control`` — each field,
+        as ``sim.<field>: <theirs> in <whose>, <mine> here``, joined by "; " — or "" where none. What the env
+        simulates is compared (:meth:`simulation`: the episode sets the actuation, burn-in and duration), and how
+        it runs may differ (schedule, backend: ``SimConfig.physics_differences``). The one check of every reuse
+        of controllers across runs: teachers, a selection, per-body references."""
+        played, here = (ControlEnv.simulation(s, control) for s in (theirs, mine))
+        return "; ".join(f"sim.{k}: {getattr(played, k)!r} in {whose}, {getattr(here, k)!r} here"
+                         for k in played.physics_differences(here))
+
     # ------------------------------------------------------------------ the VecEnv
     def reset(self, seed: int | None = None, episode: int | None = None) -> torch.Tensor:
         """Start the next episode (or episode ``episode``): the bodies placed and settled for ``control.burn_in``

@@ -432,17 +432,12 @@ def teacher_bank(cfg: TrainConfig, device: torch.device, grids: torch.Tensor, bo
 
 def _same_physics(theirs: SimConfig, mine: SimConfig, episode: ControlConfig, who: str, whose: str,
                   remedy: str) -> None:
-    """Refuses teachers that moved in another simulator than this run's (``theirs``, ``mine``: ``SimConfig``), each
-    physics field that differs named; how it runs (schedule, backend: ``SimConfig.physics_differences``) may differ.
-    What the control env simulates is compared, not the raw sections: it sets the actuation, burn-in and duration
-    itself (``episode``)."""
+    """Refuses teachers that moved in another simulator than this run's (``ControlEnv.physics_differences``)."""
     from freeform.envs.control import ControlEnv
 
-    played, here = (ControlEnv.simulation(s, episode) for s in (theirs, mine))
-    if other := played.physics_differences(here):
-        raise ValueError(f"{who} in another simulator than this run's: "
-                         + "; ".join(f"sim.{k}: {getattr(played, k)!r} in {whose}, {getattr(here, k)!r} here"
-                                     for k in other) + f" (give this run {whose}'s sim values, or {remedy})")
+    if other := ControlEnv.physics_differences(theirs, mine, episode, whose):
+        raise ValueError(f"{who} in another simulator than this run's: {other} (give this run {whose}'s sim values, "
+                         f"or {remedy})")
 
 
 def is_selection(source: Path) -> bool:
