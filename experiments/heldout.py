@@ -118,7 +118,7 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
         raise ValueError(f"--per-body {per.n}: must be in 1 … {len(grids)} (the bodies given)")
     bodies = grids[: per.n].numpy()
     if per.run is not None:
-        return _teacher_run(per.run, bodies, control)
+        return _teacher_run(per.run, bodies, control, sim)
     run, overrides = per_body_cache_run(bodies, per, control)
     run.mkdir(parents=True, exist_ok=True)
     np.save(run / "bodies.npy", bodies)
@@ -132,14 +132,16 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     payload = load_checkpoint(last)
     if other := ControlEnv.physics_differences(from_container(payload["config"]).sim, sim, control, "the cache"):
         raise ValueError(f"--per-body: the per-body controllers in {run} were trained in another simulator than the "
-                         f"evaluated controller's: {other} (give its sim.* values with --per-body-set)")
+                         f"evaluated controller's: {other} (give the evaluated controller's sim.* values with "
+                         "--per-body-set)")
     return bank_from_checkpoint(payload, str(run))
 
 
-def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
+def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig, sim: SimConfig) -> Any:
     """The bank of the teacher run ``run``, whose bodies (``freeform.run.build.teacher_bodies``) must be
-    ``bodies`` and whose interface and task the evaluation's (``control``: ``described_differences``; teachers
-    without the response channels drive an evaluation that has them: a bank reads its own channels, the first)."""
+    ``bodies``, whose interface and task the evaluation's (``control``: ``described_differences``; teachers
+    without the response channels drive an evaluation that has them: a bank reads its own channels, the first)
+    and whose physics ``sim``'s (``ControlEnv.physics_differences``)."""
     from freeform.body import largest_component
     from freeform.run.build import read_teacher_run
 
@@ -149,6 +151,9 @@ def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig) -> Any:
         raise ValueError(f"--per-body-run {run}: its teachers were trained for another controller interface or task "
                          f"than this evaluation's — {'; '.join(differ)}: give a teacher run of the evaluated "
                          "controller's settings (and --headings)")
+    if other := ControlEnv.physics_differences(teachers.config.sim, sim, control, "the teacher run"):
+        raise ValueError(f"--per-body-run {run}: its teachers were trained in another simulator than the evaluated "
+                         f"controller's: {other} (give a teacher run of the evaluated controller's sim.* values)")
     theirs = largest_component(teachers.bodies).numpy()
     if teachers.bank.teachers != len(bodies) or not np.array_equal(theirs, bodies):
         raise ValueError(f"--per-body-run {run}: its {teachers.bank.teachers} teachers' bodies are not the first "

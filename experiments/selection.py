@@ -333,7 +333,8 @@ def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlCo
     every = tuple(f.name for f in fields(ControlConfig))
     for s in saved[1:]:
         differ = described_differences(replace(s.control, headings=control.headings), control, str(s.path), every)
-        physics = ControlEnv.physics_differences(s.sim or SimConfig(), sim, control, str(s.path))
+        physics = ControlEnv.physics_differences(s.sim or SimConfig(), sim, control, "it",
+                                                 f"in {saved[0].path}")
         if differ or physics:
             raise ValueError(f"--try: {s.path} plays another episode than {saved[0].path} — "
                              f"{'; '.join([*differ, *([physics] if physics else [])])}: try controllers of one episode")

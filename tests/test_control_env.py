@@ -121,18 +121,18 @@ def test_every_episode_starts_from_the_settled_state_of_a_fresh_env():
         assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("headings", ["random", "any"])
-def test_a_snapshot_mid_episode_replays_its_future_bit_for_bit_after_another_branch(headings):
+@pytest.mark.parametrize("headings, residual", [("random", True), ("any", True), ("random", False)])
+def test_a_snapshot_mid_episode_replays_its_future_bit_for_bit_after_another_branch(headings, residual):
     """``snapshot`` then ``restore``: whatever was played in between (another branch of actions), the same actions
     from the restored state give the same observations and rewards, to the bit — under everything that carries
     state from step to step (bandwidth, ramps, residual strokes, the sensed response, the privileged critic)."""
     control = ControlConfig(burn_in=0.05, period=0.025, duration=0.2, headings=headings, command_rate=26.0,
-                            residual=True, ramp=True, stroke_periods=2, response=True, privileged_critic=True)
+                            residual=residual, ramp=True, stroke_periods=2, response=True, privileged_critic=True)
     g = np.concatenate([pair(), np.full((1, 3, 3, 3), 3, np.uint8)])
     env = ControlEnv(g, sim=SimConfig(precision="f64"), control=control, seed=3)
     rng = torch.Generator().manual_seed(0)
     draw = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(3)]
-    other = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(3)]
+    other = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(control.steps)]
 
     def future(actions: list[torch.Tensor]) -> list[torch.Tensor]:
         seen = []
@@ -148,7 +148,8 @@ def test_a_snapshot_mid_episode_replays_its_future_bit_for_bit_after_another_bra
     expected = future(draw[1:])
     assert not env.t == snap["t"]  # (the branch moved on: not a no-op)
     env.restore(snap)
-    future(other)  # another branch from the same state
+    future(other)  # another branch from the same state, past the episode's end
+    assert env.episode == snap["episode"] + 1
     replayed = [env.restore(snap)["policy"]] + future(draw[1:])
     assert len(replayed) == len(expected) + 1
     for a, b in zip(replayed, first + expected, strict=True):

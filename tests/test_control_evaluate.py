@@ -293,6 +293,10 @@ def test_the_evaluate_command_adds_each_bodys_own_controller_and_the_fraction_re
     assert [{k: r[k] for k in a} for r, a in zip(rows, alone, strict=True)] == alone
     main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "from_run")])  # the teacher run, named
     assert read_csv(tmp_path / "from_run" / "bodies.csv") == rows
+    with pytest.raises(ValueError, match=r"--per-body-run .* another simulator .* sim\.gravity: -9\.81 in the teacher "
+                                         r"run, -1\.0 here"):
+        main([args[0], str(tmp_path / "heavier"), *args[2:], f"--per-body-run={run}", "--out", str(tmp_path / "z")])
+    assert not (tmp_path / "z").exists()
     np.save(tmp_path / "others.npy", tiny_bodies()[::-1].copy())
     with pytest.raises(ValueError, match="not the first 2 bodies given"):
         main([*args[:3], str(tmp_path / "others.npy"), *args[4:], f"--per-body-run={run}", "--out", str(tmp_path / "x")])

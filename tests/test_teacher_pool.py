@@ -78,6 +78,9 @@ def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path
     wide = _teacher_run(tmp_path, "wide", np.stack([ROD, CUBE]), "control.hidden=6")
     with pytest.raises(ValueError, match=r"control\.duration differ"):
         pool_teacher_runs([a, short], tmp_path / "p1")
+    light = _teacher_run(tmp_path, "light", np.stack([ROD, CUBE]), "sim.gravity=-1.0")
+    with pytest.raises(ValueError, match=r"the physics: sim\.gravity: -1\.0 in .*light, -9\.81 in .*a differ"):
+        pool_teacher_runs([a, light], tmp_path / "p1")
     with pytest.raises(ValueError, match=r"differ in \['controller', 'controller.hidden'\]"):
         pool_teacher_runs([a, wide], tmp_path / "p2")
     conv_a = _teacher_run(tmp_path, "conv_a", np.stack([ROD, CUBE]), "control.controller=conv")

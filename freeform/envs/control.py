@@ -224,15 +224,16 @@ class ControlEnv:
         return config
 
     @staticmethod
-    def physics_differences(theirs: SimConfig, mine: SimConfig, control: ControlConfig, whose: str) -> str:
+    def physics_differences(theirs: SimConfig, mine: SimConfig, control: ControlConfig, whose: str,
+                            here: str = "here") -> str:
         """Where an env of ``theirs`` simulates another physics than one of ``mine`` under ``control`` — each field,
-        as ``sim.<field>: <theirs> in <whose>, <mine> here``, joined by "; " — or "" where none. What the env
+        as ``sim.<field>: <theirs> in <whose>, <mine> <here>``, joined by "; " — or "" where none. What the env
         simulates is compared (:meth:`simulation`: the episode sets the actuation, burn-in and duration), and how
         it runs may differ (schedule, backend: ``SimConfig.physics_differences``). The one check of every reuse
-        of controllers across runs: teachers, a selection, per-body references."""
-        played, here = (ControlEnv.simulation(s, control) for s in (theirs, mine))
-        return "; ".join(f"sim.{k}: {getattr(played, k)!r} in {whose}, {getattr(here, k)!r} here"
-                         for k in played.physics_differences(here))
+        of controllers across runs: teacher runs and their pools, selections, per-body references."""
+        played, mine_ = (ControlEnv.simulation(s, control) for s in (theirs, mine))
+        return "; ".join(f"sim.{k}: {getattr(played, k)!r} in {whose}, {getattr(mine_, k)!r} {here}"
+                         for k in played.physics_differences(mine_))
 
     # ------------------------------------------------------------------ the VecEnv
     def reset(self, seed: int | None = None, episode: int | None = None) -> torch.Tensor:
@@ -427,7 +428,8 @@ class ControlEnv:
             raise RuntimeError("call reset() before snapshot()")
         copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)  # (a residual env's _received is an array)
         obs = self.observation
-        return {"engine": self.engine.snapshot(), "episode": self.episode, "t": self.t, "periods": self._periods,
+        return {"engine": self.engine.snapshot(), "seed": self.seed, "episode": self.episode, "t": self.t,
+                "periods": self._periods,
                 "heading": self.heading.copy(), "command": self._command.copy(), "received": copy(self._received),
                 "com": self._com.copy(), "start": self._start.copy(), "open_loop": self._open_loop.copy(),
                 "observation": {k: v.clone() for k, v in obs.items()} if isinstance(obs, dict) else obs.clone(),
@@ -438,7 +440,8 @@ class ControlEnv:
         if self.engine is None or not self.engine.current:
             raise RuntimeError("restore() needs this env's engine: restore a snapshot of this env, mid-episode")
         self.engine.restore(snapshot["engine"])
-        self.episode, self.t, self._periods = snapshot["episode"], snapshot["t"], snapshot["periods"]
+        self.seed, self.episode = snapshot["seed"], snapshot["episode"]
+        self.t, self._periods = snapshot["t"], snapshot["periods"]
         copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)
         self.heading, self._command = snapshot["heading"].copy(), snapshot["command"].copy()
         self._received, self._com = copy(snapshot["received"]), snapshot["com"].copy()

@@ -63,12 +63,15 @@ def _refuse_used(out: Path) -> None:
 
 def _same_task(a: Any, b: Any, run: Path, run0: Path) -> None:
     """``b`` (a run's ``TrainConfig``) trained the same task as ``a``: the episode's settings, the simulator, the
-    grid; refused naming what differs."""
+    grid (its physics: the schedule may differ); refused naming what differs."""
+    from freeform.envs.control import ControlEnv
+
     assert a.control is not None and b.control is not None
     differ = [f"control.{k}" for k, v in vars(a.control.episode()).items() if getattr(b.control, k) != v]
     differ += [f"env.{k}" for k in ("resolution",) if getattr(a.env, k) != getattr(b.env, k)]
     differ += [f"task.{k}" for k in ("materials",) if getattr(a.task, k) != getattr(b.task, k)]
-    differ += ["sim"] if a.sim != b.sim else []
+    physics = ControlEnv.physics_differences(b.sim, a.sim, a.control.episode(), str(run), f"in {run0}")
+    differ += [f"the physics: {physics}"] if physics else []  # (how it runs, the schedule, may differ)
     if differ:
         raise ValueError(f"{run} trained with other settings than {run0} ({', '.join(differ)} differ): a pool's "
                          "teachers must share the episode, simulator and grid")
