@@ -145,7 +145,7 @@ def control_section(arch: str, device: str, rehearsal: bool) -> None:
 
     print("closed-loop control (ControlEnv, design bodies, f32, fixed dt 1e-4 s, a period of 100 steps):")
     for n in ((8, 16) if rehearsal else (128, 1024)):
-        rate, sim, outside, host = measure(_bodies(n), 100, 3 if rehearsal else 10, arch, device)
+        rate, sim, outside, host = measure(_bodies(n), 100, 3 if rehearsal else 10, device)
         line(f"{n} bodies: control steps/s | simulator ms | outside ms | env host ms a step",
              f"{rate:7.1f} | {sim * 1e3:7.2f} | {outside * 1e3:7.2f} | {host * 1e3:7.2f}")
         stepwise, one_call = measure_engine(_bodies(n), 100, 3 if rehearsal else 10, arch)

@@ -41,3 +41,13 @@ def test_every_project_import_in_benchmarks_and_scripts_names_what_exists() -> N
                 assert not missing, f"{path.name}:{node.lineno} imports {missing} from {node.module}, which has none"
                 checked += node.names
     assert len(checked) >= 50
+
+
+def test_the_gpu_checks_control_section_runs_its_rehearsal(capsys) -> None:
+    """``bench_gpu``'s closed-loop control section at the rehearsal's sizes (8 and 16 bodies): it calls the control
+    benchmark's helpers, whose signatures changed once without it (issue 57's split), found by the rehearsal only."""
+    from benchmarks.bench_gpu import control_section
+
+    control_section("cpu", "cpu", rehearsal=True)
+    out = capsys.readouterr().out
+    assert "8 bodies: control steps/s" in out and "16 bodies: engine ms a period" in out
