@@ -132,7 +132,7 @@ def test_a_snapshot_mid_episode_replays_its_future_bit_for_bit_after_another_bra
     env = ControlEnv(g, sim=SimConfig(precision="f64"), control=control, seed=3)
     rng = torch.Generator().manual_seed(0)
     draw = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(3)]
-    other = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(control.steps)]
+    other = [torch.rand((2, env.action_dim), generator=rng) * 4 - 2 for _ in range(control.steps + 1)]
 
     def future(actions: list[torch.Tensor]) -> list[torch.Tensor]:
         seen = []
@@ -146,10 +146,10 @@ def test_a_snapshot_mid_episode_replays_its_future_bit_for_bit_after_another_bra
     snap = env.snapshot()
     first = [env.observation["policy"].clone()]
     expected = future(draw[1:])
-    assert not env.t == snap["t"]  # (the branch moved on: not a no-op)
+    assert env.t != snap["env"]["t"]  # (the branch moved on: not a no-op)
     env.restore(snap)
-    future(other)  # another branch from the same state, past the episode's end
-    assert env.episode == snap["episode"] + 1
+    future(other)  # another branch from the same state, past the episode's end to another clock than the snapshot's
+    assert env.episode == snap["env"]["episode"] + 1 and env.t != snap["env"]["t"]
     replayed = [env.restore(snap)["policy"]] + future(draw[1:])
     assert len(replayed) == len(expected) + 1
     for a, b in zip(replayed, first + expected, strict=True):

@@ -43,6 +43,7 @@ for bit, so a controller starts from what the body already does and learns what 
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import replace
 from typing import Any
@@ -418,38 +419,33 @@ class ControlEnv:
         return {"control": vars(self.control).copy(), "box": list(self.box)}
 
     # ------------------------------------------------------------------ branches
+    # What an episode carries from step to step besides the engine: the clock, the commands in flight (a muscle's
+    # bandwidth and ramp start from them), centres of mass, headings, the sensed response and the next observation
+    # (the seed and episode too: a branch may run past the episode's end, which draws the next one's headings).
+    # The open-loop channel is not here: every observation recomputes it.
+    EPISODE_STATE = ("seed", "episode", "t", "_periods", "heading", "_command", "_received", "_com", "_start",
+                     "_response", "observation")
+
     def snapshot(self) -> dict[str, Any]:
-        """The episode's whole state now, mid-episode too: the engine's (:meth:`Engine.snapshot`), the env's clock,
-        commands in flight (a muscle's bandwidth and ramp start from them), centres of mass, headings and sensed
-        response. :meth:`restore` returns to it, so that what follows is what would have followed, bit for bit:
-        several futures of one state (what each of several controllers would do from here) cost one episode each
-        and no settling. Between episodes :meth:`state_dict` is the checkpoint; this is for branching within one."""
+        """The episode's whole state now, mid-episode too: the engine's (:meth:`Engine.snapshot`) and
+        :attr:`EPISODE_STATE`. :meth:`restore` returns to it, so that what follows is what would have followed, bit
+        for bit: several futures of one state (what each of several controllers would do from here) cost one
+        episode each and no settling. Between episodes :meth:`state_dict` is the checkpoint; this is for branching
+        within one."""
         if self.engine is None:
             raise RuntimeError("call reset() before snapshot()")
-        copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)  # (a residual env's _received is an array)
-        obs = self.observation
-        return {"engine": self.engine.snapshot(), "seed": self.seed, "episode": self.episode, "t": self.t,
-                "periods": self._periods,
-                "heading": self.heading.copy(), "command": self._command.copy(), "received": copy(self._received),
-                "com": self._com.copy(), "start": self._start.copy(), "open_loop": self._open_loop.copy(),
-                "observation": {k: v.clone() for k, v in obs.items()} if isinstance(obs, dict) else obs.clone(),
-                "response": self._response.state() if self._response is not None else None}
+        return {"engine": self.engine.snapshot(),
+                "env": copy.deepcopy({name: getattr(self, name) for name in self.EPISODE_STATE})}
 
     def restore(self, snapshot: dict[str, Any]) -> torch.Tensor:
         """Return to :meth:`snapshot` (of this env); returns the observation the next action acts on."""
         if self.engine is None or not self.engine.current:
-            raise RuntimeError("restore() needs this env's engine: restore a snapshot of this env, mid-episode")
+            raise RuntimeError("restore(): this env's engine is gone (another env built one on its simulator since "
+                               "the snapshot, or it never had one): take snapshots and restore them on one env, "
+                               "with no other env stepped on its simulator in between")
         self.engine.restore(snapshot["engine"])
-        self.seed, self.episode = snapshot["seed"], snapshot["episode"]
-        self.t, self._periods = snapshot["t"], snapshot["periods"]
-        copy = (lambda v: v.copy() if isinstance(v, np.ndarray) else v)
-        self.heading, self._command = snapshot["heading"].copy(), snapshot["command"].copy()
-        self._received, self._com = copy(snapshot["received"]), snapshot["com"].copy()
-        self._start, self._open_loop = snapshot["start"].copy(), snapshot["open_loop"].copy()
-        if self._response is not None:
-            self._response.restore(snapshot["response"])
-        obs = snapshot["observation"]
-        self.observation = {k: v.clone() for k, v in obs.items()} if isinstance(obs, dict) else obs.clone()
+        for name, value in copy.deepcopy(snapshot["env"]).items():  # (a copy: the snapshot restores again)
+            setattr(self, name, value)
         return self.observation
 
     @torch.no_grad()

@@ -7,9 +7,12 @@ apart from the oracle's foresight; the try-and-commit bound (``../trial_length/i
 one candidate, this one may change its mind at every decision.
 
 From the repository root (16 feed-forward students and the hand-set wave; ≈ 17 episodes' simulation):
-    PYTHONPATH=. python docs/results/control_student/selection/switching/switching_screen.py BODIES.npy OUT.npy S...
+    PYTHONPATH=. python docs/results/control_student/selection/switching/switching_screen.py BODIES.npy OUT.npy \
+        REFERENCE_BODIES.csv S...
 writes OUT.npy: float64 ``[2 + candidates, M]`` — each body's greedy-switching move, how many decisions changed
-candidate, then every candidate's move over the whole episode alone (the same env and bodies, for pairing).
+candidate, then every candidate's move over the whole episode alone (the same env and bodies, for pairing) — and
+beside it OUT.csv: the README's table, against REFERENCE_BODIES.csv (a held-out table of the same bodies with
+per-body control: its ``per_body_mean_command`` and ``open_loop`` columns).
 """
 import sys
 from dataclasses import replace
@@ -18,13 +21,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from experiments.common import paired_band, write_rows
 from experiments.heldout import hand_set_wave, read_bodies
+from experiments.paired import read_table
 from freeform.agents.controller_file import controller_for, read_controller
 from freeform.agents.controllers import controller_step
 from freeform.envs.control import ControlEnv
 from freeform.sim import SimConfig
 
-bodies, out, *sources = sys.argv[1:]
+bodies, out, reference, *sources = sys.argv[1:]
+rows = read_table(Path(reference), "REFERENCE_BODIES.csv", "experiments.control --evaluate --per-body")
+per_body = np.array([float(r["per_body_mean_command"]) for r in rows])
+own_gait = np.array([float(r["open_loop"]) for r in rows])
 first = read_controller(sources[0])
 sim = first.sim or SimConfig()
 grids = read_bodies(Path(bodies), len(sim.materials))
@@ -36,9 +44,9 @@ nets.append(hand_set_wave(env, nets[0], None))
 k = len(nets)
 
 
-def modes(obs: torch.Tensor) -> torch.Tensor:
-    """Every candidate's mean command on ``obs``: ``[K, M, action_dim]``."""
-    return torch.stack([n.distribution.mode(controller_step(n, obs, None)[0][:3]) for n in nets])
+def mode(net: torch.nn.Module, obs: torch.Tensor) -> torch.Tensor:
+    """``net``'s mean command on ``obs``: ``[M, action_dim]``."""
+    return net.distribution.mode(controller_step(net, obs, None)[0][:3])
 
 
 with torch.no_grad():
@@ -47,12 +55,12 @@ with torch.no_grad():
     for c in range(k):
         obs = env.reset(episode=0)
         for _ in range(control.steps):
-            obs, reward, _, _ = env.step(modes(obs)[c])
+            obs, reward, _, _ = env.step(mode(nets[c], obs))
             alone[c] += reward.double().numpy()
     obs, total = env.reset(episode=0), np.zeros(m)
     last, switches = None, np.zeros(m)
     for t in range(control.steps):
-        snap, actions = env.snapshot(), modes(obs)
+        snap, actions = env.snapshot(), torch.stack([mode(n, obs) for n in nets])
         moves = np.zeros((k, m))
         for c in range(k):
             env.restore(snap)
@@ -65,6 +73,22 @@ with torch.no_grad():
         switches += 0 if last is None else (choice != last)
         last = choice
         print(f"decision {t + 1}: greedy {total.mean():.4f}", flush=True)
-print(f"greedy switching {total.mean():.4f}; best alone per body {alone.max(0).mean():.4f}; "
-      f"mean candidate {alone[:-1].mean():.4f}; hand-set wave {alone[-1].mean():.4f}; switches {switches.mean():.2f}")
+if len(rows) != m:
+    raise ValueError(f"{reference}: {len(rows)} bodies, not the {m} played")
+wave = alone[-1]
+
+
+def row(what: str, moves: np.ndarray) -> dict:
+    return {"controller": what, "mean_command": moves.mean(), "fraction_of_per_body": moves.mean() / per_body.mean(),
+            "over_wave": moves.mean() / wave.mean(), "beyond_own_gait": np.mean(moves > own_gait)}
+
+
+difference, band = paired_band(total - alone.max(0))
+write_rows(Path(out).with_suffix(".csv"), [
+    row("one student (the students' mean)", alone[:-1].mean(0)),
+    row("the best candidate for the whole episode (by hindsight)", alone.max(0)),
+    row(f"switching greedily at every decision ({switches.mean():.1f} switches)", total),
+    {"controller": f"switching - the best candidate, paired: {difference:+.3f} +- {band:.3f} (99 %)"}])
+print(f"greedy switching {total.mean():.4f}; best alone per body {alone.max(0).mean():.4f}; paired "
+      f"{difference:+.3f} ± {band:.3f}; mean candidate {alone[:-1].mean():.4f}; hand-set wave {wave.mean():.4f}")
 np.save(out, np.concatenate([total[None], switches[None], alone]))
