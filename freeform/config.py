@@ -424,6 +424,12 @@ def compose(*overrides: str) -> TrainConfig:
     ``conf/`` (``compose("experiment=rough_cpu", "trainer.epochs=3")``): for scripts, benchmarks and tests that
     start from a preset instead of restating its numbers. Not inside a running Hydra app (Hydra is initialised
     here)."""
+    return to_dataclass(compose_raw(*overrides))
+
+
+def compose_raw(*overrides: str) -> Any:
+    """The composed config of ``freeform-train *overrides`` as Hydra's ``DictConfig``, neither typed into
+    :class:`TrainConfig` nor validated (what a command line's check looks at before the run starts)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
 
@@ -431,7 +437,7 @@ def compose(*overrides: str) -> TrainConfig:
 
     register_configs()
     with initialize_config_dir(version_base="1.3", config_dir=str(conf_dir()), job_name="train"):
-        return to_dataclass(hydra_compose("config", overrides=list(overrides)))
+        return hydra_compose("config", overrides=list(overrides))
 
 
 def cleanrl_agent(preset: dict[str, Any] = CLEANRL_PRESET) -> AgentConfig:

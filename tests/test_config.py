@@ -237,3 +237,18 @@ def test_every_preset_warm_start_is_a_committed_controller_of_the_kind_it_builds
             (cfg.control.wave_k, cfg.control.wave_amplitude, cfg.control.wave_gain), path.stem
         checked += 1
     assert checked >= 6
+
+
+def test_a_section_the_experiment_leaves_empty_is_named_with_the_experiments_that_have_it() -> None:
+    """``freeform-train control.bodies=...`` without a control experiment: Hydra would fail with an assertion about a
+    ``NoneType`` root; the check names the section, the experiment and the presets that have one."""
+    from freeform.run.cli import CONF_DIR, _empty_section_overrides, presets_with
+
+    message = _empty_section_overrides(["control.bodies=my_body.npy"], CONF_DIR)
+    assert message is not None and "experiment=volume_cpu has no control section" in message
+    having = presets_with("control", CONF_DIR)
+    assert "control_adapt_cpu" in having  # (through its base preset, control_teachers_cpu)
+    assert "volume_cpu" not in having and "paper_locomotion" not in having
+    assert all(name in message for name in having)
+    assert _empty_section_overrides(["experiment=control_teachers_cpu", "control.bodies=b.npy"], CONF_DIR) is None
+    assert _empty_section_overrides(["agent.lr=1e-3"], CONF_DIR) is None

@@ -169,6 +169,56 @@ def _dry_run_requested(argv: Sequence[str]) -> bool:
                for a in argv if "=" in a)
 
 
+def presets_with(section: str, conf: Path) -> list[str]:
+    """The experiment presets (``conf/experiment/*.yaml``) that set ``section``, themselves or through a preset
+    they build on (their ``defaults`` list)."""
+    files = {p.stem: OmegaConf.load(p) for p in sorted((conf / "experiment").glob("*.yaml"))}
+
+    def sets(name: str, seen: frozenset[str] = frozenset()) -> bool:
+        preset = files.get(name)
+        if preset is None or name in seen:
+            return False
+        bases = [d for d in preset.get("defaults", []) if isinstance(d, str) and d != "_self_"]
+        return section in preset or any(sets(b, seen | {name}) for b in bases)
+
+    return [name for name in files if sets(name)]
+
+
+def _empty_section_overrides(argv: Sequence[str], conf: Path) -> str | None:
+    """What is wrong, in words, when ``argv`` overrides a field of a section that the chosen experiment leaves
+    empty (``control.*`` without a control experiment: Hydra itself fails there with an assertion about a
+    ``NoneType`` root), naming the experiments that have it; None otherwise. Sweeps and ``+``/``~`` overrides are
+    left to Hydra."""
+    import dataclasses
+
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from freeform.config import TrainConfig, compose_raw
+
+    optional = {f.name for f in dataclasses.fields(TrainConfig) if f.default is None}
+    try:
+        parsed = OverridesParser.create().parse_overrides([a for a in argv if not a.startswith("-")])
+    except Exception:  # (Hydra reports a malformed override itself)
+        return None
+    touched = sorted({o.key_or_group.split(".")[0] for o in parsed
+                      if "." in o.key_or_group and o.key_or_group.split(".")[0] in optional
+                      and o.is_force_add() is False and o.is_add() is False and not o.is_delete()})
+    groups = [o.input_line for o in parsed if "." not in o.key_or_group and not o.is_sweep_override()]
+    if not touched or any(o.is_sweep_override() and "." not in o.key_or_group for o in parsed):
+        return None
+    try:
+        cfg = compose_raw(*groups)
+    except Exception:  # (Hydra reports a bad group choice itself)
+        return None
+    empty = [s for s in touched if cfg.get(s) is None]
+    if not empty:
+        return None
+    section = empty[0]
+    return (f"{section}.* overridden, but experiment={cfg.get('name')} has no {section} section (not a {section} "
+            f"experiment): choose one that has, e.g. experiment={section}_population_cpu — "
+            f"{', '.join(presets_with(section, conf))}")
+
+
 def main() -> None:
     """Console entry point ``freeform-train`` (Hydra parses ``sys.argv``).
 
@@ -185,6 +235,9 @@ def main() -> None:
     )
     # Jobs of the submitit launchers resolve hydra.sweep.subdir in their own processes, whose argv is submitit's.
     os.environ[SWEPT_KEYS_ENV] = ",".join(sorted(_swept_keys(sys.argv[1:])))
+    if message := _empty_section_overrides(sys.argv[1:], CONF_DIR):
+        print(f"freeform-train: error: {message}", file=sys.stderr)
+        raise SystemExit(1)
     if _dry_run_requested(sys.argv[1:]):
         from freeform.launch import dry_run
 

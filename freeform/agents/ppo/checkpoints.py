@@ -46,6 +46,8 @@ class Checkpoints:
     obs: Observation
     episode_return: torch.Tensor
     episode_length: torch.Tensor
+    recent_returns: torch.Tensor
+    recent_lengths: torch.Tensor
     obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None
     return_rms: RunningMeanStd | None
     discounted_return: torch.Tensor
@@ -74,6 +76,7 @@ class Checkpoints:
             "generator": self.generator.get_state(),
             PER_ENV: {"obs": self.obs, "episode_return": self.episode_return, "episode_length": self.episode_length},
             "episode_carry": self._collector.state_dict(),  # global: cut from the gathered rollout
+            "recent_episodes": {"returns": self.recent_returns, "lengths": self.recent_lengths},  # global
         }
         if self.recurrent:  # the state after the last observation, and whether the next one starts an episode
             state[PER_ENV].update({f"policy_state_{i}": s for i, s in enumerate(self.policy_state)},
@@ -108,6 +111,9 @@ class Checkpoints:
         self.obs = self._here(per_env["obs"])
         self.episode_return = per_env["episode_return"].to(self.device)
         self.episode_length = per_env["episode_length"].to(self.device)
+        recent = state.get("recent_episodes")  # (absent from checkpoints before PPOConfig.stats_window: none yet)
+        self.recent_returns = recent["returns"].float().cpu() if recent else torch.zeros(0)
+        self.recent_lengths = recent["lengths"].long().cpu() if recent else torch.zeros(0, dtype=torch.int64)
         if self.recurrent:
             saved = sorted(k for k in per_env if k.startswith("policy_state_"))
             if len(saved) != len(self.policy_state):

@@ -42,6 +42,8 @@ class RolloutCollection:
     episode_infos: list[dict[str, Any]]
     episode_return: torch.Tensor
     episode_length: torch.Tensor
+    recent_returns: torch.Tensor
+    recent_lengths: torch.Tensor
     obs_rms: RunningMeanStd | dict[str, RunningMeanStd] | None
     return_rms: RunningMeanStd | None
     discounted_return: torch.Tensor
@@ -140,15 +142,23 @@ class RolloutCollection:
         self._learning_targets(starts, any_truncated)
         self.global_step += self.config.rollout_steps * self.num_envs
         returns, lengths = self.dp.gather_varlen(returns), self.dp.gather_varlen(lengths)  # every rank's episodes
-        nan = float("nan")
-        return {
-            "episode_reward_mean": returns.mean().item() if len(returns) else nan,
-            "episode_reward_max": returns.max().item() if len(returns) else nan,
-            "episode_reward_min": returns.min().item() if len(returns) else nan,
-            "episode_length_mean": lengths.float().mean().item() if len(lengths) else nan,
-            "episodes": float(len(returns)),
-            "time_env": time_env,
-        }
+        stats = {"episodes": float(len(returns)), "time_env": time_env}
+        returns, lengths = self._recent_episodes(returns, lengths)
+        if len(returns):  # (absent until an episode has finished)
+            stats.update(episode_reward_mean=returns.mean().item(), episode_reward_max=returns.max().item(),
+                         episode_reward_min=returns.min().item(), episode_length_mean=lengths.float().mean().item())
+        return stats
+
+    def _recent_episodes(self, returns: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The episodes the statistics are over (``PPOConfig.stats_window``): this epoch's finished ones ``[E]``,
+        topped up with the latest earlier ones to ``stats_window``; the latest ``stats_window`` are kept for the
+        next epoch (global: every rank's, the same on each)."""
+        window, finished = self.config.stats_window, len(returns)
+        returns = torch.cat([self.recent_returns, returns.detach().float().cpu()])
+        lengths = torch.cat([self.recent_lengths, lengths.detach().long().cpu()])
+        self.recent_returns, self.recent_lengths = returns[-window:], lengths[-window:]
+        used = max(finished, window)
+        return returns[-used:], lengths[-used:]
 
     def _step_envs(self) -> tuple[float, list[tuple[int, torch.Tensor]], bool]:
         """The rollout's one loop over time: act, step the envs, keep what each step gives; then stack the steps

@@ -110,6 +110,12 @@ class PPOConfig:
     report ``eval_return`` (logged as ``charts/eval_return``); 0 = off."""
     eval_episodes: int = 10
     """Episodes per evaluation, spread over the eval env's environments."""
+    stats_window: int = 100
+    """The episode statistics (``episode_reward_mean``, ``_max``, ``_min``, ``episode_length_mean``) are over the
+    epoch's finished episodes, topped up with the latest earlier ones to at least this many (RLlib's
+    ``metrics_num_episodes_for_smoothing``; SB3's ``stats_window_size`` keeps exactly its last 100): an epoch in
+    which no episode finished reports the latest ones, never NaN; before the first finished episode they are absent.
+    A design or control epoch finishes ≥ 100 episodes and reports exactly its own."""
 
     def __post_init__(self) -> None:
         self.validate("PPOConfig")
@@ -135,7 +141,7 @@ class PPOConfig:
         for name in ("kl_coeff", "vf_loss_coeff", "entropy_coeff"):
             value = getattr(self, name)
             require(is_number(value) and value >= 0.0, f"{key}.{name}", ">= 0", value)
-        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes",
+        for name in ("num_sgd_iter", "sgd_minibatch_size", "rollout_steps", "lr_anneal_epochs", "eval_episodes", "stats_window",
                      "sequence_length"):
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)

@@ -185,6 +185,9 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         # Running return and length of each env's current episode (they span epochs when episodes are cut).
         self.episode_return = torch.zeros(env.num_envs, dtype=torch.float32, device=self.device)
         self.episode_length = torch.zeros(env.num_envs, dtype=torch.int64, device=self.device)
+        # The latest finished episodes' returns and lengths (global, on the CPU): PPOConfig.stats_window's.
+        self.recent_returns = torch.zeros(0, dtype=torch.float32)
+        self.recent_lengths = torch.zeros(0, dtype=torch.int64)
 
     @torch.no_grad()
     def _check_policy(self) -> None:
