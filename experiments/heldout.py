@@ -21,7 +21,7 @@ import json
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,10 +29,12 @@ import torch
 from experiments.common import mean_band, missing_figure, summary_row, write_rows
 from experiments.paired import check_drift, read_table, same_gait, warn_hosts
 from freeform.agents.controller_file import controller_for, read_controller
-from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave, wave_at_gain
-from freeform.agents.controllers import CONTROLLERS, ContextConvController, controller_step, with_wave_gain
+from freeform.agents.controller_heads import HandSetWave, wave_at_gain
+from freeform.agents.controllers import CONTROLLERS, with_wave_gain
 from freeform.agents.group_average import GroupAveraged, check_turnable
 from freeform.agents.networks import rebuild
+from freeform.control.bodies import read_bodies
+from freeform.control.play import SENSED, BankOnBodies, Played, hand_set_wave, play  # noqa: F401 (the lab imports them from here)
 from freeform.envs.control import (
     ControlConfig,
     ControlEnv,
@@ -40,36 +42,7 @@ from freeform.envs.control import (
     open_loop_moves,
 )
 from freeform.envs.control_config import described_differences
-from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
-
-SENSED = ("rel_x", "rel_y", "rel_z", "vel_x", "vel_y", "vel_z", "strain", "contact", *RESPONSE_CHANNELS)
-"""The observation's sensed channels: zeroed, a controller has only the body's shape, the task and the clock."""
-
-
-def read_bodies(path: Path, materials: int) -> torch.Tensor:
-    """The bodies of a ``.npy`` of integer grids ``[M, ρ, ρ, ρ]`` (or one ``[ρ, ρ, ρ]``) in the design env's
-    materials (0 empty, 1 … ``materials``), as uint8, each reduced to its largest 6-connected component (the robot;
-    its other pieces would fall apart from it). Malformed input is refused naming the body and the problem; no row is
-    ever dropped."""
-    from freeform.body import largest_component
-
-    try:
-        grids = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"--bodies {path}: not a .npy of grids ({e})") from e
-    grids = grids[None] if grids.ndim == 3 else grids
-    if grids.ndim != 4 or len(grids) == 0 or not grids.shape[1] == grids.shape[2] == grids.shape[3]:
-        raise ValueError(f"--bodies {path}: grids must be [M, ρ, ρ, ρ] (M ≥ 1 cubes), got shape {list(grids.shape)}")
-    if not (np.issubdtype(grids.dtype, np.integer) or grids.dtype == np.bool_):
-        raise ValueError(f"--bodies {path}: grids must hold integer material indices (uint8), got {grids.dtype}")
-    for i, grid in enumerate(grids):
-        bad = np.unique(grid[(grid < 0) | (grid > materials)])
-        if bad.size:
-            raise ValueError(f"--bodies {path}: body {i} holds material {bad.tolist()}, allowed 0 (empty) … {materials}")
-        if not grid.any():
-            raise ValueError(f"--bodies {path}: body {i} is empty (no voxel: nothing to control)")
-    return largest_component(torch.from_numpy(grids.astype(np.uint8)))
 
 
 @dataclass
@@ -161,35 +134,6 @@ def _teacher_run(run: Path, bodies: np.ndarray, control: ControlConfig, sim: Sim
     return teachers.bank
 
 
-class _BankOnBodies(torch.nn.Module):
-    """A bank of per-body controllers acting on an evaluation env's rows: row r is body ``rows_body[r]``'s."""
-
-    def __init__(self, bank: Any, teacher: torch.Tensor, box: tuple[int, ...]) -> None:
-        super().__init__()
-        from freeform.agents.teachers import TeacherBank
-
-        k = bank.init_kwargs  # (built for the evaluation's box: the kinds that fit any box)
-        self.bank = TeacherBank(**{**k, "controller": {**k["controller"], "box": tuple(box)}})
-        self.bank.load_state_dict(bank.state_dict())
-        self.teacher, self.distribution = teacher, self.bank.distribution
-
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return tuple(self.bank({"teacher": self.teacher, "policy": obs}))
-
-
-def hand_set_wave(env: ControlEnv, controller: torch.nn.Module, wave: HandSetWave | None) -> torch.nn.Module:
-    """An untrained wave-head context controller for ``env`` (whose actions are strokes): its mean command is the
-    hand-set travelling wave — ``wave``, else the controller's own wave, else the default."""
-    own = getattr(controller, "wave", None)
-    start = wave or (HandSetWave(own["k"], own.get("amplitude", 1.0)) if own else DEFAULT_WAVE)
-    net = ContextConvController.for_env(env, head="wave", wave=start).eval()
-    with torch.no_grad():  # (the learnt parts at zero: the wave exactly, not the wave plus an init's small noise)
-        for layer in (net.actor, net.wave_k):
-            layer.weight.zero_()
-            layer.bias.zero_()
-    return net
-
-
 @dataclass(frozen=True)
 class Evaluation:
     """How :func:`evaluate_bodies` plays the bodies: ``episodes`` per body, the heading task (None: the
@@ -254,7 +198,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
         groups.append(("hand_set_wave", hand_set_wave(env, controller, wave), False, False))
     if bank is not None:
         rows_body = torch.arange(m).repeat_interleave(n)
-        own = _BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
+        own = BankOnBodies(bank, torch.where(rows_body < per_body.n, rows_body, 0), box)
         groups += [("per_body", own, False, True), ("per_body_mean_command", own, False, False)]
     returns, _, obs, heading = play(env, groups, control.steps, how.seed)
     moves = open_loop_moves(grids, sim, control)  # [M, 2]
@@ -306,48 +250,6 @@ def played_gain(controller: torch.nn.Module) -> float | None:
     records, so that tables of one controller pool whether its gain came from its file or from ``--wave-gain``."""
     gain = (getattr(controller, "wave", None) or {}).get("gain", 1.0)
     return None if gain == 1.0 else float(gain)
-
-
-class Played(NamedTuple):
-    """What :func:`play` returns: each group's return ``[G, rows]``, the return after each decision
-    ``[steps, G, rows]`` (the last equals ``returns``), the last observation and the episode's headings."""
-
-    returns: np.ndarray
-    after: np.ndarray
-    last_obs: torch.Tensor
-    heading: np.ndarray
-
-
-def play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> Played:
-    """One episode of every group ``(name, net, sensed channels zeroed, stochastic)`` on its block of ``env``'s
-    rows (block g is rows ``g·R/G … (g+1)·R/G``)."""
-    sensed = [env.channels.index(c) for c in SENSED if c in env.channels]
-
-    def view(obs: torch.Tensor, zeroed: bool) -> torch.Tensor:
-        if not zeroed:
-            return obs
-        obs = obs.clone()
-        obs[:, sensed] = 0.0
-        return obs
-
-    generator = torch.Generator().manual_seed(seed)
-    obs, total = env.reset(), torch.zeros(env.num_envs, dtype=torch.float64)
-    states: list = [None] * len(groups)  # (a recurrent controller's, per group, carried through the episode)
-    after = []
-    for _ in range(steps):
-        heading = env.heading.copy()  # (the episode's; the env draws the next episode's at its end)
-        # One draw a step for every group (common random numbers): a stochastic group's episode is the same whichever
-        # other groups run beside it, and stochastic groups share the noise, so their paired differences carry less of it.
-        noise = torch.randn((env.num_envs // len(groups), env.action_dim), generator=generator)
-        actions = []
-        for g, ((_, net, zeroed, stochastic), part) in enumerate(zip(groups, obs.chunk(len(groups)), strict=True)):
-            outputs, states[g] = controller_step(net, view(part, zeroed), states[g])
-            params = outputs[:3]
-            actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
-        obs, reward, _, _ = env.step(torch.cat(actions))
-        total += reward.double()
-        after.append(total.numpy().reshape(len(groups), -1).copy())
-    return Played(after[-1], np.stack(after), obs, heading)
 
 
 def _body_rows(per_group: dict[str, np.ndarray], open_loop: np.ndarray, last_obs: torch.Tensor,

@@ -35,16 +35,19 @@ TAICHI_DECORATORS = ("func", "kernel")
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     # what everything may use: files and checkpoints, records, the logger, argument checks, action distributions
     ("foundation", ("freeform", "freeform._conf_dir", "freeform.validation", "freeform.files", "freeform.checkpoint",
-                    "freeform.records", "freeform.logger", "freeform.preemption", "freeform.distributions")),
+                    "freeform.records", "freeform.logger", "freeform.preemption", "freeform.distributions",
+                    "freeform.tables")),
     ("sim", ("freeform.sim",)),  # grids and actuation in, states and displacements out; knows nothing of RL
     ("body", ("freeform.body", "freeform.surface", "freeform.mesh", "freeform.io")),  # bodies, metrics, files
     ("render", ("freeform.render",)),  # images and videos of grids and recordings
     ("envs", ("freeform.envs",)),  # VecEnvs and tasks: join the body and the simulation through a reward
     ("learner", ("freeform.learner",)),  # the protocol every trainer-driven algorithm implements
     ("agents", ("freeform.agents",)),  # PPO and its networks: any VecEnv, nothing of voxels in the algorithm
+    ("zoo", ("freeform.zoo",)),  # the trained controllers that ship in the wheel
     ("evolve", ("freeform.evolve",)),  # the evolutionary learners over the design space
     ("config", ("freeform.config",)),  # the run's typed config, every section's dataclass
-    ("run", ("freeform.run", "freeform.train", "freeform.launch", "freeform.render_cli")),  # the applications
+    ("run", ("freeform.run", "freeform.train", "freeform.launch", "freeform.render_cli",
+             "freeform.control")),  # the applications
 )
 """Lowest first: data flows from ``run`` down (``docs/architecture.md``)."""
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -133,6 +134,7 @@ class ControlEnv:
         self._metrics = {k: v.float().to(self.device) for k, v in metrics(self.grids).items()}  # (the records')
         self._final_grids = self.grids.to(self.device)
         self.engine: Engine | None = None
+        self._after_period: Callable[[], None] | None = None  # (record: a frame between the periods)
         self._settled: dict[str, Any] | None = None  # the engine's state after the burn-in (Engine.snapshot)
         self.t = self._periods = 0
         self.heading = np.zeros(self.num_envs)
@@ -351,6 +353,8 @@ class ControlEnv:
                 readout = self._period(values[0] * np.sin(theta) + values[1] * np.cos(theta))
             else:
                 readout = self._period(values[0])
+            if self._after_period is not None:
+                self._after_period()
             if p < self.control.periods_per_step - 1 and self._response is not None:  # (the last: _observe's)
                 self._sense(readout[0], self.control.burn_in + self._periods * self.control.period)
         self.t += 1
@@ -449,27 +453,41 @@ class ControlEnv:
         return self.observation
 
     @torch.no_grad()
-    def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:
+    def record(self, act: Any, robot: int = 0, every: int | None = None) -> tuple[Any, np.ndarray, float]:
         """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
         ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``), for looking at: a
-        :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every control step,
-        the commands the robot's actuated voxels received ``[steps, voxels]``, and its return. Starts a new episode."""
+        :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every ``every`` control
+        periods (None: after every action, ``periods_per_step`` periods), the commands the robot's actuated voxels
+        received ``[steps, voxels]``, and its return. Starts a new episode; the frames are read between the periods
+        the episode runs anyway, so the episode is the one :meth:`step` gives, bit for bit."""
         from freeform.sim.simulator import Recording
 
+        every = every or self.control.periods_per_step
+        if not (isinstance(every, int) and every >= 1):
+            raise ValueError(f"every must be a whole number of control periods >= 1, got {every!r}")
         obs, lay = self.reset(), self.layout
         mine = lay.voxel_robot == robot
         positions, orientations = [self.engine.positions()[mine]], [self.engine.orientations()[mine]]
-        commands, total = [], 0.0
-        for _ in range(self.control.steps):
-            action = torch.as_tensor(act(obs)).reshape(self.num_envs, -1)
-            commands.append(action[robot][self.action_mask[robot]].clamp(-1.0, 1.0).cpu().numpy())
-            obs, reward, done, _ = self.step(action)
-            total += float(reward[robot])
-            if not bool(done[robot]):
+        periods = 0
+
+        def frame() -> None:  # (after each control period, before an episode's end resets the env)
+            nonlocal periods
+            periods += 1
+            if periods % every == 0:
                 positions.append(self.engine.positions()[mine])
                 orientations.append(self.engine.orientations()[mine])
-        step_s = self.control.period * self.control.periods_per_step
-        recording = Recording(times=self.control.burn_in + step_s * np.arange(len(positions)),
+
+        commands, total = [], 0.0
+        self._after_period = frame
+        try:
+            for _ in range(self.control.steps):
+                action = torch.as_tensor(act(obs)).reshape(self.num_envs, -1)
+                commands.append(action[robot][self.action_mask[robot]].clamp(-1.0, 1.0).cpu().numpy())
+                obs, reward, _, _ = self.step(action)
+                total += float(reward[robot])
+        finally:
+            self._after_period = None
+        recording = Recording(times=self.control.burn_in + self.control.period * every * np.arange(len(positions)),
                               voxel_size=self.sim_config.voxel_size, lattice=[lay.lattice[mine]],
                               materials=[lay.material[mine]], positions=[np.stack(positions).astype(np.float32)],
                               orientations=[np.stack(orientations).astype(np.float32)])

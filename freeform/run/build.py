@@ -79,7 +79,9 @@ def _controlled_locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
         raise ValueError("task.name=controlled_locomotion needs task.options.controller=PATH (a controller.pt, a "
                          "folder holding one, or a control run's directory)")
     options = _simulator_options(cfg, device)
-    return ControlledLocomotionTask(**{**options, "controller": read_controller(options["controller"])})
+    from freeform.zoo import resolve
+
+    return ControlledLocomotionTask(**{**options, "controller": read_controller(resolve(options["controller"]))})
 
 
 def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
@@ -277,12 +279,14 @@ def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | N
 def _read_saved(source: str, field: str, box: tuple[int, int, int] | None = None) -> Any:
     """:func:`read_saved_controller`'s ``SavedController`` (the network with its ``ControlConfig``)."""
     from freeform.agents.controller_file import read_controller
+    from freeform.zoo import ORDER, ZOO, resolve
 
-    if not Path(source).exists():
-        raise ValueError(f"{field}={source!r}: no such checkpoint, controller.pt or run folder (give a control run's "
-                         "directory, a checkpoint, or a folder holding controller.pt)")
+    if source not in ORDER and not Path(source).exists():
+        raise ValueError(f"{field}={source!r}: no such checkpoint, controller.pt or run folder, nor a controller of "
+                         f"the zoo ({', '.join(ORDER)}): give a control run's directory, a checkpoint, a folder "
+                         f"holding controller.pt or a zoo name (they lie in {ZOO})")
     try:
-        return read_controller(Path(source), box=box)
+        return read_controller(resolve(source), box=box)
     except ValueError as e:
         raise ValueError(f"{field}={source!r}: {e}") from e
 

@@ -1,0 +1,105 @@
+"""A controller on bodies of your own: each body's move under the controller (its mean command and its samples),
+under the hand-set travelling wave, and along its own open-loop gait — ``freeform-control evaluate``.
+
+Every figure is the body's move in the controller's episode (voxel lengths: the distance its centre of mass
+travels in the plane over the control window, or along the heading for a heading task), from one env that plays
+every group on its own block of rows with the same headings; the mean command is deterministic, so one episode of
+it is the figure (``watch`` replays it frame by frame).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from freeform.control.play import hand_set_wave, play
+from freeform.envs.control import ControlConfig, ControlEnv, open_loop_displacement, open_loop_moves
+from freeform.sim import SimConfig
+from freeform.tables import mean_band, summary_row, write_rows
+
+COLUMNS = ("open_loop", "hand_set_wave", "mean_command", "stochastic")
+"""``bodies.csv``'s figures, each a mean over the body's episodes (voxel lengths)."""
+
+
+def episode_of(saved: Any, headings: str | None = None) -> ControlConfig:
+    """The episode a saved controller plays: its own, along ``headings`` where given (warned: another task than
+    the one it was trained for)."""
+    control = replace(saved.control, headings=headings or saved.control.headings)
+    control.validate()
+    if control.headings != saved.control.headings:
+        warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
+                      f"{saved.control.headings}, another task than the one played", stacklevel=3)
+    return control
+
+
+def block_env(grids: torch.Tensor, saved: Any, control: ControlConfig, blocks: int, episodes: int = 1,
+              seed: int = 0) -> ControlEnv:
+    """One env of ``blocks`` blocks of rows, each every body × ``episodes`` (row ``i·episodes + j``: body i's
+    episode j, whose headings are draw ``j·M + i``: episode 0 of body i draws what row i of a one-episode env
+    draws)."""
+    m, box = len(grids), tuple(saved.controller.box)
+    draws = (np.arange(episodes)[None, :] * m + np.arange(m)[:, None]).reshape(-1)
+    return ControlEnv(grids.repeat_interleave(episodes, 0).repeat(blocks, 1, 1, 1), sim=saved.sim or SimConfig(),
+                      control=control, seed=seed, box=box, first_env=np.tile(draws, blocks))
+
+
+@torch.no_grad()
+def evaluate(saved: Any, grids: torch.Tensor, episodes: int = 4, headings: str | None = None,
+             seed: int = 0) -> list[dict]:
+    """``saved`` (a ``SavedController`` built for a box that holds ``grids``, uint8 ``[M, ρ, ρ, ρ]``) on every body:
+    one row a body with its voxels and :data:`COLUMNS` (the stochastic mean's 99 % band beside it). The stochastic
+    column and the hand-set wave are means over ``episodes`` episodes; the mean command is deterministic, and its
+    column is the body's first episode, played in an env of one row a body — the env ``watch`` replays, so that
+    its figure is this one to the bit (a controller's forward pass rounds by the batch it is given)."""
+    if not (isinstance(episodes, int) and episodes >= 1):
+        raise ValueError(f"--episodes must be a whole number >= 1, got {episodes!r}")
+    control, net = episode_of(saved, headings), saved.controller.eval()
+    strokes = control.stroke_periods >= 1
+    env = block_env(grids, saved, control, 1 + strokes, episodes, seed)
+    groups = [("stochastic", net, False, True)]
+    if strokes:  # (the wave is a stroke; a controller of per-period commands has none to compare with)
+        groups.append(("hand_set_wave", hand_set_wave(env, net, None), False, False))
+    played = play(env, groups, control.steps, seed)
+    m, n = len(grids), episodes
+    mean_command = play(block_env(grids, saved, control, 1, 1, seed), [("mean_command", net, False, False)],
+                        control.steps, seed).returns[0]
+    sim = saved.sim or SimConfig()
+    gait = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=played.heading[: m * n],
+                                  planar=control.headings == "any",
+                                  moves=np.repeat(open_loop_moves(grids, sim, control), n, 0)).reshape(m, n)
+    figures = {"open_loop": gait, "mean_command": mean_command[:, None],
+               **{name: played.returns[g].reshape(m, n) for g, (name, *_) in enumerate(groups)}}
+    rows = []
+    for i in range(m):
+        _, band = mean_band(figures["stochastic"][i])
+        rows.append({"body": i, "voxels": int((grids[i] > 0).sum()),
+                     **{c: float(figures[c][i].mean()) for c in COLUMNS if c in figures},
+                     "stochastic_band99": float(band)})
+    return rows
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """``summary.csv``: each column's mean over the bodies with its 99 % band, the mean command over the hand-set
+    wave, and the fraction of bodies it moves beyond their own gait."""
+    column = {c: np.array([r[c] for r in rows]) for c in COLUMNS if c in rows[0]}
+    out = [summary_row(c, v) for c, v in column.items()]
+    if "hand_set_wave" in column:
+        out.append({"what": "mean_command over hand_set_wave", "n": len(rows),
+                    "mean": float(column["mean_command"].mean() / column["hand_set_wave"].mean())})
+    out.append(summary_row("fraction of bodies beyond their own gait (mean command)",
+                           (column["mean_command"] > column["open_loop"]).astype(float)))
+    return out
+
+
+def write(out: Path, rows: list[dict]) -> None:
+    """``out/bodies.csv`` and ``out/summary.csv``."""
+    write_rows(out / "bodies.csv", rows)
+    write_rows(out / "summary.csv", summary(rows))
+
+
+__all__ = ["COLUMNS", "block_env", "episode_of", "evaluate", "summary", "write"]

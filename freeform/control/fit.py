@@ -1,0 +1,174 @@
+"""A controller for each of your bodies: the zoo's controllers tried on it, the best kept, then adapted to it by
+PPO — ``freeform-control fit``.
+
+**Trials.** Every candidate (the zoo's :data:`freeform.zoo.TRIED`, the hand-set wave among them) drives every body
+by its mean command for one episode, all in one env (a block of rows a candidate); a body's controller is the one
+that moved it furthest after the trial's decisions (``--trial SECONDS``; default the whole episode), and its figure
+is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
+
+**Adaptation** (``--adapt-epochs E`` > 0). Each body's chosen controller is trained on that body alone for E epochs
+of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.teachers.TeacherBank``, each
+body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
+recipe (its learning rate and batch; ``conf/experiment/``). Each body then keeps whichever of the adapted and the
+chosen controller moves it further by its mean command.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from freeform.control.evaluate import block_env, episode_of
+from freeform.control.play import BankOnBodies, play
+from freeform.envs.control import ControlConfig, ControlEnv
+from freeform.envs.control_config import described_differences
+from freeform.sim import SimConfig
+
+
+@dataclass(frozen=True)
+class Fit:
+    """How ``fit`` works: the candidates (zoo names or ``controller.pt`` paths, tried in this order: a tie goes to
+    the earlier), the trial's seconds (None: the whole episode), the adaptation's epochs (0: trials alone), its
+    environments per body, the preset whose recipe it follows, and the seed."""
+
+    candidates: tuple[str, ...]
+    trial: float | None = None
+    adapt_epochs: int = 0
+    copies: int = 4
+    preset: str = "control_adapt_cpu"
+    seed: int = 0
+
+
+class Candidates:
+    """The candidates read back and built for one box that holds the bodies, checked to play one episode in one
+    simulator (each difference named)."""
+
+    def __init__(self, specs: tuple[str, ...], grids: torch.Tensor) -> None:
+        from freeform.agents.controller_file import body_box, read_controller
+        from freeform.zoo import resolve
+
+        if not specs:
+            raise ValueError("fit needs at least one candidate controller")
+        first = [read_controller(resolve(s)) for s in specs]
+        box = tuple(max(b) for b in zip(body_box(grids), *(s.controller.box for s in first), strict=True))
+        self.saved = [read_controller(s.path, box=box) for s in first]
+        self.names = [Path(s).name if Path(s).suffix == ".pt" else str(s) for s in specs]
+        self.control = episode_of(self.saved[0])
+        self.sim = self.saved[0].sim or SimConfig()
+        every = tuple(f.name for f in fields(ControlConfig))
+        for spec, s in zip(specs[1:], self.saved[1:], strict=True):
+            differ = described_differences(s.control, self.control, str(s.path), every)
+            physics = ControlEnv.physics_differences(s.sim or SimConfig(), self.sim, self.control, str(s.path),
+                                                     f"in {self.saved[0].path}")
+            if differ or physics:
+                raise ValueError(f"candidate {spec} plays another episode or simulator than {specs[0]} — "
+                                 f"{'; '.join([*differ, *([physics] if physics else [])])}: fit tries controllers of "
+                                 "one episode and one simulator (the zoo's all are)")
+
+
+def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
+    """The decisions a trial of ``seconds`` lasts (None: the whole episode's), at least one."""
+    if seconds is None:
+        return control.steps
+    step = control.period * control.periods_per_step
+    if not (np.isfinite(seconds) and 0 < seconds <= control.steps * step + 1e-9):
+        raise ValueError(f"--trial must be in (0, {control.steps * step:g}] seconds (the episode), got {seconds!r}")
+    return max(1, min(control.steps, round(seconds / step)))
+
+
+@torch.no_grad()
+def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Each body's chosen candidate ``[M]`` (by its move after ``decisions``) and every candidate's whole-episode
+    move ``[C, M]`` (mean commands)."""
+    env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), seed=seed)
+    groups = [(name, s.controller.eval(), False, False) for name, s in zip(c.names, c.saved, strict=True)]
+    played = play(env, groups, c.control.steps, seed)
+    return played.after[decisions - 1].argmax(0), played.returns
+
+
+def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, scratch: Path) -> tuple[Any, np.ndarray]:
+    """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring): the bank
+    of adapted controllers and each one's whole-episode move on its body ``[M]`` (mean command)."""
+    from freeform.config import compose
+    from freeform.run.build import build
+
+    m = len(grids)
+    np.save(scratch / "bodies.npy", grids.numpy())
+    cfg = compose(f"experiment={how.preset}", f"control.bodies={scratch / 'bodies.npy'}", f"control.teachers={m}",
+                  f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
+                  f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
+    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}",
+                                   tuple(f.name for f in fields(ControlConfig)))
+    if differ:
+        raise ValueError(f"the adaptation's preset plays another episode than the candidates: {'; '.join(differ)}")
+    _, ppo = build(cfg, torch.device("cpu"))
+    bank = ppo.policy
+    for i in range(m):
+        bank.load_member(i, c.saved[int(choice[i])].controller.state_dict())
+    with torch.enable_grad():
+        for _ in range(how.adapt_epochs):
+            ppo.train_epoch()
+    env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
+    own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
+    with torch.no_grad():
+        moved = play(env, [("adapted", own, False, False)], c.control.steps, how.seed).returns[0]
+    return bank, moved
+
+
+@torch.no_grad()
+def alone(nets: list[Any], grids: torch.Tensor, c: Candidates, seed: int = 0) -> np.ndarray:
+    """Body i's move ``[M]`` under ``nets[i]``'s mean command, each body alone in an env of its own: what
+    ``evaluate`` and ``watch`` of its ``controller.pt`` on its ``body.npy`` report, to the bit (a forward pass
+    rounds by the batch it is given, so a body played beside others moves a little otherwise)."""
+    moved = []
+    for i, net in enumerate(nets):
+        env = block_env(grids[i: i + 1], c.saved[0], c.control, blocks=1, seed=seed)
+        moved.append(play(env, [("fitted", net.eval(), False, False)], c.control.steps, seed).returns[0, 0])
+    return np.array(moved)
+
+
+def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
+    """A controller for each body of ``grids`` (uint8 ``[M, ρ, ρ, ρ]``): trials, then adaptation where asked; writes
+    ``out/body<i>/controller.pt`` (self-contained: ``evaluate`` and ``watch`` read it) beside ``out/body<i>/body.npy``
+    and ``out/bodies.csv`` (``body``, ``chosen``, ``mean_command``: the body's move under it, alone, ``controller_file``,
+    ``seconds``: the body's share of the wall time, then each candidate's trial figure). Returns the rows."""
+    from freeform.agents.controller_file import save_controller
+    from freeform.tables import write_rows
+
+    start = time.perf_counter()
+    c = Candidates(how.candidates, grids)
+    decisions = trial_decisions(how.trial, c.control)
+    choice, moves = trials(c, grids, decisions, how.seed)
+    m = len(grids)
+    nets = [c.saved[int(k)].controller for k in choice]
+    labels = [c.names[int(k)] for k in choice]
+    out.mkdir(parents=True, exist_ok=True)
+    if how.adapt_epochs:
+        bank, adapted = adapt(c, grids, choice, how, out)
+        better = adapted > moves[choice, np.arange(m)]
+        nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
+        labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
+    moved = alone(nets, grids, c, how.seed)
+    rows, seconds = [], (time.perf_counter() - start) / m
+    for i in range(m):
+        path = save_controller(out / f"body{i}" / "controller.pt", nets[i], c.control, c.sim)
+        np.save(out / f"body{i}" / "body.npy", grids[i].numpy())
+        rows.append({"body": i, "chosen": labels[i], "mean_command": float(moved[i]), "controller_file": str(path),
+                     "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
+    write_rows(out / "bodies.csv", rows)
+    return rows
+
+
+def no_earlier_fit(out: Path) -> None:
+    """Refuse to write into a folder that holds a fit already (nothing written is lost)."""
+    if (out / "bodies.csv").exists():
+        raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
+
+
+__all__ = ["Candidates", "Fit", "adapt", "alone", "fit", "no_earlier_fit", "trial_decisions", "trials"]
+

@@ -1,0 +1,76 @@
+"""One body's gait under a controller, to look at: ``freeform-control watch``.
+
+The controller drives the body by its mean command for one episode — the episode ``evaluate`` scores for that body
+(same env seed, same row, so the same headings and the same bits) — and a frame is taken every ``k`` control
+periods, ``k`` the whole number nearest to giving the asked frame rate: every simulated frame at that rate over
+the whole control window, from the end of the burn-in to the episode's end.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from freeform.agents.controllers import controller_step
+from freeform.control.evaluate import block_env, episode_of
+from freeform.envs.control import open_loop_displacement, open_loop_moves
+from freeform.sim import SimConfig
+
+
+def periods_per_frame(fps: float, period: float) -> int:
+    """The control periods between two frames for a frame rate of about ``fps`` (at least one period)."""
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"--fps must be a positive number of frames per second, got {fps!r}")
+    return max(1, round(1.0 / (fps * period)))
+
+
+@torch.no_grad()
+def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: str = "gif",
+          headings: str | None = None, body: int = 0) -> dict:
+    """Drive body ``body`` of ``grids`` (uint8 ``[M, ρ, ρ, ρ]``) with ``saved`` (a ``SavedController`` for a box that
+    holds them) by its mean command for one episode, in the env ``evaluate`` plays the mean command in (every body
+    of the file, one row each: the same bits); write ``out/gait.<video>`` (``gif``, or ``mp4`` with the ``video``
+    extra) and ``out/gait.json`` (the move, the frames, the frame rate, the body's own open-loop gait). Returns the
+    figures."""
+    if video not in ("gif", "mp4"):
+        raise ValueError(f"--video must be gif or mp4, got {video!r}")
+    from freeform.render.gait import render_recording
+    from freeform.render.video import write_video
+
+    control, net = episode_of(saved, headings), saved.controller.eval()
+    every = periods_per_frame(fps, control.period)
+    if not 0 <= body < len(grids):
+        raise ValueError(f"--body {body}: the file holds bodies 0 … {len(grids) - 1}")
+    env = block_env(grids, saved, control, blocks=1)
+    state, headings_seen = None, []  # (a recurrent controller's state, carried through the episode)
+
+    def act(obs: torch.Tensor) -> torch.Tensor:
+        nonlocal state
+        headings_seen.append(float(env.heading[body]))  # (the episode's: the env draws the next one's at its end)
+        outputs, state = controller_step(net, obs, state)
+        return net.distribution.mode(outputs[:3])
+
+    recording, _, moved = env.record(act, robot=body, every=every)
+    heading = headings_seen[0]
+    delivered = 1.0 / (every * control.period)
+    out.mkdir(parents=True, exist_ok=True)
+    write_video(out / f"gait.{video}", render_recording(recording), fps=delivered)
+    sim = saved.sim or SimConfig()
+    alone = grids[body: body + 1]
+    gait = open_loop_displacement(alone, sim, control, headings=np.array([heading]), planar=control.headings == "any",
+                                  moves=open_loop_moves(alone, sim, control))
+    com = recording.positions[0].mean(1) / sim.voxel_size  # [frames, 3] (every voxel weighs the same)
+    figures = {"body": body, "displacement": moved, "open_loop": float(gait[0]), "frames": len(recording.times),
+               "fps": delivered, "seconds": float(recording.times[-1] - recording.times[0]),
+               "heading_rad": None if control.headings == "any" else heading,
+               "com_rise_max": float(com[:, 2].max() - com[0, 2]), "controller": str(saved.path),
+               "unit": "voxel lengths over the control window (evaluate's mean_command for this body)"}
+    (out / "gait.json").write_text(json.dumps(figures, indent=1))
+    return figures
+
+
+__all__ = ["periods_per_frame", "watch"]

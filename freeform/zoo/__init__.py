@@ -1,0 +1,74 @@
+"""The zoo: trained controllers that ship in the wheel, each with a card (what it is, the command that trained it,
+what it reaches and against what reference, its size).
+
+    from freeform import zoo
+    zoo.names()                  # ['student', 'pool256_gen4', …, 'wave']
+    saved = zoo.load("student")  # a SavedController: .controller (the network), .control, .sim
+    print(zoo.card("student"))
+
+``student`` is the best single controller for bodies it never saw (zero-shot). The others are the students that,
+tried once each on a body beside it, keep most of what trying all 17 committed students gains (chosen greedily on
+the 93 held-out bodies, checked on 32 fresh ones); ``wave`` is the hand-set travelling wave in the same network (the
+student with its learnt heads at zero), so that it too can be adapted. Those are :data:`TRIED`: each a voxel-token
+transformer of one architecture playing the same episode (2 s of strokes, headings any), so that
+``freeform-control fit`` tries them side by side and adapts whichever wins. :data:`STARTS` are what the presets in
+``conf/experiment`` start from. A config names any of them by name (``control.controller_init=population``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+ZOO = Path(__file__).resolve().parent
+CONTROLLER_FILE = "controller.pt"
+CARD = "card.md"
+TRIED = ("student", "pool256_gen4", "pool256", "reptile3_fresh", "iterated64", "reptile3", "wave")
+"""What ``freeform-control fit`` tries on a body, in the order they were chosen (each added the most to the best of
+those before it on the 93 held-out bodies)."""
+STARTS = ("student_gen3", "population", "population_steering", "student_steering")
+"""The controllers the presets start from (``control.controller_init``) and that their figures were measured with."""
+ORDER = TRIED + STARTS
+
+
+class UnknownController(ValueError):
+    """A name that is neither one of the zoo's nor a path to a controller file."""
+
+
+def names() -> list[str]:
+    """The zoo's controllers, in :data:`ORDER`."""
+    return list(ORDER)
+
+
+def path(name: str) -> Path:
+    """The ``controller.pt`` of the zoo's controller ``name`` (refused with the zoo's names where it has none)."""
+    if name not in ORDER:
+        raise UnknownController(f"{name!r} is not a controller of the zoo ({', '.join(ORDER)}) nor a controller.pt "
+                                "file: give one of those names or a path to a controller.pt")
+    return ZOO / name / CONTROLLER_FILE
+
+
+def resolve(spec: str | Path) -> Path:
+    """A controller as the command line names it: a zoo name (:func:`names`), else a path to a ``controller.pt``,
+    a folder holding one or a control run's directory (``freeform.agents.controller_file.read_controller``)."""
+    if str(spec) in ORDER:
+        return path(str(spec))
+    if Path(spec).exists():
+        return Path(spec)
+    path(str(spec))  # (raises, naming the zoo)
+    raise AssertionError  # (unreachable)
+
+
+def load(name: str) -> Any:
+    """The zoo's controller ``name`` read back (a ``freeform.agents.controller_file.SavedController``)."""
+    from freeform.agents.controller_file import read_controller
+
+    return read_controller(path(name))
+
+
+def card(name: str) -> str:
+    """The card of the zoo's controller ``name``: what it is, how it was trained, what it reaches."""
+    return (path(name).parent / CARD).read_text()
+
+
+__all__ = ["CARD", "ORDER", "STARTS", "TRIED", "UnknownController", "ZOO", "card", "load", "names", "path", "resolve"]
