@@ -31,9 +31,7 @@ trained once and cached) and the fraction of it the controller reaches.
 
 Writes ``curve.csv`` (per epoch: wall seconds, training return, the update's statistics), ``summary.csv``,
 ``control_walker.png``, ``walker.npy`` and ``controller.pt`` into ``--out``. ``--gait DIR`` replays DIR's controller
-(deterministic) on the walker, writes ``gait_closed_loop.gif`` and ``gait_open_loop.gif`` and ``gait.json``: how
-high the centre of mass rises, how often the commands switch (their dominant frequency against the sine's 4 Hz),
-how many sit at the clip — what to look at before believing a fast gait.
+(its mean command) on the walker: ``freeform-control watch`` (``gait.gif``, ``gait.json``).
 """
 
 from __future__ import annotations
@@ -41,7 +39,6 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -53,7 +50,6 @@ from experiments.heldout import Evaluation, PerBody, evaluate_bodies
 from freeform.agents import PPO, ConvController, PPOConfig
 from freeform.agents.controller_file import CONTROLLER_FILE, read_controller, save_controller
 from freeform.agents.controller_heads import HandSetWave
-from freeform.agents.controllers import controller_step
 from freeform.envs.control import (
     HEADINGS,
     ControlConfig,
@@ -62,51 +58,19 @@ from freeform.envs.control import (
 )
 from freeform.envs.symmetry import GROUPS
 from freeform.envs.untrained import DesignBodies, untrained_walker
-from freeform.sim import SimConfig, Simulator
+from freeform.sim import SimConfig
 
 RHO, MATERIALS, DESIGN_STEPS, BUNDLE = 8, 4, 20, 2  # the locomotion CPU demo's design setting (locomotion_cpu)
 
 
-@torch.no_grad()
 def gait(directory: Path, fps: float = 40.0) -> dict:
-    """Replay ``directory``'s trained controller (its mode) on the walker alone; GIFs of the closed- and open-loop
-    gaits and figures of the commanded gait (``gait.json``)."""
-    from freeform.render.gait import render_recording, simulate_gait
-    from freeform.render.video import write_video
+    """``directory``'s trained controller on its walker: ``freeform-control watch DIR/controller.pt DIR/walker.npy
+    --out DIR`` (``gait.gif``, ``gait.json``)."""
+    from freeform.control.cli import main as control
 
-    body = torch.from_numpy(np.load(directory / "walker.npy"))
-    saved = read_controller(directory / CONTROLLER_FILE)
-    policy, sim, control = saved.controller, saved.sim or SimConfig(), saved.control
-    env = ControlEnv(body, sim=sim, control=control, box=policy.box)
-    com: list[float] = []
-    state = None  # (a recurrent controller's, carried through the episode)
-
-    def act(obs: torch.Tensor) -> torch.Tensor:  # the controller's mode, and the height of the centre of mass
-        nonlocal state
-        com.append(float(env.engine.sense().com[0, 2]))
-        (mean, _, mask, _), state = controller_step(policy, obs, state)
-        return (mean * mask).clamp(-1, 1)
-
-    recording, c, total = env.record(act)
-    L = sim.voxel_size
-    write_video(directory / "gait_closed_loop.gif", render_recording(recording), fps=fps / 2)
-    open_loop_sim = Simulator(replace(sim, burn_in=control.burn_in, duration=control.duration))
-    write_video(directory / "gait_open_loop.gif", render_recording(simulate_gait(open_loop_sim, body.numpy()[0], fps)),
-                fps=fps / 2)
-    # c: the commands [steps, actuated voxels]
-    spectrum = np.abs(np.fft.rfft(c - c.mean(0), axis=0)).mean(1)
-    freqs = np.fft.rfftfreq(len(c), d=control.period)
-    com_z = np.array(com) / L
-    figures = {
-        "displacement_x": total, "steps": control.steps, "period_s": control.period,
-        "com_rise_max": float(com_z.max() - com_z[0]), "com_z_start": float(com_z[0]),
-        "commands_at_clip": float((np.abs(c) > 0.99).mean()),
-        "mean_abs_change_per_step": float(np.abs(np.diff(c, axis=0)).mean()),
-        "dominant_frequency_hz": float(freqs[1:][np.argmax(spectrum[1:])]),
-        "sine_frequency_hz": 1.0 / sim.temp_period,
-    }
-    (directory / "gait.json").write_text(json.dumps(figures, indent=1))
-    return figures
+    control(["watch", str(directory / CONTROLLER_FILE), str(directory / "walker.npy"), "--out", str(directory),
+             "--fps", str(fps)])
+    return json.loads((directory / "gait.json").read_text())
 
 
 @torch.no_grad()
@@ -269,7 +233,7 @@ def main(argv: list[str] | None = None) -> None:
         evaluate_run(Path(args.evaluate), args.eval_episodes, Path(args.out))
         return
     if args.gait:
-        print(json.dumps(gait(Path(args.gait)), indent=1))
+        gait(Path(args.gait))
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ run that directory's own ``.pth`` files, so the editable freeform installed ther
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -18,6 +19,7 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from helpers import tiny  # tests/helpers.py
 
@@ -80,6 +82,11 @@ def test_wheel_holds_every_module_and_config(built: tuple[Path, Path]) -> None:
     assert not missing, f"{missing} not in the wheel: add their package to [tool.setuptools] packages (pyproject.toml)"
     missing = sorted(configs - names)
     assert not missing, f"{missing} not in the wheel: conf/ must ship as freeform/conf (pyproject.toml package-dir)"
+    from freeform import zoo
+
+    shipped = {f"freeform/zoo/{name}/{part}" for name in zoo.names() for part in (zoo.CONTROLLER_FILE, zoo.CARD)}
+    missing = sorted(shipped - names)
+    assert not missing, f"{missing} not in the wheel: the zoo ships as package data (pyproject.toml package-data)"
 
 
 def test_installed_apps_train_and_render_outside_the_checkout(venv: Path, tmp_path: Path) -> None:
@@ -104,6 +111,19 @@ def test_installed_apps_train_and_render_outside_the_checkout(venv: Path, tmp_pa
     image = images[0]
     assert image.parent == run / "renders" / "epoch_000000"
     assert image.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # A controller for a body of one's own, from the zoo in the wheel: fit by trials, then watched.
+    body = np.zeros((4, 4, 4), np.uint8)
+    body[0:3, 0:2, 0] = [[2, 2], [1, 1], [3, 3]]
+    np.save(tmp_path / "my_body.npy", body)
+    _run([bin_dir / "freeform-control", "fit", "my_body.npy", "--out", "fitted", "--adapt-epochs", "0"], cwd=tmp_path)
+    fitted = (tmp_path / "fitted" / "bodies.csv").read_text().splitlines()
+    assert len(fitted) == 2 and fitted[0].startswith("body,chosen,mean_command,controller_file,seconds")
+    _run([bin_dir / "freeform-control", "watch", "fitted/body0/controller.pt", "my_body.npy", "--out", "seen"],
+         cwd=tmp_path)
+    seen = json.loads((tmp_path / "seen" / "gait.json").read_text())
+    assert seen["controller"].startswith(str(tmp_path)) and (tmp_path / "seen" / "gait.gif").is_file()
+    assert seen["displacement"] == float(fitted[1].split(",")[2])
 
     # The dry run composes the same configs (freeform.launch), still from outside the checkout.
     report = _run([bin_dir / "freeform-train", "trainer.dry_run=true", *TINY], cwd=tmp_path)

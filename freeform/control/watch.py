@@ -67,7 +67,7 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
     figures = {"body": body, "displacement": moved, "open_loop": float(gait[0]), "frames": len(recording.times),
                "fps": delivered, "seconds": float(recording.times[-1] - recording.times[0]),
                "heading_rad": None if control.headings == "any" else heading,
-               "com_rise_max": float(com[:, 2].max() - com[0, 2]), "controller": str(saved.path),
+               "com_rise_max": float(com[:, 2].max() - com[0, 2]), "controller": str(Path(saved.path).resolve()),
                "unit": "voxel lengths over the control window (evaluate's mean_command for this body)"}
     (out / "gait.json").write_text(json.dumps(figures, indent=1))
     return figures

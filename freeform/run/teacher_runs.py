@@ -144,8 +144,8 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
     A bank re-started from a student (``experiment=control_adapt_cpu``) trains its teachers apart; their mean step
     is what a few epochs on every body agree on, and a step along it is a new student without a distillation."""
     from freeform.agents.controller_file import read_controller, save_controller
-    from freeform.zoo import resolve
     from freeform.agents.controllers import PrivilegedCritic
+    from freeform.zoo import resolve
 
     if not (step > 0 and math.isfinite(step)):
         raise ValueError(f"--step {step}: the Reptile step is a positive, finite multiple of the teachers' mean step")

@@ -1,0 +1,146 @@
+"""``freeform-control``: evaluate, watch and fit through the command line, on tiny bodies; bad input refused in one
+line, naming the fix, with nothing written."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from freeform import zoo
+from freeform.agents.controller_file import save_controller
+from freeform.agents.controller_heads import ControlInputs
+from freeform.agents.controllers import ContextConvController, MLPController
+from freeform.control.bodies import read_bodies
+from freeform.control.cli import main
+from freeform.envs.control import OBS_CHANNELS, ControlConfig
+from freeform.sim import SimConfig
+
+SHORT = ControlConfig(burn_in=0.01, duration=0.05)  # four control periods of 0.0125 s
+
+
+def tiny_bodies() -> np.ndarray:
+    """Three bodies of ρ = 3: a muscle pair, an L of three voxels, a bar of two (boxes up to 2 × 2 × 1)."""
+    g = np.zeros((3, 3, 3, 3), np.uint8)
+    g[0, 0:2, 0, 0] = [2, 3]
+    g[1, 0:2, 0, 0], g[1, 0, 1, 0] = [2, 1], 3
+    g[2, 0:2, 0, 0] = [3, 2]
+    return g
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def short_controller(path: Path) -> Path:
+    torch.manual_seed(0)
+    net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated")), hidden=4,
+                               log_std=-1.0)
+    return save_controller(path, net, SHORT, SimConfig())
+
+
+def refused(argv: list[str], capsys: pytest.CaptureFixture, *needles: str) -> str:
+    """Run ``argv``, which must end in ``freeform-control: error: ...`` naming every needle."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("freeform-control: error: ") and len(err.strip().splitlines()) == 1, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    return err
+
+
+def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_path, capsys) -> None:
+    controller, out = short_controller(tmp_path / "controller.pt"), tmp_path / "out"
+    cases = {"float": (tiny_bodies().astype(np.float32), "integer dtype (uint8), and this one is float32"),
+             "rank": (tiny_bodies()[0, 0], "rank 2"),
+             "empty": (np.concatenate([tiny_bodies(), np.zeros((1, 3, 3, 3), np.uint8)]), "body 3 is empty"),
+             "material": (np.where(tiny_bodies() == 3, 7, tiny_bodies()).astype(np.uint8), "material [7]")}
+    for name, (grids, needle) in cases.items():
+        np.save(tmp_path / f"{name}.npy", grids)
+        for argv in (["evaluate", str(controller), str(tmp_path / f"{name}.npy"), "--out", str(out)],
+                     ["watch", str(controller), str(tmp_path / f"{name}.npy"), "--out", str(out)],
+                     ["fit", str(tmp_path / f"{name}.npy"), "--out", str(out)]):
+            refused(argv, capsys, needle)
+    (tmp_path / "text.npy").write_text("not an array")
+    refused(["evaluate", "student", str(tmp_path / "text.npy"), "--out", str(out)], capsys, "not a .npy file")
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    refused(["evaluate", "nosuch", str(tmp_path / "bodies.npy"), "--out", str(out)], capsys,
+            "'nosuch' is not a controller of the zoo", "student, pool256_gen4")
+    # a fixed-box controller (the MLP) and bodies that need a larger box
+    save_controller(tmp_path / "mlp.pt", MLPController(len(OBS_CHANNELS), (2, 1, 1), 2, (4,)), SHORT)
+    refused(["evaluate", str(tmp_path / "mlp.pt"), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys,
+            "learnt each cell of its box (2, 1, 1) apart", "(2, 2, 1)")
+    # a candidate of another simulator than the zoo's
+    other = zoo.load("student")
+    other.sim.gravity = -5.0
+    save_controller(tmp_path / "moon.pt", other.controller, other.control, other.sim)
+    refused(["fit", str(tmp_path / "bodies.npy"), "--out", str(out), "--candidates", "student",
+             str(tmp_path / "moon.pt")], capsys, "sim.gravity: -5.0")
+    refused(["watch", str(controller), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys, "--body I")
+    assert not out.exists()
+
+
+def test_a_body_in_pieces_keeps_its_largest_piece_with_a_warning(tmp_path) -> None:
+    grids = tiny_bodies()
+    grids[2, 2, 2, 2] = 1  # (a lone voxel apart from the bar)
+    np.save(tmp_path / "pieces.npy", grids)
+    with pytest.warns(UserWarning, match=r"body 2 is in several pieces.*1 voxel\(s\) of the others dropped"):
+        kept = read_bodies(tmp_path / "pieces.npy", 3)
+    assert torch.equal(kept, torch.from_numpy(tiny_bodies()))
+
+
+@pytest.mark.parametrize("fps, every", [(80.0, 1), (40.0, 2)])
+def test_watch_draws_every_frame_at_the_rate_and_moves_as_evaluate_says(tmp_path, fps: float, every: int) -> None:
+    """The GIF holds a frame at the window's start and one every ``every`` control periods to its end (4 periods of
+    0.0125 s: 80 fps is every period, 40 fps every second one); gait.json's move is evaluate's mean command for that
+    body, to the bit (the same env: the file's bodies, one row each)."""
+    controller = short_controller(tmp_path / "controller.pt")
+    np.save(tmp_path / "bodies.npy", tiny_bodies())
+    main(["evaluate", str(controller), str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"),
+          "--headings", "fixed", "--episodes", "2"])
+    main(["watch", str(controller), str(tmp_path / "bodies.npy"), "--body", "1", "--out", str(tmp_path / "seen"),
+          "--fps", str(fps), "--headings", "fixed"])
+    figures = json.loads((tmp_path / "seen" / "gait.json").read_text())
+    gif = Image.open(tmp_path / "seen" / "gait.gif")
+    assert gif.n_frames == figures["frames"] == 1 + 4 // every
+    assert figures["fps"] == pytest.approx(1 / (every * SHORT.period))
+    evaluated = rows(tmp_path / "eval" / "bodies.csv")
+    assert figures["displacement"] == float(evaluated[1]["mean_command"])
+    assert figures["open_loop"] == pytest.approx(float(evaluated[1]["open_loop"]), rel=1e-12)
+    assert list(evaluated[0]) == ["body", "voxels", "open_loop", "mean_command", "stochastic", "stochastic_band99"]
+    summary = {r["what"]: r for r in rows(tmp_path / "eval" / "summary.csv")}
+    assert float(summary["mean_command"]["mean"]) == pytest.approx(np.mean([float(r["mean_command"]) for r in evaluated]))
+
+
+def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_finds(tmp_path) -> None:
+    """Each body's chosen controller is the argmax of its trials (or that one adapted, where adapting moved it
+    further); its controller.pt, evaluated on its body.npy, moves it exactly the figure bodies.csv gives; the zoo's
+    wave trial is the hand-set wave (evaluate's column from the untrained context controller, an independent
+    construction)."""
+    np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
+    main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
+          "--copies", "2"])
+    fitted = rows(tmp_path / "fitted" / "bodies.csv")
+    assert [list(r)[:5] for r in fitted] == [["body", "chosen", "mean_command", "controller_file", "seconds"]] * 2
+    main(["evaluate", "student", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"), "--episodes", "1"])
+    for row, evaluated in zip(fitted, rows(tmp_path / "eval" / "bodies.csv"), strict=True):
+        trials = {k[len("trial_"):]: float(v) for k, v in row.items() if k.startswith("trial_")}
+        assert list(trials) == list(zoo.TRIED)
+        best = max(trials, key=trials.get)
+        assert row["chosen"] in (best, f"{best} + 1 epochs")
+        assert trials["wave"] == pytest.approx(float(evaluated["hand_set_wave"]), rel=1e-3)
+        assert trials["student"] == float(evaluated["mean_command"])  # (the same rows: one a body, by its block)
+        body = tmp_path / "fitted" / f"body{row['body']}"
+        main(["evaluate", row["controller_file"], str(body / "body.npy"), "--out", str(body / "eval"), "--episodes", "1"])
+        assert float(rows(body / "eval" / "bodies.csv")[0]["mean_command"]) == float(row["mean_command"])
+    with pytest.raises(SystemExit):  # a second fit into the same folder is refused, the first kept
+        main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "0"])
+    assert rows(tmp_path / "fitted" / "bodies.csv") == fitted
