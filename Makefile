@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 
 # The suite runs the physics on the strict path (fast-math off: the same bits on any x86-64 CPU; the reference tests
 # hold there). The simulator's tests run again with fast-math on (the production path; reference tests skip) and
-# on the quadrants backend (Taichi's fork; one backend per process). docs/physics.md, "Host independence".
+# on the quadrants backend (Taichi's fork; one backend per process). docs/physics-running.md, "Host independence".
 # Each stage runs on JOBS pytest-xdist workers (whole files per worker: a module's kernels compile once there), one
 # torch thread each so that the workers do not fight over the cores.
 JOBS      ?= 2
@@ -29,7 +29,7 @@ PYTEST    := OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(JOBS) --dist load
 SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py tests/test_packing.py
 
 test: install
-	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts  # (pinned: a newer ruff's rules do not fail CI)
+	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts lab  # (pinned: a newer ruff's rules do not fail CI)
 	$(PYTEST) tests
 	FREEFORM_FAST_MATH=1 $(PYTEST) $(SIM_TESTS) tests/test_native.py
 	FREEFORM_BACKEND=quadrants $(PYTEST) $(SIM_TESTS) tests/test_sim_command.py
@@ -46,7 +46,7 @@ reproduce: install
 	PYTHON=$(abspath $(BIN)/python) bash experiments/reproduce.sh
 
 lint: install
-	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts
+	$(BIN)/python -m ruff check freeform tests benchmarks experiments scripts lab
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache outputs multirun runs

@@ -20,8 +20,8 @@ import time
 import torch
 
 from freeform.agents import MLPActorCritic
-from freeform.agents.flat_params import FlatParameters
 from freeform.agents.ppo import clipped_surrogate, gaussian_log_prob, ppo2_value_loss
+from freeform.agents.ppo.flat_params import FlatParameters
 
 OBS, ACT, MINIBATCH, BATCH = 17, 6, 64, 2048
 UPDATES_PER_STEP = 10 * (BATCH // MINIBATCH) / BATCH  # minibatch updates per environment step (CleanRL's defaults)

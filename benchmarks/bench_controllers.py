@@ -1,6 +1,6 @@
-"""The controllers' cost on the CPU (freeform/agents/controllers.py): each kind of ``CONTROLLERS`` at its presets'
+"""The controllers' cost on the CPU (freeform/agents/networks/controllers.py): each kind of ``CONTROLLERS`` at its presets'
 width, for 64 bodies of two settings — the design setting (64 untrained designs of ρ = 8, 4 materials, 20 design
-steps: ``experiment=locomotion_cpu``'s; their union box) and the walker (``docs/results/control_walker/walker.npy``,
+steps: ``experiment=locomotion_cpu``'s; their union box) and the walker (``lab/results/control_walker/walker.npy``,
 64 copies: one small box) — timing
 
 * the forward pass per control step (``no_grad``, the 64 bodies' observation: what acting costs a rollout step),
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from freeform.agents.controllers import CONTROLLERS, build_controller, controller_step
-from freeform.agents.recurrent import RecurrentPolicy
+from freeform.agents.networks.controllers import CONTROLLERS, build_controller, controller_step
+from freeform.agents.networks.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig, ControlEnv
 
 WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"

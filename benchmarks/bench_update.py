@@ -3,7 +3,7 @@
 The paper_locomotion network and batch (ρ = 20, k = 4, h = 256; 128 × 100 samples, minibatches of 128, 10 passes:
 1,000 minibatch steps) on the volume task, whose rollout needs no simulation. For each form of the trunk's two
 convolutions (``agent.trunk``, ``FREEFORM_BENCH_UPDATE_VARIANTS``, default "conv gather fast": cuDNN, the gather
-form of ``freeform.agents.gather_trunk``, the sparse trunk's CSR products, what "auto" takes in a CUDA graph):
+form of ``freeform.agents.networks.gather_trunk``, the sparse trunk's CSR products, what "auto" takes in a CUDA graph):
 
 * agreement with ``conv`` on 128 design states (outputs and every parameter gradient, relative to their scale; on
   a GPU cuDNN's kernels compute in TF32) and whether two backward passes give the same bits;

@@ -25,10 +25,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from freeform.agents.controller_heads import HandSetWave, head_rule
-from freeform.agents.controllers import CODESIGN_KINDS
-from freeform.agents.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.networks import TRUNK_IMPLEMENTATIONS
+from freeform.agents.networks.controller_heads import HandSetWave, head_rule
+from freeform.agents.networks.controllers import CODESIGN_KINDS
+from freeform.agents.networks.controllers import CONTROLLERS as CONTROLLER_CLASSES
 from freeform.agents.ppo import CLEANRL_DISCRETE_PRESET, CLEANRL_PRESET, PPOConfig
 from freeform.envs.control_config import ControlConfig
 from freeform.envs.design import EnvConfig
@@ -85,9 +85,9 @@ class AgentConfig(PPOConfig):
 
 BODY_SOURCES = ("walker", "untrained_designs", "codesign", "population")
 CONTROLLERS = tuple(CONTROLLER_CLASSES)
-"""``control.controller``'s kinds: the names of ``freeform.agents.controllers.CONTROLLERS``."""
+"""``control.controller``'s kinds: the names of ``freeform.agents.networks.controllers.CONTROLLERS``."""
 CODESIGN_CONTROLLERS = CODESIGN_KINDS
-"""The kinds a co-design run's controller may be (``freeform.agents.controllers.CODESIGN_KINDS``)."""
+"""The kinds a co-design run's controller may be (``freeform.agents.networks.controllers.CODESIGN_KINDS``)."""
 
 
 @dataclass
@@ -123,7 +123,7 @@ class ControlRunConfig(ControlConfig):
     (one round of alternating co-design, ``docs/codesign.md``). The run's design sizes must be this run's. None:
     untrained designs."""
     teachers: int = 0
-    """A bank of per-body controllers (``freeform.agents.teachers``, issue 56): M >= 1 trains M controllers at
+    """A bank of per-body controllers (``freeform.agents.distill.teachers``, issue 56): M >= 1 trains M controllers at
     once, one per body, each with its own weights, all starting from the same controller (``controller_init`` where
     given): the first M bodies of ``bodies`` (``untrained_designs``, a ``.npy`` or a record; not ``population`` or
     ``codesign``), environment i driving body i mod M (``env.num_envs`` a multiple of M). 0: one controller for
@@ -136,7 +136,7 @@ class ControlRunConfig(ControlConfig):
     """Seed of the untrained designs (``walker``, ``untrained_designs``): apart from the run's ``seed``, so that a
     sweep over seeds trains controllers of the same bodies."""
     controller: str = "conv"
-    """A kind of ``freeform.agents.controllers.CONTROLLERS``: ``conv`` (``ConvController``: one set of weights for
+    """A kind of ``freeform.agents.networks.controllers.CONTROLLERS``: ``conv`` (``ConvController``: one set of weights for
     every cell, any body), ``mlp`` (``MLPController`` over the flattened box: the baseline), ``context``
     (``ContextConvController``: masked convolutions with the body's pooled features), ``attention``
     (``VoxelAttentionController``: attention over the body's voxels), or either with a memory of the episode
@@ -145,7 +145,7 @@ class ControlRunConfig(ControlConfig):
     hypernetwork; also starts from an ``attention`` controller's weights); all but the first two are unchanged by
     padding. Width: ``hidden``."""
     head: str = "direct"
-    """The controller's actor head (``freeform.agents.controller_heads.HEADS``): ``direct`` (each cell's mean command),
+    """The controller's actor head (``freeform.agents.networks.controller_heads.HEADS``): ``direct`` (each cell's mean command),
     ``rhythm`` (each cell's amplitude and phase of a rhythm at the actuation clock's frequency, and an offset;
     ``controller=context`` or ``attention``) or ``stroke`` (each cell's (a, b) of a stroke, with
     ``control.stroke_periods`` >= 1) or ``wave`` (a stroke whose mean is a travelling wave: the body's wave vector,
@@ -171,7 +171,7 @@ class ControlRunConfig(ControlConfig):
     starts fresh. A co-design run so starts with a controller that already drives bodies (a warm start: its
     robot-seconds belong to the co-design run's budget). None: from scratch."""
     prior: str | None = None
-    """Regularise towards a trained controller (Distral, ``freeform.agents.prior``): a ``controller.pt``, a results
+    """Regularise towards a trained controller (Distral, ``freeform.agents.distill.prior``): a ``controller.pt``, a results
     folder holding one, or a control run; each step's reward gains ``prior_coeff`` × its log-likelihood of the
     action taken per acting entry — teachers (``teachers`` > 0) kept near one student. None: no prior."""
     prior_coeff: float = 0.05
@@ -263,6 +263,12 @@ class TrainerConfig:
     """Every this many epochs run the render callback (body images to TensorBoard); 0 = off."""
     print_every: int = 10
     """Every this many epochs print a summary line (console and the run's log); 0 = never."""
+    plateau_window: int = 0
+    """Stop before ``epochs`` once the training return has stopped improving: when the mean of the last this many
+    epochs' ``episode_reward_mean`` is less than ``plateau_gain`` above the mean of the window before them
+    (``freeform.run.trainer.plateaued``; ``epochs`` is then the cap). 0: train every epoch."""
+    plateau_gain: float = 0.02
+    """With ``plateau_window``: the relative gain a window must add over the one before to go on (0.02: 2 %)."""
     progress: bool = True
     """Show a tqdm bar over epochs."""
     dry_run: bool = False
@@ -309,9 +315,10 @@ def _validate_trainer(t: TrainerConfig) -> None:
     require(t.epochs >= 0, "trainer.epochs", "an integer >= 0", t.epochs)
     require(t.device in _DEVICES or (t.device.startswith("cuda:") and t.device[5:].isdigit()), "trainer.device",
             f"one of {list(_DEVICES)} or 'cuda:<index>'", t.device)
-    for name in ("threads", "checkpoint_every", "render_every", "print_every"):
+    for name in ("threads", "checkpoint_every", "render_every", "print_every", "plateau_window"):
         require(getattr(t, name) >= 0, f"trainer.{name}", "an integer >= 0 (0 = off/default)", getattr(t, name))
     require(t.stop_grace_s >= 0, "trainer.stop_grace_s", "a number of seconds >= 0", t.stop_grace_s)
+    require(t.plateau_gain >= 0, "trainer.plateau_gain", "a relative gain >= 0 (0.02: 2 %)", t.plateau_gain)
 
 
 def episode_steps(cfg: TrainConfig) -> int:

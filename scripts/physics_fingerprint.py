@@ -1,5 +1,5 @@
 """Which floating-point program ran the physics on this machine: a fingerprint of fixed simulations, to compare
-across hosts (docs/physics.md, "Host independence").
+across hosts (docs/physics-running.md, "Host independence").
 
     python scripts/physics_fingerprint.py OUT.npz                      # this host, this process's fast-math setting
     FREEFORM_FAST_MATH=0 python scripts/physics_fingerprint.py a.npz  # the strict path: the same bits on any x86-64

@@ -11,7 +11,7 @@ import torch
 os.environ.setdefault("OMP_NUM_THREADS", "2")
 # The suite runs the physics on the strict path (no fast-math: the floating-point program is the source's, so the
 # same bits on any x86-64 CPU) unless the caller chose: `make test` runs the simulator's tests a second time with
-# fast-math on, the production path. Set before any kernel is built (docs/physics.md, "Host independence").
+# fast-math on, the production path. Set before any kernel is built (docs/physics-running.md, "Host independence").
 os.environ.setdefault("FREEFORM_FAST_MATH", "0")
 
 

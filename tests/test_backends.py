@@ -9,7 +9,7 @@ on the same bodies, and the test compares what they return:
 * with fast-math on (both backends' default, what runs in practice) LLVM may reassociate sums and products
   differently in each compiler, so the states differ at rounding level from the first steps; friction's
   stick/slip switches and the strain hysteresis can amplify that over a long run. Over 0.5 s of six design bodies
-  the tolerances below hold with a wide margin (measured: see docs/physics.md, "Backends").
+  the tolerances below hold with a wide margin (measured: see docs/physics-running.md, "Backends").
 
 The backend switch's own rules (the environment variable, a clear error for a second backend or a missing one)
 are checked here too, in subprocesses, so that this process never fixes a backend.
@@ -31,7 +31,7 @@ needs_quadrants = pytest.mark.skipif(not HAS_QUADRANTS, reason="quadrants is not
 
 ROOT = Path(__file__).resolve().parents[1]
 # What the two backends must agree on with fast-math on, 0.5 s (4243 steps) of six design bodies, against the largest
-# difference measured (docs/physics.md, "Backends"): f32 displacement 9.1e-6 voxel lengths (of ~0.4-1.5), centre of
+# difference measured (docs/physics-running.md, "Backends"): f32 displacement 9.1e-6 voxel lengths (of ~0.4-1.5), centre of
 # mass 1.4e-7 m — ~100x margin; f64 displacements equal (f32 outputs), centre of mass 1.2e-16 m (1 ulp) — the
 # margin allows the growth of a rounding difference over longer or livelier runs (schedules: 1e-15 after 0.7 s).
 ATOL_DISPLACEMENT = {"f32": 1e-3, "f64": 1e-6}  # voxel lengths

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from freeform.agents import PPO, CodesignActorCritic, PPOConfig
-from freeform.agents.controller_heads import ControlInputs
 from freeform.agents.networks import rebuild
+from freeform.agents.networks.controller_heads import ControlInputs
 from freeform.body import largest_component
 from freeform.config import EnvConfig
 from freeform.envs import CodesignEnv, DesignEnv
@@ -145,7 +145,7 @@ def test_a_codesign_policy_can_hold_a_population_controller() -> None:
     """``CodesignActorCritic.for_env(controller="context", head="wave")`` on a stroke episode: while controlling,
     its action parameters are those of the same controller on the control channels (two numbers a cell, masked to
     the actuated cells); its ``init_kwargs`` rebuild it."""
-    from freeform.agents.controllers import ContextConvController
+    from freeform.agents.networks.controllers import ContextConvController
 
     control = replace(CONTROL_CFG, stroke_periods=1, residual=True, headings="any")
     e = env(n=2, control=control)
@@ -263,12 +263,12 @@ def test_a_codesign_run_refuses_the_mlp_controller() -> None:
 
 
 def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
-    """``python -m experiments.control --evaluate RUN``: the untrained and trained policy on the same fresh headings,
+    """``python -m lab.control --evaluate RUN``: the untrained and trained policy on the same fresh headings,
     each against its own designs' open-loop gaits, with the designs' metrics."""
     import csv
 
-    from experiments.control import main
     from freeform import train as train_mod
+    from lab.control import main
 
     train_mod.train(tiny_codesign("trainer.epochs=1"), tmp_path / "run")
     main(["--evaluate", str(tmp_path / "run"), "--eval-episodes", "8", "--out", str(tmp_path / "eval")])
@@ -291,14 +291,14 @@ def test_the_evaluation_of_a_codesign_run_writes_its_tables(tmp_path) -> None:
 
 
 def test_the_comparison_with_the_baselines_counts_robot_seconds_and_writes_its_tables(tmp_path) -> None:
-    """``python -m experiments.codesign``: a co-design run, an open-loop design run in the co-design episode's window
+    """``python -m lab.codesign``: a co-design run, an open-loop design run in the co-design episode's window
     and a design-then-control run on the design run's first epoch, scored on 8 episodes each; the robot-seconds
     are the hand count of each run's simulated windows."""
     import csv
 
-    from experiments.codesign import _last, main
     from freeform import train as train_mod
     from freeform.config import compose
+    from lab.codesign import _last, main
 
     burn_in, duration = 0.01, 0.0375
     common = ["env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}", "trainer.render_every=0",
@@ -380,18 +380,18 @@ def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
 
 
 def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -> None:
-    """``python -m experiments.codesign --designed RUN --pretraining ...``: a design run whose designs a frozen
+    """``python -m lab.codesign --designed RUN --pretraining ...``: a design run whose designs a frozen
     controller drives (``task.name=controlled_locomotion``) beside open-loop design RL; its budget is its epochs of
     controlled episodes (the controller's settling and window) plus the control run's that the overrides describe —
     here a fixed population (one cohort, settled once), so the hand count is exact."""
     import csv
 
-    from experiments.codesign import main
     from freeform import train as train_mod
     from freeform.agents.controller_file import save_controller
-    from freeform.agents.controllers import ContextConvController
+    from freeform.agents.networks.controllers import ContextConvController
     from freeform.config import compose
     from freeform.envs.control import RESIDUAL_CHANNELS
+    from lab.codesign import main
 
     episode = ControlConfig(burn_in=0.01, duration=0.0375, headings="any", residual=True)
     net = ContextConvController(ControlInputs(len(RESIDUAL_CHANNELS), (RHO,) * 3, RESIDUAL_CHANNELS.index("actuated")),
@@ -446,7 +446,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     file's, weight for weight, and the run's controller reads back (``read_controller``) as that kind."""
     from freeform import train as train_mod
     from freeform.agents.controller_file import read_controller, save_controller
-    from freeform.agents.controllers import build_controller
+    from freeform.agents.networks.controllers import build_controller
     from freeform.checkpoint import load_checkpoint
     from freeform.config import compose
     from freeform.run.build import control_env
@@ -480,7 +480,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     # the comparison charges the warm start's training to co-design's budget (--pretraining)
     import csv
 
-    from experiments.codesign import main
+    from lab.codesign import main
 
     tiny_open_loop(tmp_path / "open_loop", "env.num_envs=4", f"env.resolution={RHO}", f"env.steps={T}",
                    "agent.hidden=8", "trainer.render_every=0", "trainer.progress=false", "trainer.print_every=0",
@@ -500,7 +500,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     assert float(driven["robot_seconds"]) == pytest.approx(before + paper, abs=1e-3)
     # a student's lineage is charged as run directories (--pretraining-runs), each for the epochs it ran: here the
     # open-loop run and the co-design run, one epoch of 4 bodies' windows each
-    from experiments.codesign import pretraining_seconds
+    from lab.codesign import pretraining_seconds
 
     seconds, what = pretraining_seconds(pretraining, [tmp_path / "open_loop", tmp_path / "run"])
     assert seconds == pytest.approx(before + 2 * 4 * (0.01 + 0.0375), abs=1e-3)
@@ -528,9 +528,9 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
         seconds, what = pretraining_seconds(None, order)
         assert seconds == pytest.approx(2 * one_epoch) and what.count("charged there") == 1
         assert f"{tmp_path / 'run_copy'} (1 epochs): the same run as {tmp_path / 'run'} (copied), charged there" in what
-    from experiments.codesign import warm_start_name
+    from lab.codesign import warm_start_name
 
-    assert warm_start_name("docs/results/control_population/controller.pt") == "the population controller"
+    assert warm_start_name("lab/results/control_population/controller.pt") == "the population controller"
     assert warm_start_name("runs/student/checkpoints/last.pt") == warm_start_name("runs/student") == "student"
 
 

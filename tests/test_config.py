@@ -222,7 +222,7 @@ def test_every_preset_warm_start_is_a_committed_controller_of_the_kind_it_builds
     first epoch."""
     from freeform.agents.controller_file import read_controller
 
-    root = Path(__file__).resolve().parents[1]  # (the checkout: the presets name its docs/results files)
+    root = Path(__file__).resolve().parents[1]  # (the checkout: the presets name its lab/results files)
     checked = 0
     for path in sorted((Path(CONF_DIR) / "experiment").glob("*.yaml")):
         cfg = compose(f"experiment={path.stem}")

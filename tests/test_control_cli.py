@@ -14,8 +14,8 @@ from PIL import Image
 
 from freeform import zoo
 from freeform.agents.controller_file import save_controller
-from freeform.agents.controller_heads import ControlInputs
-from freeform.agents.controllers import ContextConvController, MLPController
+from freeform.agents.networks.controller_heads import ControlInputs
+from freeform.agents.networks.controllers import ContextConvController, MLPController
 from freeform.control.bodies import read_bodies
 from freeform.control.cli import main
 from freeform.envs.control import OBS_CHANNELS, ControlConfig

@@ -389,7 +389,7 @@ def test_a_wave_head_travels_along_the_heading_in_either_frame(tmp_path, caplog)
     import logging
 
     from freeform.agents.controller_file import save_controller
-    from freeform.agents.controllers import build_controller
+    from freeform.agents.networks.controllers import build_controller
     from freeform.run.build import load_controller
 
     g = np.concatenate([np.full((1, 3, 3, 3), 2, np.uint8), np.full((1, 3, 3, 3), 3, np.uint8)])

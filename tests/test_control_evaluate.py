@@ -1,4 +1,4 @@
-"""Zero-shot evaluation of a saved controller on given bodies (``python -m experiments.control --evaluate PATH
+"""Zero-shot evaluation of a saved controller on given bodies (``python -m lab.control --evaluate PATH
 --bodies BODIES.npy``): the command end to end on three tiny bodies, and its refusals naming the body."""
 
 from __future__ import annotations
@@ -15,14 +15,14 @@ from scipy import stats
 
 from experiments.common import read_rows as read_csv
 from experiments.common import write_rows
-from experiments.control import main
-from experiments.heldout import read_bodies
 from freeform.agents.controller_file import save_controller
-from freeform.agents.controller_heads import ControlInputs
-from freeform.agents.controllers import ContextConvController, MLPController
+from freeform.agents.networks.controller_heads import ControlInputs
+from freeform.agents.networks.controllers import ContextConvController, MLPController
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv, open_loop_displacement
 from freeform.envs.response import RESPONSE_CHANNELS
 from freeform.sim import SimConfig
+from lab.control import main
+from lab.heldout import read_bodies
 
 SHORT = ControlConfig(burn_in=0.01, duration=0.05)  # four control steps (open_loop_moves refuses a burn-in of 0)
 
@@ -110,7 +110,7 @@ def test_a_recurrent_controller_without_memory_evaluates_as_its_feed_forward_twi
     and whose memory enters nothing (its columns of the context and critic layers 0), is the same function of each
     observation: the evaluate command, which carries the recurrent state through the episode, gives the same rows.
     With the memory's weights back, the rows change (the state is carried and read)."""
-    from freeform.agents.controllers import RecurrentContextController
+    from freeform.agents.networks.controllers import RecurrentContextController
 
     torch.manual_seed(0)
     args = dict(inputs=ControlInputs(len(OBS_CHANNELS), (2, 1, 1), OBS_CHANNELS.index("actuated")), hidden=4,
@@ -328,7 +328,7 @@ def test_the_per_body_cache_key_of_a_run_made_before_a_field_existed_still_finds
     their default, so an old cache is found; at another value they enter it."""
     import hashlib
 
-    from experiments.heldout import PerBody, per_body_cache_run
+    from lab.heldout import PerBody, per_body_cache_run
 
     bodies = tiny_bodies()[:2]
     control = ControlConfig(headings="any", command_rate=26.0, residual=True, ramp=True, stroke_periods=20,
@@ -348,7 +348,7 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     """A wave-head controller whose learnt parts are zero is the hand-set wave itself: its mean command's column
     equals the hand-set wave's, body by body (deterministic episodes of the same bodies)."""
 
-    from freeform.agents.controller_heads import HandSetWave
+    from freeform.agents.networks.controller_heads import HandSetWave
 
     control = replace(SHORT, stroke_periods=1)
     env = ControlEnv(tiny_bodies(), control=control)
@@ -383,7 +383,7 @@ def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> N
     assert json.loads((tmp_path / "gain0" / "run.json").read_text())["wave_gain"] == 0.0
     # the untrained controller plays at gain 1 whatever the trained one's gain; a file saved at a gain records it
     assert [r["untrained_mean_command"] for r in at["0"]] == [r["untrained_mean_command"] for r in at["1"]]
-    from freeform.agents.controllers import with_wave_gain
+    from freeform.agents.networks.controllers import with_wave_gain
 
     save_controller(tmp_path / "g0" / "controller.pt", with_wave_gain(net, 0.0), control, SimConfig())
     main(["--evaluate", str(tmp_path / "g0"), "--bodies", str(tmp_path / "bodies.npy"), "--headings", "fixed",
@@ -401,7 +401,7 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     them pool without the per-body rows (the mean command paired against the wave, Student's t from scipy) or
     take an earlier pooled table's (--per-body-from), a body whose own gait differs refused; the scaling curve refuses
     points pooled from other sets of bodies (by the sets recorded, else by the count)."""
-    from experiments.heldout import pool
+    from lab.heldout import pool
 
     def write(name: str, bodies: list[dict], seed: int = 0, source: str = "sets/a.npy") -> Path:
         folder = tmp_path / name
@@ -473,7 +473,7 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
     with pytest.raises(ValueError, match=r"a pooled table of 1 sets is needed .* it holds 2"):
         pool([a], tmp_path / "out4", per_body_from=tmp_path / "out")
     # the scaling curve reads pooled tables: its columns are the pooled figures, points over other bodies refused
-    from experiments.student_scaling import main as scaling
+    from lab.student_scaling import main as scaling
 
     pool([b, a], tmp_path / "ba")
     scaling(["128=" + str(tmp_path / "ba"), "64=" + str(tmp_path / "out"), "--out", str(tmp_path / "scaling")])
@@ -516,11 +516,11 @@ def test_pooled_sets_are_one_table_over_all_their_bodies(tmp_path) -> None:
 
 
 def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) -> None:
-    """``experiments.adaptation``: a 0-epoch point is the evaluated controller (the bank's start), a later point
+    """``lab.adaptation``: a 0-epoch point is the evaluated controller (the bank's start), a later point
     the per-body column; the paired difference between starts is per body (a 3-body example worked by hand:
     differences 0.5, 0.3, 0.1 -> mean 0.3, band t(0.995, 2)·0.2/√3); tables over other bodies or without per-body
     controllers after training are refused (a 0-epoch point needs none)."""
-    from experiments.adaptation import main
+    from lab.adaptation import main
 
     def write(name: str, rows: list[tuple], per_body: bool = True) -> str:
         folder = tmp_path / name
@@ -562,11 +562,11 @@ def test_adaptation_reads_the_start_at_zero_epochs_and_the_bank_after(tmp_path) 
 
 
 def test_two_tables_compared_body_by_body(tmp_path) -> None:
-    """``experiments.paired``: A − B per body with Student's t band (scipy's, 2 degrees of freedom for 3 bodies),
+    """``lab.paired``: A − B per body with Student's t band (scipy's, 2 degrees of freedom for 3 bodies),
     the fraction of bodies A moves further; a folder and a bodies CSV read alike; tables of other bodies (another
     count, or a body whose own gait differs: other bodies or other episode settings) refused naming the body; the
     same bodies from another host (gaits within its floating point) compared and warned."""
-    from experiments.paired import main as paired
+    from lab.paired import main as paired
 
     def write(name: str, gaits, stoch, mean, set_folder: str | None = None, set_file: str | None = None) -> Path:
         folder = tmp_path / name
@@ -575,7 +575,7 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
         rows = [{"set": where, "body": i, "open_loop": g, "controller": s_, "mean_command": m}
                 for i, (g, s_, m) in enumerate(zip(gaits, stoch, mean, strict=True))]
         write_rows(folder / "bodies.csv", rows)
-        if set_file is not None:  # (experiments.heldout --pool's run.json: each set folder's bodies file)
+        if set_file is not None:  # (lab.heldout --pool's run.json: each set folder's bodies file)
             (folder / "run.json").write_text(json.dumps({"pooled": [where], "sets": [{"bodies": set_file, "n": 3}]}))
         return folder
 
@@ -593,7 +593,7 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     moved = write("moved", [0.1, 0.35, 0.3], [1, 1, 1], [1, 1, 1])
     with pytest.raises(SystemExit):  # (the command line: argparse's error, naming the body)
         paired([str(a), str(moved)])
-    from experiments.paired import compare
+    from lab.paired import compare
 
     with pytest.raises(ValueError, match=r"body \('grown', '1'\) of .*a is not body .* \(its own gait 0.200000 against "
                                          r"0.350000\)"):
@@ -623,9 +623,9 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
     # where both pooled tables record their sets' files, those name the sets, whatever the folders are called
     # (a committed table's folder and a fresh run's); the same folder suffix over another file is another set
     fresh = write("fresh", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_mine_design_unseen",
-                  "docs/results/heldout_bodies/design_unseen.npy")
-    kept = write("kept", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "docs/results/x/student16_all32",
-                 "docs/results/heldout_bodies/design_unseen.npy")
+                  "lab/results/heldout_bodies/design_unseen.npy")
+    kept = write("kept", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "lab/results/x/student16_all32",
+                 "lab/results/heldout_bodies/design_unseen.npy")
     assert compare(fresh, kept)[0]["a_minus_b"] == 0
     (tmp_path / "kept_bodies.csv").write_bytes((kept / "bodies.csv").read_bytes())  # (as the results keep a table:
     (tmp_path / "kept_run.json").write_bytes((kept / "run.json").read_bytes())      # <name>_bodies.csv, _run.json)
@@ -635,7 +635,7 @@ def test_two_tables_compared_body_by_body(tmp_path) -> None:
         compare(fresh, kept)  # (a run.json that misses its rows' sets: the folders' names again)
     with pytest.raises(ValueError, match=r"body \('design_unseen.npy', '0'\) of .*fresh is not body \('grown.npy'"):
         compare(fresh, write("other", [0.1, 0.2, 0.3], [1, 1, 1], [1, 1, 1], "runs/eval_x_design_unseen",
-                             "docs/results/heldout_bodies/grown.npy"))
+                             "lab/results/heldout_bodies/grown.npy"))
 
 
 def test_symmetrize_averages_the_controller_and_keeps_an_equivariant_one(tmp_path) -> None:
@@ -643,7 +643,7 @@ def test_symmetrize_averages_the_controller_and_keeps_an_equivariant_one(tmp_pat
     the hand-set travelling wave, which along random headings in the world's frame turns with the heading, so its
     average is itself: saved as the controller, its mean command moves every body as the unaveraged one does and as
     the hand-set wave row; ``run.json`` and the summary say what was averaged; without --bodies it is refused."""
-    from experiments.heldout import hand_set_wave
+    from lab.heldout import hand_set_wave
 
     control = replace(SHORT, headings="random", stroke_periods=1, residual=True)
     env = ControlEnv(tiny_bodies()[:2], control=control)

@@ -93,7 +93,7 @@ def test_the_app_trains_each_controller_kind_and_resumes_it_bit_for_bit(kind: st
     a = load_checkpoint(tmp_path / "straight" / "checkpoints" / "last.pt")
     b = load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")
     from freeform.agents.controller_file import read_controller
-    from freeform.agents.controllers import CONTROLLERS
+    from freeform.agents.networks.controllers import CONTROLLERS
 
     kwargs = a["policy_kwargs"]["controller"] if privileged else a["policy_kwargs"]
     name = "PrivilegedCritic" if privileged else CONTROLLERS[kind].__name__

@@ -13,17 +13,17 @@ from torch.distributions import Normal, kl_divergence
 
 from freeform.agents import PPO, ConvController, MLPActorCritic, MLPController, PPOConfig
 from freeform.agents.controller_file import read_controller, save_controller
-from freeform.agents.controller_heads import WAVE_KINDS, HandSetWave
-from freeform.agents.controllers import (
+from freeform.agents.networks import rebuild
+from freeform.agents.networks.controller_heads import WAVE_KINDS, HandSetWave
+from freeform.agents.networks.controllers import (
     CONTROLLERS,
     PrivilegedCritic,
     build_controller,
     controller_step,
     with_wave_gain,
 )
-from freeform.agents.networks import rebuild
+from freeform.agents.networks.recurrent import RecurrentPolicy
 from freeform.agents.ppo import minibatch_loss, minibatch_samples
-from freeform.agents.recurrent import RecurrentPolicy
 from freeform.distributions import MaskedDiagGaussian, from_spec
 from freeform.envs.control import OBS_CHANNELS, ControlConfig, ControlEnv
 from freeform.sim import SimConfig
@@ -274,7 +274,7 @@ def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
     still = [k for k, v in net.state_dict().items() if torch.equal(v, before[k])]
     assert still == []
     ppo.save(tmp_path / "ppo.pt")
-    (tmp_path / "args.json").write_text('{"burn_in": 0.0}')  # (experiments/control.py's older layout)
+    (tmp_path / "args.json").write_text('{"burn_in": 0.0}')  # (lab/control.py's older layout)
     saved = read_controller(tmp_path / "ppo.pt")
     assert saved.kind == kind and all(torch.equal(v, net.state_dict()[k]) for k, v in saved.controller.state_dict().items())
     again = PPO.load(tmp_path / "ppo.pt", env)  # (PPO's own loader builds every registered controller)
@@ -283,12 +283,16 @@ def test_ppo_trains_the_masked_controllers(kind, tmp_path) -> None:
 
 
 @pytest.mark.parametrize(("kind", "now", "before"), [
-    ("conv", "freeform.agents.controllers:ConvController", "freeform.agents.networks:ConvController"),
-    ("attention", "freeform.agents.attention_controllers:VoxelAttentionController",
-     "freeform.agents.controllers:VoxelAttentionController")])
+    ("conv", "freeform.agents.networks.controllers:ConvController", "freeform.agents.networks:ConvController"),
+    ("conv", "freeform.agents.networks.controllers:ConvController", "freeform.agents.controllers:ConvController"),
+    ("attention", "freeform.agents.networks.attention_controllers:VoxelAttentionController",
+     "freeform.agents.controllers:VoxelAttentionController"),
+    ("attention", "freeform.agents.networks.attention_controllers:VoxelAttentionController",
+     "freeform.agents.attention_controllers:VoxelAttentionController")])
 def test_ppo_loads_a_checkpoint_naming_the_controllers_old_module(tmp_path, kind, now, before) -> None:
-    """Checkpoints written before a controller moved name its old module (the conv controller's before
-    agents/controllers.py, the attention controller's before agents/attention_controllers.py); they still load."""
+    """Checkpoints written before a controller moved name its old module (the conv controller's agents/networks.py,
+    the attention controller's agents/controllers.py, and every controller's module before agents/ was laid out by
+    kind, agents/controllers.py and agents/attention_controllers.py); they still load."""
     from freeform.checkpoint import load_checkpoint, save_checkpoint
 
     env = ControlEnv(bodies(), sim=SimConfig(precision="f32"), control=ControlConfig(burn_in=0.0, duration=0.05))

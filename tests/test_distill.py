@@ -55,6 +55,43 @@ def test_the_labels_are_the_teachers_on_the_visited_observations() -> None:
     torch.testing.assert_close(learner.dataset["obs"][:, 8:].transpose(0, 1), learner.rollout.obs)
 
 
+class Recorded:
+    """A VecEnv wrapper that keeps every action it is given (``[N]`` a step)."""
+
+    def __init__(self, env: Any) -> None:
+        self.env, self.given = env, []
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "env":
+            raise AttributeError(name)
+        return getattr(self.env, name)
+
+    def step(self, actions: torch.Tensor) -> Any:
+        self.given.append(actions.clone())
+        return self.env.step(actions)
+
+
+@pytest.mark.parametrize("beta", [1.0, 0.0])
+def test_with_beta_one_every_step_plays_the_teachers_action_and_with_zero_none(beta: float) -> None:
+    """DAgger's mixture: at β = 1 every environment's every step is the teacher's mode on what it observed (the
+    student's own sample never reaches the env), at β = 0 none is — the student samples, which the teacher's
+    near-deterministic rule disagrees with on some steps."""
+    torch.manual_seed(0)
+    env = Recorded(cartpoles(4))
+    student = MLPActorCritic.for_env(env, hidden=(8,))
+    learner = Distillation(env, student, balancer, PPOConfig(rollout_steps=16, num_sgd_iter=1, sgd_minibatch_size=16),
+                           DistillConfig(beta=beta, buffer=1))
+    stats = learner.train_epoch()
+    given = torch.stack(env.given).reshape(16, 4)  # [T, N]
+    seen = learner.rollout.obs  # [T, N, 4]: what each step acted on
+    teacher = torch.stack([balancer(seen[t], torch.arange(4))[0].argmax(1) for t in range(16)])
+    if beta == 1.0:
+        assert torch.equal(given.long(), teacher) and stats["teacher_steps"] == 1.0
+    else:
+        assert torch.equal(given.long(), learner.rollout.actions.reshape(16, 4).long()) and not torch.equal(given.long(), teacher)
+        assert stats["teacher_steps"] == 0.0
+
+
 def test_a_student_learns_to_balance_the_pole_from_its_teacher() -> None:
     """The teacher balances CartPole for the whole 500 steps; a fresh student gets near nothing (~20 steps). After
     eight DAgger rounds (β from 1 halving) the student alone, acting on its mode, balances >= 400 steps."""
@@ -94,7 +131,7 @@ def test_a_recurrent_student_learns_what_only_its_privileged_teacher_sees() -> N
     longer varies with the seed (500, 478, 154, 389 steps for seeds 0-3, the feed-forward one 41-53), and this run's
     figure has moved with what ran before it in the worker (308), so the bar is relative: >= 2.5x the feed-forward
     student's, and >= 120 steps."""
-    from freeform.agents.recurrent import RecurrentActorCritic
+    from freeform.agents.networks.recurrent import RecurrentActorCritic
 
     returns = {}
     for kind in ("feed-forward", "gru"):
@@ -117,7 +154,7 @@ def test_a_recurrent_students_sequences_carry_its_memory_across_chunks() -> None
     not count (the student's memory of them is unknown), and the rest do. Cut into chunks of 5 steps, each run
     from the state the student reaches over the chunks before it, the regression's loss is the one of each env's
     16 steps run as one sequence."""
-    from freeform.agents.recurrent import RecurrentActorCritic
+    from freeform.agents.networks.recurrent import RecurrentActorCritic
 
     torch.manual_seed(0)
     env = blind_cartpoles(4)
@@ -238,7 +275,7 @@ def test_a_distillation_run_of_the_app_resumes_bit_for_bit(bodies: Path, tmp_pat
                                  "algo.symmetry=ground", "control.controller=conv"))
     with pytest.raises(ValueError, match=r"control.controller is 'conv'"):
         build(conv, torch.device("cpu"))
-    from freeform.agents.group_average import check_turnable
+    from freeform.agents.networks.group_average import check_turnable
 
     def kinds(student: str, teacher: str) -> dict[str, str]:
         return {"control.controller": student, "the teacher run's controller": teacher}
@@ -276,7 +313,7 @@ def test_token_dropout_hides_voxels_from_the_student_and_resumes_bit_for_bit(bod
     come from the shared generator, as the symmetry's); every regression forward hides about that fraction of its
     samples' cells and no forward outside it (acting, labelling: without gradients) hides any; a student without
     voxel tokens, a recurrent one and a probability out of [0, 1) are refused, naming the field."""
-    from freeform.agents.attention_controllers import VoxelAttentionController
+    from freeform.agents.networks.attention_controllers import VoxelAttentionController
     from freeform.run.build import build
 
     hidden: list[float] = []
@@ -322,16 +359,16 @@ def test_a_recurrent_students_distillation_run_resumes_bit_for_bit(bodies: Path,
 
 
 def test_a_selection_teaches_each_body_by_its_chosen_controller(bodies: Path, tmp_path: Path) -> None:  # noqa: F811
-    """algo.teacher may name an ``experiments.selection --try`` folder: environment i is labelled by the controller
+    """algo.teacher may name an ``lab.selection --try`` folder: environment i is labelled by the controller
     chosen for its body (i mod M), its outputs on that observation exactly; a round of DAgger runs on it. A run of
     another episode or simulator, other bodies or a recurrent controller among those tried is refused, naming the
     problem."""
     import csv
 
-    from experiments.selection import try_controllers
     from freeform.agents.controller_file import read_controller, save_controller
-    from freeform.agents.controllers import ContextConvController
+    from freeform.agents.networks.controllers import ContextConvController
     from freeform.run.build import build
+    from lab.selection import try_controllers
 
     run = compose(*tiny_control(bodies, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}"))
     plain = compose(*tiny_control(bodies, *TEACH))
@@ -375,7 +412,7 @@ def test_a_selection_teaches_each_body_by_its_chosen_controller(bodies: Path, tm
     elsewhere = compose(*tiny_control(swapped, *TEACH, "algo=distill", f"algo.teacher={tmp_path / 'chosen'}"))
     with pytest.raises(ValueError, match=r"its 2 bodies .* are not this run's 2"):
         build(elsewhere, torch.device("cpu"))
-    from freeform.agents.controllers import RecurrentContextController
+    from freeform.agents.networks.controllers import RecurrentContextController
 
     memory = save_controller(tmp_path / "gru" / "controller.pt", RecurrentContextController.for_env(env.env, hidden=4),
                              plain.control, plain.sim)

@@ -232,7 +232,7 @@ def test_running_statistics_match_gymnasiums_reference_for_single_samples_and_ba
     """freeform's torch RunningMeanStd (in-place, a one-sample fast path) against Gymnasium's numpy original."""
     from gymnasium.wrappers.utils import RunningMeanStd as Reference
 
-    from freeform.agents.normalization import RunningMeanStd
+    from freeform.agents.ppo.normalization import RunningMeanStd
 
     rng = np.random.default_rng(0)
     ours, ref = RunningMeanStd((3,)), Reference(shape=(3,))
@@ -249,7 +249,7 @@ def test_update_steps_is_one_update_per_step_of_gymnasiums_reference() -> None:
     """``update_steps`` (pooled prefix sums) = Gymnasium's RunningMeanStd updated batch by batch, after every batch."""
     from gymnasium.wrappers.utils import RunningMeanStd as Reference
 
-    from freeform.agents.normalization import RunningMeanStd
+    from freeform.agents.ppo.normalization import RunningMeanStd
 
     rng = np.random.default_rng(1)
     ours, ref = RunningMeanStd(()), Reference(shape=())

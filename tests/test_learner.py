@@ -100,3 +100,31 @@ def test_the_config_validates_learner_names_without_importing_the_app() -> None:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
     assert LEARNERS is learner.LEARNERS and set(ALGORITHMS) <= set(LEARNERS)
+
+
+class Curve(RandomSearch):
+    """RandomSearch whose reported return follows a set curve: it rises by 1 an epoch for 8 epochs, then flat."""
+
+    def train_epoch(self) -> dict[str, float]:
+        stats = super().train_epoch()
+        return {**stats, "episode_reward_mean": 10.0 + min(self.epoch, 8)}
+
+
+def test_a_run_stops_where_its_training_curve_flattens_and_stays_stopped(tmp_path: Path) -> None:
+    """``trainer.plateau_window=3``: the return 11, 12, …, 18, 18, …; epoch 12 is the first whose last 3 epochs
+    (18, 18, 18) add less than 2 % over the 3 before (17, 18, 18: +1.9 %; at epoch 11, over 16, 17, 18: +5.9 %). The
+    run ends there (of 40), says so, and a resume goes no further; the pure rule is checked on its own too."""
+    from freeform.run.trainer import plateaued
+
+    assert not plateaued([1.0, 2.0, 3.0], 2, 0.02) and not plateaued([5.0] * 7, 0, 0.02)
+    assert plateaued([5.0] * 4, 2, 0.02) and not plateaued([1.0, 1.0, 2.0, 2.0], 2, 0.02)
+    assert plateaued([-2.0, -2.0, -1.99, -1.99], 2, 0.02) and not plateaued([-2.0, -2.0, -1.0, -1.0], 2, 0.02)
+    register_learner("curve")(lambda cfg, env, device, envs: Curve(env, cfg.seed))
+    try:
+        cfg = compose(*tiny("trainer.epochs=40", "algo.name=curve", "trainer.plateau_window=3"))
+        result = train(cfg, tmp_path / "run")
+        assert (result.epochs, result.converged) == (12, 12)
+        again = train(cfg, tmp_path / "run")  # (resumed: the curve is in the checkpoint)
+        assert (again.epochs, again.converged, again.history) == (12, 12, [])
+    finally:
+        LEARNERS.pop("curve")

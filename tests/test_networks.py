@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from freeform.agents import MLPActorCritic, VoxelActorCritic
-from freeform.agents.fast_trunk import onehot_conv3d, strided_conv3d
+from freeform.agents.networks.fast_trunk import onehot_conv3d, strided_conv3d
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -183,7 +183,7 @@ def test_strided_conv_equals_conv3d(rho: int) -> None:
 @pytest.mark.parametrize("rho,k", [(20, 4), (7, 3), (6, 2)])
 def test_gather_trunk_layers_equal_conv3d(rho: int, k: int, fill: float) -> None:
     """The GPU's gather form (``gather_trunk``): both layers = F.conv3d, outputs and every gradient, float64."""
-    from freeform.agents.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
+    from freeform.agents.networks.gather_trunk import onehot_conv3d_gather, strided_conv3d_gather
 
     g = torch.Generator().manual_seed(rho + k)
     grids = random_grids(5, rho, k, seed=rho * k + 1, fill=fill)

@@ -53,7 +53,7 @@ def test_the_pool_slides_along_the_stream_and_a_redrawn_cohort_restores_its_sett
 
 
 def test_a_streams_robot_seconds_count_one_settle_per_cohort_it_builds(monkeypatch) -> None:
-    """``population.robot_seconds`` (the budget ``experiments.codesign`` charges a population run) against the env
+    """``population.robot_seconds`` (the budget ``lab.codesign`` charges a population run) against the env
     itself: every control env the stream builds settles its environments once, and every episode runs the window."""
     from types import SimpleNamespace
 
@@ -118,7 +118,7 @@ def test_copies_of_a_body_start_alike_and_are_named_as_one_group() -> None:
 
 def test_the_group_baseline_subtracts_the_siblings_mean_and_needs_groups() -> None:
     from freeform.agents import PPO, PPOConfig
-    from freeform.agents.controllers import ConvController
+    from freeform.agents.networks.controllers import ConvController
     from freeform.agents.ppo.losses import leave_one_out
 
     rewards = torch.tensor([[1.0, 3.0, 10.0, 20.0, 30.0], [0.0, 0.0, 1.0, 1.0, 4.0]])

@@ -588,7 +588,7 @@ def test_ppo_improves_the_volume_reward_of_the_design_env() -> None:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# The flat parameter vector (freeform.agents.flat_params) against torch's per-tensor Adam and clipping.
+# The flat parameter vector (freeform.agents.ppo.flat_params) against torch's per-tensor Adam and clipping.
 # ---------------------------------------------------------------------------------------------------------------
 
 
@@ -609,7 +609,7 @@ def _mlp_loss(policy: MLPActorCritic, obs: torch.Tensor) -> torch.Tensor:
 def test_flat_parameters_give_torchs_per_tensor_adam_bit_for_bit(impl: str) -> None:
     """Adam over the flat vector (gradients accumulated into its views, zeroed in place) = torch's Adam over the
     module's own tensors, for 5 steps; the module's parameters and state dict are still its own."""
-    from freeform.agents.flat_params import FlatParameters
+    from freeform.agents.ppo.flat_params import FlatParameters
 
     ours, reference = _two_identical_mlps()
     flat = FlatParameters(ours.parameters())
@@ -632,7 +632,7 @@ def test_flat_parameters_give_torchs_per_tensor_adam_bit_for_bit(impl: str) -> N
 
 
 def test_flat_gradient_clipping_matches_torchs() -> None:
-    from freeform.agents.flat_params import FlatParameters
+    from freeform.agents.ppo.flat_params import FlatParameters
 
     ours, reference = _two_identical_mlps()
     flat = FlatParameters(ours.parameters())
@@ -648,7 +648,7 @@ def test_flat_gradient_clipping_matches_torchs() -> None:
 
 
 def test_flat_parameters_survive_zero_grad_and_refuse_a_moved_policy() -> None:
-    from freeform.agents.flat_params import FlatParameters
+    from freeform.agents.ppo.flat_params import FlatParameters
 
     ours, _ = _two_identical_mlps()
     flat = FlatParameters(ours.parameters())
@@ -665,7 +665,7 @@ def test_flat_parameters_survive_zero_grad_and_refuse_a_moved_policy() -> None:
 def test_optimizer_state_saved_per_tensor_loads_into_the_flat_adam(frozen: bool) -> None:
     """A checkpoint written before the flat vector (Adam over every module tensor, a frozen one without moments)
     resumes the same training."""
-    from freeform.agents.flat_params import FlatParameters
+    from freeform.agents.ppo.flat_params import FlatParameters
 
     ours, reference = _two_identical_mlps()
     for policy in (ours, reference):

@@ -1,4 +1,4 @@
-"""Teachers regularised towards a student (``control.prior``, freeform/agents/prior.py): the reward gains the
+"""Teachers regularised towards a student (``control.prior``, freeform/agents/distill/prior.py): the reward gains the
 prior's log-likelihood per acting entry, against scipy's normal density; the return logged is the task's; a teacher run
 with a prior resumes bit for bit; bad settings are refused naming the field."""
 
@@ -13,8 +13,8 @@ from helpers import straight_and_resumed
 from scipy import stats
 from test_control_run import ROD, bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
 
-from freeform.agents.controllers import build_controller
-from freeform.agents.prior import PriorReward
+from freeform.agents.distill.prior import PriorReward
+from freeform.agents.networks.controllers import build_controller
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
 from freeform.envs.control import ControlConfig, ControlEnv

@@ -100,8 +100,8 @@ def test_a_stroke_senses_every_control_period_it_holds():
 def test_teachers_read_the_channels_they_were_built_for():
     """A bank built for the residual channels gives, on an observation with the response appended, what it gives
     on that observation without it; an observation with fewer channels than it reads is refused."""
-    from freeform.agents.controllers import build_controller
-    from freeform.agents.teachers import TEACHER, TeacherBank
+    from freeform.agents.distill.teachers import TEACHER, TeacherBank
+    from freeform.agents.networks.controllers import build_controller
 
     sim = SimConfig()
     control = ControlConfig(duration=0.05, residual=True)

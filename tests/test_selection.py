@@ -1,4 +1,4 @@
-"""experiments.selection: each body the best of several controllers' tables, and the exact best of k."""
+"""lab.selection: each body the best of several controllers' tables, and the exact best of k."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from experiments.common import read_rows, write_rows
-from experiments.selection import best_of_k, beyond_best_of_k, main, select, table_name, try_controllers
+from lab.selection import best_of_k, beyond_best_of_k, main, select, table_name, try_controllers
 
 
 def test_the_best_of_k_and_its_passing_the_gait_are_the_means_over_every_k_subset() -> None:
@@ -47,8 +47,8 @@ def table(path: Path, moves: list[float], gaits: list[float], per_body: list[flo
 def pooled_table(tmp_path: Path, headings: str, file: str = "c.pt", moves: tuple[float, float] = (1.2, 1.2),
                  files: tuple[str, str] | None = None) -> Path:
     """Two one-body sets (bodies of ``x.npy`` and ``y.npy``) evaluated with the controller ``file`` (each set its
-    own of ``files`` where given), pooled by ``experiments.heldout.pool``, their run.json recording the task."""
-    from experiments.heldout import pool
+    own of ``files`` where given), pooled by ``lab.heldout.pool``, their run.json recording the task."""
+    from lab.heldout import pool
 
     sets, where = [], tmp_path / f"pooled_{headings}_{Path(file).stem}"
     for name, gait, move, each in zip("xy", (0.3, 0.4), moves, files or (file, file), strict=True):
@@ -114,7 +114,7 @@ def test_tables_of_other_bodies_or_too_few_are_refused_naming_the_problem(tmp_pa
     steering = table(tmp_path / "steer_bodies.csv", [1.0, 1.0], [0.5, 0.2], headings="random")
     with pytest.raises(ValueError, match="steer_bodies.csv: evaluated along random headings"):
         select([a, steering], tmp_path / "out")
-    pooled = pooled_table(tmp_path, "random")  # (as experiments.heldout --pool records the task)
+    pooled = pooled_table(tmp_path, "random")  # (as lab.heldout --pool records the task)
     with pytest.raises(ValueError, match="pooled_random_c: evaluated along random headings"):
         select([pooled, pooled_table(tmp_path, "any")], tmp_path / "out")
     gap = table(tmp_path / "gap_bodies.csv", [1.0, float("nan")], [0.5, 0.2])
@@ -135,12 +135,12 @@ def test_a_mean_command_episode_repeats_to_the_bit_so_a_trial_is_the_figure(tmp_
 
     import torch
 
-    from experiments.control import main as evaluate
     from freeform.agents.controller_file import save_controller
-    from freeform.agents.controller_heads import HandSetWave
-    from freeform.agents.controllers import ContextConvController
+    from freeform.agents.networks.controller_heads import HandSetWave
+    from freeform.agents.networks.controllers import ContextConvController
     from freeform.envs.control import ControlEnv
     from freeform.sim import SimConfig
+    from lab.control import main as evaluate
     from tests.test_control_evaluate import SHORT, tiny_bodies
 
     control = replace(SHORT, stroke_periods=1)
@@ -189,8 +189,8 @@ def wave_controllers(tmp_path: Path, seeds: tuple[int, ...]) -> list[Path]:
     import torch
 
     from freeform.agents.controller_file import save_controller
-    from freeform.agents.controller_heads import HandSetWave
-    from freeform.agents.controllers import ContextConvController
+    from freeform.agents.networks.controller_heads import HandSetWave
+    from freeform.agents.networks.controllers import ContextConvController
     from freeform.envs.control import ControlEnv
     from freeform.sim import SimConfig
     from tests.test_control_evaluate import SHORT, tiny_bodies
@@ -210,11 +210,11 @@ def wave_controllers(tmp_path: Path, seeds: tuple[int, ...]) -> list[Path]:
 
 
 def test_trying_controllers_in_one_env_gives_each_the_figure_its_own_evaluation_gives(tmp_path: Path) -> None:
-    """Truth: each controller's own zero-shot evaluation (experiments.control --evaluate, one episode a body, run
+    """Truth: each controller's own zero-shot evaluation (lab.control --evaluate, one episode a body, run
     alone). Tried together, each controller's mean command, the hand-set wave and the bodies' own gaits equal its
     table's, body by body; the choice is the larger; the moves after each decision end at the episode's figure; a
     choice by the first decision is scored by the whole episode, and its best of k follows that trial."""
-    from experiments.control import main as evaluate
+    from lab.control import main as evaluate
 
     files = wave_controllers(tmp_path, (0, 2))
     bodies = tmp_path / "bodies.npy"

@@ -42,7 +42,11 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("render", ("freeform.render",)),  # images and videos of grids and recordings
     ("envs", ("freeform.envs",)),  # VecEnvs and tasks: join the body and the simulation through a reward
     ("learner", ("freeform.learner",)),  # the protocol every trainer-driven algorithm implements
-    ("agents", ("freeform.agents",)),  # PPO and its networks: any VecEnv, nothing of voxels in the algorithm
+    ("networks", ("freeform.agents.networks",)),  # the paper's actor-critic, the controllers, heads, trunks, cores
+    ("collectives", ("freeform.agents.distributed",)),  # the one place for distributed collectives
+    ("ppo", ("freeform.agents.ppo",)),  # PPO over any VecEnv: nothing of voxels in the algorithm
+    ("distill", ("freeform.agents.distill",)),  # teachers as one bank, DAgger into a student, priors
+    ("agents", ("freeform.agents",)),  # the controller file, and the package's names
     ("zoo", ("freeform.zoo",)),  # the trained controllers that ship in the wheel
     ("evolve", ("freeform.evolve",)),  # the evolutionary learners over the design space
     ("config", ("freeform.config",)),  # the run's typed config, every section's dataclass

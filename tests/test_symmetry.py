@@ -196,9 +196,9 @@ def test_a_group_average_keeps_an_equivariant_controller_and_makes_any_one_equiv
     heading, so the wave is equivariant under every turn and mirror and its group average is the wave itself; under
     ``headings="any"`` it runs along x, which the mirror y → −y keeps and a quarter turn does not. And an untrained
     transformer, not equivariant, becomes so averaged: commanding a turned body its commands turned."""
-    from experiments.heldout import hand_set_wave
     from freeform.agents import build_controller
-    from freeform.agents.group_average import GroupAveraged
+    from freeform.agents.networks.group_average import GroupAveraged
+    from lab.heldout import hand_set_wave
 
     env = wave_env(headings)
     obs, sym = env.reset(seed=0), env.symmetry(group)

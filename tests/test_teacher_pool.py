@@ -13,7 +13,7 @@ import torch
 from test_control_run import CUBE, ROD, tiny_control
 
 from freeform.agents.distill import bank_from_checkpoint
-from freeform.agents.teachers import TeacherBank
+from freeform.agents.distill.teachers import TeacherBank
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
 from freeform.run.teacher_runs import main, pool_teacher_runs
@@ -135,7 +135,7 @@ def test_the_reptile_step_moves_the_start_along_its_teachers_mean_step(tmp_path:
     their average. A bad step, a run started from no controller, or a start of another kind are refused, and
     nothing is written."""
     from freeform.agents.controller_file import read_controller, save_controller
-    from freeform.agents.controllers import MLPController
+    from freeform.agents.networks.controllers import MLPController
     from freeform.envs.control import OBS_CHANNELS, ControlConfig
 
     first = _teacher_run(tmp_path, "first", np.stack([ROD, CUBE]), "seed=3")

@@ -11,10 +11,10 @@ import torch
 from helpers import straight_and_resumed
 from test_control_run import bodies, tiny_control  # noqa: F401  (the fixture and the tiny run)
 
-from freeform.agents.controller_heads import ControlInputs
-from freeform.agents.controllers import CONTROLLERS, ContextConvController
+from freeform.agents.distill.teachers import TEACHER, TeacherBank, TeacherIndex
+from freeform.agents.networks.controller_heads import ControlInputs
+from freeform.agents.networks.controllers import CONTROLLERS, ContextConvController
 from freeform.agents.ppo.losses import standardize, standardize_groups
-from freeform.agents.teachers import TEACHER, TeacherBank, TeacherIndex
 from freeform.checkpoint import load_checkpoint
 from freeform.config import compose
 from freeform.envs.control import OBS_CHANNELS
@@ -174,7 +174,7 @@ def test_a_bad_bank_is_refused_naming_the_key(bodies: Path, override: str, messa
 def test_a_bank_of_controllers_with_a_privileged_critic_reads_both_groups() -> None:
     """Teachers may read privileged observations: a bank of PrivilegedCritics (an 8-wide critic MLP, kept) gives
     each sample its teacher's value from the "policy" and "critic" groups, as the member alone does."""
-    from freeform.agents.controllers import PrivilegedCritic
+    from freeform.agents.networks.controllers import PrivilegedCritic
 
     torch.manual_seed(3)
     template = PrivilegedCritic("context", ContextConvController(INPUTS, hidden=4).init_kwargs, critic_dim=5, hidden=8)

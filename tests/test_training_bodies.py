@@ -1,4 +1,4 @@
-"""The training bodies' generators (``experiments.training_bodies``): each body a connected robot on the floor, in
+"""The training bodies' generators (``lab.training_bodies``): each body a connected robot on the floor, in
 the held-out sets' size range, with both muscle groups; no held-out grid among them; a seed gives the same set. The
 components are checked against scipy's labelling (an independent oracle)."""
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from experiments.training_bodies import SIZES, main, training_bodies
+from lab.training_bodies import SIZES, main, training_bodies
 
 
 @pytest.mark.parametrize("kind", ["primitives", "blobs", "limbed", "cppn"])

@@ -2,13 +2,16 @@
 
 ``PPO(env, policy, PPOConfig(...))`` trains any ``freeform.envs.VecEnv``; ``VoxelActorCritic`` is the paper's network
 over uint8 voxel grids, ``MLPActorCritic`` serves flat observations; the control env's controllers are in
-``freeform.agents.controllers`` (``CONTROLLERS``, ``build_controller``) and ``freeform.agents.controller_file``
+``freeform.agents.networks.controllers`` (``CONTROLLERS``, ``build_controller``) and ``freeform.agents.controller_file``
 (``save_controller`` / ``read_controller``).
 """
 
-from freeform.agents.codesign_network import CodesignActorCritic
 from freeform.agents.controller_file import read_controller, save_controller
-from freeform.agents.controllers import (
+from freeform.agents.distill import Distillation, DistillConfig
+from freeform.agents.distill.teachers import TeacherBank
+from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
+from freeform.agents.networks.codesign_network import CodesignActorCritic
+from freeform.agents.networks.controllers import (
     CONTROLLERS,
     ContextConvController,
     ConvController,
@@ -16,11 +19,8 @@ from freeform.agents.controllers import (
     VoxelAttentionController,
     build_controller,
 )
-from freeform.agents.distill import Distillation, DistillConfig
-from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
+from freeform.agents.networks.recurrent import RecurrentActorCritic
 from freeform.agents.ppo import PPO, PPOConfig
-from freeform.agents.recurrent import RecurrentActorCritic
-from freeform.agents.teachers import TeacherBank
 
 __all__ = ["CONTROLLERS", "PPO", "CodesignActorCritic", "ContextConvController", "ConvController", "MLPActorCritic",
            "MLPController", "PPOConfig", "VoxelActorCritic", "VoxelAttentionController", "build_controller",

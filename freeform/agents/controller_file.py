@@ -13,9 +13,14 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.controller_heads import wave_follows_heading
-from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic, controller_kind, controller_step
 from freeform.agents.networks import rebuild
+from freeform.agents.networks.controller_heads import wave_follows_heading
+from freeform.agents.networks.controllers import (
+    CONTROLLERS,
+    PrivilegedCritic,
+    controller_kind,
+    controller_step,
+)
 from freeform.body import bounding_box
 from freeform.checkpoint import load_checkpoint, save_checkpoint
 from freeform.envs.control import ControlConfig
@@ -96,7 +101,7 @@ def _check_wave_frame(wave: dict[str, Any] | None, control: ControlConfig) -> No
 
 def read_controller(source: str | Path, box: tuple[int, int, int] | None = None) -> SavedController:
     """The controller in ``source``, rebuilt: a ``controller.pt`` (:func:`save_controller`; also the older files of
-    ``experiments/control.py``, a PPO checkpoint beside its ``args.json``), a folder holding one, or a control or
+    ``lab/control.py``, a PPO checkpoint beside its ``args.json``), a folder holding one, or a control or
     co-design run's directory (its ``checkpoints/last.pt``; a co-design run's controller part). ``box``: build it for
     this box instead of the one it trained in — any box for the kinds that fit any box, refused with the reason for
     the MLP."""
@@ -174,7 +179,7 @@ def _saved_parts(payload: dict[str, Any], path: Path) -> tuple[str, dict[str, An
         control = _structured(ControlConfig, {**episode, "privileged_critic": False})
         control.validate()
         return kind, kwargs, weights, control, _structured(SimConfig, run.get("sim") or {})
-    args = path.parent / "args.json"  # experiments/control.py's older controller.pt: a PPO checkpoint
+    args = path.parent / "args.json"  # lab/control.py's older controller.pt: a PPO checkpoint
     if not args.is_file():
         raise ValueError(f"{path}: a PPO checkpoint without its ControlConfig (no run config, no args.json beside it)")
     saved = json.loads(args.read_text())

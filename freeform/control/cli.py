@@ -21,7 +21,7 @@ from pathlib import Path
 from freeform.envs.control_config import HEADINGS
 
 DEFAULT_ADAPT_EPOCHS = 24
-"""``fit``'s default adaptation: 24 epochs, about 30 s of 2-core time a body (docs/control.md, "Fit")."""
+"""``fit``'s default adaptation: 24 epochs, about 70 s of 2-core time a body (docs/control.md, "Today's result")."""
 
 
 def _controller(spec: str, grids) -> object:

@@ -7,7 +7,7 @@ that moved it furthest after the trial's decisions (``--trial SECONDS``; default
 is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
 
 **Adaptation** (``--adapt-epochs E`` > 0). Each body's chosen controller is trained on that body alone for E epochs
-of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.teachers.TeacherBank``, each
+of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
 body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
 recipe (its learning rate and batch; ``conf/experiment/``). Each body then keeps whichever of the adapted and the
 chosen controller moves it further by its mean command.
@@ -111,8 +111,10 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, scra
     for i in range(m):
         bank.load_member(i, c.saved[int(choice[i])].controller.state_dict())
     with torch.enable_grad():
-        for _ in range(how.adapt_epochs):
-            ppo.train_epoch()
+        for epoch in range(how.adapt_epochs):
+            stats = ppo.train_epoch()
+            print(f"adapting {m} bodies: epoch {epoch + 1}/{how.adapt_epochs}, training return "
+                  f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
     env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
     own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
     with torch.no_grad():

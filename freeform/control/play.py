@@ -10,8 +10,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from freeform.agents.controller_heads import DEFAULT_WAVE, HandSetWave
-from freeform.agents.controllers import ContextConvController, controller_step
+from freeform.agents.networks.controller_heads import DEFAULT_WAVE, HandSetWave
+from freeform.agents.networks.controllers import ContextConvController, controller_step
 from freeform.envs.control import ControlEnv
 from freeform.envs.response import RESPONSE_CHANNELS
 
@@ -75,12 +75,12 @@ def play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> Played:
 
 
 class BankOnBodies(torch.nn.Module):
-    """A bank of per-body controllers (``freeform.agents.teachers.TeacherBank``) acting on an env's rows, built for
+    """A bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``) acting on an env's rows, built for
     the env's box ``box``: row r is driven by teacher ``teacher[r]`` (int64 ``[rows]``)."""
 
     def __init__(self, bank: Any, teacher: torch.Tensor, box: tuple[int, ...]) -> None:
         super().__init__()
-        from freeform.agents.teachers import TeacherBank
+        from freeform.agents.distill.teachers import TeacherBank
 
         k = bank.init_kwargs  # (built for the evaluation's box: the kinds that fit any box)
         self.bank = TeacherBank(**{**k, "controller": {**k["controller"], "box": tuple(box)}})

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from freeform.agents.controllers import controller_step
+from freeform.agents.networks.controllers import controller_step
 from freeform.control.evaluate import block_env, episode_of
 from freeform.envs.control import open_loop_displacement, open_loop_moves
 from freeform.sim import SimConfig

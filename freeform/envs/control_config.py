@@ -49,7 +49,7 @@ class ControlConfig:
         travelling wave's phase follows — is one channel instead of a product of two (``docs/control.md``,
         "Steering"). Under ``headings`` "fixed" and "any" (heading 0) the two frames agree, heading channels apart.
     privileged_critic: the observation becomes the groups ``{"policy": the cells' channels, "critic": [N, 10]}``
-        (``freeform.agents.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
+        (``freeform.agents.networks.observation_groups``): the critic also reads what the sensors lack (``CRITIC_STATE``) —
         each body's displacement since the episode's start (voxel lengths; under ``headings="any"`` its reward is
         the growth of that distance), its orientation, and the episode's time left — and the actor does not.
     """

@@ -1,7 +1,7 @@
 """Partial observability for Gymnasium tasks: ``HideEntries`` hides entries of a ``Box`` observation from the policy
 — CartPole without its velocities, Pendulum without its angular velocity: tasks that need memory — and, with
 ``critic=True``, hands them to the critic alone as the ``"critic"`` observation group (a privileged critic:
-``freeform.agents.observation_groups``; read it through ``from_gymnasium(..., dict_obs=True)``).
+``freeform.agents.networks.observation_groups``; read it through ``from_gymnasium(..., dict_obs=True)``).
 
 ``NoisyEntries`` adds Gaussian noise to what the policy observes and, with ``critic=True``, hands the clean
 observation to the critic alone: rsl_rl's legged-robot setting (noisy sensors for the actor, the simulator's true

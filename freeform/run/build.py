@@ -242,7 +242,7 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
                      first_env=body.numpy() if body is not None and shared_headings else envs[0], box=box)
     if body is not None:  # (each environment's observation names its body's teacher)
-        from freeform.agents.teachers import TeacherIndex
+        from freeform.agents.distill.teachers import TeacherIndex
 
         env = TeacherIndex(env, body)
     return env
@@ -297,7 +297,7 @@ def load_controller(controller: torch.nn.Module, source: str, frame: str = "worl
     checkpoint file: ``freeform.agents.controller_file.read_controller``). A kind that grows from another
     (``grows_from``: ``attention_gru``'s memory, ``attention_hyper``'s generator) also starts from that kind's
     weights, what it adds silent until trained."""
-    from freeform.agents.controllers import controller_kind
+    from freeform.agents.networks.controllers import controller_kind
 
     saved = _read_saved(source, "control.controller_init")
     trained = saved.controller
@@ -345,14 +345,14 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
             policy = CodesignActorCritic.for_env(env, hidden=cfg.agent.hidden, controller_hidden=width,
                                                  log_std=control.init_log_std, controller=control.controller,
                                                  head=control.head, wave=control.hand_set_wave, trunk=trunk)
-        else:  # (freeform.agents.controllers.CONTROLLERS; a bank's teachers are built for the env it wraps)
+        else:  # (freeform.agents.networks.controllers.CONTROLLERS; a bank's teachers are built for the env it wraps)
             policy = build_controller(control.controller, env.env if control.teachers else env, width,
                                       control.init_log_std, control.head, control.hand_set_wave)
         if control.controller_init is not None:
             load_controller(policy.controller if (control.codesign or control.privileged_critic) else policy,
                             control.controller_init, control.frame)
         if control.teachers:
-            from freeform.agents.teachers import TeacherBank
+            from freeform.agents.distill.teachers import TeacherBank
 
             policy = TeacherBank.from_template(policy, control.teachers)
         # (a control run's evaluation: this rank's bodies again, not searched again)
@@ -375,8 +375,8 @@ def _ppo(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, int]
 
 
 def _with_prior(env: Any, source: str, coeff: float, device: torch.device) -> Any:
-    """``env`` whose reward gains ``control.prior``'s log-likelihood (``freeform.agents.prior.PriorReward``)."""
-    from freeform.agents.prior import PriorReward
+    """``env`` whose reward gains ``control.prior``'s log-likelihood (``freeform.agents.distill.prior.PriorReward``)."""
+    from freeform.agents.distill.prior import PriorReward
 
     prior = read_saved_controller(source, "control.prior", box=tuple(env.box))
     shape = env.observation_shape
@@ -393,7 +393,7 @@ def _distill(cfg: TrainConfig, env: Any, device: torch.device, envs: tuple[int, 
     controller ``control.controller`` / ``control.head`` (``freeform.agents.distill``)."""
     from freeform.agents import build_controller
     from freeform.agents.distill import BankTeacher, Distillation, DistillConfig
-    from freeform.agents.group_average import check_turnable
+    from freeform.agents.networks.group_average import check_turnable
 
     control = cfg.control
     assert control is not None and control.teachers
@@ -445,7 +445,7 @@ def _same_physics(theirs: SimConfig, mine: SimConfig, episode: ControlConfig, wh
 
 
 def is_selection(source: Path) -> bool:
-    """Whether ``algo.teacher`` names an ``experiments.selection --try`` folder (each body's controller chosen by
+    """Whether ``algo.teacher`` names an ``lab.selection --try`` folder (each body's controller chosen by
     trial) rather than a teacher run."""
     return (source / "run.json").is_file() and "tried" in json.loads((source / "run.json").read_text())
 
@@ -456,7 +456,7 @@ def chosen_teacher(cfg: TrainConfig, device: torch.device, env: Any) -> tuple[An
     this run's), episode and simulator (every field that differs named); recurrent controllers refused (a teacher
     here labels each observation alone). Returns (the teacher, each tried controller's kind by its file)."""
     from freeform.agents.distill import ChosenTeacher
-    from freeform.agents.recurrent import RecurrentPolicy
+    from freeform.agents.networks.recurrent import RecurrentPolicy
     from freeform.body import largest_component
     from freeform.envs.control import ControlConfig
     from freeform.sim import SimConfig

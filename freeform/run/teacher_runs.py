@@ -17,7 +17,7 @@ the same episode, simulator and grid settings: a student is taught one task.
 
 One teacher out of a run, as a controller of its own (``export_teacher``): body I's controller — e.g. the committed
 student adapted to your bodies (``experiment=control_adapt_cpu``) — as a self-contained ``controller.pt`` beside its
-body (``body.npy``), which every controller tool reads (``experiments.control --evaluate``, renders, co-design's
+body (``body.npy``), which every controller tool reads (``lab.control --evaluate``, renders, co-design's
 ``control.controller_init``):
 
     python -m freeform.run.teacher_runs runs/adapt --teacher 3 --out runs/body3_controller
@@ -80,7 +80,7 @@ def _same_task(a: Any, b: Any, run: Path, run0: Path) -> None:
 def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     """Write one teacher run in ``out`` holding every teacher of ``runs``, in order (module docstring); returns
     ``out``. ``out`` must not hold anything yet (nothing is overwritten)."""
-    from freeform.agents.teachers import TeacherBank
+    from freeform.agents.distill.teachers import TeacherBank
     from freeform.checkpoint import CHECKPOINT_DIR, LAST, save_checkpoint
     from freeform.config import ControlRunConfig, from_container
 
@@ -144,7 +144,7 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
     A bank re-started from a student (``experiment=control_adapt_cpu``) trains its teachers apart; their mean step
     is what a few epochs on every body agree on, and a step along it is a new student without a distillation."""
     from freeform.agents.controller_file import read_controller, save_controller
-    from freeform.agents.controllers import PrivilegedCritic
+    from freeform.agents.networks.controllers import PrivilegedCritic
     from freeform.zoo import resolve
 
     if not (step > 0 and math.isfinite(step)):
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> None:
         if len(args.runs) != 1:
             p.error(f"--teacher exports from one teacher run, got {len(args.runs)}")
         path = export_teacher(Path(args.runs[0]), args.teacher, Path(args.out))
-        print(f"teacher {args.teacher} of {args.runs[0]} -> {path}; evaluate with python -m experiments.control "
+        print(f"teacher {args.teacher} of {args.runs[0]} -> {path}; evaluate with python -m lab.control "
               f"--evaluate {path.parent} --bodies {path.parent / 'body.npy'}")
         return
     out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out))

@@ -74,7 +74,7 @@ EpochCallback = Callable[[EpochContext], None]
 def _names_teachers(env: Any) -> bool:
     """Whether ``env``'s observations name each body's teacher (a bank's, ``agents.teachers.TeacherIndex``): what a
     learner acting on it reads, so that a render drives its policy on the same kind of observation."""
-    from freeform.agents.teachers import TEACHER
+    from freeform.agents.distill.teachers import TEACHER
 
     shape = env.observation_shape
     return isinstance(shape, dict) and TEACHER in shape
@@ -131,6 +131,19 @@ class TrainResult:
     ``checkpoints/last.pt`` then holds epoch ``epochs``, and the same command continues the run."""
     stop_signal: int | None = None
     """The stop signal this process received (None: none, or only another rank did)."""
+    converged: int | None = None
+    """The epoch after which the training return had stopped improving (``trainer.plateau_window``): the run ended
+    there, before ``trainer.epochs``; None where it did not."""
+
+
+def plateaued(curve: Sequence[float], window: int, gain: float) -> bool:
+    """Whether a training curve (a return per epoch) has stopped improving: the mean of its last ``window`` epochs
+    is less than ``gain`` (relative) above the mean of the ``window`` before them. Needs 2 × ``window`` epochs;
+    ``window`` 0 is never."""
+    if window <= 0 or len(curve) < 2 * window:
+        return False
+    last, before = np.mean(curve[-window:]), np.mean(curve[-2 * window: -window])
+    return bool(last - before < gain * abs(before))
 
 
 class Trainer:
@@ -166,6 +179,8 @@ class Trainer:
         self.stop = preemption.StopSignals(cfg.trainer.stop_grace_s)
         self.stopped: str | None = None
         self.history: list[dict[str, float]] = []
+        self.curve: list[float] = list((self.resumed or {}).get("return_curve", []))  # the training return per epoch
+        self.converged: int | None = None
         self.done = (self.learner.epoch, self.learner.global_step)  # epochs and steps of the last complete epoch
         self.time_checkpoint = 0.0
 
@@ -218,6 +233,13 @@ class Trainer:
                                                    device=self.device))
         if bool(flags[1] > 0) or self.learner.epoch >= self.cfg.trainer.epochs:
             return False
+        t = self.cfg.trainer
+        if plateaued(self.curve, t.plateau_window, t.plateau_gain):  # (the curve is global: every rank agrees)
+            self.converged = self.learner.epoch
+            log.info("the training return stopped improving: the last %d epochs added less than %g %% over the %d "
+                     "before; stopped at epoch %d (trainer.plateau_window)", t.plateau_window, 100 * t.plateau_gain,
+                     t.plateau_window, self.converged)
+            return False
         if bool(flags[0] > 0):
             self.stopped = preemption.signal_name(self.stop.signum) if self.stop.signum is not None else (
                 "a signal to another rank")
@@ -230,6 +252,8 @@ class Trainer:
         try:
             with self.stop.epoch():
                 stats = dict(self.learner.train_epoch())
+                if "episode_reward_mean" in stats:
+                    self.curve.append(float(stats["episode_reward_mean"]))
                 if isinstance(getattr(self.env, "task", None), ReportsStats):  # the task's own figures (LocomotionTask: sim seconds ...)
                     stats.update(self.collectives.reduce_stats(self.env.task.stats))
                 t0 = time.perf_counter()
@@ -286,6 +310,7 @@ class Trainer:
             **self.learner.checkpoint(),
             "config": to_container(self.cfg),
             "rng": capture_rng_state(),
+            "return_curve": list(self.curve),
             "freeform": freeform.__version__,
             "saved_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
@@ -303,7 +328,8 @@ class Trainer:
     def result(self) -> TrainResult:
         """The run's outcome; a failed write is a ``CheckpointWriteError`` with its one-line reason."""
         cfg, saved = self.cfg, self.dir.saved_epoch
-        if self.dir.failure is not None or (self.stopped is None and self.done[0] < cfg.trainer.epochs):
+        finished = self.stopped is not None or self.converged is not None or self.done[0] >= cfg.trainer.epochs
+        if self.dir.failure is not None or not finished:
             raise CheckpointWriteError(self.dir.failure or "stopped: rank 0 could not write the run's files (its log "
                                                            "says which)")
         epochs = self.done[0]
@@ -315,7 +341,7 @@ class Trainer:
                         kept, self.run_dir)
             epochs = saved or 0
         return TrainResult(run_dir=self.run_dir, epochs=epochs, global_step=self.done[1], history=self.history,
-                           stopped=self.stopped, stop_signal=self.stop.signum)
+                           stopped=self.stopped, stop_signal=self.stop.signum, converged=self.converged)
 
 
 def train(cfg: TrainConfig, run_dir: str | Path, *, overrides: Sequence[str] | None = None,
@@ -333,4 +359,5 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, overrides: Sequence[str] | N
     return Trainer(cfg, run_dir, overrides, callbacks).run()
 
 
-__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "render_callback", "train"]
+__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "plateaued", "render_callback",
+           "train"]

@@ -1,4 +1,4 @@
-"""The CPU step compiled by the host's C++ compiler: the ``native`` schedule (docs/physics.md, "The native schedule").
+"""The CPU step compiled by the host's C++ compiler: the ``native`` schedule (docs/physics-native.md, "The native schedule").
 
 Taichi compiles the simulator's kernels to scalar code (docs/physics.md, "SIMD across links, probed"); the same
 link and voxel updates written once in C++ (``native_step.cpp``, GCC's vector extensions: a group of links or voxels
@@ -163,7 +163,7 @@ def built_for() -> str:
 def faster_here() -> bool:
     """Whether the native step is measured faster than Taichi's for the instruction set it is built for here: AVX2
     (8 lanes; 2.4x per thread) and AVX-512 (16; 3.3x). A build of another width (4: SSE or NEON) is unmeasured, so
-    Taichi's step stays (docs/physics.md, "The native schedule")."""
+    Taichi's step stays (docs/physics-native.md, "The native schedule")."""
     return library().lanes() in MEASURED_LANES
 
 

@@ -39,7 +39,7 @@ namespace {
 // The lanes of a group follow the target's vector registers: 16 floats in AVX-512's, 8 in AVX2's, 4 otherwise (SSE,
 // NEON: GCC's generic vectors, plain loops where x86 has an instruction). -DNATIVE_LANES=n overrides (a group wider
 // than the registers runs in pieces: the AVX2 build did so before it had its own width, 1.8x slower than Taichi's
-// step; docs/notes/2026-11-28-native-avx2.md).
+// step; lab/notes/2026-11-28-native-avx2.md).
 #if defined(NATIVE_LANES)
 #define LANE_COUNT NATIVE_LANES
 #elif defined(__AVX512F__)

@@ -93,7 +93,7 @@ def fast_math() -> bool:
     """Whether kernels compile with fast-math (both backends' default, on). ``FREEFORM_FAST_MATH=0`` is the strict
     path: LLVM keeps the source's IEEE arithmetic (no fused multiply-adds, no reassociation), so the result does not
     depend on which x86-64 CPU compiles it, the two schedules and the two backends give the same bits, and the
-    reference tests hold (the suite's default; docs/physics.md, "Host independence"), at ~7 % of speed."""
+    reference tests hold (the suite's default; docs/physics-running.md, "Host independence"), at ~7 % of speed."""
     flag = os.environ.get(FAST_MATH_ENV_VAR, "1")
     if flag not in ("0", "1"):
         raise ValueError(f"{FAST_MATH_ENV_VAR} must be 0 or 1, got {flag!r}")
@@ -102,7 +102,7 @@ def fast_math() -> bool:
 
 def cpu_features() -> str:
     """The host CPU's vector features that decide what the JIT emits under fast-math ("AVX+FMA3+AVX2+AVX512F"),
-    read through CPUID by numpy — an emulator's CPU, not the host's /proc (docs/physics.md, "Host independence")."""
+    read through CPUID by numpy — an emulator's CPU, not the host's /proc (docs/physics-running.md, "Host independence")."""
     try:
         from numpy._core._multiarray_umath import __cpu_features__ as features
     except ImportError:  # numpy < 2
@@ -138,7 +138,7 @@ def ensure(arch: str = "auto", backend: str | None = None) -> str:
         if arch == "cpu" and "TI_ADVANCED_OPTIMIZATION" not in os.environ:
             # The backend's own IR passes cost 2/3 of a kernel's compile (10 s -> 3-4 s per variant) and nothing at
             # run time on the CPU, where LLVM optimises the same code; on the strict path the program is the same
-            # bits either way (docs/physics.md, "Compile time"). CUDA keeps them (unmeasured there).
+            # bits either way (docs/physics-running.md, "Compile time"). CUDA keeps them (unmeasured there).
             options["advanced_optimization"] = False
         ti.init(arch=want, log_level=ti.WARN, offline_cache=True, fast_math=fast_math(), **options)
         got = "cuda" if ti.lang.impl.current_cfg().arch == ti.cuda else "cpu"

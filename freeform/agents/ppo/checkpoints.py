@@ -14,11 +14,11 @@ import torch.nn as nn
 
 from freeform.agents import distributed
 from freeform.agents.distributed import PER_ENV, Collectives
-from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import Rebuildable, rebuild
-from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.flat_params import FlatParameters
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
+from freeform.agents.ppo.normalization import RunningMeanStd
 from freeform.agents.ppo.rollout import Observation, obs_first, obs_map, obs_shapes
 from freeform.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from freeform.envs.base import VecEnv
@@ -262,30 +262,48 @@ def policy_class_name(cls: type) -> str:
 
 
 def builtin_policies() -> tuple[type[nn.Module], ...]:
-    """The networks any checkpoint may name (freeform's own: every controller of the registry included)."""
-    from freeform.agents.codesign_network import CodesignActorCritic
-    from freeform.agents.controllers import CONTROLLERS, PrivilegedCritic
+    """The networks any checkpoint may name (freeform's own: every controller of the registry included). A bank of
+    teachers is distillation's (``freeform.agents.distill.TeacherBank``, above PPO): ``policy_classes=[TeacherBank]``."""
     from freeform.agents.networks import GroupedMLPActorCritic, MLPActorCritic, VoxelActorCritic
-    from freeform.agents.recurrent import RecurrentActorCritic
-    from freeform.agents.teachers import TeacherBank
+    from freeform.agents.networks.codesign_network import CodesignActorCritic
+    from freeform.agents.networks.controllers import CONTROLLERS, PrivilegedCritic
+    from freeform.agents.networks.recurrent import RecurrentActorCritic
 
     return (VoxelActorCritic, MLPActorCritic, CodesignActorCritic, GroupedMLPActorCritic, RecurrentActorCritic,
-            PrivilegedCritic, TeacherBank, *CONTROLLERS.values())
+            PrivilegedCritic, *CONTROLLERS.values())
+
+
+MOVED_MODULES = {"freeform.agents.networks": "freeform.agents.networks.base",
+                 **{f"freeform.agents.{m}": f"freeform.agents.networks.{m}"
+                    for m in ("controllers", "attention_controllers", "codesign_network", "recurrent",
+                              "observation_groups")}}
+"""Modules whose classes older checkpoints name, and where those classes live since ``agents/`` was laid out by kind
+(networks, ppo, distill)."""
 
 
 def moved_policies() -> dict[str, type[nn.Module]]:
-    """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now)."""
-    from freeform.agents.attention_controllers import RecurrentAttentionController, VoxelAttentionController
-    from freeform.agents.codesign_network import CodesignActorCritic
-    from freeform.agents.controllers import ConvController, MLPController
-    from freeform.agents.networks import GroupedMLPActorCritic
+    """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now): the classes
+    moved between modules, and every builtin policy under its module's name before :data:`MOVED_MODULES`."""
+    from freeform.agents.networks.attention_controllers import (
+        RecurrentAttentionController,
+        VoxelAttentionController,
+    )
+    from freeform.agents.networks.base import GroupedMLPActorCritic
+    from freeform.agents.networks.codesign_network import CodesignActorCritic
+    from freeform.agents.networks.controllers import ConvController, MLPController
 
-    return {"freeform.agents.controllers:VoxelAttentionController": VoxelAttentionController,
-            "freeform.agents.controllers:RecurrentAttentionController": RecurrentAttentionController,
-            "freeform.agents.networks:ConvController": ConvController,
-            "freeform.agents.networks:MLPController": MLPController,
-            "freeform.agents.networks:CodesignActorCritic": CodesignActorCritic,
-            "freeform.agents.observation_groups:GroupedMLPActorCritic": GroupedMLPActorCritic}
+    earlier = {"controllers:VoxelAttentionController": VoxelAttentionController,
+               "controllers:RecurrentAttentionController": RecurrentAttentionController,
+               "networks:ConvController": ConvController,
+               "networks:MLPController": MLPController,
+               "networks:CodesignActorCritic": CodesignActorCritic,
+               "observation_groups:GroupedMLPActorCritic": GroupedMLPActorCritic}
+    moved = {f"freeform.agents.{name}": cls for name, cls in earlier.items()}
+    before = {new: old for old, new in MOVED_MODULES.items()}
+    for cls in builtin_policies():
+        if cls.__module__ in before:
+            moved[f"{before[cls.__module__]}:{cls.__qualname__}"] = cls
+    return moved
 
 
 __all__ = ["Checkpoints", "builtin_policies", "policy_class_name"]

@@ -13,9 +13,9 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.distributed import Collectives
-from freeform.agents.normalization import RunningMeanStd
 from freeform.agents.ppo.config import PPOConfig
 from freeform.agents.ppo.losses import compute_advantages, discounted_cumsum, leave_one_out
+from freeform.agents.ppo.normalization import RunningMeanStd
 from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map
 from freeform.distributions import ActionDistribution
 from freeform.envs.base import VecEnv

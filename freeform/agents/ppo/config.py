@@ -48,7 +48,7 @@ class PPOConfig:
     rollout_steps: int = 100
     """Steps T collected from every environment per epoch (train batch = T·N)."""
     sequence_length: int = 32
-    """A recurrent policy's (``freeform.agents.recurrent``): each env's rollout is cut into chunks of this many steps
+    """A recurrent policy's (``freeform.agents.networks.recurrent``): each env's rollout is cut into chunks of this many steps
     (the last one padded and masked), each trained from the state stored at its start (truncated backpropagation
     through time); a minibatch holds ``max(1, sgd_minibatch_size // sequence_length)`` chunks. Feed-forward policies
     ignore it."""

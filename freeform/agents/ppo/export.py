@@ -7,7 +7,7 @@ Inputs and outputs (N, the batch, is a dynamic axis):
 
 - ``obs [N, ...]`` in the env's dtype — or, for dict observations, one input per part the actor reads, named by its
   key (the ``"critic"`` group of an observation with groups is the critic's alone and is no input);
-- a recurrent policy (``freeform.agents.recurrent``): also ``state_<i>`` (its actor's hidden state, e.g. an LSTM's
+- a recurrent policy (``freeform.agents.networks.recurrent``): also ``state_<i>`` (its actor's hidden state, e.g. an LSTM's
   ``h``, ``c``, each ``[N, ...]``) and ``episode_start [N]`` bool (1 where the observation begins an episode: the state
   is reset there first); outputs ``state_out_<i>``, to feed back at the next step;
 - output ``actions [N, A]``: a Gaussian's mean (unclipped, as ``act`` gives it), or the int64 indices of a discrete
@@ -28,9 +28,9 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.normalization import RunningMeanStd
-from freeform.agents.observation_groups import CRITIC
-from freeform.agents.recurrent import RecurrentPolicy, SplitRecurrentPolicy
+from freeform.agents.networks.observation_groups import CRITIC
+from freeform.agents.networks.recurrent import RecurrentPolicy, SplitRecurrentPolicy
+from freeform.agents.ppo.normalization import RunningMeanStd
 from freeform.distributions import ActionDistribution
 
 

@@ -25,8 +25,8 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.flat_params import FlatParameters
 from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.flat_params import FlatParameters
 from freeform.agents.ppo.losses import minibatch_loss
 from freeform.agents.ppo.rollout import Observation, obs_map
 from freeform.distributions import ActionDistribution

@@ -31,18 +31,18 @@ import torch
 import torch.nn as nn
 
 from freeform.agents import distributed
-from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import DeclaresDistribution, SplitActorCritic
-from freeform.agents.normalization import RunningMeanStd
-from freeform.agents.observation_groups import GROUPS, is_grouped, without_critic
+from freeform.agents.networks.observation_groups import GROUPS, is_grouped, without_critic
+from freeform.agents.networks.recurrent import RecurrentPolicy
 from freeform.agents.ppo.checkpoints import Checkpoints, builtin_policies, policy_class_name
 from freeform.agents.ppo.collect import RolloutCollection
 from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.flat_params import FlatParameters
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
 from freeform.agents.ppo.losses import minibatch_loss
+from freeform.agents.ppo.normalization import RunningMeanStd
 from freeform.agents.ppo.rollout import Observation, Rollout, obs_first, obs_map, obs_shapes
 from freeform.agents.ppo.update import MinibatchUpdate, own_code
-from freeform.agents.recurrent import RecurrentPolicy
 from freeform.distributions import ActionDistribution, DiagGaussian, MaskedDiagGaussian
 from freeform.envs.base import VecEnv
 from freeform.learner import Episodes
@@ -108,7 +108,7 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
             raise ValueError("obs_norm would rescale the observation channel that the policy reads its action mask "
                              "from (a MaskedDiagGaussian's mask must stay 0/1): leave obs_norm off for a control env")
         self.recurrent = isinstance(policy, RecurrentPolicy)
-        """The policy has memory (``freeform.agents.recurrent``): PPO carries its state and trains on sequences."""
+        """The policy has memory (``freeform.agents.networks.recurrent``): PPO carries its state and trains on sequences."""
         if self.recurrent:
             _refuse_for_recurrent(config)
         self.critic_apart = isinstance(policy, SplitActorCritic) and not self.recurrent

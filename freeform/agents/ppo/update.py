@@ -14,9 +14,9 @@ import torch
 import torch.nn as nn
 
 from freeform.agents.distributed import Collectives
-from freeform.agents.flat_params import FlatParameters
 from freeform.agents.networks import GroupedActions
 from freeform.agents.ppo.config import PPOConfig
+from freeform.agents.ppo.flat_params import FlatParameters
 from freeform.agents.ppo.graphed import GraphedMinibatchStep
 from freeform.agents.ppo.losses import (
     explained_variance,
