@@ -229,7 +229,8 @@ def test_a_recorded_episode_designs_then_drives_the_body() -> None:
     build[:, 3 + 2] = 5.0  # muscle A at the centre, every design step
     build[:, 3 + K:] = 1.0  # then every command at its top
     recording, commands, total = e.record(lambda obs: build)
-    assert len(recording.times) == CONTROL_CFG.steps and recording.positions[0].shape == (CONTROL_CFG.steps, 8, 3)
+    # (a frame at the window's start, then one after each decision, the last included)
+    assert len(recording.times) == CONTROL_CFG.steps + 1 and recording.positions[0].shape == (CONTROL_CFG.steps + 1, 8, 3)
     assert commands.shape == (CONTROL_CFG.steps, 8) and bool((commands == 1).all()) and total != 0
     assert e.t == 0 and e.stage == "design"
     erase = torch.zeros(2, e.action_dim)

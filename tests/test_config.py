@@ -216,19 +216,19 @@ def test_every_experiment_preset_composes_and_validates() -> None:
 
 
 def test_every_preset_warm_start_is_a_committed_controller_of_the_kind_it_builds() -> None:
-    """A preset's ``control.controller_init`` (the committed population controller, its steering twin, the
-    distilled student) names a file in the checkout holding the controller kind, width and hand-set wave the preset
-    builds: a preset changed without its file (or a file replaced by another kind) fails here, not at a user's
-    first epoch."""
-    from freeform.agents.controller_file import read_controller
+    """A preset's ``control.controller_init`` (the population controller, its steering twin, the distilled
+    students) names a controller of the zoo, which ships in the wheel, holding the controller kind, width and hand-set
+    wave the preset builds: a preset changed without its file (or a file replaced by another kind) fails here, not
+    at a user's first epoch."""
+    from freeform import zoo
 
-    root = Path(__file__).resolve().parents[1]  # (the checkout: the presets name its lab/results files)
     checked = 0
     for path in sorted((Path(CONF_DIR) / "experiment").glob("*.yaml")):
         cfg = compose(f"experiment={path.stem}")
         if cfg.control is None or cfg.control.controller_init is None:
             continue
-        saved = read_controller(root / cfg.control.controller_init)
+        assert cfg.control.controller_init in zoo.names(), path.stem
+        saved = zoo.load(cfg.control.controller_init)
         width = cfg.control.hidden if cfg.control.hidden is not None else cfg.agent.hidden
         kwargs = saved.controller.init_kwargs
         assert (saved.kind, kwargs["hidden"], kwargs["head"]) == (cfg.control.controller, width, cfg.control.head), \

@@ -83,7 +83,7 @@ def test_the_evaluate_command_scores_every_body_against_its_open_loop_gait(tmp_p
 def test_malformed_bodies_are_refused_naming_the_body(tmp_path) -> None:
     bodies = tiny_bodies()
     for name, change, message in (
-        ("material", lambda g: g.__setitem__((1, 1, 1, 1), 7), r"body 1 holds material \[7\], allowed 0 \(empty\) … 3"),
+        ("material", lambda g: g.__setitem__((1, 1, 1, 1), 7), r"body 1 holds material \[7\], and the materials are 0 \(empty\), 1 \(passive\) … 3"),
         ("empty", lambda g: g.__setitem__(2, 0), "body 2 is empty"),
     ):
         bad = bodies.copy()
@@ -92,10 +92,10 @@ def test_malformed_bodies_are_refused_naming_the_body(tmp_path) -> None:
         with pytest.raises(ValueError, match=message):
             read_bodies(tmp_path / f"{name}.npy", 3)
     np.save(tmp_path / "shape.npy", bodies[:, :, :2])
-    with pytest.raises(ValueError, match=r"must be \[M, ρ, ρ, ρ\].*\[3, 3, 2, 3\]"):
+    with pytest.raises(ValueError, match=r"must be non-empty cubes \[M, ρ, ρ, ρ\], got shape \[3, 3, 2, 3\]"):
         read_bodies(tmp_path / "shape.npy", 3)
     np.save(tmp_path / "float.npy", bodies.astype(np.float32))
-    with pytest.raises(ValueError, match="integer material indices"):
+    with pytest.raises(ValueError, match="an integer dtype"):
         read_bodies(tmp_path / "float.npy", 3)
     # an MLP fits its own box only: bodies that need a larger one are refused with the reason
     np.save(tmp_path / "bodies.npy", bodies)
@@ -146,7 +146,7 @@ def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
     """Truth: numpy on the same per-body values, pooled over the three sets: the means, the paired difference's
     99 % band (Student's t, n − 1: t · sd / √n), the ratio to the open loop and the count of bodies beyond their gait; a results
     folder missing a set's table for a seed leaves that seed out."""
-    from experiments import control_population as cp
+    from lab import control_population as cp
 
     rng = np.random.default_rng(0)
     pooled = []
@@ -169,17 +169,13 @@ def test_the_population_summary_pools_every_set_per_seed(tmp_path) -> None:
     assert row["beyond_own_gait"] == int((v["mean_command"] > v["open_loop"]).sum())
 
 
-def test_the_committed_population_controllers_are_in_the_repository_and_load() -> None:
-    """The two controllers the docs tell a user to evaluate on their own bodies are in a fresh clone (``.gitignore``
-    ignores ``*.pt`` elsewhere) and rebuild from their files alone: the flat one with its wave along x, the steering
-    one with its wave in the heading's frame, each under its preset's task."""
-    from pathlib import Path
+def test_the_zoos_population_controllers_are_in_the_repository_and_load() -> None:
+    """The zoo's two population controllers are in a fresh clone (``.gitignore`` ignores ``*.pt`` outside the zoo and
+    the lab's results) and rebuild from their files alone: the flat one with its wave along x, the steering one with
+    its wave in the heading's frame, each under its preset's task."""
+    from freeform import zoo
 
-    from freeform.agents.controller_file import read_controller
-
-    root = Path(__file__).resolve().parent.parent / "docs" / "results"
-    flat, steering = (read_controller(root / name / "controller.pt")
-                      for name in ("control_population", "control_population_steering"))
+    flat, steering = (zoo.load(name) for name in ("population", "population_steering"))
     for saved in (flat, steering):
         assert saved.kind == "context" and saved.controller.head == "wave" and saved.control.residual
     assert flat.control.headings == "any" and "heading_channels" not in flat.controller.wave

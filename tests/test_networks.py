@@ -135,7 +135,7 @@ def test_onehot_conv_equals_conv3d_of_the_one_hot(rho: int, k: int, fill: float)
 
 def test_both_first_layer_paths_are_taken() -> None:
     """The density switch: design-like grids scatter, dense ones multiply (guards the tests above)."""
-    from freeform.agents import fast_trunk
+    from freeform.agents.networks import fast_trunk
 
     calls: list[str] = []
     scatter, spmm = fast_trunk.OccupiedScatterConv.apply, fast_trunk.SparseConv.apply

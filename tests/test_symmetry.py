@@ -120,7 +120,7 @@ def test_distillation_regresses_turned_samples_onto_turned_labels(monkeypatch: p
     """With ``algo.symmetry`` every regression sample is a dataset sample turned by some element of the group, and
     its label is that sample's teacher label moved by the same element (not the teacher on the turned observation:
     this teacher reads a planar vector, so the two differ); the elements drawn are not all the identity."""
-    import freeform.agents.distill as distill_module
+    import freeform.agents.distill.dagger as distill_module
     from freeform.agents import build_controller
     from freeform.agents.distill import Distillation, DistillConfig
     from freeform.agents.ppo import PPOConfig

@@ -73,7 +73,7 @@ def test_limbed_bodies_stand_on_separate_legs_under_a_wider_trunk() -> None:
 
 
 def test_a_generator_that_cannot_make_a_body_is_refused_not_looped_on(monkeypatch: pytest.MonkeyPatch) -> None:
-    from experiments import training_bodies as tb
+    from lab import training_bodies as tb
 
     monkeypatch.setitem(tb.GENERATORS, "empty", lambda rng: np.zeros((8, 8, 8), np.uint8))
     with pytest.raises(ValueError, match=r"--kind limbed,empty: 1 of 3 bodies passed the checks .* in 300 draws"):
