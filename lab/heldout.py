@@ -42,6 +42,7 @@ from freeform.envs.control import (
 )
 from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
+from freeform.zoo import resolve
 from lab.paired import check_drift, read_table, same_gait, warn_hosts
 
 
@@ -181,7 +182,7 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
     ``per_body`` the controller and its own per-body controllers
     on the first N bodies, and the fraction of per-body control the controller reaches), and ``out/run.json``.
     Returns (the body rows, the summary rows)."""
-    saved = read_controller(source)
+    saved = read_controller(resolve(source))  # (a zoo name, or a path)
     sim = saved.sim or SimConfig()
     grids = read_bodies(bodies, len(sim.materials))
     trained = tuple(saved.controller.box)
