@@ -675,3 +675,46 @@ def test_symmetrize_averages_the_controller_and_keeps_an_equivariant_one(tmp_pat
         main(["--evaluate", str(tmp_path), "--symmetrize", "ground", "--out", str(tmp_path / "refused")])
     with pytest.raises(ValueError, match=r"--symmetrize=ground turns the way a body walks, and control.headings=fixed"):
         main([*args, "--headings", "fixed", "--symmetrize", "ground", "--out", str(tmp_path / "fixed")])
+
+
+def test_a_rows_per_body_figure_is_its_own_bodys_teacher_played_alone(tmp_path) -> None:
+    """Each body's per-body column is that body's teacher (``bank.member(i)``) driving it alone, by its mean command,
+    in an env of its own — not another body's teacher: a bank of two whose second teacher is made another controller
+    (its weights doubled), and each row checked against its own teacher and against the other's."""
+    import shutil
+
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint, save_checkpoint
+    from freeform.control.play import play
+
+    torch.manual_seed(0)
+    net = ContextConvController(ControlInputs(len(OBS_CHANNELS), (2, 2, 1), OBS_CHANNELS.index("actuated")), hidden=4,
+                                log_std=-1.0)
+    control = replace(SHORT, headings="any", duration=0.25)  # (20 periods: long enough for the teachers to differ)
+    save_controller(tmp_path / "controller.pt", net, control, SimConfig())
+    np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
+    args = ["--evaluate", str(tmp_path / "controller.pt"), "--bodies", str(tmp_path / "bodies.npy"), "--headings",
+            "any", "--eval-episodes", "1", "--per-body", "2", "--per-body-cache", str(tmp_path / "cache"),
+            *[f"--per-body-set={o}" for o in ("control.controller_init=null", "control.head=direct", "agent.hidden=4",
+                                              "trainer.epochs=1", "agent.rollout_steps=20", "trainer.threads=1")]]
+    main([*args, "--out", str(tmp_path / "trained")])
+    (cached,) = (tmp_path / "cache").iterdir()
+    run = tmp_path / "teachers"
+    shutil.copytree(cached, run)
+    payload = load_checkpoint(run / "checkpoints" / "last.pt")
+    for name, weights in payload["ppo"]["policy"].items():
+        if name.startswith("stacked."):
+            weights[1] = 2.0 * weights[1]
+    save_checkpoint(run / "checkpoints" / "last.pt", payload)
+    main([*args, f"--per-body-run={run}", "--out", str(tmp_path / "eval")])
+    rows = read_csv(tmp_path / "eval" / "bodies.csv")
+    bank, grids = bank_from_checkpoint(payload, str(run)), torch.from_numpy(tiny_bodies()[:2])
+
+    def alone(teacher: int, body: int) -> float:
+        env = ControlEnv(grids[body: body + 1], sim=SimConfig(), control=control, seed=0, box=(2, 2, 1))
+        member = bank.member(teacher).eval()
+        return float(play(env, [("alone", member, False, False)], control.steps, seed=0).returns[0, 0])
+
+    for body in (0, 1):
+        own, other, row = alone(body, body), alone(1 - body, body), float(rows[body]["per_body_mean_command"])
+        assert abs(row - own) < 1e-3 * abs(other - own), (row, own, other)  # (the batch's rounding, far below)
