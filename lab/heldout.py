@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -224,14 +223,12 @@ def evaluate_bodies(source: Path, bodies: Path, out: Path, how: Evaluation, per_
 
 
 def evaluated_control(saved: Any, how: Evaluation) -> ControlConfig:
-    """The episode the bodies are played in: the controller's own, along ``how.headings`` where given (warned: another
-    task than it trained for); a ``how.symmetrize`` group that changes the task is refused here, before any per-body
-    bank is trained."""
-    control = replace(saved.control, headings=how.headings or saved.control.headings)
-    control.validate()
-    if control.headings != saved.control.headings:  # (a probe may want it: warned, not refused)
-        warnings.warn(f"--headings {control.headings}: {saved.path} was trained for headings="
-                      f"{saved.control.headings}, another task than the one evaluated", stacklevel=3)
+    """The episode the bodies are played in (``freeform.control.evaluate.episode_of``: the controller's own, along
+    ``how.headings`` where given, warned); a ``how.symmetrize`` group that changes the task is refused here, before
+    any per-body bank is trained."""
+    from freeform.control.evaluate import episode_of
+
+    control = episode_of(saved, how.headings)
     if how.symmetrize:
         check_turnable("--symmetrize", how.symmetrize, control.headings, control.frame, {"the controller": saved.kind})
     return control

@@ -247,8 +247,13 @@ def test_a_section_the_experiment_leaves_empty_is_named_with_the_experiments_tha
     message = _empty_section_overrides(["control.bodies=my_body.npy"], CONF_DIR)
     assert message is not None and "experiment=volume_cpu has no control section" in message
     having = presets_with("control", CONF_DIR)
-    assert "control_adapt_cpu" in having  # (through its base preset, control_teachers_cpu)
+    # the presets with a control section, by hand (control_adapt_cpu's through its base, control_teachers_cpu)
+    truth = [f"codesign_{n}_cpu" for n in ("locomotion", "population", "population_steering", "steering", "student",
+                                           "student_steering")] + \
+            [f"control_{n}_cpu" for n in ("adapt", "climb", "locomotion", "population", "population_steering",
+                                          "steering", "student", "student_steering", "teachers", "teachers_steering")]
+    assert having == truth
     assert "volume_cpu" not in having and "paper_locomotion" not in having
-    assert all(name in message for name in having)
+    assert all(name in message for name in truth)
     assert _empty_section_overrides(["experiment=control_teachers_cpu", "control.bodies=b.npy"], CONF_DIR) is None
     assert _empty_section_overrides(["agent.lr=1e-3"], CONF_DIR) is None

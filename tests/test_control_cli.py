@@ -4,6 +4,7 @@ line, naming the fix, with nothing written."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 from pathlib import Path
 
@@ -85,6 +86,21 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused(["fit", str(tmp_path / "bodies.npy"), "--out", str(out), "--candidates", "student",
              str(tmp_path / "moon.pt")], capsys, "sim.gravity: -5.0")
     refused(["watch", str(controller), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys, "--body I")
+    # fit's adaptation and trials, refused before a trial is played: one copy (no baseline), a candidate of another
+    # kind than the adaptation trains, a steering candidate (one draw of headings is no trial), two of one name
+    fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(out)]
+    refused([*fit, "--copies", "1"], capsys, "--copies must be >= 2")
+    refused([*fit, "--candidates", "student", "population"], capsys, "candidate population is a context controller")
+    refused([*fit, "--candidates", "student_steering"], capsys, "random headings")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b" / "a").mkdir(parents=True)
+    for folder in (tmp_path / "a", tmp_path / "b" / "a"):
+        save_controller(folder / "controller.pt", other.controller, zoo.load("student").control, zoo.load("student").sim)
+    refused([*fit, "--candidates", str(tmp_path / "a" / "controller.pt"), str(tmp_path / "b" / "a" / "controller.pt")],
+            capsys, "share a name")
+    if importlib.util.find_spec("imageio_ffmpeg") is None:
+        refused(["watch", str(controller), str(tmp_path / "bodies.npy"), "--body", "0", "--out", str(out), "--video",
+                 "mp4"], capsys, "pip install 'freeform[video]'")
     assert not out.exists()
 
 
@@ -97,11 +113,12 @@ def test_a_body_in_pieces_keeps_its_largest_piece_with_a_warning(tmp_path) -> No
     assert torch.equal(kept, torch.from_numpy(tiny_bodies()))
 
 
-@pytest.mark.parametrize("fps, every", [(80.0, 1), (40.0, 2)])
-def test_watch_draws_every_frame_at_the_rate_and_moves_as_evaluate_says(tmp_path, fps: float, every: int) -> None:
-    """The GIF holds a frame at the window's start and one every ``every`` control periods to its end (4 periods of
-    0.0125 s: 80 fps is every period, 40 fps every second one); gait.json's move is evaluate's mean command for that
-    body, to the bit (the same env: the file's bodies, one row each)."""
+@pytest.mark.parametrize("fps, every, frames", [(80.0, 1, 5), (40.0, 2, 3), (27.0, 3, 3)])
+def test_watch_draws_every_frame_at_the_rate_and_moves_as_evaluate_says(tmp_path, fps: float, every: int,
+                                                                       frames: int) -> None:
+    """The GIF holds a frame at the window's start, one every ``every`` control periods and one at its end (4 periods
+    of 0.0125 s: 80 fps is every period, 40 fps every second one, 27 fps every third and the fourth); gait.json's
+    move is evaluate's mean command for that body, to the bit (the same env: the file's bodies, one row each)."""
     controller = short_controller(tmp_path / "controller.pt")
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     main(["evaluate", str(controller), str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"),
@@ -110,7 +127,7 @@ def test_watch_draws_every_frame_at_the_rate_and_moves_as_evaluate_says(tmp_path
           "--fps", str(fps), "--headings", "fixed"])
     figures = json.loads((tmp_path / "seen" / "gait.json").read_text())
     gif = Image.open(tmp_path / "seen" / "gait.gif")
-    assert gif.n_frames == figures["frames"] == 1 + 4 // every
+    assert gif.n_frames == figures["frames"] == frames
     assert figures["fps"] == pytest.approx(1 / (every * SHORT.period))
     evaluated = rows(tmp_path / "eval" / "bodies.csv")
     assert figures["displacement"] == float(evaluated[1]["mean_command"])

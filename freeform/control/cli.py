@@ -18,10 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+from freeform.control.fit import DEFAULT_ADAPT_EPOCHS
 from freeform.envs.control_config import HEADINGS
-
-DEFAULT_ADAPT_EPOCHS = 24
-"""``fit``'s default adaptation: 24 epochs, about 70 s of 2-core time a body (docs/control.md, "Today's result")."""
 
 
 def _controller(spec: str, grids) -> object:
@@ -64,8 +62,9 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
 
 
 def cmd_watch(args: argparse.Namespace) -> None:
-    from freeform.control.watch import watch
+    from freeform.control.watch import watch, writable
 
+    writable(args.video)
     grids = _bodies(args.bodies, args.controller)
     if args.body is None and len(grids) > 1:
         raise ValueError(f"watch {args.bodies}: the file holds {len(grids)} bodies: say which with --body I")
@@ -82,7 +81,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     no_earlier_fit(out)
     if args.adapt_epochs < 0:
         raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {args.adapt_epochs}")
-    grids = _bodies(args.bodies)
+    grids = _bodies(args.bodies, (args.candidates or TRIED)[0])
     how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed)
     rows = fit(grids, out, how)
     for row in rows:

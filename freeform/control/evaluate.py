@@ -23,7 +23,9 @@ from freeform.sim import SimConfig
 from freeform.tables import mean_band, summary_row, write_rows
 
 COLUMNS = ("open_loop", "hand_set_wave", "mean_command", "stochastic")
-"""``bodies.csv``'s figures, each a mean over the body's episodes (voxel lengths)."""
+"""``bodies.csv``'s figures (voxel lengths): the mean command's is the body's first episode (deterministic), the
+others means over its episodes. Along ``any`` or ``fixed`` headings every episode has the same heading, so they
+compare like for like; along ``random`` headings the mean command's is the first heading's."""
 
 
 def episode_of(saved: Any, headings: str | None = None) -> ControlConfig:

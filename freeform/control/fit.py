@@ -15,6 +15,7 @@ chosen controller moves it further by its mean command.
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -29,6 +30,9 @@ from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
 
+DEFAULT_ADAPT_EPOCHS = 24
+"""The adaptation ``fit`` runs unless told otherwise: 24 epochs, about 70 s of 2-core time a body (docs/control.md)."""
+
 
 @dataclass(frozen=True)
 class Fit:
@@ -38,15 +42,22 @@ class Fit:
 
     candidates: tuple[str, ...]
     trial: float | None = None
-    adapt_epochs: int = 0
+    adapt_epochs: int = DEFAULT_ADAPT_EPOCHS
     copies: int = 4
     preset: str = "control_adapt_cpu"
     seed: int = 0
 
 
+def candidate_name(spec: str) -> str:
+    """How tables name a candidate: a zoo name as it is, a file by its folder (``runs/mine/controller.pt``: ``mine``),
+    a folder by itself."""
+    path = Path(spec)
+    return path.parent.name if path.suffix == ".pt" and path.parent.name else path.stem if path.suffix else path.name
+
+
 class Candidates:
     """The candidates read back and built for one box that holds the bodies, checked to play one episode in one
-    simulator (each difference named)."""
+    simulator (each difference named), under a heading task that one draw can try (not random headings)."""
 
     def __init__(self, specs: tuple[str, ...], grids: torch.Tensor) -> None:
         from freeform.agents.controller_file import body_box, read_controller
@@ -54,11 +65,17 @@ class Candidates:
 
         if not specs:
             raise ValueError("fit needs at least one candidate controller")
+        self.names = [candidate_name(s) for s in specs]
+        if len(set(self.names)) < len(self.names):
+            raise ValueError(f"--candidates: two of them share a name ({self.names}): give each its own folder")
         first = [read_controller(resolve(s)) for s in specs]
         box = tuple(max(b) for b in zip(body_box(grids), *(s.controller.box for s in first), strict=True))
         self.saved = [read_controller(s.path, box=box) for s in first]
-        self.names = [Path(s).name if Path(s).suffix == ".pt" else str(s) for s in specs]
         self.control = episode_of(self.saved[0])
+        if self.control.headings == "random":
+            raise ValueError(f"candidate {specs[0]} walks along random headings: the best of several controllers on "
+                             "one draw of headings is biased upwards on the next, so fit tries controllers of a "
+                             "heading task that one episode tries (headings any or fixed)")
         self.sim = self.saved[0].sim or SimConfig()
         every = tuple(f.name for f in fields(ControlConfig))
         for spec, s in zip(specs[1:], self.saved[1:], strict=True):
@@ -69,6 +86,34 @@ class Candidates:
                 raise ValueError(f"candidate {spec} plays another episode or simulator than {specs[0]} — "
                                  f"{'; '.join([*differ, *([physics] if physics else [])])}: fit tries controllers of "
                                  "one episode and one simulator (the zoo's all are)")
+
+
+def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
+    """The adaptation's run config (``how.preset`` for ``m`` bodies in ``bodies``), checked before anything is
+    played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), the preset's episode the candidates',
+    and every candidate the preset's controller (kind, width, head; weights of one shape, so each body's start
+    loads into the bank)."""
+    from freeform.config import compose
+
+    if how.copies < 2:
+        raise ValueError(f"--copies must be >= 2 (a body's copies are each other's baseline), got {how.copies}")
+    cfg = compose(f"experiment={how.preset}", f"control.bodies={bodies}", f"control.teachers={m}",
+                  f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
+                  f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
+    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}",
+                                   tuple(f.name for f in fields(ControlConfig)))
+    if differ:
+        raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
+                         f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
+    width = cfg.control.hidden if cfg.control.hidden is not None else cfg.agent.hidden
+    wanted = (cfg.control.controller, width, cfg.control.head)
+    for name, s in zip(c.names, c.saved, strict=True):
+        kwargs = s.controller.init_kwargs
+        if (s.kind, kwargs.get("hidden"), kwargs.get("head")) != wanted:
+            raise ValueError(f"candidate {name} is a {s.kind} controller ({kwargs.get('hidden')} wide, head "
+                             f"{kwargs.get('head')}), and the adaptation ({how.preset}) trains {wanted[0]} ones "
+                             f"({wanted[1]} wide, head {wanted[2]}): adapt the zoo's students, or --adapt-epochs 0")
+    return cfg
 
 
 def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
@@ -91,21 +136,13 @@ def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) ->
     return played.after[decisions - 1].argmax(0), played.returns
 
 
-def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, scratch: Path) -> tuple[Any, np.ndarray]:
-    """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring): the bank
-    of adapted controllers and each one's whole-episode move on its body ``[M]`` (mean command)."""
-    from freeform.config import compose
+def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg: Any) -> tuple[Any, np.ndarray]:
+    """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring; ``cfg``
+    from :func:`adaptation`): the bank of adapted controllers and each one's whole-episode move on its body ``[M]``
+    (mean command)."""
     from freeform.run.build import build
 
     m = len(grids)
-    np.save(scratch / "bodies.npy", grids.numpy())
-    cfg = compose(f"experiment={how.preset}", f"control.bodies={scratch / 'bodies.npy'}", f"control.teachers={m}",
-                  f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
-                  f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
-    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}",
-                                   tuple(f.name for f in fields(ControlConfig)))
-    if differ:
-        raise ValueError(f"the adaptation's preset plays another episode than the candidates: {'; '.join(differ)}")
     _, ppo = build(cfg, torch.device("cpu"))
     bank = ppo.policy
     for i in range(m):
@@ -113,7 +150,7 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, scra
     with torch.enable_grad():
         for epoch in range(how.adapt_epochs):
             stats = ppo.train_epoch()
-            print(f"adapting {m} bodies: epoch {epoch + 1}/{how.adapt_epochs}, training return "
+            print(f"adapting {m} bodies: epoch {epoch + 1}/{how.adapt_epochs}, the epoch's return "
                   f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
     env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
     own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
@@ -145,17 +182,21 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
     start = time.perf_counter()
     c = Candidates(how.candidates, grids)
     decisions = trial_decisions(how.trial, c.control)
-    choice, moves = trials(c, grids, decisions, how.seed)
     m = len(grids)
-    nets = [c.saved[int(k)].controller for k in choice]
-    labels = [c.names[int(k)] for k in choice]
-    out.mkdir(parents=True, exist_ok=True)
-    if how.adapt_epochs:
-        bank, adapted = adapt(c, grids, choice, how, out)
-        better = adapted > moves[choice, np.arange(m)]
-        nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
-        labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
+    with tempfile.TemporaryDirectory(prefix="freeform-fit-") as scratch:
+        bodies = Path(scratch) / "bodies.npy"
+        np.save(bodies, grids.numpy())
+        cfg = adaptation(c, m, how, bodies) if how.adapt_epochs else None  # (refused before anything is played)
+        choice, moves = trials(c, grids, decisions, how.seed)
+        nets = [c.saved[int(k)].controller for k in choice]
+        labels = [c.names[int(k)] for k in choice]
+        if cfg is not None:
+            bank, adapted = adapt(c, grids, choice, how, cfg)
+            better = adapted > moves[choice, np.arange(m)]
+            nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
+            labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
     moved = alone(nets, grids, c, how.seed)
+    out.mkdir(parents=True, exist_ok=True)
     rows, seconds = [], (time.perf_counter() - start) / m
     for i in range(m):
         path = save_controller(out / f"body{i}" / "controller.pt", nets[i], c.control, c.sim)
@@ -172,5 +213,5 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["Candidates", "Fit", "adapt", "alone", "fit", "no_earlier_fit", "trial_decisions", "trials"]
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name", "fit", "no_earlier_fit", "trial_decisions", "trials"]
 

@@ -2,8 +2,8 @@
 
 The controller drives the body by its mean command for one episode — the episode ``evaluate`` scores for that body
 (same env seed, same row, so the same headings and the same bits) — and a frame is taken every ``k`` control
-periods, ``k`` the whole number nearest to giving the asked frame rate: every simulated frame at that rate over
-the whole control window, from the end of the burn-in to the episode's end.
+periods, ``k`` the whole number nearest to giving the asked frame rate, and at the episode's end: every simulated
+frame at that rate over the whole control window, from the end of the burn-in to the episode's last period.
 """
 
 from __future__ import annotations
@@ -21,6 +21,16 @@ from freeform.envs.control import open_loop_displacement, open_loop_moves
 from freeform.sim import SimConfig
 
 
+def writable(video: str) -> None:
+    """Refuse, before anything is played, a video format this installation cannot write."""
+    import importlib.util
+
+    if video not in ("gif", "mp4"):
+        raise ValueError(f"--video must be gif or mp4, got {video!r}")
+    if video == "mp4" and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ValueError("--video mp4 needs imageio-ffmpeg: pip install 'freeform[video]' (or --video gif)")
+
+
 def periods_per_frame(fps: float, period: float) -> int:
     """The control periods between two frames for a frame rate of about ``fps`` (at least one period)."""
     if not (np.isfinite(fps) and fps > 0):
@@ -36,8 +46,7 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
     of the file, one row each: the same bits); write ``out/gait.<video>`` (``gif``, or ``mp4`` with the ``video``
     extra) and ``out/gait.json`` (the move, the frames, the frame rate, the body's own open-loop gait). Returns the
     figures."""
-    if video not in ("gif", "mp4"):
-        raise ValueError(f"--video must be gif or mp4, got {video!r}")
+    writable(video)
     from freeform.render.gait import render_recording
     from freeform.render.video import write_video
 
@@ -73,4 +82,4 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
     return figures
 
 
-__all__ = ["periods_per_frame", "watch"]
+__all__ = ["periods_per_frame", "watch", "writable"]

@@ -457,25 +457,26 @@ class ControlEnv:
         """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
         ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``), for looking at: a
         :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every ``every`` control
-        periods (None: after every action, ``periods_per_step`` periods), the commands the robot's actuated voxels
-        received ``[steps, voxels]``, and its return. Starts a new episode; the frames are read between the periods
+        periods (None: after every action, ``periods_per_step`` periods) and after the last, the commands the robot's
+        actuated voxels received ``[steps, voxels]``, and its return. Starts a new episode; the frames are read between the periods
         the episode runs anyway, so the episode is the one :meth:`step` gives, bit for bit."""
         from freeform.sim.simulator import Recording
 
-        every = every or self.control.periods_per_step
+        every = self.control.periods_per_step if every is None else every
         if not (isinstance(every, int) and every >= 1):
             raise ValueError(f"every must be a whole number of control periods >= 1, got {every!r}")
         obs, lay = self.reset(), self.layout
         mine = lay.voxel_robot == robot
         positions, orientations = [self.engine.positions()[mine]], [self.engine.orientations()[mine]]
-        periods = 0
+        taken, periods, last = [0], 0, self.control.steps * self.control.periods_per_step
 
-        def frame() -> None:  # (after each control period, before an episode's end resets the env)
+        def frame() -> None:  # (after each control period, before an episode's end resets the env; the last always)
             nonlocal periods
             periods += 1
-            if periods % every == 0:
+            if periods % every == 0 or periods == last:
                 positions.append(self.engine.positions()[mine])
                 orientations.append(self.engine.orientations()[mine])
+                taken.append(periods)
 
         commands, total = [], 0.0
         self._after_period = frame
@@ -487,7 +488,7 @@ class ControlEnv:
                 total += float(reward[robot])
         finally:
             self._after_period = None
-        recording = Recording(times=self.control.burn_in + self.control.period * every * np.arange(len(positions)),
+        recording = Recording(times=self.control.burn_in + self.control.period * np.array(taken, dtype=np.float64),
                               voxel_size=self.sim_config.voxel_size, lattice=[lay.lattice[mine]],
                               materials=[lay.material[mine]], positions=[np.stack(positions).astype(np.float32)],
                               orientations=[np.stack(orientations).astype(np.float32)])

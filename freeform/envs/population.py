@@ -186,9 +186,9 @@ class PopulationControlEnv:
             obs = self.reset()
         return obs, reward, done, info
 
-    def record(self, act: Any, robot: int = 0) -> tuple[Any, np.ndarray, float]:
+    def record(self, act: Any, robot: int = 0, every: int | None = None) -> tuple[Any, np.ndarray, float]:
         """One episode of robot ``robot`` of the current cohort under ``act`` (:meth:`ControlEnv.record`)."""
-        return self.current.record(act, robot)
+        return self.current.record(act, robot, every)
 
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, Any]:

@@ -81,7 +81,8 @@ def _controlled_locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
     options = _simulator_options(cfg, device)
     from freeform.zoo import resolve
 
-    return ControlledLocomotionTask(**{**options, "controller": read_controller(resolve(options["controller"]))})
+    controller = read_controller(resolve(moved_result(str(options["controller"]))))
+    return ControlledLocomotionTask(**{**options, "controller": controller})
 
 
 def _trajectory_task(cfg: TrainConfig, device: torch.device) -> Task:
@@ -276,16 +277,25 @@ def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | N
     return _read_saved(source, field, box).controller
 
 
+def moved_result(source: str) -> str:
+    """A controller path of a run made before the lab moved out of docs/ (``docs/results/...``, which its saved
+    config names) as it is now (``lab/results/...``), with a warning; any other source as it is."""
+    if source.startswith("docs/results/") and not Path(source).exists():
+        now = "lab/results/" + source[len("docs/results/"):]
+        if Path(now).exists():
+            logging.getLogger(__name__).warning("%s moved to %s (the lab's results left docs/): reading it there",
+                                                source, now)
+            return now
+    return source
+
+
 def _read_saved(source: str, field: str, box: tuple[int, int, int] | None = None) -> Any:
     """:func:`read_saved_controller`'s ``SavedController`` (the network with its ``ControlConfig``)."""
     from freeform.agents.controller_file import read_controller
-    from freeform.zoo import ORDER, ZOO, resolve
+    from freeform.zoo import resolve
 
-    if source not in ORDER and not Path(source).exists():
-        raise ValueError(f"{field}={source!r}: no such checkpoint, controller.pt or run folder, nor a controller of "
-                         f"the zoo ({', '.join(ORDER)}): give a control run's directory, a checkpoint, a folder "
-                         f"holding controller.pt or a zoo name (they lie in {ZOO})")
-    try:
+    source = moved_result(source)
+    try:  # (zoo.resolve refuses a source that is neither a zoo name nor a file, naming the zoo)
         return read_controller(resolve(source), box=box)
     except ValueError as e:
         raise ValueError(f"{field}={source!r}: {e}") from e

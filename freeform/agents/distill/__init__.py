@@ -13,6 +13,7 @@ from freeform.agents.distill.dagger import (
     bank_from_checkpoint,
     distill_loss,
 )
+from freeform.agents.distill.teachers import TeacherBank, TeacherIndex
 
 __all__ = ["LOSSES", "BankTeacher", "ChosenTeacher", "DistillConfig", "Distillation", "Symmetry", "Teacher",
-           "TeacherMixing", "bank_from_checkpoint", "distill_loss"]
+           "TeacherBank", "TeacherIndex", "TeacherMixing", "bank_from_checkpoint", "distill_loss"]

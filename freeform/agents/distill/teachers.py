@@ -242,9 +242,9 @@ class TeacherIndex:
     def reset(self, seed: int | None = None) -> dict[str, torch.Tensor]:
         return self.observe(self.env.reset(seed))
 
-    def record(self, act: Any, robot: int = 0) -> Any:
+    def record(self, act: Any, robot: int = 0, every: int | None = None) -> Any:
         """The env's ``record`` (a control env's episode for looking at) under ``act``, which reads the groups."""
-        return self.env.record(lambda obs: act(self.observe(obs)), robot)
+        return self.env.record(lambda obs: act(self.observe(obs)), robot, every)
 
     def step(self, actions: torch.Tensor) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, dict[str, Any]]:
         obs, reward, done, info = self.env.step(actions)

@@ -208,14 +208,16 @@ class Checkpoints:
         incompatible one.
         """
         payload = load_checkpoint(path)
-        allowed = {policy_class_name(c): c for c in (*builtin_policies(), *policy_classes)}
-        allowed.update({old: allowed[policy_class_name(c)] for old, c in moved_policies().items()})
+        known = (*builtin_policies(), *policy_classes)
+        allowed = {policy_class_name(c): c for c in known}
+        allowed.update(moved_policies(known))
         try:
             name = payload["policy_class"]
             if name not in allowed:
                 raise CheckpointError(
                     f"{path}: its policy class {name!r} is not one of freeform's networks; pass "
-                    f"policy_classes=[<that class>] to PPO.load to build it"
+                    f"policy_classes=[<that class>] to PPO.load to build it (a bank of teachers: "
+                    f"policy_classes=[freeform.agents.distill.TeacherBank])"
                 )
             policy = rebuild(allowed[name], payload["policy_kwargs"])
             config_dict = dict(payload["ppo_config"])
@@ -276,14 +278,16 @@ def builtin_policies() -> tuple[type[nn.Module], ...]:
 MOVED_MODULES = {"freeform.agents.networks": "freeform.agents.networks.base",
                  **{f"freeform.agents.{m}": f"freeform.agents.networks.{m}"
                     for m in ("controllers", "attention_controllers", "codesign_network", "recurrent",
-                              "observation_groups")}}
+                              "observation_groups")},
+                 "freeform.agents.teachers": "freeform.agents.distill.teachers"}
 """Modules whose classes older checkpoints name, and where those classes live since ``agents/`` was laid out by kind
 (networks, ppo, distill)."""
 
 
-def moved_policies() -> dict[str, type[nn.Module]]:
+def moved_policies(known: Sequence[type[nn.Module]] = ()) -> dict[str, type[nn.Module]]:
     """Names that older checkpoints give classes since moved (``module:qualname`` then → the class now): the classes
-    moved between modules, and every builtin policy under its module's name before :data:`MOVED_MODULES`."""
+    moved between modules, and every builtin policy (and every class of ``known``) under its module's name before
+    :data:`MOVED_MODULES`."""
     from freeform.agents.networks.attention_controllers import (
         RecurrentAttentionController,
         VoxelAttentionController,
@@ -300,7 +304,7 @@ def moved_policies() -> dict[str, type[nn.Module]]:
                "observation_groups:GroupedMLPActorCritic": GroupedMLPActorCritic}
     moved = {f"freeform.agents.{name}": cls for name, cls in earlier.items()}
     before = {new: old for old, new in MOVED_MODULES.items()}
-    for cls in builtin_policies():
+    for cls in (*builtin_policies(), *known):
         if cls.__module__ in before:
             moved[f"{before[cls.__module__]}:{cls.__qualname__}"] = cls
     return moved

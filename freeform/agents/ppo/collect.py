@@ -150,15 +150,15 @@ class RolloutCollection:
         return stats
 
     def _recent_episodes(self, returns: torch.Tensor, lengths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The episodes the statistics are over (``PPOConfig.stats_window``): this epoch's finished ones ``[E]``,
-        topped up with the latest earlier ones to ``stats_window``; the latest ``stats_window`` are kept for the
-        next epoch (global: every rank's, the same on each)."""
-        window, finished = self.config.stats_window, len(returns)
-        returns = torch.cat([self.recent_returns, returns.detach().float().cpu()])
-        lengths = torch.cat([self.recent_lengths, lengths.detach().long().cpu()])
-        self.recent_returns, self.recent_lengths = returns[-window:], lengths[-window:]
-        used = max(finished, window)
-        return returns[-used:], lengths[-used:]
+        """The episodes the statistics are over (``PPOConfig.stats_window``): this epoch's finished ones ``[E]``, or
+        where it finished none the latest ``stats_window`` before it, which are kept for such an epoch (global:
+        every rank's, the same on each)."""
+        if len(returns):
+            window = self.config.stats_window
+            self.recent_returns = torch.cat([self.recent_returns, returns.detach().float().cpu()])[-window:]
+            self.recent_lengths = torch.cat([self.recent_lengths, lengths.detach().long().cpu()])[-window:]
+            return returns, lengths
+        return self.recent_returns, self.recent_lengths
 
     def _step_envs(self) -> tuple[float, list[tuple[int, torch.Tensor]], bool]:
         """The rollout's one loop over time: act, step the envs, keep what each step gives; then stack the steps

@@ -112,10 +112,8 @@ class PPOConfig:
     """Episodes per evaluation, spread over the eval env's environments."""
     stats_window: int = 100
     """The episode statistics (``episode_reward_mean``, ``_max``, ``_min``, ``episode_length_mean``) are over the
-    epoch's finished episodes, topped up with the latest earlier ones to at least this many (RLlib's
-    ``metrics_num_episodes_for_smoothing``; SB3's ``stats_window_size`` keeps exactly its last 100): an epoch in
-    which no episode finished reports the latest ones, never NaN; before the first finished episode they are absent.
-    A design or control epoch finishes ≥ 100 episodes and reports exactly its own."""
+    epoch's finished episodes; an epoch that finishes none reports the latest this many finished before it (SB3's
+    episode buffer, ``stats_window_size``) instead of NaN; before the first finished episode they are absent."""
 
     def __post_init__(self) -> None:
         self.validate("PPOConfig")
