@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import warnings
-from dataclasses import fields, replace
 from math import comb
 from pathlib import Path
 from typing import NamedTuple
@@ -51,8 +50,8 @@ import torch
 
 from experiments.common import missing_figure, summary_row, write_rows
 from freeform.agents.controller_file import controller_for, read_controller
+from freeform.control.fit import episode_differences
 from freeform.envs.control import ControlConfig, ControlEnv, open_loop_displacement, open_loop_moves
-from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
 from lab.heldout import Evaluation, evaluated_control, hand_set_wave, play, read_bodies
 from lab.paired import read_table, same_bodies, set_files, table_run, warn_hosts
@@ -330,14 +329,10 @@ def _one_episode(saved: list, sim: SimConfig, headings: str | None) -> ControlCo
     if control.headings == "random":
         raise ValueError("--try along random headings: the best of several controllers on one draw of headings is "
                          "biased upwards on the next, so it is not a trial (--headings any or fixed)")
-    every = tuple(f.name for f in fields(ControlConfig))
     for s in saved[1:]:
-        differ = described_differences(replace(s.control, headings=control.headings), control, str(s.path), every)
-        physics = ControlEnv.physics_differences(s.sim or SimConfig(), sim, control, "it",
-                                                 f"in {saved[0].path}")
-        if differ or physics:
-            raise ValueError(f"--try: {s.path} plays another episode than {saved[0].path} — "
-                             f"{'; '.join([*differ, *([physics] if physics else [])])}: try controllers of one episode")
+        if differ := episode_differences(s, control, sim, saved[0].path):
+            raise ValueError(f"--try: {s.path} plays another episode than {saved[0].path} — {'; '.join(differ)}: "
+                             "try controllers of one episode")
     return control
 
 

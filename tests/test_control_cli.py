@@ -74,7 +74,8 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused(["evaluate", "student", str(tmp_path / "text.npy"), "--out", str(out)], capsys, "not a .npy file")
     np.save(tmp_path / "bodies.npy", tiny_bodies())
     refused(["evaluate", "nosuch", str(tmp_path / "bodies.npy"), "--out", str(out)], capsys,
-            "'nosuch' is not a controller of the zoo", "student, pool256_gen4")
+            "no such checkpoint, controller.pt or run folder as 'nosuch', nor a controller of the zoo",
+            "student, pool256_gen4")
     # a fixed-box controller (the MLP) and bodies that need a larger box
     save_controller(tmp_path / "mlp.pt", MLPController(len(OBS_CHANNELS), (2, 1, 1), 2, (4,)), SHORT)
     refused(["evaluate", str(tmp_path / "mlp.pt"), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys,

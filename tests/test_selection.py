@@ -290,7 +290,7 @@ def test_trying_refuses_what_is_no_trial_before_playing(tmp_path: Path, capsys) 
         try_controllers([files[0], longer], bodies, out)
     heavier = save_controller(tmp_path / "heavier.pt", saved.controller, saved.control,
                               replace(saved.sim, gravity=-1.0, schedule="robots"))
-    with pytest.raises(ValueError, match=r"heavier.pt plays another episode .* sim\.gravity: -1\.0 in it, -9\.81 in .*c0/controller.pt: try"):
+    with pytest.raises(ValueError, match=r"heavier.pt plays another episode .* sim\.gravity: -1\.0 in .*heavier\.pt, -9\.81 in .*c0/controller.pt: try"):
         try_controllers([files[0], heavier], bodies, out)  # (the physics named, the schedule not: how it runs)
     few = table(tmp_path / "few_bodies.csv", [1.0], [0.5], per_body=[2.0])
     with pytest.raises(ValueError, match="1 bodies, not the 3 tried"):

@@ -55,6 +55,19 @@ def candidate_name(spec: str) -> str:
     return path.parent.name if path.suffix == ".pt" and path.parent.name else path.stem if path.suffix else path.name
 
 
+def episode_differences(saved: Any, control: ControlConfig, sim: SimConfig, first: Path) -> list[str]:
+    """Where a saved controller plays another episode than ``control`` (its own along ``control``'s headings: every
+    ``ControlConfig`` field named) or moves in another simulator than ``sim`` (``ControlEnv.physics_differences``:
+    the schedule and backend may differ) — one string each, empty where it plays the same. ``first``: the
+    controller the others are compared with, for the wording."""
+    from dataclasses import replace
+
+    every = tuple(f.name for f in fields(ControlConfig))
+    differ = described_differences(replace(saved.control, headings=control.headings), control, str(saved.path), every)
+    physics = ControlEnv.physics_differences(saved.sim or SimConfig(), sim, control, str(saved.path), f"in {first}")
+    return [*differ, *([physics] if physics else [])]
+
+
 class Candidates:
     """The candidates read back and built for one box that holds the bodies, checked to play one episode in one
     simulator (each difference named), under a heading task that one draw can try (not random headings)."""
@@ -77,15 +90,11 @@ class Candidates:
                              "one draw of headings is biased upwards on the next, so fit tries controllers of a "
                              "heading task that one episode tries (headings any or fixed)")
         self.sim = self.saved[0].sim or SimConfig()
-        every = tuple(f.name for f in fields(ControlConfig))
         for spec, s in zip(specs[1:], self.saved[1:], strict=True):
-            differ = described_differences(s.control, self.control, str(s.path), every)
-            physics = ControlEnv.physics_differences(s.sim or SimConfig(), self.sim, self.control, str(s.path),
-                                                     f"in {self.saved[0].path}")
-            if differ or physics:
+            if differ := episode_differences(s, self.control, self.sim, self.saved[0].path):
                 raise ValueError(f"candidate {spec} plays another episode or simulator than {specs[0]} — "
-                                 f"{'; '.join([*differ, *([physics] if physics else [])])}: fit tries controllers of "
-                                 "one episode and one simulator (the zoo's all are)")
+                                 f"{'; '.join(differ)}: fit tries controllers of one episode and one simulator "
+                                 "(the zoo's all are)")
 
 
 def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
@@ -213,5 +222,6 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name", "fit", "no_earlier_fit", "trial_decisions", "trials"]
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
+           "episode_differences", "fit", "no_earlier_fit", "trial_decisions", "trials"]
 

@@ -55,8 +55,8 @@ def resolve(spec: str | Path) -> Path:
         return path(str(spec))
     if Path(spec).exists():
         return Path(spec)
-    path(str(spec))  # (raises, naming the zoo)
-    raise AssertionError  # (unreachable)
+    raise UnknownController(f"no such checkpoint, controller.pt or run folder as {str(spec)!r}, nor a controller of "
+                            f"the zoo ({', '.join(ORDER)}): give one of those names or a path to a controller.pt")
 
 
 def load(name: str) -> Any:
