@@ -31,7 +31,8 @@ from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
 
 DEFAULT_ADAPT_EPOCHS = 24
-"""The adaptation ``fit`` runs unless told otherwise: 24 epochs, about 70 s of 2-core time a body (docs/control.md)."""
+"""The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
+the held-out bodies; docs/control.md)."""
 
 
 @dataclass(frozen=True)
