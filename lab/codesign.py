@@ -191,11 +191,11 @@ def _run_of(path: str) -> Path:
 
 
 def warm_start_name(path: str) -> str:
-    """How a table names the controller a run started from: the population controller's folder as before, else
-    the folder (or file) ``control.controller_init`` names."""
+    """How a table names the controller a run started from: the population controller's folder or zoo name as
+    before, else the folder (or file, or zoo name) ``control.controller_init`` names."""
     where = _run_of(path)  # (a run's checkpoint names its run; a controller.pt, its folder)
     name = where.parent.name if where.suffix == ".pt" else where.name
-    return "the population controller" if name == "control_population" else name
+    return "the population controller" if name in ("control_population", "population") else name
 
 
 def gaits(grids: Any, sim: Any, window: Any, headings: np.ndarray | None = None,

@@ -532,6 +532,7 @@ def test_a_codesign_run_starts_from_a_population_controllers_file(tmp_path) -> N
     from lab.codesign import warm_start_name
 
     assert warm_start_name("lab/results/control_population/controller.pt") == "the population controller"
+    assert warm_start_name("population") == "the population controller"  # (the presets name the zoo's)
     assert warm_start_name("runs/student/checkpoints/last.pt") == warm_start_name("runs/student") == "student"
 
 
