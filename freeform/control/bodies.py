@@ -44,9 +44,10 @@ def read_bodies(path: str | Path, materials: int, who: str = "BODIES.npy") -> to
         bad = np.unique(grid[(grid < 0) | (grid > materials)])
         if bad.size:
             raise BodyError(f"{where}: body {i} holds material {bad.tolist()}, and the materials are 0 (empty), "
-                            f"1 (passive) … {materials}")
+                            f"1 (passive) … {materials}: set those voxels to one of them")
         if not grid.any():
-            raise BodyError(f"{where}: body {i} is empty (no voxel: nothing to drive)")
+            raise BodyError(f"{where}: body {i} is empty (no voxel: nothing to drive): give it voxels or leave it out "
+                            "of the file")
     bodies = torch.from_numpy(grids.astype(np.uint8))
     kept = largest_component(bodies)
     dropped = ((bodies > 0).flatten(1).sum(1) - (kept > 0).flatten(1).sum(1)).tolist()

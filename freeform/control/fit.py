@@ -30,6 +30,9 @@ from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
 
+EPISODE = tuple(f.name for f in fields(ControlConfig))
+"""Every field of an episode: what two controllers tried side by side, or a controller and its adaptation, share."""
+
 DEFAULT_ADAPT_EPOCHS = 24
 """The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
 the held-out bodies; docs/control.md)."""
@@ -63,8 +66,7 @@ def episode_differences(saved: Any, control: ControlConfig, sim: SimConfig, firs
     controller the others are compared with, for the wording."""
     from dataclasses import replace
 
-    every = tuple(f.name for f in fields(ControlConfig))
-    differ = described_differences(replace(saved.control, headings=control.headings), control, str(saved.path), every)
+    differ = described_differences(replace(saved.control, headings=control.headings), control, str(saved.path), EPISODE)
     physics = ControlEnv.physics_differences(saved.sim or SimConfig(), sim, control, str(saved.path), f"in {first}")
     return [*differ, *([physics] if physics else [])]
 
@@ -110,8 +112,7 @@ def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
     cfg = compose(f"experiment={how.preset}", f"control.bodies={bodies}", f"control.teachers={m}",
                   f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
                   f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
-    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}",
-                                   tuple(f.name for f in fields(ControlConfig)))
+    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}", EPISODE)
     if differ:
         raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
                          f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
@@ -171,14 +172,12 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
 
 @torch.no_grad()
 def alone(nets: list[Any], grids: torch.Tensor, c: Candidates, seed: int = 0) -> np.ndarray:
-    """Body i's move ``[M]`` under ``nets[i]``'s mean command, each body alone in an env of its own: what
-    ``evaluate`` and ``watch`` of its ``controller.pt`` on its ``body.npy`` report, to the bit (a forward pass
-    rounds by the batch it is given, so a body played beside others moves a little otherwise)."""
-    moved = []
-    for i, net in enumerate(nets):
-        env = block_env(grids[i: i + 1], c.saved[0], c.control, blocks=1, seed=seed)
-        moved.append(play(env, [("fitted", net.eval(), False, False)], c.control.steps, seed).returns[0, 0])
-    return np.array(moved)
+    """Body i's move ``[M]`` under ``nets[i]``'s mean command, each network given its body's row alone: what
+    ``evaluate`` and ``watch`` of its ``controller.pt`` on its ``body.npy`` report, to the bit (a forward pass rounds
+    by the batch it is given; the physics does not, so the bodies share one env, a block of one row each)."""
+    env = block_env(grids, c.saved[0], c.control, blocks=1, seed=seed)
+    groups = [(f"body{i}", net.eval(), False, False) for i, net in enumerate(nets)]
+    return play(env, groups, c.control.steps, seed).returns[:, 0]
 
 
 def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
@@ -223,6 +222,6 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
            "episode_differences", "fit", "no_earlier_fit", "trial_decisions", "trials"]
 

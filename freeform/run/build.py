@@ -79,9 +79,8 @@ def _controlled_locomotion_task(cfg: TrainConfig, device: torch.device) -> Task:
         raise ValueError("task.name=controlled_locomotion needs task.options.controller=PATH (a controller.pt, a "
                          "folder holding one, or a control run's directory)")
     options = _simulator_options(cfg, device)
-    from freeform.zoo import resolve
 
-    controller = read_controller(resolve(moved_result(str(options["controller"]))))
+    controller = read_controller(controller_source(str(options["controller"])))
     return ControlledLocomotionTask(**{**options, "controller": controller})
 
 
@@ -277,26 +276,27 @@ def read_saved_controller(source: str, field: str, box: tuple[int, int, int] | N
     return _read_saved(source, field, box).controller
 
 
-def moved_result(source: str) -> str:
-    """A controller path of a run made before the lab moved out of docs/ (``docs/results/...``, which its saved
-    config names) as it is now (``lab/results/...``), with a warning; any other source as it is."""
+def controller_source(source: str) -> Path:
+    """The file a config's controller field names: a zoo name (``freeform.zoo.resolve``), a path, or a path of a run
+    made before the lab moved out of docs/ (``docs/results/...``, which its saved config names) read where it is now
+    (``lab/results/...``), with a warning. Refused, naming the zoo, where it is none of these."""
+    from freeform.zoo import resolve
+
     if source.startswith("docs/results/") and not Path(source).exists():
         now = "lab/results/" + source[len("docs/results/"):]
         if Path(now).exists():
             logging.getLogger(__name__).warning("%s moved to %s (the lab's results left docs/): reading it there",
                                                 source, now)
-            return now
-    return source
+            source = now
+    return resolve(source)
 
 
 def _read_saved(source: str, field: str, box: tuple[int, int, int] | None = None) -> Any:
     """:func:`read_saved_controller`'s ``SavedController`` (the network with its ``ControlConfig``)."""
     from freeform.agents.controller_file import read_controller
-    from freeform.zoo import resolve
 
-    source = moved_result(source)
-    try:  # (zoo.resolve refuses a source that is neither a zoo name nor a file, naming the zoo)
-        return read_controller(resolve(source), box=box)
+    try:  # (a source that is neither a zoo name nor a file is refused, naming the zoo)
+        return read_controller(controller_source(source), box=box)
     except ValueError as e:
         raise ValueError(f"{field}={source!r}: {e}") from e
 

@@ -200,24 +200,23 @@ def _empty_section_overrides(argv: Sequence[str], conf: Path) -> str | None:
         parsed = OverridesParser.create().parse_overrides([a for a in argv if not a.startswith("-")])
     except Exception:  # (Hydra reports a malformed override itself)
         return None
-    touched = sorted({o.key_or_group.split(".")[0] for o in parsed
-                      if "." in o.key_or_group and o.key_or_group.split(".")[0] in optional
-                      and o.is_force_add() is False and o.is_add() is False and not o.is_delete()})
-    groups = [o.input_line for o in parsed if "." not in o.key_or_group and not o.is_sweep_override()]
-    if not touched or any(o.is_sweep_override() and "." not in o.key_or_group for o in parsed):
+    touched = sorted({o.key_or_group.split(".")[0] for o in parsed if "." in o.key_or_group
+                      and o.key_or_group.split(".")[0] in optional
+                      and not (o.is_add() or o.is_force_add() or o.is_delete())})
+    groups = [o for o in parsed if "." not in o.key_or_group]
+    if not touched or any(o.is_sweep_override() for o in groups):
         return None
     try:
-        cfg = compose_raw(*groups)
+        cfg = compose_raw(*(o.input_line for o in groups))
     except Exception:  # (Hydra reports a bad group choice itself)
         return None
     empty = [s for s in touched if cfg.get(s) is None]
     if not empty:
         return None
-    section = empty[0]
+    section, having = empty[0], presets_with(empty[0], conf)
+    example = f"{section}_population_cpu" if f"{section}_population_cpu" in having else having[0]
     return (f"{section}.* overridden, but experiment={cfg.get('name')} has no {section} section (not a {section} "
-            f"experiment): choose one that has, e.g. experiment={section}_population_cpu — "
-            f"{', '.join(presets_with(section, conf))}")
-
+            f"experiment): choose one that has, e.g. experiment={example} — {', '.join(having)}")
 
 def main() -> None:
     """Console entry point ``freeform-train`` (Hydra parses ``sys.argv``).

@@ -145,8 +145,7 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
     is what a few epochs on every body agree on, and a step along it is a new student without a distillation."""
     from freeform.agents.controller_file import read_controller, save_controller
     from freeform.agents.networks.controllers import PrivilegedCritic
-    from freeform.run.build import moved_result
-    from freeform.zoo import resolve
+    from freeform.run.build import controller_source
 
     if not (step > 0 and math.isfinite(step)):
         raise ValueError(f"--step {step}: the Reptile step is a positive, finite multiple of the teachers' mean step")
@@ -156,7 +155,7 @@ def reptile_step(run: Path, out: Path, step: float = 1.0, start: Path | None = N
     if start is None:
         raise ValueError(f"{run}: its teachers did not start from one controller (control.controller_init unset): "
                          "give --start, the controller they started from")
-    begun, controller = read_controller(resolve(moved_result(str(start)))), source.bank.member(0)
+    begun, controller = read_controller(controller_source(str(start))), source.bank.member(0)
     if isinstance(controller, PrivilegedCritic):
         raise ValueError(f"{run}: its teachers carry a privileged critic (control.privileged_critic); the Reptile "
                          "step averages plain controllers only")
