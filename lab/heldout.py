@@ -105,7 +105,10 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     if saved is None or (int(saved["epoch"]) < cfg.trainer.epochs and not flat):
         print(f"per-body controllers: training {per.n} in {run} ({cfg.trainer.epochs} epochs)", flush=True)
         with torch.enable_grad():  # (called from the evaluation, which computes no gradients)
-            train(cfg, run)  # (trainer.resume=auto continues a run that stopped early)
+            result = train(cfg, run)  # (trainer.resume=auto continues a run that stopped early)
+        if result.stopped:  # (a stop signal: the same command continues the cache's run; nothing is evaluated)
+            raise SystemExit(f"per-body controllers: training stopped ({result.stopped}) after epoch {result.epochs} "
+                             f"in {run}; the same command continues it")
     payload = load_checkpoint(last)
     if other := ControlEnv.physics_differences(from_container(payload["config"]).sim, sim, control, "the cache"):
         raise ValueError(f"--per-body: the per-body controllers in {run} were trained in another simulator than the "

@@ -72,6 +72,34 @@ def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: P
         build(student, torch.device("cpu"))
 
 
+def test_teachers_taken_from_one_run_are_its_teachers_on_their_bodies(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from freeform.run.build import build
+
+    a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE, WIDE]), "control.teachers=3", "env.num_envs=6", "seed=4")
+    out = tmp_path / "taken"
+    main([str(a), "--teachers", "2,0", "--out", str(out)])
+    assert "2 teachers from 1 runs" in capsys.readouterr().out
+    np.testing.assert_array_equal(np.load(out / "bodies.npy"), np.stack([WIDE, ROD]))
+    taken, bank_a = _bank(out), _bank(a)
+    assert taken.teachers == 2
+    for j, m in enumerate([2, 0]):
+        mine, theirs = taken.member_state(j), bank_a.member_state(m)
+        assert all(torch.equal(mine[k], theirs[k]) for k in theirs), j
+    assert not all(torch.equal(v, bank_a.member_state(1)[k]) for k, v in taken.member_state(0).items())
+    assert json.loads((out / "pooled.json").read_text())["sources"][0]["taken"] == [2, 0]
+    student = compose(*tiny_control(out / "bodies.npy", *TEACH[1:], "control.teachers=2", "env.num_envs=4",
+                                    "algo=distill", f"algo.teacher={out}", "seed=4"))
+    build(student, torch.device("cpu"))  # (its bodies and teachers are a teacher run's, checked as any)
+    with pytest.raises(ValueError, match=r"--teachers \[0, 3\]: .* has teachers 0 … 2"):
+        pool_teacher_runs([a], tmp_path / "bad", [0, 3])
+    with pytest.raises(ValueError, match="from one teacher run"):
+        pool_teacher_runs([a, a], tmp_path / "bad", [0])
+    with pytest.raises(SystemExit):
+        main([str(a), "--teachers", "0,x", "--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_pool_refuses_other_tasks_other_controllers_and_a_used_folder(tmp_path: Path) -> None:
     a = _teacher_run(tmp_path, "a", np.stack([ROD, CUBE]), "seed=4")
     short = _teacher_run(tmp_path, "short", np.stack([ROD, CUBE]), "control.duration=0.025")

@@ -18,6 +18,8 @@ from freeform.learner import ALGORITHMS
 from freeform.validation import is_int, is_number, require
 
 CMA_VARIANTS = ("sep", "full")
+ELITIST = ("ga", "grid_ga")
+"""The learners that keep an elite of their population (``elite``: fewer than the population, ``env.num_envs``)."""
 
 
 @dataclass
@@ -65,7 +67,7 @@ class AlgoConfig:
         """Raise ``ValueError`` naming ``<key>.<field>`` for a value out of range; ``names``: the learners a run can
         build (the registry ``freeform.learner.LEARNERS``, which a user's learner joins)."""
         require(self.name in names, f"{key}.name", f"one of {list(names)}", self.name)
-        if num_envs is not None:
+        if num_envs is not None and self.name in ELITIST:  # (a population's elite: other learners ignore it)
             require(is_int(self.elite, 0) and self.elite < num_envs, f"{key}.elite",
                     f"an integer in [0, env.num_envs - 1 = {num_envs - 1}]", self.elite)
         else:

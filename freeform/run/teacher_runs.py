@@ -22,6 +22,11 @@ body (``body.npy``), which every controller tool reads (``lab.control --evaluate
 
     python -m freeform.run.teacher_runs runs/adapt --teacher 3 --out runs/body3_controller
 
+Some teachers of one run, as a teacher run of their own (the teachers of the bodies one expert won, which that
+expert is distilled from: ``lab.experts``):
+
+    python -m freeform.run.teacher_runs runs/teachers --teachers 0,3,5 --out runs/teachers_035
+
 The Reptile step of a bank whose teachers all started from one controller (``reptile_step``): that start moved E
 times along the teachers' mean weight step, a new student without a distillation:
 
@@ -77,15 +82,18 @@ def _same_task(a: Any, b: Any, run: Path, run0: Path) -> None:
                          "teachers must share the episode, simulator and grid")
 
 
-def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
-    """Write one teacher run in ``out`` holding every teacher of ``runs``, in order (module docstring); returns
+def pool_teacher_runs(runs: list[Path], out: Path, teachers: list[int] | None = None) -> Path:
+    """Write one teacher run in ``out`` holding every teacher of ``runs``, in order (module docstring) — or, of one
+    run, its ``teachers`` alone, in that order (the teachers of the bodies an expert won: ``lab.experts``); returns
     ``out``. ``out`` must not hold anything yet (nothing is overwritten)."""
     from freeform.agents.distill.teachers import TeacherBank
     from freeform.checkpoint import CHECKPOINT_DIR, LAST, save_checkpoint
     from freeform.config import ControlRunConfig, from_container
 
-    if len(runs) < 2:
-        raise ValueError(f"give at least two teacher runs to pool, got {len(runs)}")
+    if teachers is None and len(runs) < 2:
+        raise ValueError(f"give at least two teacher runs to pool (or one and the teachers to take), got {len(runs)}")
+    if teachers is not None and len(runs) != 1:
+        raise ValueError(f"teachers are taken from one teacher run, got {len(runs)}")
     _refuse_used(out)
     sources = [_source(run) for run in runs]
     for run, source in zip(runs[1:], sources[1:], strict=True):
@@ -93,8 +101,15 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
     shapes = [list(s.bodies.shape[1:]) for s in sources]
     if any(s != shapes[0] for s in shapes):
         raise ValueError(f"the runs' bodies are grids of different sizes ({shapes}): a pool's bodies share a grid")
-    bank = TeacherBank.concatenate([s.bank for s in sources])
-    bodies = torch.cat([s.bodies for s in sources]).numpy()
+    if teachers is not None:
+        try:
+            bank = sources[0].bank.select(teachers)
+        except ValueError as e:
+            raise ValueError(f"--teachers {teachers}: {runs[0]} has teachers 0 … {sources[0].bank.teachers - 1}") from e
+        bodies = sources[0].bodies[torch.tensor(teachers)].numpy()
+    else:
+        bank = TeacherBank.concatenate([s.bank for s in sources])
+        bodies = torch.cat([s.bodies for s in sources]).numpy()
 
     config = copy.deepcopy(sources[0].payload["config"])
     copies = config["env"]["num_envs"] // config["control"]["teachers"]
@@ -106,9 +121,10 @@ def pool_teacher_runs(runs: list[Path], out: Path) -> Path:
 
     provenance, start = [], 0
     for run, source in zip(runs, sources, strict=True):
-        teachers = source.bank.teachers
-        provenance.append({"run": str(run), "teachers": [start, start + teachers], "epoch": source.payload.get("epoch")})
-        start += teachers
+        count = source.bank.teachers if teachers is None else len(teachers)
+        provenance.append({"run": str(run), "teachers": [start, start + count], "epoch": source.payload.get("epoch"),
+                           **({"taken": [int(t) for t in teachers]} if teachers is not None else {})})
+        start += count
     out.mkdir(parents=True, exist_ok=True)
     np.save(out / "bodies.npy", bodies)
     save_checkpoint(out / CHECKPOINT_DIR / LAST, {
@@ -180,6 +196,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", required=True, help="a new folder for the pooled teacher run (or the exported teacher)")
     p.add_argument("--teacher", type=int, default=None, metavar="I",
                    help="export teacher I of the one run given as a controller.pt (with its body.npy) instead")
+    p.add_argument("--teachers", default=None, metavar="I,J,...",
+                   help="write a teacher run of these teachers of the one run given (in this order) instead")
     p.add_argument("--reptile", action="store_true",
                    help="write the Reptile step of the one run given (teachers started from one controller) instead")
     p.add_argument("--step", type=float, default=None, help="with --reptile: the step, a multiple of the teachers' "
@@ -204,7 +222,15 @@ def main(argv: list[str] | None = None) -> None:
         print(f"teacher {args.teacher} of {args.runs[0]} -> {path}; evaluate with python -m lab.control "
               f"--evaluate {path.parent} --bodies {path.parent / 'body.npy'}")
         return
-    out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out))
+    if args.teachers is not None:
+        if len(args.runs) != 1:
+            p.error(f"--teachers takes teachers from one teacher run, got {len(args.runs)}")
+        try:
+            chosen = [int(t) for t in args.teachers.split(",")]
+        except ValueError:
+            p.error(f"--teachers takes teacher indices separated by commas (0,3,5), got {args.teachers!r}")
+    out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out),
+                            chosen if args.teachers is not None else None)
     pooled = json.loads((out / POOLED).read_text())
     print(f"{pooled['teachers']} teachers from {len(pooled['sources'])} runs -> {out}; distil with "
           f"algo.teacher={out} control.bodies={out / 'bodies.npy'} control.teachers={pooled['teachers']}")

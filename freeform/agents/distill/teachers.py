@@ -16,7 +16,7 @@ invariance test). The observation names each sample's teacher: the group ``"teac
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from typing import Any
 
@@ -125,6 +125,19 @@ class TeacherBank(nn.Module):
         with torch.no_grad():
             for k, p in out.stacked.items():
                 p.copy_(torch.cat([b.stacked[k].to(p.device) for b in banks]))
+        return out
+
+    def select(self, teachers: Sequence[int]) -> TeacherBank:
+        """A bank of the teachers ``teachers`` of this one, in that order (teacher j of it is ``teachers[j]`` here):
+        the teachers of the bodies an expert won, say (``freeform.run.teacher_runs``'s ``--teachers``)."""
+        chosen = [int(t) for t in teachers]
+        if not chosen or not all(0 <= t < self.teachers for t in chosen):
+            raise ValueError(f"teachers to select must be a non-empty list of 0 … {self.teachers - 1}, got {chosen}")
+        out = type(self)(len(chosen), **{k: v for k, v in self.init_kwargs.items() if k != "teachers"})
+        index = torch.tensor(chosen, device=next(iter(self.stacked.values())).device)
+        with torch.no_grad():
+            for k, p in out.stacked.items():
+                p.copy_(self.stacked[k].index_select(0, index).to(p.device))
         return out
 
     def member_state(self, teacher: int) -> dict[str, torch.Tensor]:

@@ -1,0 +1,122 @@
+"""Hard EM over experts (freeform.agents.distill.experts): with points for bodies, centres for experts, the negative
+squared distance for a trial and the mean of the points won for a refit, it must be Lloyd's k-means — checked
+against scipy's ``kmeans2`` from the same start."""
+
+import numpy as np
+import pytest
+from scipy.cluster.vq import kmeans2
+
+from freeform.agents.distill.experts import assign, hard_em
+
+
+def _clouds(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    centres = np.array([[0.0, 0.0], [4.0, 0.0], [0.0, 5.0], [5.0, 5.0]])
+    return np.concatenate([c + rng.normal(0, 0.9, (30, 2)) for c in centres])
+
+
+def _lloyd(points: np.ndarray):
+    calls = []
+
+    def trial(experts):  # [K, M]: the bodies' moves under each expert
+        return -((points[None] - np.stack(experts)[:, None]) ** 2).sum(-1)
+
+    def refit(k, expert, bodies):
+        calls.append(k)
+        return points[bodies].mean(0)
+
+    return trial, refit, calls
+
+
+def test_hard_em_is_lloyds_kmeans_from_the_same_start():
+    points = _clouds()
+    start = points[[0, 1, 2, 40]]  # (three in the first cloud: the assignment must move many bodies)
+    trial, refit, _ = _lloyd(points)
+    em = hard_em(list(start), trial, refit, rounds=50)
+    centres, labels = kmeans2(points, start.copy(), iter=50, minit="matrix", missing="warn")
+    assert em.fixed_point and len(em.history) > 3  # (it reassigned bodies several times before settling)
+    np.testing.assert_array_equal(em.assignment, labels)
+    np.testing.assert_allclose(np.stack(em.experts), centres, atol=1e-12)
+    firsts = [r.assignment for r in em.history]
+    assert not np.array_equal(firsts[0], firsts[-1])
+
+
+def test_a_fixed_point_stays_one():
+    points = _clouds(1)
+    centres, labels = kmeans2(points, points[[0, 30, 60, 90]].copy(), iter=100, minit="matrix", missing="warn")
+    trial, refit, calls = _lloyd(points)
+    em = hard_em(list(centres), trial, refit, rounds=10)
+    assert em.fixed_point and len(em.history) == 2  # (one refit, and the assignment it gives is the one it had)
+    np.testing.assert_array_equal(em.assignment, labels)
+    np.testing.assert_array_equal(em.history[0].assignment, em.history[1].assignment)
+    np.testing.assert_allclose(np.stack(em.experts), centres, atol=1e-12)
+    assert sorted(calls) == [0, 1, 2, 3]  # (every expert refit once, from its own bodies)
+
+
+def test_a_fixed_expert_keeps_its_bodies_and_is_never_refit():
+    points = _clouds(2)
+    trial, refit, calls = _lloyd(points)
+    wave = np.array([5.0, 5.0])  # (the hand-set wave: an expert nobody trains)
+    em = hard_em([points[0], points[1], wave], trial, refit, rounds=20, fixed=[False, False, True])
+    assert 2 not in calls and np.array_equal(em.experts[2], wave)
+    assert (em.assignment == 2).sum() >= 25  # (the cloud at (5, 5) is the wave's)
+
+
+def test_an_expert_that_wins_nothing_stays_as_it_is():
+    points = _clouds(3)
+    trial, refit, calls = _lloyd(points)
+    far = np.array([100.0, 100.0])
+    em = hard_em([points.mean(0), far], trial, refit, rounds=5)
+    assert em.fixed_point and 1 not in calls and np.array_equal(em.experts[1], far)
+    assert (em.assignment == 0).all()
+
+
+def test_assign_ties_go_to_the_earlier_expert_and_refuses_nan():
+    np.testing.assert_array_equal(assign(np.array([[1.0, 2.0], [1.0, 3.0]])), [0, 1])
+    with pytest.raises(ValueError, match="finite"):
+        assign(np.array([[1.0, np.nan]]))
+    with pytest.raises(ValueError, match="experts, bodies"):
+        assign(np.zeros(3))
+
+
+def test_rounds_zero_is_the_first_assignment_alone():
+    points = _clouds()
+    trial, refit, calls = _lloyd(points)
+    em = hard_em([points[0], points[100]], trial, refit, rounds=0)
+    assert not em.fixed_point and calls == [] and len(em.history) == 1
+
+
+def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_won(tmp_path):
+    """lab.experts end to end at toy sizes: two experts (two teachers of a 3-body run) tried, refit from the
+    teachers of the bodies each won (the refit's teacher run holds exactly those), written back as controllers."""
+    import csv
+    import json
+
+    from test_control_run import CUBE, ROD
+    from test_teacher_pool import WIDE, _teacher_run
+
+    from freeform.agents.controller_file import read_controller
+    from freeform.run.teacher_runs import export_teacher
+    from lab.experts import experts_on
+
+    run = _teacher_run(tmp_path, "t", np.stack([ROD, CUBE, WIDE]), "control.teachers=3", "env.num_envs=6", "seed=4")
+    experts = [str(export_teacher(run, i, tmp_path / f"e{i}")) for i in (0, 2)]
+    tiny = ("control.controller=context", "control.duration=0.05", "control.burn_in=0.01", "agent.hidden=4",
+            "agent.sgd_minibatch_size=8", "sim.precision=f64", "control.head=direct", "control.hidden=4",
+            "trainer.threads=1")
+    out = tmp_path / "em"
+    em = experts_on(run, experts, out, rounds=2, epochs=1, copies=2, overrides=tiny)
+    rounds = list(csv.DictReader(open(out / "rounds.csv")))
+    first = em.history[0].assignment
+    assert len(rounds) == 2 * len(em.history)
+    assert [int(r["bodies"]) for r in rounds[:2]] == [int((first == 0).sum()), int((first == 1).sum())]
+    for k in range(2):  # (each refit of round 1 was taught by the teachers of the bodies that expert won in round 0)
+        taken = out / "round1" / f"teachers{k}" / "pooled.json"
+        if (first == k).any():
+            assert json.loads(taken.read_text())["sources"][0]["taken"] == np.flatnonzero(first == k).tolist()
+        else:
+            assert not taken.exists()
+        read_controller(out / f"expert{k}" / "controller.pt")
+    assert json.loads((out / "run.json").read_text())["refits"] == len(em.history) - 1
+    with pytest.raises(FileExistsError):
+        experts_on(run, experts, out, rounds=1, epochs=1, overrides=tiny)
