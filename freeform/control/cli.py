@@ -4,6 +4,7 @@
     freeform-control evaluate student my_bodies.npy --out eval    # bodies.csv, summary.csv
     freeform-control watch student my_body.npy --out seen         # gait.gif, gait.json
     freeform-control fit my_bodies.npy --out fitted               # fitted/body<i>/controller.pt, bodies.csv
+    freeform-control gate student pool256 --trial 0.25 --out g.pt  # one controller that tries both, keeps the best
 
 CONTROLLER is a zoo name or a path to a ``controller.pt`` (a folder holding one, a control run's directory).
 BODIES is a ``.npy`` of uint8 grids ``[M, ρ, ρ, ρ]`` or one ``[ρ, ρ, ρ]``: 0 empty, 1 passive, 2 and 3 muscles in
@@ -90,6 +91,14 @@ def cmd_fit(args: argparse.Namespace) -> None:
     print(f"{rows[0]['seconds']:.1f} s a body; {out / 'bodies.csv'}")
 
 
+def cmd_gate(args: argparse.Namespace) -> None:
+    from freeform.control.fit import gate
+
+    path = gate(tuple(args.controllers), args.trial, Path(args.out))
+    print(f"{path}: tries {', '.join(args.controllers)} for {args.trial:g} s each, then plays the best; evaluate, "
+          "watch and fit play it as any controller")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="freeform-control", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
@@ -126,6 +135,12 @@ def parser() -> argparse.ArgumentParser:
                    help="what to try (zoo names or controller.pt files; default: the zoo's)")
     f.add_argument("--seed", type=int, default=0)
     f.set_defaults(run=cmd_fit)
+    g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
+    g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "
+                                                                       "this order")
+    g.add_argument("--trial", type=float, required=True, metavar="SECONDS", help="how long each is tried")
+    g.add_argument("--out", required=True, help="the controller.pt to write (a new file)")
+    g.set_defaults(run=cmd_gate)
     return p
 
 

@@ -216,6 +216,38 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
     return rows
 
 
+def gate(specs: tuple[str, ...], trial: float, out: Path) -> Path:
+    """One ``controller.pt`` at ``out`` that tries the controllers ``specs`` (zoo names or paths) in turn within an
+    episode, each for ``trial`` seconds, and then plays the one whose trial earned most
+    (``freeform.agents.networks.gated.TrialGate``); they must play one episode in one simulator. Returns ``out``."""
+    from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.networks.gated import TrialGate
+    from freeform.zoo import resolve
+
+    if out.exists():
+        raise FileExistsError(f"--out {out} exists: give a new file (nothing is overwritten)")
+    first = [read_controller(resolve(s)) for s in specs]
+    if not first:
+        raise ValueError("gate needs at least one controller")
+    boxes = {tuple(s.controller.init_kwargs["box"]) for s in first}
+    if len(boxes) > 1 and not all(s.controller.fits_any_box for s in first):
+        raise ValueError(f"the controllers were built for the boxes {sorted(boxes)}, and not every one runs on any "
+                         "box: gate controllers of one box, or of kinds that fit any (the zoo's)")
+    box = tuple(max(b) for b in zip(*boxes, strict=True))
+    saved = [read_controller(s.path, box=box) for s in first]
+    control, sim = episode_of(saved[0]), saved[0].sim or SimConfig()
+    for spec, s in zip(specs[1:], saved[1:], strict=True):
+        if differ := episode_differences(s, control, sim, saved[0].path):
+            raise ValueError(f"{spec} plays another episode or simulator than {specs[0]} — {'; '.join(differ)}: a "
+                             "gate's controllers share one")
+    decisions = trial_decisions(trial, control)
+    if decisions * len(saved) >= control.steps:
+        raise ValueError(f"{len(saved)} controllers tried for {decisions} decisions each leave none of the episode's "
+                         f"{control.steps} to play the best: a shorter --trial, or fewer controllers")
+    net = TrialGate.from_controllers([s.controller for s in saved], decisions)
+    return save_controller(out, net, control, sim)
+
+
 def no_earlier_fit(out: Path) -> None:
     """Refuse to write into a folder that holds a fit already (nothing written is lost)."""
     if (out / "bodies.csv").exists():
@@ -223,5 +255,5 @@ def no_earlier_fit(out: Path) -> None:
 
 
 __all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
-           "episode_differences", "fit", "no_earlier_fit", "trial_decisions", "trials"]
+           "episode_differences", "fit", "gate", "no_earlier_fit", "trial_decisions", "trials"]
 

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from freeform.agents.networks.controller_heads import DEFAULT_WAVE, HandSetWave
-from freeform.agents.networks.controllers import ContextConvController, controller_step
+from freeform.agents.networks.controllers import ContextConvController, controller_observe, controller_step
 from freeform.envs.control import ControlEnv
 from freeform.envs.response import RESPONSE_CHANNELS
 
@@ -69,6 +69,8 @@ def play(env: ControlEnv, groups: list[tuple], steps: int, seed: int) -> Played:
             params = outputs[:3]
             actions.append(net.distribution.sample(params, noise) if stochastic else net.distribution.mode(params))
         obs, reward, _, _ = env.step(torch.cat(actions))
+        for g, ((_, net, _, _), earned) in enumerate(zip(groups, reward.chunk(len(groups)), strict=True)):
+            states[g] = controller_observe(net, states[g], earned)  # (a controller that reads rewards: a gate)
         total += reward.double()
         after.append(total.numpy().reshape(len(groups), -1).copy())
     return Played(after[-1], np.stack(after), obs, heading)

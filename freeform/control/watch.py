@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from freeform.agents.networks.controllers import controller_step
+from freeform.agents.networks.controllers import controller_observe, controller_step
 from freeform.control.evaluate import block_env, episode_of
 from freeform.envs.control import open_loop_displacement, open_loop_moves
 from freeform.sim import SimConfig
@@ -63,7 +63,11 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
         outputs, state = controller_step(net, obs, state)
         return net.distribution.mode(outputs[:3])
 
-    recording, _, moved = env.record(act, robot=body, every=every)
+    def rewarded(reward: torch.Tensor) -> None:
+        nonlocal state
+        state = controller_observe(net, state, reward)
+
+    recording, _, moved = env.record(act, robot=body, every=every, rewarded=rewarded)
     heading = headings_seen[0]
     delivered = 1.0 / (every * control.period)
     out.mkdir(parents=True, exist_ok=True)

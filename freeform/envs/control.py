@@ -453,9 +453,11 @@ class ControlEnv:
         return self.observation
 
     @torch.no_grad()
-    def record(self, act: Any, robot: int = 0, every: int | None = None) -> tuple[Any, np.ndarray, float]:
+    def record(self, act: Any, robot: int = 0, every: int | None = None,
+               rewarded: Callable[[torch.Tensor], None] | None = None) -> tuple[Any, np.ndarray, float]:
         """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
-        ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``), for looking at: a
+        ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``; ``rewarded``, where given, is told each step's
+        rewards ``[N]``: a controller that reads them), for looking at: a
         :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every ``every`` control
         periods (None: after every action, ``periods_per_step`` periods) and after the last, the commands the robot's
         actuated voxels received ``[steps, voxels]``, and its return. Starts a new episode; the frames are read between the periods
@@ -485,6 +487,8 @@ class ControlEnv:
                 action = torch.as_tensor(act(obs)).reshape(self.num_envs, -1)
                 commands.append(action[robot][self.action_mask[robot]].clamp(-1.0, 1.0).cpu().numpy())
                 obs, reward, _, _ = self.step(action)
+                if rewarded is not None:
+                    rewarded(reward)
                 total += float(reward[robot])
         finally:
             self._after_period = None

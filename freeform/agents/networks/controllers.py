@@ -57,6 +57,7 @@ from freeform.agents.networks.controller_heads import (
     masked_pool,
     wave_at_gain,
 )
+from freeform.agents.networks.gated import TrialGate
 from freeform.agents.networks.observation_groups import CRITIC, POLICY, is_grouped
 from freeform.agents.networks.recurrent import RecurrentPolicy, run_rnn
 from freeform.distributions import MaskedDiagGaussian
@@ -296,7 +297,7 @@ CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPCon
                                            "context": ContextConvController, "attention": VoxelAttentionController,
                                            "context_gru": RecurrentContextController,
                                            "attention_gru": RecurrentAttentionController,
-                                           "attention_hyper": HyperAttentionController}
+                                           "attention_hyper": HyperAttentionController, "gated": TrialGate}
 """``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
 ``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
 a body changes nothing."""
@@ -352,6 +353,14 @@ class PrivilegedCritic(nn.Module):
         return own + self.critic_head(torch.cat([own[:, None], privileged.to(own.dtype)], 1)).squeeze(-1)
 
 
+def controller_observe(net: nn.Module, state: tuple[torch.Tensor, ...] | None, reward: torch.Tensor
+                       ) -> tuple[torch.Tensor, ...] | None:
+    """``state`` after a step that earned ``reward`` ``[N]``: a controller that reads rewards (``observe``: a
+    :class:`~freeform.agents.networks.gated.TrialGate`) is told; any other's state is as it was."""
+    observe = getattr(net, "observe", None)
+    return observe(state, reward) if observe is not None and state is not None else state
+
+
 def controller_step(net: nn.Module, obs: torch.Tensor, state: tuple[torch.Tensor, ...] | None = None
                     ) -> tuple[tuple[torch.Tensor, ...], tuple[torch.Tensor, ...] | None]:
     """One control step of any controller: ``obs [N, C, Bx, By, Bz]`` → ((mean, log σ, mask, value), state). A
@@ -376,6 +385,9 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
 
     if kind not in CONTROLLERS:
         raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
+    if kind == "gated":
+        raise ValueError("controller kind 'gated' is made of trained controllers, not trained itself: "
+                         "freeform-control gate CONTROLLERS... --out FILE")
     shape = env.observation_shape
     if is_grouped(shape):
         if issubclass(CONTROLLERS[kind], RecurrentPolicy):
@@ -434,5 +446,5 @@ def with_wave_gain(controller: nn.Module, gain: float) -> nn.Module:
 
 __all__ = ["CODESIGN_KINDS", "CONTROLLERS", "ContextConvController", "ConvController", "HyperAttentionController",
            "MLPController", "PrivilegedCritic", "RecurrentAttentionController", "RecurrentContextController",
-           "VoxelAttentionController", "build_controller", "controller_kind", "controller_step",
+           "VoxelAttentionController", "build_controller", "controller_kind", "controller_observe", "controller_step",
            "with_wave_gain"]
