@@ -1,0 +1,109 @@
+"""The reference's own convergence curve: a bank of per-body controllers (a teacher run, e.g. ``--per-body``'s cache
+in ``runs/per_body/``) played on its bodies at every epoch it saved — each body by its own controller's mean command,
+all bodies in one env, one row each.
+
+    python -m lab.reference runs/per_body/control_teachers_cpu_32_<key> --out lab/results/reference/design_unseen32
+
+Writes ``curve.csv`` (per saved epoch: the bodies' mean move and its 99 % band, the training return of that epoch,
+and whether ``trainer.plateau_window`` had called the run flat there), ``bodies.csv`` (per body, its move at each
+saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from freeform.tables import mean_band, write_rows
+
+PLATEAU = (20, 0.02)
+"""The flatness read where the run set none (``trainer.plateau_window``, ``plateau_gain``): the last 20 epochs' mean
+return adds < 2 % over the 20 before."""
+
+
+def saved_epochs(run: Path) -> list[tuple[int, Path]]:
+    """The run's numbered checkpoints ``(epoch, path)`` in order, and ``last.pt`` where it is later than them."""
+    from freeform.checkpoint import load_checkpoint
+
+    folder = run / "checkpoints"
+    numbered = sorted((int(m.group(1)), p) for p in folder.glob("epoch_*.pt")
+                      if (m := re.fullmatch(r"epoch_(\d+)\.pt", p.name)))
+    last = folder / "last.pt"
+    if last.is_file():
+        epoch = int(load_checkpoint(last)["epoch"])
+        if not numbered or epoch > numbered[-1][0]:
+            numbered.append((epoch, last))
+    if not numbered:
+        raise ValueError(f"{run}: no checkpoints (checkpoints/epoch_*.pt or last.pt): give a teacher run's directory")
+    return numbered
+
+
+@torch.no_grad()
+def curve(run: Path) -> tuple[list[dict], list[dict]]:
+    """The bank of ``run`` at each saved epoch on its bodies: (a row per epoch, a row per body)."""
+    from freeform.agents.controller_file import body_box
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.control.play import BankOnBodies, play
+    from freeform.envs.control import ControlEnv
+    from freeform.run.build import read_teacher_run
+    from freeform.run.trainer import plateaued
+
+    teachers = read_teacher_run(run, str(run))
+    grids, cfg = teachers.bodies.to(torch.uint8), teachers.config
+    m, box, control = len(grids), body_box(teachers.bodies), cfg.control.episode()
+    returns = list(teachers.payload.get("return_curve", []))
+    window, gain = (cfg.trainer.plateau_window, cfg.trainer.plateau_gain) if cfg.trainer.plateau_window else PLATEAU
+    per_epoch, per_body = [], [{"body": i} for i in range(m)]
+    for epoch, path in saved_epochs(run):
+        bank = bank_from_checkpoint(load_checkpoint(path), str(path))
+        env = ControlEnv(grids, sim=cfg.sim, control=control, seed=0, box=box)
+        own = BankOnBodies(bank, torch.arange(m), box).eval()
+        moved = play(env, [("per_body", own, False, False)], control.steps, 0).returns[0]
+        mean, band = mean_band(moved)
+        per_epoch.append({"epoch": epoch, "mean_command": float(mean), "band99": float(band),
+                          "training_return": returns[epoch - 1] if 0 < epoch <= len(returns) else float("nan"),
+                          "flat": plateaued(returns[:epoch], window, gain)})
+        for i in range(m):
+            per_body[i][f"epoch{epoch}"] = float(moved[i])
+        print(f"epoch {epoch}: {mean:.3f} ± {band:.3f}", flush=True)
+    return per_epoch, per_body
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    e = [r["epoch"] for r in rows]
+    mean, band = np.array([r["mean_command"] for r in rows]), np.array([r["band99"] for r in rows])
+    ax.plot(e, mean, "o-", label="per-body controllers, mean command")
+    ax.fill_between(e, mean - band, mean + band, alpha=0.2)
+    ax.set_xlabel("epochs of per-body training")
+    ax.set_ylabel("move in 2 s (voxel lengths)")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", type=Path, help="a teacher run (a per-body cache's directory)")
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    rows, bodies = curve(args.run)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_rows(args.out / "curve.csv", rows)
+    write_rows(args.out / "bodies.csv", bodies)
+    plot(rows, args.out / "curve.png")
+
+
+if __name__ == "__main__":
+    main()
