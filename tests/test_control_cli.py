@@ -145,8 +145,13 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     construction)."""
     np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
     main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
-          "--copies", "2"])
+          "--copies", "2", "--curve-every", "1"])
     fitted = rows(tmp_path / "fitted" / "bodies.csv")
+    curve = rows(tmp_path / "fitted" / "adaptation.csv")  # (before the epoch: the trials' choice; after: the bank)
+    assert [int(r["epoch"]) for r in curve] == [0, 1] and float(curve[0]["seconds"]) < float(curve[1]["seconds"])
+    chosen = [max(float(v) for k, v in r.items() if k.startswith("trial_")) for r in fitted]
+    assert float(curve[0]["kept"]) == pytest.approx(np.mean(chosen), rel=1e-5)
+    assert float(curve[1]["kept"]) >= float(curve[1]["adapted"]) - 1e-12
     assert [list(r)[:5] for r in fitted] == [["body", "chosen", "mean_command", "controller_file", "seconds"]] * 2
     main(["evaluate", "student", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"), "--episodes", "1"])
     for row, evaluated in zip(fitted, rows(tmp_path / "eval" / "bodies.csv"), strict=True):

@@ -83,7 +83,10 @@ def cmd_fit(args: argparse.Namespace) -> None:
     if args.adapt_epochs < 0:
         raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {args.adapt_epochs}")
     grids = _bodies(args.bodies, (args.candidates or TRIED)[0])
-    how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed)
+    if args.curve_every < 0:
+        raise ValueError(f"--curve-every must be >= 0 (0: never), got {args.curve_every}")
+    how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed,
+              curve_every=args.curve_every)
     rows = fit(grids, out, how)
     for row in rows:
         print(f"body {row['body']}: {row['chosen']}, {row['mean_command']:.3f} voxel lengths "
@@ -134,6 +137,8 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--candidates", nargs="+", default=None, metavar="CONTROLLER",
                    help="what to try (zoo names or controller.pt files; default: the zoo's)")
     f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--curve-every", type=int, default=0, metavar="K",
+                   help="measure the bodies every K adaptation epochs into adaptation.csv (0: never)")
     f.set_defaults(run=cmd_fit)
     g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
     g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "

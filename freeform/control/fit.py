@@ -10,7 +10,8 @@ is its whole episode. The mean command is deterministic, so that figure is what 
 of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
 body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
 recipe (its learning rate and batch; ``conf/experiment/``). Each body then keeps whichever of the adapted and the
-chosen controller moves it further by its mean command.
+chosen controller moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
+epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs.
 """
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ class Fit:
     copies: int = 4
     preset: str = "control_adapt_cpu"
     seed: int = 0
+    curve_every: int = 0
+    """Measure the bodies every this many adaptation epochs (and at 0 and the last) into ``adaptation.csv``; 0:
+    never."""
 
 
 def candidate_name(spec: str) -> str:
@@ -147,10 +151,13 @@ def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) ->
     return played.after[decisions - 1].argmax(0), played.returns
 
 
-def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg: Any) -> tuple[Any, np.ndarray]:
+def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg: Any,
+          tried: np.ndarray | None = None, begun: float | None = None) -> tuple[Any, np.ndarray, list[dict]]:
     """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring; ``cfg``
-    from :func:`adaptation`): the bank of adapted controllers and each one's whole-episode move on its body ``[M]``
-    (mean command)."""
+    from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
+    (mean command), and with ``how.curve_every`` the adaptation's curve — rows of ``epoch``, ``seconds`` (a body's
+    share of the wall time since ``begun``, measuring left out), ``adapted`` (the bodies' mean move under the bank)
+    and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give stopped there)."""
     from freeform.run.build import build
 
     m = len(grids)
@@ -158,16 +165,35 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
     bank = ppo.policy
     for i in range(m):
         bank.load_member(i, c.saved[int(choice[i])].controller.state_dict())
+
+    @torch.no_grad()
+    def measured() -> np.ndarray:
+        env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
+        own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
+        return play(env, [("adapted", own, False, False)], c.control.steps, how.seed).returns[0]
+
+    curve: list[dict] = []
+    begun = time.perf_counter() if begun is None else begun
+    measuring = 0.0
+
+    def point(epoch: int) -> None:
+        nonlocal measuring
+        at = time.perf_counter()
+        moved = measured()
+        curve.append({"epoch": epoch, "seconds": (at - begun - measuring) / m, "adapted": float(moved.mean()),
+                      "kept": float(np.maximum(moved, tried).mean()) if tried is not None else float("nan")})
+        measuring += time.perf_counter() - at
+
+    if how.curve_every:
+        point(0)
     with torch.enable_grad():
         for epoch in range(how.adapt_epochs):
             stats = ppo.train_epoch()
             print(f"adapting {m} bodies: epoch {epoch + 1}/{how.adapt_epochs}, the epoch's return "
                   f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
-    env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
-    own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
-    with torch.no_grad():
-        moved = play(env, [("adapted", own, False, False)], c.control.steps, how.seed).returns[0]
-    return bank, moved
+            if how.curve_every and ((epoch + 1) % how.curve_every == 0 or epoch + 1 == how.adapt_epochs):
+                point(epoch + 1)
+    return bank, measured(), curve
 
 
 @torch.no_grad()
@@ -200,7 +226,7 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         nets = [c.saved[int(k)].controller for k in choice]
         labels = [c.names[int(k)] for k in choice]
         if cfg is not None:
-            bank, adapted = adapt(c, grids, choice, how, cfg)
+            bank, adapted, curve = adapt(c, grids, choice, how, cfg, moves[choice, np.arange(m)], start)
             better = adapted > moves[choice, np.arange(m)]
             nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
@@ -213,6 +239,8 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         rows.append({"body": i, "chosen": labels[i], "mean_command": float(moved[i]), "controller_file": str(path),
                      "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
     write_rows(out / "bodies.csv", rows)
+    if cfg is not None and how.curve_every:
+        write_rows(out / "adaptation.csv", curve)
     return rows
 
 
