@@ -1,6 +1,7 @@
-"""Hard EM over experts (freeform.agents.distill.experts): with points for bodies, centres for experts, the negative
-squared distance for a trial and the mean of the points won for a refit, it must be Lloyd's k-means — checked
-against scipy's ``kmeans2`` from the same start."""
+"""Hard EM over experts (freeform.agents.distill.experts) and the lab's tools on a teacher run (lab.experts,
+lab.reference). With points for bodies, centres for experts, the negative squared distance for a trial and the mean
+of the points won for a refit, hard EM must be Lloyd's k-means — checked against scipy's ``kmeans2`` from the same
+start."""
 
 import numpy as np
 import pytest
@@ -86,7 +87,17 @@ def test_rounds_zero_is_the_first_assignment_alone():
     assert not em.fixed_point and calls == [] and len(em.history) == 1
 
 
-def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_won(tmp_path):
+@pytest.fixture(scope="module")
+def three_bodies(tmp_path_factory):
+    """A teacher run of three tiny bodies, two epochs, every epoch saved (the lab's EM and reference read it)."""
+    from test_control_run import CUBE, ROD
+    from test_teacher_pool import WIDE, _teacher_run
+
+    return _teacher_run(tmp_path_factory.mktemp("teachers"), "t", np.stack([ROD, CUBE, WIDE]), "control.teachers=3",
+                        "env.num_envs=6", "trainer.epochs=2", "seed=4")
+
+
+def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_won(tmp_path, three_bodies):
     """lab.experts end to end at toy sizes: two experts (two teachers of a 3-body run) tried, refit from the
     teachers of the bodies each won (the refit's teacher run holds exactly those), written back as controllers."""
     import csv
@@ -99,13 +110,13 @@ def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_w
     from freeform.run.teacher_runs import export_teacher
     from lab.experts import experts_on
 
-    run = _teacher_run(tmp_path, "t", np.stack([ROD, CUBE, WIDE]), "control.teachers=3", "env.num_envs=6", "seed=4")
+    run = three_bodies
     experts = [str(export_teacher(run, i, tmp_path / f"e{i}")) for i in (0, 2)]
     tiny = ("control.controller=context", "control.duration=0.05", "control.burn_in=0.01", "agent.hidden=4",
             "agent.sgd_minibatch_size=8", "sim.precision=f64", "control.head=direct", "control.hidden=4",
             "trainer.threads=1")
     out = tmp_path / "em"
-    em = experts_on(run, experts, out, rounds=2, epochs=1, copies=2, overrides=tiny)
+    em = experts_on(run, experts, out, rounds=1, epochs=1, copies=2, overrides=tiny)
     rounds = list(csv.DictReader(open(out / "rounds.csv")))
     first = em.history[0].assignment
     assert len(rounds) == 2 * len(em.history)
@@ -120,3 +131,37 @@ def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_w
     assert json.loads((out / "run.json").read_text())["refits"] == len(em.history) - 1
     with pytest.raises(FileExistsError):
         experts_on(run, experts, out, rounds=1, epochs=1, overrides=tiny)
+
+
+def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_controller(tmp_path, three_bodies):
+    """lab.reference: a per-body bank's convergence curve; its last point is each body's own controller played
+    alone on that body."""
+    import csv
+
+    import torch
+
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.control.play import play
+    from freeform.envs.control import ControlEnv
+    from freeform.run.build import read_teacher_run
+    from lab.reference import main, saved_epochs
+
+    run = three_bodies
+    assert [e for e, _ in saved_epochs(run)] == [0, 1, 2]
+    main([str(run), "--out", str(tmp_path / "curve")])
+    rows = list(csv.DictReader(open(tmp_path / "curve" / "curve.csv")))
+    assert [int(r["epoch"]) for r in rows] == [0, 1, 2] and (tmp_path / "curve" / "curve.png").is_file()
+    bodies = list(csv.DictReader(open(tmp_path / "curve" / "bodies.csv")))
+    teachers = read_teacher_run(run, str(run))
+    bank = bank_from_checkpoint(load_checkpoint(run / "checkpoints" / "last.pt"), str(run))
+    control = teachers.config.control.episode()
+    for i in range(3):  # (body i alone in an env of its own, driven by teacher i alone)
+        env = ControlEnv(teachers.bodies[i:i + 1].to(torch.uint8), sim=teachers.config.sim, control=control, seed=0,
+                         box=tuple(bank.member(i).box))
+        alone = play(env, [("own", bank.member(i).eval(), False, False)], control.steps, 0).returns[0, 0]
+        np.testing.assert_allclose(float(bodies[i]["epoch2"]), alone, rtol=1e-6, atol=1e-9)
+    mean = np.mean([float(b["epoch2"]) for b in bodies])
+    np.testing.assert_allclose(float(rows[-1]["mean_command"]), mean, rtol=1e-9)
+    returns = load_checkpoint(run / "checkpoints" / "last.pt")["return_curve"]
+    np.testing.assert_allclose(float(rows[-1]["training_return"]), returns[-1])
