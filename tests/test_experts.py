@@ -103,9 +103,6 @@ def test_the_lab_driver_distils_each_expert_from_the_teachers_of_the_bodies_it_w
     import csv
     import json
 
-    from test_control_run import CUBE, ROD
-    from test_teacher_pool import WIDE, _teacher_run
-
     from freeform.agents.controller_file import read_controller
     from freeform.run.teacher_runs import export_teacher
     from lab.experts import experts_on
