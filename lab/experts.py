@@ -39,16 +39,17 @@ def experts_on(run: Path, experts: list[str], out: Path, rounds: int, epochs: in
     from freeform.run.build import read_teacher_run
     from freeform.run.teacher_runs import pool_teacher_runs
     from freeform.train import train
+    from lab.heldout import episode_overrides
 
     names = [candidate_name(e) for e in experts]
     unknown = sorted(fixed - set(names))
     if unknown:
         raise ValueError(f"--fixed {unknown}: not among the experts {names}")
-    if (out / "rounds.csv").exists():
-        raise FileExistsError(f"--out {out} holds an EM already (rounds.csv): give a new folder")
+    if out.exists() and any(out.iterdir()):
+        raise FileExistsError(f"--out {out} holds files already: give a new folder (nothing is overwritten)")
     source = read_teacher_run(run, f"--teachers {run}")
     grids = source.bodies.to(torch.uint8)
-    episode = [f"control.{k}={'null' if v is None else v}" for k, v in vars(source.config.control.episode()).items()]
+    episode = episode_overrides(source.config.control.episode())
     done = {"trials": 0}
 
     def trial(current: list[str]) -> np.ndarray:
@@ -69,7 +70,10 @@ def experts_on(run: Path, experts: list[str], out: Path, rounds: int, epochs: in
                       f"trainer.epochs={epochs}", "trainer.render_every=0", "trainer.progress=false", f"seed={seed}", *episode,
                       *overrides)  # (the teachers' episode: a student is taught the task they learned)
         with torch.enable_grad():
-            train(cfg, where / f"expert{k}")
+            result = train(cfg, where / f"expert{k}")
+        if result.stopped:  # (a stop signal: no EM goes on with a half-trained expert)
+            raise SystemExit(f"expert {k}'s refit stopped ({result.stopped}) in {where / f'expert{k}'}; the EM "
+                             f"is not resumable: run it again into a new --out")
         return str(where / f"expert{k}")
 
     em = hard_em(experts, trial, refit, rounds, [n in fixed for n in names])

@@ -68,13 +68,18 @@ def _hydra_value(value: Any) -> str:
 _KEYLESS_DEFAULTS = {("frame", "world")}
 
 
+def episode_overrides(control: ControlConfig) -> list[str]:
+    """``control``'s episode as Hydra overrides (``control.<field>=<value>``), for a run that must play it."""
+    # (a field added since the caches were made stays out of the overrides and the key at its default: old caches hold)
+    return [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items()
+            if k != "privileged_critic" and (k, v) not in _KEYLESS_DEFAULTS]
+
+
 def per_body_cache_run(bodies: np.ndarray, per: PerBody, control: ControlConfig) -> tuple[Path, list[str]]:
     """The cache's run directory for per-body controllers of ``bodies`` (uint8 ``[n, ρ, ρ, ρ]``) under the episode
     settings ``control``, named by a hash of the bodies and the overrides, and those overrides of ``per.preset``."""
-    # (a field added since the caches were made stays out of the overrides and the key at its default: old caches hold)
-    episode = [f"control.{k}={_hydra_value(v)}" for k, v in vars(control).items()
-               if k != "privileged_critic" and (k, v) not in _KEYLESS_DEFAULTS]
-    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode, *per.overrides]
+    overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode_overrides(control),
+                 *per.overrides]
     key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
     return per.cache / f"{per.preset}_{per.n}_{key}", overrides
 

@@ -27,18 +27,18 @@ return adds < 2 % over the 20 before."""
 
 def saved_epochs(run: Path) -> list[tuple[int, Path]]:
     """The run's numbered checkpoints ``(epoch, path)`` in order, and ``last.pt`` where it is later than them."""
-    from freeform.checkpoint import load_checkpoint
+    from freeform.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint, numbered_name
 
-    folder = run / "checkpoints"
-    numbered = sorted((int(m.group(1)), p) for p in folder.glob("epoch_*.pt")
-                      if (m := re.fullmatch(r"epoch_(\d+)\.pt", p.name)))
-    last = folder / "last.pt"
+    folder = run / CHECKPOINT_DIR
+    numbered = sorted((e, p) for p in folder.glob("*.pt")
+                      if (m := re.search(r"\d+", p.name)) and p.name == numbered_name(e := int(m.group())))
+    last = folder / LAST
     if last.is_file():
         epoch = int(load_checkpoint(last)["epoch"])
         if not numbered or epoch > numbered[-1][0]:
             numbered.append((epoch, last))
     if not numbered:
-        raise ValueError(f"{run}: no checkpoints (checkpoints/epoch_*.pt or last.pt): give a teacher run's directory")
+        raise ValueError(f"{run}: no checkpoints in {folder}: give a teacher run's directory")
     return numbered
 
 
@@ -98,6 +98,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("run", type=Path, help="a teacher run (a per-body cache's directory)")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
+    if (args.out / "curve.csv").exists():
+        p.error(f"--out {args.out} holds a curve already (curve.csv): give a new folder (nothing is overwritten)")
     rows, bodies = curve(args.run)
     args.out.mkdir(parents=True, exist_ok=True)
     write_rows(args.out / "curve.csv", rows)

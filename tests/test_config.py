@@ -175,6 +175,13 @@ def test_designed_materials_must_all_be_simulated() -> None:
     assert compose("experiment=volume_cpu", "task.materials=5").task.materials == 5
 
 
+def test_a_population_elite_is_checked_only_where_a_learner_keeps_one() -> None:
+    """algo.elite is the GA's: a GA's elite must be fewer than its population; PPO over two environments keeps none."""
+    with pytest.raises(ValueError, match=r"^algo\.elite must be an integer in \[0, env\.num_envs - 1 = 1\]"):
+        compose("algo=ga", "env.num_envs=2", "algo.elite=2")
+    assert compose("env.num_envs=2", "algo.elite=2").env.num_envs == 2
+
+
 def test_valid_edge_values_pass() -> None:
     cfg = compose("env.resolution=2", "env.bundle_size=2", "trainer.device=cuda:1", "trainer.epochs=0")
     assert cfg.env.resolution == 2 and cfg.trainer.device == "cuda:1"

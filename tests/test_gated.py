@@ -87,6 +87,8 @@ def test_a_gate_plays_a_real_episode_as_its_choice_made_by_hand(tmp_path) -> Non
     path = save_controller(tmp_path / "controller.pt", gate, SHORT, SimConfig())
     saved = read_controller(path)
     assert saved.kind == "gated" and saved.controller.trial == 1
+    wider = read_controller(path, box=(3, 2, 2))  # (its experts fit any box: so does the gate)
+    assert wider.controller.box == (3, 2, 2) and all(tuple(e.box) == (3, 2, 2) for e in wider.controller.experts)
     again = play(env(), [("gate", saved.controller.eval(), False, False)], SHORT.steps, seed=0).returns[0]
     np.testing.assert_array_equal(again, played)
 
@@ -98,6 +100,8 @@ def test_a_gate_is_refused_where_it_cannot_play() -> None:
         TrialGate.from_controllers(_experts(1), trial=0)
     with pytest.raises(ValueError, match="made of trained controllers"):
         build_controller("gated", object())
+    with pytest.raises(ValueError, match="one action distribution, one box"):
+        TrialGate.from_controllers([*_experts(1), *_experts(1, box=(3, 1, 1))], trial=1)
 
 
 def test_freeform_control_gate_writes_one_controller_that_evaluate_plays(tmp_path, capsys) -> None:

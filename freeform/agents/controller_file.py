@@ -18,9 +18,10 @@ from freeform.agents.networks.controller_heads import wave_follows_heading
 from freeform.agents.networks.controllers import (
     CONTROLLERS,
     PrivilegedCritic,
-    controller_kind,
+    controller_observe,
     controller_step,
 )
+from freeform.agents.networks.gated import PLAYABLE, playable_kind
 from freeform.body import bounding_box
 from freeform.checkpoint import load_checkpoint, save_checkpoint
 from freeform.envs.control import ControlConfig
@@ -65,6 +66,10 @@ class MeanPolicy:
         outputs, state = controller_step(self.net, obs, state)
         return self.net.distribution.mode(outputs[:3]), state
 
+    def observe(self, state: tuple[torch.Tensor, ...] | None, reward: torch.Tensor) -> tuple[torch.Tensor, ...] | None:
+        """``state`` after a step that earned ``reward`` ``[N]`` (a controller that reads rewards is told)."""
+        return controller_observe(self.net, state, reward)
+
 
 def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: Any = None) -> Path:
     """Write ``controller.pt``, self-contained: ``{"controller": {"kind", "init_kwargs", "weights"}, "control":
@@ -77,7 +82,7 @@ def save_controller(path: str | Path, controller: nn.Module, control: Any, sim: 
         controller = controller.controller
     _check_wave_frame(controller.init_kwargs.get("wave"), ControlConfig(**episode))
     return save_checkpoint(path, {
-        "controller": {"kind": controller_kind(controller), "init_kwargs": dict(controller.init_kwargs),
+        "controller": {"kind": playable_kind(controller), "init_kwargs": dict(controller.init_kwargs),
                        "weights": {k: v.detach().cpu() for k, v in controller.state_dict().items()}},
         "control": episode, "sim": dataclasses.asdict(sim) if sim is not None else None})
 
@@ -114,13 +119,15 @@ def read_controller(source: str | Path, box: tuple[int, int, int] | None = None)
         path = found
     payload = load_checkpoint(path)
     kind, kwargs, weights, control, sim = _saved_parts(payload, path)
+    if kind not in PLAYABLE:
+        raise ValueError(f"{path}: holds a controller of kind {kind!r}, none of {list(PLAYABLE)} (a newer freeform's?)")
+    controller = rebuild(PLAYABLE[kind], kwargs)
     saved_box = tuple(int(b) for b in kwargs["box"])
     if box is not None and tuple(int(b) for b in box) != saved_box:
-        if not CONTROLLERS[kind].fits_any_box:
+        if not controller.fits_any_box:  # (the instance's: a gate fits any box where its experts all do)
             raise ValueError(f"{path}: its {kind!r} controller learnt each cell of its box {saved_box} apart and runs "
                              f"on that box only, and these bodies need the box {tuple(box)}")
-        kwargs = {**kwargs, "box": tuple(int(b) for b in box)}
-    controller = rebuild(CONTROLLERS[kind], kwargs)
+        controller = rebuild(PLAYABLE[kind], {**kwargs, "box": tuple(int(b) for b in box)})
     controller.load_state_dict(weights)
     return SavedController(controller, kind, control, sim, path)
 

@@ -80,13 +80,9 @@ def cmd_fit(args: argparse.Namespace) -> None:
 
     out = Path(args.out)
     no_earlier_fit(out)
-    if args.adapt_epochs < 0:
-        raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {args.adapt_epochs}")
-    grids = _bodies(args.bodies, (args.candidates or TRIED)[0])
-    if args.curve_every < 0:
-        raise ValueError(f"--curve-every must be >= 0 (0: never), got {args.curve_every}")
     how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed,
-              curve_every=args.curve_every)
+              curve_every=args.curve_every)  # (its settings checked before the bodies are read)
+    grids = _bodies(args.bodies, how.candidates[0])
     rows = fit(grids, out, how)
     for row in rows:
         print(f"body {row['body']}: {row['chosen']}, {row['mean_command']:.3f} voxel lengths "
@@ -95,11 +91,13 @@ def cmd_fit(args: argparse.Namespace) -> None:
 
 
 def cmd_gate(args: argparse.Namespace) -> None:
+    from freeform.agents.controller_file import read_controller
     from freeform.control.fit import gate
 
-    path = gate(tuple(args.controllers), args.trial, Path(args.out))
-    print(f"{path}: tries {', '.join(args.controllers)} for {args.trial:g} s each, then plays the best; evaluate, "
-          "watch and fit play it as any controller")
+    saved = read_controller(gate(tuple(args.controllers), args.trial, Path(args.out)))
+    seconds = saved.controller.trial * saved.control.period * saved.control.periods_per_step
+    print(f"{saved.path}: tries {', '.join(args.controllers)} for {seconds:g} s each (whole decisions), then plays "
+          "the best; evaluate, watch and fit play it as any controller")
 
 
 def parser() -> argparse.ArgumentParser:

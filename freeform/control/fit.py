@@ -55,6 +55,13 @@ class Fit:
     """Measure the bodies every this many adaptation epochs (and at 0 and the last) into ``adaptation.csv``; 0:
     never."""
 
+    def __post_init__(self) -> None:
+        if self.adapt_epochs < 0:
+            raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
+        if self.curve_every < 0 or (self.curve_every and not self.adapt_epochs):
+            raise ValueError(f"--curve-every {self.curve_every}: a whole number of adaptation epochs >= 0 (0: never), "
+                             "with --adapt-epochs > 0 (trials alone have no curve)")
+
 
 def candidate_name(spec: str) -> str:
     """How tables name a candidate: a zoo name as it is, a file by its folder (``runs/mine/controller.pt``: ``mine``),
@@ -174,10 +181,10 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
 
     curve: list[dict] = []
     begun = time.perf_counter() if begun is None else begun
-    measuring = 0.0
+    measuring, moved = 0.0, None
 
     def point(epoch: int) -> None:
-        nonlocal measuring
+        nonlocal measuring, moved
         at = time.perf_counter()
         moved = measured()
         curve.append({"epoch": epoch, "seconds": (at - begun - measuring) / m, "adapted": float(moved.mean()),
@@ -193,7 +200,7 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
                   f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
             if how.curve_every and ((epoch + 1) % how.curve_every == 0 or epoch + 1 == how.adapt_epochs):
                 point(epoch + 1)
-    return bank, measured(), curve
+    return bank, moved if how.curve_every else measured(), curve  # (the curve's last point measured the last epoch)
 
 
 @torch.no_grad()

@@ -455,13 +455,10 @@ class ControlEnv:
     @torch.no_grad()
     def record(self, act: Any, robot: int = 0, every: int | None = None,
                rewarded: Callable[[torch.Tensor], None] | None = None) -> tuple[Any, np.ndarray, float]:
-        """One episode of robot ``robot`` under ``act`` (observations ``[N, C, Bx, By, Bz]`` → actions
-        ``[N, Bx·By·Bz]``, e.g. ``PPO.act(obs, deterministic=True)``; ``rewarded``, where given, is told each step's
-        rewards ``[N]``: a controller that reads them), for looking at: a
-        :class:`freeform.sim.simulator.Recording` with a frame after the burn-in and after every ``every`` control
-        periods (None: after every action, ``periods_per_step`` periods) and after the last, the commands the robot's
-        actuated voxels received ``[steps, voxels]``, and its return. Starts a new episode; the frames are read between the periods
-        the episode runs anyway, so the episode is the one :meth:`step` gives, bit for bit."""
+        """One episode of robot ``robot`` under ``act`` (``[N, C, Bx, By, Bz]`` → ``[N, Bx·By·Bz]``; ``rewarded`` is
+        told each step's rewards ``[N]``) to look at: a :class:`freeform.sim.simulator.Recording` with a frame after the
+        burn-in, every ``every`` control periods (None: every action's) and the last, the commands its actuated voxels
+        received ``[steps, voxels]``, and its return. A new episode, :meth:`step`'s bit for bit (frames between periods)."""
         from freeform.sim.simulator import Recording
 
         every = self.control.periods_per_step if every is None else every

@@ -178,7 +178,8 @@ class FrozenController(Protocol):
     read_controller`` gives one): the episode it was trained under (``control``, a ``ControlConfig``), its physics
     (``sim``, a ``SimConfig``; None: the default), where it came from (``path``), and ``policy_for(bodies
     [M, ρ, ρ, ρ] uint8)``, the controller built for a box that holds those bodies acting by its mean command:
-    ``policy.box``, and ``policy(obs, state) -> (actions, state)`` (``state`` None at the episode's start)."""
+    ``policy.box``, ``policy(obs, state) -> (actions, state)`` (``state`` None at the episode's start) and
+    ``policy.observe(state, reward) -> state`` after every step (a controller that reads rewards is told)."""
 
     control: Any
     sim: Any
@@ -251,6 +252,7 @@ class ControlledLocomotionTask:
             for _ in range(self.control.steps):
                 actions, state = policy(obs, state)
                 obs, step_reward, _, _ = env.step(actions)
+                state = policy.observe(state, step_reward)  # (a controller that reads rewards: a gate)
                 total += step_reward.double()
         reward[live] = total.float()
         self.stats["perf/sim_seconds"] = time.perf_counter() - t0

@@ -205,6 +205,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--start", type=Path, default=None, help="with --reptile: the controller the teachers started "
                                                             "from (default: the run's control.controller_init)")
     args = p.parse_args(argv)
+    if args.teachers is not None and (args.teacher is not None or args.reptile):
+        p.error("--teachers writes a teacher run; --teacher and --reptile write a controller: give one of them")
     if not args.reptile and (args.step is not None or args.start is not None):
         p.error("--step and --start belong to --reptile")
     if args.reptile:
@@ -229,6 +231,8 @@ def main(argv: list[str] | None = None) -> None:
             chosen = [int(t) for t in args.teachers.split(",")]
         except ValueError:
             p.error(f"--teachers takes teacher indices separated by commas (0,3,5), got {args.teachers!r}")
+        if len(set(chosen)) < len(chosen):
+            p.error(f"--teachers {args.teachers}: each teacher once")
     out = pool_teacher_runs([Path(r) for r in args.runs], Path(args.out),
                             chosen if args.teachers is not None else None)
     pooled = json.loads((out / POOLED).read_text())

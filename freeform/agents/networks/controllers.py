@@ -57,7 +57,6 @@ from freeform.agents.networks.controller_heads import (
     masked_pool,
     wave_at_gain,
 )
-from freeform.agents.networks.gated import TrialGate
 from freeform.agents.networks.observation_groups import CRITIC, POLICY, is_grouped
 from freeform.agents.networks.recurrent import RecurrentPolicy, run_rnn
 from freeform.distributions import MaskedDiagGaussian
@@ -297,7 +296,7 @@ CONTROLLERS: dict[str, type[nn.Module]] = {"conv": ConvController, "mlp": MLPCon
                                            "context": ContextConvController, "attention": VoxelAttentionController,
                                            "context_gru": RecurrentContextController,
                                            "attention_gru": RecurrentAttentionController,
-                                           "attention_hyper": HyperAttentionController, "gated": TrialGate}
+                                           "attention_hyper": HyperAttentionController}
 """``control.controller`` → the controller's class. Each has ``for_env(env, hidden, log_std)`` and ``init_kwargs``;
 ``fits_any_box`` says whether one set of weights runs on any box, ``padding_invariant`` whether the padding around
 a body changes nothing."""
@@ -383,11 +382,11 @@ def build_controller(kind: str, env: Any, hidden: int | None = None, log_std: fl
     An env observing the groups ``"policy"`` and ``"critic"`` (``ControlConfig.privileged_critic``) gets it inside
     a :class:`PrivilegedCritic`."""
 
-    if kind not in CONTROLLERS:
-        raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     if kind == "gated":
         raise ValueError("controller kind 'gated' is made of trained controllers, not trained itself: "
                          "freeform-control gate CONTROLLERS... --out FILE")
+    if kind not in CONTROLLERS:
+        raise ValueError(f"controller kind must be one of {list(CONTROLLERS)}, got {kind!r}")
     shape = env.observation_shape
     if is_grouped(shape):
         if issubclass(CONTROLLERS[kind], RecurrentPolicy):

@@ -7,9 +7,13 @@ for the rest of the episode. It is one ``controller.pt`` (``freeform.agents.cont
 ``evaluate``, ``watch`` and ``fit`` play like any controller.
 
 It reads the reward of each step (what RL² policies read besides the observation): ``observe(state, reward)``, which
-the play loops call after every step (``freeform.agents.networks.controllers.controller_observe``). A controller on a
-robot gets it from its odometry. Its state is ``[N, 2 + K]``: decisions taken this episode, the expert that acted
+every play loop calls after every step (``freeform.agents.networks.controllers.controller_observe``). A controller on
+a robot gets it from its odometry. Its state is ``[N, 2 + K]``: decisions taken this episode, the expert that acted
 last, and each expert's summed reward.
+
+A gate is made of trained controllers and never trained itself, so it is not a kind of
+:data:`~freeform.agents.networks.controllers.CONTROLLERS` (what ``control.controller`` builds) but of
+:data:`PLAYABLE`, every kind a ``controller.pt`` holds.
 """
 
 from __future__ import annotations
@@ -19,7 +23,9 @@ from typing import Any
 import torch
 import torch.nn as nn
 
-from freeform.agents.networks.recurrent import State
+from freeform.agents.networks import rebuild
+from freeform.agents.networks.controllers import CONTROLLERS, controller_kind
+from freeform.agents.networks.recurrent import RecurrentPolicy, State
 
 DECISIONS, ACTED = 0, 1
 """Columns of a gate's state; the experts' summed rewards follow."""
@@ -36,27 +42,22 @@ class TrialGate(nn.Module):
 
     def __init__(self, experts: list[dict[str, Any]], trial: int) -> None:
         super().__init__()
-        from freeform.agents.networks import rebuild
-        from freeform.agents.networks.controllers import CONTROLLERS
-        from freeform.agents.networks.recurrent import RecurrentPolicy
-
         if not experts:
             raise ValueError("a trial gate needs at least one expert")
         if not (isinstance(trial, int) and trial >= 1):
             raise ValueError(f"a trial lasts a whole number of decisions >= 1, got {trial!r}")
         for e in experts:
-            if e["kind"] not in CONTROLLERS or e["kind"] == "gated":
-                raise ValueError(f"an expert's kind must be one of {[k for k in CONTROLLERS if k != 'gated']}, got "
-                                 f"{e['kind']!r}")
+            if e["kind"] not in CONTROLLERS:
+                raise ValueError(f"an expert's kind must be one of {list(CONTROLLERS)}, got {e['kind']!r}")
             if issubclass(CONTROLLERS[e["kind"]], RecurrentPolicy):
                 raise ValueError(f"expert kind {e['kind']!r} is recurrent; a gate plays feed-forward experts")
         self.experts = nn.ModuleList(rebuild(CONTROLLERS[e["kind"]], e["init_kwargs"]) for e in experts)
         self.trial = trial
         self.init_kwargs = {"experts": [{"kind": e["kind"], "init_kwargs": dict(e["init_kwargs"])} for e in experts],
                             "trial": trial, "box": tuple(experts[0]["init_kwargs"]["box"])}
-        kinds = {type(e.distribution) for e in self.experts}
-        if len(kinds) != 1:
-            raise ValueError(f"a gate's experts must share one action distribution, got {sorted(k.__name__ for k in kinds)}")
+        if len({e.distribution for e in self.experts}) != 1 or len({tuple(e.box) for e in self.experts}) != 1:
+            raise ValueError("a gate's experts must act alike — one action distribution, one box — and got "
+                             f"{[(type(e.distribution).__name__, getattr(e.distribution, 'dim', None), tuple(e.box)) for e in self.experts]}")
         self.distribution = self.experts[0].distribution
         self.box = self.init_kwargs["box"]
         self.fits_any_box = all(e.fits_any_box for e in self.experts)
@@ -65,8 +66,6 @@ class TrialGate(nn.Module):
     @classmethod
     def from_controllers(cls, controllers: list[nn.Module], trial: int) -> TrialGate:
         """A gate over these controllers (their weights copied), each tried for ``trial`` decisions."""
-        from freeform.agents.networks.controllers import controller_kind
-
         gate = cls([{"kind": controller_kind(c), "init_kwargs": c.init_kwargs} for c in controllers], trial)
         for mine, theirs in zip(gate.experts, controllers, strict=True):
             mine.load_state_dict(theirs.state_dict())
@@ -123,4 +122,13 @@ class TrialGate(nn.Module):
         return (s,)
 
 
-__all__ = ["TrialGate"]
+PLAYABLE: dict[str, type[nn.Module]] = {**CONTROLLERS, "gated": TrialGate}
+"""Every kind a ``controller.pt`` may hold (``freeform.agents.controller_file``): the trainable ones, and the gate."""
+
+
+def playable_kind(controller: nn.Module) -> str:
+    """The name :data:`PLAYABLE` gives ``controller``'s class."""
+    return "gated" if isinstance(controller, TrialGate) else controller_kind(controller)
+
+
+__all__ = ["PLAYABLE", "TrialGate", "playable_kind"]
