@@ -54,6 +54,24 @@ def paired_band(differences: np.ndarray) -> tuple[float, float]:
     return float(mean), float(half)
 
 
+def ratio_band(values: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
+    """A fraction of a reference and its 99 % half-width: ``mean(values) / mean(reference)`` over paired bodies
+    ``[n]`` (each body's figure and its own reference), the band by the delta method — the fraction's error is
+    ``mean(values − R·reference) / mean(reference)``, a mean of paired residuals, so :func:`paired_band`'s Student's t
+    over them (Cochran's ratio estimator). A body without both figures is left out."""
+    x, r = np.asarray(values, dtype=np.float64), np.asarray(reference, dtype=np.float64)
+    if x.shape != r.shape or x.ndim != 1:
+        raise ValueError(f"a fraction pairs each body's figure with its reference: shapes {x.shape} and {r.shape}")
+    both = np.isfinite(x) & np.isfinite(r)
+    x, r = x[both], r[both]
+    if not len(x) or r.mean() <= 0:
+        raise ValueError(f"a fraction needs bodies with a positive mean reference (got {len(x)} bodies, reference "
+                         f"mean {r.mean() if len(r) else float('nan'):g})")
+    ratio = x.mean() / r.mean()
+    _, half = paired_band((x - ratio * r) / r.mean())
+    return float(ratio), half
+
+
 def summary_row(name: str, values: np.ndarray, paired: bool = False) -> dict:
     """A summary.csv row: ``values``' mean over its first axis and 99 % band (``mean_band``; ``paired``: per-body
     differences, :func:`paired_band`), low and high."""

@@ -160,5 +160,16 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
         np.testing.assert_allclose(float(bodies[i]["epoch2"]), alone, rtol=1e-6, atol=1e-9)
     mean = np.mean([float(b["epoch2"]) for b in bodies])
     np.testing.assert_allclose(float(rows[-1]["mean_command"]), mean, rtol=1e-9)
+    # lab.fractions: a table of half each body's reference, its bodies 10 on (FIRST 10), is 50 % of it, band 0
+    from lab.fractions import main as fractions
+
+    with open(tmp_path / "half.csv", "w") as f:
+        f.write("body,mean_command,seconds\n" + "".join(f"{10 + i},{float(b['epoch2']) / 2},1.5\n"
+                                                        for i, b in enumerate(bodies)))
+    fractions(["--reference", str(tmp_path / "curve"), "--table", f"half={tmp_path / 'half.csv'}:mean_command:10",
+               "--out", str(tmp_path / "fractions")])
+    row = next(csv.DictReader(open(tmp_path / "fractions" / "fractions.csv")))
+    assert row["table"] == "half" and int(row["bodies"]) == 3 and float(row["seconds_a_body"]) == 1.5
+    assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12) and float(row["band99"]) < 1e-12
     returns = load_checkpoint(run / "checkpoints" / "last.pt")["return_curve"]
     np.testing.assert_allclose(float(rows[-1]["training_return"]), returns[-1])
