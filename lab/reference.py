@@ -48,7 +48,7 @@ def curve(run: Path) -> tuple[list[dict], list[dict]]:
     from freeform.agents.controller_file import body_box
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
-    from freeform.control.play import BankOnBodies, play
+    from freeform.control.play import own_moves
     from freeform.envs.control import ControlEnv
     from freeform.run.build import read_teacher_run
     from freeform.run.trainer import plateaued
@@ -61,9 +61,7 @@ def curve(run: Path) -> tuple[list[dict], list[dict]]:
     per_epoch, per_body = [], [{"body": i} for i in range(m)]
     for epoch, path in saved_epochs(run):
         bank = bank_from_checkpoint(load_checkpoint(path), str(path))
-        env = ControlEnv(grids, sim=cfg.sim, control=control, seed=0, box=box)
-        own = BankOnBodies(bank, torch.arange(m), box).eval()
-        moved = play(env, [("per_body", own, False, False)], control.steps, 0).returns[0]
+        moved = own_moves(bank, ControlEnv(grids, sim=cfg.sim, control=control, seed=0, box=box))
         mean, band = mean_band(moved)
         per_epoch.append({"epoch": epoch, "mean_command": float(mean), "band99": float(band),
                           "training_return": returns[epoch - 1] if 0 < epoch <= len(returns) else float("nan"),

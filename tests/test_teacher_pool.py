@@ -39,6 +39,13 @@ def _bank(run: Path) -> TeacherBank:
     return bank_from_checkpoint(load_checkpoint(run / "checkpoints" / "last.pt"), str(run))
 
 
+def _holds(pool: TeacherBank, sources: list[tuple[TeacherBank, int]]) -> None:
+    """The pool's teacher j has the weights of teacher m of bank b, ``(b, m) = sources[j]``."""
+    for j, (bank, m) in enumerate(sources):
+        mine, theirs = pool.member_state(j), bank.member_state(m)
+        assert all(torch.equal(mine[k], theirs[k]) for k in theirs), j
+
+
 def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: Path,
                                                                     capsys: pytest.CaptureFixture[str]) -> None:
     from freeform.run.build import build
@@ -51,9 +58,7 @@ def test_pooled_teachers_are_their_runs_teachers_and_teach_a_student(tmp_path: P
     np.testing.assert_array_equal(np.load(out / "bodies.npy"), np.stack([ROD, CUBE, WIDE, ROD]))
     pooled, bank_a, bank_b = _bank(out), _bank(a), _bank(b)
     assert pooled.teachers == 4
-    for j, (bank, m) in enumerate([(bank_a, 0), (bank_a, 1), (bank_b, 0), (bank_b, 1)]):
-        mine, theirs = pooled.member_state(j), bank.member_state(m)
-        assert all(torch.equal(mine[k], theirs[k]) for k in theirs), j
+    _holds(pooled, [(bank_a, 0), (bank_a, 1), (bank_b, 0), (bank_b, 1)])
     assert not all(torch.equal(v, bank_b.member_state(0)[k]) for k, v in bank_a.member_state(0).items())
     assert json.loads((out / "pooled.json").read_text())["sources"][1]["teachers"] == [2, 4]
 
@@ -83,9 +88,7 @@ def test_teachers_taken_from_one_run_are_its_teachers_on_their_bodies(tmp_path: 
     np.testing.assert_array_equal(np.load(out / "bodies.npy"), np.stack([WIDE, ROD]))
     taken, bank_a = _bank(out), _bank(a)
     assert taken.teachers == 2
-    for j, m in enumerate([2, 0]):
-        mine, theirs = taken.member_state(j), bank_a.member_state(m)
-        assert all(torch.equal(mine[k], theirs[k]) for k in theirs), j
+    _holds(taken, [(bank_a, 2), (bank_a, 0)])
     assert not all(torch.equal(v, bank_a.member_state(1)[k]) for k, v in taken.member_state(0).items())
     assert json.loads((out / "pooled.json").read_text())["sources"][0]["taken"] == [2, 0]
     student = compose(*tiny_control(out / "bodies.npy", *TEACH[1:], "control.teachers=2", "env.num_envs=4",

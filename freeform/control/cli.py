@@ -95,7 +95,7 @@ def cmd_gate(args: argparse.Namespace) -> None:
     from freeform.control.fit import gate
 
     saved = read_controller(gate(tuple(args.controllers), args.trial, Path(args.out)))
-    seconds = saved.controller.trial * saved.control.period * saved.control.periods_per_step
+    seconds = saved.controller.trial * saved.control.decision_seconds
     print(f"{saved.path}: tries {', '.join(args.controllers)} for {seconds:g} s each (whole decisions), then plays "
           "the best; evaluate, watch and fit play it as any controller")
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from freeform.control.evaluate import block_env, episode_of
-from freeform.control.play import BankOnBodies, play
+from freeform.control.play import own_moves, play
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.control_config import described_differences
 from freeform.sim import SimConfig
@@ -82,33 +82,43 @@ def episode_differences(saved: Any, control: ControlConfig, sim: SimConfig, firs
     return [*differ, *([physics] if physics else [])]
 
 
+def read_alike(specs: tuple[str, ...], why: str, box: tuple[int, ...] = (), who: str = "") -> tuple[list, Any, Any]:
+    """The controllers ``specs`` (zoo names or paths) read back, built for one box — the smallest holding ``box`` and
+    every one's own — and checked to play one episode in one simulator (each difference named, then ``why`` they must;
+    ``who`` prefixes a spec in the refusal). Returns (the ``SavedController`` s, their episode, their simulator)."""
+    from freeform.agents.controller_file import read_controller
+    from freeform.zoo import resolve
+
+    first = [read_controller(resolve(s)) for s in specs]
+    box = tuple(max(b) for b in zip(*([box] if box else []), *(tuple(s.controller.box) for s in first), strict=True))
+    saved = [read_controller(s.path, box=box) for s in first]
+    control, sim = episode_of(saved[0]), saved[0].sim or SimConfig()
+    for spec, s in zip(specs[1:], saved[1:], strict=True):
+        if differ := episode_differences(s, control, sim, saved[0].path):
+            raise ValueError(f"{who}{spec} plays another episode or simulator than {specs[0]} — {'; '.join(differ)}: "
+                             f"{why}")
+    return saved, control, sim
+
+
 class Candidates:
     """The candidates read back and built for one box that holds the bodies, checked to play one episode in one
     simulator (each difference named), under a heading task that one draw can try (not random headings)."""
 
     def __init__(self, specs: tuple[str, ...], grids: torch.Tensor) -> None:
-        from freeform.agents.controller_file import body_box, read_controller
-        from freeform.zoo import resolve
+        from freeform.agents.controller_file import body_box
 
         if not specs:
             raise ValueError("fit needs at least one candidate controller")
         self.names = [candidate_name(s) for s in specs]
         if len(set(self.names)) < len(self.names):
             raise ValueError(f"--candidates: two of them share a name ({self.names}): give each its own folder")
-        first = [read_controller(resolve(s)) for s in specs]
-        box = tuple(max(b) for b in zip(body_box(grids), *(s.controller.box for s in first), strict=True))
-        self.saved = [read_controller(s.path, box=box) for s in first]
-        self.control = episode_of(self.saved[0])
+        self.saved, self.control, self.sim = read_alike(
+            specs, "fit tries controllers of one episode and one simulator (the zoo's all are)", body_box(grids),
+            who="candidate ")
         if self.control.headings == "random":
             raise ValueError(f"candidate {specs[0]} walks along random headings: the best of several controllers on "
                              "one draw of headings is biased upwards on the next, so fit tries controllers of a "
                              "heading task that one episode tries (headings any or fixed)")
-        self.sim = self.saved[0].sim or SimConfig()
-        for spec, s in zip(specs[1:], self.saved[1:], strict=True):
-            if differ := episode_differences(s, self.control, self.sim, self.saved[0].path):
-                raise ValueError(f"candidate {spec} plays another episode or simulator than {specs[0]} — "
-                                 f"{'; '.join(differ)}: fit tries controllers of one episode and one simulator "
-                                 "(the zoo's all are)")
 
 
 def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
@@ -142,7 +152,7 @@ def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
     """The decisions a trial of ``seconds`` lasts (None: the whole episode's), at least one."""
     if seconds is None:
         return control.steps
-    step = control.period * control.periods_per_step
+    step = control.decision_seconds
     if not (np.isfinite(seconds) and 0 < seconds <= control.steps * step + 1e-9):
         raise ValueError(f"--trial must be in (0, {control.steps * step:g}] seconds (the episode), got {seconds!r}")
     return max(1, min(control.steps, round(seconds / step)))
@@ -173,11 +183,8 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
     for i in range(m):
         bank.load_member(i, c.saved[int(choice[i])].controller.state_dict())
 
-    @torch.no_grad()
     def measured() -> np.ndarray:
-        env = block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed)
-        own = BankOnBodies(bank, torch.arange(m), tuple(c.saved[0].controller.box)).eval()
-        return play(env, [("adapted", own, False, False)], c.control.steps, how.seed).returns[0]
+        return own_moves(bank, block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed), how.seed)
 
     curve: list[dict] = []
     begun = time.perf_counter() if begun is None else begun
@@ -255,26 +262,14 @@ def gate(specs: tuple[str, ...], trial: float, out: Path) -> Path:
     """One ``controller.pt`` at ``out`` that tries the controllers ``specs`` (zoo names or paths) in turn within an
     episode, each for ``trial`` seconds, and then plays the one whose trial earned most
     (``freeform.agents.networks.gated.TrialGate``); they must play one episode in one simulator. Returns ``out``."""
-    from freeform.agents.controller_file import read_controller, save_controller
+    from freeform.agents.controller_file import save_controller
     from freeform.agents.networks.gated import TrialGate
-    from freeform.zoo import resolve
 
     if out.exists():
         raise FileExistsError(f"--out {out} exists: give a new file (nothing is overwritten)")
-    first = [read_controller(resolve(s)) for s in specs]
-    if not first:
+    if not specs:
         raise ValueError("gate needs at least one controller")
-    boxes = {tuple(s.controller.init_kwargs["box"]) for s in first}
-    if len(boxes) > 1 and not all(s.controller.fits_any_box for s in first):
-        raise ValueError(f"the controllers were built for the boxes {sorted(boxes)}, and not every one runs on any "
-                         "box: gate controllers of one box, or of kinds that fit any (the zoo's)")
-    box = tuple(max(b) for b in zip(*boxes, strict=True))
-    saved = [read_controller(s.path, box=box) for s in first]
-    control, sim = episode_of(saved[0]), saved[0].sim or SimConfig()
-    for spec, s in zip(specs[1:], saved[1:], strict=True):
-        if differ := episode_differences(s, control, sim, saved[0].path):
-            raise ValueError(f"{spec} plays another episode or simulator than {specs[0]} — {'; '.join(differ)}: a "
-                             "gate's controllers share one")
+    saved, control, sim = read_alike(specs, "a gate's controllers share one (the zoo's all do)")
     decisions = trial_decisions(trial, control)
     if decisions * len(saved) >= control.steps:
         raise ValueError(f"{len(saved)} controllers tried for {decisions} decisions each leave none of the episode's "
@@ -290,5 +285,5 @@ def no_earlier_fit(out: Path) -> None:
 
 
 __all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
-           "episode_differences", "fit", "gate", "no_earlier_fit", "trial_decisions", "trials"]
+           "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "trial_decisions", "trials"]
 

@@ -93,4 +93,12 @@ class BankOnBodies(torch.nn.Module):
         return tuple(self.bank({"teacher": self.teacher, "policy": obs}))
 
 
-__all__ = ["SENSED", "BankOnBodies", "Played", "hand_set_wave", "play"]
+@torch.no_grad()
+def own_moves(bank: Any, env: ControlEnv, seed: int = 0) -> np.ndarray:
+    """Each row's move ``[rows]`` in one episode of ``env`` (a row a body), row i driven by the bank's controller i
+    by its mean command: per-body controllers on their own bodies."""
+    own = BankOnBodies(bank, torch.arange(env.num_envs), tuple(env.box)).eval()
+    return play(env, [("own", own, False, False)], env.control.steps, seed).returns[0]
+
+
+__all__ = ["SENSED", "BankOnBodies", "Played", "hand_set_wave", "own_moves", "play"]

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from freeform.agents.networks.controllers import controller_observe, controller_step
+from freeform.agents.controller_file import MeanPolicy
 from freeform.control.evaluate import block_env, episode_of
 from freeform.envs.control import open_loop_displacement, open_loop_moves
 from freeform.sim import SimConfig
@@ -57,15 +57,17 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
     env = block_env(grids, saved, control, blocks=1)
     state, headings_seen = None, []  # (a recurrent controller's state, carried through the episode)
 
+    policy = MeanPolicy(net)
+
     def act(obs: torch.Tensor) -> torch.Tensor:
         nonlocal state
         headings_seen.append(float(env.heading[body]))  # (the episode's: the env draws the next one's at its end)
-        outputs, state = controller_step(net, obs, state)
-        return net.distribution.mode(outputs[:3])
+        actions, state = policy(obs, state)
+        return actions
 
     def rewarded(reward: torch.Tensor) -> None:
         nonlocal state
-        state = controller_observe(net, state, reward)
+        state = policy.observe(state, reward)
 
     recording, _, moved = env.record(act, robot=body, every=every, rewarded=rewarded)
     heading = headings_seen[0]

@@ -222,7 +222,7 @@ class ControlEnv:
         commands), no burn-in of its own, and a duration past the episode's end (the episode's own clock: the
         simulator never stops a robot before the episode ends)."""
         config = replace(sim, actuation="residual" if control.residual else "command", burn_in=0.0,
-                         duration=control.burn_in + control.steps * control.periods_per_step * control.period + 1.0)
+                         duration=control.burn_in + control.steps * control.decision_seconds + 1.0)
         config.validate("sim")
         return config
 
@@ -503,7 +503,7 @@ class ControlEnv:
         R = self.num_envs
         sensed, com = (self.engine.sense() if readout is None else readout)[:2]
         progress = self.t / self.control.steps
-        start = self.control.burn_in + self.t * self.control.periods_per_step * self.control.period
+        start = self.control.burn_in + self.t * self.control.decision_seconds
         clock = 2 * math.pi * start / self.sim_config.temp_period
         r = self._robot
         # (no heading to observe when any direction counts, nor in the heading's frame, where it is +x)

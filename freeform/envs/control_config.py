@@ -72,9 +72,14 @@ class ControlConfig:
         return max(1, self.stroke_periods)
 
     @property
+    def decision_seconds(self) -> float:
+        """Simulated seconds one action lasts (``periods_per_step`` control periods)."""
+        return self.period * self.periods_per_step
+
+    @property
     def steps(self) -> int:
         """Decisions (env steps) per episode."""
-        return max(1, round(self.duration / (self.period * self.periods_per_step)))
+        return max(1, round(self.duration / self.decision_seconds))
 
     def validate(self, key: str = "control") -> None:
         for name in ("period", "duration"):

@@ -105,7 +105,8 @@ def pool_teacher_runs(runs: list[Path], out: Path, teachers: list[int] | None = 
         try:
             bank = sources[0].bank.select(teachers)
         except ValueError as e:
-            raise ValueError(f"--teachers {teachers}: {runs[0]} has teachers 0 … {sources[0].bank.teachers - 1}") from e
+            raise ValueError(f"--teachers {teachers}: {runs[0]} has teachers 0 … {sources[0].bank.teachers - 1}: give "
+                             "at least one of them") from e
         bodies = sources[0].bodies[torch.tensor(teachers)].numpy()
     else:
         bank = TeacherBank.concatenate([s.bank for s in sources])
