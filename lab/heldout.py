@@ -40,6 +40,7 @@ from freeform.envs.control import (
     open_loop_moves,
 )
 from freeform.envs.control_config import described_differences
+from freeform.run.resume import EXECUTION_KEYS, override_key
 from freeform.sim import SimConfig
 from freeform.zoo import resolve
 from lab.paired import check_drift, read_table, same_gait, warn_hosts
@@ -80,7 +81,9 @@ def per_body_cache_run(bodies: np.ndarray, per: PerBody, control: ControlConfig)
     settings ``control``, named by a hash of the bodies and the overrides, and those overrides of ``per.preset``."""
     overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode_overrides(control),
                  *per.overrides]
-    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *overrides]).encode()).hexdigest()[:12]
+    # (execution keys such as trainer.threads stay out of the name: the same cache continues with more threads)
+    named = [o for o in overrides if override_key(o) not in EXECUTION_KEYS]
+    key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *named]).encode()).hexdigest()[:12]
     return per.cache / f"{per.preset}_{per.n}_{key}", overrides
 
 

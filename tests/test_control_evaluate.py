@@ -338,6 +338,11 @@ def test_the_per_body_cache_key_of_a_run_made_before_a_field_existed_still_finds
     assert run == Path("cache") / f"control_teachers_cpu_2_{key}" and overrides == then
     turned, overrides = per_body_cache_run(bodies, per, replace(control, frame="heading"))
     assert turned != run and "control.frame=heading" in overrides
+    # how the cache's run is executed names no other cache (it continues with more threads); what it trains does
+    threaded, overrides = per_body_cache_run(bodies, replace(per, overrides=("trainer.threads=2",)), control)
+    assert threaded == run and overrides[-1] == "trainer.threads=2"
+    longer, _ = per_body_cache_run(bodies, replace(per, overrides=("trainer.epochs=300",)), control)
+    assert longer != run
 
 
 def test_the_hand_set_wave_row_is_a_wave_head_with_nothing_learnt(tmp_path) -> None:

@@ -148,3 +148,17 @@ def test_dry_run_flag_in_python_builds_nothing(tmp_path: Path, capsys: pytest.Ca
     result = train_mod.train(cfg, tmp_path / "run")
     assert result.epochs == 0 and not (tmp_path / "run").exists()
     assert "1 rank(s)" in capsys.readouterr().out
+
+
+def test_a_job_is_named_by_what_it_trains_not_by_how_it_is_executed(monkeypatch) -> None:
+    """Hydra's job subdirectory: the swept keys when there are any; without a sweep every override except the
+    experiment and the execution keys (threads, device, progress, print interval), so that a job continued with
+    more threads is found in the same directory."""
+    from freeform.run.cli import SWEPT_KEYS_ENV, _resolver_sweep_subdir
+
+    task = ["experiment=tiny", "trainer.threads=2", "trainer.device=cpu", "seed=3", "trainer.print_every=5",
+            "trainer.epochs=7"]
+    monkeypatch.setenv(SWEPT_KEYS_ENV, "")
+    assert _resolver_sweep_subdir(task, ["experiment"]) == "seed=3,trainer.epochs=7"
+    monkeypatch.setenv(SWEPT_KEYS_ENV, "trainer.threads")
+    assert _resolver_sweep_subdir(task, ["experiment"]) == "trainer.threads=2"  # (swept, it names the job)

@@ -33,7 +33,7 @@ from freeform._conf_dir import conf_dir
 from freeform.agents import distributed
 from freeform.checkpoint import AUTO, CheckpointError, auto_checkpoint, run_dir_of
 from freeform.config import register_configs, to_dataclass
-from freeform.run.resume import override_key
+from freeform.run.resume import EXECUTION_KEYS, override_key
 from freeform.run.trainer import train
 
 log = logging.getLogger("freeform.train")
@@ -90,14 +90,15 @@ def _resolver_sweep_subdir(job_overrides: Sequence[str], exclude: Sequence[str])
 
     Hydra's ``override_dirname`` names every override, swept or not; which keys are swept is read from the command
     line (``sys.argv``) — or from ``FREEFORM_SWEPT_KEYS``, which :func:`main` sets for jobs that run in other
-    processes (the submitit launchers). Without a sweep, every override except ``exclude`` names the job.
+    processes (the submitit launchers). Without a sweep, every override except ``exclude`` and the execution keys
+    (``EXECUTION_KEYS``: threads, device, progress, print interval) names the job.
     """
     if SWEPT_KEYS_ENV in os.environ:
         swept = {k for k in os.environ[SWEPT_KEYS_ENV].split(",") if k}
     else:
         swept = _swept_keys(sys.argv[1:])
     keys = [(override_key(o), o) for o in job_overrides]
-    chosen = [o for k, o in keys if k in swept] or [o for k, o in keys if k not in set(exclude)]
+    chosen = [o for k, o in keys if k in swept] or [o for k, o in keys if k not in EXECUTION_KEYS | set(exclude)]
     return ",".join(sorted(chosen)).replace("/", "_") or "default"
 
 

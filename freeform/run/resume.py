@@ -51,6 +51,11 @@ def override_key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("~+")
 
 
+# How a run is executed and reported, not what it trains: these keys name no job of a sweep and no cache of runs
+# (a run continued with more threads or another print interval is the same run).
+EXECUTION_KEYS = frozenset({"trainer.device", "trainer.progress", "trainer.threads", "trainer.print_every"})
+
+
 def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[str] | None) -> TrainConfig:
     """The config of a resumed run: the checkpoint's own, with the ``trainer`` fields given on the command line.
 
@@ -80,4 +85,4 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
     return validate(dataclasses.replace(saved, trainer=trainer))
 
 
-__all__ = ["find_checkpoint", "override_key", "read_checkpoint", "resume_config"]
+__all__ = ["EXECUTION_KEYS", "find_checkpoint", "override_key", "read_checkpoint", "resume_config"]
