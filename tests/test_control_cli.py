@@ -154,6 +154,15 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     assert float(curve[0]["kept"]) == pytest.approx(np.mean(chosen), rel=1e-5)
     # (after the last epoch: what fit kept, each body played alone by its file — another batch, another path)
     assert float(curve[1]["kept"]) == pytest.approx(np.mean([float(r["mean_command"]) for r in fitted]), rel=1e-3)
+    per_body = rows(tmp_path / "fitted" / "adaptation_bodies.csv")  # (the same points, body by body)
+    assert [(int(r["epoch"]), int(r["body"])) for r in per_body] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert [float(r["kept"]) for r in per_body[:2]] == pytest.approx(chosen, rel=1e-5)
+    for point in curve:
+        mine = [r for r in per_body if r["epoch"] == point["epoch"]]
+        assert all(r["seconds"] == point["seconds"] for r in mine)
+        for what in ("adapted", "kept"):
+            assert np.mean([float(r[what]) for r in mine]) == pytest.approx(float(point[what]), rel=1e-12)
+        assert all(float(r["kept"]) >= float(r["adapted"]) for r in mine)
     assert [list(r)[:5] for r in fitted] == [["body", "chosen", "mean_command", "controller_file", "seconds"]] * 2
     main(["evaluate", "student", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"), "--episodes", "1"])
     for row, evaluated in zip(fitted, rows(tmp_path / "eval" / "bodies.csv"), strict=True):

@@ -171,5 +171,22 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     row = next(csv.DictReader(open(tmp_path / "fractions" / "fractions.csv")))
     assert row["table"] == "half" and int(row["bodies"]) == 3 and float(row["seconds_a_body"]) == 1.5
     assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12) and float(row["band99"]) < 1e-12
+    # --curve: a fit's points body by body (half the reference, then all of it but the second body's half), by seconds
+    fitted = tmp_path / "fitted"
+    fitted.mkdir()
+    with open(fitted / "adaptation_bodies.csv", "w") as f:
+        f.write("epoch,seconds,body,adapted,kept\n" + "".join(
+            f"{e},{s},{i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0)}\n"
+            for e, s in ((0, 1.5), (4, 9.0)) for i, b in enumerate(bodies)))
+    fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={fitted}", "--out", str(tmp_path / "c")])
+    points = list(csv.DictReader(open(tmp_path / "c" / "curve.csv")))
+    ref = np.array([float(b["epoch2"]) for b in bodies])
+    assert [(int(p["epoch"]), float(p["seconds_a_body"])) for p in points] == [(0, 1.5), (4, 9.0)]
+    assert float(points[0]["fraction"]) == pytest.approx(0.5, abs=1e-12)
+    assert float(points[1]["fraction"]) == pytest.approx(1 - ref[1] / 2 / ref.sum(), abs=1e-12)
+    assert float(points[1]["band99"]) > 0 and (tmp_path / "c" / "curve.png").is_file()
+    with pytest.raises(SystemExit):  # (a folder without fit's curve is named, nothing written)
+        fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={tmp_path}", "--out", str(tmp_path / "d")])
+    assert not (tmp_path / "d").exists()
     returns = load_checkpoint(run / "checkpoints" / "last.pt")["return_curve"]
     np.testing.assert_allclose(float(rows[-1]["training_return"]), returns[-1])

@@ -136,7 +136,7 @@ def parser() -> argparse.ArgumentParser:
                    help="what to try (zoo names or controller.pt files; default: the zoo's)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--curve-every", type=int, default=0, metavar="K",
-                   help="measure the bodies every K adaptation epochs into adaptation.csv (0: never)")
+                   help="measure the bodies every K adaptation epochs into adaptation.csv and adaptation_bodies.csv (0: never)")
     f.set_defaults(run=cmd_fit)
     g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
     g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "

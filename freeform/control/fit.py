@@ -11,7 +11,8 @@ of PPO — all bodies at once, as one bank of per-body controllers (``freeform.a
 body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
 recipe (its learning rate and batch; ``conf/experiment/``). Each body then keeps whichever of the adapted and the
 chosen controller moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
-epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs.
+epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs
+(the bodies' mean; ``adaptation_bodies.csv`` body by body).
 """
 
 from __future__ import annotations
@@ -174,7 +175,8 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
     from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
     (mean command), and with ``how.curve_every`` the adaptation's curve — rows of ``epoch``, ``seconds`` (a body's
     share of the wall time since ``begun``, measuring left out), ``adapted`` (the bodies' mean move under the bank)
-    and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give stopped there)."""
+    and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give stopped there),
+    and the same two body by body (``bodies_adapted``, ``bodies_kept``: lists ``[M]``)."""
     from freeform.run.build import build
 
     m = len(grids)
@@ -194,8 +196,9 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
         nonlocal measuring, moved
         at = time.perf_counter()
         moved = measured()
+        kept = np.maximum(moved, tried) if tried is not None else np.full(m, np.nan)
         curve.append({"epoch": epoch, "seconds": (at - begun - measuring) / m, "adapted": float(moved.mean()),
-                      "kept": float(np.maximum(moved, tried).mean()) if tried is not None else float("nan")})
+                      "kept": float(kept.mean()), "bodies_adapted": moved.tolist(), "bodies_kept": kept.tolist()})
         measuring += time.perf_counter() - at
 
     if how.curve_every:
@@ -253,8 +256,11 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         rows.append({"body": i, "chosen": labels[i], "mean_command": float(moved[i]), "controller_file": str(path),
                      "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
     write_rows(out / "bodies.csv", rows)
-    if cfg is not None and how.curve_every:
-        write_rows(out / "adaptation.csv", curve)
+    if cfg is not None and how.curve_every:  # (the bodies' mean a row; body by body, for a fraction's band, beside)
+        write_rows(out / "adaptation.csv", [{k: v for k, v in r.items() if not k.startswith("bodies_")} for r in curve])
+        write_rows(out / "adaptation_bodies.csv", [
+            {"epoch": r["epoch"], "seconds": r["seconds"], "body": i, "adapted": a, "kept": k}
+            for r in curve for i, (a, k) in enumerate(zip(r["bodies_adapted"], r["bodies_kept"], strict=True))])
     return rows
 
 
