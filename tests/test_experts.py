@@ -190,3 +190,21 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     assert not (tmp_path / "d").exists()
     returns = load_checkpoint(run / "checkpoints" / "last.pt")["return_curve"]
     np.testing.assert_allclose(float(rows[-1]["training_return"]), returns[-1])
+
+
+def test_the_reference_asymptote_recovers_a_saturating_curve_and_refuses_a_straight_line():
+    """lab.reference's extrapolation: bodies that follow a_i − b_i·exp(−t/60) give back the mean a (the curve read
+    to epoch 120 only, half-way), its interval holds it, and the last epoch's share is the curve's own; a straight
+    line, which has not bent, gives no asymptote."""
+    from lab.reference import asymptote
+
+    rng = np.random.default_rng(1)
+    t = np.arange(0, 121, 10)
+    a, b = rng.uniform(2, 5, 32), rng.uniform(1, 3, 32)
+    moves = a[:, None] - b[:, None] * np.exp(-t[None, :] / 60)
+    fit = asymptote(t, moves, resamples=50)
+    assert fit["asymptote"] == pytest.approx(a.mean(), rel=2e-3) and fit["tau_epochs"] == pytest.approx(60, rel=0.02)
+    assert fit["low99"] < a.mean() < fit["high99"] and fit["unbent_resamples"] == 0
+    assert fit["reached"] == pytest.approx(moves.mean(0)[-1] / a.mean(), rel=2e-3)
+    line = asymptote(t, 1 + 0.02 * t[None, :] + rng.normal(0, 1e-3, (32, 1)), resamples=20)
+    assert np.isnan(line["asymptote"]) and line["unbent_resamples"] == 20
