@@ -22,18 +22,16 @@ The fraction against seconds: ``--curve NAME=FIT_DIR[:FIRST]`` reads a ``fit --c
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import numpy as np
 
-from freeform.tables import ratio_band, write_rows
+from freeform.tables import ratio_band, read_rows, write_rows
 
 
 def reference_moves(folder: Path, epoch: int | None = None) -> tuple[int, np.ndarray]:
     """``lab.reference``'s per-body moves ``[n]`` at ``epoch`` (None: the last saved) and that epoch."""
-    with open(folder / "bodies.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = _read(folder / "bodies.csv", ("body",), "--reference", str(folder))
     epochs = sorted(int(k[len("epoch"):]) for k in rows[0] if k.startswith("epoch"))
     at = epochs[-1] if epoch is None else epoch
     if at not in epochs:
@@ -41,25 +39,47 @@ def reference_moves(folder: Path, epoch: int | None = None) -> tuple[int, np.nda
     return at, np.array([float(r[f"epoch{at}"]) for r in rows])
 
 
+def _first(text: str, flag: str, spec: str) -> int:
+    try:
+        return int(text or 0)
+    except ValueError:
+        raise ValueError(f"{flag} {spec!r}: FIRST must be a whole number, got {text!r}") from None
+
+
+def _read(path: Path, columns: tuple[str, ...], flag: str, spec: str) -> list[dict[str, str]]:
+    """``path``'s rows, which must exist and hold ``columns`` (the error names the flag and its value)."""
+    if not Path(path).is_file():
+        raise ValueError(f"{flag} {spec!r}: no file {path}")
+    rows = read_rows(Path(path))
+    if not rows:
+        raise ValueError(f"{flag} {spec!r}: {path} has no rows")
+    if missing := [c for c in columns if c not in rows[0]]:
+        raise ValueError(f"{flag} {spec!r}: {path} has no column {missing[0]!r} (it has {list(rows[0])})")
+    return rows
+
+
+def per_body(rows: list[dict[str, str]], column: str, first: int, bodies: int) -> np.ndarray:
+    """``column`` of ``rows`` as the reference's bodies ``[bodies]``: a row's ``body`` (its row number where there is
+    none) less ``first`` is the reference's body; one the rows lack is NaN (left out of a fraction)."""
+    out = np.full(bodies, np.nan)
+    for i, row in enumerate(rows):
+        if 0 <= (b := int(row.get("body", i)) - first) < bodies:
+            out[b] = float(row[column])
+    return out
+
+
 def table_moves(spec: str, bodies: int) -> tuple[str, np.ndarray, np.ndarray]:
-    """``NAME=CSV[:COLUMN[:FIRST]]`` (module docstring) → (name, figures ``[bodies]``, seconds ``[bodies]`` or
-    empty); a reference body the table lacks is NaN (left out of the fraction)."""
+    """``NAME=CSV[:COLUMN[:FIRST]]`` (module docstring) → (name, figures ``[bodies]``, seconds ``[bodies]``, NaN
+    where the table has none)."""
     name, sep, rest = spec.partition("=")
     if not sep:
         raise ValueError(f"--table {spec!r}: give NAME=CSV[:COLUMN[:FIRST]]")
-    parts = rest.split(":")
-    path, column, first = parts[0], parts[1] if len(parts) > 1 else "mean_command", int(parts[2]) if len(parts) > 2 else 0
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows or column not in rows[0]:
-        raise ValueError(f"--table {name}: {path} has no column {column!r} (it has {list(rows[0]) if rows else []})")
-    figures, seconds = np.full(bodies, np.nan), np.full(bodies, np.nan)
-    for i, row in enumerate(rows):
-        b = int(row.get("body", i)) - first
-        if 0 <= b < bodies:
-            figures[b] = float(row[column])
-            seconds[b] = float(row["seconds"]) if "seconds" in row else np.nan
-    return name, figures, seconds
+    path, _, rest = rest.partition(":")
+    column, _, first = rest.partition(":")
+    rows = _read(Path(path), (column or "mean_command",), "--table", spec)
+    at = _first(first, "--table", spec)
+    seconds = per_body(rows, "seconds", at, bodies) if "seconds" in rows[0] else np.full(bodies, np.nan)
+    return name, per_body(rows, column or "mean_command", at, bodies), seconds
 
 
 def fractions(reference: Path, tables: list[str], epoch: int | None = None) -> list[dict]:
@@ -83,19 +103,17 @@ def curve_points(reference: Path, curves: list[str], epoch: int | None = None) -
     rows = []
     for spec in curves:
         name, sep, rest = spec.partition("=")
+        if not sep:
+            raise ValueError(f"--curve {spec!r}: give NAME=FIT_DIR[:FIRST], a folder of fit --curve-every K")
         folder, _, first = rest.partition(":")
-        path = Path(folder) / "adaptation_bodies.csv"
-        if not sep or not path.is_file():
-            raise ValueError(f"--curve {spec!r}: give NAME=FIT_DIR[:FIRST], a folder of fit --curve-every K "
-                             f"(no {path})")
-        with open(path, newline="") as f:
-            points = list(csv.DictReader(f))
+        points = _read(Path(folder) / "adaptation_bodies.csv", ("epoch", "seconds", "body", "kept"), "--curve", spec)
+        start = _first(first, "--curve", spec)
         for e in sorted({int(p["epoch"]) for p in points}):
-            kept = np.full(len(ref), np.nan)
             mine = [p for p in points if int(p["epoch"]) == e]
-            for p in mine:
-                if 0 <= (b := int(p["body"]) - int(first or 0)) < len(ref):
-                    kept[b] = float(p["kept"])
+            kept = per_body(mine, "kept", start, len(ref))
+            if not np.isfinite(kept).any():
+                raise ValueError(f"--curve {spec!r}: at epoch {e} none of its bodies is one of the reference's "
+                                 f"{len(ref)} (check FIRST)")
             fraction, band = ratio_band(kept, ref)
             rows.append({"curve": name, "epoch": e, "seconds_a_body": float(mine[0]["seconds"]),
                          "bodies": int(np.isfinite(kept).sum()), "reference_epoch": at, "fraction": fraction,
@@ -119,7 +137,7 @@ def draw_curves(rows: list[dict], out: Path) -> None:
         ax.plot(x, y, marker="o", label=name)
         ax.fill_between(x, y - band, y + band, alpha=0.2)
     ax.axhline(100, color="grey", lw=0.8)
-    ax.set_xlabel("seconds a body (2-core host)")
+    ax.set_xlabel("seconds a body (the host that ran fit)")
     ax.set_ylabel(f"% of per-body control (epoch {rows[0]['reference_epoch']})")
     ax.legend()
     fig.tight_layout()
@@ -138,7 +156,8 @@ def main(argv: list[str] | None = None) -> None:
     if not args.table and not args.curve:
         p.error("give at least one --table or --curve")
     if (args.out / "fractions.csv").exists() or (args.out / "curve.csv").exists():
-        p.error(f"--out {args.out} holds fractions already: give a new folder (nothing is overwritten)")
+        p.error(f"--out {args.out} holds fractions.csv or curve.csv already: give a new folder (nothing is "
+                "overwritten)")
     try:  # (everything is read before anything is written)
         table_rows = fractions(args.reference, args.table, args.epoch) if args.table else []
         curve_rows = curve_points(args.reference, args.curve, args.epoch) if args.curve else []

@@ -81,7 +81,8 @@ def per_body_cache_run(bodies: np.ndarray, per: PerBody, control: ControlConfig)
     settings ``control``, named by a hash of the bodies and the overrides, and those overrides of ``per.preset``."""
     overrides = [f"control.teachers={per.n}", f"env.num_envs={per.n * per.copies}", *episode_overrides(control),
                  *per.overrides]
-    # (execution keys such as trainer.threads stay out of the name: the same cache continues with more threads)
+    # (execution keys such as trainer.threads stay out of the name: the same cache continues with more threads, or on
+    # another device, as any run may resume)
     named = [o for o in overrides if override_key(o) not in EXECUTION_KEYS]
     key = hashlib.sha1(bodies.tobytes() + "|".join([per.preset, *named]).encode()).hexdigest()[:12]
     return per.cache / f"{per.preset}_{per.n}_{key}", overrides

@@ -10,8 +10,9 @@ saved epoch) and ``curve.png``. A fraction of per-body control is only as honest
 
 How far from flat: ``asymptote.csv`` extrapolates the mean curve by a saturating exponential, a − b·exp(−t/τ) (least
 squares; τ on a fine geometric grid), and gives a with a 99 % interval from resampling the bodies, τ, and the share of
-a the last saved epoch reached. A curve that has not bent (τ at the grid's end) gives no asymptote (NaN). The
-interval is the bodies' spread under that one model, not the model's error: a check on the plateau, not a reference.
+a the last saved epoch reached. A curve that has not bent within its span (τ longer than it), or has fewer than four
+saved epochs, gives no asymptote (NaN). The interval is the bodies' spread under that one model, not the model's
+error: a check on the plateau, not a reference.
 """
 
 from __future__ import annotations
@@ -77,31 +78,40 @@ def curve(run: Path) -> tuple[list[dict], list[dict]]:
     return per_epoch, per_body
 
 
-TAUS = np.geomspace(2.0, 5000.0, 600)
-"""The time constants (epochs) the saturating fit tries; the largest means 'not bent yet'."""
+TAUS = np.geomspace(1.0, 5000.0, 600)
+"""The time constants (epochs) the saturating fit tries."""
+MIN_EPOCHS = 4
+"""The fewest saved epochs the fit reads: three parameters through three points leave it no residual."""
 
 
 def saturating_fit(t: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
-    """(a, b, τ) of y ≈ a − b·exp(−t/τ) by least squares over :data:`TAUS` (a and b linear for each τ); a is NaN where
-    the best τ is the grid's last (the curve has not bent: no asymptote can be read from it)."""
-    e = np.exp(-t[None, :] / TAUS[:, None])  # [τ, t]
+    """(a, b, τ) of y ≈ a − b·exp(−(t − t₀)/τ), t₀ the first epoch, by least squares over :data:`TAUS` (a and b are
+    linear for each τ). a is NaN where the curve has not bent within its span — the best τ longer than it: less than
+    63 % of the rise seen, so that a would extrapolate further than the part observed — or where it has fewer than
+    :data:`MIN_EPOCHS` points."""
+    if len(t) < MIN_EPOCHS:
+        return float("nan"), float("nan"), float("nan")
+    span = t - t[0]  # (from the first epoch: exp(−t/τ) of a late start would underflow)
+    e = np.exp(-span[None, :] / TAUS[:, None])  # [τ, t]
     de, dy = e - e.mean(1, keepdims=True), y - y.mean()
     b = -(de @ dy) / (de * de).sum(1)  # (the regression of y on −e, each τ)
     a = y.mean() + b * e.mean(1)
-    k = int((((a[:, None] - b[:, None] * e) - y) ** 2).sum(1).argmin())
-    return (float("nan") if k == len(TAUS) - 1 else float(a[k])), float(b[k]), float(TAUS[k])
+    k = int(np.nanargmin((((a[:, None] - b[:, None] * e) - y) ** 2).sum(1)))
+    return (float(a[k]) if TAUS[k] <= span[-1] else float("nan")), float(b[k]), float(TAUS[k])
 
 
 def asymptote(epochs: np.ndarray, moves: np.ndarray, resamples: int = 400, seed: int = 0) -> dict:
-    """The mean curve's saturating fit (module docstring) for ``moves`` ``[bodies, epochs]``: the asymptote, its 99 %
-    interval over resampled bodies, τ, and the last epoch's share of the asymptote."""
+    """The mean curve's saturating fit (module docstring) for ``moves`` ``[bodies, epochs]``: the asymptote a, its 99 %
+    interval over resampled bodies (a resample whose curve has not bent counts as unbounded: the upper end is then
+    inf), b and τ, and the last epoch's share of a. Without an asymptote the interval is NaN too."""
     t = np.asarray(epochs, dtype=float)
-    a, _, tau = saturating_fit(t, moves.mean(0))
+    a, b, tau = saturating_fit(t, moves.mean(0))
     rng = np.random.default_rng(seed)
-    again = [saturating_fit(t, moves[rng.integers(0, len(moves), len(moves))].mean(0))[0] for _ in range(resamples)]
-    low, high = np.nanpercentile(again, [0.5, 99.5]) if np.isfinite(again).any() else (np.nan, np.nan)
-    return {"asymptote": a, "low99": float(low), "high99": float(high), "tau_epochs": tau,
-            "last_epoch": int(t[-1]), "reached": float(moves.mean(0)[-1] / a),
+    again = np.array([saturating_fit(t, moves[rng.integers(0, len(moves), len(moves))].mean(0))[0]
+                      for _ in range(resamples)])
+    low, high = np.percentile(np.where(np.isnan(again), np.inf, again), [0.5, 99.5]) if np.isfinite(a) else (a, a)
+    return {"asymptote": a, "low99": float(low), "high99": float(high), "b": b, "tau_epochs": tau,
+            "first_epoch": int(t[0]), "last_epoch": int(t[-1]), "reached": float(moves.mean(0)[-1] / a),
             "unbent_resamples": int(np.isnan(again).sum())}
 
 
@@ -116,11 +126,11 @@ def plot(rows: list[dict], path: Path, fit: dict | None = None) -> None:
     mean, band = np.array([r["mean_command"] for r in rows]), np.array([r["band99"] for r in rows])
     ax.plot(e, mean, "o-", label="per-body controllers, mean command")
     ax.fill_between(e, mean - band, mean + band, alpha=0.2)
-    if fit is not None and np.isfinite(fit["asymptote"]):
-        t = np.linspace(0, 2 * e[-1], 200)
-        (a, b, tau), y0 = saturating_fit(np.array(e, float), mean), fit["asymptote"]
-        ax.plot(t, a - b * np.exp(-t / tau), "--", color="grey", label=f"a − b·exp(−t/{tau:.0f}), a = {y0:.2f}")
-        ax.axhspan(fit["low99"], fit["high99"], color="grey", alpha=0.1)
+    if fit is not None and np.isfinite(fit["asymptote"]):  # (the fit drawn on, its interval in the legend only)
+        t = np.linspace(fit["first_epoch"], 2 * fit["last_epoch"], 200)
+        a, b, tau = fit["asymptote"], fit["b"], fit["tau_epochs"]
+        ax.plot(t, a - b * np.exp(-(t - fit["first_epoch"]) / tau), "--", color="grey",
+                label=f"a − b·exp(−t/{tau:.0f}): a = {a:.2f} (99 %: {fit['low99']:.2f} – {fit['high99']:.2f})")
     ax.set_xlabel("epochs of per-body training")
     ax.set_ylabel("move in 2 s (voxel lengths)")
     ax.legend(loc="lower right")
@@ -137,11 +147,11 @@ def main(argv: list[str] | None = None) -> None:
     if (args.out / "curve.csv").exists():
         p.error(f"--out {args.out} holds a curve already (curve.csv): give a new folder (nothing is overwritten)")
     rows, bodies = curve(args.run)
+    epochs = np.array([r["epoch"] for r in rows])
+    fit = asymptote(epochs, np.array([[b[f"epoch{e}"] for e in epochs] for b in bodies]))
     args.out.mkdir(parents=True, exist_ok=True)
     write_rows(args.out / "curve.csv", rows)
     write_rows(args.out / "bodies.csv", bodies)
-    epochs = np.array([r["epoch"] for r in rows])
-    fit = asymptote(epochs, np.array([[b[f"epoch{e}"] for e in epochs] for b in bodies]))
     write_rows(args.out / "asymptote.csv", [fit])
     print(f"asymptote {fit['asymptote']:.3f} (99 %: {fit['low99']:.3f} – {fit['high99']:.3f}), τ {fit['tau_epochs']:.0f} "
           f"epochs; epoch {fit['last_epoch']} reached {fit['reached']:.1%} of it")
