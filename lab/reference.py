@@ -109,7 +109,8 @@ def asymptote(epochs: np.ndarray, moves: np.ndarray, resamples: int = 400, seed:
     rng = np.random.default_rng(seed)
     again = np.array([saturating_fit(t, moves[rng.integers(0, len(moves), len(moves))].mean(0))[0]
                       for _ in range(resamples)])
-    low, high = np.percentile(np.where(np.isnan(again), np.inf, again), [0.5, 99.5]) if np.isfinite(a) else (a, a)
+    low, high = (np.percentile(np.where(np.isnan(again), np.inf, again), [0.5, 99.5], method="nearest")
+                 if np.isfinite(a) else (a, a))  # ("nearest": an unbounded resample gives inf, not inf − inf)
     return {"asymptote": a, "low99": float(low), "high99": float(high), "b": b, "tau_epochs": tau,
             "first_epoch": int(t[0]), "last_epoch": int(t[-1]), "reached": float(moves.mean(0)[-1] / a),
             "unbent_resamples": int(np.isnan(again).sum())}
