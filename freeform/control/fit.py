@@ -170,13 +170,14 @@ def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) ->
 
 
 def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg: Any,
-          tried: np.ndarray | None = None, begun: float | None = None) -> tuple[Any, np.ndarray, list[dict]]:
+          tried: np.ndarray | None = None, begun: float | None = None,
+          ) -> tuple[Any, np.ndarray, tuple[list[dict], list[dict]]]:
     """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring; ``cfg``
     from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
-    (mean command), and with ``how.curve_every`` the adaptation's curve — rows of ``epoch``, ``seconds`` (a body's
-    share of the wall time since ``begun``, measuring left out), ``adapted`` (the bodies' mean move under the bank)
-    and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give stopped there),
-    and the same two body by body (``bodies_adapted``, ``bodies_kept``: lists ``[M]``)."""
+    (mean command), and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body):
+    ``epoch``, ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the
+    move under the bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would
+    give stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
     from freeform.run.build import build
 
     m = len(grids)
@@ -189,6 +190,7 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
         return own_moves(bank, block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed), how.seed)
 
     curve: list[dict] = []
+    per_body: list[dict] = []
     begun = time.perf_counter() if begun is None else begun
     measuring, moved = 0.0, None
 
@@ -197,8 +199,10 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
         at = time.perf_counter()
         moved = measured()
         kept = np.maximum(moved, tried) if tried is not None else np.full(m, np.nan)
-        curve.append({"epoch": epoch, "seconds": (at - begun - measuring) / m, "adapted": float(moved.mean()),
-                      "kept": float(kept.mean()), "bodies_adapted": moved.tolist(), "bodies_kept": kept.tolist()})
+        seconds = (at - begun - measuring) / m
+        curve.append({"epoch": epoch, "seconds": seconds, "adapted": float(moved.mean()), "kept": float(kept.mean())})
+        per_body.extend({"epoch": epoch, "seconds": seconds, "body": i, "adapted": float(a), "kept": float(k)}
+                        for i, (a, k) in enumerate(zip(moved, kept, strict=True)))
         measuring += time.perf_counter() - at
 
     if how.curve_every:
@@ -210,7 +214,8 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
                   f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
             if how.curve_every and ((epoch + 1) % how.curve_every == 0 or epoch + 1 == how.adapt_epochs):
                 point(epoch + 1)
-    return bank, moved if how.curve_every else measured(), curve  # (the curve's last point measured the last epoch)
+    # (the curve's last point measured the last epoch)
+    return bank, moved if how.curve_every else measured(), (curve, per_body)
 
 
 @torch.no_grad()
@@ -243,7 +248,7 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         nets = [c.saved[int(k)].controller for k in choice]
         labels = [c.names[int(k)] for k in choice]
         if cfg is not None:
-            bank, adapted, curve = adapt(c, grids, choice, how, cfg, moves[choice, np.arange(m)], start)
+            bank, adapted, (curve, per_body) = adapt(c, grids, choice, how, cfg, moves[choice, np.arange(m)], start)
             better = adapted > moves[choice, np.arange(m)]
             nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
@@ -256,11 +261,9 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         rows.append({"body": i, "chosen": labels[i], "mean_command": float(moved[i]), "controller_file": str(path),
                      "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
     write_rows(out / "bodies.csv", rows)
-    if cfg is not None and how.curve_every:  # (the bodies' mean a row; body by body, for a fraction's band, beside)
-        write_rows(out / "adaptation.csv", [{k: v for k, v in r.items() if not k.startswith("bodies_")} for r in curve])
-        write_rows(out / "adaptation_bodies.csv", [
-            {"epoch": r["epoch"], "seconds": r["seconds"], "body": i, "adapted": a, "kept": k}
-            for r in curve for i, (a, k) in enumerate(zip(r["bodies_adapted"], r["bodies_kept"], strict=True))])
+    if cfg is not None and how.curve_every:  # (the bodies' mean; body by body beside, for a fraction's band)
+        write_rows(out / "adaptation.csv", curve)
+        write_rows(out / "adaptation_bodies.csv", per_body)
     return rows
 
 
