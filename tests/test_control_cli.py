@@ -177,3 +177,26 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     with pytest.raises(SystemExit):  # a second fit into the same folder is refused, the first kept
         main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "0"])
     assert rows(tmp_path / "fitted" / "bodies.csv") == fitted
+
+
+def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself(tmp_path, capsys) -> None:
+    """``--set agent.lr=5e-4`` is the adaptation's learning rate while fit's own keys stay fit's; the keys fit sets
+    itself, a setting without '=', a value the config refuses and a key it lacks are refused before any trial, naming
+    the fix, with nothing written."""
+    from freeform.control.fit import Candidates, Fit, adaptation
+
+    grids = torch.from_numpy(tiny_bodies()[:2])
+    np.save(tmp_path / "bodies.npy", grids.numpy())
+    how = Fit(("student",), adapt_epochs=3, copies=2, seed=7, settings=("agent.lr=5e-4", "agent.num_sgd_iter=2"))
+    cfg = adaptation(Candidates(how.candidates, grids), 2, how, tmp_path / "bodies.npy")
+    assert (cfg.agent.lr, cfg.agent.num_sgd_iter) == (5e-4, 2)
+    assert (cfg.trainer.epochs, cfg.env.num_envs, cfg.control.teachers, cfg.seed) == (3, 4, 2, 7)
+    assert cfg.agent.sgd_minibatch_size == adaptation(Candidates(how.candidates, grids), 2, Fit(("student",)),
+                                                      tmp_path / "bodies.npy").agent.sgd_minibatch_size
+    fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "out"), "--candidates", "student"]
+    refused([*fit, "--set", "agent.lr=0"], capsys, "refuses it: agent.lr must be > 0")
+    refused([*fit, "--set", "agent.lr"], capsys, "--set 'agent.lr': give KEY=VALUE")
+    refused([*fit, "--set", "trainer.epochs=3"], capsys, "fit sets trainer.epochs itself (give --adapt-epochs)")
+    refused([*fit, "--set", "env.num_envs=8"], capsys, "give --copies")
+    refused([*fit, "--set", "agent.nosuch=1"], capsys, "--set agent.nosuch=1", "refuses it", "nosuch")
+    assert not (tmp_path / "out").exists()

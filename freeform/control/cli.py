@@ -81,7 +81,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     out = Path(args.out)
     no_earlier_fit(out)
     how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed,
-              curve_every=args.curve_every)  # (its settings checked before the bodies are read)
+              curve_every=args.curve_every, settings=tuple(args.set))  # (its settings checked before the bodies are read)
     grids = _bodies(args.bodies, how.candidates[0])
     rows = fit(grids, out, how)
     for row in rows:
@@ -137,6 +137,9 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--curve-every", type=int, default=0, metavar="K",
                    help="measure the bodies every K adaptation epochs into adaptation.csv and adaptation_bodies.csv (0: never)")
+    f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change the adaptation's recipe (the control_adapt_cpu preset's), e.g. --set agent.lr=1e-3; "
+                        "repeatable")
     f.set_defaults(run=cmd_fit)
     g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
     g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "

@@ -9,7 +9,7 @@ is its whole episode. The mean command is deterministic, so that figure is what 
 **Adaptation** (``--adapt-epochs E`` > 0). Each body's chosen controller is trained on that body alone for E epochs
 of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
 body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
-recipe (its learning rate and batch; ``conf/experiment/``). Each body then keeps whichever of the adapted and the
+recipe (its learning rate and batch; ``conf/experiment/``; ``--set agent.lr=1e-3`` changes it). Each body then keeps whichever of the adapted and the
 chosen controller moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
 epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs
 (the bodies' mean; ``adaptation_bodies.csv`` body by body).
@@ -35,6 +35,11 @@ from freeform.sim import SimConfig
 EPISODE = tuple(f.name for f in fields(ControlConfig))
 """Every field of an episode: what two controllers tried side by side, or a controller and its adaptation, share."""
 
+FIT_SETS = {"control.bodies": "from the bodies", "control.teachers": "one controller a body",
+            "control.controller_init": "each body's starts from its trial's choice", "env.num_envs": "give --copies",
+            "trainer.epochs": "give --adapt-epochs", "seed": "give --seed"}
+"""The adaptation's keys that ``fit`` sets itself (and how a user sets them), which ``--set`` may not name."""
+
 DEFAULT_ADAPT_EPOCHS = 24
 """The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
 the held-out bodies; docs/control.md)."""
@@ -55,8 +60,18 @@ class Fit:
     curve_every: int = 0
     """Measure the bodies every this many adaptation epochs (and at 0 and the last) into ``adaptation.csv``; 0:
     never."""
+    settings: tuple[str, ...] = ()
+    """Hydra overrides of the preset's recipe (``agent.lr=1e-3``), applied before what fit sets itself (the keys of
+    :data:`FIT_SETS`, which they may not name)."""
 
     def __post_init__(self) -> None:
+        for setting in self.settings:
+            key, eq, _ = setting.partition("=")
+            if not eq or not key.strip("~+"):
+                raise ValueError(f"--set {setting!r}: give KEY=VALUE, a key of the adaptation's config "
+                                 "(agent.lr=1e-3)")
+            if (flag := FIT_SETS.get(key.strip("~+"))) is not None:
+                raise ValueError(f"--set {setting!r}: fit sets {key.strip('~+')} itself ({flag})")
         if self.adapt_epochs < 0:
             raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
         if self.curve_every < 0 or (self.curve_every and not self.adapt_epochs):
@@ -127,13 +142,22 @@ def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
     played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), the preset's episode the candidates',
     and every candidate the preset's controller (kind, width, head; weights of one shape, so each body's start
     loads into the bank)."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
     from freeform.config import compose
 
     if how.copies < 2:
         raise ValueError(f"--copies must be >= 2 (a body's copies are each other's baseline), got {how.copies}")
-    cfg = compose(f"experiment={how.preset}", f"control.bodies={bodies}", f"control.teachers={m}",
-                  f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
-                  f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
+    try:
+        cfg = compose(f"experiment={how.preset}", *how.settings, f"control.bodies={bodies}", f"control.teachers={m}",
+                      f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
+                      f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
+    except (HydraException, OmegaConfBaseException, ValueError) as e:
+        if not how.settings:
+            raise
+        raise ValueError(f"--set {' '.join(how.settings)}: the adaptation's config ({how.preset}) refuses it: "
+                         f"{str(e).splitlines()[0]}") from None
     differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}", EPISODE)
     if differ:
         raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
@@ -293,6 +317,6 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
            "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "trial_decisions", "trials"]
 
