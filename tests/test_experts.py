@@ -178,8 +178,21 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
         f.write("epoch,seconds,body,adapted,kept\n" + "".join(
             f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0)}\n"
             for e, s in ((0, 1.5), (4, 9.0)) for i, b in enumerate(bodies)))
-    fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={fitted}:10", "--out", str(tmp_path / "c")])
-    points = list(csv.DictReader(open(tmp_path / "c" / "curve.csv")))
+    # (a second curve: the first plus 0.25 a body at epoch 4, the second body 0.5 behind it at epoch 0)
+    second = tmp_path / "second"
+    second.mkdir()
+    with open(second / "adaptation_bodies.csv", "w") as f:
+        f.write("epoch,seconds,body,adapted,kept\n" + "".join(
+            f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0) + (0.25 if e else -0.5 * (i == 1))}\n"
+            for e, s in ((0, 1.0), (4, 7.0)) for i, b in enumerate(bodies)))
+    fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={fitted}:10", "--curve", f"two={second}:10",
+               "--out", str(tmp_path / "c")])
+    paired = list(csv.DictReader(open(tmp_path / "c" / "paired.csv")))
+    assert [(p["curve"], p["against"], int(p["epoch"]), int(p["bodies"]), int(p["ahead"])) for p in paired] == [
+        ("two", "fit", 0, 3, 0), ("two", "fit", 4, 3, 3)]
+    assert float(paired[1]["difference"]) == pytest.approx(0.25, abs=1e-12) and float(paired[1]["band99"]) < 1e-12
+    assert float(paired[0]["difference"]) == pytest.approx(-0.5 / 3, abs=1e-12) and float(paired[0]["band99"]) > 0
+    points = [p for p in csv.DictReader(open(tmp_path / "c" / "curve.csv")) if p["curve"] == "fit"]
     ref = np.array([float(b["epoch2"]) for b in bodies])
     assert [(int(p["epoch"]), float(p["seconds_a_body"])) for p in points] == [(0, 1.5), (4, 9.0)]
     assert float(points[0]["fraction"]) == pytest.approx(0.5, abs=1e-12) and float(points[0]["band99"]) < 1e-12
