@@ -87,12 +87,13 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused(["fit", str(tmp_path / "bodies.npy"), "--out", str(out), "--candidates", "student",
              str(tmp_path / "moon.pt")], capsys, "sim.gravity: -5.0")
     refused(["watch", str(controller), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys, "--body I")
-    # fit's adaptation and trials, refused before a trial is played: one copy (no baseline), a candidate of another
-    # kind than the adaptation trains, a steering candidate (one draw of headings is no trial), two of one name
+    # fit's adaptation and trials, refused before a trial is played: one copy (no baseline), no candidate of the
+    # kind the adaptation trains, a steering candidate (one draw of headings is no trial), two of one name
     fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(out)]
     refused([*fit, "--copies", "1"], capsys, "--copies must be >= 2")
     refused([*fit, "--adapt-epochs", "0", "--curve-every", "2"], capsys, "trials alone have no curve")
-    refused([*fit, "--candidates", "student", "population"], capsys, "candidate population is a context controller")
+    refused([*fit, "--candidates", "population"], capsys, "no candidate is of the kind the adaptation",
+            "candidate population is a context controller")
     refused([*fit, "--candidates", "student_steering"], capsys, "random headings")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)
@@ -146,7 +147,7 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     construction)."""
     np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
     main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
-          "--copies", "2", "--curve-every", "1"])
+          "--copies", "2", "--curve-every", "1", "--candidates", *zoo.TRIED, "population"])
     fitted = rows(tmp_path / "fitted" / "bodies.csv")
     curve = rows(tmp_path / "fitted" / "adaptation.csv")  # (before the epoch: the trials' choice; after: the bank)
     assert [int(r["epoch"]) for r in curve] == [0, 1] and float(curve[0]["seconds"]) < float(curve[1]["seconds"])
@@ -157,6 +158,10 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     per_body = rows(tmp_path / "fitted" / "adaptation_bodies.csv")  # (the same points, body by body)
     assert [(int(r["epoch"]), int(r["body"])) for r in per_body] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert [float(r["kept"]) for r in per_body[:2]] == pytest.approx(chosen, rel=1e-5)
+    # (the bank starts each body from its best candidate of the kind it trains: the population controller, a context
+    # controller, is tried and kept where it wins, never adapted)
+    adaptable = [max(float(r[f"trial_{n}"]) for n in zoo.TRIED) for r in fitted]
+    assert [float(r["adapted"]) for r in per_body[:2]] == pytest.approx(adaptable, rel=1e-3)
     for point in curve:
         mine = [r for r in per_body if r["epoch"] == point["epoch"]]
         assert all(r["seconds"] == point["seconds"] for r in mine)
@@ -166,9 +171,10 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     main(["evaluate", "student", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"), "--episodes", "1"])
     for row, evaluated in zip(fitted, rows(tmp_path / "eval" / "bodies.csv"), strict=True):
         trials = {k[len("trial_"):]: float(v) for k, v in row.items() if k.startswith("trial_")}
-        assert list(trials) == list(zoo.TRIED)
+        assert list(trials) == [*zoo.TRIED, "population"]
         best = max(trials, key=trials.get)
-        assert row["chosen"] in (best, f"{best} + 1 epochs")
+        begun = max(zoo.TRIED, key=trials.get)
+        assert row["chosen"] in (best, f"{begun} + 1 epochs")
         assert trials["wave"] == pytest.approx(float(evaluated["hand_set_wave"]), rel=1e-3)
         assert trials["student"] == float(evaluated["mean_command"])  # (the same rows: one a body, by its block)
         body = tmp_path / "fitted" / f"body{row['body']}"
@@ -200,3 +206,11 @@ def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself
     refused([*fit, "--set", "env.num_envs=8"], capsys, "give --copies")
     refused([*fit, "--set", "agent.nosuch=1"], capsys, "--set agent.nosuch=1", "refuses it", "nosuch")
     assert not (tmp_path / "out").exists()
+
+
+def test_each_body_adapts_its_best_adaptable_candidate_and_ties_go_to_the_earlier() -> None:
+    from freeform.control.fit import chosen
+
+    trial = np.array([[1.0, 5.0, 2.0], [3.0, 5.0, 0.5], [9.0, 0.0, 1.0]])  # [candidates, bodies]; the third not adaptable
+    assert chosen(trial).tolist() == [2, 0, 0]
+    assert chosen(trial, np.array([True, True, False])).tolist() == [1, 0, 0]

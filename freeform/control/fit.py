@@ -6,11 +6,12 @@ by its mean command for one episode, all in one env (a block of rows a candidate
 that moved it furthest after the trial's decisions (``--trial SECONDS``; default the whole episode), and its figure
 is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
 
-**Adaptation** (``--adapt-epochs E`` > 0). Each body's chosen controller is trained on that body alone for E epochs
-of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
+**Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of the kind the adaptation trains (the zoo's
+students; :func:`adaptable` — other candidates, such as per-body controllers of other bodies, are tried and kept where
+they win, not adapted) is trained on that body alone for E epochs of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
 body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
 recipe (its learning rate and batch; ``conf/experiment/``; ``--set agent.lr=1e-3`` changes it). Each body then keeps whichever of the adapted and the
-chosen controller moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
+chosen controller (its best trial of all) moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
 epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs
 (the bodies' mean; ``adaptation_bodies.csv`` body by body).
 """
@@ -162,15 +163,28 @@ def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
     if differ:
         raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
                          f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
-    width = cfg.control.hidden if cfg.control.hidden is not None else cfg.agent.hidden
-    wanted = (cfg.control.controller, width, cfg.control.head)
-    for name, s in zip(c.names, c.saved, strict=True):
+    if not adaptable(c, cfg).any():
+        s, wanted = c.saved[0], trained_kind(cfg)
         kwargs = s.controller.init_kwargs
-        if (s.kind, kwargs.get("hidden"), kwargs.get("head")) != wanted:
-            raise ValueError(f"candidate {name} is a {s.kind} controller ({kwargs.get('hidden')} wide, head "
-                             f"{kwargs.get('head')}), and the adaptation ({how.preset}) trains {wanted[0]} ones "
-                             f"({wanted[1]} wide, head {wanted[2]}): adapt the zoo's students, or --adapt-epochs 0")
+        raise ValueError(f"no candidate is of the kind the adaptation ({how.preset}) trains, {wanted[0]} controllers "
+                         f"({wanted[1]} wide, head {wanted[2]}); candidate {c.names[0]} is a {s.kind} controller "
+                         f"({kwargs.get('hidden')} wide, head {kwargs.get('head')}): add one of the zoo's students, "
+                         "or --adapt-epochs 0")
     return cfg
+
+
+def trained_kind(cfg: Any) -> tuple[str, int, str]:
+    """The controller the adaptation ``cfg`` trains: (kind, width, head)."""
+    width = cfg.control.hidden if cfg.control.hidden is not None else cfg.agent.hidden
+    return cfg.control.controller, width, cfg.control.head
+
+
+def adaptable(c: Candidates, cfg: Any) -> np.ndarray:
+    """Which candidates ``[C]`` the adaptation ``cfg`` can start from: those of the controller it trains (kind,
+    width, head: weights of one shape, so each loads into the bank). The others are tried, and kept where they win,
+    but not adapted."""
+    return np.array([(s.kind, s.controller.init_kwargs.get("hidden"), s.controller.init_kwargs.get("head"))
+                     == trained_kind(cfg) for s in c.saved])
 
 
 def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
@@ -185,19 +199,25 @@ def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
 
 @torch.no_grad()
 def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Each body's chosen candidate ``[M]`` (by its move after ``decisions``) and every candidate's whole-episode
-    move ``[C, M]`` (mean commands)."""
+    """Every candidate's move on every body after ``decisions`` (what a body's choice is by) and its whole-episode
+    move (its figure), both ``[C, M]`` (mean commands)."""
     env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), seed=seed)
     groups = [(name, s.controller.eval(), False, False) for name, s in zip(c.names, c.saved, strict=True)]
     played = play(env, groups, c.control.steps, seed)
-    return played.after[decisions - 1].argmax(0), played.returns
+    return played.after[decisions - 1], played.returns
 
 
-def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg: Any,
+def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """Each body's best candidate ``[M]`` by ``trial`` ``[C, M]`` (a tie to the earlier), among the candidates
+    ``among`` ``[C]`` (bool; None: all)."""
+    return (trial if among is None else np.where(among[:, None], trial, -np.inf)).argmax(0)
+
+
+def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, how: Fit, cfg: Any,
           tried: np.ndarray | None = None, begun: float | None = None,
           ) -> tuple[Any, np.ndarray, tuple[list[dict], list[dict]]]:
-    """Each body's chosen candidate trained on it for ``how.adapt_epochs`` epochs (the module's docstring; ``cfg``
-    from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
+    """Each body's candidate ``begin[i]`` (an adaptable one) trained on it for ``how.adapt_epochs`` epochs (the
+    module's docstring; ``cfg`` from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
     (mean command), and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body):
     ``epoch``, ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the
     move under the bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would
@@ -208,7 +228,7 @@ def adapt(c: Candidates, grids: torch.Tensor, choice: np.ndarray, how: Fit, cfg:
     _, ppo = build(cfg, torch.device("cpu"))
     bank = ppo.policy
     for i in range(m):
-        bank.load_member(i, c.saved[int(choice[i])].controller.state_dict())
+        bank.load_member(i, c.saved[int(begin[i])].controller.state_dict())
 
     def measured() -> np.ndarray:
         return own_moves(bank, block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed), how.seed)
@@ -268,14 +288,17 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         bodies = Path(scratch) / "bodies.npy"
         np.save(bodies, grids.numpy())
         cfg = adaptation(c, m, how, bodies) if how.adapt_epochs else None  # (refused before anything is played)
-        choice, moves = trials(c, grids, decisions, how.seed)
+        trial, moves = trials(c, grids, decisions, how.seed)
+        choice = chosen(trial)
         nets = [c.saved[int(k)].controller for k in choice]
         labels = [c.names[int(k)] for k in choice]
-        if cfg is not None:
-            bank, adapted, (curve, per_body) = adapt(c, grids, choice, how, cfg, moves[choice, np.arange(m)], start)
+        if cfg is not None:  # (each body adapts its best adaptable candidate, and keeps it where it beats the choice)
+            begin = chosen(trial, adaptable(c, cfg))
+            bank, adapted, (curve, per_body) = adapt(c, grids, begin, how, cfg, moves[choice, np.arange(m)], start)
             better = adapted > moves[choice, np.arange(m)]
             nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
-            labels = [f"{label} + {how.adapt_epochs} epochs" if better[i] else label for i, label in enumerate(labels)]
+            labels = [f"{c.names[int(begin[i])]} + {how.adapt_epochs} epochs" if better[i] else label
+                      for i, label in enumerate(labels)]
     moved = alone(nets, grids, c, how.seed)
     out.mkdir(parents=True, exist_ok=True)
     rows, seconds = [], (time.perf_counter() - start) / m
@@ -318,5 +341,5 @@ def no_earlier_fit(out: Path) -> None:
 
 
 __all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
-           "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "trial_decisions", "trials"]
+           "adaptable", "chosen", "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "trained_kind", "trial_decisions", "trials"]
 
