@@ -103,6 +103,8 @@ def curve_points(reference: Path, curves: list[str], epoch: int | None = None) -
     """The fraction of per-body control against a body's seconds, a row per ``--curve`` (module docstring) and point;
     and each later curve against the first, paired by body, a row per epoch both measured."""
     at, ref = reference_moves(reference, epoch)
+    if len(names := [spec.partition("=")[0] for spec in curves]) > len(set(names)):
+        raise ValueError(f"--curve: two curves share a name ({names}): give each its own")
     rows, moves = [], {}
     for spec in curves:
         name, sep, rest = spec.partition("=")
@@ -136,6 +138,8 @@ def paired_curves(moves: dict[tuple[str, int], np.ndarray]) -> list[dict]:
             if other != name or (names[0], e) not in moves:
                 continue
             d = kept - moves[names[0], e]
+            if not np.isfinite(d).any():
+                raise ValueError(f"--curve {name} and {names[0]}: at epoch {e} they share no body")
             d = d[np.isfinite(d)]
             mean, band = paired_band(d)
             rows.append({"curve": name, "against": names[0], "epoch": e, "bodies": len(d), "difference": mean,

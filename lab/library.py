@@ -38,14 +38,16 @@ def choices(rows: list[dict[str, str]], prefix: str, own: bool) -> dict[str, np.
     z = np.array([[float(r[f"trial_{n}"]) for n in zoo] for r in rows])
     lib = np.array([[float(r[f"trial_{n}"]) for n in library] for r in rows])
     if own:
-        if len(library) < len(rows):
+        if len(library) < max(len(rows), 2):
             raise ValueError(f"--own: {len(rows)} bodies and {len(library)} library controllers: body i's own is "
-                             "the library's i-th, so the library needs one for every body")
+                             "the library's i-th, so the library needs one for every body (and two at least)")
         lib[np.arange(len(rows)), np.arange(len(rows))] = -np.inf
     return {"zoo": z.max(1), "library": lib.max(1), "zoo and library": np.maximum(z.max(1), lib.max(1))}
 
 
 def summary(best: dict[str, np.ndarray], reference: np.ndarray | None = None) -> list[dict]:
+    """A row per choice of :func:`choices`: its bodies' mean move, its fraction of ``reference`` ``[M]`` (each body's
+    per-body control; 99 % band, paired by body) where given, and its gain over the zoo alone (paired, 99 %)."""
     rows = []
     for name, moves in best.items():
         row = {"choice": name, "bodies": len(moves), "mean": float(moves.mean())}

@@ -147,7 +147,7 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     construction)."""
     np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
     main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
-          "--copies", "2", "--curve-every", "1", "--candidates", *zoo.TRIED, "population"])
+          "--copies", "2", "--curve-every", "1", "--candidates", "population", *zoo.TRIED])
     fitted = rows(tmp_path / "fitted" / "bodies.csv")
     curve = rows(tmp_path / "fitted" / "adaptation.csv")  # (before the epoch: the trials' choice; after: the bank)
     assert [int(r["epoch"]) for r in curve] == [0, 1] and float(curve[0]["seconds"]) < float(curve[1]["seconds"])
@@ -159,7 +159,7 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     assert [(int(r["epoch"]), int(r["body"])) for r in per_body] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert [float(r["kept"]) for r in per_body[:2]] == pytest.approx(chosen, rel=1e-5)
     # (the bank starts each body from its best candidate of the kind it trains: the population controller, a context
-    # controller, is tried and kept where it wins, never adapted)
+    # controller and the first candidate, is tried and kept where it wins, never adapted nor the run's start)
     adaptable = [max(float(r[f"trial_{n}"]) for n in zoo.TRIED) for r in fitted]
     assert [float(r["adapted"]) for r in per_body[:2]] == pytest.approx(adaptable, rel=1e-3)
     for point in curve:
@@ -171,7 +171,7 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     main(["evaluate", "student", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "eval"), "--episodes", "1"])
     for row, evaluated in zip(fitted, rows(tmp_path / "eval" / "bodies.csv"), strict=True):
         trials = {k[len("trial_"):]: float(v) for k, v in row.items() if k.startswith("trial_")}
-        assert list(trials) == [*zoo.TRIED, "population"]
+        assert list(trials) == ["population", *zoo.TRIED]
         best = max(trials, key=trials.get)
         begun = max(zoo.TRIED, key=trials.get)
         assert row["chosen"] in (best, f"{begun} + 1 epochs")
@@ -200,11 +200,15 @@ def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself
     assert cfg.agent.sgd_minibatch_size == adaptation(Candidates(how.candidates, grids), 2, Fit(("student",)),
                                                       tmp_path / "bodies.npy").agent.sgd_minibatch_size
     fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "out"), "--candidates", "student"]
-    refused([*fit, "--set", "agent.lr=0"], capsys, "refuses it: agent.lr must be > 0")
+    refused([*fit, "--set", "agent.lr=0"], capsys, "refuses it", "agent.lr must be > 0")
     refused([*fit, "--set", "agent.lr"], capsys, "--set 'agent.lr': give KEY=VALUE")
     refused([*fit, "--set", "trainer.epochs=3"], capsys, "fit sets trainer.epochs itself (give --adapt-epochs)")
     refused([*fit, "--set", "env.num_envs=8"], capsys, "give --copies")
     refused([*fit, "--set", "agent.nosuch=1"], capsys, "--set agent.nosuch=1", "refuses it", "nosuch")
+    refused([*fit, "--set", "agent.seed=3"], capsys, "fit sets agent.seed itself (give --seed)")
+    refused([*fit, "--set", "+trainer.epochs=3"], capsys, "fit sets trainer.epochs itself")
+    refused([*fit, "--set", "~agent.lr"], capsys, "it deletes none")
+    refused([*fit, "--set", "agent.lr=1e-3", "--adapt-epochs", "0"], capsys, "trials alone have no recipe")
     assert not (tmp_path / "out").exists()
 
 

@@ -7,13 +7,14 @@ that moved it furthest after the trial's decisions (``--trial SECONDS``; default
 is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
 
 **Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of the kind the adaptation trains (the zoo's
-students; :func:`adaptable` — other candidates, such as per-body controllers of other bodies, are tried and kept where
-they win, not adapted) is trained on that body alone for E epochs of PPO — all bodies at once, as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each
-body ``--copies`` environments with a leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's
-recipe (its learning rate and batch; ``conf/experiment/``; ``--set agent.lr=1e-3`` changes it). Each body then keeps whichever of the adapted and the
-chosen controller (its best trial of all) moves it further by its mean command. With ``--curve-every K`` the bodies are measured every K
-epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for the seconds it costs
-(the bodies' mean; ``adaptation_bodies.csv`` body by body).
+students; :func:`adaptable` — other candidates, such as per-body controllers of other bodies, are tried and kept
+where they win, not adapted) is trained on that body alone for E epochs of PPO — all bodies at once, as one bank of
+per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each body ``--copies`` environments with a
+leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's recipe (its learning rate and batch;
+``conf/experiment/``; ``--set agent.lr=1e-3`` changes it). Each body then keeps whichever of the adapted and the
+chosen controller (its best trial of all) moves it further by its mean command. With ``--curve-every K`` the bodies
+are measured every K epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for
+the seconds it costs (the bodies' mean; ``adaptation_bodies.csv`` body by body).
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ EPISODE = tuple(f.name for f in fields(ControlConfig))
 """Every field of an episode: what two controllers tried side by side, or a controller and its adaptation, share."""
 
 FIT_SETS = {"control.bodies": "from the bodies", "control.teachers": "one controller a body",
-            "control.controller_init": "each body's starts from its trial's choice", "env.num_envs": "give --copies",
-            "trainer.epochs": "give --adapt-epochs", "seed": "give --seed"}
+            "control.controller_init": "each body starts from its best candidate of the adaptation's kind",
+            "env.num_envs": "give --copies", "trainer.epochs": "give --adapt-epochs", "seed": "give --seed",
+            "agent.seed": "give --seed", "experiment": "the preset is fit's"}
 """The adaptation's keys that ``fit`` sets itself (and how a user sets them), which ``--set`` may not name."""
 
 DEFAULT_ADAPT_EPOCHS = 24
@@ -66,13 +68,18 @@ class Fit:
     :data:`FIT_SETS`, which they may not name)."""
 
     def __post_init__(self) -> None:
+        if self.settings and not self.adapt_epochs:
+            raise ValueError(f"--set {' '.join(self.settings)}: changes the adaptation, and --adapt-epochs 0 runs "
+                             "none (trials alone have no recipe)")
         for setting in self.settings:
             key, eq, _ = setting.partition("=")
-            if not eq or not key.strip("~+"):
+            if key.startswith("~"):
+                raise ValueError(f"--set {setting!r}: fit changes the adaptation's keys, it deletes none")
+            if not eq or not key.strip("+"):
                 raise ValueError(f"--set {setting!r}: give KEY=VALUE, a key of the adaptation's config "
                                  "(agent.lr=1e-3)")
-            if (flag := FIT_SETS.get(key.strip("~+"))) is not None:
-                raise ValueError(f"--set {setting!r}: fit sets {key.strip('~+')} itself ({flag})")
+            if (flag := FIT_SETS.get(key.lstrip("+"))) is not None:
+                raise ValueError(f"--set {setting!r}: fit sets {key.lstrip('+')} itself ({flag})")
         if self.adapt_epochs < 0:
             raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
         if self.curve_every < 0 or (self.curve_every and not self.adapt_epochs):
@@ -139,10 +146,10 @@ class Candidates:
 
 
 def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
-    """The adaptation's run config (``how.preset`` for ``m`` bodies in ``bodies``), checked before anything is
-    played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), the preset's episode the candidates',
-    and every candidate the preset's controller (kind, width, head; weights of one shape, so each body's start
-    loads into the bank)."""
+    """The adaptation's run config (``how.preset`` for ``m`` bodies in ``bodies``, ``how.settings`` over it), checked
+    before anything is played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), the preset's episode
+    the candidates', and at least one candidate of the controller it trains (:func:`adaptable`; the first such one is
+    the run's ``control.controller_init``, which each body's own start then replaces)."""
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
@@ -150,27 +157,34 @@ def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
 
     if how.copies < 2:
         raise ValueError(f"--copies must be >= 2 (a body's copies are each other's baseline), got {how.copies}")
-    try:
-        cfg = compose(f"experiment={how.preset}", *how.settings, f"control.bodies={bodies}", f"control.teachers={m}",
-                      f"env.num_envs={m * how.copies}", f"control.controller_init={c.saved[0].path}",
-                      f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
-    except (HydraException, OmegaConfBaseException, ValueError) as e:
-        if not how.settings:
-            raise
-        raise ValueError(f"--set {' '.join(how.settings)}: the adaptation's config ({how.preset}) refuses it: "
-                         f"{str(e).splitlines()[0]}") from None
+
+    def composed(start: Path) -> Any:
+        try:
+            return compose(f"experiment={how.preset}", *how.settings, f"control.bodies={bodies}",
+                           f"control.teachers={m}", f"env.num_envs={m * how.copies}",
+                           f"control.controller_init={start}", f"trainer.epochs={how.adapt_epochs}",
+                           f"seed={how.seed}")
+        except (HydraException, OmegaConfBaseException, ValueError) as e:
+            if not how.settings:
+                raise
+            why = (str(e).splitlines() or [type(e).__name__])[0]
+            raise ValueError(f"--set {' '.join(how.settings)}: the adaptation's config ({how.preset}) refuses it "
+                             f"(or fit's own settings with it): {why}") from None
+
+    cfg = composed(c.saved[0].path)
     differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}", EPISODE)
     if differ:
         raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
                          f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
-    if not adaptable(c, cfg).any():
+    can = adaptable(c, cfg)
+    if not can.any():
         s, wanted = c.saved[0], trained_kind(cfg)
         kwargs = s.controller.init_kwargs
         raise ValueError(f"no candidate is of the kind the adaptation ({how.preset}) trains, {wanted[0]} controllers "
                          f"({wanted[1]} wide, head {wanted[2]}); candidate {c.names[0]} is a {s.kind} controller "
                          f"({kwargs.get('hidden')} wide, head {kwargs.get('head')}): add one of the zoo's students, "
                          "or --adapt-epochs 0")
-    return cfg
+    return cfg if can[0] else composed(c.saved[int(np.argmax(can))].path)
 
 
 def trained_kind(cfg: Any) -> tuple[str, int, str]:
@@ -217,9 +231,9 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, how: Fit, cfg: 
           tried: np.ndarray | None = None, begun: float | None = None,
           ) -> tuple[Any, np.ndarray, tuple[list[dict], list[dict]]]:
     """Each body's candidate ``begin[i]`` (an adaptable one) trained on it for ``how.adapt_epochs`` epochs (the
-    module's docstring; ``cfg`` from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode move on its body ``[M]``
-    (mean command), and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body):
-    ``epoch``, ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the
+    module's docstring; ``cfg`` from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode
+    move on its body ``[M]`` (mean command), and with ``how.curve_every`` the adaptation's curve as (a row a point,
+    a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the
     move under the bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would
     give stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
     from freeform.run.build import build
@@ -340,6 +354,7 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name",
-           "adaptable", "chosen", "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "trained_kind", "trial_decisions", "trials"]
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "Candidates", "Fit", "adapt", "adaptable", "adaptation",
+           "alone", "candidate_name", "chosen", "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike",
+           "trained_kind", "trial_decisions", "trials"]
 
