@@ -172,19 +172,19 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     assert row["table"] == "half" and int(row["bodies"]) == 3 and float(row["seconds_a_body"]) == 1.5
     assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12) and float(row["band99"]) < 1e-12
     # --curve: a fit's points body by body (half the reference, then all of it but the second body's half), by seconds
-    fitted = tmp_path / "fitted"
-    fitted.mkdir()
-    with open(fitted / "adaptation_bodies.csv", "w") as f:
-        f.write("epoch,seconds,body,adapted,kept\n" + "".join(
-            f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0)}\n"
-            for e, s in ((0, 1.5), (4, 9.0)) for i, b in enumerate(bodies)))
+    def fit_curve(name: str, seconds: tuple[float, float], shift):
+        """A fit's folder whose body i (reference body 10 + i) has moved ``kept`` at epochs 0 and 4, plus shift(e, i)."""
+        folder = tmp_path / name
+        folder.mkdir()
+        with open(folder / "adaptation_bodies.csv", "w") as f:
+            f.write("epoch,seconds,body,adapted,kept\n" + "".join(
+                f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0) + shift(e, i)}\n"
+                for e, s in zip((0, 4), seconds, strict=True) for i, b in enumerate(bodies)))
+        return folder
+
+    fitted = fit_curve("fitted", (1.5, 9.0), lambda e, i: 0.0)
     # (a second curve: the first plus 0.25 a body at epoch 4, the second body 0.5 behind it at epoch 0)
-    second = tmp_path / "second"
-    second.mkdir()
-    with open(second / "adaptation_bodies.csv", "w") as f:
-        f.write("epoch,seconds,body,adapted,kept\n" + "".join(
-            f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0) + (0.25 if e else -0.5 * (i == 1))}\n"
-            for e, s in ((0, 1.0), (4, 7.0)) for i, b in enumerate(bodies)))
+    second = fit_curve("second", (1.0, 7.0), lambda e, i: 0.25 if e else -0.5 * (i == 1))
     fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={fitted}:10", "--curve", f"two={second}:10",
                "--out", str(tmp_path / "c")])
     paired = list(csv.DictReader(open(tmp_path / "c" / "paired.csv")))
