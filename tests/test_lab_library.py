@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
 from freeform.tables import write_rows
-from lab.library import choices, main, summary
+from lab.library import choices, expected_best, main, summary, trials
 
 
 def table() -> list[dict[str, str]]:
@@ -35,3 +37,34 @@ def test_each_body_is_chosen_for_without_its_own_controller_and_the_gain_is_pair
     short = [{k: v for k, v in r.items() if k != "trial_t2"} for r in table()]
     with pytest.raises(ValueError, match="the library needs one for every body"):
         choices(short, "t", own=True)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 5])
+def test_a_random_librarys_expected_best_equals_the_mean_over_every_draw(size: int) -> None:
+    rng = np.random.default_rng(size)
+    lib = rng.gamma(2.0, 1.0, (4, 6))
+    lib[1, 3] = lib[2, 2] = lib[3, 5] = -np.inf         # a body's own: never drawn (5 left for those rows)
+    lib[0, 0] = lib[0, 1]                               # ties count as one more draw each
+    floor = np.array([0.0, 1.5, 2.0, 10.0])             # the last body's zoo trial beats every draw
+    got = expected_best(floor, lib, size)
+    for i in range(4):
+        drawable = [v for v in lib[i] if np.isfinite(v)]
+        draws = [max(floor[i], *c) for c in itertools.combinations(drawable, size)]
+        assert got[i] == pytest.approx(np.mean(draws), rel=1e-12)
+    assert got[3] == 10.0
+    whole = expected_best(floor, lib, 5)                # the whole library less the own: its best, no chance
+    assert whole[1:].tolist() == pytest.approx(np.maximum(floor, np.where(np.isfinite(lib), lib, 0).max(1))[1:])
+    with pytest.raises(ValueError, match="can draw from 5 controllers only"):
+        expected_best(floor, lib, 6)
+
+
+def test_sizes_print_a_random_librarys_row(tmp_path, capsys) -> None:
+    write_rows(tmp_path / "t.csv", table())
+    main([str(tmp_path / "t.csv"), "--library", "t", "--own", "--sizes", "1,2"])
+    out = capsys.readouterr().out
+    # body 0 draws t1 (2.0) or t2 (0.1 → its zoo 1.0); body 1 always 1.0; body 2 t0 (1.5) or t1 (→ 1.0)
+    assert "zoo and 1 of the library: 1.250" in out and "zoo and 2 of the library: 1.500" in out
+    assert trials(table(), "t", own=True)[1][0, 0] == -np.inf
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "t.csv"), "--library", "t", "--own", "--sizes", "one"])
+    assert "--sizes 'one'" in capsys.readouterr().err
