@@ -20,7 +20,6 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-
 from scipy.special import comb
 
 from freeform.tables import paired_band, ratio_band, read_rows, write_rows
@@ -62,7 +61,7 @@ def expected_best(floor: np.ndarray, library: np.ndarray, size: int) -> np.ndarr
     if size < 1:
         raise ValueError(f"a library size must be at least 1, got {size}")
     out = np.empty(len(floor))
-    for i, (z, row) in enumerate(zip(floor, library)):
+    for i, (z, row) in enumerate(zip(floor, library, strict=True)):
         values = np.sort(row[np.isfinite(row)])[::-1]
         n = len(values)
         if size > n:

@@ -92,8 +92,12 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(out)]
     refused([*fit, "--copies", "1"], capsys, "--copies must be >= 2")
     refused([*fit, "--adapt-epochs", "0", "--curve-every", "2"], capsys, "trials alone have no curve")
-    refused([*fit, "--candidates", "population"], capsys, "no candidate is of the kind the adaptation",
-            "candidate population is a context controller")
+    pop = zoo.load("population")  # (a context controller 8 wide: of no recipe's kind, whose are 32 and 16)
+    narrow = ContextConvController.from_init_kwargs({**pop.controller.init_kwargs, "hidden": 8})
+    save_controller(tmp_path / "narrow" / "controller.pt", narrow, pop.control, pop.sim)
+    refused([*fit, "--candidates", str(tmp_path / "narrow" / "controller.pt")], capsys,
+            "no candidate is of a kind the adaptation trains", "control_teachers_cpu: context controllers (16 wide",
+            "candidate narrow is a context controller (8 wide")
     refused([*fit, "--candidates", "student_steering"], capsys, "random headings")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)
@@ -158,10 +162,9 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     per_body = rows(tmp_path / "fitted" / "adaptation_bodies.csv")  # (the same points, body by body)
     assert [(int(r["epoch"]), int(r["body"])) for r in per_body] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert [float(r["kept"]) for r in per_body[:2]] == pytest.approx(chosen, rel=1e-5)
-    # (the bank starts each body from its best candidate of the kind it trains: the population controller, a context
-    # controller and the first candidate, is tried and kept where it wins, never adapted nor the run's start)
-    adaptable = [max(float(r[f"trial_{n}"]) for n in zoo.TRIED) for r in fitted]
-    assert [float(r["adapted"]) for r in per_body[:2]] == pytest.approx(adaptable, rel=1e-3)
+    # (each body starts from its best trial: every candidate here is of a kind some recipe trains — the population
+    # controller, the first candidate, a context controller — and on these bodies a student wins, so one bank)
+    assert [float(r["adapted"]) for r in per_body[:2]] == pytest.approx(chosen, rel=1e-3)
     for point in curve:
         mine = [r for r in per_body if r["epoch"] == point["epoch"]]
         assert all(r["seconds"] == point["seconds"] for r in mine)
@@ -185,6 +188,31 @@ def test_fit_on_two_bodies_keeps_the_best_trial_and_its_figure_is_what_evaluate_
     assert rows(tmp_path / "fitted" / "bodies.csv") == fitted
 
 
+def test_fit_adapts_each_body_by_its_picks_recipe(tmp_path) -> None:
+    """Two bodies whose best trials are of two kinds (measured: the population controller moves the muscle pair
+    0.282 against pool256_gen4's 0.209, the L 0.845 against 0.891) adapt in two banks, one a recipe, each body's
+    controller of its pick's kind; before the first epoch each bank moves its body as its trial did (each loaded
+    its own body's pick), and what fit keeps is what evaluate finds."""
+    from freeform.agents.controller_file import read_controller
+
+    np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
+    main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
+          "--copies", "2", "--curve-every", "1", "--candidates", "population", "pool256_gen4"])
+    fitted = rows(tmp_path / "fitted" / "bodies.csv")
+    trials = [(float(r["trial_population"]), float(r["trial_pool256_gen4"])) for r in fitted]
+    assert trials[0][0] > trials[0][1] and trials[1][1] > trials[1][0]
+    start = [float(r["adapted"]) for r in rows(tmp_path / "fitted" / "adaptation_bodies.csv") if r["epoch"] == "0"]
+    assert start == pytest.approx([trials[0][0], trials[1][1]], rel=1e-3)
+    kinds = []
+    for row, pick in zip(fitted, ("population", "pool256_gen4"), strict=True):
+        assert row["chosen"] in (pick, f"{pick} + 1 epochs")
+        kinds.append(read_controller(Path(row["controller_file"])).kind)
+        body = tmp_path / "fitted" / f"body{row['body']}"
+        main(["evaluate", row["controller_file"], str(body / "body.npy"), "--out", str(body / "eval"), "--episodes", "1"])
+        assert float(rows(body / "eval" / "bodies.csv")[0]["mean_command"]) == float(row["mean_command"])
+    assert kinds == [zoo.load("population").kind, zoo.load("pool256_gen4").kind]
+
+
 def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself(tmp_path, capsys) -> None:
     """``--set agent.lr=5e-4`` is the adaptation's learning rate while fit's own keys stay fit's; the keys fit sets
     itself, a setting without '=', a value the config refuses and a key it lacks are refused before any trial, naming
@@ -194,11 +222,12 @@ def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself
     grids = torch.from_numpy(tiny_bodies()[:2])
     np.save(tmp_path / "bodies.npy", grids.numpy())
     how = Fit(("student",), adapt_epochs=3, copies=2, seed=7, settings=("agent.lr=5e-4", "agent.num_sgd_iter=2"))
-    cfg = adaptation(Candidates(how.candidates, grids), 2, how, tmp_path / "bodies.npy")
-    assert (cfg.agent.lr, cfg.agent.num_sgd_iter) == (5e-4, 2)
-    assert (cfg.trainer.epochs, cfg.env.num_envs, cfg.control.teachers, cfg.seed) == (3, 4, 2, 7)
-    assert cfg.agent.sgd_minibatch_size == adaptation(Candidates(how.candidates, grids), 2, Fit(("student",)),
-                                                      tmp_path / "bodies.npy").agent.sgd_minibatch_size
+    for cfg, plain in zip(adaptation(Candidates(how.candidates, grids), 2, how, tmp_path / "bodies.npy"),
+                          adaptation(Candidates(how.candidates, grids), 2, Fit(("student",)), tmp_path / "bodies.npy"),
+                          strict=True):  # (every recipe's)
+        assert (cfg.agent.lr, cfg.agent.num_sgd_iter) == (5e-4, 2)
+        assert (cfg.trainer.epochs, cfg.env.num_envs, cfg.control.teachers, cfg.seed) == (3, 4, 2, 7)
+        assert cfg.agent.sgd_minibatch_size == plain.agent.sgd_minibatch_size
     fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "out"), "--candidates", "student"]
     refused([*fit, "--set", "agent.lr=0"], capsys, "refuses it", "agent.lr must be > 0")
     refused([*fit, "--set", "agent.lr"], capsys, "--set 'agent.lr': give KEY=VALUE")
@@ -210,6 +239,26 @@ def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself
     refused([*fit, "--set", "~agent.lr"], capsys, "it deletes none")
     refused([*fit, "--set", "agent.lr=1e-3", "--adapt-epochs", "0"], capsys, "trials alone have no recipe")
     assert not (tmp_path / "out").exists()
+
+
+def test_each_candidate_is_adapted_by_the_recipe_of_its_kind(tmp_path) -> None:
+    """The zoo's students (the wave among them: the students' network with its learnt heads at zero) by the
+    students' recipe, the population controller (a context controller, 16 wide) by the per-body teachers' (lr 1e-3:
+    the reference's recipe); with the students' recipe alone the context controller is not adapted, and a fit whose
+    candidates no recipe trains is refused naming the kind each recipe trains."""
+    from freeform.control.fit import RECIPES, Candidates, Fit, adaptation, recipe_of
+
+    grids = torch.from_numpy(tiny_bodies()[:2])
+    c = Candidates(("population", "student", "wave"), grids)
+    cfgs = adaptation(c, 2, Fit(c.names), tmp_path / "bodies.npy")
+    assert RECIPES == ("control_adapt_cpu", "control_teachers_cpu")
+    assert recipe_of(c, cfgs).tolist() == [1, 0, 0]
+    assert [cfg.agent.lr for cfg in cfgs] == [3e-4, 1e-3]
+    alone = adaptation(c, 2, Fit(c.names, presets=RECIPES[:1]), tmp_path / "bodies.npy")
+    assert recipe_of(c, alone).tolist() == [-1, 0, 0]
+    context = Candidates(("population",), grids)
+    with pytest.raises(ValueError, match="no candidate is of a kind the adaptation trains .*attention.*32 wide"):
+        adaptation(context, 2, Fit(context.names, presets=RECIPES[:1]), tmp_path / "bodies.npy")
 
 
 def test_each_body_adapts_its_best_adaptable_candidate_and_ties_go_to_the_earlier() -> None:

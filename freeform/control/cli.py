@@ -138,8 +138,8 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--curve-every", type=int, default=0, metavar="K",
                    help="measure the bodies every K adaptation epochs into adaptation.csv and adaptation_bodies.csv (0: never)")
     f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="change the adaptation's recipe (the control_adapt_cpu preset's), e.g. --set agent.lr=1e-3; "
-                        "repeatable")
+                   help="change the adaptation's recipes (the control_adapt_cpu and control_teachers_cpu presets'), "
+                        "e.g. --set agent.lr=1e-3; repeatable")
     f.set_defaults(run=cmd_fit)
     g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
     g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "

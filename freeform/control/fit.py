@@ -6,15 +6,17 @@ by its mean command for one episode, all in one env (a block of rows a candidate
 that moved it furthest after the trial's decisions (``--trial SECONDS``; default the whole episode), and its figure
 is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
 
-**Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of the kind the adaptation trains (the zoo's
-students; :func:`adaptable` — other candidates, such as per-body controllers of other bodies, are tried and kept
-where they win, not adapted) is trained on that body alone for E epochs of PPO — all bodies at once, as one bank of
-per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each body ``--copies`` environments with a
-leave-one-out baseline among them), by the ``control_adapt_cpu`` preset's recipe (its learning rate and batch;
-``conf/experiment/``; ``--set agent.lr=1e-3`` changes it). Each body then keeps whichever of the adapted and the
-chosen controller (its best trial of all) moves it further by its mean command. With ``--curve-every K`` the bodies
-are measured every K epochs (and before the first and after the last) into ``adaptation.csv``: what a body gains for
-the seconds it costs (the bodies' mean; ``adaptation_bodies.csv`` body by body).
+**Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of a kind the adaptation trains
+(:data:`RECIPES`: the zoo's students, and context controllers such as the population controller and per-body
+controllers of other bodies; :func:`recipe_of` — a candidate of another kind is tried and kept where it wins, not
+adapted) is trained on that body alone for E epochs of PPO by its kind's recipe — the bodies of one recipe at once,
+as one bank of per-body controllers (``freeform.agents.distill.teachers.TeacherBank``, each body ``--copies``
+environments with a leave-one-out baseline among them; two recipes' banks take their epochs in turn), by the
+preset's learning rate and batch (``conf/experiment/``; ``--set agent.lr=1e-3`` changes every recipe's). Each body
+then keeps whichever of the adapted and the chosen controller (its best trial of all) moves it further by its mean
+command. With ``--curve-every K`` the bodies are measured every K epochs (and before the first and after the last)
+into ``adaptation.csv``: what a body gains for the seconds it costs (the bodies' mean; ``adaptation_bodies.csv``
+body by body).
 """
 
 from __future__ import annotations
@@ -43,6 +45,12 @@ FIT_SETS = {"control.bodies": "from the bodies", "control.teachers": "one contro
             "agent.seed": "give --seed", "experiment": "the preset is fit's"}
 """The adaptation's keys that ``fit`` sets itself (and how a user sets them), which ``--set`` may not name."""
 
+RECIPES = ("control_adapt_cpu", "control_teachers_cpu")
+"""The adaptation's recipes (``conf/experiment/``), each the one for the kind of controller it trains: the zoo's
+students (voxel-token attention, 32 wide; lr 3e-4, at which PPO does not first undo the distillation) and context
+controllers (16 wide: the population controller, and per-body controllers, a library's; the per-body teachers'
+recipe, lr 1e-3). A body's best candidate is adapted by the first recipe that trains its kind."""
+
 DEFAULT_ADAPT_EPOCHS = 24
 """The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
 the held-out bodies; docs/control.md)."""
@@ -52,19 +60,19 @@ the held-out bodies; docs/control.md)."""
 class Fit:
     """How ``fit`` works: the candidates (zoo names or ``controller.pt`` paths, tried in this order: a tie goes to
     the earlier), the trial's seconds (None: the whole episode), the adaptation's epochs (0: trials alone), its
-    environments per body, the preset whose recipe it follows, and the seed."""
+    environments per body, the presets whose recipes it follows (:data:`RECIPES`), and the seed."""
 
     candidates: tuple[str, ...]
     trial: float | None = None
     adapt_epochs: int = DEFAULT_ADAPT_EPOCHS
     copies: int = 4
-    preset: str = "control_adapt_cpu"
+    presets: tuple[str, ...] = RECIPES
     seed: int = 0
     curve_every: int = 0
     """Measure the bodies every this many adaptation epochs (and at 0 and the last) into ``adaptation.csv``; 0:
     never."""
     settings: tuple[str, ...] = ()
-    """Hydra overrides of the preset's recipe (``agent.lr=1e-3``), applied before what fit sets itself (the keys of
+    """Hydra overrides of every recipe (``agent.lr=1e-3``), applied before what fit sets itself (the keys of
     :data:`FIT_SETS`, which they may not name)."""
 
     def __post_init__(self) -> None:
@@ -145,46 +153,52 @@ class Candidates:
                              "heading task that one episode tries (headings any or fixed)")
 
 
-def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> Any:
-    """The adaptation's run config (``how.preset`` for ``m`` bodies in ``bodies``, ``how.settings`` over it), checked
-    before anything is played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), the preset's episode
-    the candidates', and at least one candidate of the controller it trains (:func:`adaptable`; the first such one is
-    the run's ``control.controller_init``, which each body's own start then replaces)."""
+def recipe(how: Fit, preset: str, bodies: Path, m: int, start: Path | str) -> Any:
+    """The run config of ``preset``'s adaptation of the ``m`` bodies in ``bodies``, each starting from a controller
+    shaped as ``start`` (its own then loaded): ``how.settings`` over the preset, fit's own keys over both."""
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     from freeform.config import compose
 
+    try:
+        return compose(f"experiment={preset}", *how.settings, f"control.bodies={bodies}", f"control.teachers={m}",
+                       f"env.num_envs={m * how.copies}", f"control.controller_init={start}",
+                       f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}")
+    except (HydraException, OmegaConfBaseException, ValueError) as e:
+        if not how.settings:
+            raise
+        why = (str(e).splitlines() or [type(e).__name__])[0]
+        raise ValueError(f"--set {' '.join(how.settings)}: the adaptation's config ({preset}) refuses it (or fit's "
+                         f"own settings with it): {why}") from None
+
+
+def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> list[Any]:
+    """Each of ``how.presets``' run configs for ``m`` bodies in ``bodies`` (:func:`recipe`), checked before anything
+    is played: ``how.copies`` >= 2 (the leave-one-out baseline needs a sibling), ``how.settings`` that every preset
+    takes, each preset's episode the candidates', and at least one candidate of a controller some preset trains
+    (:func:`recipe_of`)."""
     if how.copies < 2:
         raise ValueError(f"--copies must be >= 2 (a body's copies are each other's baseline), got {how.copies}")
-
-    def composed(start: Path) -> Any:
-        try:
-            return compose(f"experiment={how.preset}", *how.settings, f"control.bodies={bodies}",
-                           f"control.teachers={m}", f"env.num_envs={m * how.copies}",
-                           f"control.controller_init={start}", f"trainer.epochs={how.adapt_epochs}",
-                           f"seed={how.seed}")
-        except (HydraException, OmegaConfBaseException, ValueError) as e:
-            if not how.settings:
-                raise
-            why = (str(e).splitlines() or [type(e).__name__])[0]
-            raise ValueError(f"--set {' '.join(how.settings)}: the adaptation's config ({how.preset}) refuses it "
-                             f"(or fit's own settings with it): {why}") from None
-
-    cfg = composed(c.saved[0].path)
-    differ = described_differences(cfg.control.episode(), c.control, f"experiment={how.preset}", EPISODE)
-    if differ:
-        raise ValueError(f"the adaptation ({how.preset}) plays another episode than the candidates: "
-                         f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
-    can = adaptable(c, cfg)
-    if not can.any():
-        s, wanted = c.saved[0], trained_kind(cfg)
+    if not how.presets:
+        raise ValueError("fit adapts by at least one recipe (a preset of conf/experiment/)")
+    cfgs = []
+    for preset in how.presets:
+        cfg = recipe(how, preset, bodies, m, c.saved[0].path)
+        differ = described_differences(cfg.control.episode(), c.control, f"experiment={preset}", EPISODE)
+        if differ:
+            raise ValueError(f"the adaptation ({preset}) plays another episode than the candidates: "
+                             f"{'; '.join(differ)}: adapt candidates of its episode, or --adapt-epochs 0")
+        cfgs.append(cfg)
+    if (recipe_of(c, cfgs) < 0).all():
+        s = c.saved[0]
         kwargs = s.controller.init_kwargs
-        raise ValueError(f"no candidate is of the kind the adaptation ({how.preset}) trains, {wanted[0]} controllers "
-                         f"({wanted[1]} wide, head {wanted[2]}); candidate {c.names[0]} is a {s.kind} controller "
-                         f"({kwargs.get('hidden')} wide, head {kwargs.get('head')}): add one of the zoo's students, "
-                         "or --adapt-epochs 0")
-    return cfg if can[0] else composed(c.saved[int(np.argmax(can))].path)
+        wanted = "; ".join(f"{p}: {k[0]} controllers ({k[1]} wide, head {k[2]})"
+                           for p, k in zip(how.presets, map(trained_kind, cfgs), strict=True))
+        raise ValueError(f"no candidate is of a kind the adaptation trains ({wanted}); candidate {c.names[0]} is a "
+                         f"{s.kind} controller ({kwargs.get('hidden')} wide, head {kwargs.get('head')}): add one of "
+                         "the zoo's students, or --adapt-epochs 0")
+    return cfgs
 
 
 def trained_kind(cfg: Any) -> tuple[str, int, str]:
@@ -193,12 +207,13 @@ def trained_kind(cfg: Any) -> tuple[str, int, str]:
     return cfg.control.controller, width, cfg.control.head
 
 
-def adaptable(c: Candidates, cfg: Any) -> np.ndarray:
-    """Which candidates ``[C]`` the adaptation ``cfg`` can start from: those of the controller it trains (kind,
-    width, head: weights of one shape, so each loads into the bank). The others are tried, and kept where they win,
-    but not adapted."""
-    return np.array([(s.kind, s.controller.init_kwargs.get("hidden"), s.controller.init_kwargs.get("head"))
-                     == trained_kind(cfg) for s in c.saved])
+def recipe_of(c: Candidates, cfgs: list[Any]) -> np.ndarray:
+    """Which of the recipes ``cfgs`` adapts each candidate ``[C]``: the first that trains its controller (kind,
+    width, head: weights of one shape, so each loads into that recipe's bank), -1 where none does — tried, and kept
+    where it wins, but not adapted."""
+    kinds = [trained_kind(cfg) for cfg in cfgs]
+    own = [(s.kind, s.controller.init_kwargs.get("hidden"), s.controller.init_kwargs.get("head")) for s in c.saved]
+    return np.array([kinds.index(k) if k in kinds else -1 for k in own])
 
 
 def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
@@ -227,25 +242,36 @@ def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
     return (trial if among is None else np.where(among[:, None], trial, -np.inf)).argmax(0)
 
 
-def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, how: Fit, cfg: Any,
+def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarray, how: Fit, scratch: Path,
           tried: np.ndarray | None = None, begun: float | None = None,
-          ) -> tuple[Any, np.ndarray, tuple[list[dict], list[dict]]]:
-    """Each body's candidate ``begin[i]`` (an adaptable one) trained on it for ``how.adapt_epochs`` epochs (the
-    module's docstring; ``cfg`` from :func:`adaptation`): the bank of adapted controllers, each one's whole-episode
-    move on its body ``[M]`` (mean command), and with ``how.curve_every`` the adaptation's curve as (a row a point,
-    a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the
-    move under the bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would
-    give stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
+          ) -> tuple[list[Any], np.ndarray, tuple[list[dict], list[dict]]]:
+    """Each body's candidate ``begin[i]`` trained on it for ``how.adapt_epochs`` epochs by the recipe
+    ``how.presets[which[i]]`` (the module's docstring; a bank a recipe, its bodies written to ``scratch``): each
+    body's adapted controller ``[M]`` (its bank's member), its whole-episode move on its body ``[M]`` (mean command),
+    and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body): ``epoch``,
+    ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the move under
+    its bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give
+    stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
     from freeform.run.build import build
 
     m = len(grids)
-    _, ppo = build(cfg, torch.device("cpu"))
-    bank = ppo.policy
-    for i in range(m):
-        bank.load_member(i, c.saved[int(begin[i])].controller.state_dict())
+    banks = []  # (the recipe, its bodies' places in grids, its PPO over their bank)
+    for k in np.unique(which):
+        places = np.flatnonzero(which == k)
+        bodies = scratch / f"adapting_{how.presets[k]}.npy"
+        np.save(bodies, grids[places].numpy())
+        _, ppo = build(recipe(how, how.presets[k], bodies, len(places), c.saved[int(begin[places[0]])].path),
+                       torch.device("cpu"))
+        for j, i in enumerate(places):
+            ppo.policy.load_member(j, c.saved[int(begin[i])].controller.state_dict())
+        banks.append((how.presets[k], places, ppo))
 
-    def measured() -> np.ndarray:
-        return own_moves(bank, block_env(grids, c.saved[0], c.control, blocks=1, seed=how.seed), how.seed)
+    def measured() -> np.ndarray:  # (a bank's bodies apart: fit's heading tasks draw nothing that a row decides)
+        moves = np.empty(m)
+        for _, places, ppo in banks:
+            moves[places] = own_moves(ppo.policy, block_env(grids[places], c.saved[0], c.control, blocks=1,
+                                                            seed=how.seed), how.seed)
+        return moves
 
     curve: list[dict] = []
     per_body: list[dict] = []
@@ -267,13 +293,18 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, how: Fit, cfg: 
         point(0)
     with torch.enable_grad():
         for epoch in range(how.adapt_epochs):
-            stats = ppo.train_epoch()
-            print(f"adapting {m} bodies: epoch {epoch + 1}/{how.adapt_epochs}, the epoch's return "
-                  f"{stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
+            for preset, places, ppo in banks:  # (in turn: each bank's epoch is its own bodies' alone)
+                stats = ppo.train_epoch()
+                print(f"adapting {len(places)} bodies ({preset}): epoch {epoch + 1}/{how.adapt_epochs}, the epoch's "
+                      f"return {stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
             if how.curve_every and ((epoch + 1) % how.curve_every == 0 or epoch + 1 == how.adapt_epochs):
                 point(epoch + 1)
+    members: list[Any] = [None] * m
+    for _, places, ppo in banks:
+        for j, i in enumerate(places):
+            members[i] = ppo.policy.member(j)
     # (the curve's last point measured the last epoch)
-    return bank, moved if how.curve_every else measured(), (curve, per_body)
+    return members, moved if how.curve_every else measured(), (curve, per_body)
 
 
 @torch.no_grad()
@@ -301,16 +332,18 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="freeform-fit-") as scratch:
         bodies = Path(scratch) / "bodies.npy"
         np.save(bodies, grids.numpy())
-        cfg = adaptation(c, m, how, bodies) if how.adapt_epochs else None  # (refused before anything is played)
+        cfgs = adaptation(c, m, how, bodies) if how.adapt_epochs else None  # (refused before anything is played)
         trial, moves = trials(c, grids, decisions, how.seed)
         choice = chosen(trial)
         nets = [c.saved[int(k)].controller for k in choice]
         labels = [c.names[int(k)] for k in choice]
-        if cfg is not None:  # (each body adapts its best adaptable candidate, and keeps it where it beats the choice)
-            begin = chosen(trial, adaptable(c, cfg))
-            bank, adapted, (curve, per_body) = adapt(c, grids, begin, how, cfg, moves[choice, np.arange(m)], start)
+        if cfgs is not None:  # (each body adapts its best adaptable candidate, and keeps it where it beats the choice)
+            kinds = recipe_of(c, cfgs)
+            begin = chosen(trial, kinds >= 0)
+            members, adapted, (curve, per_body) = adapt(c, grids, begin, kinds[begin], how, Path(scratch),
+                                                        moves[choice, np.arange(m)], start)
             better = adapted > moves[choice, np.arange(m)]
-            nets = [bank.member(i) if better[i] else net for i, net in enumerate(nets)]
+            nets = [members[i] if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{c.names[int(begin[i])]} + {how.adapt_epochs} epochs" if better[i] else label
                       for i, label in enumerate(labels)]
     moved = alone(nets, grids, c, how.seed)
@@ -322,7 +355,7 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
         rows.append({"body": i, "chosen": labels[i], "mean_command": float(moved[i]), "controller_file": str(path),
                      "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
     write_rows(out / "bodies.csv", rows)
-    if cfg is not None and how.curve_every:  # (the bodies' mean; body by body beside, for a fraction's band)
+    if cfgs is not None and how.curve_every:  # (the bodies' mean; body by body beside, for a fraction's band)
         write_rows(out / "adaptation.csv", curve)
         write_rows(out / "adaptation_bodies.csv", per_body)
     return rows
@@ -354,7 +387,7 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "Candidates", "Fit", "adapt", "adaptable", "adaptation",
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "Candidates", "Fit", "adapt", "adaptation",
            "alone", "candidate_name", "chosen", "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike",
-           "trained_kind", "trial_decisions", "trials"]
+           "recipe", "recipe_of", "trained_kind", "trial_decisions", "trials"]
 
