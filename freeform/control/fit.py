@@ -42,7 +42,7 @@ EPISODE = tuple(f.name for f in fields(ControlConfig))
 FIT_SETS = {"control.bodies": "from the bodies", "control.teachers": "one controller a body",
             "control.controller_init": "each body starts from its best candidate of the adaptation's kind",
             "env.num_envs": "give --copies", "trainer.epochs": "give --adapt-epochs", "seed": "give --seed",
-            "agent.seed": "give --seed", "experiment": "the preset is fit's"}
+            "agent.seed": "give --seed", "experiment": "the recipes are fit's (RECIPES)"}
 """The adaptation's keys that ``fit`` sets itself (and how a user sets them), which ``--set`` may not name."""
 
 RECIPES = ("control_adapt_cpu", "control_teachers_cpu")
@@ -98,6 +98,10 @@ class Fit:
 def candidate_name(spec: str) -> str:
     """How tables name a candidate: a zoo name as it is, a file by its folder (``runs/mine/controller.pt``: ``mine``),
     a folder by itself."""
+    from freeform.zoo import ORDER
+
+    if spec in ORDER:  # (the library's members too: library/d0)
+        return spec
     path = Path(spec)
     return path.parent.name if path.suffix == ".pt" and path.parent.name else path.stem if path.suffix else path.name
 

@@ -6,13 +6,15 @@ what it reaches and against what reference, its size).
     saved = zoo.load("student")  # a SavedController: .controller (the network), .control, .sim
     print(zoo.card("student"))
 
-``student`` is the best single controller for bodies it never saw (zero-shot). The others are the students that,
-tried once each on a body beside it, keep most of what trying all 17 committed students gains (chosen greedily on
-the 93 held-out bodies, checked on 32 fresh ones); ``wave`` is the hand-set travelling wave in the same network (the
-student with its learnt heads at zero), so that it too can be adapted. Those are :data:`TRIED`: each a voxel-token
-transformer of one architecture playing the same episode (2 s of strokes, headings any), so that
-``freeform-control fit`` tries them side by side and adapts whichever wins. :data:`STARTS` are what the presets in
-``conf/experiment`` start from. A config names any of them by name (``control.controller_init=population``).
+``student`` is the best single controller for bodies it never saw (zero-shot). The others of :data:`STUDENTS` are
+the students that, tried once each on a body beside it, keep most of what trying all 17 committed students gains
+(chosen greedily on the 93 held-out bodies, checked on 32 fresh ones); ``wave`` is the hand-set travelling wave in the
+same network (the student with its learnt heads at zero), so that it too can be adapted. :data:`LIBRARY` holds
+per-body controllers of training bodies (``library/d0`` …, each beside its ``body.npy``): on a body they were not
+trained on each is weak, but the best of them is often near what the body needs. All play the same episode (2 s of
+strokes, headings any), so that ``freeform-control fit`` tries them side by side (:data:`TRIED`) and adapts whichever
+wins, by the recipe of its kind. :data:`STARTS` are what the presets in ``conf/experiment`` start from. A config names
+any of them by name (``control.controller_init=population``).
 """
 
 from __future__ import annotations
@@ -23,9 +25,14 @@ from typing import Any
 ZOO = Path(__file__).resolve().parent
 CONTROLLER_FILE = "controller.pt"
 CARD = "card.md"
-TRIED = ("student", "pool256_gen4", "pool256", "reptile3_fresh", "iterated64", "reptile3", "wave")
-"""What ``freeform-control fit`` tries on a body, in the order they were chosen (each added the most to the best of
-those before it on the 93 held-out bodies)."""
+STUDENTS = ("student", "pool256_gen4", "pool256", "reptile3_fresh", "iterated64", "reptile3", "wave")
+"""The students ``freeform-control fit`` tries on a body, in the order they were chosen (each added the most to the
+best of those before it on the 93 held-out bodies)."""
+LIBRARY = tuple(f"library/d{i}" for i in range(8))
+"""Per-body controllers of 8 training bodies (the design env's untrained bodies, body_seed 0), 200 epochs each by the
+per-body teachers' recipe (``library/card.md``)."""
+TRIED = STUDENTS + LIBRARY
+"""What ``freeform-control fit`` tries on a body, in this order (a tie goes to the earlier)."""
 STARTS = ("student_gen3", "population", "population_steering", "student_steering")
 """The controllers the presets start from (``control.controller_init``) and that their figures were measured with."""
 ORDER = TRIED + STARTS
@@ -71,4 +78,4 @@ def card(name: str) -> str:
     return (path(name).parent / CARD).read_text()
 
 
-__all__ = ["CARD", "ORDER", "STARTS", "TRIED", "UnknownController", "ZOO", "card", "load", "names", "path", "resolve"]
+__all__ = ["CARD", "LIBRARY", "ORDER", "STARTS", "STUDENTS", "TRIED", "UnknownController", "ZOO", "card", "load", "names", "path", "resolve"]
