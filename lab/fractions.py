@@ -6,7 +6,8 @@ each body's own controller at a saved epoch), body by body, with 99 % bands (``f
         --table "fit, trials alone=lab/results/fit93/trials_bodies.csv" \\
         --table "fit, 24 epochs=lab/results/fit93/design_unseen32_adapt24_bodies.csv" --out DIR
 
-A table is ``NAME=CSV[:COLUMN[:FIRST]]``: its ``body`` column names the body (its row number where it has none),
+A table is ``NAME=CSV[:COLUMN[:FIRST]]`` (``A.csv+B.csv``: several fits' tables as one, e.g. a set fitted in parts
+whose ``body`` columns were numbered apart): its ``body`` column names the body (its row number where it has none),
 COLUMN its figure (default ``mean_command``), and its body FIRST + b is the reference's body b (default 0). Writes
 ``DIR/fractions.csv``: per table, the bodies, its mean, the reference's mean on them, the fraction and its band, and
 the mean ``seconds`` a body where the table has them (``fit``'s).
@@ -76,9 +77,9 @@ def table_moves(spec: str, bodies: int) -> tuple[str, np.ndarray, np.ndarray]:
     name, sep, rest = spec.partition("=")
     if not sep:
         raise ValueError(f"--table {spec!r}: give NAME=CSV[:COLUMN[:FIRST]]")
-    path, _, rest = rest.partition(":")
+    paths, _, rest = rest.partition(":")
     column, _, first = rest.partition(":")
-    rows = _read(Path(path), (column or "mean_command",), "--table", spec)
+    rows = [row for path in paths.split("+") for row in _read(Path(path), (column or "mean_command",), "--table", spec)]
     at = _first(first, "--table", spec)
     seconds = per_body(rows, "seconds", at, bodies) if "seconds" in rows[0] else np.full(bodies, np.nan)
     return name, per_body(rows, column or "mean_command", at, bodies), seconds
@@ -121,10 +122,10 @@ def curve_points(reference: Path, curves: list[str], epoch: int | None = None) -
                                  f"{len(ref)} (check FIRST)")
             fraction, band = ratio_band(kept, ref)
             moves[name, e] = kept
-            rows.append({"curve": name, "epoch": e, "seconds_a_body": float(mine[0]["seconds"]),
-                         "bodies": int(np.isfinite(kept).sum()), "reference_epoch": at, "fraction": fraction,
-                         "band99": band})
-            print(f"{name}, epoch {e} ({float(mine[0]['seconds']):.1f} s a body): {fraction:.1%} ± {band:.1%}")
+            seconds = float(np.mean([float(p["seconds"]) for p in mine]))  # (bodies fitted in parts: each its own)
+            rows.append({"curve": name, "epoch": e, "seconds_a_body": seconds, "bodies": int(np.isfinite(kept).sum()),
+                         "reference_epoch": at, "fraction": fraction, "band99": band})
+            print(f"{name}, epoch {e} ({seconds:.1f} s a body): {fraction:.1%} ± {band:.1%}")
     return rows, paired_curves(moves)
 
 

@@ -65,7 +65,8 @@ def expected_best(floor: np.ndarray, library: np.ndarray, size: int) -> np.ndarr
         values = np.sort(row[np.isfinite(row)])[::-1]
         n = len(values)
         if size > n:
-            raise ValueError(f"library size {size}: body {i} can draw from {n} controllers only")
+            raise ValueError(f"library size {size}: body {i} can draw from {n} controllers only (its own left out): "
+                             f"give --sizes of at most {n}")
         j = np.arange(1, n + 1)
         p = comb(n - j, size - 1) / comb(n, size)
         out[i] = float((p * np.maximum(z, values)).sum())

@@ -62,7 +62,10 @@ def main(argv: list[str] | None = None) -> None:
         p.error(str(exc))
     for i, move in enumerate(own):
         member = args.out / f"d{i}"
-        controller = export_teacher(args.checkpoint, i, member)
+        try:  # (a checkpoint that is no teacher run, or has fewer teachers, fails at the first: nothing written)
+            controller = export_teacher(args.checkpoint, i, member)
+        except (ValueError, FileNotFoundError) as exc:
+            p.error(str(exc))
         saved = read_controller(controller)
         card = member_card(i, np.load(member / "body.npy")[0], float(move), args.epoch,
                            int(saved.controller.init_kwargs["hidden"]), round(controller.stat().st_size / 1024))

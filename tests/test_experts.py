@@ -171,6 +171,13 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     row = next(csv.DictReader(open(tmp_path / "fractions" / "fractions.csv")))
     assert row["table"] == "half" and int(row["bodies"]) == 3 and float(row["seconds_a_body"]) == 1.5
     assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12) and float(row["band99"]) < 1e-12
+    lines = (tmp_path / "half.csv").read_text().splitlines()  # (the same table in two parts, A+B)
+    (tmp_path / "a.csv").write_text("\n".join(lines[:2]) + "\n")
+    (tmp_path / "b.csv").write_text("\n".join([lines[0], *lines[2:]]) + "\n")
+    fractions(["--reference", str(tmp_path / "curve"), "--table",
+               f"parts={tmp_path / 'a.csv'}+{tmp_path / 'b.csv'}:mean_command:10", "--out", str(tmp_path / "parts")])
+    parts = next(csv.DictReader(open(tmp_path / "parts" / "fractions.csv")))
+    assert int(parts["bodies"]) == 3 and float(parts["fraction"]) == pytest.approx(0.5, abs=1e-12)
     # --curve: a fit's points body by body (half the reference, then all of it but the second body's half), by seconds
     def fit_curve(name: str, seconds: tuple[float, float], shift):
         """A fit's folder whose body i (reference body 10 + i) has moved ``kept`` at epochs 0 and 4, plus shift(e, i)."""

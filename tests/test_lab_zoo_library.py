@@ -29,3 +29,11 @@ def test_an_existing_member_is_refused_and_kept(tmp_path, capsys) -> None:
               "--out", str(tmp_path / "zoo")])
     assert "d1 exists (nothing is overwritten)" in capsys.readouterr().err
     assert (tmp_path / "zoo" / "d1" / "card.md").read_text() == "mine" and not (tmp_path / "zoo" / "d0").exists()
+
+
+def test_a_checkpoint_that_is_no_teacher_run_is_refused_and_nothing_written(tmp_path, capsys) -> None:
+    write_rows(tmp_path / "ref" / "bodies.csv", [{"body": 0, "epoch240": 1.0}])
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "nosuch.pt"), "--reference", str(tmp_path / "ref"), "--epoch", "240",
+              "--out", str(tmp_path / "zoo")])
+    assert "nosuch.pt" in capsys.readouterr().err and not (tmp_path / "zoo").exists()
