@@ -270,3 +270,19 @@ def test_each_body_adapts_its_best_adaptable_candidate_and_ties_go_to_the_earlie
     trial = np.array([[1.0, 5.0, 2.0], [3.0, 5.0, 0.5], [9.0, 0.0, 1.0]])  # [candidates, bodies]; the third not adaptable
     assert chosen(trial).tolist() == [2, 0, 0]
     assert chosen(trial, np.array([True, True, False])).tolist() == [1, 0, 0]
+
+
+def test_zoo_lists_every_controller_once_and_the_library_as_one_line(capsys) -> None:
+    """Every name a user can give is listed (the library by its range), each beside its card's first line."""
+    main(["zoo"])
+    lines = capsys.readouterr().out.splitlines()
+    listed = [line.split()[0] for line in lines[:lines.index("")]]
+    library = [line for line in lines if line.startswith(zoo.LIBRARY[0])]
+    assert listed == [n for n in zoo.names() if n not in zoo.LIBRARY[1:]]
+    assert len(library) == 1 and f"… {zoo.LIBRARY[-1]}" in library[0]
+    assert "training bodies" in library[0]  # the library's own card, not a member's
+    for line in lines[:lines.index("")]:
+        name = line.split()[0]
+        if name not in zoo.LIBRARY:
+            first = next(x for x in zoo.card(name).splitlines() if x and not x.startswith("#"))
+            assert line.endswith(first), name

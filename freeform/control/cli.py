@@ -45,10 +45,20 @@ def _bodies(path: str, spec: str | None = None):
 def cmd_zoo(args: argparse.Namespace) -> None:
     from freeform import zoo
 
+    def first_line(card: str) -> str:
+        return next((line for line in card.splitlines() if line and not line.startswith("#")), "")
+
+    library = f"{zoo.LIBRARY[0]} … {zoo.LIBRARY[-1]}"  # one line: the members' cards say the same but for the body
     for name in zoo.names():
-        first = next((line for line in zoo.card(name).splitlines() if line and not line.startswith("#")), "")
-        print(f"{name:20s} {first}")
-    print(f"\n(the files: {zoo.ZOO}; `fit` tries {', '.join(zoo.TRIED)})")
+        if name in zoo.LIBRARY[1:]:
+            continue
+        if name == zoo.LIBRARY[0]:
+            print(f"{library:20s} {first_line((zoo.ZOO / 'library' / zoo.CARD).read_text())}")
+        else:
+            print(f"{name:20s} {first_line(zoo.card(name))}")
+    tried = [n for n in zoo.TRIED if n not in zoo.LIBRARY] + [library]
+    print(f"\n(the files: {zoo.ZOO}; `fit` tries {', '.join(tried)}; `zoo.card(name)` or card.md beside each "
+          "controller.pt says what it is)")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
