@@ -32,8 +32,14 @@ import numpy as np
 from freeform.tables import paired_band, ratio_band, read_rows, write_rows
 
 
-def reference_moves(folder: Path, epoch: int | None = None) -> tuple[int, np.ndarray]:
-    """``lab.reference``'s per-body moves ``[n]`` at ``epoch`` (None: the last saved) and that epoch."""
+def reference_moves(folder: Path, epoch: int | None = None) -> tuple[int | str, np.ndarray]:
+    """``lab.reference``'s per-body moves ``[n]`` at ``epoch`` (None: the last saved) and that epoch. ``A+B``: a
+    reference trained in parts (bodies 0 … of A, then B's, each bank until its own plateau), each at its own last
+    saved epoch (or each at ``epoch``); the epoch is then the parts' joined by ``+``."""
+    parts = str(folder).split("+")
+    if len(parts) > 1:
+        read = [reference_moves(Path(part), epoch) for part in parts]
+        return "+".join(str(at) for at, _ in read), np.concatenate([moves for _, moves in read])
     rows = _read(folder / "bodies.csv", ("body",), "--reference", str(folder))
     epochs = sorted(int(k[len("epoch"):]) for k in rows[0] if k.startswith("epoch"))
     at = epochs[-1] if epoch is None else epoch
@@ -174,7 +180,8 @@ def draw_curves(rows: list[dict], out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--reference", type=Path, required=True, help="a lab.reference output folder")
+    p.add_argument("--reference", type=Path, required=True,
+                   help="a lab.reference output folder (A+B: a reference trained in parts, bodies in that order)")
     p.add_argument("--epoch", type=int, default=None, help="the reference's saved epoch (default: its last)")
     p.add_argument("--table", action="append", default=[], metavar="NAME=CSV[:COLUMN[:FIRST]]")
     p.add_argument("--curve", action="append", default=[], metavar="NAME=FIT_DIR[:FIRST]")

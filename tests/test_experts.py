@@ -178,6 +178,19 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
                f"parts={tmp_path / 'a.csv'}+{tmp_path / 'b.csv'}:mean_command:10", "--out", str(tmp_path / "parts")])
     parts = next(csv.DictReader(open(tmp_path / "parts" / "fractions.csv")))
     assert int(parts["bodies"]) == 3 and float(parts["fraction"]) == pytest.approx(0.5, abs=1e-12)
+    # a reference trained in parts (A+B): body 0's bank to epoch 2, bodies 1 and 2's stopped at epoch 1; each part
+    # is read at its own last epoch, in order (a table of half of those is 50 %)
+    for name, rows_of, epochs in (("refA", bodies[:1], (0, 1, 2)), ("refB", bodies[1:], (0, 1))):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "bodies.csv").write_text("body," + ",".join(f"epoch{e}" for e in epochs) + "\n" + "".join(
+            f"{i}," + ",".join(b[f"epoch{e}"] for e in epochs) + "\n" for i, b in enumerate(rows_of)))
+    own = [float(bodies[0]["epoch2"]), float(bodies[1]["epoch1"]), float(bodies[2]["epoch1"])]
+    (tmp_path / "own.csv").write_text("body,mean_command\n" + "".join(f"{i},{m / 2}\n" for i, m in enumerate(own)))
+    fractions(["--reference", f"{tmp_path / 'refA'}+{tmp_path / 'refB'}", "--table", f"own={tmp_path / 'own.csv'}",
+               "--out", str(tmp_path / "inparts")])
+    row = next(csv.DictReader(open(tmp_path / "inparts" / "fractions.csv")))
+    assert row["reference_epoch"] == "2+1" and float(row["reference"]) == pytest.approx(np.mean(own), abs=1e-12)
+    assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12)
     # --curve: a fit's points body by body (half the reference, then all of it but the second body's half), by seconds
     def fit_curve(name: str, seconds: tuple[float, float], shift):
         """A fit's folder whose body i (reference body 10 + i) has moved ``kept`` at epochs 0 and 4, plus shift(e, i)."""
