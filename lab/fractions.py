@@ -12,6 +12,9 @@ COLUMN its figure (default ``mean_command``), and its body FIRST + b is the refe
 ``DIR/fractions.csv``: per table, the bodies, its mean, the reference's mean on them, the fraction and its band, and
 the mean ``seconds`` a body where the table has them (``fit``'s).
 
+A reference trained in parts (a bank of 8 bodies a session: ``lab/results/reference/grown_seed23/``) is
+``--reference A+B+…``: their bodies in that order, each part at its own last saved epoch.
+
 The fraction against seconds: ``--curve NAME=FIT_DIR[:FIRST]`` reads a ``fit --curve-every K`` folder's
 ``adaptation_bodies.csv`` (each body's move under what fit would keep if stopped at that point) and writes
 ``DIR/curve.csv`` (per curve and point: the epoch, a body's seconds, the fraction and its band) and ``DIR/curve.png``;
