@@ -254,8 +254,8 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
     body's adapted controller ``[M]`` (its bank's member), its whole-episode move on its body ``[M]`` (mean command),
     and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body): ``epoch``,
     ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the move under
-    its bank) and ``kept`` (under the better of the bank and the trial, ``tried`` ``[M]``: what fit would give
-    stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
+    its bank) and ``kept`` (the trial ``tried`` ``[M]`` before the first epoch, then the better of the bank and
+    the trial: what fit would give stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
     from freeform.run.build import build
 
     m = len(grids)
@@ -286,7 +286,10 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
         nonlocal measuring, moved
         at = time.perf_counter()
         moved = measured()
-        kept = np.maximum(moved, tried) if tried is not None else np.full(m, np.nan)
+        # (before the first epoch fit keeps the trials' pick at its trial figure: the bank plays that pick in
+        # another batch, whose rounding would lift the max by a hair on one CPU and not on another)
+        kept = (np.full(m, np.nan) if tried is None else tried.astype(float) if epoch == 0
+                else np.maximum(moved, tried))
         seconds = (at - begun - measuring) / m
         curve.append({"epoch": epoch, "seconds": seconds, "adapted": float(moved.mean()), "kept": float(kept.mean())})
         per_body.extend({"epoch": epoch, "seconds": seconds, "body": i, "adapted": float(a), "kept": float(k)}
