@@ -257,7 +257,7 @@ def test_a_section_the_experiment_leaves_empty_is_named_with_the_experiments_tha
     # the presets with a control section, by hand (control_adapt_cpu's through its base, control_teachers_cpu)
     truth = [f"codesign_{n}_cpu" for n in ("locomotion", "population", "population_steering", "steering", "student",
                                            "student_steering")] + \
-            [f"control_{n}_cpu" for n in ("adapt", "climb", "locomotion", "population", "population_steering",
+            [f"control_{n}_cpu" for n in ("adapt", "adapt_steering", "climb", "locomotion", "population", "population_steering",
                                           "steering", "student", "student_steering", "teachers", "teachers_steering")]
     assert having == truth
     assert "volume_cpu" not in having and "paper_locomotion" not in having

@@ -88,7 +88,8 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
              str(tmp_path / "moon.pt")], capsys, "sim.gravity: -5.0")
     refused(["watch", str(controller), str(tmp_path / "bodies.npy"), "--out", str(out)], capsys, "--body I")
     # fit's adaptation and trials, refused before a trial is played: one copy (no baseline), no candidate of the
-    # kind the adaptation trains, a steering candidate (one draw of headings is no trial), two of one name
+    # kind the adaptation trains, a task other than the candidates', several trial episodes where each is the same
+    # or none, two of one name
     fit = ["fit", str(tmp_path / "bodies.npy"), "--out", str(out)]
     refused([*fit, "--copies", "1"], capsys, "--copies must be >= 2")
     refused([*fit, "--adapt-epochs", "0", "--curve-every", "2"], capsys, "trials alone have no curve")
@@ -98,7 +99,10 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused([*fit, "--candidates", str(tmp_path / "narrow" / "controller.pt")], capsys,
             "no candidate is of a kind the adaptation trains", "control_teachers_cpu: context controllers (16 wide",
             "candidate narrow is a context controller (8 wide")
-    refused([*fit, "--candidates", "student_steering"], capsys, "random headings")
+    refused([*fit, "--headings", "random", "--candidates", "student"], capsys,
+            "--headings random: candidate student plays headings 'any'", "student_steering, population_steering")
+    refused([*fit, "--trial-episodes", "2"], capsys, "--trial-episodes 2", "every episode is the same")
+    refused([*fit, "--headings", "random", "--trial-episodes", "0"], capsys, "--trial-episodes must be a whole number")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)
     for folder in (tmp_path / "a", tmp_path / "b" / "a"):
@@ -213,6 +217,70 @@ def test_fit_adapts_each_body_by_its_picks_recipe(tmp_path) -> None:
     assert kinds == [zoo.load("population").kind, zoo.load("pool256_gen4").kind]
 
 
+def test_block_env_draws_the_episodes_after_the_figures_and_a_part_of_a_set_as_the_set_does() -> None:
+    """``first_episode`` 1 gives each body the headings of the episodes after its first (what a steering trial plays:
+    never the draw its figure is measured on), and ``among`` gives bodies taken from a set the headings they draw in
+    the set's env (what each bank of an adaptation plays)."""
+    from freeform.control.evaluate import block_env
+
+    saved = zoo.load("student_steering")
+    grids = torch.from_numpy(tiny_bodies())
+    whole = block_env(grids, saved, saved.control, blocks=1, episodes=5)
+    whole.reset()
+    after = block_env(grids, saved, saved.control, blocks=2, episodes=4, first_episode=1)
+    after.reset()
+    later = whole.heading.reshape(3, 5)[:, 1:].reshape(-1)
+    assert np.array_equal(after.heading, np.tile(later, 2)) and len(np.unique(whole.heading)) == 15
+    part = block_env(grids[[2, 0]], saved, saved.control, blocks=1, episodes=5, among=(np.array([2, 0]), 3))
+    part.reset()
+    assert np.array_equal(part.heading, whole.heading.reshape(3, 5)[[2, 0]].reshape(-1))
+    with pytest.raises(ValueError, match="among: 2 places in a set of 3"):
+        block_env(grids[:2], saved, saved.control, blocks=1, among=(np.array([0, 3]), 3))
+
+
+def test_fit_for_steering_chooses_on_the_trial_episodes_and_reports_the_first(tmp_path) -> None:
+    """``--headings random``: the zoo's steering candidates, each trial the mean of the episodes after the first
+    (evaluate's own episodes 1–4 of the candidate, played apart), the figures episode 0's — the pick's before the first
+    epoch (what evaluate finds for it), what fit keeps after the last (what evaluate finds for the file written),
+    so that no figure is measured on the draw that chose it. On these three bodies the two candidates each win one
+    (measured: the population controller body 1's), so two banks each play their bodies along the set's draws."""
+    from freeform.control.evaluate import block_env
+    from freeform.control.play import play
+
+    grids = tiny_bodies()
+    np.save(tmp_path / "bodies.npy", grids)
+    main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--headings", "random",
+          "--adapt-epochs", "1", "--copies", "2", "--curve-every", "1"])
+    fitted = rows(tmp_path / "fitted" / "bodies.csv")
+    assert [k for k in fitted[0] if k.startswith("trial_")] == [f"trial_{n}" for n in zoo.STEERING]
+    first, kept, bank = {}, {}, {}
+    for r in rows(tmp_path / "fitted" / "adaptation_bodies.csv"):
+        (first if r["epoch"] == "0" else kept)[int(r["body"])] = float(r["kept"])
+        if r["epoch"] == "0":
+            bank[int(r["body"])] = float(r["adapted"])
+    picks = [max(zoo.STEERING, key=lambda n: float(r[f"trial_{n}"])) for r in fitted]
+    assert picks == ["student_steering", "population_steering", "student_steering"]
+    for name in zoo.STEERING:
+        saved = zoo.load(name)
+        env = block_env(torch.from_numpy(grids), saved, saved.control, blocks=1, episodes=5)
+        moves = play(env, [(name, saved.controller.eval(), False, False)], saved.control.steps, 0).returns[0]
+        trial = moves.reshape(3, 5)[:, 1:].mean(1)
+        assert [float(r[f"trial_{name}"]) for r in fitted] == pytest.approx(trial, rel=1e-3, abs=1e-4)
+        main(["evaluate", name, str(tmp_path / "bodies.npy"), "--out", str(tmp_path / name), "--episodes", "1"])
+        for i, r in enumerate(rows(tmp_path / name / "bodies.csv")):
+            assert float(r["mean_command"]) == pytest.approx(moves[5 * i], abs=1e-3)  # (another batch: rounding)
+            if picks[i] == name:  # (before the first epoch: the pick, alone and in its bank)
+                assert first[i] == pytest.approx(float(r["mean_command"]), abs=1e-3)
+                assert bank[i] == pytest.approx(float(r["mean_command"]), abs=3e-3)  # (another heading: tenths)
+    for i, row in enumerate(fitted):  # (a body's heading is its row's draw in the set: evaluate on the set, row i)
+        body = tmp_path / "fitted" / f"body{i}"
+        main(["evaluate", row["controller_file"], str(tmp_path / "bodies.npy"), "--out", str(body / "eval"),
+              "--episodes", "1"])
+        assert float(rows(body / "eval" / "bodies.csv")[i]["mean_command"]) == pytest.approx(
+            float(row["mean_command"]), abs=1e-3)  # (a batch of two rows there, of one here: rounding)
+        assert kept[i] == pytest.approx(float(row["mean_command"]), abs=1e-3)
+
+
 def test_fit_set_reaches_the_adaptations_config_and_refuses_what_fit_sets_itself(tmp_path, capsys) -> None:
     """``--set agent.lr=5e-4`` is the adaptation's learning rate while fit's own keys stay fit's; the keys fit sets
     itself, a setting without '=', a value the config refuses and a key it lacks are refused before any trial, naming
@@ -246,7 +314,7 @@ def test_each_candidate_is_adapted_by_the_recipe_of_its_kind(tmp_path) -> None:
     students' recipe, the population controller (a context controller, 16 wide) by the per-body teachers' (lr 1e-3:
     the reference's recipe); with the students' recipe alone the context controller is not adapted, and a fit whose
     candidates no recipe trains is refused naming the kind each recipe trains."""
-    from freeform.control.fit import RECIPES, Candidates, Fit, adaptation, candidate_name, recipe_of
+    from freeform.control.fit import RECIPES, STEERING_RECIPES, Candidates, Fit, adaptation, candidate_name, recipe_of
 
     assert [candidate_name(n) for n in ("library/d3", "student", "runs/mine/controller.pt", "runs/mine")] == [
         "library/d3", "student", "mine", "mine"]  # (a zoo name as it is, the library's members too)
@@ -256,6 +324,10 @@ def test_each_candidate_is_adapted_by_the_recipe_of_its_kind(tmp_path) -> None:
     cfgs = adaptation(c, 2, Fit(c.names), tmp_path / "bodies.npy")
     assert RECIPES == ("control_adapt_cpu", "control_teachers_cpu")
     assert recipe_of(c, cfgs).tolist() == [1, 0, 0]
+    steering = Candidates(("population_steering", "student_steering"), grids)  # (their recipes, by the task)
+    steer = adaptation(steering, 2, Fit(steering.names), tmp_path / "bodies.npy")
+    assert [cfg.name for cfg in steer] == list(STEERING_RECIPES) and recipe_of(steering, steer).tolist() == [1, 0]
+    assert {cfg.control.headings for cfg in steer} == {"random"}
     assert [cfg.agent.lr for cfg in cfgs] == [3e-4, 1e-3]
     alone = adaptation(c, 2, Fit(c.names, presets=RECIPES[:1]), tmp_path / "bodies.npy")
     assert recipe_of(c, alone).tolist() == [-1, 0, 0]

@@ -4,6 +4,7 @@
     freeform-control evaluate student my_bodies.npy --out eval    # bodies.csv, summary.csv
     freeform-control watch student my_body.npy --out seen         # gait.gif, gait.json
     freeform-control fit my_bodies.npy --out fitted               # fitted/body<i>/controller.pt, bodies.csv
+    freeform-control fit my_bodies.npy --headings random --out f  # the same for steering (a heading each episode)
     freeform-control gate student pool256 --trial 0.25 --out g.pt  # one controller that tries both, keeps the best
 
 CONTROLLER is a zoo name or a path to a ``controller.pt`` (a folder holding one, a control run's directory).
@@ -85,13 +86,20 @@ def cmd_watch(args: argparse.Namespace) -> None:
 
 
 def cmd_fit(args: argparse.Namespace) -> None:
+    from freeform.agents.controller_file import read_controller
     from freeform.control.fit import Fit, fit, no_earlier_fit
-    from freeform.zoo import TRIED
+    from freeform.zoo import STEERING, TRIED, resolve
 
     out = Path(args.out)
     no_earlier_fit(out)
-    how = Fit(tuple(args.candidates or TRIED), args.trial, args.adapt_epochs, args.copies, seed=args.seed,
-              curve_every=args.curve_every, settings=tuple(args.set))  # (its settings checked before the bodies are read)
+    candidates = tuple(args.candidates or (STEERING if args.headings == "random" else TRIED))
+    how = Fit(candidates, args.trial, args.adapt_epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
+              settings=tuple(args.set), trial_episodes=args.trial_episodes)  # (checked before the bodies are read)
+    own = read_controller(resolve(candidates[0])).control.headings
+    if args.headings is not None and args.headings != own:
+        raise ValueError(f"--headings {args.headings}: candidate {candidates[0]} plays headings {own!r}, and fit keeps "
+                         f"each candidate's own task: give candidates of that task (the zoo's: "
+                         f"{', '.join(STEERING)} along random headings, the rest headings any)")
     grids = _bodies(args.bodies, how.candidates[0])
     rows = fit(grids, out, how)
     for row in rows:
@@ -143,13 +151,18 @@ def parser() -> argparse.ArgumentParser:
                         f"{DEFAULT_ADAPT_EPOCHS})")
     f.add_argument("--copies", type=int, default=4, help="environments per body in the adaptation")
     f.add_argument("--candidates", nargs="+", default=None, metavar="CONTROLLER",
-                   help="what to try (zoo names or controller.pt files; default: the zoo's)")
+                   help="what to try (zoo names or controller.pt files; default: the zoo's for the task)")
+    f.add_argument("--headings", choices=HEADINGS, default=None,
+                   help="the task: 'random' fits steering controllers (a heading drawn each episode: the zoo's "
+                        "student_steering, population_steering), 'any' walkers (default: the candidates' own)")
+    f.add_argument("--trial-episodes", type=int, default=None, metavar="N",
+                   help="steering: episodes a trial averages, along headings no figure is measured on (default 4)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--curve-every", type=int, default=0, metavar="K",
                    help="measure the bodies every K adaptation epochs into adaptation.csv and adaptation_bodies.csv (0: never)")
     f.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="change the adaptation's recipes (the control_adapt_cpu and control_teachers_cpu presets'), "
-                        "e.g. --set agent.lr=1e-3; repeatable")
+                   help="change the adaptation's recipes (the control_adapt_cpu and control_teachers_cpu presets' "
+                        "and their steering twins'), e.g. --set agent.lr=1e-3; repeatable")
     f.set_defaults(run=cmd_fit)
     g = sub.add_parser("gate", help="one controller that tries several within an episode and keeps the best")
     g.add_argument("controllers", nargs="+", metavar="CONTROLLER", help="zoo names or controller.pt files, tried in "

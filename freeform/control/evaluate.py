@@ -40,12 +40,18 @@ def episode_of(saved: Any, headings: str | None = None) -> ControlConfig:
 
 
 def block_env(grids: torch.Tensor, saved: Any, control: ControlConfig, blocks: int, episodes: int = 1,
-              seed: int = 0) -> ControlEnv:
+              seed: int = 0, first_episode: int = 0, among: tuple[np.ndarray, int] | None = None) -> ControlEnv:
     """One env of ``blocks`` blocks of rows, each every body × ``episodes`` (row ``i·episodes + j``: body i's
-    episode j, whose headings are draw ``j·M + i``: episode 0 of body i draws what row i of a one-episode env
-    draws)."""
+    episode j, whose headings are draw ``(first_episode + j)·M + i``: episode 0 of body i draws what row i of a
+    one-episode env draws; ``first_episode`` 1 plays the episodes after it, never that one). ``among`` =
+    (places, N): the bodies are those places of a set of N, each drawing what it draws in the set's env."""
     m, box = len(grids), tuple(saved.controller.box)
-    draws = (np.arange(episodes)[None, :] * m + np.arange(m)[:, None]).reshape(-1)
+    if not (isinstance(first_episode, int | np.integer) and first_episode >= 0):
+        raise ValueError(f"first_episode must be a whole number >= 0, got {first_episode!r}")
+    place, m_set = (np.arange(m), m) if among is None else (np.asarray(among[0]), among[1])
+    if place.shape != (m,) or not ((0 <= place) & (place < m_set)).all():
+        raise ValueError(f"among: {m} places in a set of {m_set}, got {place.tolist()}")
+    draws = ((first_episode + np.arange(episodes))[None, :] * m_set + place[:, None]).reshape(-1)
     return ControlEnv(grids.repeat_interleave(episodes, 0).repeat(blocks, 1, 1, 1), sim=saved.sim or SimConfig(),
                       control=control, seed=seed, box=box, first_env=np.tile(draws, blocks))
 

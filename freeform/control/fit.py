@@ -6,6 +6,13 @@ by its mean command for one episode, all in one env (a block of rows a candidate
 that moved it furthest after the trial's decisions (``--trial SECONDS``; default the whole episode), and its figure
 is its whole episode. The mean command is deterministic, so that figure is what ``evaluate`` reports for the body.
 
+**Steering** (candidates that follow a heading drawn each episode, ``headings: random``: the zoo's :data:`STEERING`).
+The best of several controllers on one draw of headings is biased upwards on that draw, so choices and figures never
+share one: each trial is the mean of ``--trial-episodes`` episodes along the headings of the episodes *after* the one
+``evaluate`` measures a body on (:func:`trial_draws`), and every figure (``mean_command``, the curve) is that one
+episode — a body's pick and its adaptation are chosen on the trial draws, reported on the other. The adaptation's
+recipes are the steering presets' (:data:`STEERING_RECIPES`).
+
 **Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of a kind the adaptation trains
 (:data:`RECIPES`: the zoo's students, and context controllers such as the population controller and per-body
 controllers of other bodies; :func:`recipe_of` — a candidate of another kind is tried and kept where it wins, not
@@ -51,6 +58,13 @@ students (voxel-token attention, 32 wide; lr 3e-4, at which PPO does not first u
 controllers (16 wide: the population controller, and per-body controllers, a library's; the per-body teachers'
 recipe, lr 1e-3). A body's best candidate is adapted by the first recipe that trains its kind."""
 
+STEERING_RECIPES = ("control_adapt_steering_cpu", "control_teachers_steering_cpu")
+"""The same two for steering candidates (random headings): the steering student's and the steering teachers'."""
+
+TRIAL_EPISODES = 4
+"""Episodes a steering trial averages (headings random; a heading task that draws nothing plays one): the heading
+changes a body's move several-fold, so one draw would choose by the heading more than by the controller."""
+
 DEFAULT_ADAPT_EPOCHS = 24
 """The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
 the held-out bodies; docs/control.md)."""
@@ -66,7 +80,8 @@ class Fit:
     trial: float | None = None
     adapt_epochs: int = DEFAULT_ADAPT_EPOCHS
     copies: int = 4
-    presets: tuple[str, ...] = RECIPES
+    presets: tuple[str, ...] | None = None
+    """None: the candidates' task's (:data:`RECIPES`, :data:`STEERING_RECIPES` for random headings)."""
     seed: int = 0
     curve_every: int = 0
     """Measure the bodies every this many adaptation epochs (and at 0 and the last) into ``adaptation.csv``; 0:
@@ -74,6 +89,9 @@ class Fit:
     settings: tuple[str, ...] = ()
     """Hydra overrides of every recipe (``agent.lr=1e-3``), applied before what fit sets itself (the keys of
     :data:`FIT_SETS`, which they may not name)."""
+    trial_episodes: int | None = None
+    """Episodes a trial averages, for candidates along random headings (None: :data:`TRIAL_EPISODES`); other
+    heading tasks play every episode alike, and take one."""
 
     def __post_init__(self) -> None:
         if self.settings and not self.adapt_epochs:
@@ -90,6 +108,8 @@ class Fit:
                 raise ValueError(f"--set {setting!r}: fit sets {key.lstrip('+')} itself ({flag})")
         if self.adapt_epochs < 0:
             raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
+        if self.trial_episodes is not None and not (isinstance(self.trial_episodes, int) and self.trial_episodes >= 1):
+            raise ValueError(f"--trial-episodes must be a whole number >= 1, got {self.trial_episodes!r}")
         if self.curve_every < 0 or (self.curve_every and not self.adapt_epochs):
             raise ValueError(f"--curve-every {self.curve_every}: a whole number of adaptation epochs >= 0 (0: never), "
                              "with --adapt-epochs > 0 (trials alone have no curve)")
@@ -138,7 +158,7 @@ def read_alike(specs: tuple[str, ...], why: str, box: tuple[int, ...] = (), who:
 
 class Candidates:
     """The candidates read back and built for one box that holds the bodies, checked to play one episode in one
-    simulator (each difference named), under a heading task that one draw can try (not random headings)."""
+    simulator (each difference named); ``steering`` where that episode draws a heading (random headings)."""
 
     def __init__(self, specs: tuple[str, ...], grids: torch.Tensor) -> None:
         from freeform.agents.controller_file import body_box
@@ -151,10 +171,29 @@ class Candidates:
         self.saved, self.control, self.sim = read_alike(
             specs, "fit tries controllers of one episode and one simulator (the zoo's all are)", body_box(grids),
             who="candidate ")
-        if self.control.headings == "random":
-            raise ValueError(f"candidate {specs[0]} walks along random headings: the best of several controllers on "
-                             "one draw of headings is biased upwards on the next, so fit tries controllers of a "
-                             "heading task that one episode tries (headings any or fixed)")
+        self.steering = self.control.headings == "random"
+
+
+def resolved(how: Fit, c: Candidates) -> Fit:
+    """``how`` with what it left to the candidates' task filled in: the recipes (:data:`RECIPES`, or
+    :data:`STEERING_RECIPES` for steering) and the trial's episodes (:data:`TRIAL_EPISODES` for steering, else 1;
+    more than one refused where every episode is the same)."""
+    from dataclasses import replace
+
+    if not c.steering and how.trial_episodes not in (None, 1):
+        raise ValueError(f"--trial-episodes {how.trial_episodes}: candidate {c.names[0]} plays headings "
+                         f"{c.control.headings!r}, whose every episode is the same (several episodes are for "
+                         "steering candidates, headings random)")
+    return replace(how, presets=how.presets if how.presets is not None else
+                   STEERING_RECIPES if c.steering else RECIPES,
+                   trial_episodes=how.trial_episodes or (TRIAL_EPISODES if c.steering else 1))
+
+
+def trial_draws(how: Fit, c: Candidates) -> tuple[int, int]:
+    """The episodes a trial plays, as ``block_env``'s (episodes, first_episode): for steering ``how.trial_episodes``
+    after the one a figure is measured on (episode 0, ``evaluate``'s), so that no choice is made on the draw that
+    reports it; else the one episode (it draws nothing a choice could fit)."""
+    return (how.trial_episodes or TRIAL_EPISODES, 1) if c.steering else (1, 0)
 
 
 def recipe(how: Fit, preset: str, bodies: Path, m: int, start: Path | str) -> Any:
@@ -184,6 +223,7 @@ def adaptation(c: Candidates, m: int, how: Fit, bodies: Path) -> list[Any]:
     (:func:`recipe_of`)."""
     if how.copies < 2:
         raise ValueError(f"--copies must be >= 2 (a body's copies are each other's baseline), got {how.copies}")
+    how = resolved(how, c)
     if not how.presets:
         raise ValueError("fit adapts by at least one recipe (a preset of conf/experiment/)")
     cfgs = []
@@ -231,13 +271,19 @@ def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
 
 
 @torch.no_grad()
-def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0, draws: tuple[int, int] = (1, 0),
+           ) -> tuple[np.ndarray, np.ndarray]:
     """Every candidate's move on every body after ``decisions`` (what a body's choice is by) and its whole-episode
-    move (its figure), both ``[C, M]`` (mean commands)."""
-    env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), seed=seed)
+    move, both ``[C, M]`` (mean commands), each the mean over the episodes ``draws`` (:func:`trial_draws`; every
+    candidate along the same headings)."""
+    episodes, first = draws
+    env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), episodes=episodes, seed=seed,
+                    first_episode=first)
     groups = [(name, s.controller.eval(), False, False) for name, s in zip(c.names, c.saved, strict=True)]
     played = play(env, groups, c.control.steps, seed)
-    return played.after[decisions - 1], played.returns
+    m = len(grids)
+    return (played.after[decisions - 1].reshape(len(c.saved), m, episodes).mean(-1),
+            played.returns.reshape(len(c.saved), m, episodes).mean(-1))
 
 
 def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
@@ -247,18 +293,22 @@ def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
 
 
 def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarray, how: Fit, scratch: Path,
-          tried: np.ndarray | None = None, begun: float | None = None,
+          tried: tuple[np.ndarray, np.ndarray] | None = None, begun: float | None = None,
           ) -> tuple[list[Any], np.ndarray, tuple[list[dict], list[dict]]]:
     """Each body's candidate ``begin[i]`` trained on it for ``how.adapt_epochs`` epochs by the recipe
-    ``how.presets[which[i]]`` (the module's docstring; a bank a recipe, its bodies written to ``scratch``): each
-    body's adapted controller ``[M]`` (its bank's member), its whole-episode move on its body ``[M]`` (mean command),
-    and with ``how.curve_every`` the adaptation's curve as (a row a point, a row a point and body): ``epoch``,
-    ``seconds`` (a body's share of the wall time since ``begun``, measuring left out), ``adapted`` (the move under
-    its bank) and ``kept`` (the trial ``tried`` ``[M]`` before the first epoch, then the better of the bank and
-    the trial: what fit would give stopped there) — the bodies' mean in the first, each ``body``'s own in the second."""
+    ``how.presets[which[i]]`` (``how`` :func:`resolved`; the module's docstring; a bank a recipe, its bodies written
+    to ``scratch``): each body's adapted controller ``[M]`` (its bank's member), its move on its body ``[M]`` (mean
+    command) over the trial's episodes (:func:`trial_draws`: what it is chosen by), and with ``how.curve_every`` the
+    adaptation's curve as (a row a point, a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall
+    time since ``begun``, measuring left out), ``adapted`` (the move under its bank) and ``kept`` (the trial's pick
+    before the first epoch, then the better of the bank and the pick by the trial's episodes: what fit would give
+    stopped there) — the bodies' mean in the first, each ``body``'s own in the second. ``tried``: the pick's trial
+    figure and its figure, each ``[M]`` (the same for a heading task that draws nothing; for steering its episode 0).
+    The curve's moves are figures: for steering, episode 0's, never the trial's."""
     from freeform.run.build import build
 
     m = len(grids)
+    draws = trial_draws(how, c)
     banks = []  # (the recipe, its bodies' places in grids, its PPO over their bank)
     for k in np.unique(which):
         places = np.flatnonzero(which == k)
@@ -270,12 +320,15 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
             ppo.policy.load_member(j, c.saved[int(begin[i])].controller.state_dict())
         banks.append((how.presets[k], places, ppo))
 
-    def measured() -> np.ndarray:  # (a bank's bodies apart: fit's heading tasks draw nothing that a row decides)
+    def measured(episodes: int, first: int) -> np.ndarray:  # (each bank's bodies along their own draws in the set)
         moves = np.empty(m)
         for _, places, ppo in banks:
-            moves[places] = own_moves(ppo.policy, block_env(grids[places], c.saved[0], c.control, blocks=1,
-                                                            seed=how.seed), how.seed)
+            env = block_env(grids[places], c.saved[0], c.control, blocks=1, episodes=episodes, seed=how.seed,
+                            first_episode=first, among=(places, m))
+            moves[places] = own_moves(ppo.policy, env, how.seed, episodes).reshape(-1, episodes).mean(1)
         return moves
+
+    tried, figure = tried if tried is not None else (None, None)
 
     curve: list[dict] = []
     per_body: list[dict] = []
@@ -285,15 +338,16 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
     def point(epoch: int) -> None:
         nonlocal measuring, moved
         at = time.perf_counter()
-        moved = measured()
-        # (before the first epoch fit keeps the trials' pick at its trial figure: the bank plays that pick in
-        # another batch, whose rounding would lift the max by a hair on one CPU and not on another)
-        kept = (np.full(m, np.nan) if tried is None else tried.astype(float) if epoch == 0
-                else np.maximum(moved, tried))
+        moved = measured(*draws)
+        shown = measured(1, 0) if c.steering else moved  # (steering: chosen by the trial's episodes, shown by 0)
+        # (before the first epoch fit keeps the trials' pick at its figure: the bank plays that pick in another
+        # batch, whose rounding would lift the max by a hair on one CPU and not on another)
+        kept = (np.full(m, np.nan) if tried is None else figure.astype(float) if epoch == 0
+                else np.where(moved > tried, shown, figure))
         seconds = (at - begun - measuring) / m
-        curve.append({"epoch": epoch, "seconds": seconds, "adapted": float(moved.mean()), "kept": float(kept.mean())})
+        curve.append({"epoch": epoch, "seconds": seconds, "adapted": float(shown.mean()), "kept": float(kept.mean())})
         per_body.extend({"epoch": epoch, "seconds": seconds, "body": i, "adapted": float(a), "kept": float(k)}
-                        for i, (a, k) in enumerate(zip(moved, kept, strict=True)))
+                        for i, (a, k) in enumerate(zip(shown, kept, strict=True)))
         measuring += time.perf_counter() - at
 
     if how.curve_every:
@@ -311,7 +365,7 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
         for j, i in enumerate(places):
             members[i] = ppo.policy.member(j)
     # (the curve's last point measured the last epoch)
-    return members, moved if how.curve_every else measured(), (curve, per_body)
+    return members, moved if how.curve_every else measured(*draws), (curve, per_body)
 
 
 @torch.no_grad()
@@ -328,27 +382,32 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
     """A controller for each body of ``grids`` (uint8 ``[M, ρ, ρ, ρ]``): trials, then adaptation where asked; writes
     ``out/body<i>/controller.pt`` (self-contained: ``evaluate`` and ``watch`` read it) beside ``out/body<i>/body.npy``
     and ``out/bodies.csv`` (``body``, ``chosen``, ``mean_command``: the body's move under it, alone, ``controller_file``,
-    ``seconds``: the body's share of the wall time, then each candidate's trial figure). Returns the rows."""
+    ``seconds``: the body's share of the wall time, then each candidate's trial figure: for steering the mean of the
+    trial's episodes, which ``mean_command``'s is not; a steering body's heading is its row's draw in ``grids``,
+    what ``evaluate`` of its file on all of ``grids`` gives in row i). Returns the rows."""
     from freeform.agents.controller_file import save_controller
     from freeform.tables import write_rows
 
     start = time.perf_counter()
     c = Candidates(how.candidates, grids)
+    how = resolved(how, c)
     decisions = trial_decisions(how.trial, c.control)
     m = len(grids)
     with tempfile.TemporaryDirectory(prefix="freeform-fit-") as scratch:
         bodies = Path(scratch) / "bodies.npy"
         np.save(bodies, grids.numpy())
         cfgs = adaptation(c, m, how, bodies) if how.adapt_epochs else None  # (refused before anything is played)
-        trial, moves = trials(c, grids, decisions, how.seed)
+        trial, moves = trials(c, grids, decisions, how.seed, trial_draws(how, c))
         choice = chosen(trial)
         nets = [c.saved[int(k)].controller for k in choice]
         labels = [c.names[int(k)] for k in choice]
         if cfgs is not None:  # (each body adapts its best adaptable candidate, and keeps it where it beats the choice)
             kinds = recipe_of(c, cfgs)
             begin = chosen(trial, kinds >= 0)
+            tried = moves[choice, np.arange(m)]
+            figure = alone(nets, grids, c, how.seed) if c.steering and how.curve_every else tried  # (the pick's)
             members, adapted, (curve, per_body) = adapt(c, grids, begin, kinds[begin], how, Path(scratch),
-                                                        moves[choice, np.arange(m)], start)
+                                                        (tried, figure), start)
             better = adapted > moves[choice, np.arange(m)]
             nets = [members[i] if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{c.names[int(begin[i])]} + {how.adapt_epochs} epochs" if better[i] else label
@@ -394,7 +453,8 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "Candidates", "Fit", "adapt", "adaptation",
-           "alone", "candidate_name", "chosen", "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike",
-           "recipe", "recipe_of", "trained_kind", "trial_decisions", "trials"]
+__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "STEERING_RECIPES", "TRIAL_EPISODES", "Candidates",
+           "Fit", "adapt", "adaptation", "alone", "candidate_name", "chosen", "episode_differences", "fit", "gate",
+           "no_earlier_fit", "read_alike", "recipe", "recipe_of", "resolved", "trained_kind", "trial_decisions",
+           "trial_draws", "trials"]
 

@@ -94,10 +94,14 @@ class BankOnBodies(torch.nn.Module):
 
 
 @torch.no_grad()
-def own_moves(bank: Any, env: ControlEnv, seed: int = 0) -> np.ndarray:
-    """Each row's move ``[rows]`` in one episode of ``env`` (a row a body), row i driven by the bank's controller i
-    by its mean command: per-body controllers on their own bodies."""
-    own = BankOnBodies(bank, torch.arange(env.num_envs), tuple(env.box)).eval()
+def own_moves(bank: Any, env: ControlEnv, seed: int = 0, episodes: int = 1) -> np.ndarray:
+    """Each row's move ``[rows]`` in one episode of ``env`` (``episodes`` rows a body, as ``block_env`` lays them
+    out), the rows of body i driven by the bank's controller i by its mean command: per-body controllers on their
+    own bodies."""
+    if env.num_envs % episodes:
+        raise ValueError(f"{env.num_envs} rows are not {episodes} episodes a body")
+    member = torch.arange(env.num_envs // episodes).repeat_interleave(episodes)
+    own = BankOnBodies(bank, member, tuple(env.box)).eval()
     return play(env, [("own", own, False, False)], env.control.steps, seed).returns[0]
 
 

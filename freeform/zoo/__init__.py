@@ -33,6 +33,9 @@ LIBRARY = tuple(f"library/d{i}" for i in range(8))
 per-body teachers' recipe (``library/card.md``)."""
 TRIED = STUDENTS + LIBRARY
 """What ``freeform-control fit`` tries on a body, in this order (a tie goes to the earlier)."""
+STEERING = ("student_steering", "population_steering")
+"""What ``freeform-control fit --headings random`` tries on a body (steering: a heading drawn each episode), in this
+order: the steering student and the steering population controller."""
 STARTS = ("student_gen3", "population", "population_steering", "student_steering")
 """The controllers the presets start from (``control.controller_init``) and that their figures were measured with."""
 ORDER = TRIED + STARTS
@@ -78,4 +81,4 @@ def card(name: str) -> str:
     return (path(name).parent / CARD).read_text()
 
 
-__all__ = ["CARD", "LIBRARY", "ORDER", "STARTS", "STUDENTS", "TRIED", "UnknownController", "ZOO", "card", "load", "names", "path", "resolve"]
+__all__ = ["CARD", "LIBRARY", "ORDER", "STARTS", "STEERING", "STUDENTS", "TRIED", "UnknownController", "ZOO", "card", "load", "names", "path", "resolve"]
