@@ -314,7 +314,15 @@ def test_each_candidate_is_adapted_by_the_recipe_of_its_kind(tmp_path) -> None:
     students' recipe, the population controller (a context controller, 16 wide) by the per-body teachers' (lr 1e-3:
     the reference's recipe); with the students' recipe alone the context controller is not adapted, and a fit whose
     candidates no recipe trains is refused naming the kind each recipe trains."""
-    from freeform.control.fit import RECIPES, STEERING_RECIPES, Candidates, Fit, adaptation, candidate_name, recipe_of
+    from freeform.control.fit import (
+        RECIPES,
+        STEERING_RECIPES,
+        Candidates,
+        Fit,
+        adaptation,
+        candidate_name,
+        recipe_of,
+    )
 
     assert [candidate_name(n) for n in ("library/d3", "student", "runs/mine/controller.pt", "runs/mine")] == [
         "library/d3", "student", "mine", "mine"]  # (a zoo name as it is, the library's members too)
