@@ -366,3 +366,4 @@ def test_zoo_lists_every_controller_once_and_the_library_as_one_line(capsys) -> 
         if name not in zoo.LIBRARY:
             first = next(x for x in zoo.card(name).splitlines() if x and not x.startswith("#"))
             assert line.endswith(first), name
+    assert "`fit --headings random` student_steering, population_steering;" in lines[-1]  # (what each task tries)

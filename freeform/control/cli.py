@@ -58,8 +58,8 @@ def cmd_zoo(args: argparse.Namespace) -> None:
         else:
             print(f"{name:20s} {first_line(zoo.card(name))}")
     tried = [n for n in zoo.TRIED if n not in zoo.LIBRARY] + [library]
-    print(f"\n(the files: {zoo.ZOO}; `fit` tries {', '.join(tried)}; `zoo.card(name)` or card.md beside each "
-          "controller.pt says what it is)")
+    print(f"\n(the files: {zoo.ZOO}; `fit` tries {', '.join(tried)}, `fit --headings random` "
+          f"{', '.join(zoo.STEERING)}; `zoo.card(name)` or card.md beside each controller.pt says what it is)")
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
