@@ -408,7 +408,9 @@ def pool(sets: list[Path], out: Path, per_body_from: Path | None = None) -> list
             raise ValueError(f"--pool {folder}: bodies.csv has one of {list(PER_BODY)} and not the other (a table "
                              "from before the mean command's per-body column: evaluate it again)")
         if not (Path(folder) / "run.json").is_file():
-            raise ValueError(f"--pool {folder}: no run.json beside bodies.csv")
+            raise ValueError(f"--pool {folder}: no run.json beside bodies.csv (a run record, not kept in git: "
+                             "evaluate the set again with python -m lab.control --evaluate ... --out FOLDER, which "
+                             "writes both)")
         run = json.loads((Path(folder) / "run.json").read_text())
         setting = {k: run.get(k) for k in ("kind", "symmetrize", "wave_gain", "control", "episodes_per_body", "seed")}
         if settings and setting != settings[0]:
