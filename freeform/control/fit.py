@@ -193,7 +193,7 @@ def trial_draws(how: Fit, c: Candidates) -> tuple[int, int]:
     """The episodes a trial plays, as ``block_env``'s (episodes, first_episode): for steering ``how.trial_episodes``
     after the one a figure is measured on (episode 0, ``evaluate``'s), so that no choice is made on the draw that
     reports it; else the one episode (it draws nothing a choice could fit)."""
-    return (how.trial_episodes or TRIAL_EPISODES, 1) if c.steering else (1, 0)
+    return (resolved(how, c).trial_episodes, 1) if c.steering else (1, 0)  # (one default: resolved's)
 
 
 def recipe(how: Fit, preset: str, bodies: Path, m: int, start: Path | str) -> Any:
