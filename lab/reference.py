@@ -8,6 +8,9 @@ Writes ``curve.csv`` (per saved epoch: the bodies' mean move and its 99 % band, 
 and whether ``trainer.plateau_window`` had called the run flat there), ``bodies.csv`` (per body, its move at each
 saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
 
+Along random headings (steering) a body's move is the mean over ``--episodes`` episodes (default ``evaluate``'s 4:
+draws 0 … 3 of each body, what ``freeform-control evaluate`` and ``fit`` measure a body on); other tasks play one.
+
 How far from flat: ``asymptote.csv`` extrapolates the mean curve by a saturating exponential, a − b·exp(−t/τ) (least
 squares; τ on a fine geometric grid), and gives a with a 99 % interval from resampling the bodies, τ, and the share of
 a the last saved epoch reached. A curve that has not bent within its span (τ longer than it), or has fewer than four
@@ -49,11 +52,13 @@ def saved_epochs(run: Path) -> list[tuple[int, Path]]:
 
 
 @torch.no_grad()
-def curve(run: Path) -> tuple[list[dict], list[dict]]:
-    """The bank of ``run`` at each saved epoch on its bodies: (a row per epoch, a row per body)."""
+def curve(run: Path, episodes: int | None = None) -> tuple[list[dict], list[dict]]:
+    """The bank of ``run`` at each saved epoch on its bodies, each body's move the mean over ``episodes`` (None: the
+    module's default; more than one only along random headings): (a row per epoch, a row per body)."""
     from freeform.agents.controller_file import body_box
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
+    from freeform.control.evaluate import EPISODES, episode_draws
     from freeform.control.play import own_moves
     from freeform.envs.control import ControlEnv
     from freeform.run.build import read_teacher_run
@@ -62,14 +67,21 @@ def curve(run: Path) -> tuple[list[dict], list[dict]]:
     teachers = read_teacher_run(run, str(run))
     grids, cfg = teachers.bodies.to(torch.uint8), teachers.config
     m, box, control = len(grids), body_box(teachers.bodies), cfg.control.episode()
+    steering = control.headings == "random"
+    if episodes is not None and not (isinstance(episodes, int) and episodes >= 1 and (steering or episodes == 1)):
+        raise ValueError(f"--episodes {episodes}: a whole number >= 1, and more than one only for steering (this run "
+                         f"plays headings {control.headings!r}, whose every episode is the same)")
+    k = episodes or (EPISODES if steering else 1)
     returns = list(teachers.payload.get("return_curve", []))
     window, gain = (cfg.trainer.plateau_window, cfg.trainer.plateau_gain) if cfg.trainer.plateau_window else PLATEAU
     per_epoch, per_body = [], [{"body": i} for i in range(m)]
     for epoch, path in saved_epochs(run):
         bank = bank_from_checkpoint(load_checkpoint(path), str(path))
-        moved = own_moves(bank, ControlEnv(grids, sim=cfg.sim, control=control, seed=0, box=box))
+        env = ControlEnv(grids.repeat_interleave(k, 0), sim=cfg.sim, control=control, seed=0, box=box,
+                         first_env=episode_draws(m, k))  # (a fresh env each epoch: one more episode draws anew)
+        moved = own_moves(bank, env, episodes=k).reshape(m, k).mean(1)
         mean, band = mean_band(moved)
-        per_epoch.append({"epoch": epoch, "mean_command": float(mean), "band99": float(band),
+        per_epoch.append({"epoch": epoch, "episodes": k, "mean_command": float(mean), "band99": float(band),
                           "training_return": returns[epoch - 1] if 0 < epoch <= len(returns) else float("nan"),
                           "flat": plateaued(returns[:epoch], window, gain)})
         for i in range(m):
@@ -144,10 +156,14 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", type=Path, help="a teacher run (a per-body cache's directory)")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--episodes", type=int, default=None, help="steering: episodes a body's move averages (default 4)")
     args = p.parse_args(argv)
     if (args.out / "curve.csv").exists():
         p.error(f"--out {args.out} holds a curve already (curve.csv): give a new folder (nothing is overwritten)")
-    rows, bodies = curve(args.run)
+    try:
+        rows, bodies = curve(args.run, args.episodes)
+    except ValueError as e:
+        p.error(str(e))
     epochs = np.array([r["epoch"] for r in rows])
     fit = asymptote(epochs, np.array([[b[f"epoch{e}"] for e in epochs] for b in bodies]))
     args.out.mkdir(parents=True, exist_ok=True)

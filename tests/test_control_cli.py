@@ -103,6 +103,8 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
             "--headings random: candidate student plays headings 'any'", "student_steering, population_steering")
     refused([*fit, "--trial-episodes", "2"], capsys, "--trial-episodes 2", "every episode is the same")
     refused([*fit, "--headings", "random", "--trial-episodes", "0"], capsys, "--trial-episodes must be a whole number")
+    refused([*fit, "--episodes", "3"], capsys, "--episodes 3", "every episode is the same")
+    refused([*fit, "--headings", "random", "--episodes", "0"], capsys, "--episodes must be a whole number")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)
     for folder in (tmp_path / "a", tmp_path / "b" / "a"):
@@ -238,19 +240,20 @@ def test_block_env_draws_the_episodes_after_the_figures_and_a_part_of_a_set_as_t
         block_env(grids[:2], saved, saved.control, blocks=1, among=(np.array([0, 3]), 3))
 
 
-def test_fit_for_steering_chooses_on_the_trial_episodes_and_reports_the_first(tmp_path) -> None:
-    """``--headings random``: the zoo's steering candidates, each trial the mean of the episodes after the first
-    (evaluate's own episodes 1–4 of the candidate, played apart), the figures episode 0's — the pick's before the first
-    epoch (what evaluate finds for it), what fit keeps after the last (what evaluate finds for the file written),
-    so that no figure is measured on the draw that chose it. On these three bodies the two candidates each win one
-    (measured: the population controller body 1's), so two banks each play their bodies along the set's draws."""
+def test_fit_for_steering_chooses_on_the_trial_episodes_and_reports_the_others(tmp_path) -> None:
+    """``--headings random``: the zoo's steering candidates, each figure the mean of ``--episodes 2`` (evaluate's
+    own episodes 0–1 of the candidate) and each trial the mean of the ``--trial-episodes 3`` after them (episodes
+    2–4, played apart) — the pick's figure before the first epoch (what evaluate finds for it), what fit keeps after
+    the last (what evaluate finds for the file written), so that no figure is measured on a draw that chose it. On
+    these three bodies the two candidates each win (measured: the student body 2, the population controller the
+    others), so two banks each play their bodies along the set's draws."""
     from freeform.control.evaluate import block_env
     from freeform.control.play import play
 
     grids = tiny_bodies()
     np.save(tmp_path / "bodies.npy", grids)
     main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--headings", "random",
-          "--adapt-epochs", "1", "--copies", "2", "--curve-every", "1"])
+          "--adapt-epochs", "1", "--copies", "2", "--curve-every", "1", "--episodes", "2", "--trial-episodes", "3"])
     fitted = rows(tmp_path / "fitted" / "bodies.csv")
     assert [k for k in fitted[0] if k.startswith("trial_")] == [f"trial_{n}" for n in zoo.STEERING]
     first, kept, bank = {}, {}, {}
@@ -259,23 +262,23 @@ def test_fit_for_steering_chooses_on_the_trial_episodes_and_reports_the_first(tm
         if r["epoch"] == "0":
             bank[int(r["body"])] = float(r["adapted"])
     picks = [max(zoo.STEERING, key=lambda n: float(r[f"trial_{n}"])) for r in fitted]
-    assert picks == ["student_steering", "population_steering", "student_steering"]
+    assert picks == ["population_steering", "population_steering", "student_steering"]
     for name in zoo.STEERING:
         saved = zoo.load(name)
         env = block_env(torch.from_numpy(grids), saved, saved.control, blocks=1, episodes=5)
         moves = play(env, [(name, saved.controller.eval(), False, False)], saved.control.steps, 0).returns[0]
-        trial = moves.reshape(3, 5)[:, 1:].mean(1)
+        trial, figure = moves.reshape(3, 5)[:, 2:].mean(1), moves.reshape(3, 5)[:, :2].mean(1)
         assert [float(r[f"trial_{name}"]) for r in fitted] == pytest.approx(trial, rel=1e-3, abs=1e-4)
-        main(["evaluate", name, str(tmp_path / "bodies.npy"), "--out", str(tmp_path / name), "--episodes", "1"])
+        main(["evaluate", name, str(tmp_path / "bodies.npy"), "--out", str(tmp_path / name), "--episodes", "2"])
         for i, r in enumerate(rows(tmp_path / name / "bodies.csv")):
-            assert float(r["mean_command"]) == pytest.approx(moves[5 * i], abs=1e-3)  # (another batch: rounding)
+            assert float(r["mean_command"]) == pytest.approx(figure[i], abs=1e-3)  # (another batch: rounding)
             if picks[i] == name:  # (before the first epoch: the pick, alone and in its bank)
                 assert first[i] == pytest.approx(float(r["mean_command"]), abs=1e-3)
                 assert bank[i] == pytest.approx(float(r["mean_command"]), abs=3e-3)  # (another heading: tenths)
-    for i, row in enumerate(fitted):  # (a body's heading is its row's draw in the set: evaluate on the set, row i)
+    for i, row in enumerate(fitted):  # (a body's headings are its row's draws in the set: evaluate on the set, row i)
         body = tmp_path / "fitted" / f"body{i}"
         main(["evaluate", row["controller_file"], str(tmp_path / "bodies.npy"), "--out", str(body / "eval"),
-              "--episodes", "1"])
+              "--episodes", "2"])
         assert float(rows(body / "eval" / "bodies.csv")[i]["mean_command"]) == pytest.approx(
             float(row["mean_command"]), abs=1e-3)  # (a batch of two rows there, of one here: rounding)
         assert kept[i] == pytest.approx(float(row["mean_command"]), abs=1e-3)

@@ -226,6 +226,44 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     np.testing.assert_allclose(float(rows[-1]["training_return"]), returns[-1])
 
 
+def test_a_steering_reference_averages_each_bodys_own_headings_and_a_walkers_takes_one(tmp_path, three_bodies,
+                                                                                         capsys):
+    """lab.reference of a steering bank (headings random): a body's move is the mean over its episodes 0 … K−1,
+    each body i along draws j·M + i (evaluate's and fit's figure episodes), played here body by body, episode by
+    episode, in envs of one row; ``--episodes`` above one is refused for a walkers' bank, whose episodes are alike."""
+    import csv
+
+    import torch
+    from test_control_run import CUBE, ROD
+    from test_teacher_pool import WIDE, _teacher_run
+
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import load_checkpoint
+    from freeform.control.play import play
+    from freeform.envs.control import ControlEnv
+    from freeform.run.build import read_teacher_run
+    from lab.reference import main
+
+    run = _teacher_run(tmp_path, "steer", np.stack([ROD, CUBE, WIDE]), "control.teachers=3", "env.num_envs=6",
+                       "control.headings=random", "seed=4")
+    main([str(run), "--out", str(tmp_path / "curve"), "--episodes", "3"])
+    bodies = list(csv.DictReader(open(tmp_path / "curve" / "bodies.csv")))
+    teachers = read_teacher_run(run, str(run))
+    bank = bank_from_checkpoint(load_checkpoint(run / "checkpoints" / "last.pt"), str(run))
+    control = teachers.config.control.episode()
+    moves = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            env = ControlEnv(teachers.bodies[i:i + 1].to(torch.uint8), sim=teachers.config.sim, control=control,
+                             seed=0, box=tuple(bank.member(i).box), first_env=np.array([3 * j + i]))
+            moves[i, j] = play(env, [("own", bank.member(i).eval(), False, False)], control.steps, 0).returns[0, 0]
+    assert np.ptp(moves, 1).max() > 1e-5  # (the headings differ, and so does a body's move: another draw shows)
+    np.testing.assert_allclose([float(b["epoch1"]) for b in bodies], moves.mean(1), rtol=1e-6, atol=1e-9)
+    with pytest.raises(SystemExit):
+        main([str(three_bodies), "--out", str(tmp_path / "walkers"), "--episodes", "2"])
+    assert "more than one only for steering" in capsys.readouterr().err and not (tmp_path / "walkers").exists()
+
+
 def test_the_reference_asymptote_recovers_a_saturating_curve_and_refuses_a_straight_line():
     """lab.reference's extrapolation: noisy bodies that follow a_i − b_i·exp(−(t − 30)/60), read from epoch 30 to
     190, give back the mean a, its interval holds it, and the last epoch's share is the curve's own; a noisy straight

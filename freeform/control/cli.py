@@ -20,7 +20,8 @@ import json
 import sys
 from pathlib import Path
 
-from freeform.control.fit import DEFAULT_ADAPT_EPOCHS
+from freeform.control.evaluate import EPISODES
+from freeform.control.fit import DEFAULT_ADAPT_EPOCHS, TRIAL_EPISODES
 from freeform.envs.control_config import HEADINGS
 
 
@@ -94,7 +95,8 @@ def cmd_fit(args: argparse.Namespace) -> None:
     no_earlier_fit(out)
     candidates = tuple(args.candidates or (STEERING if args.headings == "random" else TRIED))
     how = Fit(candidates, args.trial, args.adapt_epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
-              settings=tuple(args.set), trial_episodes=args.trial_episodes)  # (checked before the bodies are read)
+              settings=tuple(args.set), trial_episodes=args.trial_episodes,
+              episodes=args.episodes)  # (checked before the bodies are read)
     own = read_controller(resolve(candidates[0])).control.headings
     if args.headings is not None and args.headings != own:
         raise ValueError(f"--headings {args.headings}: candidate {candidates[0]} plays headings {own!r}, and fit keeps "
@@ -128,7 +130,8 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("bodies", help="a .npy of uint8 grids [M, ρ, ρ, ρ] or [ρ, ρ, ρ]")
     e.add_argument("--out", required=True)
     e.add_argument("--headings", choices=HEADINGS, default=None, help="the task (default: the controller's own)")
-    e.add_argument("--episodes", type=int, default=4, help="episodes a body (the stochastic column's)")
+    e.add_argument("--episodes", type=int, default=EPISODES, help="episodes a body (the stochastic column's; "
+                                                                  "along random headings the mean command's too)")
     e.set_defaults(run=cmd_evaluate)
     w = sub.add_parser("watch", help="one body's gait under a controller: gait.gif and gait.json")
     w.add_argument("controller", help="a zoo name or a controller.pt")
@@ -155,8 +158,11 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--headings", choices=HEADINGS, default=None,
                    help="the task: 'random' fits steering controllers (a heading drawn each episode: the zoo's "
                         "student_steering, population_steering), 'any' walkers (default: the candidates' own)")
+    f.add_argument("--episodes", type=int, default=None, metavar="K",
+                   help=f"steering: episodes a body's figure averages, evaluate's (default {EPISODES})")
     f.add_argument("--trial-episodes", type=int, default=None, metavar="N",
-                   help="steering: episodes a trial averages, along headings no figure is measured on (default 4)")
+                   help=f"steering: episodes a trial averages, along headings after the figures' (default "
+                        f"{TRIAL_EPISODES})")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--curve-every", type=int, default=0, metavar="K",
                    help="measure the bodies every K adaptation epochs into adaptation.csv and adaptation_bodies.csv (0: never)")

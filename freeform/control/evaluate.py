@@ -4,7 +4,9 @@ under the hand-set travelling wave, and along its own open-loop gait — ``freef
 Every figure is the body's move in the controller's episode (voxel lengths: the distance its centre of mass
 travels in the plane over the control window, or along the heading for a heading task), from one env that plays
 every group on its own block of rows with the same headings; the mean command is deterministic, so one episode of
-it is the figure (``watch`` replays it frame by frame).
+it is the figure (``watch`` replays it frame by frame) — but along random headings, where each episode draws
+another heading and the heading changes a body's move several-fold, its figure is the mean over the body's
+episodes (draws 0 … K−1; ``watch`` replays the first).
 """
 
 from __future__ import annotations
@@ -25,7 +27,25 @@ from freeform.tables import mean_band, summary_row, write_rows
 COLUMNS = ("open_loop", "hand_set_wave", "mean_command", "stochastic")
 """``bodies.csv``'s figures (voxel lengths): the mean command's is the body's first episode (deterministic), the
 others means over its episodes. Along ``any`` or ``fixed`` headings every episode has the same heading, so they
-compare like for like; along ``random`` headings the mean command's is the first heading's."""
+compare like for like; along ``random`` headings the mean command's is the mean over the same episodes too."""
+
+EPISODES = 4
+"""Episodes a body's figures average unless told otherwise (``evaluate --episodes``; a steering figure of
+``fit`` and of the lab's reference alike): along random headings, draws 0 … 3 of each body."""
+
+
+def episode_draws(m: int, episodes: int = 1, first_episode: int = 0,
+                  among: tuple[np.ndarray, int] | None = None) -> np.ndarray:
+    """The draw of each row of ``m`` bodies × ``episodes`` (row ``i·episodes + j``: body i's episode j draws
+    ``(first_episode + j)·M + i``, so that episode 0 of body i draws what row i of a one-episode env of the M
+    bodies draws; ``first_episode`` 1 plays the episodes after it, never that one). ``among`` = (places, M): the
+    bodies are those places of a set of M, each drawing what it draws in the set's env."""
+    if not (isinstance(first_episode, int | np.integer) and first_episode >= 0):
+        raise ValueError(f"first_episode must be a whole number >= 0, got {first_episode!r}")
+    place, m_set = (np.arange(m), m) if among is None else (np.asarray(among[0]), among[1])
+    if place.shape != (m,) or not ((0 <= place) & (place < m_set)).all():
+        raise ValueError(f"among: {m} places in a set of {m_set}, got {place.tolist()}")
+    return ((first_episode + np.arange(episodes))[None, :] * m_set + place[:, None]).reshape(-1)
 
 
 def episode_of(saved: Any, headings: str | None = None) -> ControlConfig:
@@ -41,29 +61,21 @@ def episode_of(saved: Any, headings: str | None = None) -> ControlConfig:
 
 def block_env(grids: torch.Tensor, saved: Any, control: ControlConfig, blocks: int, episodes: int = 1,
               seed: int = 0, first_episode: int = 0, among: tuple[np.ndarray, int] | None = None) -> ControlEnv:
-    """One env of ``blocks`` blocks of rows, each every body × ``episodes`` (row ``i·episodes + j``: body i's
-    episode j, whose headings are draw ``(first_episode + j)·M + i``: episode 0 of body i draws what row i of a
-    one-episode env draws; ``first_episode`` 1 plays the episodes after it, never that one). ``among`` =
-    (places, N): the bodies are those places of a set of N, each drawing what it draws in the set's env."""
-    m, box = len(grids), tuple(saved.controller.box)
-    if not (isinstance(first_episode, int | np.integer) and first_episode >= 0):
-        raise ValueError(f"first_episode must be a whole number >= 0, got {first_episode!r}")
-    place, m_set = (np.arange(m), m) if among is None else (np.asarray(among[0]), among[1])
-    if place.shape != (m,) or not ((0 <= place) & (place < m_set)).all():
-        raise ValueError(f"among: {m} places in a set of {m_set}, got {place.tolist()}")
-    draws = ((first_episode + np.arange(episodes))[None, :] * m_set + place[:, None]).reshape(-1)
+    """One env of ``blocks`` blocks of rows, each every body × ``episodes``, drawn as :func:`episode_draws` says."""
+    draws = episode_draws(len(grids), episodes, first_episode, among)
     return ControlEnv(grids.repeat_interleave(episodes, 0).repeat(blocks, 1, 1, 1), sim=saved.sim or SimConfig(),
-                      control=control, seed=seed, box=box, first_env=np.tile(draws, blocks))
+                      control=control, seed=seed, box=tuple(saved.controller.box), first_env=np.tile(draws, blocks))
 
 
 @torch.no_grad()
-def evaluate(saved: Any, grids: torch.Tensor, episodes: int = 4, headings: str | None = None,
+def evaluate(saved: Any, grids: torch.Tensor, episodes: int = EPISODES, headings: str | None = None,
              seed: int = 0) -> list[dict]:
     """``saved`` (a ``SavedController`` built for a box that holds ``grids``, uint8 ``[M, ρ, ρ, ρ]``) on every body:
     one row a body with its voxels and :data:`COLUMNS` (the stochastic mean's 99 % band beside it). The stochastic
     column and the hand-set wave are means over ``episodes`` episodes; the mean command is deterministic, and its
     column is the body's first episode, played in an env of one row a body — the env ``watch`` replays, so that
-    its figure is this one to the bit (a controller's forward pass rounds by the batch it is given)."""
+    its figure is this one to the bit (a controller's forward pass rounds by the batch it is given) — or, along
+    random headings, the mean over the ``episodes`` episodes' headings (the first of them ``watch``'s)."""
     if not (isinstance(episodes, int) and episodes >= 1):
         raise ValueError(f"--episodes must be a whole number >= 1, got {episodes!r}")
     control, net = episode_of(saved, headings), saved.controller.eval()
@@ -74,13 +86,14 @@ def evaluate(saved: Any, grids: torch.Tensor, episodes: int = 4, headings: str |
         groups.append(("hand_set_wave", hand_set_wave(env, net, None), False, False))
     played = play(env, groups, control.steps, seed)
     m, n = len(grids), episodes
-    mean_command = play(block_env(grids, saved, control, 1, 1, seed), [("mean_command", net, False, False)],
-                        control.steps, seed).returns[0]
+    k = n if control.headings == "random" else 1  # (else every episode is alike: the first is the figure)
+    mean_command = play(block_env(grids, saved, control, 1, k, seed), [("mean_command", net, False, False)],
+                        control.steps, seed).returns[0].reshape(m, k)
     sim = saved.sim or SimConfig()
     gait = open_loop_displacement(grids.repeat_interleave(n, 0), sim, control, headings=played.heading[: m * n],
                                   planar=control.headings == "any",
                                   moves=np.repeat(open_loop_moves(grids, sim, control), n, 0)).reshape(m, n)
-    figures = {"open_loop": gait, "mean_command": mean_command[:, None],
+    figures = {"open_loop": gait, "mean_command": mean_command,
                **{name: played.returns[g].reshape(m, n) for g, (name, *_) in enumerate(groups)}}
     rows = []
     for i in range(m):
@@ -110,4 +123,4 @@ def write(out: Path, rows: list[dict]) -> None:
     write_rows(out / "summary.csv", summary(rows))
 
 
-__all__ = ["COLUMNS", "block_env", "episode_of", "evaluate", "summary", "write"]
+__all__ = ["COLUMNS", "EPISODES", "block_env", "episode_draws", "episode_of", "evaluate", "summary", "write"]

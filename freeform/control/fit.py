@@ -8,10 +8,10 @@ is its whole episode. The mean command is deterministic, so that figure is what 
 
 **Steering** (candidates that follow a heading drawn each episode, ``headings: random``: the zoo's :data:`STEERING`).
 The best of several controllers on one draw of headings is biased upwards on that draw, so choices and figures never
-share one: each trial is the mean of ``--trial-episodes`` episodes along the headings of the episodes *after* the one
-``evaluate`` measures a body on (:func:`trial_draws`), and every figure (``mean_command``, the curve) is that one
-episode — a body's pick and its adaptation are chosen on the trial draws, reported on the other. The adaptation's
-recipes are the steering presets' (:data:`STEERING_RECIPES`).
+share one: every figure (``mean_command``, the curve) is the mean of ``--episodes`` episodes (draws 0 … K−1,
+``evaluate``'s), and each trial the mean of ``--trial-episodes`` episodes along the headings of the episodes *after*
+those (:func:`trial_draws`) — a body's pick and its adaptation are chosen on the trial draws, reported on the
+others. The adaptation's recipes are the steering presets' (:data:`STEERING_RECIPES`).
 
 **Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of a kind the adaptation trains
 (:data:`RECIPES`: the zoo's students, and context controllers such as the population controller and per-body
@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from freeform.control.evaluate import block_env, episode_of
+from freeform.control.evaluate import EPISODES, block_env, episode_of
 from freeform.control.play import own_moves, play
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.control_config import described_differences
@@ -92,6 +92,9 @@ class Fit:
     trial_episodes: int | None = None
     """Episodes a trial averages, for candidates along random headings (None: :data:`TRIAL_EPISODES`); other
     heading tasks play every episode alike, and take one."""
+    episodes: int | None = None
+    """Episodes a figure averages, for candidates along random headings (None: ``evaluate``'s
+    :data:`~freeform.control.evaluate.EPISODES`); other heading tasks take one."""
 
     def __post_init__(self) -> None:
         if self.settings and not self.adapt_epochs:
@@ -108,8 +111,9 @@ class Fit:
                 raise ValueError(f"--set {setting!r}: fit sets {key.lstrip('+')} itself ({flag})")
         if self.adapt_epochs < 0:
             raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
-        if self.trial_episodes is not None and not (isinstance(self.trial_episodes, int) and self.trial_episodes >= 1):
-            raise ValueError(f"--trial-episodes must be a whole number >= 1, got {self.trial_episodes!r}")
+        for flag, value in (("--trial-episodes", self.trial_episodes), ("--episodes", self.episodes)):
+            if value is not None and not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{flag} must be a whole number >= 1, got {value!r}")
         if self.curve_every < 0 or (self.curve_every and not self.adapt_epochs):
             raise ValueError(f"--curve-every {self.curve_every}: a whole number of adaptation epochs >= 0 (0: never), "
                              "with --adapt-epochs > 0 (trials alone have no curve)")
@@ -176,24 +180,27 @@ class Candidates:
 
 def resolved(how: Fit, c: Candidates) -> Fit:
     """``how`` with what it left to the candidates' task filled in: the recipes (:data:`RECIPES`, or
-    :data:`STEERING_RECIPES` for steering) and the trial's episodes (:data:`TRIAL_EPISODES` for steering, else 1;
-    more than one refused where every episode is the same)."""
+    :data:`STEERING_RECIPES` for steering), the trial's episodes and the figures' (:data:`TRIAL_EPISODES` and
+    ``evaluate``'s ``EPISODES`` for steering, else 1; more than one refused where every episode is the same)."""
     from dataclasses import replace
 
-    if not c.steering and how.trial_episodes not in (None, 1):
-        raise ValueError(f"--trial-episodes {how.trial_episodes}: candidate {c.names[0]} plays headings "
-                         f"{c.control.headings!r}, whose every episode is the same (several episodes are for "
-                         "steering candidates, headings random)")
+    for flag, value in (("--trial-episodes", how.trial_episodes), ("--episodes", how.episodes)):
+        if not c.steering and value not in (None, 1):
+            raise ValueError(f"{flag} {value}: candidate {c.names[0]} plays headings {c.control.headings!r}, whose "
+                             "every episode is the same (several episodes are for steering candidates, headings "
+                             "random)")
     return replace(how, presets=how.presets if how.presets is not None else
                    STEERING_RECIPES if c.steering else RECIPES,
-                   trial_episodes=how.trial_episodes or (TRIAL_EPISODES if c.steering else 1))
+                   trial_episodes=how.trial_episodes or (TRIAL_EPISODES if c.steering else 1),
+                   episodes=how.episodes or (EPISODES if c.steering else 1))
 
 
 def trial_draws(how: Fit, c: Candidates) -> tuple[int, int]:
     """The episodes a trial plays, as ``block_env``'s (episodes, first_episode): for steering ``how.trial_episodes``
-    after the one a figure is measured on (episode 0, ``evaluate``'s), so that no choice is made on the draw that
+    after the ``how.episodes`` a figure is measured on (``evaluate``'s), so that no choice is made on a draw that
     reports it; else the one episode (it draws nothing a choice could fit)."""
-    return (resolved(how, c).trial_episodes, 1) if c.steering else (1, 0)  # (one default: resolved's)
+    how = resolved(how, c)  # (one default: resolved's)
+    return (how.trial_episodes, how.episodes) if c.steering else (1, 0)
 
 
 def recipe(how: Fit, preset: str, bodies: Path, m: int, start: Path | str) -> Any:
@@ -296,18 +303,18 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
           tried: tuple[np.ndarray, np.ndarray] | None = None, begun: float | None = None,
           ) -> tuple[list[Any], np.ndarray, tuple[list[dict], list[dict]]]:
     """Each body's candidate ``begin[i]`` trained on it for ``how.adapt_epochs`` epochs by the recipe
-    ``how.presets[which[i]]`` (``how`` :func:`resolved`; the module's docstring; a bank a recipe, its bodies written
+    ``how.presets[which[i]]`` (the module's docstring; a bank a recipe, its bodies written
     to ``scratch``): each body's adapted controller ``[M]`` (its bank's member), its move on its body ``[M]`` (mean
     command) over the trial's episodes (:func:`trial_draws`: what it is chosen by), and with ``how.curve_every`` the
     adaptation's curve as (a row a point, a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall
     time since ``begun``, measuring left out), ``adapted`` (the move under its bank) and ``kept`` (the trial's pick
     before the first epoch, then the better of the bank and the pick by the trial's episodes: what fit would give
     stopped there) — the bodies' mean in the first, each ``body``'s own in the second. ``tried``: the pick's trial
-    figure and its figure, each ``[M]`` (the same for a heading task that draws nothing; for steering its episode 0).
-    The curve's moves are figures: for steering, episode 0's, never the trial's."""
+    figure and its figure, each ``[M]`` (the same for a heading task that draws nothing; for steering the mean of
+    its figure episodes). The curve's moves are figures: for steering, the figure episodes', never the trial's."""
     from freeform.run.build import build
 
-    m = len(grids)
+    m, how = len(grids), resolved(how, c)  # (idempotent: adapt called alone gets the task's defaults too)
     draws = trial_draws(how, c)
     banks = []  # (the recipe, its bodies' places in grids, its PPO over their bank)
     for k in np.unique(which):
@@ -339,7 +346,7 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
         nonlocal measuring, moved
         at = time.perf_counter()
         moved = measured(*draws)
-        shown = measured(1, 0) if c.steering else moved  # (steering: chosen by the trial's episodes, shown by 0)
+        shown = measured(how.episodes, 0) if c.steering else moved  # (steering: chosen by the trial's, shown by 0 …)
         # (before the first epoch fit keeps the trials' pick at its figure: the bank plays that pick in another
         # batch, whose rounding would lift the max by a hair on one CPU and not on another)
         kept = (np.full(m, np.nan) if tried is None else figure.astype(float) if epoch == 0
@@ -369,13 +376,15 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
 
 
 @torch.no_grad()
-def alone(nets: list[Any], grids: torch.Tensor, c: Candidates, seed: int = 0) -> np.ndarray:
-    """Body i's move ``[M]`` under ``nets[i]``'s mean command, each network given its body's row alone: what
+def alone(nets: list[Any], grids: torch.Tensor, c: Candidates, seed: int = 0, episodes: int = 1) -> np.ndarray:
+    """Body i's move ``[M]`` under ``nets[i]``'s mean command, each network given its body's rows alone: what
     ``evaluate`` and ``watch`` of its ``controller.pt`` on its ``body.npy`` report, to the bit (a forward pass rounds
-    by the batch it is given; the physics does not, so the bodies share one env, a block of one row each)."""
-    env = block_env(grids, c.saved[0], c.control, blocks=1, seed=seed)
+    by the batch it is given; the physics does not, so the bodies share one env, a block of rows each); for
+    steering the mean over its ``episodes`` (draws 0 … K−1: what ``evaluate`` of the file on all of ``grids`` gives
+    in row i, but for that rounding)."""
+    env = block_env(grids, c.saved[0], c.control, blocks=1, episodes=episodes, seed=seed)
     groups = [(f"body{i}", net.eval(), False, False) for i, net in enumerate(nets)]
-    return play(env, groups, c.control.steps, seed).returns[:, 0]
+    return play(env, groups, c.control.steps, seed).returns.mean(1)  # (group i: body i's episodes)
 
 
 def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
@@ -383,8 +392,8 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
     ``out/body<i>/controller.pt`` (self-contained: ``evaluate`` and ``watch`` read it) beside ``out/body<i>/body.npy``
     and ``out/bodies.csv`` (``body``, ``chosen``, ``mean_command``: the body's move under it, alone, ``controller_file``,
     ``seconds``: the body's share of the wall time, then each candidate's trial figure: for steering the mean of the
-    trial's episodes, which ``mean_command``'s is not; a steering body's heading is its row's draw in ``grids``,
-    what ``evaluate`` of its file on all of ``grids`` gives in row i). Returns the rows."""
+    trial's episodes, which ``mean_command``'s are not; a steering body's headings are its row's draws in ``grids``,
+    what ``evaluate --episodes K`` of its file on all of ``grids`` gives in row i). Returns the rows."""
     from freeform.agents.controller_file import save_controller
     from freeform.tables import write_rows
 
@@ -405,14 +414,15 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
             kinds = recipe_of(c, cfgs)
             begin = chosen(trial, kinds >= 0)
             tried = moves[choice, np.arange(m)]
-            figure = alone(nets, grids, c, how.seed) if c.steering and how.curve_every else tried  # (the pick's)
+            figure = (alone(nets, grids, c, how.seed, how.episodes) if c.steering and how.curve_every
+                      else tried)  # (the pick's)
             members, adapted, (curve, per_body) = adapt(c, grids, begin, kinds[begin], how, Path(scratch),
                                                         (tried, figure), start)
             better = adapted > moves[choice, np.arange(m)]
             nets = [members[i] if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{c.names[int(begin[i])]} + {how.adapt_epochs} epochs" if better[i] else label
                       for i, label in enumerate(labels)]
-    moved = alone(nets, grids, c, how.seed)
+    moved = alone(nets, grids, c, how.seed, how.episodes)
     out.mkdir(parents=True, exist_ok=True)
     rows, seconds = [], (time.perf_counter() - start) / m
     for i in range(m):
