@@ -1,7 +1,8 @@
 """One body's gait under a controller, to look at: ``freeform-control watch``.
 
 The controller drives the body by its mean command for one episode — the episode ``evaluate`` scores for that body
-(same env seed, same row, so the same headings and the same bits) — and a frame is taken every ``k`` control
+(same env seed, same row, so the same headings and the same bits; for steering, whose figure is the mean of
+several episodes' headings, the first of them) — and a frame is taken every ``k`` control
 periods, ``k`` the whole number nearest to giving the asked frame rate, and at the episode's end: every simulated
 frame at that rate over the whole control window, from the end of the burn-in to the episode's last period.
 """
