@@ -19,7 +19,9 @@ The fraction against seconds: ``--curve NAME=FIT_DIR[:FIRST]`` reads a ``fit --c
 ``adaptation_bodies.csv`` (each body's move under what fit would keep if stopped at that point) and writes
 ``DIR/curve.csv`` (per curve and point: the epoch, a body's seconds, the fraction and its band) and ``DIR/curve.png``;
 with several curves, ``DIR/paired.csv``: each later curve's move minus the first's at the epochs both measured, body by
-body (voxel lengths, 99 % band by Student's t, the bodies ahead) — two recipes of the adaptation compared.
+body (voxel lengths, 99 % band by Student's t, the bodies ahead) — two recipes of the adaptation compared. With
+``--pair-by point`` the k-th points of the curves are paired instead, whatever their epochs: recipes of equal compute
+a point (``--copies 2`` measured every 8 epochs against ``--copies 4`` every 4) compared at equal seconds.
 
     python -m lab.fractions --reference lab/results/reference/design_unseen32 \
         --curve "fit=lab/results/fit93/design_unseen32_curve" --out DIR
@@ -109,9 +111,11 @@ def fractions(reference: Path, tables: list[str], epoch: int | None = None) -> l
     return rows
 
 
-def curve_points(reference: Path, curves: list[str], epoch: int | None = None) -> tuple[list[dict], list[dict]]:
+def curve_points(reference: Path, curves: list[str], epoch: int | None = None,
+                 by: str = "epoch") -> tuple[list[dict], list[dict]]:
     """The fraction of per-body control against a body's seconds, a row per ``--curve`` (module docstring) and point;
-    and each later curve against the first, paired by body, a row per epoch both measured."""
+    and each later curve against the first, paired by body, a row per epoch both measured (``by`` "point": a row
+    per point both have, the k-th with the k-th)."""
     at, ref = reference_moves(reference, epoch)
     if len(names := [spec.partition("=")[0] for spec in curves]) > len(set(names)):
         raise ValueError(f"--curve: two curves share a name ({names}): give each its own")
@@ -135,26 +139,31 @@ def curve_points(reference: Path, curves: list[str], epoch: int | None = None) -
             rows.append({"curve": name, "epoch": e, "seconds_a_body": seconds, "bodies": int(np.isfinite(kept).sum()),
                          "reference_epoch": at, "fraction": fraction, "band99": band})
             print(f"{name}, epoch {e} ({seconds:.1f} s a body): {fraction:.1%} ± {band:.1%}")
-    return rows, paired_curves(moves)
+    return rows, paired_curves(moves, by)
 
 
-def paired_curves(moves: dict[tuple[str, int], np.ndarray]) -> list[dict]:
-    """Each later curve's moves ``[bodies]`` minus the first curve's at every epoch both measured (bodies either lacks
-    left out): the mean difference, its 99 % band, and the bodies ahead."""
+def paired_curves(moves: dict[tuple[str, int], np.ndarray], by: str = "epoch") -> list[dict]:
+    """Each later curve's moves ``[bodies]`` minus the first curve's at every epoch both measured (``by`` "point":
+    the k-th point of each, whatever its epoch; bodies either lacks left out): the mean difference, its 99 % band,
+    and the bodies ahead, beside the two epochs paired."""
+    if by not in ("epoch", "point"):
+        raise ValueError(f"--pair-by {by!r}: epoch or point")
     names = list(dict.fromkeys(name for name, _ in moves))
+    epochs = {n: [e for other, e in moves if other == n] for n in names}  # (in the order measured: ascending)
     rows = []
     for name in names[1:]:
-        for (other, e), kept in moves.items():
-            if other != name or (names[0], e) not in moves:
-                continue
-            d = kept - moves[names[0], e]
+        pairs = (zip(epochs[name], epochs[names[0]], strict=False) if by == "point"
+                 else [(e, e) for e in epochs[name] if e in epochs[names[0]]])
+        for e, against in pairs:
+            d = moves[name, e] - moves[names[0], against]
             if not np.isfinite(d).any():
-                raise ValueError(f"--curve {name} and {names[0]}: at epoch {e} they share no body")
+                raise ValueError(f"--curve {name} and {names[0]}: at epochs {e} and {against} they share no body")
             d = d[np.isfinite(d)]
             mean, band = paired_band(d)
-            rows.append({"curve": name, "against": names[0], "epoch": e, "bodies": len(d), "difference": mean,
-                         "band99": band, "ahead": int((d > 0).sum())})
-            print(f"{name} - {names[0]}, epoch {e}: {mean:+.3f} ± {band:.3f} ({int((d > 0).sum())} of {len(d)} ahead)")
+            rows.append({"curve": name, "against": names[0], "epoch": e, "against_epoch": against, "bodies": len(d),
+                         "difference": mean, "band99": band, "ahead": int((d > 0).sum())})
+            print(f"{name} (epoch {e}) - {names[0]} (epoch {against}): {mean:+.3f} ± {band:.3f} "
+                  f"({int((d > 0).sum())} of {len(d)} ahead)")
     return rows
 
 
@@ -188,6 +197,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--epoch", type=int, default=None, help="the reference's saved epoch (default: its last)")
     p.add_argument("--table", action="append", default=[], metavar="NAME=CSV[:COLUMN[:FIRST]]")
     p.add_argument("--curve", action="append", default=[], metavar="NAME=FIT_DIR[:FIRST]")
+    p.add_argument("--pair-by", choices=("epoch", "point"), default="epoch",
+                   help="pair the curves by epoch, or by point (the k-th of each: equal compute a point)")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
     if not args.table and not args.curve:
@@ -197,7 +208,8 @@ def main(argv: list[str] | None = None) -> None:
                 "overwritten)")
     try:  # (everything is read before anything is written)
         table_rows = fractions(args.reference, args.table, args.epoch) if args.table else []
-        curve_rows, paired_rows = curve_points(args.reference, args.curve, args.epoch) if args.curve else ([], [])
+        curve_rows, paired_rows = (curve_points(args.reference, args.curve, args.epoch, args.pair_by) if args.curve
+                                   else ([], []))
     except ValueError as exc:
         p.error(str(exc))
     if table_rows:

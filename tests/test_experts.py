@@ -192,14 +192,14 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
     assert row["reference_epoch"] == "2+1" and float(row["reference"]) == pytest.approx(np.mean(own), abs=1e-12)
     assert float(row["fraction"]) == pytest.approx(0.5, abs=1e-12)
     # --curve: a fit's points body by body (half the reference, then all of it but the second body's half), by seconds
-    def fit_curve(name: str, seconds: tuple[float, float], shift):
-        """A fit's folder whose body i (reference body 10 + i) has moved ``kept`` at epochs 0 and 4, plus shift(e, i)."""
+    def fit_curve(name: str, seconds: tuple[float, float], shift, epochs=(0, 4)):
+        """A fit's folder whose body i (reference body 10 + i) has moved ``kept`` at ``epochs``, plus shift(e, i)."""
         folder = tmp_path / name
         folder.mkdir()
         with open(folder / "adaptation_bodies.csv", "w") as f:
             f.write("epoch,seconds,body,adapted,kept\n" + "".join(
                 f"{e},{s},{10 + i},0,{float(b['epoch2']) * (0.5 if e == 0 or i == 1 else 1.0) + shift(e, i)}\n"
-                for e, s in zip((0, 4), seconds, strict=True) for i, b in enumerate(bodies)))
+                for e, s in zip(epochs, seconds, strict=True) for i, b in enumerate(bodies)))
         return folder
 
     fitted = fit_curve("fitted", (1.5, 9.0), lambda e, i: 0.0)
@@ -212,6 +212,15 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
         ("two", "fit", 0, 3, 0), ("two", "fit", 4, 3, 3)]
     assert float(paired[1]["difference"]) == pytest.approx(0.25, abs=1e-12) and float(paired[1]["band99"]) < 1e-12
     assert float(paired[0]["difference"]) == pytest.approx(-0.5 / 3, abs=1e-12) and float(paired[0]["band99"]) > 0
+    # --pair-by point: a curve measured at epochs 0 and 8 (twice the epochs at half the copies) against the first's
+    # 0 and 4, point by point; paired by epoch they share epoch 0 alone
+    halves = fit_curve("halves", (1.0, 8.0), lambda e, i: 0.25 if e else 0.0, epochs=(0, 8))
+    for by, pairs in (("point", [(0, 0), (8, 4)]), ("epoch", [(0, 0)])):
+        fractions(["--reference", str(tmp_path / "curve"), "--curve", f"fit={fitted}:10", "--curve",
+                   f"halves={halves}:10", "--pair-by", by, "--out", str(tmp_path / by)])
+        rows_by = list(csv.DictReader(open(tmp_path / by / "paired.csv")))
+        assert [(int(p["epoch"]), int(p["against_epoch"])) for p in rows_by] == pairs
+        assert [float(p["difference"]) for p in rows_by] == pytest.approx([0.0, 0.25][:len(pairs)], abs=1e-12)
     points = [p for p in csv.DictReader(open(tmp_path / "c" / "curve.csv")) if p["curve"] == "fit"]
     ref = np.array([float(b["epoch2"]) for b in bodies])
     assert [(int(p["epoch"]), float(p["seconds_a_body"])) for p in points] == [(0, 1.5), (4, 9.0)]
