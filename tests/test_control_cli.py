@@ -104,6 +104,8 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused([*fit, "--trial-episodes", "2"], capsys, "--trial-episodes 2", "every episode is the same")
     refused([*fit, "--headings", "random", "--trial-episodes", "0"], capsys, "--trial-episodes must be a whole number")
     refused([*fit, "--episodes", "3"], capsys, "--episodes 3", "every episode is the same")
+    refused([*fit, "--adapt-seconds", "0"], capsys, "--adapt-seconds 0.0: a number of seconds > 0")
+    refused([*fit, "--adapt-seconds", "60", "--adapt-epochs", "0"], capsys, "with --adapt-epochs > 0")
     refused([*fit, "--headings", "random", "--episodes", "0"], capsys, "--episodes must be a whole number")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)
@@ -198,12 +200,15 @@ def test_fit_adapts_each_body_by_its_picks_recipe(tmp_path) -> None:
     """Two bodies whose best trials are of two kinds (measured: the population controller moves the muscle pair
     0.282 against pool256_gen4's 0.209, the L 0.845 against 0.891) adapt in two banks, one a recipe, each body's
     controller of its pick's kind; before the first epoch each bank moves its body as its trial did (each loaded
-    its own body's pick), and what fit keeps is what evaluate finds."""
+    its own body's pick), and what fit keeps is what evaluate finds. A budget of a microsecond a body
+    (``--adapt-seconds``) stops the adaptation after its first epoch of the three allowed, measured after it."""
     from freeform.agents.controller_file import read_controller
 
     np.save(tmp_path / "bodies.npy", tiny_bodies()[:2])
-    main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "1",
-          "--copies", "2", "--curve-every", "1", "--candidates", "population", "pool256_gen4"])
+    main(["fit", str(tmp_path / "bodies.npy"), "--out", str(tmp_path / "fitted"), "--adapt-epochs", "3",
+          "--adapt-seconds", "1e-6", "--copies", "2", "--curve-every", "2", "--candidates", "population",
+          "pool256_gen4"])
+    assert [r["epoch"] for r in rows(tmp_path / "fitted" / "adaptation.csv")] == ["0", "1"]
     fitted = rows(tmp_path / "fitted" / "bodies.csv")
     trials = [(float(r["trial_population"]), float(r["trial_pool256_gen4"])) for r in fitted]
     assert trials[0][0] > trials[0][1] and trials[1][1] > trials[1][0]

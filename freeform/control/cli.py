@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from freeform.control.evaluate import EPISODES
-from freeform.control.fit import DEFAULT_ADAPT_EPOCHS, TRIAL_EPISODES
+from freeform.control.fit import BUDGET_EPOCHS, DEFAULT_ADAPT_EPOCHS, TRIAL_EPISODES
 from freeform.envs.control_config import HEADINGS
 
 
@@ -94,7 +94,10 @@ def cmd_fit(args: argparse.Namespace) -> None:
     out = Path(args.out)
     no_earlier_fit(out)
     candidates = tuple(args.candidates or (STEERING if args.headings == "random" else TRIED))
-    how = Fit(candidates, args.trial, args.adapt_epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
+    epochs = (args.adapt_epochs if args.adapt_epochs is not None
+              else DEFAULT_ADAPT_EPOCHS if args.adapt_seconds is None else BUDGET_EPOCHS)
+    how = Fit(candidates, args.trial, epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
+              adapt_seconds=args.adapt_seconds,
               settings=tuple(args.set), trial_episodes=args.trial_episodes,
               episodes=args.episodes)  # (checked before the bodies are read)
     own = read_controller(resolve(candidates[0])).control.headings
@@ -149,9 +152,11 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--out", required=True)
     f.add_argument("--trial", type=float, default=None, metavar="SECONDS",
                    help="choose by the move after this many seconds of each candidate (default: the whole episode)")
-    f.add_argument("--adapt-epochs", type=int, default=DEFAULT_ADAPT_EPOCHS, metavar="E",
+    f.add_argument("--adapt-epochs", type=int, default=None, metavar="E",
                    help=f"epochs of PPO on each body from its chosen controller (0: trials alone; default "
-                        f"{DEFAULT_ADAPT_EPOCHS})")
+                        f"{DEFAULT_ADAPT_EPOCHS}; with --adapt-seconds, the most it runs)")
+    f.add_argument("--adapt-seconds", type=float, default=None, metavar="S",
+                   help="adapt for as many epochs as fit in S seconds a body, trials included (e.g. 60)")
     f.add_argument("--copies", type=int, default=4, help="environments per body in the adaptation")
     f.add_argument("--candidates", nargs="+", default=None, metavar="CONTROLLER",
                    help="what to try (zoo names or controller.pt files; default: the zoo's for the task)")

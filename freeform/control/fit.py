@@ -13,7 +13,8 @@ share one: every figure (``mean_command``, the curve) is the mean of ``--episode
 those (:func:`trial_draws`) — a body's pick and its adaptation are chosen on the trial draws, reported on the
 others. The adaptation's recipes are the steering presets' (:data:`STEERING_RECIPES`).
 
-**Adaptation** (``--adapt-epochs E`` > 0). Each body's best candidate of a kind the adaptation trains
+**Adaptation** (``--adapt-epochs E`` > 0, or ``--adapt-seconds S``: as many epochs as fit in S seconds a body,
+trials included). Each body's best candidate of a kind the adaptation trains
 (:data:`RECIPES`: the zoo's students, and context controllers such as the population controller and per-body
 controllers of other bodies; :func:`recipe_of` — a candidate of another kind is tried and kept where it wins, not
 adapted) is trained on that body alone for E epochs of PPO by its kind's recipe — the bodies of one recipe at once,
@@ -32,7 +33,7 @@ import tempfile
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -69,6 +70,9 @@ DEFAULT_ADAPT_EPOCHS = 24
 """The adaptation ``fit`` runs unless told otherwise: 24 epochs, about a minute of 2-core time a body (59–72 s on
 the held-out bodies; docs/control.md)."""
 
+BUDGET_EPOCHS = 1000
+"""The most epochs an adaptation by seconds (``--adapt-seconds``) runs where ``--adapt-epochs`` sets no cap."""
+
 
 @dataclass(frozen=True)
 class Fit:
@@ -89,6 +93,10 @@ class Fit:
     settings: tuple[str, ...] = ()
     """Hydra overrides of every recipe (``agent.lr=1e-3``), applied before what fit sets itself (the keys of
     :data:`FIT_SETS`, which they may not name)."""
+    adapt_seconds: float | None = None
+    """Adapt until a body's share of the wall time since fit began (trials included, the curve's measuring not)
+    would pass this many seconds with one more epoch — at least one epoch, at most ``adapt_epochs``; None: every one
+    of ``adapt_epochs``."""
     trial_episodes: int | None = None
     """Episodes a trial averages, for candidates along random headings (None: :data:`TRIAL_EPISODES`); other
     heading tasks play every episode alike, and take one."""
@@ -111,6 +119,10 @@ class Fit:
                 raise ValueError(f"--set {setting!r}: fit sets {key.lstrip('+')} itself ({flag})")
         if self.adapt_epochs < 0:
             raise ValueError(f"--adapt-epochs must be >= 0 (0: trials alone), got {self.adapt_epochs}")
+        if self.adapt_seconds is not None and not (np.isfinite(self.adapt_seconds) and self.adapt_seconds > 0
+                                                   and self.adapt_epochs):
+            raise ValueError(f"--adapt-seconds {self.adapt_seconds}: a number of seconds > 0, with --adapt-epochs > 0 "
+                             "(its cap; 0 runs no adaptation)")
         for flag, value in (("--trial-episodes", self.trial_episodes), ("--episodes", self.episodes)):
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{flag} must be a whole number >= 1, got {value!r}")
@@ -299,24 +311,13 @@ def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
     return (trial if among is None else np.where(among[:, None], trial, -np.inf)).argmax(0)
 
 
-def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarray, how: Fit, scratch: Path,
-          tried: tuple[np.ndarray, np.ndarray] | None = None, begun: float | None = None,
-          ) -> tuple[list[Any], np.ndarray, tuple[list[dict], list[dict]]]:
-    """Each body's candidate ``begin[i]`` trained on it for ``how.adapt_epochs`` epochs by the recipe
-    ``how.presets[which[i]]`` (the module's docstring; a bank a recipe, its bodies written
-    to ``scratch``): each body's adapted controller ``[M]`` (its bank's member), its move on its body ``[M]`` (mean
-    command) over the trial's episodes (:func:`trial_draws`: what it is chosen by), and with ``how.curve_every`` the
-    adaptation's curve as (a row a point, a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall
-    time since ``begun``, measuring left out), ``adapted`` (the move under its bank) and ``kept`` (the trial's pick
-    before the first epoch, then the better of the bank and the pick by the trial's episodes: what fit would give
-    stopped there) — the bodies' mean in the first, each ``body``'s own in the second. ``tried``: the pick's trial
-    figure and its figure, each ``[M]`` (the same for a heading task that draws nothing; for steering the mean of
-    its figure episodes). The curve's moves are figures: for steering, the figure episodes', never the trial's."""
+def recipe_banks(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarray, how: Fit,
+                 scratch: Path) -> list[tuple[str, np.ndarray, Any]]:
+    """A bank a recipe (:func:`adapt`'s arguments): (its preset, its bodies' places in ``grids``, its PPO), each
+    member loaded with its body's candidate ``begin[i]``."""
     from freeform.run.build import build
 
-    m, how = len(grids), resolved(how, c)  # (idempotent: adapt called alone gets the task's defaults too)
-    draws = trial_draws(how, c)
-    banks = []  # (the recipe, its bodies' places in grids, its PPO over their bank)
+    banks = []
     for k in np.unique(which):
         places = np.flatnonzero(which == k)
         bodies = scratch / f"adapting_{how.presets[k]}.npy"
@@ -326,6 +327,36 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
         for j, i in enumerate(places):
             ppo.policy.load_member(j, c.saved[int(begin[i])].controller.state_dict())
         banks.append((how.presets[k], places, ppo))
+    return banks
+
+
+class Adapted(NamedTuple):
+    """What :func:`adapt` returns: each body's adapted controller ``[M]``, its move ``[M]`` over the trial's episodes,
+    the curve (a row a point; a row a point and body) and the epochs run."""
+
+    members: list[Any]
+    moves: np.ndarray
+    curve: list[dict]
+    per_body: list[dict]
+    epochs: int
+
+
+def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarray, how: Fit, scratch: Path,
+          tried: tuple[np.ndarray, np.ndarray] | None = None, begun: float | None = None) -> Adapted:
+    """Each body's candidate ``begin[i]`` trained on it for ``how.adapt_epochs`` epochs (or as many as
+    ``how.adapt_seconds`` holds: :class:`Fit`) by the recipe
+    ``how.presets[which[i]]`` (the module's docstring; a bank a recipe, its bodies written
+    to ``scratch``): each body's adapted controller ``[M]`` (its bank's member), its move on its body ``[M]`` (mean
+    command) over the trial's episodes (:func:`trial_draws`: what it is chosen by), and with ``how.curve_every`` the
+    adaptation's curve as (a row a point, a row a point and body): ``epoch``, ``seconds`` (a body's share of the wall
+    time since ``begun``, measuring left out), ``adapted`` (the move under its bank) and ``kept`` (the trial's pick
+    before the first epoch, then the better of the bank and the pick by the trial's episodes: what fit would give
+    stopped there) — the bodies' mean in the first, each ``body``'s own in the second. ``tried``: the pick's trial
+    figure and its figure, each ``[M]`` (the same for a heading task that draws nothing; for steering the mean of
+    its figure episodes). The curve's moves are figures: for steering, the figure episodes', never the trial's."""
+    m, how = len(grids), resolved(how, c)  # (idempotent: adapt called alone gets the task's defaults too)
+    draws = trial_draws(how, c)
+    banks = recipe_banks(c, grids, begin, which, how, scratch)
 
     def measured(episodes: int, first: int) -> np.ndarray:  # (each bank's bodies along their own draws in the set)
         moves = np.empty(m)
@@ -359,20 +390,28 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
 
     if how.curve_every:
         point(0)
+    done = 0
     with torch.enable_grad():
-        for epoch in range(how.adapt_epochs):
+        while done < how.adapt_epochs:
+            at = time.perf_counter()
             for preset, places, ppo in banks:  # (in turn: each bank's epoch is its own bodies' alone)
                 stats = ppo.train_epoch()
-                print(f"adapting {len(places)} bodies ({preset}): epoch {epoch + 1}/{how.adapt_epochs}, the epoch's "
+                print(f"adapting {len(places)} bodies ({preset}): epoch {done + 1}/{how.adapt_epochs}, the epoch's "
                       f"return {stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
-            if how.curve_every and ((epoch + 1) % how.curve_every == 0 or epoch + 1 == how.adapt_epochs):
-                point(epoch + 1)
+            done += 1
+            now = time.perf_counter()  # (another epoch like this one would pass the budget: the last)
+            last = done == how.adapt_epochs or (how.adapt_seconds is not None and (
+                now - begun - measuring + now - at) / m > how.adapt_seconds)
+            if how.curve_every and (done % how.curve_every == 0 or last):
+                point(done)
+            if last:
+                break
     members: list[Any] = [None] * m
     for _, places, ppo in banks:
         for j, i in enumerate(places):
             members[i] = ppo.policy.member(j)
     # (the curve's last point measured the last epoch)
-    return members, moved if how.curve_every else measured(*draws), (curve, per_body)
+    return Adapted(members, moved if how.curve_every else measured(*draws), curve, per_body, done)
 
 
 @torch.no_grad()
@@ -416,11 +455,10 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
             tried = moves[choice, np.arange(m)]
             figure = (alone(nets, grids, c, how.seed, how.episodes) if c.steering and how.curve_every
                       else tried)  # (the pick's)
-            members, adapted, (curve, per_body) = adapt(c, grids, begin, kinds[begin], how, Path(scratch),
-                                                        (tried, figure), start)
-            better = adapted > moves[choice, np.arange(m)]
-            nets = [members[i] if better[i] else net for i, net in enumerate(nets)]
-            labels = [f"{c.names[int(begin[i])]} + {how.adapt_epochs} epochs" if better[i] else label
+            adapted = adapt(c, grids, begin, kinds[begin], how, Path(scratch), (tried, figure), start)
+            better = adapted.moves > moves[choice, np.arange(m)]
+            nets = [adapted.members[i] if better[i] else net for i, net in enumerate(nets)]
+            labels = [f"{c.names[int(begin[i])]} + {adapted.epochs} epochs" if better[i] else label
                       for i, label in enumerate(labels)]
     moved = alone(nets, grids, c, how.seed, how.episodes)
     out.mkdir(parents=True, exist_ok=True)
@@ -432,8 +470,8 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
                      "seconds": seconds, **{f"trial_{n}": float(moves[k, i]) for k, n in enumerate(c.names)}})
     write_rows(out / "bodies.csv", rows)
     if cfgs is not None and how.curve_every:  # (the bodies' mean; body by body beside, for a fraction's band)
-        write_rows(out / "adaptation.csv", curve)
-        write_rows(out / "adaptation_bodies.csv", per_body)
+        write_rows(out / "adaptation.csv", adapted.curve)
+        write_rows(out / "adaptation_bodies.csv", adapted.per_body)
     return rows
 
 
@@ -463,8 +501,7 @@ def no_earlier_fit(out: Path) -> None:
         raise FileExistsError(f"--out {out} holds a fit already (bodies.csv): give a new folder, or move that one")
 
 
-__all__ = ["DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "STEERING_RECIPES", "TRIAL_EPISODES", "Candidates",
-           "Fit", "adapt", "adaptation", "alone", "candidate_name", "chosen", "episode_differences", "fit", "gate",
-           "no_earlier_fit", "read_alike", "recipe", "recipe_of", "resolved", "trained_kind", "trial_decisions",
-           "trial_draws", "trials"]
-
+__all__ = ["BUDGET_EPOCHS", "DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "STEERING_RECIPES",
+           "TRIAL_EPISODES", "Adapted", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name", "chosen",
+           "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "recipe", "recipe_banks", "recipe_of", "resolved",
+           "trained_kind", "trial_decisions", "trial_draws", "trials"]
