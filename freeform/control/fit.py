@@ -396,7 +396,8 @@ def adapt(c: Candidates, grids: torch.Tensor, begin: np.ndarray, which: np.ndarr
             at = time.perf_counter()
             for preset, places, ppo in banks:  # (in turn: each bank's epoch is its own bodies' alone)
                 stats = ppo.train_epoch()
-                print(f"adapting {len(places)} bodies ({preset}): epoch {done + 1}/{how.adapt_epochs}, the epoch's "
+                of = f"/{how.adapt_epochs}" if how.adapt_seconds is None else f" (of {how.adapt_seconds:g} s a body)"
+                print(f"adapting {len(places)} bodies ({preset}): epoch {done + 1}{of}, the epoch's "
                       f"return {stats.get('episode_reward_mean', float('nan')):.3f}", flush=True)
             done += 1
             now = time.perf_counter()  # (another epoch like this one would pass the budget: the last)
