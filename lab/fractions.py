@@ -152,6 +152,9 @@ def paired_curves(moves: dict[tuple[str, int], np.ndarray], by: str = "epoch") -
     epochs = {n: [e for other, e in moves if other == n] for n in names}  # (in the order measured: ascending)
     rows = []
     for name in names[1:]:
+        if by == "point" and len(epochs[name]) != len(epochs[names[0]]):
+            print(f"--pair-by point: {name} has {len(epochs[name])} points, {names[0]} {len(epochs[names[0]])}: the "
+                  "first of each paired, the rest left out")
         pairs = (zip(epochs[name], epochs[names[0]], strict=False) if by == "point"
                  else [(e, e) for e in epochs[name] if e in epochs[names[0]]])
         for e, against in pairs:

@@ -9,7 +9,7 @@ and whether ``trainer.plateau_window`` had called the run flat there), ``bodies.
 saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
 
 Along random headings (steering) a body's move is the mean over ``--episodes`` episodes (default ``evaluate``'s 4:
-draws 0 … 3 of each body, what ``freeform-control evaluate`` and ``fit`` measure a body on); other tasks play one.
+episodes 0 … 3 of each body, what ``freeform-control evaluate`` and ``fit`` measure a body on); other tasks play one.
 
 How far from flat: ``asymptote.csv`` extrapolates the mean curve by a saturating exponential, a − b·exp(−t/τ) (least
 squares; τ on a fine geometric grid), and gives a with a 99 % interval from resampling the bodies, τ, and the share of
@@ -58,7 +58,7 @@ def curve(run: Path, episodes: int | None = None) -> tuple[list[dict], list[dict
     from freeform.agents.controller_file import body_box
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
-    from freeform.control.evaluate import EPISODES, episode_draws
+    from freeform.control.evaluate import episode_draws, figure_episodes
     from freeform.control.play import own_moves
     from freeform.envs.control import ControlEnv
     from freeform.run.build import read_teacher_run
@@ -67,11 +67,7 @@ def curve(run: Path, episodes: int | None = None) -> tuple[list[dict], list[dict
     teachers = read_teacher_run(run, str(run))
     grids, cfg = teachers.bodies.to(torch.uint8), teachers.config
     m, box, control = len(grids), body_box(teachers.bodies), cfg.control.episode()
-    steering = control.headings == "random"
-    if episodes is not None and not (isinstance(episodes, int) and episodes >= 1 and (steering or episodes == 1)):
-        raise ValueError(f"--episodes {episodes}: a whole number >= 1, and more than one only for steering (this run "
-                         f"plays headings {control.headings!r}, whose every episode is the same)")
-    k = episodes or (EPISODES if steering else 1)
+    k = figure_episodes(control.headings, episodes, who=f"the run {run}")
     returns = list(teachers.payload.get("return_curve", []))
     window, gain = (cfg.trainer.plateau_window, cfg.trainer.plateau_gain) if cfg.trainer.plateau_window else PLATEAU
     per_epoch, per_body = [], [{"body": i} for i in range(m)]
@@ -156,7 +152,8 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", type=Path, help="a teacher run (a per-body cache's directory)")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--episodes", type=int, default=None, help="steering: episodes a body's move averages (default 4)")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="steering: episodes a body's move averages (default evaluate's, 4)")
     args = p.parse_args(argv)
     if (args.out / "curve.csv").exists():
         p.error(f"--out {args.out} holds a curve already (curve.csv): give a new folder (nothing is overwritten)")

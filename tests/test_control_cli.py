@@ -59,6 +59,8 @@ def refused(argv: list[str], capsys: pytest.CaptureFixture, *needles: str) -> st
 
 
 def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_path, capsys) -> None:
+    from freeform.control.fit import BUDGET_EPOCHS, DEFAULT_ADAPT_EPOCHS, Fit
+
     controller, out = short_controller(tmp_path / "controller.pt"), tmp_path / "out"
     cases = {"float": (tiny_bodies().astype(np.float32), "integer dtype (uint8), and this one is float32"),
              "rank": (tiny_bodies()[0, 0], "rank 2"),
@@ -106,6 +108,9 @@ def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_pa
     refused([*fit, "--episodes", "3"], capsys, "--episodes 3", "every episode is the same")
     refused([*fit, "--adapt-seconds", "0"], capsys, "--adapt-seconds 0.0: a number of seconds > 0")
     refused([*fit, "--adapt-seconds", "60", "--adapt-epochs", "0"], capsys, "with --adapt-epochs > 0")
+    assert [Fit(("student",), **k).adapt_epochs for k in ({}, {"adapt_seconds": 60.0},
+                                                          {"adapt_seconds": 60.0, "adapt_epochs": 5})] == [
+        DEFAULT_ADAPT_EPOCHS, BUDGET_EPOCHS, 5]
     refused([*fit, "--headings", "random", "--episodes", "0"], capsys, "--episodes must be a whole number")
     (tmp_path / "a").mkdir()
     (tmp_path / "b" / "a").mkdir(parents=True)

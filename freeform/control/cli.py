@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from freeform.control.evaluate import EPISODES
-from freeform.control.fit import BUDGET_EPOCHS, DEFAULT_ADAPT_EPOCHS, TRIAL_EPISODES
+from freeform.control.fit import DEFAULT_ADAPT_EPOCHS, TRIAL_EPISODES
 from freeform.envs.control_config import HEADINGS
 
 
@@ -94,9 +94,7 @@ def cmd_fit(args: argparse.Namespace) -> None:
     out = Path(args.out)
     no_earlier_fit(out)
     candidates = tuple(args.candidates or (STEERING if args.headings == "random" else TRIED))
-    epochs = (args.adapt_epochs if args.adapt_epochs is not None
-              else DEFAULT_ADAPT_EPOCHS if args.adapt_seconds is None else BUDGET_EPOCHS)
-    how = Fit(candidates, args.trial, epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
+    how = Fit(candidates, args.trial, args.adapt_epochs, args.copies, seed=args.seed, curve_every=args.curve_every,
               adapt_seconds=args.adapt_seconds,
               settings=tuple(args.set), trial_episodes=args.trial_episodes,
               episodes=args.episodes)  # (checked before the bodies are read)

@@ -6,7 +6,7 @@ travels in the plane over the control window, or along the heading for a heading
 every group on its own block of rows with the same headings; the mean command is deterministic, so one episode of
 it is the figure (``watch`` replays it frame by frame) — but along random headings, where each episode draws
 another heading and the heading changes a body's move several-fold, its figure is the mean over the body's
-episodes (draws 0 … K−1; ``watch`` replays the first).
+episodes 0 … K−1 (``watch`` replays the first).
 """
 
 from __future__ import annotations
@@ -31,7 +31,21 @@ compare like for like; along ``random`` headings the mean command's is the mean 
 
 EPISODES = 4
 """Episodes a body's figures average unless told otherwise (``evaluate --episodes``; a steering figure of
-``fit`` and of the lab's reference alike): along random headings, draws 0 … 3 of each body."""
+``fit`` and of the lab's reference alike): along random headings, episodes 0 … 3 of each body."""
+
+
+def figure_episodes(headings: str, episodes: int | None = None, default: int = EPISODES, flag: str = "--episodes",
+                    who: str = "the controller") -> int:
+    """How many episodes a body's figure (or trial) averages: ``episodes`` (None: ``default``) along random headings;
+    one along any other, whose every episode is the same (more refused, naming ``flag`` and ``who``)."""
+    if episodes is not None and not (isinstance(episodes, int | np.integer) and episodes >= 1):
+        raise ValueError(f"{flag} must be a whole number >= 1, got {episodes!r}")
+    if headings != "random":
+        if episodes not in (None, 1):
+            raise ValueError(f"{flag} {episodes}: {who} plays headings {headings!r}, whose every episode is the same "
+                             "(more than one only for steering, headings random)")
+        return 1
+    return int(episodes or default)
 
 
 def episode_draws(m: int, episodes: int = 1, first_episode: int = 0,
@@ -123,4 +137,5 @@ def write(out: Path, rows: list[dict]) -> None:
     write_rows(out / "summary.csv", summary(rows))
 
 
-__all__ = ["COLUMNS", "EPISODES", "block_env", "episode_draws", "episode_of", "evaluate", "summary", "write"]
+__all__ = ["COLUMNS", "EPISODES", "block_env", "episode_draws", "episode_of", "evaluate", "figure_episodes", "summary",
+           "write"]

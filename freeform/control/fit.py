@@ -8,7 +8,7 @@ is its whole episode. The mean command is deterministic, so that figure is what 
 
 **Steering** (candidates that follow a heading drawn each episode, ``headings: random``: the zoo's :data:`STEERING`).
 The best of several controllers on one draw of headings is biased upwards on that draw, so choices and figures never
-share one: every figure (``mean_command``, the curve) is the mean of ``--episodes`` episodes (draws 0 … K−1,
+share one: every figure (``mean_command``, the curve) is the mean of ``--episodes`` episodes (episodes 0 … K−1,
 ``evaluate``'s), and each trial the mean of ``--trial-episodes`` episodes along the headings of the episodes *after*
 those (:func:`trial_draws`) — a body's pick and its adaptation are chosen on the trial draws, reported on the
 others. The adaptation's recipes are the steering presets' (:data:`STEERING_RECIPES`).
@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from freeform.control.evaluate import EPISODES, block_env, episode_of
+from freeform.control.evaluate import EPISODES, block_env, episode_of, figure_episodes
 from freeform.control.play import own_moves, play
 from freeform.envs.control import ControlConfig, ControlEnv
 from freeform.envs.control_config import described_differences
@@ -82,7 +82,8 @@ class Fit:
 
     candidates: tuple[str, ...]
     trial: float | None = None
-    adapt_epochs: int = DEFAULT_ADAPT_EPOCHS
+    adapt_epochs: int | None = None
+    """None: :data:`DEFAULT_ADAPT_EPOCHS`, or :data:`BUDGET_EPOCHS` (a cap) with ``adapt_seconds``."""
     copies: int = 4
     presets: tuple[str, ...] | None = None
     """None: the candidates' task's (:data:`RECIPES`, :data:`STEERING_RECIPES` for random headings)."""
@@ -105,6 +106,9 @@ class Fit:
     :data:`~freeform.control.evaluate.EPISODES`); other heading tasks take one."""
 
     def __post_init__(self) -> None:
+        if self.adapt_epochs is None:  # (frozen: set once, here)
+            object.__setattr__(self, "adapt_epochs",
+                               DEFAULT_ADAPT_EPOCHS if self.adapt_seconds is None else BUDGET_EPOCHS)
         if self.settings and not self.adapt_epochs:
             raise ValueError(f"--set {' '.join(self.settings)}: changes the adaptation, and --adapt-epochs 0 runs "
                              "none (trials alone have no recipe)")
@@ -196,15 +200,11 @@ def resolved(how: Fit, c: Candidates) -> Fit:
     ``evaluate``'s ``EPISODES`` for steering, else 1; more than one refused where every episode is the same)."""
     from dataclasses import replace
 
-    for flag, value in (("--trial-episodes", how.trial_episodes), ("--episodes", how.episodes)):
-        if not c.steering and value not in (None, 1):
-            raise ValueError(f"{flag} {value}: candidate {c.names[0]} plays headings {c.control.headings!r}, whose "
-                             "every episode is the same (several episodes are for steering candidates, headings "
-                             "random)")
+    who, headings = f"candidate {c.names[0]}", c.control.headings
     return replace(how, presets=how.presets if how.presets is not None else
                    STEERING_RECIPES if c.steering else RECIPES,
-                   trial_episodes=how.trial_episodes or (TRIAL_EPISODES if c.steering else 1),
-                   episodes=how.episodes or (EPISODES if c.steering else 1))
+                   trial_episodes=figure_episodes(headings, how.trial_episodes, TRIAL_EPISODES, "--trial-episodes", who),
+                   episodes=figure_episodes(headings, how.episodes, EPISODES, "--episodes", who))
 
 
 def trial_draws(how: Fit, c: Candidates) -> tuple[int, int]:
@@ -420,7 +420,7 @@ def alone(nets: list[Any], grids: torch.Tensor, c: Candidates, seed: int = 0, ep
     """Body i's move ``[M]`` under ``nets[i]``'s mean command, each network given its body's rows alone: what
     ``evaluate`` and ``watch`` of its ``controller.pt`` on its ``body.npy`` report, to the bit (a forward pass rounds
     by the batch it is given; the physics does not, so the bodies share one env, a block of rows each); for
-    steering the mean over its ``episodes`` (draws 0 … K−1: what ``evaluate`` of the file on all of ``grids`` gives
+    steering the mean over its ``episodes`` (episodes 0 … K−1: what ``evaluate`` of the file on all of ``grids`` gives
     in row i, but for that rounding)."""
     env = block_env(grids, c.saved[0], c.control, blocks=1, episodes=episodes, seed=seed)
     groups = [(f"body{i}", net.eval(), False, False) for i, net in enumerate(nets)]
@@ -454,9 +454,11 @@ def fit(grids: torch.Tensor, out: Path, how: Fit) -> list[dict]:
             kinds = recipe_of(c, cfgs)
             begin = chosen(trial, kinds >= 0)
             tried = moves[choice, np.arange(m)]
+            at = time.perf_counter()  # (the pick's figure, for the curve: measuring, left out of the seconds)
             figure = (alone(nets, grids, c, how.seed, how.episodes) if c.steering and how.curve_every
-                      else tried)  # (the pick's)
-            adapted = adapt(c, grids, begin, kinds[begin], how, Path(scratch), (tried, figure), start)
+                      else tried)
+            begun = start + time.perf_counter() - at
+            adapted = adapt(c, grids, begin, kinds[begin], how, Path(scratch), (tried, figure), begun)
             better = adapted.moves > moves[choice, np.arange(m)]
             nets = [adapted.members[i] if better[i] else net for i, net in enumerate(nets)]
             labels = [f"{c.names[int(begin[i])]} + {adapted.epochs} epochs" if better[i] else label
@@ -504,5 +506,5 @@ def no_earlier_fit(out: Path) -> None:
 
 __all__ = ["BUDGET_EPOCHS", "DEFAULT_ADAPT_EPOCHS", "EPISODE", "FIT_SETS", "RECIPES", "STEERING_RECIPES",
            "TRIAL_EPISODES", "Adapted", "Candidates", "Fit", "adapt", "adaptation", "alone", "candidate_name", "chosen",
-           "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "recipe", "recipe_banks", "recipe_of", "resolved",
-           "trained_kind", "trial_decisions", "trial_draws", "trials"]
+           "episode_differences", "fit", "gate", "no_earlier_fit", "read_alike", "recipe", "recipe_banks", "recipe_of",
+           "resolved", "trained_kind", "trial_decisions", "trial_draws", "trials"]

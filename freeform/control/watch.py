@@ -2,7 +2,7 @@
 
 The controller drives the body by its mean command for one episode — the episode ``evaluate`` scores for that body
 (same env seed, same row, so the same headings and the same bits; for steering, whose figure is the mean of
-several episodes' headings, the first of them) — and a frame is taken every ``k`` control
+several episodes' headings, the first of them, to rounding) — and a frame is taken every ``k`` control
 periods, ``k`` the whole number nearest to giving the asked frame rate, and at the episode's end: every simulated
 frame at that rate over the whole control window, from the end of the burn-in to the episode's last period.
 """
@@ -44,7 +44,8 @@ def watch(saved: Any, grids: torch.Tensor, out: Path, fps: float = 40.0, video: 
           headings: str | None = None, body: int = 0) -> dict:
     """Drive body ``body`` of ``grids`` (uint8 ``[M, ρ, ρ, ρ]``) with ``saved`` (a ``SavedController`` for a box that
     holds them) by its mean command for one episode, in the env ``evaluate`` plays the mean command in (every body
-    of the file, one row each: the same bits); write ``out/gait.<video>`` (``gif``, or ``mp4`` with the ``video``
+    of the file, one row each: the same bits; for steering, each body's first episode, which ``evaluate`` averages
+    with the others in a larger batch: the same to rounding); write ``out/gait.<video>`` (``gif``, or ``mp4`` with the ``video``
     extra) and ``out/gait.json`` (the move, the frames, the frame rate, the body's own open-loop gait). Returns the
     figures."""
     writable(video)
