@@ -269,6 +269,12 @@ class TrainerConfig:
     (``freeform.run.trainer.plateaued``; ``epochs`` is then the cap). 0: train every epoch."""
     plateau_gain: float = 0.02
     """With ``plateau_window``: the relative gain a window must add over the one before to go on (0.02: 2 %)."""
+    plateau_on: str = "return"
+    """The curve ``plateau_window`` reads (``PLATEAU_CURVES``): "return", the training return of every epoch; or
+    "eval_return", the deterministic evaluation's (``agent.eval_every``: a window of ``plateau_window`` epochs holds
+    ``plateau_window / agent.eval_every`` of its points). The training return of a steering run is one heading a body
+    an epoch, so a window of it flattens on the headings' luck; its evaluation, along the same headings every time
+    (``agent.eval_same_episodes``), moves with the policy alone."""
     progress: bool = True
     """Show a tqdm bar over epochs."""
     dry_run: bool = False
@@ -297,6 +303,8 @@ class TrainConfig:
 
 
 _DEVICES = ("auto", "cpu", "cuda", "mps")
+PLATEAU_CURVES = ("return", "eval_return")
+"""What ``trainer.plateau_window`` reads: the training return of every epoch, or PPO's evaluation (``eval_return``)."""
 
 
 def _validate_env(e: EnvConfig) -> None:
@@ -319,6 +327,7 @@ def _validate_trainer(t: TrainerConfig) -> None:
         require(getattr(t, name) >= 0, f"trainer.{name}", "an integer >= 0 (0 = off/default)", getattr(t, name))
     require(t.stop_grace_s >= 0, "trainer.stop_grace_s", "a number of seconds >= 0", t.stop_grace_s)
     require(t.plateau_gain >= 0, "trainer.plateau_gain", "a relative gain >= 0 (0.02: 2 %)", t.plateau_gain)
+    require(t.plateau_on in PLATEAU_CURVES, "trainer.plateau_on", f"one of {list(PLATEAU_CURVES)}", t.plateau_on)
 
 
 def episode_steps(cfg: TrainConfig) -> int:
@@ -374,6 +383,14 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
     cfg.sim.validate("sim")
     _validate_trainer(cfg.trainer)
+    if cfg.trainer.plateau_on == "eval_return" and cfg.trainer.plateau_window:  # (the evaluation's points)
+        every = cfg.agent.eval_every
+        require(cfg.algo.name in ("ppo", "distill"), "trainer.plateau_on", f"'return' for algo.name={cfg.algo.name} "
+                "(eval_return is PPO's evaluation)", cfg.trainer.plateau_on)
+        require(every > 0, "trainer.plateau_on", "'return' where agent.eval_every=0 (eval_return is the "
+                "evaluation's curve: set agent.eval_every)", cfg.trainer.plateau_on)
+        require(cfg.trainer.plateau_window % every == 0, "trainer.plateau_window", f"a multiple of agent.eval_every="
+                f"{every} with plateau_on=eval_return (a window of whole evaluations)", cfg.trainer.plateau_window)
     return cfg
 
 

@@ -94,7 +94,7 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import load_checkpoint
     from freeform.config import compose, from_container
-    from freeform.run.trainer import plateaued
+    from freeform.run.trainer import flattened
     from freeform.train import train
 
     if not 1 <= per.n <= len(grids):
@@ -109,8 +109,8 @@ def per_body_bank(grids: torch.Tensor, per: PerBody, control: ControlConfig, sim
                   "trainer.render_every=0", "trainer.progress=false")
     last = run / "checkpoints" / "last.pt"
     saved = load_checkpoint(last) if last.is_file() else None
-    flat = saved is not None and plateaued(saved.get("return_curve", []), cfg.trainer.plateau_window,
-                                           cfg.trainer.plateau_gain)  # (trained until its curve flattened)
+    flat = saved is not None and flattened(cfg, saved.get("return_curve", []),
+                                           saved.get("eval_curve", []))  # (trained until its curve flattened)
     if saved is None or (int(saved["epoch"]) < cfg.trainer.epochs and not flat):
         print(f"per-body controllers: training {per.n} in {run} ({cfg.trainer.epochs} epochs)", flush=True)
         with torch.enable_grad():  # (called from the evaluation, which computes no gradients)

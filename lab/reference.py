@@ -5,8 +5,8 @@ all bodies in one env, one row each.
     python -m lab.reference runs/per_body/control_teachers_cpu_32_<key> --out lab/results/reference/design_unseen32
 
 Writes ``curve.csv`` (per saved epoch: the bodies' mean move and its 99 % band, the training return of that epoch,
-and whether ``trainer.plateau_window`` had called the run flat there), ``bodies.csv`` (per body, its move at each
-saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
+and whether the run's own rule had called it flat there: ``trainer.plateau_window`` on ``plateau_on``'s curve),
+``bodies.csv`` (per body, its move at each saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
 
 Along random headings (steering) a body's move is the mean over ``--episodes`` episodes (default ``evaluate``'s 4:
 episodes 0 … 3 of each body, what ``freeform-control evaluate`` and ``fit`` measure a body on); other tasks play one.
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -62,14 +63,15 @@ def curve(run: Path, episodes: int | None = None) -> tuple[list[dict], list[dict
     from freeform.control.play import own_moves
     from freeform.envs.control import ControlEnv
     from freeform.run.build import read_teacher_run
-    from freeform.run.trainer import plateaued
+    from freeform.run.trainer import flattened
 
     teachers = read_teacher_run(run, str(run))
     grids, cfg = teachers.bodies.to(torch.uint8), teachers.config
     m, box, control = len(grids), body_box(teachers.bodies), cfg.control.episode()
     k = figure_episodes(control.headings, episodes, who=f"the run {run}")
-    returns = list(teachers.payload.get("return_curve", []))
-    window, gain = (cfg.trainer.plateau_window, cfg.trainer.plateau_gain) if cfg.trainer.plateau_window else PLATEAU
+    returns, evaluated = teachers.payload.get("return_curve", []), teachers.payload.get("eval_curve", [])
+    rule = cfg if cfg.trainer.plateau_window else replace(cfg, trainer=replace(
+        cfg.trainer, plateau_window=PLATEAU[0], plateau_gain=PLATEAU[1], plateau_on="return"))
     per_epoch, per_body = [], [{"body": i} for i in range(m)]
     for epoch, path in saved_epochs(run):
         bank = bank_from_checkpoint(load_checkpoint(path), str(path))
@@ -79,7 +81,7 @@ def curve(run: Path, episodes: int | None = None) -> tuple[list[dict], list[dict
         mean, band = mean_band(moved)
         per_epoch.append({"epoch": epoch, "episodes": k, "mean_command": float(mean), "band99": float(band),
                           "training_return": returns[epoch - 1] if 0 < epoch <= len(returns) else float("nan"),
-                          "flat": plateaued(returns[:epoch], window, gain)})
+                          "flat": flattened(rule, returns, evaluated, epoch)})
         for i in range(m):
             per_body[i][f"epoch{epoch}"] = float(moved[i])
         print(f"epoch {epoch}: {mean:.3f} ± {band:.3f}", flush=True)

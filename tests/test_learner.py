@@ -128,3 +128,22 @@ def test_a_run_stops_where_its_training_curve_flattens_and_stays_stopped(tmp_pat
         assert (again.epochs, again.converged, again.history) == (12, 12, [])
     finally:
         LEARNERS.pop("curve")
+
+
+def test_the_evaluated_plateau_reads_windows_of_whole_evaluations_up_to_an_epoch() -> None:
+    """``trainer.plateau_on=eval_return``, one evaluation every 10 epochs, a window of 20 epochs (2 evaluations):
+    flat where the last two points add < 2 % over the two before, whatever the training return does; ``epoch``
+    reads the points up to it. A window of part of an evaluation, or no evaluation, is refused naming the key."""
+    from freeform.run.trainer import flattened
+
+    cfg = compose(*tiny("agent.eval_every=10", "trainer.plateau_on=eval_return", "trainer.plateau_window=20"))
+    flat, rising = [5.0] * 60, [float(e) for e in range(1, 61)]  # (training returns that say the opposite)
+    points = [(10, 1.0), (20, 2.0), (30, 3.0), (40, 3.0), (50, 3.0), (60, 3.0)]
+    assert not flattened(cfg, flat, points[:4]) and flattened(cfg, rising, points)
+    assert not flattened(cfg, rising, points, epoch=50) and flattened(cfg, rising, points, epoch=60)
+    by_return = compose(*tiny("agent.eval_every=10", "trainer.plateau_window=20"))
+    assert flattened(by_return, flat, points[:4]) and not flattened(by_return, rising, points)
+    with pytest.raises(ValueError, match="trainer.plateau_window must be a multiple of agent.eval_every=10"):
+        compose(*tiny("agent.eval_every=10", "trainer.plateau_on=eval_return", "trainer.plateau_window=15"))
+    with pytest.raises(ValueError, match="set agent.eval_every"):
+        compose(*tiny("trainer.plateau_on=eval_return", "trainer.plateau_window=20"))

@@ -186,3 +186,62 @@ def test_a_bank_of_controllers_with_a_privileged_critic_reads_both_groups() -> N
     for m in (0, 1):
         alone = bank.member(m)({k: v[teacher == m] for k, v in obs.items()})
         torch.testing.assert_close(outs[-1][teacher == m], alone[-1], rtol=1e-5, atol=1e-5)
+
+
+EVALUATED = ("control.teachers=2", "control.controller=context", "seed=3", "agent.group_baseline=true",
+             "agent.advantage_norm=group", "agent.eval_every=1", "agent.eval_episodes=4",
+             "agent.eval_same_episodes=true", "trainer.plateau_on=eval_return", "trainer.plateau_window=1",
+             "trainer.epochs=6")
+"""A steering bank (random headings) evaluated every epoch along the same 4 headings, stopped by that curve."""
+
+
+def test_a_steering_bank_stops_on_its_evaluated_curve_which_is_each_bodys_own_controller(bodies: Path,  # noqa: F811
+                                                                                       tmp_path: Path) -> None:
+    """``trainer.plateau_on=eval_return``. With a learning rate of 1e-12 the teachers do not move: the evaluated
+    curve is flat and the run stops after two evaluations (epoch 2 of 6), though by its noisy training return it
+    would have gone on (checked for this seed). Each evaluated point is each body's own teacher, by its mean
+    command, along the evaluation's draws (body b's copy c draws c·M + b, seed + 1): ``own_moves`` of the epoch's
+    checkpoint on a fresh env, a path that shares nothing with PPO's evaluation but the env."""
+    from freeform.agents.distill import bank_from_checkpoint
+    from freeform.checkpoint import numbered_name
+    from freeform.control.evaluate import episode_draws
+    from freeform.control.play import own_moves
+    from freeform.envs.control import ControlEnv
+    from freeform.run.trainer import plateaued
+    from freeform.train import train
+
+    cfg = compose(*tiny_control(bodies, *EVALUATED, "agent.lr=1e-12"))
+    result = train(cfg, tmp_path / "flat")
+    saved = load_checkpoint(tmp_path / "flat" / "checkpoints" / "last.pt")
+    assert (result.epochs, result.converged) == (2, 2) and [e for e, _ in saved["eval_curve"]] == [1, 2]
+    assert not plateaued(saved["return_curve"], 1, cfg.trainer.plateau_gain)  # (the training return rose > 2 %)
+    grids = torch.from_numpy(np.load(bodies)).to(torch.uint8)
+    for epoch, value in saved["eval_curve"]:
+        bank = bank_from_checkpoint(load_checkpoint(tmp_path / "flat" / "checkpoints" / numbered_name(epoch)), "")
+        env = ControlEnv(grids.repeat_interleave(2, 0), sim=cfg.sim, control=cfg.control.episode(), seed=cfg.seed + 1,
+                         first_env=episode_draws(2, 2))
+        assert value == pytest.approx(float(own_moves(bank, env, episodes=2).mean()), rel=1e-6)
+
+
+def test_an_evaluation_changes_no_training_and_a_run_may_take_one_up_when_resumed(bodies: Path,  # noqa: F811
+                                                                                   tmp_path: Path) -> None:
+    """The same bank trained 2 epochs with and without its evaluation: the same weights, to the bit (the evaluation
+    draws from none of the training's generators). So a resumed run may start one (``REPORTING_KEYS``): one epoch
+    without it, continued under the evaluated rule, evaluates epochs 2 and 3; any other key is still refused."""
+    from freeform.run.resume import resume_config
+    from freeform.train import train
+
+    evaluated = compose(*tiny_control(bodies, *EVALUATED, "trainer.plateau_window=0", "trainer.epochs=2"))
+    plain = compose(*tiny_control(bodies, *EVALUATED[:5], "trainer.epochs=2"))
+    train(evaluated, tmp_path / "evaluated")
+    train(plain, tmp_path / "plain")
+    a, b = (load_checkpoint(tmp_path / run / "checkpoints" / "last.pt") for run in ("evaluated", "plain"))
+    assert len(a["eval_curve"]) == 2 and b["eval_curve"] == []
+    for key, tensor in a["ppo"]["policy"].items():
+        assert torch.equal(tensor, b["ppo"]["policy"][key]), key
+    later = compose(*tiny_control(bodies, *EVALUATED, "trainer.epochs=3", "trainer.plateau_window=0"))
+    assert resume_config(plain, later, ["agent.eval_every=1", "trainer.epochs=3"]).agent.eval_every == 1
+    with pytest.raises(ValueError, match="agent.lr: cannot change"):
+        resume_config(plain, compose(*tiny_control(bodies, *EVALUATED[:5], "agent.lr=1e-2")), ["agent.lr=1e-2"])
+    train(later, tmp_path / "plain")  # (Python's resume: the current config's trainer and evaluation)
+    assert [e for e, _ in load_checkpoint(tmp_path / "plain" / "checkpoints" / "last.pt")["eval_curve"]] == [3]

@@ -1,5 +1,5 @@
 """Continuing a run: which checkpoint (``trainer.resume``), read before anything in the run directory is opened, and
-the config it continues with (the checkpoint's own; only ``trainer.*`` may differ)."""
+the config it continues with (the checkpoint's own; only ``trainer.*`` and what PPO's evaluation reports may differ)."""
 
 from __future__ import annotations
 
@@ -56,6 +56,12 @@ def override_key(override: str) -> str:
 EXECUTION_KEYS = frozenset({"trainer.device", "trainer.progress", "trainer.threads", "trainer.print_every"})
 
 
+# What a run reports, not what it trains: PPO's deterministic evaluation draws from none of the training's generators
+# (a run with it trains what one without does, bit for bit), so a resumed run may start, stop or change it — a run
+# trained under one plateau rule can be continued under another (trainer.plateau_on=eval_return).
+REPORTING_KEYS = frozenset({"agent.eval_every", "agent.eval_episodes", "agent.eval_same_episodes"})
+
+
 def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[str] | None) -> TrainConfig:
     """The config of a resumed run: the checkpoint's own, with the ``trainer`` fields given on the command line.
 
@@ -64,8 +70,11 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
     what the run trains mid-way would break the promise that a resumed run equals an uninterrupted one.
     """
     trainer = dataclasses.replace(saved.trainer, resume=current.trainer.resume)
+    reported = {key.split(".", 1)[1]: getattr(current.agent, key.split(".", 1)[1]) for key in REPORTING_KEYS}
     if overrides is None:
-        return validate(dataclasses.replace(saved, trainer=dataclasses.replace(current.trainer)))
+        return validate(dataclasses.replace(saved, trainer=dataclasses.replace(current.trainer),
+                                            agent=dataclasses.replace(saved.agent, **reported)))
+    agent = saved.agent
     saved_flat, current_flat = flatten(to_container(saved)), flatten(to_container(current))
     for override in overrides:
         key = override_key(override)
@@ -74,6 +83,9 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
         if key.startswith("trainer."):
             field = key.split(".", 1)[1]
             trainer = dataclasses.replace(trainer, **{field: getattr(current.trainer, field)})
+        elif key in REPORTING_KEYS:
+            field = key.split(".", 1)[1]
+            agent = dataclasses.replace(agent, **{field: reported[field]})
         elif key == "experiment":
             if current.name != saved.name:
                 raise ValueError(f"experiment: the run being resumed is {saved.name!r}, not {current.name!r}")
@@ -81,8 +93,9 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
             changed = [k for k in current_flat if (k == key or k.startswith(key + ".")) and current_flat[k] != saved_flat.get(k)]
             if changed:
                 raise ValueError(f"{key}: cannot change {changed[0]} when resuming ({saved_flat.get(changed[0])!r} in "
-                                 f"the checkpoint); only trainer.* may differ")
-    return validate(dataclasses.replace(saved, trainer=trainer))
+                                 f"the checkpoint); only trainer.* and {', '.join(sorted(REPORTING_KEYS))} may "
+                                 "differ")
+    return validate(dataclasses.replace(saved, trainer=trainer, agent=agent))
 
 
-__all__ = ["EXECUTION_KEYS", "find_checkpoint", "override_key", "read_checkpoint", "resume_config"]
+__all__ = ["EXECUTION_KEYS", "REPORTING_KEYS", "find_checkpoint", "override_key", "read_checkpoint", "resume_config"]

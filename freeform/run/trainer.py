@@ -132,8 +132,9 @@ class TrainResult:
     stop_signal: int | None = None
     """The stop signal this process received (None: none, or only another rank did)."""
     converged: int | None = None
-    """The epoch after which the training return had stopped improving (``trainer.plateau_window``): the run ended
-    there, before ``trainer.epochs``; None where it did not."""
+    """The epoch after which the run's curve had stopped improving (``trainer.plateau_window`` on
+    ``trainer.plateau_on``'s curve: :func:`flattened`): the run ended there, before ``trainer.epochs``; None where it
+    did not."""
 
 
 def plateaued(curve: Sequence[float], window: int, gain: float) -> bool:
@@ -144,6 +145,19 @@ def plateaued(curve: Sequence[float], window: int, gain: float) -> bool:
         return False
     last, before = np.mean(curve[-window:]), np.mean(curve[-2 * window: -window])
     return bool(last - before < gain * abs(before))
+
+
+def flattened(cfg: TrainConfig, returns: Sequence[float], evaluated: Sequence[Sequence[float]] = (),
+              epoch: int | None = None) -> bool:
+    """Whether a run of ``cfg`` had stopped improving by its own rule after ``epoch`` epochs (None: all it has):
+    :func:`plateaued` with ``trainer.plateau_window`` and ``plateau_gain`` on ``trainer.plateau_on``'s curve —
+    ``returns`` (the training return per epoch) or ``evaluated`` (``(epoch, eval_return)`` pairs, one every
+    ``agent.eval_every`` epochs, a window of ``plateau_window`` epochs holding ``plateau_window / eval_every``)."""
+    t = cfg.trainer
+    if t.plateau_on == "eval_return":
+        points = [float(v) for e, v in evaluated if epoch is None or e <= epoch]
+        return plateaued(points, t.plateau_window // cfg.agent.eval_every, t.plateau_gain)
+    return plateaued(list(returns)[:epoch], t.plateau_window, t.plateau_gain)
 
 
 class Trainer:
@@ -180,6 +194,9 @@ class Trainer:
         self.stopped: str | None = None
         self.history: list[dict[str, float]] = []
         self.curve: list[float] = list((self.resumed or {}).get("return_curve", []))  # the training return per epoch
+        # PPO's evaluations (agent.eval_every): (epoch, eval_return) pairs
+        self.evaluated: list[tuple[int, float]] = [(int(e), float(v)) for e, v in (self.resumed or {}).get(
+            "eval_curve", [])]
         self.converged: int | None = None
         self.done = (self.learner.epoch, self.learner.global_step)  # epochs and steps of the last complete epoch
         self.time_checkpoint = 0.0
@@ -234,11 +251,12 @@ class Trainer:
         if bool(flags[1] > 0) or self.learner.epoch >= self.cfg.trainer.epochs:
             return False
         t = self.cfg.trainer
-        if plateaued(self.curve, t.plateau_window, t.plateau_gain):  # (the curve is global: every rank agrees)
+        if flattened(self.cfg, self.curve, self.evaluated):  # (the curves are global: every rank agrees)
             self.converged = self.learner.epoch
-            log.info("the training return stopped improving: the last %d epochs added less than %g %% over the %d "
-                     "before; stopped at epoch %d (trainer.plateau_window)", t.plateau_window, 100 * t.plateau_gain,
-                     t.plateau_window, self.converged)
+            what = "the training return" if t.plateau_on == "return" else "the evaluation's return"
+            log.info("%s stopped improving: the last %d epochs added less than %g %% over the %d before; stopped at "
+                     "epoch %d (trainer.plateau_window, plateau_on=%s)", what, t.plateau_window, 100 * t.plateau_gain,
+                     t.plateau_window, self.converged, t.plateau_on)
             return False
         if bool(flags[0] > 0):
             self.stopped = preemption.signal_name(self.stop.signum) if self.stop.signum is not None else (
@@ -254,6 +272,8 @@ class Trainer:
                 stats = dict(self.learner.train_epoch())
                 if "episode_reward_mean" in stats:
                     self.curve.append(float(stats["episode_reward_mean"]))
+                if "eval_return" in stats:  # (gathered over every rank by PPO: the same everywhere)
+                    self.evaluated.append((self.learner.epoch, float(stats["eval_return"])))
                 if isinstance(getattr(self.env, "task", None), ReportsStats):  # the task's own figures (LocomotionTask: sim seconds ...)
                     stats.update(self.collectives.reduce_stats(self.env.task.stats))
                 t0 = time.perf_counter()
@@ -311,6 +331,7 @@ class Trainer:
             "config": to_container(self.cfg),
             "rng": capture_rng_state(),
             "return_curve": list(self.curve),
+            "eval_curve": [list(point) for point in self.evaluated],
             "freeform": freeform.__version__,
             "saved_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
@@ -359,5 +380,5 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, overrides: Sequence[str] | N
     return Trainer(cfg, run_dir, overrides, callbacks).run()
 
 
-__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "plateaued", "render_callback",
+__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "flattened", "plateaued", "render_callback",
            "train"]

@@ -110,6 +110,10 @@ class PPOConfig:
     report ``eval_return`` (logged as ``charts/eval_return``); 0 = off."""
     eval_episodes: int = 10
     """Episodes per evaluation, spread over the eval env's environments."""
+    eval_same_episodes: bool = False
+    """Every evaluation replays the same episodes (the eval env reseeded ``seed + 1`` each time, not only the first):
+    the evaluated curve then moves with the policy alone, not with the draws (a steering run's headings), and a
+    resumed run evaluates what an uninterrupted one does. What ``trainer.plateau_on=eval_return`` reads best."""
     stats_window: int = 100
     """The episode statistics (``episode_reward_mean``, ``_max``, ``_min``, ``episode_length_mean``) are over the
     epoch's finished episodes; an epoch that finishes none reports the latest this many finished before it (SB3's
@@ -144,7 +148,7 @@ class PPOConfig:
             require(is_int(getattr(self, name), 1), f"{key}.{name}", "an int >= 1", getattr(self, name))
         require(is_int(self.eval_every, 0), f"{key}.eval_every", "an int >= 0 (0 = off)", self.eval_every)
         for name in ("obs_norm", "reward_norm", "fused_adam", "compile", "cuda_graph", "bootstrap_truncated",
-                     "group_baseline"):
+                     "group_baseline", "eval_same_episodes"):
             require(isinstance(getattr(self, name), bool), f"{key}.{name}", "true or false", getattr(self, name))
         require(not (self.cuda_graph and self.compile), f"{key}.cuda_graph", "false when compile is true (pick one "
                 "of the two ways to cut the update's launches)", self.cuda_graph)

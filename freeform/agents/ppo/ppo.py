@@ -327,7 +327,8 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
 
         ``episodes`` (default ``config.eval_episodes``) are spread over the env's environments as evenly as possible
         (env i runs ⌈(episodes − i) / n⌉ of them, as SB3's ``evaluate_policy``), so short episodes are not favoured.
-        The env is reset first (seeded ``config.seed + 1`` the first time); the training generator draws nothing and
+        The env is reset first (seeded ``config.seed + 1`` the first time, or every time with
+        ``config.eval_same_episodes``); the training generator draws nothing and
         observation statistics are applied, not updated. Data-parallel, each rank evaluates its own eval env and
         the figures are over every rank's episodes.
         """
@@ -339,7 +340,7 @@ class PPO(RolloutCollection, MinibatchUpdate, Checkpoints):
         targets = torch.tensor([(episodes + n - 1 - i) // n for i in range(n)], device=self.device)
         counts = torch.zeros(n, dtype=torch.int64, device=self.device)
         returns, lengths = [], []
-        seed = None if self._eval_seeded else self.config.seed + 1
+        seed = None if self._eval_seeded and not self.config.eval_same_episodes else self.config.seed + 1
         self._eval_seeded = True
         obs = self._here(env.reset(seed=seed))
         ep_return = torch.zeros(n, device=self.device)
