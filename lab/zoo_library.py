@@ -5,7 +5,7 @@
         --reference lab/results/library8/reference --epoch 200 --out freeform/zoo/library
 
 For each teacher i: ``OUT/d<i>/controller.pt`` and ``OUT/d<i>/body.npy`` (``freeform.run.teacher_runs.export_teacher``)
-and ``OUT/d<i>/card.md`` — what it is, the body it was trained on, its own move there (the ``lab.reference`` folder's
+and ``OUT/d<i>/card.md`` (``d<first + i>`` with ``--first``: a second run's members beside the first's) — what it is, the body it was trained on, its own move there (the ``lab.reference`` folder's
 figure at ``--epoch``, which must be the exported checkpoint's), and where the library's card and command are
 (``OUT/card.md``, written by hand: what the library reaches on bodies it never saw). Refuses an ``OUT`` member that
 exists (nothing is overwritten).
@@ -53,21 +53,26 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--reference", type=Path, required=True, help="lab.reference's folder of that run")
     p.add_argument("--epoch", type=int, required=True, help="the checkpoint's epoch (a saved epoch of --reference)")
     p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--first", type=int, default=0,
+                   help="the first member's number: teacher i is exported as d<first + i> (a second run's members "
+                        "beside the first's)")
     args = p.parse_args(argv)
+    if args.first < 0:
+        p.error(f"--first {args.first}: a member number >= 0")
     try:
         _, own = reference_moves(args.reference, args.epoch)
-        if used := [d for i in range(len(own)) if (d := args.out / f"d{i}").exists()]:
+        if used := [d for i in range(len(own)) if (d := args.out / f"d{args.first + i}").exists()]:
             raise ValueError(f"--out {args.out}: {used[0]} exists (nothing is overwritten)")
     except ValueError as exc:
         p.error(str(exc))
     for i, move in enumerate(own):
-        member = args.out / f"d{i}"
+        member = args.out / f"d{args.first + i}"
         try:  # (a checkpoint that is no teacher run, or has fewer teachers, fails at the first: nothing written)
             controller = export_teacher(args.checkpoint, i, member)
         except (ValueError, FileNotFoundError) as exc:
             p.error(str(exc))
         saved = read_controller(controller)
-        card = member_card(i, np.load(member / "body.npy")[0], float(move), args.epoch,
+        card = member_card(args.first + i, np.load(member / "body.npy")[0], float(move), args.epoch,
                            int(saved.controller.init_kwargs["hidden"]), round(controller.stat().st_size / 1024))
         (member / "card.md").write_text(card)
         print(f"{member}: own move {move:.3f}")

@@ -37,3 +37,19 @@ def test_a_checkpoint_that_is_no_teacher_run_is_refused_and_nothing_written(tmp_
         main([str(tmp_path / "nosuch.pt"), "--reference", str(tmp_path / "ref"), "--epoch", "240",
               "--out", str(tmp_path / "zoo")])
     assert "nosuch.pt" in capsys.readouterr().err and not (tmp_path / "zoo").exists()
+
+
+def test_a_second_runs_members_are_numbered_after_the_first_and_an_existing_one_refused(tmp_path, capsys) -> None:
+    """``--first 8``: teacher 0 of the run is d8; d8 existing is refused and kept, d0 beside it is no obstacle."""
+    write_rows(tmp_path / "ref" / "bodies.csv", [{"body": 0, "epoch200": 1.0}, {"body": 1, "epoch200": 2.0}])
+    (tmp_path / "zoo" / "d0").mkdir(parents=True)
+    (tmp_path / "zoo" / "d8").mkdir(parents=True)
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "nosuch.pt"), "--reference", str(tmp_path / "ref"), "--epoch", "200",
+              "--out", str(tmp_path / "zoo"), "--first", "8"])
+    assert "d8 exists (nothing is overwritten)" in capsys.readouterr().err
+    (tmp_path / "zoo" / "d8").rmdir()
+    with pytest.raises(SystemExit):  # (past the check on d8, d9: the checkpoint is the next refusal)
+        main([str(tmp_path / "nosuch.pt"), "--reference", str(tmp_path / "ref"), "--epoch", "200",
+              "--out", str(tmp_path / "zoo"), "--first", "8"])
+    assert "nosuch.pt" in capsys.readouterr().err and not (tmp_path / "zoo" / "d8").exists()
