@@ -249,7 +249,7 @@ class TrainerConfig:
     """``auto``: continue the run in its own run directory when ``checkpoints/last.pt`` is there, else start fresh
     (a requeued job, or the same command with the same ``hydra.run.dir``, picks up where it stopped); a run
     directory or checkpoint file: continue that run, in its directory; None: always start fresh. A resumed run uses
-    the checkpoint's config: only ``trainer.*`` may differ."""
+    the checkpoint's config: only ``trainer.*`` and what PPO's evaluation reports (``agent.eval_*``) may differ."""
     stop_grace_s: float = 60.0
     """After SIGTERM/SIGUSR2, how long the epoch in progress may take to finish before it is abandoned (0: at
     once); the run then checkpoints and exits with status 75 (``freeform.preemption``)."""
@@ -264,9 +264,10 @@ class TrainerConfig:
     print_every: int = 10
     """Every this many epochs print a summary line (console and the run's log); 0 = never."""
     plateau_window: int = 0
-    """Stop before ``epochs`` once the training return has stopped improving: when the mean of the last this many
-    epochs' ``episode_reward_mean`` is less than ``plateau_gain`` above the mean of the window before them
-    (``freeform.run.trainer.plateaued``; ``epochs`` is then the cap). 0: train every epoch."""
+    """Stop before ``epochs`` once the run's curve has stopped improving: when the mean of the last this many
+    epochs' points (``plateau_on``: the training return, ``episode_reward_mean``, or the evaluation's) is less than
+    ``plateau_gain`` above the mean of the window before them (``freeform.run.trainer.flattened``; ``epochs`` is then
+    the cap). 0: train every epoch."""
     plateau_gain: float = 0.02
     """With ``plateau_window``: the relative gain a window must add over the one before to go on (0.02: 2 %)."""
     plateau_on: str = "return"
@@ -383,10 +384,11 @@ def validate(cfg: TrainConfig) -> TrainConfig:
     ppo_config(cfg, device="cpu")  # the agent section with the run's values filled in
     cfg.sim.validate("sim")
     _validate_trainer(cfg.trainer)
-    if cfg.trainer.plateau_on == "eval_return" and cfg.trainer.plateau_window:  # (the evaluation's points)
+    # a rule whose curve is never made would never fire: refused, naming what makes it
+    if cfg.trainer.plateau_on == "eval_return" and cfg.trainer.plateau_window:
         every = cfg.agent.eval_every
-        require(cfg.algo.name in ("ppo", "distill"), "trainer.plateau_on", f"'return' for algo.name={cfg.algo.name} "
-                "(eval_return is PPO's evaluation)", cfg.trainer.plateau_on)
+        require(cfg.algo.name == "ppo", "trainer.plateau_on", f"'return' for algo.name={cfg.algo.name} (eval_return is "
+                "PPO's evaluation, which a distillation or evolution does not run)", cfg.trainer.plateau_on)
         require(every > 0, "trainer.plateau_on", "'return' where agent.eval_every=0 (eval_return is the "
                 "evaluation's curve: set agent.eval_every)", cfg.trainer.plateau_on)
         require(cfg.trainer.plateau_window % every == 0, "trainer.plateau_window", f"a multiple of agent.eval_every="

@@ -6,7 +6,8 @@ all bodies in one env, one row each.
 
 Writes ``curve.csv`` (per saved epoch: the bodies' mean move and its 99 % band, the training return of that epoch,
 and whether the run's own rule had called it flat there: ``trainer.plateau_window`` on ``plateau_on``'s curve),
-``bodies.csv`` (per body, its move at each saved epoch) and ``curve.png``. A fraction of per-body control is only as honest as this curve is flat at its end.
+``bodies.csv`` (per body, its move at each saved epoch) and ``curve.png``. A fraction of per-body control is only as
+honest as this curve is flat at its end.
 
 Along random headings (steering) a body's move is the mean over ``--episodes`` episodes (default ``evaluate``'s 4:
 episodes 0 … 3 of each body, what ``freeform-control evaluate`` and ``fit`` measure a body on); other tasks play one.

@@ -5,8 +5,9 @@
         --reference lab/results/library8/reference --epoch 200 --out freeform/zoo/library
 
 For each teacher i: ``OUT/d<i>/controller.pt`` and ``OUT/d<i>/body.npy`` (``freeform.run.teacher_runs.export_teacher``)
-and ``OUT/d<i>/card.md`` (``d<first + i>`` with ``--first``: a second run's members beside the first's) — what it is, the body it was trained on, its own move there (the ``lab.reference`` folder's
-figure at ``--epoch``, which must be the exported checkpoint's), and where the library's card and command are
+and ``OUT/d<i>/card.md`` (``d<first + i>`` with ``--first``: a second run's members beside the first's) — what it
+is, the body it was trained on, its own move there (the ``lab.reference`` folder's figure at ``--epoch``, which must
+be the exported checkpoint's), and where the library's card and command are
 (``OUT/card.md``, written by hand: what the library reaches on bodies it never saw). Refuses an ``OUT`` member that
 exists (nothing is overwritten).
 """

@@ -44,7 +44,8 @@ def test_a_window_rule_stops_an_exponential_where_the_analytic_window_gain_falls
     main([str(folder), "--windows", "20", "--gains", "0.02", "--out", str(tmp_path / "rules.csv")])
     row = next(csv.DictReader(open(tmp_path / "rules.csv")))
     stop = analytic(20, 0.02)
-    assert int(row["stops_fitted"]) == stop and float(row["share_fitted"]) == pytest.approx(1 - b / a * math.exp(-stop / tau))
+    assert int(row["stops_fitted"]) == stop
+    assert float(row["share_fitted"]) == pytest.approx(1 - b / a * math.exp(-stop / tau))
     assert int(row["stops_measured"]) == stop  # (the measured curve is the fitted one, to its end at 300)
     with pytest.raises(SystemExit):
         main([str(folder), "--windows", "25", "--out", str(tmp_path / "other.csv")])

@@ -147,3 +147,10 @@ def test_the_evaluated_plateau_reads_windows_of_whole_evaluations_up_to_an_epoch
         compose(*tiny("agent.eval_every=10", "trainer.plateau_on=eval_return", "trainer.plateau_window=15"))
     with pytest.raises(ValueError, match="set agent.eval_every"):
         compose(*tiny("trainer.plateau_on=eval_return", "trainer.plateau_window=20"))
+    with pytest.raises(ValueError, match="which a distillation or evolution does not run"):
+        compose(*tiny("agent.eval_every=10", "trainer.plateau_on=eval_return", "trainer.plateau_window=20",
+                      "algo.name=ga"))
+    with pytest.raises(ValueError, match="trainer.plateau_on must be one of"):
+        compose(*tiny("trainer.plateau_on=evaluation"))
+    no_rule = compose(*tiny("trainer.plateau_on=eval_return"))  # (no window, no evaluation: accepted, never flat)
+    assert not flattened(no_rule, flat, points)

@@ -199,9 +199,10 @@ def test_a_steering_bank_stops_on_its_evaluated_curve_which_is_each_bodys_own_co
                                                                                        tmp_path: Path) -> None:
     """``trainer.plateau_on=eval_return``. With a learning rate of 1e-12 the teachers do not move: the evaluated
     curve is flat and the run stops after two evaluations (epoch 2 of 6), though by its noisy training return it
-    would have gone on (checked for this seed). Each evaluated point is each body's own teacher, by its mean
-    command, along the evaluation's draws (body b's copy c draws c·M + b, seed + 1): ``own_moves`` of the epoch's
-    checkpoint on a fresh env, a path that shares nothing with PPO's evaluation but the env."""
+    would have gone on (checked for this seed); one epoch and a resume stop there too (the first point comes back
+    from the checkpoint). Each evaluated point is each body's own teacher, by its mean command, along the
+    evaluation's draws (body b's copy c draws c·M + b, seed + 1): ``own_moves`` of the epoch's checkpoint on a fresh
+    env, a path that shares nothing with PPO's evaluation but the env."""
     from freeform.agents.distill import bank_from_checkpoint
     from freeform.checkpoint import numbered_name
     from freeform.control.evaluate import episode_draws
@@ -215,6 +216,10 @@ def test_a_steering_bank_stops_on_its_evaluated_curve_which_is_each_bodys_own_co
     saved = load_checkpoint(tmp_path / "flat" / "checkpoints" / "last.pt")
     assert (result.epochs, result.converged) == (2, 2) and [e for e, _ in saved["eval_curve"]] == [1, 2]
     assert not plateaued(saved["return_curve"], 1, cfg.trainer.plateau_gain)  # (the training return rose > 2 %)
+    first = compose(*tiny_control(bodies, *EVALUATED, "agent.lr=1e-12", "trainer.epochs=1"))
+    train(first, tmp_path / "split")
+    assert (train(cfg, tmp_path / "split").epochs, load_checkpoint(tmp_path / "split" / "checkpoints" / "last.pt")[
+        "eval_curve"]) == (2, saved["eval_curve"])
     grids = torch.from_numpy(np.load(bodies)).to(torch.uint8)
     for epoch, value in saved["eval_curve"]:
         bank = bank_from_checkpoint(load_checkpoint(tmp_path / "flat" / "checkpoints" / numbered_name(epoch)), "")
@@ -226,8 +231,10 @@ def test_a_steering_bank_stops_on_its_evaluated_curve_which_is_each_bodys_own_co
 def test_an_evaluation_changes_no_training_and_a_run_may_take_one_up_when_resumed(bodies: Path,  # noqa: F811
                                                                                    tmp_path: Path) -> None:
     """The same bank trained 2 epochs with and without its evaluation: the same weights, to the bit (the evaluation
-    draws from none of the training's generators). So a resumed run may start one (``REPORTING_KEYS``): one epoch
-    without it, continued under the evaluated rule, evaluates epochs 2 and 3; any other key is still refused."""
+    draws from none of the training's generators). So a resumed run may start one (``REPORTING_KEYS``): the run
+    without it, continued for a third epoch with it, evaluates epoch 3. Named on the command line, any of the
+    evaluation's keys or ``trainer.plateau_on`` brings all three of the current config (a rule taken up on resume
+    reads the preset's evaluation); any other key is still refused."""
     from freeform.run.resume import resume_config
     from freeform.train import train
 
@@ -241,6 +248,9 @@ def test_an_evaluation_changes_no_training_and_a_run_may_take_one_up_when_resume
         assert torch.equal(tensor, b["ppo"]["policy"][key]), key
     later = compose(*tiny_control(bodies, *EVALUATED, "trainer.epochs=3", "trainer.plateau_window=0"))
     assert resume_config(plain, later, ["agent.eval_every=1", "trainer.epochs=3"]).agent.eval_every == 1
+    taken = resume_config(plain, later, ["trainer.plateau_on=eval_return", "trainer.plateau_window=2"])
+    assert (taken.agent.eval_every, taken.agent.eval_episodes, taken.agent.eval_same_episodes) == (1, 4, True)
+    assert resume_config(plain, later, ["trainer.epochs=3"]).agent.eval_every == 0  # (not named: the checkpoint's)
     with pytest.raises(ValueError, match="agent.lr: cannot change"):
         resume_config(plain, compose(*tiny_control(bodies, *EVALUATED[:5], "agent.lr=1e-2")), ["agent.lr=1e-2"])
     train(later, tmp_path / "plain")  # (Python's resume: the current config's trainer and evaluation)

@@ -51,7 +51,8 @@ FIT_SETS = {"control.bodies": "from the bodies", "control.teachers": "one contro
             "control.controller_init": "each body starts from its best candidate of the adaptation's kind",
             "env.num_envs": "give --copies", "trainer.epochs": "give --adapt-epochs", "seed": "give --seed",
             "agent.seed": "give --seed", "experiment": "the recipes are fit's (RECIPES)",
-            "agent.eval_every": "fit measures the adaptation itself: give --curve-every"}
+            "agent.eval_every": "fit measures the adaptation itself: give --curve-every",
+            "trainer.plateau_on": "fit's adaptation runs its epochs, it reads no plateau"}
 """The adaptation's keys that ``fit`` sets itself (and how a user sets them), which ``--set`` may not name."""
 
 RECIPES = ("control_adapt_cpu", "control_teachers_cpu")
@@ -228,7 +229,8 @@ def recipe(how: Fit, preset: str, bodies: Path, m: int, start: Path | str) -> An
         return compose(f"experiment={preset}", *how.settings, f"control.bodies={bodies}", f"control.teachers={m}",
                        f"env.num_envs={m * how.copies}", f"control.controller_init={start}",
                        f"trainer.epochs={how.adapt_epochs}", f"seed={how.seed}",
-                       "agent.eval_every=0")  # (a recipe's own evaluation: seconds that fit's budget would count)
+                       # (a recipe's own evaluation: seconds fit's budget would count; no plateau rule to read it)
+                       "agent.eval_every=0", "trainer.plateau_on=return")
     except (HydraException, OmegaConfBaseException, ValueError) as e:
         if not how.settings:
             raise

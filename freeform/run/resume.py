@@ -66,15 +66,20 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
     """The config of a resumed run: the checkpoint's own, with the ``trainer`` fields given on the command line.
 
     ``overrides`` (Hydra's command-line overrides) name what the user set; ``None`` (Python use) takes the whole
-    ``trainer`` section of ``current``. Any other explicitly set key must equal the checkpoint's value: changing
-    what the run trains mid-way would break the promise that a resumed run equals an uninterrupted one.
+    ``trainer`` section of ``current``. The evaluation's keys (:data:`REPORTING_KEYS`) go together: where any of
+    them or ``trainer.plateau_on`` is named, all three are ``current``'s (its preset's evaluation with them), so that
+    a rule taken up on resume reads the evaluation the preset defines, not a half of the checkpoint's. Any other
+    explicitly set key must equal the checkpoint's value: changing what the run trains mid-way would break the promise
+    that a resumed run equals an uninterrupted one.
     """
     trainer = dataclasses.replace(saved.trainer, resume=current.trainer.resume)
-    reported = {key.split(".", 1)[1]: getattr(current.agent, key.split(".", 1)[1]) for key in REPORTING_KEYS}
+    reported = {field: getattr(current.agent, field) for field in (key.split(".", 1)[1] for key in REPORTING_KEYS)}
     if overrides is None:
         return validate(dataclasses.replace(saved, trainer=dataclasses.replace(current.trainer),
                                             agent=dataclasses.replace(saved.agent, **reported)))
-    agent = saved.agent
+    named = {override_key(o) for o in overrides}
+    agent = dataclasses.replace(saved.agent, **reported) if named & (REPORTING_KEYS | {"trainer.plateau_on"}) else (
+        saved.agent)
     saved_flat, current_flat = flatten(to_container(saved)), flatten(to_container(current))
     for override in overrides:
         key = override_key(override)
@@ -84,8 +89,7 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
             field = key.split(".", 1)[1]
             trainer = dataclasses.replace(trainer, **{field: getattr(current.trainer, field)})
         elif key in REPORTING_KEYS:
-            field = key.split(".", 1)[1]
-            agent = dataclasses.replace(agent, **{field: reported[field]})
+            continue  # (taken with the others, above)
         elif key == "experiment":
             if current.name != saved.name:
                 raise ValueError(f"experiment: the run being resumed is {saved.name!r}, not {current.name!r}")

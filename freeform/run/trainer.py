@@ -154,6 +154,8 @@ def flattened(cfg: TrainConfig, returns: Sequence[float], evaluated: Sequence[Se
     ``returns`` (the training return per epoch) or ``evaluated`` (``(epoch, eval_return)`` pairs, one every
     ``agent.eval_every`` epochs, a window of ``plateau_window`` epochs holding ``plateau_window / eval_every``)."""
     t = cfg.trainer
+    if not t.plateau_window:  # (no rule: nor an evaluation to divide by, e.g. fit's recipes)
+        return False
     if t.plateau_on == "eval_return":
         points = [float(v) for e, v in evaluated if epoch is None or e <= epoch]
         return plateaued(points, t.plateau_window // cfg.agent.eval_every, t.plateau_gain)
@@ -194,7 +196,7 @@ class Trainer:
         self.stopped: str | None = None
         self.history: list[dict[str, float]] = []
         self.curve: list[float] = list((self.resumed or {}).get("return_curve", []))  # the training return per epoch
-        # PPO's evaluations (agent.eval_every): (epoch, eval_return) pairs
+        # (epoch, eval_return) pairs: a plateau on eval_return reads them, and a resume must too
         self.evaluated: list[tuple[int, float]] = [(int(e), float(v)) for e, v in (self.resumed or {}).get(
             "eval_curve", [])]
         self.converged: int | None = None
@@ -380,5 +382,5 @@ def train(cfg: TrainConfig, run_dir: str | Path, *, overrides: Sequence[str] | N
     return Trainer(cfg, run_dir, overrides, callbacks).run()
 
 
-__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "flattened", "plateaued", "render_callback",
-           "train"]
+__all__ = ["EpochCallback", "EpochContext", "TrainResult", "Trainer", "default_callbacks", "flattened", "plateaued",
+           "render_callback", "train"]
