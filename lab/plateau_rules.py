@@ -12,11 +12,13 @@ from __future__ import annotations
 
 import argparse
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from freeform.run.trainer import plateaued
+from freeform.config import TrainConfig
+from freeform.run.trainer import flattened
 from freeform.tables import write_rows
 
 EVERY = 10
@@ -24,10 +26,13 @@ EVERY = 10
 
 
 def first_stop(epochs: np.ndarray, curve: np.ndarray, window: int, gain: float) -> int | None:
-    """The first of ``epochs`` (every :data:`EVERY`) after which the rule calls ``curve`` flat, or None."""
-    points = [float(v) for e, v in zip(epochs, curve, strict=True) if e > 0 and e % EVERY == 0]
-    kept = [int(e) for e in epochs if e > 0 and e % EVERY == 0]
-    return next((kept[i] for i in range(len(points)) if plateaued(points[: i + 1], window // EVERY, gain)), None)
+    """The first of ``epochs`` after which the trainer's own rule (:func:`~freeform.run.trainer.flattened`, on the
+    evaluated curve every :data:`EVERY` epochs) calls ``curve`` flat, or None."""
+    base = TrainConfig()
+    rule = replace(base, agent=replace(base.agent, eval_every=EVERY), trainer=replace(
+        base.trainer, plateau_on="eval_return", plateau_window=window, plateau_gain=gain))
+    points = [(int(e), float(v)) for e, v in zip(epochs, curve, strict=True) if e > 0 and e % EVERY == 0]
+    return next((e for e, _ in points if flattened(rule, [], points, epoch=e)), None)
 
 
 def rule_rows(folder: Path, windows: list[int], gains: list[float], until: int) -> list[dict]:
@@ -39,15 +44,17 @@ def rule_rows(folder: Path, windows: list[int], gains: list[float], until: int) 
     a, b, tau, t0 = (float(fit[k]) for k in ("asymptote", "b", "tau_epochs", "first_epoch"))
     t = np.arange(EVERY, until + 1, EVERY)
     fitted = a - b * np.exp(-(t - t0) / tau)
+    at_measured = dict(zip(epochs.tolist(), measured, strict=True))
+    at_fitted = dict(zip(t.tolist(), fitted, strict=True))
     out = []
     for window in windows:
         for gain in gains:
             seen, smooth = first_stop(epochs, measured, window, gain), first_stop(t, fitted, window, gain)
             out.append({"reference": str(folder), "tau_epochs": tau, "window": window, "gain": gain,
                         "stops_measured": seen if seen is not None else "",
-                        "share_measured": float(measured[list(epochs).index(seen)] / a) if seen else float("nan"),
+                        "share_measured": float(at_measured[seen] / a) if seen else float("nan"),
                         "stops_fitted": smooth if smooth is not None else "",
-                        "share_fitted": float(fitted[list(t).index(smooth)] / a) if smooth else float("nan")})
+                        "share_fitted": float(at_fitted[smooth] / a) if smooth else float("nan")})
     return out
 
 

@@ -59,7 +59,8 @@ EXECUTION_KEYS = frozenset({"trainer.device", "trainer.progress", "trainer.threa
 # What a run reports, not what it trains: PPO's deterministic evaluation draws from none of the training's generators
 # (a run with it trains what one without does, bit for bit), so a resumed run may start, stop or change it — a run
 # trained under one plateau rule can be continued under another (trainer.plateau_on=eval_return).
-REPORTING_KEYS = frozenset({"agent.eval_every", "agent.eval_episodes", "agent.eval_same_episodes"})
+REPORTING_FIELDS = ("eval_every", "eval_episodes", "eval_same_episodes")
+REPORTING_KEYS = frozenset(f"agent.{field}" for field in REPORTING_FIELDS)
 
 
 def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[str] | None) -> TrainConfig:
@@ -73,7 +74,7 @@ def resume_config(saved: TrainConfig, current: TrainConfig, overrides: Sequence[
     that a resumed run equals an uninterrupted one.
     """
     trainer = dataclasses.replace(saved.trainer, resume=current.trainer.resume)
-    reported = {field: getattr(current.agent, field) for field in (key.split(".", 1)[1] for key in REPORTING_KEYS)}
+    reported = {field: getattr(current.agent, field) for field in REPORTING_FIELDS}
     if overrides is None:
         return validate(dataclasses.replace(saved, trainer=dataclasses.replace(current.trainer),
                                             agent=dataclasses.replace(saved.agent, **reported)))
