@@ -128,11 +128,6 @@ class ControlRunConfig(ControlConfig):
     given): the first M bodies of ``bodies`` (``untrained_designs``, a ``.npy`` or a record; not ``population`` or
     ``codesign``), environment i driving body i mod M (``env.num_envs`` a multiple of M). 0: one controller for
     every body."""
-    headings_per_body: int = 1
-    """A bank (``teachers`` > 0) under ``headings=random``: each body's copies (``env.num_envs / teachers`` of them)
-    walk this many headings an episode, copy c the (c mod H)-th; the leave-one-out baseline and the per-body
-    advantages (``agent.group_baseline``, ``advantage_norm=group``) compare the copies of one body along one heading.
-    1: a body's copies share its heading (the baseline then compares what the noise did, never a heading's luck)."""
     top: int = 1
     """From a design record: how many of its best designs (by reward) are controlled."""
     candidates: int = 256
@@ -360,7 +355,6 @@ def _validate_control(cfg: TrainConfig) -> None:
             cfg.env.dense_every)
     require(not control.teachers or cfg.env.num_envs % control.teachers == 0, "env.num_envs",
             f"a multiple of control.teachers = {control.teachers} (environment i drives body i mod M)", cfg.env.num_envs)
-    _validate_headings_per_body(cfg)
     steps = episode_steps(cfg)
     rollout = cfg.agent.rollout_steps
     what = (f"{steps} steps ({cfg.env.steps} design + {control.steps} control)" if control.codesign
@@ -370,22 +364,6 @@ def _validate_control(cfg: TrainConfig) -> None:
             f"control run checkpoints", rollout)
     require(not cfg.agent.obs_norm, "agent.obs_norm", "false in a control run (the controller reads its action mask "
             "from an observation channel, which must stay 0/1)", cfg.agent.obs_norm)
-
-
-def _validate_headings_per_body(cfg: TrainConfig) -> None:
-    control = cfg.control
-    assert control is not None
-    h = control.headings_per_body
-    require(isinstance(h, int) and h >= 1, "control.headings_per_body", "an integer >= 1", h)
-    if h == 1:
-        return
-    require(control.teachers > 0 and control.headings == "random", "control.headings_per_body",
-            "1 unless the run is a bank (control.teachers > 0) along random headings (control.headings=random)", h)
-    copies = cfg.env.num_envs // control.teachers
-    least = 2 if cfg.agent.group_baseline else 1
-    require(copies % h == 0 and copies // h >= least, "control.headings_per_body",
-            f"a divisor of a body's {copies} copies (env.num_envs / control.teachers) leaving >= {least} copies a "
-            "heading (agent.group_baseline compares a copy with its siblings along its heading)", h)
 
 
 def validate(cfg: TrainConfig) -> TrainConfig:

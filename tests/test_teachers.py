@@ -162,46 +162,13 @@ def test_a_banks_copies_of_a_body_share_its_heading(bodies: Path) -> None:  # no
     assert len(set(evaluation.env.heading.tolist())) == 4
 
 
-def test_a_banks_copies_walk_h_headings_and_are_compared_along_each(bodies: Path) -> None:  # noqa: F811
-    """control.headings_per_body=2, 2 teachers on 8 environments (4 copies a body): environment i drives body i mod 2
-    as copy i // 2, along its body's (copy mod 2)-th heading; the leave-one-out baseline's groups are exactly the
-    environments of one body along one heading (4 headings in all, 2 copies each), whatever the split into ranks."""
-    from freeform.agents.ppo.losses import leave_one_out
-    from freeform.run.build import control_env
-
-    cfg = compose(*tiny_control(bodies, "control.teachers=2", "env.num_envs=8", "control.headings_per_body=2"))
-    env = control_env(cfg, torch.device("cpu"), (0, 8), seed=0)
-    env.reset()
-    heading, groups = env.env.heading, env.reward_groups
-    assert env.teacher.tolist() == [0, 1] * 4 and len(set(heading.tolist())) == 4
-    for i in range(8):
-        for j in range(8):
-            along_one = i % 2 == j % 2 and (i // 2) % 2 == (j // 2) % 2
-            assert (heading[i] == heading[j]) == along_one and bool(groups[i] == groups[j]) == along_one, (i, j)
-    # a copy's baseline is its sibling along its heading: a reward shared by that pair leaves nothing to credit
-    rewards = torch.as_tensor(heading, dtype=torch.float64)[None]
-    assert torch.equal(leave_one_out(rewards, groups), torch.zeros(1, 8, dtype=torch.float64))
-    halves = [control_env(cfg, torch.device("cpu"), envs, seed=0) for envs in ((0, 4), (4, 8))]
-    for half in halves:
-        half.reset()
-    assert np.array_equal(np.concatenate([h.env.heading for h in halves]), heading)
-    one = control_env(compose(*tiny_control(bodies, "control.teachers=2", "env.num_envs=8")), torch.device("cpu"),
-                      (0, 8), seed=0)
-    one.reset()  # (headings_per_body=1: a body's copies share its heading, grouped by body as before)
-    assert one.reward_groups.tolist() == [0, 1] * 4 and np.array_equal(one.env.heading[:2], heading[:2])
-
-
 @pytest.mark.parametrize("override, message", [
     ("control.teachers=3", "env.num_envs"),
     ("control.bodies=population", "control.teachers"),
-    ("control.headings_per_body=0", "control.headings_per_body must be an integer >= 1"),
-    ("control.headings_per_body=2 agent.group_baseline=true", "leaving >= 2 copies a heading"),  # (2 copies a body)
-    ("env.num_envs=8 control.headings_per_body=3", "a divisor of a body's 4 copies"),
-    ("env.num_envs=8 control.headings_per_body=2 control.headings=fixed", "along random headings"),
 ])
 def test_a_bad_bank_is_refused_naming_the_key(bodies: Path, override: str, message: str) -> None:  # noqa: F811
     with pytest.raises(ValueError, match=message):
-        compose(*tiny_control(bodies, "control.teachers=2", *override.split()))
+        compose(*tiny_control(bodies, "control.teachers=2", override))
 
 
 def test_a_bank_of_controllers_with_a_privileged_critic_reads_both_groups() -> None:

@@ -236,19 +236,15 @@ def control_env(cfg: TrainConfig, device: torch.device, envs: tuple[int, int], s
 
         need = body_box(bodies)  # (a square footprint: the quarter turns and the diagonal mirrors map it onto itself)
         box = (max(need[:2]), max(need[:2]), need[2])
-    # a bank's copies of a body along one heading share its draw (as a population env's do): its leave-one-out
-    # baseline and its per-body advantages then compare the noise's effects, not the luck of a copy's heading against
-    # its siblings'; with headings_per_body H, copy c walks the (c mod H)-th and is compared along it
-    index = torch.arange(envs[0], envs[1])
-    m = cfg.control.teachers
-    body = index % m if m else None
-    along = body + m * ((index // m) % cfg.control.headings_per_body) if m else None
+    # a bank's copies of a body share its heading (as a population env's do): its leave-one-out baseline and its
+    # per-body advantages then compare the noise's effects, not the luck of a copy's heading against its siblings'
+    body = torch.arange(envs[0], envs[1]) % cfg.control.teachers if cfg.control.teachers else None
     env = ControlEnv(bodies, sim=cfg.sim, control=cfg.control.episode(), seed=seed, device=device,
-                     first_env=along.numpy() if along is not None and shared_headings else envs[0], box=box)
+                     first_env=body.numpy() if body is not None and shared_headings else envs[0], box=box)
     if body is not None:  # (each environment's observation names its body's teacher)
         from freeform.agents.distill.teachers import TeacherIndex
 
-        env = TeacherIndex(env, body, groups=along)
+        env = TeacherIndex(env, body)
     return env
 
 

@@ -224,23 +224,19 @@ class TeacherIndex:
     "policy": the env's observation}`` (an env observing groups keeps them, and gains ``"teacher"``).
 
     env: any ``VecEnv``; teacher: int64 ``[num_envs]`` in ``0 … M−1`` (a control env of M bodies repeated in turn:
-    ``arange(N) % M``). ``reward_groups`` is ``groups`` (default ``teacher``), so that PPO's ``group_baseline`` and
-    ``advantage_norm="group"`` judge each teacher's samples among its own (``groups`` int64 ``[num_envs]``, a finer
-    split of them: a body's copies along one heading, ``control.headings_per_body``); everything else is the env's.
+    ``arange(N) % M``). ``reward_groups`` is ``teacher``, so that PPO's ``group_baseline`` and ``advantage_norm=
+    "group"`` judge each teacher's samples among its own; everything else is the env's.
     """
 
-    def __init__(self, env: Any, teacher: torch.Tensor, groups: torch.Tensor | None = None) -> None:
+    def __init__(self, env: Any, teacher: torch.Tensor) -> None:
         teacher = torch.as_tensor(teacher, dtype=torch.long).reshape(-1)
         if teacher.numel() != env.num_envs:
             raise ValueError(f"teacher must name one teacher per environment ({env.num_envs}), got {teacher.numel()}")
         if teacher.numel() and int(teacher.min()) < 0:
             raise ValueError("teacher indices must be >= 0")
-        groups = teacher if groups is None else torch.as_tensor(groups, dtype=torch.long).reshape(-1)
-        if groups.shape != teacher.shape:
-            raise ValueError(f"groups must name one group per environment ({env.num_envs}), got {groups.numel()}")
         self.env = env
         self.teacher = teacher.to(env.device)
-        self.reward_groups = groups.to(env.device)
+        self.reward_groups = self.teacher
         self.num_envs, self.action_dim, self.device = env.num_envs, env.action_dim, env.device
         shape = env.observation_shape
         groups = dict(shape) if isinstance(shape, Mapping) else {POLICY: tuple(shape)}
