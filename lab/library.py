@@ -12,6 +12,15 @@ Prints each choice's mean move, its fraction of the reference (99 % band, paired
 over the zoo alone (paired, 99 %); ``--out CSV`` writes those rows. ``--sizes 1,4,16``: the same for a library of
 that many controllers drawn at random from it — each body's expected best over every such draw, exactly (no
 sampling): what a smaller library of the same kind would give, and so what each candidate's trial second buys.
+
+``--figures TEMPLATE`` (steering): a body's move under its pick is not its trial — the trials are other episodes'
+headings than the figures', so that no figure is measured on the draw that chose it — but the pick's
+``mean_command`` in ``TEMPLATE.format(name=<candidate>)``, an ``evaluate --episodes K`` bodies.csv of that candidate
+on the table's bodies (``fit --headings random``'s figures: each body's row draws)::
+
+    freeform-control fit du0.npy --headings random --adapt-epochs 0 --out DIR --candidates ZOO... LIB/s0/controller.pt ...
+    freeform-control evaluate student_steering du0.npy --episodes 4 --out E/student_steering     # each candidate
+    python -m lab.library DIR/bodies.csv --library s --own --figures 'E/{name}/bodies.csv' --reference REF
 """
 
 from __future__ import annotations
@@ -48,28 +57,54 @@ def trials(rows: list[dict[str, str]], prefix: str, own: bool) -> tuple[np.ndarr
     return z, lib
 
 
-def choices(rows: list[dict[str, str]], prefix: str, own: bool) -> dict[str, np.ndarray]:
-    """Each body's best whole-episode trial ``[M]`` over the zoo, the library and both (:func:`trials`)."""
+def figures(rows: list[dict[str, str]], prefix: str, template: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each body's figure under each zoo candidate ``[M, Z]`` and library candidate ``[M, L]``: the ``mean_command``
+    column of ``template.format(name=<candidate>)`` (an ``evaluate`` bodies.csv of the table's bodies, in order)."""
+    zoo, library = trial_columns(rows, prefix)
+    columns = []
+    for name in zoo + library:
+        path = Path(template.format(name=name))
+        if not path.is_file():
+            raise ValueError(f"--figures: no {path} for the candidate {name!r} (evaluate it on the table's bodies)")
+        moves = [float(r["mean_command"]) for r in read_rows(path)]
+        if len(moves) != len(rows):
+            raise ValueError(f"--figures: {path} has {len(moves)} bodies, the table {len(rows)}")
+        columns.append(moves)
+    table = np.array(columns).T
+    return table[:, : len(zoo)], table[:, len(zoo):]
+
+
+def choices(rows: list[dict[str, str]], prefix: str, own: bool, template: str | None = None) -> dict[str, np.ndarray]:
+    """Each body's move ``[M]`` under its best whole-episode trial over the zoo, the library and both
+    (:func:`trials`; a tie to the zoo): the trial itself, or with ``template`` the pick's figure (:func:`figures`)."""
     z, lib = trials(rows, prefix, own)
-    return {"zoo": z.max(1), "library": lib.max(1), "zoo and library": np.maximum(z.max(1), lib.max(1))}
+    fz, flib = (z, lib) if template is None else figures(rows, prefix, template)
+    body = np.arange(len(rows))
+    zoo, library = fz[body, z.argmax(1)], flib[body, lib.argmax(1)]
+    return {"zoo": zoo, "library": library, "zoo and library": np.where(lib.max(1) > z.max(1), library, zoo)}
 
 
-def expected_best(floor: np.ndarray, library: np.ndarray, size: int) -> np.ndarray:
-    """Each body's expected best ``[M]`` of ``floor`` ``[M]`` (its best zoo trial) and ``size`` library controllers
-    drawn at random without replacement from its row of ``library`` ``[M, L]`` (``-inf``: not drawable, a body's
-    own). Exact: the draw's best is the row's j-th largest with probability C(n − j, size − 1) / C(n, size)."""
+def expected_best(floor: np.ndarray, library: np.ndarray, size: int, floor_figure: np.ndarray | None = None,
+                  library_figure: np.ndarray | None = None) -> np.ndarray:
+    """Each body's expected move ``[M]`` under the best trial of ``floor`` ``[M]`` (its best zoo trial) and ``size``
+    library controllers drawn at random without replacement from its row of ``library`` ``[M, L]`` (``-inf``: not
+    drawable, a body's own); the move is the pick's trial, or its figure (``floor_figure`` ``[M]``,
+    ``library_figure`` ``[M, L]``). Exact: the draw's best is the row's j-th by trial with probability
+    C(n − j, size − 1) / C(n, size)."""
     if size < 1:
         raise ValueError(f"a library size must be at least 1, got {size}")
+    floor_figure = floor if floor_figure is None else floor_figure
+    library_figure = library if library_figure is None else library_figure
     out = np.empty(len(floor))
     for i, (z, row) in enumerate(zip(floor, library, strict=True)):
-        values = np.sort(row[np.isfinite(row)])[::-1]
-        n = len(values)
+        order = np.argsort(-row, kind="stable")[: int(np.isfinite(row).sum())]
+        n = len(order)
         if size > n:
             raise ValueError(f"library size {size}: body {i} can draw from {n} controllers only (its own left out): "
                              f"give --sizes of at most {n}")
         j = np.arange(1, n + 1)
         p = comb(n - j, size - 1) / comb(n, size)
-        out[i] = float((p * np.maximum(z, values)).sum())
+        out[i] = float((p * np.where(row[order] > z, library_figure[i, order], floor_figure[i])).sum())
     return out
 
 
@@ -99,24 +134,32 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--epoch", type=int, default=None, help="the reference's saved epoch (default: its last)")
     p.add_argument("--sizes", default="", metavar="K,K,...",
                    help="also a random library of each size K (each body's exact expected best over the draws)")
+    p.add_argument("--figures", default=None, metavar="TEMPLATE",
+                   help="each candidate's evaluate bodies.csv, '{name}' standing for it: a pick's move is its figure")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     try:
         rows = read_rows(args.table)
-        best = choices(rows, args.library, args.own)
-        library = trials(rows, args.library, args.own)[1]
+        if args.figures is not None and "{name}" not in args.figures:
+            raise ValueError(f"--figures {args.figures!r}: the template must hold {{name}} (each candidate's name)")
+        best = choices(rows, args.library, args.own, args.figures)
+        z, library = trials(rows, args.library, args.own)
+        fz, flib = (None, None) if args.figures is None else figures(rows, args.library, args.figures)
         try:
             sizes = [int(k) for k in args.sizes.split(",") if k.strip()]
         except ValueError:
             raise ValueError(f"--sizes {args.sizes!r}: give whole numbers separated by commas, e.g. 1,4,16") from None
         for k in sizes:
-            best[f"zoo and {k} of the library"] = expected_best(best["zoo"], library, k)
+            floor_figure = None if fz is None else fz[np.arange(len(rows)), z.argmax(1)]
+            best[f"zoo and {k} of the library"] = expected_best(z.max(1), library, k, floor_figure, flib)
         at, ref = reference_moves(args.reference, args.epoch) if args.reference else (None, None)
         if ref is not None and len(ref) != len(rows):
             raise ValueError(f"--reference {args.reference}: {len(ref)} bodies, the table {len(rows)}")
     except ValueError as exc:
         p.error(str(exc))
     out = summary(best, ref)
+    members = trial_columns(rows, args.library)[1]  # (a prefix that also names a zoo candidate shows here)
+    print(f"the library ({len(members)}, --library {args.library!r}): {', '.join(members)}")
     for row in out:
         text = f"{row['choice']}: {row['mean']:.3f}"
         if "fraction" in row:

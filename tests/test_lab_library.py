@@ -68,3 +68,33 @@ def test_sizes_print_a_random_librarys_row(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit):
         main([str(tmp_path / "t.csv"), "--library", "t", "--own", "--sizes", "one"])
     assert "--sizes 'one'" in capsys.readouterr().err
+
+
+def test_with_figures_a_pick_is_made_by_its_trial_and_scored_by_its_figure(tmp_path, capsys) -> None:
+    """Steering: the trials are other headings than the figures. Each body's pick is the best trial (its own left
+    out), its move that candidate's mean_command in its evaluate table — never the trial that chose it."""
+    lib_figure = np.array([[7.0, 0.3, 5.0], [4.0, 7.0, 0.0], [0.1, 6.0, 7.0]])   # (another order than the trials')
+    for j in range(3):
+        write_rows(tmp_path / f"t{j}.csv", [{"body": i, "mean_command": lib_figure[i, j]} for i in range(3)])
+    write_rows(tmp_path / "zoo1.csv", [{"body": i, "mean_command": 0.25 * (i + 1)} for i in range(3)])
+    template = str(tmp_path / "{name}.csv")
+    best = choices(table(), "t", own=True, template=template)
+    assert best["zoo"].tolist() == [0.25, 0.5, 0.75]
+    assert best["library"].tolist() == [0.3, 4.0, 0.1]                  # t1, t0 (a tie: the first), t0
+    assert best["zoo and library"].tolist() == [0.3, 0.5, 0.1]          # body 1's library trial 0.5 < the zoo's 1.0
+    rng = np.random.default_rng(0)
+    lib, fig = rng.gamma(2.0, 1.0, (3, 5)), rng.gamma(2.0, 1.0, (3, 5))
+    lib[0, 0] = -np.inf
+    floor, floor_figure = np.array([0.0, 1.5, 2.0]), np.array([9.0, 8.0, 7.0])
+    got = expected_best(floor, lib, 2, floor_figure, fig)
+    for i in range(3):
+        drawable = [j for j in range(5) if np.isfinite(lib[i, j])]
+        moves = [fig[i, max(c, key=lambda j: lib[i, j])] if max(lib[i, list(c)]) > floor[i] else floor_figure[i]
+                 for c in itertools.combinations(drawable, 2)]
+        assert got[i] == pytest.approx(np.mean(moves), rel=1e-12)
+    write_rows(tmp_path / "table.csv", table())
+    main([str(tmp_path / "table.csv"), "--library", "t", "--own", "--figures", template, "--sizes", "2"])
+    assert "zoo and library: 0.300" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "table.csv"), "--library", "t", "--figures", str(tmp_path / "missing_{name}.csv")])
+    assert "no " in capsys.readouterr().err
