@@ -18,9 +18,11 @@ headings than the figures', so that no figure is measured on the draw that chose
 ``mean_command`` in ``TEMPLATE.format(name=<candidate>)``, an ``evaluate --episodes K`` bodies.csv of that candidate
 on the table's bodies (``fit --headings random``'s figures: each body's row draws)::
 
-    freeform-control fit du0.npy --headings random --adapt-epochs 0 --out DIR --candidates ZOO... LIB/s0/controller.pt ...
+    freeform-control fit du0.npy --headings random --adapt-epochs 0 --out DIR --candidates ZOO... LIB/l0/controller.pt ...
     freeform-control evaluate student_steering du0.npy --episodes 4 --out E/student_steering     # each candidate
-    python -m lab.library DIR/bodies.csv --library s --own --figures 'E/{name}/bodies.csv' --reference REF
+    python -m lab.library DIR/bodies.csv --library l --own --figures 'E/{name}/bodies.csv' --reference REF
+
+(a prefix must name no zoo candidate: ``s`` would also take ``student_steering``; the library's members are printed)
 """
 
 from __future__ import annotations
@@ -74,11 +76,12 @@ def figures(rows: list[dict[str, str]], prefix: str, template: str) -> tuple[np.
     return table[:, : len(zoo)], table[:, len(zoo):]
 
 
-def choices(rows: list[dict[str, str]], prefix: str, own: bool, template: str | None = None) -> dict[str, np.ndarray]:
+def choices(rows: list[dict[str, str]], prefix: str, own: bool,
+            scored: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Each body's move ``[M]`` under its best whole-episode trial over the zoo, the library and both
-    (:func:`trials`; a tie to the zoo): the trial itself, or with ``template`` the pick's figure (:func:`figures`)."""
+    (:func:`trials`; a tie to the zoo): the trial itself, or the pick's figure in ``scored`` (:func:`figures`)."""
     z, lib = trials(rows, prefix, own)
-    fz, flib = (z, lib) if template is None else figures(rows, prefix, template)
+    fz, flib = (z, lib) if scored is None else scored
     body = np.arange(len(rows))
     zoo, library = fz[body, z.argmax(1)], flib[body, lib.argmax(1)]
     return {"zoo": zoo, "library": library, "zoo and library": np.where(lib.max(1) > z.max(1), library, zoo)}
@@ -142,16 +145,16 @@ def main(argv: list[str] | None = None) -> None:
         rows = read_rows(args.table)
         if args.figures is not None and "{name}" not in args.figures:
             raise ValueError(f"--figures {args.figures!r}: the template must hold {{name}} (each candidate's name)")
-        best = choices(rows, args.library, args.own, args.figures)
+        scored = None if args.figures is None else figures(rows, args.library, args.figures)
+        best = choices(rows, args.library, args.own, scored)
         z, library = trials(rows, args.library, args.own)
-        fz, flib = (None, None) if args.figures is None else figures(rows, args.library, args.figures)
         try:
             sizes = [int(k) for k in args.sizes.split(",") if k.strip()]
         except ValueError:
             raise ValueError(f"--sizes {args.sizes!r}: give whole numbers separated by commas, e.g. 1,4,16") from None
         for k in sizes:
-            floor_figure = None if fz is None else fz[np.arange(len(rows)), z.argmax(1)]
-            best[f"zoo and {k} of the library"] = expected_best(z.max(1), library, k, floor_figure, flib)
+            best[f"zoo and {k} of the library"] = expected_best(z.max(1), library, k, *(
+                (best["zoo"], scored[1]) if scored is not None else ()))
         at, ref = reference_moves(args.reference, args.epoch) if args.reference else (None, None)
         if ref is not None and len(ref) != len(rows):
             raise ValueError(f"--reference {args.reference}: {len(ref)} bodies, the table {len(rows)}")

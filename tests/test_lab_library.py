@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from freeform.tables import write_rows
-from lab.library import choices, expected_best, main, summary, trials
+from lab.library import choices, expected_best, figures, main, summary, trials
 
 
 def table() -> list[dict[str, str]]:
@@ -78,7 +78,7 @@ def test_with_figures_a_pick_is_made_by_its_trial_and_scored_by_its_figure(tmp_p
         write_rows(tmp_path / f"t{j}.csv", [{"body": i, "mean_command": lib_figure[i, j]} for i in range(3)])
     write_rows(tmp_path / "zoo1.csv", [{"body": i, "mean_command": 0.25 * (i + 1)} for i in range(3)])
     template = str(tmp_path / "{name}.csv")
-    best = choices(table(), "t", own=True, template=template)
+    best = choices(table(), "t", own=True, scored=figures(table(), "t", template))
     assert best["zoo"].tolist() == [0.25, 0.5, 0.75]
     assert best["library"].tolist() == [0.3, 4.0, 0.1]                  # t1, t0 (a tie: the first), t0
     assert best["zoo and library"].tolist() == [0.3, 0.5, 0.1]          # body 1's library trial 0.5 < the zoo's 1.0
