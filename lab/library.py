@@ -52,9 +52,12 @@ def trials(rows: list[dict[str, str]], prefix: str, own: bool) -> tuple[np.ndarr
     z = np.array([[float(r[f"trial_{n}"]) for n in zoo] for r in rows])
     lib = np.array([[float(r[f"trial_{n}"]) for n in library] for r in rows])
     if own:
-        if len(library) < max(len(rows), 2):
-            raise ValueError(f"--own: {len(rows)} bodies and {len(library)} library controllers: body i's own is "
-                             "the library's i-th, so the library needs one for every body (and two at least)")
+        if len(library) != len(rows) or len(rows) < 2:
+            # (one more or fewer shifts every own: a prefix that also names a zoo candidate, e.g. "s" and
+            # student_steering, would leave each body its own controller under another's name)
+            raise ValueError(f"--own: {len(rows)} bodies and {len(library)} library controllers ({', '.join(library)}):"
+                             " body i's own is the library's i-th, so the library needs one for every body and no "
+                             "more (and two at least)")
         lib[np.arange(len(rows)), np.arange(len(rows))] = -np.inf
     return z, lib
 
@@ -63,15 +66,20 @@ def figures(rows: list[dict[str, str]], prefix: str, template: str) -> tuple[np.
     """Each body's figure under each zoo candidate ``[M, Z]`` and library candidate ``[M, L]``: the ``mean_command``
     column of ``template.format(name=<candidate>)`` (an ``evaluate`` bodies.csv of the table's bodies, in order)."""
     zoo, library = trial_columns(rows, prefix)
+    bodies = [r["body"] for r in rows]
     columns = []
     for name in zoo + library:
-        path = Path(template.format(name=name))
+        try:
+            path = Path(template.format(name=name))
+        except (KeyError, IndexError, ValueError):
+            raise ValueError(f"--figures {template!r}: the only field it may hold is {{name}}") from None
         if not path.is_file():
             raise ValueError(f"--figures: no {path} for the candidate {name!r} (evaluate it on the table's bodies)")
-        moves = [float(r["mean_command"]) for r in read_rows(path)]
-        if len(moves) != len(rows):
-            raise ValueError(f"--figures: {path} has {len(moves)} bodies, the table {len(rows)}")
-        columns.append(moves)
+        figure = read_rows(path)
+        if [r["body"] for r in figure] != bodies:
+            raise ValueError(f"--figures: {path}'s bodies are not the table's ({len(figure)} rows against "
+                             f"{len(bodies)}, or in another order): evaluate the candidate on the table's bodies")
+        columns.append([float(r["mean_command"]) for r in figure])
     table = np.array(columns).T
     return table[:, : len(zoo)], table[:, len(zoo):]
 

@@ -37,6 +37,9 @@ def test_each_body_is_chosen_for_without_its_own_controller_and_the_gain_is_pair
     short = [{k: v for k, v in r.items() if k != "trial_t2"} for r in table()]
     with pytest.raises(ValueError, match="the library needs one for every body"):
         choices(short, "t", own=True)
+    extra = [{**r, "trial_t3": "0.0"} for r in table()]  # (one more: every body's own would be another's column)
+    with pytest.raises(ValueError, match="and no more"):
+        choices(extra, "t", own=True)
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 5])
@@ -93,8 +96,18 @@ def test_with_figures_a_pick_is_made_by_its_trial_and_scored_by_its_figure(tmp_p
                  for c in itertools.combinations(drawable, 2)]
         assert got[i] == pytest.approx(np.mean(moves), rel=1e-12)
     write_rows(tmp_path / "table.csv", table())
-    main([str(tmp_path / "table.csv"), "--library", "t", "--own", "--figures", template, "--sizes", "2"])
-    assert "zoo and library: 0.300" in capsys.readouterr().out
-    with pytest.raises(SystemExit):
-        main([str(tmp_path / "table.csv"), "--library", "t", "--figures", str(tmp_path / "missing_{name}.csv")])
-    assert "no " in capsys.readouterr().err
+    main([str(tmp_path / "table.csv"), "--library", "t", "--own", "--figures", template, "--sizes", "1,2"])
+    out = capsys.readouterr().out
+    # one of the library drawn: body 0 t1 (0.3) or t2 (trial 0.1 < 1.0: the zoo's 0.25); body 1 the zoo's 0.5 either
+    # way; body 2 t0 (0.1) or t1 (trial 0.2 < 1.0: the zoo's 0.75) — each by its trial, scored by its figure
+    assert "zoo and library: 0.300" in out and "zoo and 1 of the library: 0.400" in out
+    assert "zoo and 2 of the library: 0.300" in out
+    for bad, message in ((str(tmp_path / "missing_{name}.csv"), "--figures: no "),
+                         (str(tmp_path / "{name}{other}.csv"), "the only field it may hold"),
+                         (str(tmp_path / "t.csv"), "must hold {name}")):
+        with pytest.raises(SystemExit):
+            main([str(tmp_path / "table.csv"), "--library", "t", "--figures", bad])
+        assert message in capsys.readouterr().err
+    write_rows(tmp_path / "t1.csv", [{"body": i, "mean_command": 0.0} for i in (0, 2, 1)])  # (another order)
+    with pytest.raises(ValueError, match="not the table's"):
+        figures(table(), "t", template)
