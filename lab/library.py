@@ -160,9 +160,10 @@ def main(argv: list[str] | None = None) -> None:
             sizes = [int(k) for k in args.sizes.split(",") if k.strip()]
         except ValueError:
             raise ValueError(f"--sizes {args.sizes!r}: give whole numbers separated by commas, e.g. 1,4,16") from None
+        # (scored by figures, the zoo's floor is its pick's figure and each member's its own)
+        floor_figure, library_figure = (best["zoo"], scored[1]) if scored is not None else (None, None)
         for k in sizes:
-            best[f"zoo and {k} of the library"] = expected_best(z.max(1), library, k, *(
-                (best["zoo"], scored[1]) if scored is not None else ()))
+            best[f"zoo and {k} of the library"] = expected_best(z.max(1), library, k, floor_figure, library_figure)
         at, ref = reference_moves(args.reference, args.epoch) if args.reference else (None, None)
         if ref is not None and len(ref) != len(rows):
             raise ValueError(f"--reference {args.reference}: {len(ref)} bodies, the table {len(rows)}")
