@@ -3,7 +3,8 @@
 Zero-shot if it works: the gate reads the body (no trial), names a student, and that student drives the body. Fitted
 on 256 training-like bodies (`lab.training_bodies --kind primitives,blobs,limbed,cppn --n 256 --seed 11`,
 none of the held-out kinds), where every student's mean command was played once
-(`gate_moves256.npy`: `[17, 8 decisions, 256]`, as `python -m lab.selection --try` writes `moves.npy`); scored on the 93 held-out bodies from the
+(`gate_moves256.npy`: `[17, 8 decisions, 256]`, as `python -m lab.selection --try` writes `moves.npy`; not
+tracked: `git show 4b5e8bf:lab/results/control_student/selection/gate/gate_moves256.npy > gate_moves256.npy`); scored on the 93 held-out bodies from the
 committed tables (`../bodies.csv`: the students' mean commands there, per-body control, the hand-set wave, own gaits)
 and on the 32 fresh grown bodies (`../fresh_grown32/bodies.csv`), neither of which the gate saw.
 

@@ -6,7 +6,7 @@ from its first decision, each voxel's response to the open-loop gait walked in t
 coefficients at the actuation frequency over the last actuation period). If the choice lies there, a student that
 reads them could learn from teachers chosen by selection what a shape-reading one cannot. The test: the same gates
 (k-nearest neighbours, ridge regression of each student's relative move), fitted on the same 256 training bodies and
-their 17 students' moves (`../gate/gate_moves256.npy`), on the response's body summaries added to the shape features
+their 17 students' moves (`../gate/gate_moves256.npy`, not tracked: restored as `../gate/gate_screen.py` says), on the response's body summaries added to the shape features
 or alone; scored leave-one-out on the 256 and on the 93 held-out bodies and 32 fresh grown ones, never seen.
 
 Response summaries of a body (over its filled cells, from the first observation at the students' episode settings:
