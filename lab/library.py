@@ -65,6 +65,8 @@ def trials(rows: list[dict[str, str]], prefix: str, own: bool) -> tuple[np.ndarr
 def figures(rows: list[dict[str, str]], prefix: str, template: str) -> tuple[np.ndarray, np.ndarray]:
     """Each body's figure under each zoo candidate ``[M, Z]`` and library candidate ``[M, L]``: the ``mean_command``
     column of ``template.format(name=<candidate>)`` (an ``evaluate`` bodies.csv of the table's bodies, in order)."""
+    if "{name}" not in template:
+        raise ValueError(f"--figures {template!r}: the template must hold {{name}} (each candidate's name)")
     zoo, library = trial_columns(rows, prefix)
     bodies = [r["body"] for r in rows]
     columns = []
@@ -151,8 +153,6 @@ def main(argv: list[str] | None = None) -> None:
     args = p.parse_args(argv)
     try:
         rows = read_rows(args.table)
-        if args.figures is not None and "{name}" not in args.figures:
-            raise ValueError(f"--figures {args.figures!r}: the template must hold {{name}} (each candidate's name)")
         scored = None if args.figures is None else figures(rows, args.library, args.figures)
         best = choices(rows, args.library, args.own, scored)
         z, library = trials(rows, args.library, args.own)
