@@ -12,6 +12,8 @@ Prints each choice's mean move, its fraction of the reference (99 % band, paired
 over the zoo alone (paired, 99 %); ``--out CSV`` writes those rows. ``--sizes 1,4,16``: the same for a library of
 that many controllers drawn at random from it — each body's expected best over every such draw, exactly (no
 sampling): what a smaller library of the same kind would give, and so what each candidate's trial second buys.
+``--firsts 8,16``: the zoo and the library's first K members (the table's order: the library as it was before it
+grew), and what the rest add to them (paired, 99 %) — a library's growth measured within one run's trials.
 
 ``--figures TEMPLATE`` (steering): a body's move under its pick is not its trial — the trials are other episodes'
 headings than the figures', so that no figure is measured on the draw that chose it — but the pick's
@@ -87,11 +89,16 @@ def figures(rows: list[dict[str, str]], prefix: str, template: str) -> tuple[np.
 
 
 def choices(rows: list[dict[str, str]], prefix: str, own: bool,
-            scored: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+            scored: tuple[np.ndarray, np.ndarray] | None = None, members: int | None = None) -> dict[str, np.ndarray]:
     """Each body's move ``[M]`` under its best whole-episode trial over the zoo, the library and both
-    (:func:`trials`; a tie to the zoo): the trial itself, or the pick's figure in ``scored`` (:func:`figures`)."""
+    (:func:`trials`; a tie to the zoo): the trial itself, or the pick's figure in ``scored`` (:func:`figures`).
+    ``members``: the library's first that many (in the table's order) stand for it — what it was before it grew."""
     z, lib = trials(rows, prefix, own)
     fz, flib = (z, lib) if scored is None else scored
+    if members is not None:
+        if not 0 < members < lib.shape[1]:
+            raise ValueError(f"--firsts {members}: the library's first K members, 0 < K < its {lib.shape[1]}")
+        lib, flib = lib[:, :members], flib[:, :members]
     body = np.arange(len(rows))
     zoo, library = fz[body, z.argmax(1)], flib[body, lib.argmax(1)]
     return {"zoo": zoo, "library": library, "zoo and library": np.where(lib.max(1) > z.max(1), library, zoo)}
@@ -121,6 +128,10 @@ def expected_best(floor: np.ndarray, library: np.ndarray, size: int, floor_figur
     return out
 
 
+FIRSTS = "zoo and the library's first "
+"""The name of :func:`choices`' ``members`` rows (``--firsts``): ``FIRSTS + K``."""
+
+
 def summary(best: dict[str, np.ndarray], reference: np.ndarray | None = None) -> list[dict]:
     """A row per choice of :func:`choices`: its bodies' mean move, its fraction of ``reference`` ``[M]`` (each body's
     per-body control; 99 % band, paired by body) where given, and its gain over the zoo alone (paired, 99 %)."""
@@ -132,8 +143,19 @@ def summary(best: dict[str, np.ndarray], reference: np.ndarray | None = None) ->
         if name != "zoo":
             row["gain_over_zoo"], row["gain_band99"] = paired_band(moves - best["zoo"])
             row["bodies_gaining"] = int((moves > best["zoo"]).sum())
+        if name.startswith(FIRSTS):  # (what the rest of the library adds to its first K)
+            row["whole_over_it"], row["whole_band99"] = paired_band(best["zoo and library"] - moves)
+            row["bodies_gaining_whole"] = int((best["zoo and library"] > moves).sum())
         rows.append(row)
     return rows
+
+
+def whole_numbers(option: str, text: str) -> list[int]:
+    """``option``'s comma-separated whole numbers (``"1,4,16"``); empty: none."""
+    try:
+        return [int(k) for k in text.split(",") if k.strip()]
+    except ValueError:
+        raise ValueError(f"{option} {text!r}: give whole numbers separated by commas, e.g. 1,4,16") from None
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -149,6 +171,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="also a random library of each size K (each body's exact expected best over the draws)")
     p.add_argument("--figures", default=None, metavar="TEMPLATE",
                    help="each candidate's evaluate bodies.csv, '{name}' standing for it: a pick's move is its figure")
+    p.add_argument("--firsts", default="", metavar="K,K,...",
+                   help="also the zoo and the library's first K members (the table's order), and what the rest add")
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
     try:
@@ -156,10 +180,9 @@ def main(argv: list[str] | None = None) -> None:
         scored = None if args.figures is None else figures(rows, args.library, args.figures)
         best = choices(rows, args.library, args.own, scored)
         z, library = trials(rows, args.library, args.own)
-        try:
-            sizes = [int(k) for k in args.sizes.split(",") if k.strip()]
-        except ValueError:
-            raise ValueError(f"--sizes {args.sizes!r}: give whole numbers separated by commas, e.g. 1,4,16") from None
+        sizes, firsts = whole_numbers("--sizes", args.sizes), whole_numbers("--firsts", args.firsts)
+        for k in firsts:
+            best[f"{FIRSTS}{k}"] = choices(rows, args.library, args.own, scored, members=k)["zoo and library"]
         # (scored by figures, the zoo's floor is its pick's figure and each member's its own)
         floor_figure, library_figure = (best["zoo"], scored[1]) if scored is not None else (None, None)
         for k in sizes:
@@ -179,6 +202,9 @@ def main(argv: list[str] | None = None) -> None:
         if "gain_over_zoo" in row:
             text += (f"; over the zoo {row['gain_over_zoo']:+.3f} ± {row['gain_band99']:.3f} "
                      f"({row['bodies_gaining']} of {row['bodies']} bodies)")
+        if "whole_over_it" in row:
+            text += (f"; the whole library over it {row['whole_over_it']:+.3f} ± {row['whole_band99']:.3f} "
+                     f"({row['bodies_gaining_whole']} bodies gain)")
         print(text)
     if args.out:
         write_rows(args.out, out)

@@ -111,3 +111,18 @@ def test_with_figures_a_pick_is_made_by_its_trial_and_scored_by_its_figure(tmp_p
     write_rows(tmp_path / "t1.csv", [{"body": i, "mean_command": 0.0} for i in (0, 2, 1)])  # (another order)
     with pytest.raises(ValueError, match="not the table's"):
         figures(table(), "t", template)
+
+
+def test_firsts_are_the_library_before_it_grew_and_the_rest_is_paired_against_them(tmp_path, capsys) -> None:
+    """Without ``--own`` (a body's own controller may win): the first member alone moves body 0 by its own 9.0 and
+    leaves body 1 to the zoo (t0 moves it 0.5); the rest add t1's 9.0 on body 1 and t2's on body 2."""
+    first = choices(table(), "t", own=False, members=1)["zoo and library"]
+    assert first.tolist() == [9.0, 1.0, 1.5]                     # (t0 on body 1 is 0.5: the zoo's 1.0 stays)
+    assert choices(table(), "t", own=False, members=2)["zoo and library"].tolist() == [9.0, 9.0, 1.5]
+    for k in (0, 3):
+        with pytest.raises(ValueError, match=f"--firsts {k}"):
+            choices(table(), "t", own=False, members=k)
+    write_rows(tmp_path / "t.csv", table())
+    main([str(tmp_path / "t.csv"), "--library", "t", "--firsts", "1"])
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("zoo and the library's first 1")][0]
+    assert "the whole library over it +5.167" in line and "(2 bodies gain)" in line   # (mean of 0, 8.0, 7.5)

@@ -28,8 +28,8 @@ CARD = "card.md"
 STUDENTS = ("student", "pool256_gen4", "pool256", "reptile3_fresh", "iterated64", "reptile3", "wave")
 """The students ``freeform-control fit`` tries on a body, in the order they were chosen (each added the most to the
 best of those before it on the 93 held-out bodies)."""
-LIBRARY = tuple(f"library/d{i}" for i in range(16))
-"""Per-body controllers of 16 training bodies (the design env's untrained bodies, body_seed 0), 200 epochs each by
+LIBRARY = tuple(f"library/d{i}" for i in range(24))
+"""Per-body controllers of 24 training bodies (the design env's untrained bodies, body_seed 0), 200 epochs each by
 the per-body teachers' recipe (``library/card.md``)."""
 TRIED = STUDENTS + LIBRARY
 """What ``freeform-control fit`` tries on a body, in this order (a tie goes to the earlier)."""
