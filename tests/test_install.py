@@ -112,13 +112,18 @@ def test_installed_apps_train_and_render_outside_the_checkout(venv: Path, tmp_pa
     assert image.parent == run / "renders" / "epoch_000000"
     assert image.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
-    # A controller for a body of one's own, from the zoo in the wheel: fit by trials, then watched.
+    # A controller for a body of one's own, from the zoo in the wheel (a student and the library's last member:
+    # every member's file is checked above): fit by trials, then watched.
     body = np.zeros((4, 4, 4), np.uint8)
     body[0:3, 0:2, 0] = [[2, 2], [1, 1], [3, 3]]
     np.save(tmp_path / "my_body.npy", body)
-    _run([bin_dir / "freeform-control", "fit", "my_body.npy", "--out", "fitted", "--adapt-epochs", "0"], cwd=tmp_path)
+    from freeform import zoo
+
+    _run([bin_dir / "freeform-control", "fit", "my_body.npy", "--out", "fitted", "--adapt-epochs", "0",
+          "--candidates", zoo.STUDENTS[0], zoo.LIBRARY[-1]], cwd=tmp_path)
     fitted = (tmp_path / "fitted" / "bodies.csv").read_text().splitlines()
     assert len(fitted) == 2 and fitted[0].startswith("body,chosen,mean_command,controller_file,seconds")
+    assert fitted[0].endswith(f"trial_{zoo.STUDENTS[0]},trial_{zoo.LIBRARY[-1]}")
     _run([bin_dir / "freeform-control", "watch", "fitted/body0/controller.pt", "my_body.npy", "--out", "seen"],
          cwd=tmp_path)
     seen = json.loads((tmp_path / "seen" / "gait.json").read_text())
