@@ -39,6 +39,7 @@ def experts_on(run: Path, experts: list[str], out: Path, rounds: int, epochs: in
     from freeform.run.build import read_teacher_run
     from freeform.run.teacher_runs import pool_teacher_runs
     from freeform.train import train
+    from freeform.zoo import resolve
     from lab.heldout import episode_overrides
 
     names = [candidate_name(e) for e in experts]
@@ -88,7 +89,7 @@ def experts_on(run: Path, experts: list[str], out: Path, rounds: int, epochs: in
          **{f"round{r}_move": float(h.moves[h.assignment[m], m]) for r, h in enumerate(em.history)}}
         for m in range(len(grids))])
     for k, e in enumerate(em.experts):
-        saved = read_controller(e)
+        saved = read_controller(resolve(e))  # (a zoo name too: an expert never refit, such as the wave)
         save_controller(out / f"expert{k}" / "controller.pt", saved.controller, saved.control, saved.sim)
     (out / "run.json").write_text(json.dumps({
         "teachers": str(run), "experts": experts, "fixed": sorted(fixed), "rounds": rounds, "epochs": epochs,

@@ -8,7 +8,8 @@ each body's own controller at a saved epoch), body by body, with 99 % bands (``f
 
 A table is ``NAME=CSV[:COLUMN[:FIRST]]`` (``A.csv+B.csv``: several fits' tables as one, e.g. a set fitted in parts
 whose ``body`` columns were numbered apart): its ``body`` column names the body (its row number where it has none),
-COLUMN its figure (default ``mean_command``), and its body FIRST + b is the reference's body b (default 0). Writes
+COLUMN its figure (default ``mean_command``; ``A|B|…``: each body's best of those columns — a choice among
+those candidates by their trials, from one fit's table), and its body FIRST + b is the reference's body b (default 0). Writes
 ``DIR/fractions.csv``: per table, the bodies, its mean, the reference's mean on them, the fraction and its band, and
 the mean ``seconds`` a body where the table has them (``fit``'s).
 
@@ -90,10 +91,11 @@ def table_moves(spec: str, bodies: int) -> tuple[str, np.ndarray, np.ndarray]:
         raise ValueError(f"--table {spec!r}: give NAME=CSV[:COLUMN[:FIRST]]")
     paths, _, rest = rest.partition(":")
     column, _, first = rest.partition(":")
-    rows = [row for path in paths.split("+") for row in _read(Path(path), (column or "mean_command",), "--table", spec)]
+    columns = tuple((column or "mean_command").split("|"))
+    rows = [row for path in paths.split("+") for row in _read(Path(path), columns, "--table", spec)]
     at = _first(first, "--table", spec)
     seconds = per_body(rows, "seconds", at, bodies) if "seconds" in rows[0] else np.full(bodies, np.nan)
-    return name, per_body(rows, column or "mean_command", at, bodies), seconds
+    return name, np.stack([per_body(rows, c, at, bodies) for c in columns]).max(0), seconds
 
 
 def fractions(reference: Path, tables: list[str], epoch: int | None = None) -> list[dict]:

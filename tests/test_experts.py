@@ -178,6 +178,17 @@ def test_the_reference_curve_reads_every_saved_epoch_and_ends_at_each_bodys_own_
                f"parts={tmp_path / 'a.csv'}+{tmp_path / 'b.csv'}:mean_command:10", "--out", str(tmp_path / "parts")])
     parts = next(csv.DictReader(open(tmp_path / "parts" / "fractions.csv")))
     assert int(parts["bodies"]) == 3 and float(parts["fraction"]) == pytest.approx(0.5, abs=1e-12)
+    # COLUMN A|B: each body's best of two candidates' columns (a half and a quarter, the quarter's column the larger
+    # on body 11 alone, where it is 1.5 times the reference): 0.5 of the others' reference and 1.5 of body 11's
+    with open(tmp_path / "two.csv", "w") as f:
+        f.write("body,trial_a,trial_b\n" + "".join(
+            f"{10 + i},{float(b['epoch2']) / 2},{float(b['epoch2']) * (1.5 if i == 1 else 0.25)}\n"
+            for i, b in enumerate(bodies)))
+    fractions(["--reference", str(tmp_path / "curve"), "--table", f"best={tmp_path / 'two.csv'}:trial_a|trial_b:10",
+               "--out", str(tmp_path / "best")])
+    best = next(csv.DictReader(open(tmp_path / "best" / "fractions.csv")))
+    ref2 = np.array([float(b["epoch2"]) for b in bodies])
+    assert float(best["fraction"]) == pytest.approx((ref2.sum() + 2 * ref2[1]) / (2 * ref2.sum()), abs=1e-12)
     # a reference trained in parts (A+B): body 0's bank to epoch 2, bodies 1 and 2's stopped at epoch 1; each part
     # is read at its own last epoch, in order (a table of half of those is 50 %)
     for name, rows_of, epochs in (("refA", bodies[:1], (0, 1, 2)), ("refB", bodies[1:], (0, 1))):
