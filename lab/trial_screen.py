@@ -15,9 +15,12 @@ as a fraction of the per-body reference (``lab.fractions``'s folders), beside ``
     python -m lab.trial_screen lab/results/heldout_bodies/design_unseen.npy --out OUT \\
         --reference lab/results/reference/design_unseen32
 
-Writes ``OUT/after.npy`` (``[D, C, M]``: each candidate's move after each decision), ``OUT/candidates.txt`` and
-``OUT/screen.csv`` (one row a rule: its episodes a body, its mean move, its fraction with a 99 % band, its paired
-difference to ``fit``'s choice).
+Writes ``OUT/after.npy`` (``[D, C, M]``: each candidate's move after each decision), ``OUT/candidates.txt``,
+``OUT/trials.csv`` (fit's trial columns: each candidate's whole-episode move, ``trial_<name>``, a row a body; what
+``lab.fractions --table "NAME=OUT/trials.csv:trial_a|trial_b"`` chooses among) and ``OUT/screen.csv`` (one row a
+rule: its episodes a body, its mean move, its fraction with a 99 % band, its paired difference to ``fit``'s choice).
+``--also A B …`` plays more candidates in the same episode (their columns in ``after.npy`` and ``trials.csv``), left
+out of the screen's rules.
 """
 
 from __future__ import annotations
@@ -76,6 +79,7 @@ def rows_of(after: np.ndarray, reference: np.ndarray, rules: list[tuple[int, int
 
 def main(argv: list[str] | None = None) -> None:
     from freeform import zoo
+    from freeform.control.fit import candidate_name
     from lab.fractions import reference_moves
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -83,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--reference", type=Path, required=True,
                    help="lab.reference's folder for these bodies (A+B+…: a reference trained in parts)")
     p.add_argument("--candidates", nargs="+", default=list(zoo.TRIED))
+    p.add_argument("--also", nargs="*", default=[], help="more candidates played, not screened")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -93,16 +98,20 @@ def main(argv: list[str] | None = None) -> None:
     if len(reference) != len(grids):
         raise SystemExit(f"--reference {args.reference} holds {len(reference)} bodies, {args.bodies} {len(grids)}")
     t0 = time.perf_counter()
-    after = after_every_decision(grids, tuple(args.candidates), args.seed)
+    played = after_every_decision(grids, (*args.candidates, *args.also), args.seed)
     seconds = time.perf_counter() - t0
     args.out.mkdir(parents=True, exist_ok=True)
-    np.save(args.out / "after.npy", after)
-    (args.out / "candidates.txt").write_text("\n".join(args.candidates) + "\n")
+    np.save(args.out / "after.npy", played)
+    names = [candidate_name(c) for c in (*args.candidates, *args.also)]
+    (args.out / "candidates.txt").write_text("\n".join(names) + "\n")
+    write_rows(args.out / "trials.csv", [{"body": m, **{f"trial_{n}": float(played[-1, k, m])
+                                                        for k, n in enumerate(names)}} for m in range(len(grids))])
+    after = played[:, : len(args.candidates)]
     steps = after.shape[0]
     rules = [(steps, 1)] + [(d, k) for d in range(1, steps) for k in (1, 2, 4, 8)]
     rows = rows_of(after, reference, rules)
     write_rows(args.out / "screen.csv", rows)
-    print(f"trials of {len(args.candidates)} candidates on {len(grids)} bodies: {seconds / len(grids):.2f} s a body")
+    print(f"trials of {len(names)} candidates on {len(grids)} bodies: {seconds / len(grids):.2f} s a body")
     for r in rows:
         print(f"d={r['decisions']} k={r['finished']}: {r['episodes_a_body']:6.2f} episodes a body, "
               f"{100 * r['fraction']:.1f} ± {100 * r['band']:.1f} %, against fit's {r['minus_full']:+.3f} ± "
