@@ -95,7 +95,7 @@ def table_moves(spec: str, bodies: int) -> tuple[str, np.ndarray, np.ndarray]:
     rows = [row for path in paths.split("+") for row in _read(Path(path), columns, "--table", spec)]
     at = _first(first, "--table", spec)
     seconds = per_body(rows, "seconds", at, bodies) if "seconds" in rows[0] else np.full(bodies, np.nan)
-    return name, np.stack([per_body(rows, c, at, bodies) for c in columns]).max(0), seconds
+    return name, np.fmax.reduce([per_body(rows, c, at, bodies) for c in columns]), seconds  # (NaN: not that one)
 
 
 def fractions(reference: Path, tables: list[str], epoch: int | None = None) -> list[dict]:

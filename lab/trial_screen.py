@@ -5,7 +5,8 @@ Two ways to spend fewer trial seconds than ``fit``'s (every candidate the whole 
 
 * **short**: every candidate for ``d`` decisions, each body keeps the best by that move;
 * **screen then finish**: every candidate for ``d`` decisions, each body's best ``k`` of them by that move played to
-  the end, the best of those by the whole episode kept — ``C·d/D + k`` episodes' physics a body against ``C``
+  the end, the best of those by the whole episode kept — ``C·d/D + k`` episodes' physics a body (k = 1: ``C·d/D``,
+  the short trial alone) against ``C``
   (``D`` decisions an episode; the first ``d`` of the ``k`` replayed, which a simulator that could carry on a robot's
   episode would save).
 
@@ -53,7 +54,8 @@ def after_every_decision(grids: torch.Tensor, specs: tuple[str, ...], seed: int 
 
 def screened(after: np.ndarray, d: int, k: int) -> np.ndarray:
     """Each body's chosen candidate ``[M]`` when every candidate plays ``d`` decisions and the best ``k`` by that
-    move play the whole episode (k = 1: the short trial alone; a tie to the earlier candidate, as ``fit``'s)."""
+    move play the whole episode (k = 1: the short trial alone). A tie in the short move goes to the earlier
+    candidate, as ``fit``'s; among the finished, a tie in the whole move to the better short mover."""
     short, whole = after[d - 1], after[-1]
     order = np.argsort(-short, axis=0, kind="stable")[:k]  # [k, M]: each body's best k by the short move
     best = np.take_along_axis(whole, order, 0).argmax(0)  # (among them, by the whole episode)
@@ -71,7 +73,7 @@ def rows_of(after: np.ndarray, reference: np.ndarray, rules: list[tuple[int, int
         moves = whole[screened(after, d, k), np.arange(m)]
         frac, band = ratio_band(moves, reference)
         diff, diff_band = paired_band(moves - full)
-        rows.append({"decisions": d, "finished": k, "episodes_a_body": round(count * d / steps + (k if k > 1 else 0), 3),
+        rows.append({"decisions": d, "finished": k, "episodes_a_body": round(count * d / steps + (min(k, count) if k > 1 else 0), 3),
                      "mean_move": float(moves.mean()), "fraction": frac, "band": band,
                      "minus_full": diff, "minus_full_band": diff_band, "bodies_worse": int((moves < full - 1e-9).sum())})
     return rows

@@ -22,9 +22,10 @@ def test_a_short_trial_keeps_its_leader_and_a_finish_among_the_best_k_recovers_t
     assert screened(a, 1, 2).tolist() == [2, 1]      # (0 and 2 finish on body 0: 2 wins)
     assert screened(a, 2, 1).tolist() == [2, 1]      # (the whole episode: fit's choice)
     assert screened(a, 1, 3).tolist() == [2, 1]
-    tie = a.copy()
-    tie[0, :, 1] = 0.5                               # (an early tie on body 1: the earlier candidate, as fit's)
-    assert screened(tie, 1, 1)[1] == 0
+    many = np.zeros((2, 40, 1))                      # (an early tie among many: the earliest, as fit's; 40 candidates,
+    many[0, 5:, 0] = 1.0                             # past the lengths a plain sort keeps in order by chance)
+    many[1, :, 0] = np.arange(40.0)
+    assert screened(many, 1, 1).tolist() == [5] and screened(many, 1, 3).tolist() == [7]
 
 
 def test_each_rules_row_counts_its_physics_and_pairs_its_moves_with_fits_choice() -> None:
