@@ -24,7 +24,7 @@ from freeform.agents.networks.controllers import CONTROLLERS, build_controller, 
 from freeform.agents.networks.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig, ControlEnv
 
-WALKER = Path(__file__).resolve().parents[1] / "docs" / "results" / "control_walker" / "walker.npy"
+WALKER = Path(__file__).resolve().parents[1] / "lab" / "results" / "control_walker" / "walker.npy"
 ROUNDS = 5
 WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16, "attention_gru": 32,
           "attention_hyper": 32}

@@ -37,19 +37,14 @@ from freeform.tables import paired_band, ratio_band, write_rows
 
 
 def after_every_decision(grids: torch.Tensor, specs: tuple[str, ...], seed: int = 0) -> np.ndarray:
-    """``[D, C, M]``: candidate c's move on body m after decision d (mean command, one episode), as ``fit``'s
-    trials play them (``freeform.control.fit.trials``: one env, a block of rows a candidate)."""
-    from freeform.control.evaluate import block_env
-    from freeform.control.fit import Candidates
-    from freeform.control.play import play
+    """``[D, C, M]``: candidate c's move on body m after decision d, as ``fit``'s trials play them
+    (``freeform.control.fit.trial_moves``)."""
+    from freeform.control.fit import Candidates, trial_moves
 
     c = Candidates(specs, grids)
     if c.steering:
         raise ValueError("the screen is for walkers (headings any/fixed): a steering trial averages episodes")
-    env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), seed=seed)
-    groups = [(name, s.controller.eval(), False, False) for name, s in zip(c.names, c.saved, strict=True)]
-    with torch.no_grad():
-        return play(env, groups, c.control.steps, seed).after.reshape(c.control.steps, len(c.saved), len(grids))
+    return trial_moves(c, grids, seed)
 
 
 def screened(after: np.ndarray, d: int, k: int) -> np.ndarray:
@@ -73,7 +68,8 @@ def rows_of(after: np.ndarray, reference: np.ndarray, rules: list[tuple[int, int
         moves = whole[screened(after, d, k), np.arange(m)]
         frac, band = ratio_band(moves, reference)
         diff, diff_band = paired_band(moves - full)
-        rows.append({"decisions": d, "finished": k, "episodes_a_body": round(count * d / steps + (min(k, count) if k > 1 else 0), 3),
+        physics = count * d / steps + (min(k, count) if k > 1 else 0)  # (k = 1: the short trial's pick is the figure)
+        rows.append({"decisions": d, "finished": k, "episodes_a_body": round(physics, 3),
                      "mean_move": float(moves.mean()), "fraction": frac, "band": band,
                      "minus_full": diff, "minus_full_band": diff_band, "bodies_worse": int((moves < full - 1e-9).sum())})
     return rows

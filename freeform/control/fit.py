@@ -294,19 +294,24 @@ def trial_decisions(seconds: float | None, control: ControlConfig) -> int:
 
 
 @torch.no_grad()
-def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0, draws: tuple[int, int] = (1, 0),
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """Every candidate's move on every body after ``decisions`` (what a body's choice is by) and its whole-episode
-    move, both ``[C, M]`` (mean commands), each the mean over the episodes ``draws`` (:func:`trial_draws`; every
-    candidate along the same headings)."""
+def trial_moves(c: Candidates, grids: torch.Tensor, seed: int = 0, draws: tuple[int, int] = (1, 0)) -> np.ndarray:
+    """``[D, C, M]``: every candidate's move on every body after each of the episode's D decisions (mean commands),
+    the mean over the episodes ``draws`` (:func:`trial_draws`; every candidate along the same headings), all in one
+    env of a block of rows a candidate."""
     episodes, first = draws
     env = block_env(grids, c.saved[0], c.control, blocks=len(c.saved), episodes=episodes, seed=seed,
                     first_episode=first)
     groups = [(name, s.controller.eval(), False, False) for name, s in zip(c.names, c.saved, strict=True)]
-    played = play(env, groups, c.control.steps, seed)
-    m = len(grids)
-    return (played.after[decisions - 1].reshape(len(c.saved), m, episodes).mean(-1),
-            played.returns.reshape(len(c.saved), m, episodes).mean(-1))
+    after = play(env, groups, c.control.steps, seed).after  # [D, C, M·episodes]: the last is the whole episode's
+    return after.reshape(c.control.steps, len(c.saved), len(grids), episodes).mean(-1)
+
+
+def trials(c: Candidates, grids: torch.Tensor, decisions: int, seed: int = 0, draws: tuple[int, int] = (1, 0),
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Every candidate's move on every body after ``decisions`` (what a body's choice is by) and its whole-episode
+    move, both ``[C, M]`` (:func:`trial_moves`)."""
+    after = trial_moves(c, grids, seed, draws)
+    return after[decisions - 1], after[-1]
 
 
 def chosen(trial: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
