@@ -1,7 +1,7 @@
 """The controllers' cost on the CPU (freeform/agents/networks/controllers.py): each kind of ``CONTROLLERS`` at its presets'
 width, for 64 bodies of two settings — the design setting (64 untrained designs of ρ = 8, 4 materials, 20 design
-steps: ``experiment=locomotion_cpu``'s; their union box) and the walker (``lab/results/control_walker/walker.npy``,
-64 copies: one small box) — timing
+steps: ``experiment=locomotion_cpu``'s; their union box) and the walker (``benchmarks/data/walker.npy``: the body a
+``lab.control`` run of ``control_locomotion_cpu`` trained on, ``control.bodies=walker``; 64 copies: one small box) — timing
 
 * the forward pass per control step (``no_grad``, the 64 bodies' observation: what acting costs a rollout step),
 * the update's step: forward + backward on a minibatch of 512 samples (the 64 observations 8 times over).
@@ -24,7 +24,7 @@ from freeform.agents.networks.controllers import CONTROLLERS, build_controller, 
 from freeform.agents.networks.recurrent import RecurrentPolicy
 from freeform.envs.control import ControlConfig, ControlEnv
 
-WALKER = Path(__file__).resolve().parents[1] / "lab" / "results" / "control_walker" / "walker.npy"
+WALKER = Path(__file__).resolve().parent / "data" / "walker.npy"
 ROUNDS = 5
 WIDTHS = {"conv": 16, "mlp": 64, "context": 16, "attention": 32, "context_gru": 16, "attention_gru": 32,
           "attention_hyper": 32}
