@@ -23,9 +23,10 @@ $(STAMP): pyproject.toml
 # hold there). The simulator's tests run again with fast-math on (the production path; reference tests skip) and
 # on the quadrants backend (Taichi's fork; one backend per process). docs/physics-running.md, "Host independence".
 # Each stage runs on JOBS pytest-xdist workers (whole files per worker: a module's kernels compile once there), one
-# torch thread each so that the workers do not fight over the cores.
+# torch thread each so that the workers do not fight over the cores; files in the order tests/conftest.py gives
+# (those with a `slow` test first), not xdist's by test count.
 JOBS      ?= 2
-PYTEST    := OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(JOBS) --dist loadfile
+PYTEST    := OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(JOBS) --dist loadfile --no-loadscope-reorder
 SIM_TESTS := tests/test_sim_api.py tests/test_sim_numerics.py tests/test_sim_physics.py tests/test_terrain.py tests/test_packing.py
 
 test: install

@@ -380,6 +380,7 @@ def test_a_codesign_run_can_start_from_a_trained_controller(tmp_path) -> None:
                                 f"control.controller_init={tmp_path / 'nothing'}"), tmp_path / "none")
 
 
+@pytest.mark.slow
 def test_design_after_control_is_charged_its_controllers_pretraining(tmp_path) -> None:
     """``python -m lab.codesign --designed RUN --pretraining ...``: a design run whose designs a frozen
     controller drives (``task.name=controlled_locomotion``) beside open-loop design RL; its budget is its epochs of

@@ -222,6 +222,7 @@ def test_every_experiment_preset_composes_and_validates() -> None:
         assert compose(f"experiment={name}").name == name, name
 
 
+@pytest.mark.slow
 def test_every_preset_warm_start_is_a_committed_controller_of_the_kind_it_builds() -> None:
     """A preset's ``control.controller_init`` (the population controller, its steering twin, the distilled
     students) names a controller of the zoo, which ships in the wheel, holding the controller kind, width and hand-set

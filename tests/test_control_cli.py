@@ -58,6 +58,7 @@ def refused(argv: list[str], capsys: pytest.CaptureFixture, *needles: str) -> st
     return err
 
 
+@pytest.mark.slow
 def test_bad_bodies_are_refused_naming_the_problem_and_nothing_is_written(tmp_path, capsys) -> None:
     from freeform.control.fit import BUDGET_EPOCHS, DEFAULT_ADAPT_EPOCHS, Fit
 
@@ -250,6 +251,7 @@ def test_block_env_draws_the_episodes_after_the_figures_and_a_part_of_a_set_as_t
         block_env(grids[:2], saved, saved.control, blocks=1, among=(np.array([0, 3]), 3))
 
 
+@pytest.mark.slow
 def test_fit_for_steering_chooses_on_the_trial_episodes_and_reports_the_others(tmp_path) -> None:
     """``--headings random``: the zoo's steering candidates, each figure the mean of ``--episodes 2`` (evaluate's
     own episodes 0–1 of the candidate) and each trial the mean of the ``--trial-episodes 3`` after them (episodes

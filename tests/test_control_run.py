@@ -216,6 +216,7 @@ def _dp_worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
 
 
 @pytest.mark.usefixtures("one_thread", "keep_global_rng")
+@pytest.mark.slow
 def test_two_gloo_ranks_steer_as_one_process(tmp_path: Path) -> None:
     import torch.multiprocessing as mp
 

@@ -124,6 +124,7 @@ def privileged_balancer(obs: dict[str, torch.Tensor], envs: torch.Tensor) -> tup
     return torch.stack([-s, s], 1), None
 
 
+@pytest.mark.slow
 def test_a_recurrent_student_learns_what_only_its_privileged_teacher_sees() -> None:
     """The teacher reads the pole's angular velocity, the students its angle alone. Distilled alike (6 rounds), a
     feed-forward student cannot tell which way the pole swings and drops it (< 100 steps); a GRU student, trained

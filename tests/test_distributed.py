@@ -45,6 +45,10 @@ CASES = {
     # an LSTM: sequences of 3 steps (2 chunks per env, the second padded), 2 per minibatch, split by their env
     "recurrent": dict(advantage_norm="minibatch", sequence_length=3, grad_clip=0.5),
 }
+STUDENTS = ["feed-forward", "recurrent"]  # algo=distill's students
+# Checkpoints whose state has a dimension equal to the local env count by chance: (local envs, hidden width).
+NAMED_STATE_CASES = {"hidden width = local envs": (4, 4),
+                     "generator state length = local envs": (torch.Generator().get_state().numel(), 8)}
 
 
 def make_ppo(envs: tuple[int, int] = (0, NUM_ENVS), case: str = "batch") -> PPO:
@@ -68,33 +72,45 @@ def comparable(stats: dict[str, float]) -> dict[str, float]:
     return {k: v for k, v in stats.items() if not k.startswith(NOT_COMPARED)}
 
 
-def _worker(rank: int, world: int, init_file: str, out_dir: str, case: str) -> None:
+def _ppo_case(rank: int, world: int, out_dir: Path, case: str) -> None:
     """One rank: two fresh epochs (checkpoint after the first), then one epoch resumed from the 1-process checkpoint."""
+    envs = env_slice(NUM_ENVS, world, rank)
+    ppo = make_ppo(envs, case)
+    first = ppo.train_epoch()
+    actions = ppo.dp.gather_envs(ppo.rollout.actions, dim=1)
+    ppo.save(out_dir / "two_ranks_epoch1.pt")  # collective; rank 0 writes
+    second = ppo.train_epoch()
+    resumed = PPO.load(out_dir / "one_process_epoch1.pt", DesignEnv(envs[1] - envs[0], EnvConfig(resolution=RHO, steps=STEPS),
+                                                                    materials=2))
+    resumed_stats = resumed.train_epoch()
+    torch.save(
+        {
+            "stats": [first, second],
+            "actions": actions,
+            "params": flat_params(ppo),
+            "generator": ppo.generator.get_state(),
+            "kl_coeff": ppo.kl_coeff,
+            "global_step": ppo.global_step,
+            "resumed_stats": resumed_stats,
+            "resumed_params": flat_params(resumed),
+        },
+        out_dir / f"rank{rank}.pt",
+    )
+
+
+def _worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
+    """One rank of every 2-rank case of this file, in one process group: a spawned process pays its interpreter's
+    start (torch, freeform) once for all of them, and each case writes its results to its own folder."""
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
     try:
-        envs = env_slice(NUM_ENVS, world, rank)
-        ppo = make_ppo(envs, case)
-        first = ppo.train_epoch()
-        actions = ppo.dp.gather_envs(ppo.rollout.actions, dim=1)
-        ppo.save(Path(out_dir) / "two_ranks_epoch1.pt")  # collective; rank 0 writes
-        second = ppo.train_epoch()
-        resumed = PPO.load(Path(out_dir) / "one_process_epoch1.pt", DesignEnv(envs[1] - envs[0], EnvConfig(resolution=RHO, steps=STEPS),
-                                                                              materials=2))
-        resumed_stats = resumed.train_epoch()
-        torch.save(
-            {
-                "stats": [first, second],
-                "actions": actions,
-                "params": flat_params(ppo),
-                "generator": ppo.generator.get_state(),
-                "kl_coeff": ppo.kl_coeff,
-                "global_step": ppo.global_step,
-                "resumed_stats": resumed_stats,
-                "resumed_params": flat_params(resumed),
-            },
-            Path(out_dir) / f"rank{rank}.pt",
-        )
+        out = Path(out_dir)
+        for case in CASES:
+            _ppo_case(rank, world, out / "ppo" / case, case)
+        for student in STUDENTS:
+            _distill_case(rank, world, out / "distill" / student, student)
+        for case, (local_envs, hidden) in NAMED_STATE_CASES.items():
+            _named_state_case(rank, world, out / "named" / case, local_envs, hidden)
         dist.barrier()  # both ranks are done with gloo before either tears it down
     finally:
         dist.destroy_process_group()
@@ -103,16 +119,46 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str, case: str) -> N
     os._exit(0)
 
 
-@pytest.mark.parametrize("case", list(CASES))
-def test_two_gloo_ranks_match_one_process(tmp_path: Path, case: str) -> None:
-    single = make_ppo(case=case)
-    first = single.train_epoch()
-    actions = single.rollout.actions.clone()
-    single.save(tmp_path / "one_process_epoch1.pt")
-    second = single.train_epoch()
+@pytest.fixture(scope="module")
+def two_ranks(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Any]:
+    """Every case's 1-process run (the PPO cases' first epoch checkpointed for the ranks to resume), then one
+    spawned pair of gloo ranks running every case: ``{(kind, case): {folder, one: the 1-process results, ranks:
+    [rank 0's, rank 1's]}}``, kind "ppo" | "distill" | "named" (whose results are the files in its folders)."""
+    root = tmp_path_factory.mktemp("two_ranks")
+    threads, rng = torch.get_num_threads(), torch.get_rng_state()
+    torch.set_num_threads(1)
+    try:
+        singles: dict[tuple[str, str], Any] = {}
+        for case in CASES:
+            (root / "ppo" / case).mkdir(parents=True)
+            single = make_ppo(case=case)
+            first = single.train_epoch()
+            actions = single.rollout.actions.clone()
+            single.save(root / "ppo" / case / "one_process_epoch1.pt")
+            second = single.train_epoch()
+            singles["ppo", case] = dict(ppo=single, first=first, second=second, actions=actions)
+        for student in STUDENTS:
+            (root / "distill" / student).mkdir(parents=True)
+            single = make_distillation(student=student)
+            singles["distill", student] = dict(stats=[single.train_epoch() for _ in range(3)],
+                                               params=flat_params(single))
+        for case in NAMED_STATE_CASES:
+            (root / "named" / case).mkdir(parents=True)
+        mp.spawn(_worker, args=(2, str(root / "pg"), str(root)), nprocs=2, join=True)
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_rng_state(rng)
+    return {key: dict(folder=root / key[0] / key[1], one=singles.get(key),
+                      ranks=[torch.load(root / key[0] / key[1] / f"rank{r}.pt", weights_only=False) for r in range(2)]
+                      if key[0] != "named" else None)
+            for key in (*(("ppo", c) for c in CASES), *(("distill", s) for s in STUDENTS),
+                        *(("named", c) for c in NAMED_STATE_CASES))}
 
-    mp.spawn(_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), case), nprocs=2, join=True)
-    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_two_gloo_ranks_match_one_process(two_ranks: dict[tuple[str, str], Any], case: str) -> None:
+    one, ranks = two_ranks["ppo", case]["one"], two_ranks["ppo", case]["ranks"]
+    single, first, second, actions = one["ppo"], one["first"], one["second"], one["actions"]
 
     # Identical weights, β and sampling generator on both ranks (the same all-reduced gradients, the same draws).
     assert torch.equal(ranks[0]["params"], ranks[1]["params"])
@@ -137,8 +183,8 @@ def test_two_gloo_ranks_match_one_process(tmp_path: Path, case: str) -> None:
         assert ranks[0]["resumed_stats"][key] == pytest.approx(want, rel=1e-4, abs=1e-6, nan_ok=True), key
     torch.testing.assert_close(ranks[0]["resumed_params"], flat_params(single), rtol=1e-4, atol=1e-5)
     # ... and 1 process continuing the 2-rank checkpoint too.
-    back = PPO.load(tmp_path / "two_ranks_epoch1.pt", DesignEnv(NUM_ENVS, EnvConfig(resolution=RHO, steps=STEPS),
-                                                                materials=2))
+    back = PPO.load(two_ranks["ppo", case]["folder"] / "two_ranks_epoch1.pt",
+                    DesignEnv(NUM_ENVS, EnvConfig(resolution=RHO, steps=STEPS), materials=2))
     assert back.global_step == NUM_ENVS * STEPS
     stats = back.train_epoch()
     for key, want in comparable(second).items():
@@ -166,31 +212,22 @@ def make_distillation(envs: tuple[int, int] = (0, NUM_ENVS), student: str = "fee
                         DistillConfig(beta=0.5, buffer=2), first_env=envs[0], total_envs=NUM_ENVS)
 
 
-def _distill_worker(rank: int, world: int, init_file: str, out_dir: str, student: str) -> None:
+def _distill_case(rank: int, world: int, out_dir: Path, student: str) -> None:
     """One rank of :func:`make_distillation`: three rounds (the third drops the first from the dataset)."""
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
-    try:
-        learner = make_distillation(env_slice(NUM_ENVS, world, rank), student)
-        stats = [learner.train_epoch() for _ in range(3)]
-        torch.save({"stats": stats, "params": flat_params(learner)}, Path(out_dir) / f"rank{rank}.pt")
-        dist.barrier()
-    finally:
-        dist.destroy_process_group()
-    os._exit(0)  # (as _worker: skip the interpreter's teardown)
+    learner = make_distillation(env_slice(NUM_ENVS, world, rank), student)
+    stats = [learner.train_epoch() for _ in range(3)]
+    torch.save({"stats": stats, "params": flat_params(learner)}, out_dir / f"rank{rank}.pt")
 
 
-@pytest.mark.parametrize("student", ["feed-forward", "recurrent"])
-def test_two_gloo_ranks_distil_as_one_process(tmp_path: Path, student: str) -> None:
+@pytest.mark.parametrize("student", STUDENTS)
+def test_two_gloo_ranks_distil_as_one_process(two_ranks: dict[tuple[str, str], Any], student: str) -> None:
     """algo=distill data-parallel: the teachers' mixing draws, the aggregated dataset's minibatches (samples, or a
     recurrent student's sequences, split between ranks by their env) and the summed gradients give the single
     process's student and statistics after three rounds, up to summation order."""
-    single = make_distillation(student=student)
-    want = [single.train_epoch() for _ in range(3)]
-    mp.spawn(_distill_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), student), nprocs=2, join=True)
-    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in range(2)]
+    single, ranks = two_ranks["distill", student]["one"], two_ranks["distill", student]["ranks"]
+    want = single["stats"]
     assert torch.equal(ranks[0]["params"], ranks[1]["params"])
-    torch.testing.assert_close(ranks[0]["params"], flat_params(single), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(ranks[0]["params"], single["params"], rtol=1e-4, atol=1e-5)
     for got, expected in zip(ranks[0]["stats"], want, strict=True):
         got, expected = comparable(got), comparable(expected)
         assert got.keys() == expected.keys()
@@ -298,35 +335,24 @@ class ToyEnv:
         self.pos, self.t = state["per_env"]["pos"].clone(), int(state["t"])
 
 
-def _named_state_worker(rank: int, world: int, init_file: str, out_dir: str, local_envs: int, hidden: int) -> None:
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
-    try:
-        torch.manual_seed(0)
-        cfg = PPOConfig(rollout_steps=2, num_sgd_iter=2, sgd_minibatch_size=min(4096, local_envs), seed=1, lr=1e-2)
-        ppo = PPO(ToyEnv(local_envs), MLPActorCritic(2, 2, hidden=(hidden, hidden)), cfg)
-        ppo.train_epoch()
-        ppo.save(Path(out_dir) / "two_ranks.pt")  # collective; rank 0 writes
-        if rank == 0:
-            torch.save({"policy": ppo.policy.state_dict(), "optimizer": ppo.optimizer.state_dict(),
-                        "generator": ppo.generator.get_state()}, Path(out_dir) / "rank0.pt")
-        dist.barrier()
-    finally:
-        dist.destroy_process_group()
-    os._exit(0)
+def _named_state_case(rank: int, world: int, out_dir: Path, local_envs: int, hidden: int) -> None:
+    torch.manual_seed(0)
+    cfg = PPOConfig(rollout_steps=2, num_sgd_iter=2, sgd_minibatch_size=min(4096, local_envs), seed=1, lr=1e-2)
+    ppo = PPO(ToyEnv(local_envs), MLPActorCritic(2, 2, hidden=(hidden, hidden)), cfg)
+    ppo.train_epoch()
+    ppo.save(out_dir / "two_ranks.pt")  # collective; rank 0 writes
+    if rank == 0:
+        torch.save({"policy": ppo.policy.state_dict(), "optimizer": ppo.optimizer.state_dict(),
+                    "generator": ppo.generator.get_state()}, out_dir / "rank0.pt")
 
 
-@pytest.mark.parametrize("case", ["hidden width = local envs", "generator state length = local envs"])
-def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(tmp_path: Path, case: str) -> None:
+@pytest.mark.parametrize("case", list(NAMED_STATE_CASES))
+def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(two_ranks: dict[tuple[str, str], Any], case: str) -> None:
     """The data-loss bug: deciding per-environment state by shape stacked the two ranks' identical weights (and
     Adam moments, or the generator state) when a dimension happened to equal the local env count."""
-    if case.startswith("hidden"):
-        local_envs = hidden = 4
-    else:
-        local_envs, hidden = torch.Generator().get_state().numel(), 8
-    mp.spawn(_named_state_worker, args=(2, str(tmp_path / "pg"), str(tmp_path), local_envs, hidden), nprocs=2, join=True)
-    rank0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
-    loaded = PPO.load(tmp_path / "two_ranks.pt", ToyEnv(2 * local_envs))
+    folder, (local_envs, _) = two_ranks["named", case]["folder"], NAMED_STATE_CASES[case]
+    rank0 = torch.load(folder / "rank0.pt", weights_only=True)
+    loaded = PPO.load(folder / "two_ranks.pt", ToyEnv(2 * local_envs))
     assert loaded.num_envs == 2 * local_envs and loaded.env.pos.shape == (2 * local_envs, 2)
     for name, tensor in rank0["policy"].items():
         assert torch.equal(loaded.policy.state_dict()[name], tensor), name
@@ -352,6 +378,7 @@ def finished_then_aborted(output: str, run: Path) -> bool:
             and "done: 1 epochs" in output and (run / "checkpoints" / "epoch_000001.pt").is_file())
 
 
+@pytest.mark.slow
 def test_torchrun_two_ranks_write_once_and_resume_with_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     torchrun = Path(sys.executable).parent / "torchrun"
     if not torchrun.exists():

@@ -506,6 +506,7 @@ def test_agent_cleanrl_on_the_command_line_is_the_preset(name: str) -> None:
     assert (preset.entropy_coeff, preset.num_sgd_iter) == ((0.01, 4) if name == "cleanrl_discrete" else (0.0, 10))
 
 
+@pytest.mark.slow
 def test_cleanrl_preset_solves_inverted_pendulum() -> None:
     """CleanRL's defaults (batch 2048 = 8 envs × 256 steps, 32 minibatches, 10 passes, lr annealed over 100k steps)
     reach a deterministic evaluation return ≥ 950 (the maximum is 1000) within 100k steps, in under a minute."""

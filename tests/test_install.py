@@ -89,6 +89,7 @@ def test_wheel_holds_every_module_and_config(built: tuple[Path, Path]) -> None:
     assert not missing, f"{missing} not in the wheel: the zoo ships as package data (pyproject.toml package-data)"
 
 
+@pytest.mark.slow
 def test_installed_apps_train_and_render_outside_the_checkout(venv: Path, tmp_path: Path) -> None:
     python, bin_dir = venv / "bin" / "python", venv / "bin"
     site = Path(_run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"]).strip()).resolve()

@@ -210,6 +210,7 @@ def test_rl_vs_evolution_preset_keeps_the_protocol_its_documented_table_was_meas
     assert (cfg.env, cfg.agent) == (demo.env, demo.agent)
 
 
+@pytest.mark.slow
 def test_cpu_demo_protocol_does_not_pay_a_body_without_muscle_for_falling_over():
     """A passive body cannot walk. Under the demo's protocol the evaluation starts after nearly every random design
     made passive has landed, so they earn ≈ 0; with the 0.25 s burn-in the demo had until 2026-11-23 most of the same

@@ -306,6 +306,7 @@ def _rank_worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_a_signal_reaching_rank_0_alone_stops_every_rank_at_the_same_epoch(tmp_path: Path) -> None:
     import torch.multiprocessing as mp
 

@@ -217,6 +217,7 @@ def test_own_envs_pass_gymnasiums_checker_and_ppo_learns_them(env_class: type[gy
     assert before < 3.0 and after >= 0.95 * 4, (before, after)
 
 
+@pytest.mark.slow
 def test_cartpole_is_solved() -> None:
     """CartPole-v1 with CleanRL's ``ppo.py`` settings (4 envs, 128 steps, 4 × 128 minibatches, 4 passes, entropy
     0.01, a time limit ended as a termination) at lr 1e-3 for 100k steps (19 s alone on a 2-core AVX2 host): the greedy

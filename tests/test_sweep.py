@@ -49,6 +49,7 @@ if os.environ.get("SUBMITIT_LOCAL_JOB_ID"):  # a submitit_local job's task (not 
 """
 
 
+@pytest.mark.slow
 def test_submitit_local_sweep_over_two_seeds_completes_after_interrupting_each_job(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
