@@ -50,7 +50,7 @@ def test_commands_equal_to_the_clock_term_reproduce_the_open_loop_gait_bit_for_b
             commanded.advance(1)
             steps += 1
     open_loop.advance(steps)
-    assert (commanded.robot_time() >= 0.5).all()  # half a second of gait, a few hundred strokes of actuation
+    assert (commanded.robot_time() >= 0.5).all()  # half a second of gait: two periods of the sine
     np.testing.assert_array_equal(commanded.positions(), open_loop.positions())
     np.testing.assert_array_equal(commanded.orientations(), open_loop.orientations())
     assert np.abs(open_loop.positions() - sim_o.layout(bodies()).lattice * cfg.voxel_size).max() > 1e-4  # it moved
