@@ -34,20 +34,21 @@ def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Files holding a ``slow`` test run first, so that under ``make test``'s xdist workers (whole files each, in
-    this order) the last files to start are short ones and both workers finish together: xdist's own order, by
-    test count, left a 38 s file last and one worker idle. Reference tests check the strict path's claim; a
+    this order: ``--no-loadscope-reorder``; without it xdist orders files by test count) the last files to start
+    are short ones and both workers finish together: xdist's own order left a 38 s file last and one worker idle. Reference tests check the strict path's claim; a
     fast-math process compiles another program, whose results depend on the host CPU's vector features
     (docs/physics.md): they are skipped there, saying why."""
     from freeform.sim import runtime
 
-    slow_files = {item.path for item in items if "slow" in item.keywords}
+    # (markers, not `in item.keywords`: keywords hold every name up the tree, a folder's among them)
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
     items.sort(key=lambda item: item.path not in slow_files)  # stable: the collection's order within each group
     if not runtime.fast_math():
         return
     skip = pytest.mark.skip(reason="a reference test: holds on the strict path (FREEFORM_FAST_MATH=0); this process "
                                    "compiles with fast-math, whose rounding depends on the host CPU")
     for item in items:
-        if "reference" in item.keywords:
+        if item.get_closest_marker("reference") is not None:
             item.add_marker(skip)
 
 

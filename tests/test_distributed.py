@@ -1,17 +1,19 @@
 """Data-parallel PPO on the CPU with ``gloo``: R = 2 ranks give the single process's run, up to summation order.
 
-The 2-rank runs are real process groups spawned by the tests (``torch.multiprocessing`` for the algorithm,
-``torchrun`` for the training app); the truth they are held to is the 1-process run of the same config and seed,
+The 2-rank runs are real process groups: one spawned pair of ranks (``torch.multiprocessing``, a module fixture) runs
+every case of the algorithm, each its own folder, and ``torchrun`` runs the training app; the truth they are held to is the 1-process run of the same config and seed,
 which is the unchanged single-process algorithm. The environment count (5) does not divide by the ranks (3 + 2).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import subprocess
 import sys
 import warnings
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -102,15 +104,20 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
     """One rank of every 2-rank case of this file, in one process group: a spawned process pays its interpreter's
     start (torch, freeform) once for all of them, and each case writes its results to its own folder."""
     torch.set_num_threads(1)
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    # (a rank whose collectives fall out of step with the other's fails in minutes, not gloo's default 30)
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world,
+                            timeout=timedelta(minutes=5))
+    out = Path(out_dir)
+    cases = [*(("ppo", c, functools.partial(_ppo_case, case=c)) for c in CASES),
+             *(("distill", s, functools.partial(_distill_case, student=s)) for s in STUDENTS),
+             *(("named", c, functools.partial(_named_state_case, local_envs=n, hidden=h))
+               for c, (n, h) in NAMED_STATE_CASES.items())]
     try:
-        out = Path(out_dir)
-        for case in CASES:
-            _ppo_case(rank, world, out / "ppo" / case, case)
-        for student in STUDENTS:
-            _distill_case(rank, world, out / "distill" / student, student)
-        for case, (local_envs, hidden) in NAMED_STATE_CASES.items():
-            _named_state_case(rank, world, out / "named" / case, local_envs, hidden)
+        for kind, case, run in cases:
+            try:
+                run(rank, world, out / kind / case)
+            except Exception as exc:  # (every test of the fixture reports this: say which case failed)
+                raise RuntimeError(f"2-rank case {kind}/{case} failed on rank {rank}") from exc
         dist.barrier()  # both ranks are done with gloo before either tears it down
     finally:
         dist.destroy_process_group()
@@ -121,8 +128,8 @@ def _worker(rank: int, world: int, init_file: str, out_dir: str) -> None:
 
 @pytest.fixture(scope="module")
 def two_ranks(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Any]:
-    """Every case's 1-process run (the PPO cases' first epoch checkpointed for the ranks to resume), then one
-    spawned pair of gloo ranks running every case: ``{(kind, case): {folder, one: the 1-process results, ranks:
+    """The 1-process runs of the PPO and distillation cases (the PPO cases' first epoch checkpointed for the ranks
+    to resume), then one spawned pair of gloo ranks running every case: ``{(kind, case): {folder, one: the 1-process results, ranks:
     [rank 0's, rank 1's]}}``, kind "ppo" | "distill" | "named" (whose results are the files in its folders)."""
     root = tmp_path_factory.mktemp("two_ranks")
     threads, rng = torch.get_num_threads(), torch.get_rng_state()
@@ -155,6 +162,7 @@ def two_ranks(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str],
                         *(("named", c) for c in NAMED_STATE_CASES))}
 
 
+@pytest.mark.slow  # (the two_ranks fixture: one spawn for all)
 @pytest.mark.parametrize("case", list(CASES))
 def test_two_gloo_ranks_match_one_process(two_ranks: dict[tuple[str, str], Any], case: str) -> None:
     one, ranks = two_ranks["ppo", case]["one"], two_ranks["ppo", case]["ranks"]
@@ -219,6 +227,7 @@ def _distill_case(rank: int, world: int, out_dir: Path, student: str) -> None:
     torch.save({"stats": stats, "params": flat_params(learner)}, out_dir / f"rank{rank}.pt")
 
 
+@pytest.mark.slow  # (the two_ranks fixture: one spawn for all)
 @pytest.mark.parametrize("student", STUDENTS)
 def test_two_gloo_ranks_distil_as_one_process(two_ranks: dict[tuple[str, str], Any], student: str) -> None:
     """algo=distill data-parallel: the teachers' mixing draws, the aggregated dataset's minibatches (samples, or a
@@ -346,6 +355,7 @@ def _named_state_case(rank: int, world: int, out_dir: Path, local_envs: int, hid
                     "generator": ppo.generator.get_state()}, out_dir / "rank0.pt")
 
 
+@pytest.mark.slow  # (the two_ranks fixture: one spawn for all)
 @pytest.mark.parametrize("case", list(NAMED_STATE_CASES))
 def test_two_rank_checkpoint_loads_in_one_process_with_rank0s_exact_state(two_ranks: dict[tuple[str, str], Any], case: str) -> None:
     """The data-loss bug: deciding per-environment state by shape stacked the two ranks' identical weights (and
